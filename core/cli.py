@@ -1,0 +1,243 @@
+"""The ``teletouch`` command line.
+
+Core commands: plugins, validate, schema, run, devices. Plugins add their own (calibrate, estimate, experiment, ...)
+through the ``teletouch_add_commands`` hook.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+from typing import Any, Sequence
+
+from . import __version__
+from .errors import GraphValidationError, TeletouchError
+from .registry import default_registry
+from .runtime import EXIT_INVALID, EXIT_OK, Runtime
+
+
+def _add_graph_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("graph", help="graph file (YAML)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",
+                   help="override a parameter, the plugin or the rate of a node (repeatable)")
+    p.add_argument("--clock", choices=("sim", "wall"), default=None, help="override the graph's clock")
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    reg = default_registry()
+    rows = reg.describe()
+    if args.json:
+        print(json.dumps(rows, indent=2, default=str))
+        return EXIT_OK
+    for r in rows:
+        if r.get("error"):
+            print(f"{r['name']}  [FAILED TO LOAD]  {r['distribution']} {r['version']}\n    error: {r['error']}\n")
+            continue
+        print(f"{r['name']}  ({r['kind']})  {r['distribution']} {r['version']}")
+        if r.get("description"):
+            print(f"    {r['description']}")
+        for p in r["ports"]:
+            shape = "scalar" if not p["shape"] else "x".join("*" if d is None else str(d) for d in p["shape"])
+            arrow = "<-" if p["direction"] == "in" else "->"
+            opt = "" if p.get("required", True) else " (optional)"
+            print(f"    {arrow} {p['name']:<16} {p['dtype']}[{shape}] {p['unit'] or '1'}{opt}")
+        for prm in r["params"]:
+            unit = f" {prm['unit']}" if prm.get("unit") else ""
+            print(f"    .  {prm['name']:<16} = {prm['default']!r}{unit}   {prm.get('description', '')}")
+        print()
+    blocked = [p.name for p in reg.plugins.values() if p.blocked]
+    if blocked:
+        print("blocked: " + ", ".join(blocked))
+    return EXIT_OK
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from .graph import load_graph
+
+    spec = load_graph(args.graph, sets=args.sets, clock=args.clock)
+    rates = ", ".join(f"{n.id}@{n.rate:g}Hz" for n in spec.order())
+    print(f"{args.graph}: OK ({len(spec.nodes)} nodes: {rates}; clock {spec.clock})")
+    return EXIT_OK
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from .graph import dump_schema
+
+    text = dump_schema()
+    if args.output:
+        with open(args.output, "w", encoding="utf-8") as fh:
+            fh.write(text + "\n")
+        print(f"wrote {args.output}", file=sys.stderr)
+    else:
+        print(text)
+    return EXIT_OK
+
+
+class _Progress:
+    """A one-line live view on stderr: graph time, achieved rates, overruns and each node's status numbers."""
+
+    def __init__(self, stream: Any = None):
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.last_len = 0
+
+    def __call__(self, rt: Runtime, t: float) -> None:
+        parts = [f"t={t:7.2f}s"]
+        elapsed = max(t, 1e-9)
+        overruns = 0
+        for n in rt.nodes:
+            overruns += n.overruns
+            item = f"{n.id} {n.steps / elapsed:6.1f}Hz"
+            try:
+                st = n.comp.status()
+            except Exception:
+                st = {}
+            for k, v in list(st.items())[:4]:
+                item += f" {k}={_fmt(v)}"
+            parts.append(item)
+        parts.append(f"overruns {overruns}")
+        line = " | ".join(parts)
+        if self.tty:
+            width = os.get_terminal_size(self.stream.fileno()).columns if hasattr(self.stream, "fileno") else 200
+            line = line[: max(width - 1, 40)]
+            self.stream.write("\r" + line + " " * max(0, self.last_len - len(line)))
+            self.last_len = len(line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def done(self) -> None:
+        if self.tty and self.last_len:
+            self.stream.write("\n")
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .graph import load_graph
+
+    spec = load_graph(args.graph, sets=args.sets, clock=args.clock, duration=args.duration)
+    if spec.clock == "sim" and spec.duration is None:
+        print(f"{args.graph}: the simulated clock needs a duration: add 'duration:' to the graph or pass "
+              f"--duration S", file=sys.stderr)
+        return EXIT_INVALID
+    rt = Runtime(spec)
+    recorder = None
+    if getattr(args, "record", None):
+        from .recording import Recorder
+
+        recorder = Recorder(args.record, spec)
+        rt.add_tap(recorder.tap)
+    progress = None if args.quiet else _Progress()
+    old = signal.getsignal(signal.SIGTERM)
+
+    def _term(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _term)
+    try:
+        result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if progress is not None:
+            progress.done()
+        if recorder is not None:
+            recorder.close()
+    if not args.quiet:
+        print(result.summary(), file=sys.stderr)
+    if args.json:
+        print(json.dumps(result.as_dict(), default=str))
+    print(f"teletouch: {result.status}: {result.message}", file=sys.stderr)
+    return result.exit_code
+
+
+def cmd_devices(args: argparse.Namespace) -> int:
+    found = default_registry().discover_devices()
+    if args.json:
+        print(json.dumps(found, indent=2, default=str))
+        return EXIT_OK
+    if not found:
+        print("no supported hardware found")
+    for d in found:
+        extra = f"  error: {d['error']}" if d.get("error") else ""
+        details = d.get("details") or {}
+        det = "  ".join(f"{k}={v}" for k, v in details.items())
+        print(f"{d.get('kind', '?'):<12} {d.get('id', ''):<20} {d.get('path', ''):<20} {det}{extra}")
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="teletouch", description="Tactile force estimation and position-force "
+                                     "teleoperation. See `teletouch COMMAND -h`.")
+    parser.add_argument("--version", action="version", version=f"teletouch {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("plugins", help="list installed components (and plugins that failed to load)")
+    p.add_argument("--json", action="store_true", help="machine-readable list")
+    p.set_defaults(func=cmd_plugins)
+
+    p = sub.add_parser("validate", help="check a graph file without running it")
+    _add_graph_args(p)
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("schema", help="print the JSON Schema of the graph format (for editors)")
+    p.add_argument("-o", "--output", help="write to this file")
+    p.set_defaults(func=cmd_schema)
+
+    p = sub.add_parser("run", help="run a graph")
+    _add_graph_args(p)
+    p.add_argument("--duration", type=str, default=None, help="seconds (or '10s'); default: the graph's")
+    p.add_argument("--quiet", action="store_true", help="no live view and no summary table")
+    p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
+    p.add_argument("--progress-interval", type=float, default=0.5, help="live view period (s)")
+    p.add_argument("--record", metavar="FILE.mcap", default=None, help="record every port to an MCAP file")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("devices", help="list connected supported hardware")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_devices)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    try:
+        reg = default_registry()
+        reg.pm.hook.teletouch_add_commands(subparsers=sub)
+    except TeletouchError as exc:
+        print(f"teletouch: error: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return EXIT_OK
+    if getattr(args, "duration", None) is not None and args.command == "run":
+        from .units import parse_quantity
+
+        try:
+            args.duration = parse_quantity(args.duration, "s")
+        except ValueError as exc:
+            parser.error(f"--duration: {exc}")
+    try:
+        return int(args.func(args) or 0)
+    except GraphValidationError as exc:
+        print(f"teletouch: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    except TeletouchError as exc:
+        print(f"teletouch: error: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    except KeyboardInterrupt:
+        print("teletouch: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

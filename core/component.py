@@ -1,0 +1,281 @@
+"""Components: the unit every plugin supplies.
+
+A component has a *kind* (sensor, estimator, device, controller, bridge), typed input and output *ports*, validated
+*parameters* (a pydantic model with defaults and units in its schema) and a *lifecycle*::
+
+    unconfigured --configure()--> inactive --activate()--> active --step()...--> deactivate() --> inactive
+                                                                                   close() --> finalized
+
+A :class:`Device` also has a safe state (:meth:`Device.safe_state`) that the runtime drives it to on any fault,
+on Ctrl-C and at the end of every run: zero force on a leader, hold position on a follower.
+
+Data flows as :class:`Sample` objects (a value and the time it was measured, in seconds on the graph's clock).
+Ports hold the latest sample; a consumer reads whatever is newest and can tell how old it is.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import re
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Iterator, Mapping
+
+from pydantic import BaseModel, ConfigDict
+
+__all__ = [
+    "Kind", "Port", "Sample", "Inputs", "Params", "Component", "Device", "Context", "NAME_RE",
+]
+
+NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
+
+
+class Kind(str, enum.Enum):
+    SENSOR = "sensor"
+    ESTIMATOR = "estimator"
+    DEVICE = "device"
+    CONTROLLER = "controller"
+    BRIDGE = "bridge"
+
+    def __str__(self) -> str:  # pragma: no cover - trivial
+        return self.value
+
+
+@dataclass(frozen=True)
+class Port:
+    """A typed port.
+
+    dtype: numpy dtype name ("float64", "uint8", "bool", ...) or "any".
+    shape: () for a scalar; ``None`` in a dimension means any size (an image is ``(None, None, 3)``).
+    unit: SI unit symbol ("m", "N", "s", "m^2", "m/s"); "" for dimensionless; "any" to accept anything.
+    required: for inputs, whether the graph must wire it.
+    max_age: for inputs, the default staleness limit in seconds (None: no limit); a graph may override it.
+    """
+
+    dtype: str = "float64"
+    shape: tuple[int | None, ...] = ()
+    unit: str = ""
+    description: str = ""
+    required: bool = True
+    max_age: float | None = None
+
+    def describe(self) -> str:
+        shape = "scalar" if self.shape == () else "x".join("*" if d is None else str(d) for d in self.shape)
+        unit = self.unit or "1"
+        return f"{self.dtype}[{shape}] {unit}"
+
+    def accepts(self, source: "Port") -> str | None:
+        """Return None if data from ``source`` may flow into this (input) port, else why not."""
+        if self.dtype != "any" and source.dtype != "any" and self.dtype != source.dtype:
+            return f"type mismatch: {source.dtype} -> {self.dtype}"
+        if self.unit != "any" and source.unit != "any" and self.unit != source.unit:
+            return f"unit mismatch: '{source.unit or '1'}' -> '{self.unit or '1'}'"
+        if self.shape is not None and source.shape is not None:
+            if len(self.shape) != len(source.shape):
+                return f"shape mismatch: {source.describe()} -> {self.describe()}"
+            for a, b in zip(self.shape, source.shape):
+                if a is not None and b is not None and a != b:
+                    return f"shape mismatch: {source.describe()} -> {self.describe()}"
+        return None
+
+    def as_dict(self, name: str) -> dict[str, Any]:
+        d: dict[str, Any] = {"name": name, "dtype": self.dtype, "shape": list(self.shape), "unit": self.unit}
+        if self.description:
+            d["description"] = self.description
+        return d
+
+
+class Sample:
+    """A value and the time (s, graph clock) at which it was measured."""
+
+    __slots__ = ("value", "stamp")
+
+    def __init__(self, value: Any, stamp: float):
+        self.value = value
+        self.stamp = stamp
+
+    def age(self, now: float) -> float:
+        return now - self.stamp
+
+    def __repr__(self) -> str:
+        return f"Sample({self.value!r}, stamp={self.stamp:.6f})"
+
+
+class _Slot:
+    """Holds the latest sample of one output port. Assignment of a reference is atomic in CPython."""
+
+    __slots__ = ("sample",)
+
+    def __init__(self) -> None:
+        self.sample: Sample | None = None
+
+
+class Inputs:
+    """Read-only view of a node's inputs: ``inputs["force"]`` is the latest :class:`Sample` (or None)."""
+
+    __slots__ = ("_slots",)
+
+    def __init__(self, slots: Mapping[str, _Slot]):
+        self._slots = dict(slots)
+
+    def __getitem__(self, name: str) -> Sample | None:
+        return self._slots[name].sample
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._slots
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._slots)
+
+    def get(self, name: str) -> Sample | None:
+        slot = self._slots.get(name)
+        return None if slot is None else slot.sample
+
+    def value(self, name: str, default: Any = None) -> Any:
+        """The latest value of ``name``, or ``default`` if it is unwired or nothing arrived yet."""
+        slot = self._slots.get(name)
+        if slot is None or slot.sample is None:
+            return default
+        return slot.sample.value
+
+    def age(self, name: str, now: float) -> float:
+        """Seconds since the latest sample of ``name`` was measured (inf if none yet)."""
+        slot = self._slots.get(name)
+        if slot is None or slot.sample is None:
+            return math.inf
+        return now - slot.sample.stamp
+
+    def fresh(self, name: str, now: float, max_age: float) -> Any:
+        """The latest value if it is at most ``max_age`` seconds old, else None."""
+        slot = self._slots.get(name)
+        if slot is None or slot.sample is None or now - slot.sample.stamp > max_age:
+            return None
+        return slot.sample.value
+
+
+class Params(BaseModel):
+    """Base class of component parameters: unknown fields are refused, values are validated on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class Context:
+    """What the runtime gives a component: the clock, a logger and a way to end the run."""
+
+    def __init__(self, now: Callable[[], float] | None = None, clock_kind: str = "sim",
+                 request_stop: Callable[[str], None] | None = None,
+                 log: Callable[[str], None] | None = None,
+                 from_monotonic: Callable[[float], float] | None = None):
+        import time
+
+        t0 = time.monotonic()
+        self.now = now or (lambda: time.monotonic() - t0)
+        self.clock_kind = clock_kind
+        self._request_stop = request_stop
+        self._log = log
+        self.from_monotonic = from_monotonic or (lambda m: m - t0)
+
+    def request_stop(self, reason: str = "done") -> None:
+        """End the run normally (e.g. a calibration routine that has finished)."""
+        if self._request_stop is not None:
+            self._request_stop(reason)
+
+    def log(self, message: str) -> None:
+        if self._log is not None:
+            self._log(message)
+
+
+class Component:
+    """Base class for all components. Subclasses set ``name``, ``kind``, ``Params``, ``inputs``, ``outputs``
+    and implement :meth:`step`; lifecycle hooks are optional.
+
+    ``step(t, inputs)`` is called at the node's rate with the current graph time ``t`` (s). It returns a mapping of
+    output port name to value (stamped with ``t``) or to a :class:`Sample` (to give the measurement time, e.g. a
+    camera's capture time), or None for no new outputs.
+    """
+
+    name: ClassVar[str] = ""
+    kind: ClassVar[Kind] = Kind.ESTIMATOR
+    description: ClassVar[str] = ""
+    Params: ClassVar[type[Params]] = Params
+    inputs: ClassVar[dict[str, Port]] = {}
+    outputs: ClassVar[dict[str, Port]] = {}
+    default_rate: ClassVar[float | None] = None
+    #: True for drivers of real hardware: refused under the simulated clock.
+    requires_wall_clock: ClassVar[bool] = False
+
+    def __init__(self, params: Params | Mapping[str, Any] | None = None, *, node_id: str | None = None,
+                 ctx: Context | None = None):
+        if params is None:
+            params = self.Params()
+        elif not isinstance(params, BaseModel):
+            params = self.Params(**dict(params))
+        self.params = params
+        self.id = node_id or self.name
+        self.ctx = ctx or Context()
+
+    # lifecycle hooks -------------------------------------------------------------------------------------------
+    def configure(self) -> None:
+        """Allocate resources, open connections, load models. May raise; then the run does not start."""
+
+    def activate(self) -> None:
+        """Start acting (enable forces, start capture)."""
+
+    def step(self, t: float, inputs: Inputs) -> Mapping[str, Any] | None:
+        raise NotImplementedError(f"{type(self).__name__}.step")
+
+    def deactivate(self) -> None:
+        """Stop acting; the component may be activated again."""
+
+    def close(self) -> None:
+        """Release everything; called once, even after a failed configure."""
+
+    def status(self) -> dict[str, Any]:
+        """A few numbers for the live view (SI units)."""
+        return {}
+
+    # introspection ---------------------------------------------------------------------------------------------
+    @classmethod
+    def describe(cls) -> dict[str, Any]:
+        schema = cls.Params.model_json_schema()
+        params = []
+        for pname, prop in schema.get("properties", {}).items():
+            params.append({
+                "name": pname,
+                "type": _schema_type(prop),
+                "default": prop.get("default"),
+                "unit": prop.get("unit", ""),
+                "description": prop.get("description", ""),
+            })
+        ports = [dict(p.as_dict(n), direction="in", required=p.required) for n, p in cls.inputs.items()]
+        ports += [dict(p.as_dict(n), direction="out") for n, p in cls.outputs.items()]
+        return {"name": cls.name, "kind": str(cls.kind.value), "description": cls.description or _doc1(cls),
+                "ports": ports, "params": params}
+
+
+class Device(Component):
+    """A component that moves something in the world. It must define :meth:`safe_state`."""
+
+    kind: ClassVar[Kind] = Kind.DEVICE
+
+    def safe_state(self) -> None:
+        """Drive the hardware to its safe state (zero leader force; follower holds position). Must not raise
+        for a device that is already safe or disconnected; it is called on every stop path."""
+        raise NotImplementedError(f"{type(self).__name__} must define safe_state()")
+
+
+def _schema_type(prop: dict[str, Any]) -> str:
+    if "type" in prop:
+        return str(prop["type"])
+    if "enum" in prop:
+        return "enum(" + "|".join(map(str, prop["enum"])) + ")"
+    if "anyOf" in prop:
+        return "|".join(_schema_type(p) for p in prop["anyOf"])
+    if "$ref" in prop:
+        return prop["$ref"].rsplit("/", 1)[-1]
+    return "any"
+
+
+def _doc1(cls: type) -> str:
+    doc = (cls.__doc__ or "").strip()
+    return doc.splitlines()[0] if doc else ""

@@ -1,0 +1,71 @@
+"""Exceptions raised by teletouch. Every user-facing error says where (file, line, field) and what was expected."""
+
+from __future__ import annotations
+
+
+class TeletouchError(Exception):
+    """Base class for all teletouch errors."""
+
+
+class PluginError(TeletouchError):
+    """A plugin could not be loaded or registered."""
+
+
+class DuplicateComponentError(PluginError):
+    """Two distributions provide a component with the same name."""
+
+
+class UnknownComponentError(PluginError):
+    """No component with the requested name is registered."""
+
+
+class Location:
+    """A place in a text file (1-based line), used to point users at their mistake."""
+
+    __slots__ = ("file", "line")
+
+    def __init__(self, file: str | None, line: int | None):
+        self.file = file
+        self.line = line
+
+    def __str__(self) -> str:
+        if self.file and self.line:
+            return f"{self.file}:{self.line}"
+        return self.file or "<graph>"
+
+    def __repr__(self) -> str:
+        return f"Location({self.file!r}, {self.line!r})"
+
+
+class GraphError(TeletouchError):
+    """One problem in a graph file, with its location."""
+
+    def __init__(self, message: str, where: Location | None = None):
+        self.message = message
+        self.where = where or Location(None, None)
+        super().__init__(f"{self.where}: {message}")
+
+
+class GraphValidationError(TeletouchError):
+    """All the problems found while validating a graph (validation never stops at the first)."""
+
+    def __init__(self, errors: list[GraphError]):
+        self.errors = list(errors)
+        lines = [str(e) for e in self.errors]
+        super().__init__(f"{len(lines)} error(s) in graph:\n  " + "\n  ".join(lines))
+
+
+class ComponentFault(TeletouchError):
+    """Raised by a component (or the runtime on its behalf) when it cannot go on safely."""
+
+    def __init__(self, message: str, node: str | None = None):
+        self.node = node
+        super().__init__(f"node '{node}': {message}" if node else message)
+
+
+class HardwareError(ComponentFault):
+    """The hardware cannot be reached or answered wrongly. The message says what to check."""
+
+
+class ModelFileError(TeletouchError):
+    """A model or calibration file is missing, corrupt or of the wrong version."""

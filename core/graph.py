@@ -1,0 +1,561 @@
+"""Graph files: load (with includes and overrides), validate everything before anything runs, export a JSON Schema.
+
+A graph file::
+
+    name: paper-sim
+    include: base.yaml            # optional; a list is allowed. Nodes with the same id are merged (override).
+    clock: sim                    # sim (deterministic, as fast as possible) or wall (real time)
+    duration: 10                  # s (or "10s"); optional
+    faults:
+      on_fault: stop              # default reaction to a node's fault: stop | degrade
+      max_overruns: 10            # consecutive missed periods before a node faults (wall clock; 0 = never)
+      startup_grace: 1.0          # s before stale-input checks start
+    nodes:
+      - id: mapper
+        plugin: poly-force
+        rate: 60                  # Hz (or "1kHz")
+        params: {degree: 3}
+        inputs:
+          max_depth: depth.max_depth                          # node.port
+          mask: {from: depth.contact_mask, max_age: 0.1}      # with a staleness limit (s)
+        on_fault: degrade         # optional, per node
+
+Every error names the file and line.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+from pydantic import ValidationError
+
+from .component import Component, Device, Port
+from .errors import GraphError, GraphValidationError, Location
+from .units import parse_quantity
+from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
+
+TOP_KEYS = ("name", "description", "include", "clock", "duration", "faults", "nodes")
+NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "remove", "description")
+FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace")
+FAULT_ACTIONS = ("stop", "degrade")
+CLOCKS = ("sim", "wall")
+ID_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
+
+
+@dataclass
+class WireSpec:
+    port: str
+    node: str
+    source_port: str
+    max_age: float | None
+    where: Location
+
+
+@dataclass
+class NodeSpec:
+    id: str
+    plugin: str
+    rate: float | None
+    params: dict[str, Any]
+    inputs: dict[str, WireSpec]
+    on_fault: str | None
+    where: Location
+    param_where: dict[str, Location] = field(default_factory=dict)
+    # filled in by validation
+    cls: type[Component] | None = None
+    params_obj: Any = None
+
+
+@dataclass
+class FaultPolicy:
+    on_fault: str = "stop"
+    max_overruns: int = 10
+    startup_grace: float = 1.0
+
+
+@dataclass
+class GraphSpec:
+    name: str
+    file: str
+    nodes: list[NodeSpec]
+    clock: str = "wall"
+    duration: float | None = None
+    faults: FaultPolicy = field(default_factory=FaultPolicy)
+    description: str = ""
+
+    def node(self, node_id: str) -> NodeSpec:
+        for n in self.nodes:
+            if n.id == node_id:
+                return n
+        raise KeyError(node_id)
+
+    def order(self) -> list[NodeSpec]:
+        """Nodes in data-flow order (producers before consumers); feedback edges are cut where found."""
+        by_id = {n.id: n for n in self.nodes}
+        seen: dict[str, int] = {}
+        out: list[NodeSpec] = []
+
+        def visit(n: NodeSpec) -> None:
+            state = seen.get(n.id)
+            if state is not None:
+                return  # done (2) or on the stack (1): a feedback edge, cut here
+            seen[n.id] = 1
+            for w in n.inputs.values():
+                src = by_id.get(w.node)
+                if src is not None:
+                    visit(src)
+            seen[n.id] = 2
+            out.append(n)
+
+        for n in self.nodes:
+            visit(n)
+        return out
+
+
+# ------------------------------------------------------------------------------------------------ loading / merging
+def _suggest(name: str, options: Iterable[str]) -> str:
+    close = difflib.get_close_matches(name, list(options), n=2, cutoff=0.6)
+    return (" (did you mean " + " or ".join(f"'{c}'" for c in close) + "?)") if close else ""
+
+
+def _merge(base: Any, over: Any) -> Any:
+    """Overlay ``over`` onto ``base``: mappings merge key by key, node lists merge by id, the rest replaces."""
+    if isinstance(base, dict) and isinstance(over, dict):
+        out = copy.copy(base)
+        if isinstance(base, LDict):
+            out.key_where = dict(base.key_where)
+        for k, v in over.items():
+            out[k] = _merge(base[k], v) if k in base and k != "include" else v
+            if isinstance(out, LDict) and isinstance(over, LDict):
+                out.key_where[k] = over.loc(k)
+        return out
+    return over
+
+
+def _merge_nodes(base: list, over: list) -> LList:
+    out = LList(where=getattr(base, "where", None))
+    out.extend(base)
+    out.item_where = list(getattr(base, "item_where", [Location(None, None)] * len(base)))
+    index = {n.get("id"): i for i, n in enumerate(out) if isinstance(n, dict)}
+    for j, node in enumerate(over):
+        nid = node.get("id") if isinstance(node, dict) else None
+        where = over.loc(j) if isinstance(over, LList) else Location(None, None)
+        if nid is not None and nid in index:
+            i = index[nid]
+            if node.get("remove"):
+                out[i] = None
+                continue
+            merged = _merge(out[i], node)
+            if node.get("plugin") not in (None, out[i].get("plugin")) and "params" not in node:
+                merged["params"] = LDict(where=where)  # a new plugin does not inherit the old one's params
+            out[i] = merged
+        else:
+            out.append(node)
+            out.item_where.append(where)
+            if nid is not None:
+                index[nid] = len(out) - 1
+    keep = [i for i, n in enumerate(out) if n is not None]
+    res = LList([out[i] for i in keep], where=out.where)
+    res.item_where = [out.item_where[i] for i in keep]
+    return res
+
+
+def load_raw(path: str | Path, _stack: tuple[str, ...] = ()) -> LDict:
+    """Load a graph file with its includes resolved (no validation against plugins yet)."""
+    path = Path(path)
+    key = str(path.resolve())
+    if key in _stack:
+        raise GraphError("include cycle: " + " -> ".join(_stack + (key,)), Location(str(path), None))
+    doc = load_yaml_file(path)
+    if not isinstance(doc, dict):
+        raise GraphError("a graph file must be a mapping with a 'nodes' list", getattr(doc, "where", None))
+    inc = doc.get("include")
+    if inc is None:
+        return doc
+    incs = [inc] if isinstance(inc, str) else inc
+    if not isinstance(incs, list) or not all(isinstance(i, str) for i in incs):
+        raise GraphError("'include' must be a file name or a list of file names", doc.loc("include"))
+    merged: LDict | None = None
+    for i, name in enumerate(incs):
+        sub_path = (path.parent / name)
+        if not sub_path.exists():
+            raise GraphError(f"included file '{name}' not found (looked in {sub_path.parent})", doc.loc("include"))
+        sub = load_raw(sub_path, _stack + (key,))
+        merged = sub if merged is None else _overlay(merged, sub)
+    assert merged is not None
+    return _overlay(merged, doc)
+
+
+def _overlay(base: LDict, over: LDict) -> LDict:
+    out = LDict(where=over.where)
+    out.update(base)
+    out.key_where = dict(base.key_where)
+    for k, v in over.items():
+        if k == "include":
+            continue
+        if k == "nodes" and isinstance(v, list) and isinstance(base.get("nodes"), list):
+            out[k] = _merge_nodes(base["nodes"], v)
+        elif k in base:
+            out[k] = _merge(base[k], v)
+        else:
+            out[k] = v
+        out.key_where[k] = over.loc(k)
+    return out
+
+
+def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
+    """Apply ``--set NODE.FIELD=VALUE`` overrides (FIELD: plugin, rate, on_fault or a parameter; nested with dots)."""
+    where = Location("--set", None)
+    for item in sets:
+        if "=" not in item:
+            raise GraphError(f"'{item}': expected NODE.FIELD=VALUE, e.g. gripper.plugin=sim-gripper", where)
+        lhs, rhs = item.split("=", 1)
+        parts = lhs.strip().split(".")
+        if len(parts) < 2:
+            raise GraphError(f"'{item}': expected NODE.FIELD=VALUE, e.g. mapper.degree=3", where)
+        value = load_yaml_text(rhs, "--set") if rhs.strip() else ""
+        if isinstance(value, (LDict, LList)):
+            value = _plain(value)
+        nodes = doc.get("nodes")
+        if not isinstance(nodes, list):
+            raise GraphError(f"'{item}': the graph has no nodes", where)
+        node = next((n for n in nodes if isinstance(n, dict) and n.get("id") == parts[0]), None)
+        if node is None:
+            ids = [n.get("id") for n in nodes if isinstance(n, dict)]
+            raise GraphError(f"'{item}': no node '{parts[0]}'{_suggest(parts[0], ids)}", where)
+        setw = Location("--set " + item, None)
+        if parts[1] in ("plugin", "rate", "on_fault") and len(parts) == 2:
+            if parts[1] == "plugin" and value != node.get("plugin"):
+                node["params"] = LDict(where=setw)
+            node[parts[1]] = value
+            node.key_where[parts[1]] = setw
+            continue
+        if parts[1] == "params":
+            parts = [parts[0]] + parts[2:]
+        params = node.get("params")
+        if not isinstance(params, dict):
+            params = LDict(where=setw)
+            node["params"] = params
+        target = params
+        for p in parts[1:-1]:
+            nxt = target.get(p)
+            if not isinstance(nxt, dict):
+                nxt = LDict(where=setw)
+                target[p] = nxt
+            target = nxt
+        target[parts[-1]] = value
+        if isinstance(target, LDict):
+            target.key_where[parts[-1]] = setw
+    return doc
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_plain(x) for x in v]
+    return v
+
+
+# ------------------------------------------------------------------------------------------------ validation
+def load_graph(path: str | Path, *, registry: Any = None, sets: Iterable[str] = (), clock: str | None = None,
+               duration: float | None = None) -> GraphSpec:
+    """Load, merge, override and validate a graph file. Raises GraphValidationError listing every problem."""
+    try:
+        doc = apply_sets(load_raw(path), sets)
+    except GraphError as exc:
+        raise GraphValidationError([exc]) from None
+    return build_spec(doc, str(path), registry=registry, clock=clock, duration=duration)
+
+
+def load_graph_text(text: str, file: str = "<graph>", **kw: Any) -> GraphSpec:
+    try:
+        doc = load_yaml_text(text, file)
+        if not isinstance(doc, dict):
+            raise GraphError("a graph file must be a mapping with a 'nodes' list", getattr(doc, "where", None))
+        doc = apply_sets(doc, kw.pop("sets", ()))
+    except GraphError as exc:
+        raise GraphValidationError([exc]) from None
+    return build_spec(doc, file, **kw)
+
+
+def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None = None,
+               duration: float | None = None) -> GraphSpec:
+    if registry is None:
+        from .registry import default_registry
+
+        registry = default_registry()
+    errors: list[GraphError] = []
+
+    def err(msg: str, where: Location) -> None:
+        errors.append(GraphError(msg, where))
+
+    for k in doc:
+        if k not in TOP_KEYS:
+            err(f"unknown top-level key '{k}'{_suggest(str(k), TOP_KEYS)}; expected one of {', '.join(TOP_KEYS)}",
+                doc.loc(k))
+
+    clock_v = clock if clock is not None else doc.get("clock", "wall")
+    if clock_v not in CLOCKS:
+        err(f"clock: expected 'sim' or 'wall', got {clock_v!r}", doc.loc("clock"))
+    dur = duration if duration is not None else doc.get("duration")
+    if dur is not None:
+        try:
+            dur = parse_quantity(dur, "s")
+            if not dur > 0:
+                raise ValueError(f"must be positive, got {dur}")
+        except ValueError as exc:
+            err(f"duration: {exc}", doc.loc("duration"))
+            dur = None
+
+    faults = FaultPolicy()
+    fdoc = doc.get("faults", {})
+    if not isinstance(fdoc, dict):
+        err("faults: expected a mapping", doc.loc("faults"))
+        fdoc = {}
+    for k, v in fdoc.items():
+        w = fdoc.loc(k) if isinstance(fdoc, LDict) else doc.loc("faults")
+        if k not in FAULT_KEYS:
+            err(f"faults: unknown key '{k}'{_suggest(str(k), FAULT_KEYS)}", w)
+        elif k == "on_fault":
+            if v not in FAULT_ACTIONS:
+                err(f"faults.on_fault: expected 'stop' or 'degrade', got {v!r}", w)
+            else:
+                faults.on_fault = v
+        elif k == "max_overruns":
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                err(f"faults.max_overruns: expected an integer >= 0, got {v!r}", w)
+            else:
+                faults.max_overruns = v
+        elif k == "startup_grace":
+            try:
+                faults.startup_grace = parse_quantity(v, "s")
+                if faults.startup_grace < 0:
+                    raise ValueError("must be >= 0")
+            except ValueError as exc:
+                err(f"faults.startup_grace: {exc}", w)
+
+    nodes_doc = doc.get("nodes")
+    nodes: list[NodeSpec] = []
+    if nodes_doc is None:
+        err("missing 'nodes': a graph needs a list of nodes", doc.where)
+        nodes_doc = []
+    elif not isinstance(nodes_doc, list):
+        err("'nodes' must be a list of nodes (each with id, plugin, rate)", doc.loc("nodes"))
+        nodes_doc = []
+
+    seen_ids: dict[str, Location] = {}
+    for i, nd in enumerate(nodes_doc):
+        nwhere = nodes_doc.loc(i) if isinstance(nodes_doc, LList) else doc.loc("nodes")
+        if not isinstance(nd, dict):
+            err("a node must be a mapping with id, plugin and rate", nwhere)
+            continue
+        ld = nd if isinstance(nd, LDict) else LDict(nd, where=nwhere)
+        for k in ld:
+            if k not in NODE_KEYS:
+                err(f"node '{ld.get('id', '?')}': unknown key '{k}'{_suggest(str(k), NODE_KEYS)}", ld.loc(k))
+        nid = ld.get("id")
+        if nid is None:
+            err("node without 'id'", ld.where)
+            continue
+        if not isinstance(nid, str) or not ID_RE.match(nid):
+            err(f"node id {nid!r}: use letters, digits, '_' and '-' (no dots)", ld.loc("id"))
+            continue
+        if nid in seen_ids:
+            err(f"duplicate node id '{nid}' (first defined at {seen_ids[nid]})", ld.loc("id"))
+            continue
+        seen_ids[nid] = ld.loc("id")
+        plugin = ld.get("plugin")
+        cls = None
+        if not isinstance(plugin, str):
+            err(f"node '{nid}': missing 'plugin' (the component name, see `teletouch plugins`)", ld.where)
+        else:
+            info = registry.components.get(plugin)
+            if info is None:
+                err(f"node '{nid}': {registry.unknown_message(plugin)}", ld.loc("plugin"))
+            else:
+                cls = info.cls
+        rate = ld.get("rate")
+        if rate is None:
+            rate = cls.default_rate if cls is not None else None
+            if rate is None and cls is not None:
+                err(f"node '{nid}': missing 'rate' (Hz); {plugin} has no default rate", ld.where)
+        else:
+            try:
+                rate = parse_quantity(rate, "Hz")
+                if not rate > 0 or rate != rate or rate == float("inf"):
+                    raise ValueError(f"must be a positive number of Hz, got {ld.get('rate')!r}")
+            except ValueError as exc:
+                err(f"node '{nid}': rate: {exc}", ld.loc("rate"))
+                rate = None
+        on_fault = ld.get("on_fault")
+        if on_fault is not None and on_fault not in FAULT_ACTIONS:
+            err(f"node '{nid}': on_fault: expected 'stop' or 'degrade', got {on_fault!r}", ld.loc("on_fault"))
+            on_fault = None
+        params = ld.get("params", {}) or {}
+        if not isinstance(params, dict):
+            err(f"node '{nid}': params must be a mapping of name: value", ld.loc("params"))
+            params = {}
+        pwhere = {k: params.loc(k) for k in params} if isinstance(params, LDict) else {}
+        pwhere_default = ld.loc("params") if "params" in ld else ld.where
+        spec = NodeSpec(id=nid, plugin=plugin if isinstance(plugin, str) else "", rate=rate,
+                        params=_plain(params), inputs={}, on_fault=on_fault, where=ld.where, param_where=pwhere)
+        if cls is not None:
+            spec.cls = cls
+            try:
+                spec.params_obj = cls.Params.model_validate(spec.params)
+            except ValidationError as exc:
+                for e in exc.errors():
+                    loc = [str(x) for x in e["loc"]]
+                    fname = ".".join(loc) or "?"
+                    w = pwhere.get(loc[0], pwhere_default) if loc else pwhere_default
+                    if e["type"] == "extra_forbidden":
+                        fields = list(cls.Params.model_fields)
+                        err(f"node '{nid}': unknown param '{fname}' for {plugin}{_suggest(loc[0], fields)}; "
+                            f"known: {', '.join(fields) or '(none)'}", w)
+                    elif e["type"] == "missing":
+                        err(f"node '{nid}': param '{fname}' is required by {plugin}", w)
+                    else:
+                        msg = e["msg"]
+                        if msg.startswith("Value error, "):
+                            msg = msg[len("Value error, "):]
+                        err(f"node '{nid}': param '{fname}' = {e.get('input')!r}: {msg}", w)
+            if clock_v == "sim" and cls.requires_wall_clock:
+                err(f"node '{nid}': {plugin} drives real hardware and cannot run on the simulated clock; "
+                    f"use --clock wall or a simulated plugin", ld.loc("plugin"))
+        # inputs
+        ins = ld.get("inputs", {}) or {}
+        if not isinstance(ins, dict):
+            err(f"node '{nid}': inputs must be a mapping of port: node.port", ld.loc("inputs"))
+            ins = {}
+        for port, src in ins.items():
+            iw = ins.loc(port) if isinstance(ins, LDict) else ld.loc("inputs")
+            max_age = None
+            if isinstance(src, dict):
+                extra = [k for k in src if k not in ("from", "max_age")]
+                if extra:
+                    err(f"node '{nid}': input '{port}': unknown key '{extra[0]}'; expected 'from' and 'max_age'", iw)
+                max_age_raw = src.get("max_age")
+                src = src.get("from")
+                if max_age_raw is not None:
+                    try:
+                        max_age = parse_quantity(max_age_raw, "s")
+                        if not max_age > 0:
+                            raise ValueError("must be positive")
+                    except ValueError as exc:
+                        err(f"node '{nid}': input '{port}': max_age: {exc}", iw)
+            if not isinstance(src, str) or src.count(".") != 1:
+                err(f"node '{nid}': input '{port}': expected 'node.port', got {src!r}", iw)
+                continue
+            snode, sport = src.split(".")
+            spec.inputs[str(port)] = WireSpec(str(port), snode, sport, max_age, iw)
+        nodes.append(spec)
+
+    # wiring checks need every node
+    by_id = {n.id: n for n in nodes}
+    for n in nodes:
+        if n.cls is None:
+            continue
+        for port, w in n.inputs.items():
+            if port not in n.cls.inputs:
+                err(f"node '{n.id}': {n.plugin} has no input '{port}'{_suggest(port, n.cls.inputs)}; "
+                    f"inputs: {', '.join(n.cls.inputs) or '(none)'}", w.where)
+                continue
+            src = by_id.get(w.node)
+            if src is None:
+                err(f"node '{n.id}': input '{port}' comes from unknown node '{w.node}'{_suggest(w.node, by_id)}",
+                    w.where)
+                continue
+            if src.cls is None:
+                continue
+            if w.source_port not in src.cls.outputs:
+                err(f"node '{n.id}': input '{port}': {src.plugin} node '{src.id}' has no output '{w.source_port}'"
+                    f"{_suggest(w.source_port, src.cls.outputs)}; outputs: {', '.join(src.cls.outputs) or '(none)'}",
+                    w.where)
+                continue
+            why = n.cls.inputs[port].accepts(src.cls.outputs[w.source_port])
+            if why:
+                err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {why}", w.where)
+            if w.max_age is None:
+                w.max_age = n.cls.inputs[port].max_age
+        for port, p in n.cls.inputs.items():
+            if p.required and port not in n.inputs:
+                err(f"node '{n.id}': required input '{port}' ({p.describe()}) of {n.plugin} is not wired", n.where)
+
+    if errors:
+        raise GraphValidationError(errors)
+    return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
+                     duration=dur, faults=faults, description=str(doc.get("description") or ""))
+
+
+# ------------------------------------------------------------------------------------------------ JSON schema
+def graph_json_schema(registry: Any = None) -> dict[str, Any]:
+    """A JSON Schema (draft 2020-12) of the graph format, with each installed plugin's parameters."""
+    if registry is None:
+        from .registry import default_registry
+
+        registry = default_registry()
+    number_or_qty = {"anyOf": [{"type": "number"}, {"type": "string"}]}
+    wire = {"anyOf": [
+        {"type": "string", "pattern": r"^[A-Za-z_][A-Za-z0-9_-]*\.[A-Za-z_][A-Za-z0-9_]*$"},
+        {"type": "object", "properties": {"from": {"type": "string"}, "max_age": number_or_qty},
+         "required": ["from"], "additionalProperties": False}]}
+    node: dict[str, Any] = {
+        "type": "object",
+        "properties": {
+            "id": {"type": "string", "pattern": ID_RE.pattern},
+            "plugin": {"type": "string", "enum": sorted(registry.components)},
+            "rate": {**number_or_qty, "description": "Hz"},
+            "params": {"type": "object"},
+            "inputs": {"type": "object", "additionalProperties": wire},
+            "on_fault": {"enum": list(FAULT_ACTIONS)},
+            "remove": {"type": "boolean"},
+            "description": {"type": "string"},
+        },
+        "required": ["id"],
+        "additionalProperties": False,
+        "allOf": [],
+    }
+    defs: dict[str, Any] = {}
+    for name, info in sorted(registry.components.items()):
+        ps = info.cls.Params.model_json_schema(ref_template="#/$defs/{model}")
+        for k, v in ps.pop("$defs", {}).items():
+            defs[k] = v
+        node["allOf"].append({"if": {"properties": {"plugin": {"const": name}}, "required": ["plugin"]},
+                              "then": {"properties": {"params": ps}}})
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "teletouch graph",
+        "type": "object",
+        "properties": {
+            "name": {"type": "string"},
+            "description": {"type": "string"},
+            "include": {"anyOf": [{"type": "string"}, {"type": "array", "items": {"type": "string"}}]},
+            "clock": {"enum": list(CLOCKS)},
+            "duration": {**number_or_qty, "description": "s"},
+            "faults": {"type": "object", "properties": {
+                "on_fault": {"enum": list(FAULT_ACTIONS)},
+                "max_overruns": {"type": "integer", "minimum": 0},
+                "startup_grace": number_or_qty}, "additionalProperties": False},
+            "nodes": {"type": "array", "items": node},
+        },
+        "required": ["nodes"],
+        "additionalProperties": False,
+    }
+    if defs:
+        schema["$defs"] = defs
+    return schema
+
+
+def dump_schema(registry: Any = None) -> str:
+    return json.dumps(graph_json_schema(registry), indent=2, default=str)
+
+
+__all__ = ["GraphSpec", "NodeSpec", "WireSpec", "FaultPolicy", "load_graph", "load_graph_text", "load_raw",
+           "apply_sets", "build_spec", "graph_json_schema", "dump_schema", "Port", "Device"]

@@ -1,0 +1,37 @@
+"""The one hookspec module of teletouch.
+
+A plugin is a module (or any object) with functions decorated by ``teletouch.hookimpl``, registered through the
+``teletouch`` entry-point group. Built-in plugins register exactly like third-party ones::
+
+    [project.entry-points.teletouch]
+    my-gripper = "my_package.gripper"
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+import pluggy
+
+hookspec = pluggy.HookspecMarker("teletouch")
+hookimpl = pluggy.HookimplMarker("teletouch")
+
+
+@hookspec
+def teletouch_components() -> list[type]:
+    """Return the component classes (subclasses of ``teletouch.Component``) this plugin provides."""
+
+
+@hookspec
+def teletouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Add sub-commands to the ``teletouch`` command line. Each sub-parser sets ``func=callable(args) -> int``."""
+
+
+@hookspec
+def teletouch_discover_devices() -> list[dict[str, Any]]:
+    """Return the supported hardware this plugin can see right now, for ``teletouch devices``.
+
+    Each entry is a dict with at least ``kind`` (e.g. "digit"), ``id`` (serial or port) and ``path``;
+    it may add ``details``. Must be fast and must not raise when nothing is connected.
+    """

@@ -1,0 +1,92 @@
+"""Quantities with units on the command line and in graph files.
+
+Every interface in teletouch is SI (m, N, s, rad, Hz). People may write ``6mm``, ``0.006 m``, ``5 N`` or ``2ms``;
+:func:`parse_quantity` turns that into the SI float. Plain numbers are taken as already SI.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Annotated, Any
+
+from pydantic import BeforeValidator, Field
+
+# unit symbol -> (SI unit, factor)
+_UNITS: dict[str, tuple[str, float]] = {
+    "m": ("m", 1.0), "cm": ("m", 1e-2), "mm": ("m", 1e-3), "um": ("m", 1e-6), "µm": ("m", 1e-6),
+    "N": ("N", 1.0), "mN": ("N", 1e-3), "kN": ("N", 1e3),
+    "s": ("s", 1.0), "ms": ("s", 1e-3), "us": ("s", 1e-6), "µs": ("s", 1e-6),
+    "Hz": ("Hz", 1.0), "kHz": ("Hz", 1e3),
+    "rad": ("rad", 1.0), "deg": ("rad", math.pi / 180.0),
+    "N/m": ("N/m", 1.0), "N/mm": ("N/m", 1e3), "kN/m": ("N/m", 1e3),
+    "N*s/m": ("N*s/m", 1.0), "Ns/m": ("N*s/m", 1.0),
+    "m/s": ("m/s", 1.0), "mm/s": ("m/s", 1e-3),
+    "kg": ("kg", 1.0), "g": ("kg", 1e-3),
+    "Pa": ("Pa", 1.0), "kPa": ("Pa", 1e3), "MPa": ("Pa", 1e6),
+    "px/mm": ("px/m", 1e3), "px/m": ("px/m", 1.0),
+}
+
+_QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*)?\s*$")
+
+
+def parse_quantity(text: Any, unit: str | None = None) -> float:
+    """Parse ``text`` (a number or a string like ``"6mm"``) into a float in the SI unit ``unit``.
+
+    Raises ValueError naming the text and the expected unit when the unit does not match.
+    """
+    if isinstance(text, bool):
+        raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
+    if isinstance(text, (int, float)):
+        return float(text)
+    if not isinstance(text, str):
+        raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
+    m = _QTY.match(text)
+    if not m:
+        raise ValueError(f"expected a number{_in(unit)} such as '6mm' or '0.006', got {text!r}")
+    value = float(m.group(1))
+    sym = (m.group(2) or "").strip()
+    if not sym:
+        return value
+    if sym not in _UNITS:
+        raise ValueError(f"unknown unit {sym!r} in {text!r}; known: {', '.join(sorted(_UNITS))}")
+    si, factor = _UNITS[sym]
+    if unit is not None and si != unit:
+        raise ValueError(f"{text!r} is in {si}, expected a quantity in {unit}")
+    return value * factor
+
+
+def _in(unit: str | None) -> str:
+    return f" in {unit}" if unit else ""
+
+
+def quantity(unit: str, default: Any = ..., description: str = "", **kw: Any) -> Any:
+    """A pydantic field for a float in SI ``unit`` that also accepts strings with units ("5mm").
+
+    The unit is recorded in the JSON schema (``"unit": "m"``) so `teletouch plugins` and editors can show it.
+    """
+    extra = dict(kw.pop("json_schema_extra", {}) or {})
+    extra["unit"] = unit
+    return Field(default, description=description, json_schema_extra=extra, **kw)
+
+
+def _validator(unit: str):
+    def _v(value: Any) -> Any:
+        if isinstance(value, str):
+            return parse_quantity(value, unit)
+        return value
+
+    return BeforeValidator(_v)
+
+
+# Annotated float types: a field typed ``Meters`` accepts 0.005, "5mm", "0.5 cm".
+Meters = Annotated[float, _validator("m")]
+Newtons = Annotated[float, _validator("N")]
+Seconds = Annotated[float, _validator("s")]
+Hertz = Annotated[float, _validator("Hz")]
+Radians = Annotated[float, _validator("rad")]
+NewtonsPerMeter = Annotated[float, _validator("N/m")]
+NewtonSecondsPerMeter = Annotated[float, _validator("N*s/m")]
+MetersPerSecond = Annotated[float, _validator("m/s")]
+Kilograms = Annotated[float, _validator("kg")]
+Pascals = Annotated[float, _validator("Pa")]

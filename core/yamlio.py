@@ -1,0 +1,94 @@
+"""YAML loading that remembers where every key came from, so errors can name the file and line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .errors import GraphError, Location
+
+
+class LDict(dict):
+    """A dict that knows the location of itself and of each of its keys."""
+
+    where: Location
+    key_where: dict[Any, Location]
+
+    def __init__(self, *a: Any, where: Location | None = None, **kw: Any):
+        super().__init__(*a, **kw)
+        self.where = where or Location(None, None)
+        self.key_where = {}
+
+    def loc(self, key: Any) -> Location:
+        return self.key_where.get(key, self.where)
+
+
+class LList(list):
+    where: Location
+    item_where: list[Location]
+
+    def __init__(self, *a: Any, where: Location | None = None):
+        super().__init__(*a)
+        self.where = where or Location(None, None)
+        self.item_where = []
+
+    def loc(self, i: int) -> Location:
+        return self.item_where[i] if i < len(self.item_where) else self.where
+
+
+def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor") -> Any:
+    where = Location(file, node.start_mark.line + 1)
+    if isinstance(node, yaml.MappingNode):
+        constructor.flatten_mapping(node)
+        out = LDict(where=where)
+        for knode, vnode in node.value:
+            key = _convert(knode, file, constructor)
+            if isinstance(key, (dict, list)):
+                raise GraphError("a mapping key must be a plain value", Location(file, knode.start_mark.line + 1))
+            if key in out:
+                raise GraphError(f"duplicate key '{key}' (first at line {out.loc(key).line})",
+                                 Location(file, knode.start_mark.line + 1))
+            out[key] = _convert(vnode, file, constructor)
+            out.key_where[key] = Location(file, knode.start_mark.line + 1)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        out_l = LList(where=where)
+        for item in node.value:
+            out_l.append(_convert(item, file, constructor))
+            out_l.item_where.append(Location(file, item.start_mark.line + 1))
+        return out_l
+    return constructor.construct_object(node, deep=True)
+
+
+def load_yaml_text(text: str, file: str) -> Any:
+    """Parse YAML text into LDict/LList/scalars; syntax errors become GraphError with the line."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark is not None else None
+        problem = exc.problem or str(exc)
+        raise GraphError(f"YAML syntax error: {problem}", Location(file, line)) from None
+    except yaml.YAMLError as exc:
+        raise GraphError(f"YAML error: {exc}", Location(file, None)) from None
+    if node is None:
+        return LDict(where=Location(file, 1))
+    constructor = yaml.constructor.SafeConstructor()
+    try:
+        return _convert(node, file, constructor)
+    except yaml.constructor.ConstructorError as exc:
+        mark = exc.problem_mark
+        raise GraphError(f"YAML error: {exc.problem}", Location(file, mark.line + 1 if mark else None)) from None
+
+
+def load_yaml_file(path: str | Path) -> Any:
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise GraphError("file not found", Location(str(path), None)) from None
+    except OSError as exc:
+        raise GraphError(f"cannot read file: {exc.strerror}", Location(str(path), None)) from None
+    return load_yaml_text(text, str(path))

@@ -1,0 +1,1 @@
+"""Built-in plugins. Each module registers through the ``teletouch`` entry-point group, like a third-party one."""

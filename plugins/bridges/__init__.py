@@ -1,0 +1,1 @@
+"""Bridge plugins: ROS 2 topics in and out of a graph."""

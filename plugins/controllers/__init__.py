@@ -1,0 +1,1 @@
+"""Controller plugins: position-force teleoperation and baselines."""

@@ -1,0 +1,1 @@
+"""Device plugins: leaders (haptic devices) and followers (grippers)."""

@@ -1,0 +1,1 @@
+"""Estimator plugins: depth from a tactile image, force from depth."""

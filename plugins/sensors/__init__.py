@@ -1,0 +1,1 @@
+"""Sensor plugins: real DIGIT, replay, simulated DIGIT."""
