@@ -200,6 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", metavar="FILE.mcap", default=None, help="record every port to an MCAP file")
     p.set_defaults(func=cmd_run)
 
+    p = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")
+    cal = p.add_subparsers(dest="calibrate_command", metavar="WHAT")
+    p.set_defaults(func=lambda a: (p.print_help(), EXIT_INVALID)[1], _calibrate=cal)
+
     p = sub.add_parser("devices", help="list connected supported hardware")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_devices)
@@ -209,9 +213,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    cal = sub.choices["calibrate"].get_default("_calibrate")
     try:
         reg = default_registry()
-        reg.pm.hook.teletouch_add_commands(subparsers=sub)
+        reg.pm.hook.teletouch_add_commands(subparsers=sub, calibrate=cal)
     except TeletouchError as exc:
         print(f"teletouch: error: {exc}", file=sys.stderr)
         return EXIT_INVALID

@@ -24,8 +24,12 @@ def teletouch_components() -> list[type]:
 
 
 @hookspec
-def teletouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
-    """Add sub-commands to the ``teletouch`` command line. Each sub-parser sets ``func=callable(args) -> int``."""
+def teletouch_add_commands(subparsers: argparse._SubParsersAction, calibrate: argparse._SubParsersAction) -> None:
+    """Add sub-commands to the ``teletouch`` command line. Each sub-parser sets ``func=callable(args) -> int``.
+
+    ``subparsers`` is the top level (``teletouch NAME``); ``calibrate`` is the group ``teletouch calibrate NAME``.
+    An implementation may take only the arguments it needs.
+    """
 
 
 @hookspec

@@ -1,0 +1,32 @@
+"""Shared fixtures. Real DIGIT data lives in ../shared/data beside the checkout (never copied into the repo)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """../shared/data; a missing folder is an error, not a skip (CI always has it)."""
+    if not SHARED_DATA.is_dir():
+        raise RuntimeError(f"real DIGIT data not found at {SHARED_DATA}: clone the project beside shared/ "
+                           f"or set TELETOUCH_SHARED_DATA")
+    return SHARED_DATA
+
+
+@pytest.fixture(autouse=True)
+def _no_plugin_env(monkeypatch):
+    """Tests build their own registries; the user's environment must not leak in."""
+    monkeypatch.delenv("TELETOUCH_BLOCK_PLUGINS", raising=False)
+    monkeypatch.delenv("TELETOUCH_PLUGINS", raising=False)
