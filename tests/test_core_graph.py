@@ -1,0 +1,242 @@
+"""Graph files: loading, includes/overrides, --set, and every bad-input case with its error (file and line)."""
+
+from __future__ import annotations
+
+import json
+import textwrap
+
+import pytest
+
+from teletouch.errors import GraphValidationError
+from teletouch.graph import graph_json_schema, load_graph, load_graph_text
+from teletouch.testing import make_registry
+
+GOOD = textwrap.dedent("""\
+    name: demo
+    clock: sim
+    duration: 1
+    nodes:
+      - id: source
+        plugin: mock-sensor
+        rate: 100
+        params: {signal: step, amplitude: 2.0}
+      - id: gain
+        plugin: mock-gain
+        rate: 100 Hz
+        params: {gain: 3}
+        inputs: {x: source.value}
+      - id: dev
+        plugin: mock-device
+        rate: 1kHz
+        inputs:
+          command: {from: gain.y, max_age: 50ms}
+    """)
+
+
+@pytest.fixture(scope="module")
+def reg():
+    return make_registry()
+
+
+def errors_of(text, reg, **kw):
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph_text(text, "g.yaml", registry=reg, **kw)
+    return [str(e) for e in ei.value.errors]
+
+
+def test_good_graph_parses_units_and_wires(reg):
+    spec = load_graph_text(GOOD, "g.yaml", registry=reg)
+    assert [n.id for n in spec.order()] == ["source", "gain", "dev"]
+    dev = spec.node("dev")
+    assert dev.rate == 1000.0
+    assert dev.inputs["command"].max_age == pytest.approx(0.05)
+    assert spec.node("gain").params_obj.gain == 3.0
+    assert spec.clock == "sim" and spec.duration == 1.0
+
+
+def test_yaml_syntax_error_names_line(reg):
+    errs = errors_of("nodes:\n  - id: a\n    plugin: [mock-sensor\n", reg)
+    assert len(errs) == 1 and errs[0].startswith("g.yaml:") and "YAML syntax error" in errs[0]
+
+
+def test_unknown_plugin_suggests(reg):
+    errs = errors_of(GOOD.replace("plugin: mock-gain", "plugin: mock-gian"), reg)
+    assert any("g.yaml:10:" in e and "unknown plugin 'mock-gian'" in e and "did you mean 'mock-gain'" in e
+               for e in errs), errs
+
+
+def test_unknown_port_and_unknown_source(reg):
+    errs = errors_of(GOOD.replace("inputs: {x: source.value}", "inputs: {xx: source.value}"), reg)
+    assert any("has no input 'xx'" in e and "did you mean 'x'" in e for e in errs), errs
+    assert any("required input 'x'" in e for e in errs), errs
+    errs = errors_of(GOOD.replace("inputs: {x: source.value}", "inputs: {x: source.valeu}"), reg)
+    assert any("g.yaml:13:" in e and "has no output 'valeu'" in e and "did you mean 'value'" in e for e in errs)
+    errs = errors_of(GOOD.replace("inputs: {x: source.value}", "inputs: {x: sorce.value}"), reg)
+    assert any("unknown node 'sorce'" in e and "did you mean 'source'" in e for e in errs)
+    errs = errors_of(GOOD.replace("inputs: {x: source.value}", "inputs: {x: source}"), reg)
+    assert any("expected 'node.port'" in e for e in errs)
+
+
+def test_type_and_unit_mismatch():
+    from teletouch import Component, Kind, Port, hookimpl
+
+    class Meters(Component):
+        name = "meters"
+        kind = Kind.SENSOR
+        outputs = {"d": Port("float64", (), "m"), "img": Port("uint8", (None, None, 3), "")}
+
+        def step(self, t, inputs):
+            return None
+
+    class Newtons(Component):
+        name = "newtons"
+        kind = Kind.ESTIMATOR
+        inputs = {"f": Port("float64", (), "N"), "img": Port("float64", (None, None, 3), "", required=False)}
+
+        def step(self, t, inputs):
+            return None
+
+    class P:
+        @hookimpl
+        def teletouch_components(self):
+            return [Meters, Newtons]
+
+    reg = make_registry(P())
+    text = ("nodes:\n  - {id: a, plugin: meters, rate: 10}\n"
+            "  - {id: b, plugin: newtons, rate: 10, inputs: {f: a.d, img: a.img}}\n")
+    errs = errors_of(text, reg)
+    assert any("g.yaml:3:" in e and "unit mismatch: 'm' -> 'N'" in e for e in errs), errs
+    assert any("type mismatch: uint8 -> float64" in e for e in errs), errs
+
+
+def test_bad_param_names_field_value_and_expectation(reg):
+    errs = errors_of(GOOD.replace("{gain: 3}", "{gain: three}"), reg)
+    assert any("g.yaml:12:" in e and "param 'gain' = 'three'" in e and "number" in e for e in errs), errs
+    errs = errors_of(GOOD.replace("{gain: 3}", "{gian: 3}"), reg)
+    assert any("unknown param 'gian'" in e and "did you mean 'gain'" in e for e in errs), errs
+    errs = errors_of(GOOD.replace("signal: step", "signal: square"), reg)
+    assert any("param 'signal' = 'square'" in e and "'sine'" in e for e in errs), errs
+
+
+def test_rate_must_be_positive_and_ids_unique(reg):
+    errs = errors_of(GOOD.replace("rate: 1kHz", "rate: 0"), reg)
+    assert any("g.yaml:16:" in e and "rate" in e and "positive" in e for e in errs), errs
+    errs = errors_of(GOOD.replace("rate: 1kHz", "rate: fast"), reg)
+    assert any("rate" in e and "'fast'" in e for e in errs), errs
+    errs = errors_of(GOOD.replace("id: dev", "id: gain"), reg)
+    assert any("g.yaml:14:" in e and "duplicate node id 'gain'" in e and "g.yaml:9" in e for e in errs), errs
+
+
+def test_duplicate_yaml_key_and_unknown_keys(reg):
+    errs = errors_of(GOOD.replace("    rate: 100\n", "    rate: 100\n    rate: 200\n", 1), reg)
+    assert any("duplicate key 'rate'" in e for e in errs), errs
+    errs = errors_of("nodez: []\n", reg)
+    assert any("unknown top-level key 'nodez'" in e and "did you mean 'nodes'" in e for e in errs)
+    assert any("missing 'nodes'" in e for e in errs)
+    errs = errors_of(GOOD.replace("    rate: 100\n", "    rat: 100\n", 1), reg)
+    assert any("unknown key 'rat'" in e and "did you mean 'rate'" in e for e in errs), errs
+
+
+def test_bad_clock_duration_and_faults(reg):
+    errs = errors_of(GOOD.replace("clock: sim", "clock: fast").replace("duration: 1", "duration: -1"), reg)
+    assert any("g.yaml:2:" in e and "clock" in e for e in errs)
+    assert any("g.yaml:3:" in e and "duration" in e for e in errs)
+    errs = errors_of("faults: {on_fault: explode}\n" + GOOD, reg)
+    assert any("faults.on_fault" in e and "'explode'" in e for e in errs)
+
+
+def test_validation_reports_all_errors_at_once(reg):
+    bad = GOOD.replace("mock-gain", "mock-gian").replace("rate: 1kHz", "rate: -5").replace(
+        "signal: step", "signal: 7")
+    assert len(errors_of(bad, reg)) >= 3
+
+
+def test_include_override_and_set(tmp_path, reg):
+    (tmp_path / "base.yaml").write_text(GOOD)
+    (tmp_path / "over.yaml").write_text(textwrap.dedent("""\
+        include: base.yaml
+        nodes:
+          - id: gain
+            params: {gain: 5}
+          - id: extra
+            plugin: noop
+            rate: 10
+        """))
+    spec = load_graph(tmp_path / "over.yaml", registry=reg)
+    assert spec.node("gain").params_obj.gain == 5.0
+    assert spec.node("gain").inputs["x"].node == "source"  # inherited
+    assert [n.id for n in spec.nodes] == ["source", "gain", "dev", "extra"]
+    spec = load_graph(tmp_path / "over.yaml", registry=reg, sets=["gain.gain=7", "dev.rate=500",
+                                                                  "source.plugin=mock-sensor"])
+    assert spec.node("gain").params_obj.gain == 7.0 and spec.node("dev").rate == 500.0
+    # swapping a plugin drops the old plugin's params
+    (tmp_path / "same.yaml").write_text("include: base.yaml\nnodes:\n  - {id: gain, plugin: mock-gain}\n")
+    assert load_graph(tmp_path / "same.yaml", registry=reg).node("gain").params_obj.gain == 3.0
+    (tmp_path / "swap.yaml").write_text("include: base.yaml\nnodes:\n  - {id: gain, plugin: mock-sensor}\n")
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(tmp_path / "swap.yaml", registry=reg)
+    msg = str(ei.value)
+    assert "mock-sensor has no input 'x'" in msg and "unknown param" not in msg
+    # errors in an included file name that file
+    (tmp_path / "bad.yaml").write_text(GOOD.replace("rate: 1kHz", "rate: 0"))
+    (tmp_path / "inc_bad.yaml").write_text("include: bad.yaml\n")
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(tmp_path / "inc_bad.yaml", registry=reg)
+    assert "bad.yaml:16:" in str(ei.value)
+
+
+def test_include_errors(tmp_path, reg):
+    (tmp_path / "a.yaml").write_text("include: b.yaml\nnodes: []\n")
+    (tmp_path / "b.yaml").write_text("include: a.yaml\nnodes: []\n")
+    with pytest.raises(GraphValidationError, match="include cycle"):
+        load_graph(tmp_path / "a.yaml", registry=reg)
+    (tmp_path / "c.yaml").write_text("include: missing.yaml\nnodes: []\n")
+    with pytest.raises(GraphValidationError, match=r"c.yaml:1: included file 'missing.yaml' not found"):
+        load_graph(tmp_path / "c.yaml", registry=reg)
+    with pytest.raises(GraphValidationError, match="file not found"):
+        load_graph(tmp_path / "nope.yaml", registry=reg)
+
+
+def test_set_errors(tmp_path, reg):
+    (tmp_path / "g.yaml").write_text(GOOD)
+    with pytest.raises(GraphValidationError, match="no node 'gian'.*did you mean 'gain'"):
+        load_graph(tmp_path / "g.yaml", registry=reg, sets=["gian.gain=1"])
+    with pytest.raises(GraphValidationError, match="expected NODE.FIELD=VALUE"):
+        load_graph(tmp_path / "g.yaml", registry=reg, sets=["gain"])
+    with pytest.raises(GraphValidationError, match=r"--set gain.gain=x: node 'gain': param 'gain' = 'x'"):
+        load_graph(tmp_path / "g.yaml", registry=reg, sets=["gain.gain=x"])
+
+
+def test_wall_only_plugin_refused_on_sim_clock():
+    from teletouch import Device, hookimpl
+
+    class Hw(Device):
+        name = "hw"
+        requires_wall_clock = True
+
+        def step(self, t, inputs):
+            return None
+
+        def safe_state(self):
+            pass
+
+    class P:
+        @hookimpl
+        def teletouch_components(self):
+            return [Hw]
+
+    reg = make_registry(P())
+    errs = errors_of("clock: sim\nduration: 1\nnodes:\n  - {id: h, plugin: hw, rate: 10}\n", reg)
+    assert any("cannot run on the simulated clock" in e for e in errs)
+    load_graph_text("clock: wall\nnodes:\n  - {id: h, plugin: hw, rate: 10}\n", "g.yaml", registry=reg)
+
+
+def test_json_schema_covers_plugins(reg):
+    schema = graph_json_schema(reg)
+    json.dumps(schema)
+    node = schema["properties"]["nodes"]["items"]
+    assert "mock-gain" in node["properties"]["plugin"]["enum"]
+    thens = {c["if"]["properties"]["plugin"]["const"]: c["then"] for c in node["allOf"]}
+    gain_params = thens["mock-gain"]["properties"]["params"]
+    assert gain_params["properties"]["gain"]["default"] == 1.0
+    assert gain_params["additionalProperties"] is False

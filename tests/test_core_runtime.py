@@ -1,0 +1,266 @@
+"""The multi-rate runtime: determinism, ordering, feedback, faults, safe states, lifecycle."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+from teletouch import Component, Device, Kind, Port, hookimpl
+from teletouch.runtime import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_STARTUP
+from teletouch.testing import Harness, make_registry, run_yaml
+
+CHAIN = """
+clock: sim
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100, params: {signal: ramp, amplitude: 1.0}}
+  - {id: gain, plugin: mock-gain, rate: 100, params: {gain: 2}, inputs: {x: src.value}}
+  - {id: dev, plugin: mock-device, rate: 1000, inputs: {command: gain.y}}
+"""
+
+
+class Recorder:
+    def __init__(self):
+        self.rows = []
+
+    def __call__(self, node, t, out):
+        self.rows.append((node, round(t, 9), {k: (v.value if hasattr(v, "stamp") else v) for k, v in out.items()}))
+
+
+@pytest.fixture(scope="module")
+def reg():
+    return make_registry()
+
+
+def test_multirate_counts_and_order(reg):
+    rec = Recorder()
+    res, rt = run_yaml(CHAIN, reg, duration=1.0, taps=[rec])
+    assert res.status == "ok" and res.exit_code == EXIT_OK
+    steps = {n.id: n.steps for n in res.nodes}
+    assert steps == {"src": 101, "gain": 101, "dev": 1001}
+    # producers step before consumers at the same tick: gain at t sees src at t
+    gain_rows = [r for r in rec.rows if r[0] == "gain"]
+    for _, t, out in gain_rows:
+        assert out["y"] == pytest.approx(2.0 * t)
+    # the fast device holds the latest (zero-order hold) value between slow samples
+    dev = [r for r in rec.rows if r[0] == "dev"]
+    at = {t: out["state"] for _, t, out in dev}
+    assert at[0.015] == pytest.approx(2.0 * 0.01)
+    assert res.sim_time == pytest.approx(1.0)
+
+
+def test_sim_clock_is_deterministic(reg):
+    a, b = Recorder(), Recorder()
+    run_yaml(CHAIN, reg, duration=0.5, taps=[a])
+    run_yaml(CHAIN, reg, duration=0.5, taps=[b])
+    assert a.rows == b.rows and len(a.rows) > 500
+
+
+def test_feedback_loop_reads_previous_sample():
+    class Acc(Component):
+        """x[k] = x[k-1] + 1 read through its own feedback wire."""
+        name = "acc"
+        kind = Kind.CONTROLLER
+        inputs = {"prev": Port("float64", (), "", required=False)}
+        outputs = {"x": Port("float64", (), "")}
+
+        def step(self, t, inputs):
+            return {"x": inputs.value("prev", 0.0) + 1.0}
+
+    class P:
+        @hookimpl
+        def teletouch_components(self):
+            return [Acc]
+
+    reg = make_registry(P())
+    res, rt = run_yaml("clock: sim\nnodes:\n  - {id: a, plugin: acc, rate: 10, inputs: {prev: a.x}}\n", reg,
+                       duration=1.0)
+    assert res.exit_code == 0
+    assert rt.latest("a", "x").value == 11.0
+
+
+def test_exception_stops_graph_and_devices_go_safe(reg):
+    text = CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, fail_at: 0.3}")
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.status == "fault" and res.exit_code == EXIT_FAULT
+    assert "node 'src' exception: RuntimeError: mock-sensor failure" in res.message
+    assert "safe state" in res.message
+    dev = rt.component("dev")
+    assert dev.safe_calls >= 1 and dev.safe
+    assert dev.lifecycle == ["configure", "activate", "deactivate", "close"]
+    assert res.sim_time == pytest.approx(0.3)
+
+
+def test_degrade_keeps_running(reg):
+    text = CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, fail_at: 0.3}, on_fault: degrade")
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.status == "ok"
+    stats = {n.id: n for n in res.nodes}
+    assert stats["src"].faulted and not stats["dev"].faulted
+    assert stats["dev"].steps == 1001
+    assert res.faults[0].action == "degrade"
+
+
+def test_device_fault_drives_it_safe(reg):
+    text = CHAIN.replace("inputs: {command: gain.y}", "inputs: {command: gain.y}, params: {fail_at: 0.5}")
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.exit_code == EXIT_FAULT and "node 'dev'" in res.message
+    assert rt.component("dev").safe_calls >= 1
+
+
+def test_stale_input_faults(reg):
+    # the source stops producing (degraded at 0.2 s); the device's 50 ms staleness limit trips after the grace time
+    text = """
+clock: sim
+faults: {startup_grace: 0.1}
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100, params: {fail_at: 0.2}, on_fault: degrade}
+  - {id: dev, plugin: mock-device, rate: 1000, inputs: {command: {from: src.value, max_age: 0.05}}}
+"""
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.exit_code == EXIT_FAULT
+    stale = [f for f in res.faults if f.kind == "stale"]
+    assert stale and stale[0].node == "dev" and "limit 0.05 s" in stale[0].message
+    assert 0.24 <= stale[0].time <= 0.26
+    assert rt.component("dev").safe_calls >= 1
+
+
+def test_never_received_input_is_stale(reg):
+    text = """
+clock: sim
+faults: {startup_grace: 0.1}
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100, params: {fail_at: 0.0}, on_fault: degrade}
+  - {id: dev, plugin: mock-device, rate: 100, inputs: {command: {from: src.value, max_age: 0.05}}}
+"""
+    res, _ = run_yaml(text, reg, duration=1.0)
+    assert res.exit_code == EXIT_FAULT and "nothing received" in res.message
+
+
+def test_request_stop_ends_normally(reg):
+    res, _ = run_yaml(CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, stop_at: 0.25}"), reg, duration=5.0)
+    assert res.status == "stopped" and res.exit_code == EXIT_OK and "stop at t=0.250" in res.message
+
+
+class _Boom(Component):
+    name = "boom"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "")}
+
+    class Params(Component.Params):
+        mode: str = "configure"
+
+    def configure(self):
+        if self.params.mode == "configure":
+            raise OSError("camera busy")
+
+    def step(self, t, inputs):
+        if self.params.mode == "interrupt" and t >= 0.1:
+            raise KeyboardInterrupt
+        if self.params.mode == "badout":
+            return {"nope": 1.0}
+        return {"y": 1.0}
+
+
+class _BoomPlugin:
+    @hookimpl
+    def teletouch_components(self):
+        return [_Boom]
+
+
+def test_startup_failure_closes_everything():
+    reg = make_registry(_BoomPlugin())
+    text = CHAIN + "  - {id: b, plugin: boom, rate: 10}\n"
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.status == "startup-failed" and res.exit_code == EXIT_STARTUP
+    assert "node 'b' (boom) failed to configure: OSError: camera busy" in res.message
+    assert rt.component("dev").lifecycle[-1] == "close"
+
+
+def test_ctrl_c_drives_devices_safe():
+    reg = make_registry(_BoomPlugin())
+    text = CHAIN + "  - {id: b, plugin: boom, rate: 100, params: {mode: interrupt}}\n"
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.status == "interrupted" and res.exit_code == EXIT_INTERRUPTED
+    assert rt.component("dev").safe_calls >= 1
+    assert rt.component("dev").lifecycle[-2:] == ["deactivate", "close"]
+
+
+def test_unknown_output_is_a_clear_fault():
+    reg = make_registry(_BoomPlugin())
+    res, _ = run_yaml("clock: sim\nnodes:\n  - {id: b, plugin: boom, rate: 10, params: {mode: badout}}\n", reg,
+                      duration=1.0)
+    assert res.exit_code == EXIT_FAULT and "unknown output 'nope'" in res.message
+
+
+def test_sim_clock_requires_duration(reg):
+    with pytest.raises(ValueError, match="needs a duration"):
+        run_yaml(CHAIN, reg, duration=None)
+
+
+class _Slow(Component):
+    """Sleeps (releases the GIL like a camera read or a torch op) for a configurable time."""
+    name = "slow"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "")}
+
+    class Params(Component.Params):
+        sleep: float = 0.03
+
+    def step(self, t, inputs):
+        time.sleep(self.params.sleep)
+        return {"y": t}
+
+
+class _SlowPlugin:
+    @hookimpl
+    def teletouch_components(self):
+        return [_Slow]
+
+
+def test_wall_clock_slow_node_does_not_delay_fast_node():
+    reg = make_registry(_SlowPlugin())
+    text = """
+clock: wall
+faults: {max_overruns: 0}
+nodes:
+  - {id: slow, plugin: slow, rate: 20, params: {sleep: 0.04}}
+  - {id: dev, plugin: mock-device, rate: 500}
+"""
+    res, _ = run_yaml(text, reg, duration=1.0)
+    assert res.exit_code == EXIT_OK, res.message
+    dev = {n.id: n for n in res.nodes}["dev"]
+    # in one thread the 40 ms sleeps would cost the 500 Hz node most of its steps
+    assert dev.steps >= 0.8 * 500, dev
+
+
+def test_wall_clock_repeated_overruns_fault():
+    reg = make_registry(_SlowPlugin())
+    text = """
+clock: wall
+faults: {max_overruns: 3}
+nodes:
+  - {id: slow, plugin: slow, rate: 100, params: {sleep: 0.03}}
+  - {id: dev, plugin: mock-device, rate: 200}
+"""
+    res, rt = run_yaml(text, reg, duration=2.0)
+    assert res.exit_code == EXIT_FAULT
+    assert any(f.kind == "overrun" and f.node == "slow" for f in res.faults)
+    assert rt.component("dev").safe_calls >= 1
+    assert res.sim_time < 1.0
+
+
+def test_harness_steps_a_component_by_hand():
+    from teletouch.mock import MockDevice
+
+    with Harness(MockDevice, {"tau": 0.0}) as h:
+        assert h.step(0.0, command=0.5)["state"] == 0.5
+        h.comp.safe_state()
+        assert h.step(0.001, command=0.9)["command_applied"] == 0.5
+
+
+def test_nan_passes_through_mocks_untouched(reg):
+    # the runtime does not hide NaN: consumers (controllers) must guard; this documents the contract
+    res, rt = run_yaml(CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, nan_at: 0.2}"), reg, duration=0.5)
+    assert res.exit_code == 0 and math.isnan(rt.latest("gain", "y").value)
