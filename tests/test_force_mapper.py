@@ -1,0 +1,329 @@
+"""poly-force and ForceCalibration: the fit, the range guard, the calibration file, the CSV path, the component."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from teletouch import ModelFileError
+from teletouch.plugins.estimators.poly_force import (
+    CalibrationError, ForceCalibration, PolyForce, read_pairs_csv, resolve_calibration, write_pairs_csv,
+)
+from teletouch.testing import Harness, make_registry, run_yaml
+
+TRUE = [0.02, 1500.0, 4.0e5, 5.0e7]  # N, N/m, N/m^2, N/m^3: 0.02 N .. ~5.6 N over 0..2 mm
+
+
+def truth(d):
+    d = np.asarray(d, float)
+    return TRUE[0] + TRUE[1] * d + TRUE[2] * d ** 2 + TRUE[3] * d ** 3
+
+
+@pytest.fixture
+def cal():
+    d = np.linspace(0.1e-3, 2.0e-3, 30)
+    return ForceCalibration.fit(d, truth(d), 3, sensor_model_id="unit-test")
+
+
+@pytest.fixture
+def cal_file(tmp_path, cal):
+    return str(cal.save(tmp_path / "unit.force.json"))
+
+
+# ------------------------------------------------------------------------------------------------------ fit
+def test_fit_recovers_known_coefficients():
+    d = np.linspace(0.0, 2.0e-3, 25)
+    cal = ForceCalibration.fit(d, truth(d), 3)
+    assert cal.degree == 3
+    np.testing.assert_allclose(cal.coefficients, TRUE, rtol=1e-6, atol=1e-9)
+    assert cal.r2 == pytest.approx(1.0, abs=1e-12)
+    assert cal.rmse < 1e-9
+
+
+def test_fit_with_noise_recovers_within_noise_and_reports_quality():
+    rng = np.random.default_rng(0)
+    d = np.repeat(np.linspace(0.05e-3, 2.0e-3, 20), 5)
+    f = truth(d) + rng.normal(0, 0.02, d.size)
+    cal = ForceCalibration.fit(d, f, 3)
+    xs = np.linspace(0.05e-3, 2.0e-3, 50)
+    assert np.max(np.abs(cal.predict(xs) - truth(xs))) < 0.03
+    assert cal.r2 > 0.999
+    assert 0.01 < cal.rmse < 0.03
+    used = [s for s in cal.samples if s["used"]]
+    assert len(used) == d.size
+    assert math.sqrt(np.mean([s["residual_n"] ** 2 for s in used])) == pytest.approx(cal.rmse)
+
+
+def test_fit_degree_configurable_and_zero_intercept():
+    d = np.linspace(0.1e-3, 2e-3, 20)
+    f = 2000.0 * d + 3e5 * d ** 2
+    cal = ForceCalibration.fit(d, f, 2, zero_intercept=True)
+    assert cal.degree == 2 and cal.coefficients[0] == 0.0
+    np.testing.assert_allclose(cal.coefficients[1:], [2000.0, 3e5], rtol=1e-6)
+
+
+def test_non_monotonic_fit_refused():
+    d = np.linspace(0.0, 2e-3, 30)
+    f = np.sin(d / 2e-3 * math.pi)  # rises then falls: the cubic fit turns over inside the range
+    with pytest.raises(CalibrationError, match="not monotonic"):
+        ForceCalibration.fit(d, f, 3)
+
+
+@pytest.mark.parametrize("depths,forces,match", [
+    ([0.1e-3, float("nan"), 0.3e-3, 0.4e-3, 0.5e-3], [1, 2, 3, 4, 5], "not finite"),
+    ([0.1e-3, -0.2e-3, 0.3e-3, 0.4e-3, 0.5e-3], [1, 2, 3, 4, 5], "negative"),
+    ([0.1e-3, 0.2e-3, 0.3e-3], [1, 2, 3], "need at least"),
+    ([0.1e-3, 0.2e-3], [1, 2, 3], "depths but"),
+])
+def test_fit_rejects_bad_data(depths, forces, match):
+    with pytest.raises(CalibrationError, match=match):
+        ForceCalibration.fit(depths, forces, 3)
+
+
+def test_loading_and_unloading_kept_apart_with_gap():
+    d = np.linspace(0.1e-3, 2e-3, 15)
+    dd = np.concatenate([d, d[::-1]])
+    f = np.concatenate([truth(d) + 0.2, truth(d[::-1]) - 0.2])  # loading 0.4 N above unloading
+    ph = ["loading"] * d.size + ["unloading"] * d.size
+    cal = ForceCalibration.fit(dd, f, 3, phases=ph, cycles=[0] * dd.size)
+    h = cal.hysteresis
+    assert h["loading"]["n_samples"] == 15 and h["unloading"]["n_samples"] == 15
+    assert h["max_gap_n"] == pytest.approx(0.4, abs=1e-6)
+    assert h["mean_gap_n"] == pytest.approx(0.4, abs=1e-6)
+    assert "hysteresis" in cal.summary()
+    only_load = ForceCalibration.fit(dd, f, 3, phases=ph, use="loading")
+    assert only_load.predict(1e-3) == pytest.approx(float(truth(1e-3)) + 0.2, abs=1e-6)
+    assert sum(s["used"] for s in only_load.samples) == 15
+
+
+# ------------------------------------------------------------------------------------------------------ guards
+def test_predict_inside_range_matches_polynomial(cal):
+    xs = np.linspace(0.1e-3, 2e-3, 11)
+    np.testing.assert_allclose(cal.predict(xs), truth(xs), rtol=1e-9)
+    assert isinstance(cal.predict(1e-3), float)
+
+
+def test_beyond_range_is_linear_from_end_slope_or_clamped(cal):
+    hi = 2e-3
+    f_hi = float(truth(hi))
+    slope = TRUE[1] + 2 * TRUE[2] * hi + 3 * TRUE[3] * hi ** 2
+    f, st = cal.predict_with_status(3e-3)
+    assert st == "extrapolated"
+    assert f == pytest.approx(f_hi + slope * 1e-3, rel=1e-6)
+    assert f < float(truth(3e-3))  # not the cubic tail
+    f, st = cal.predict_with_status(5e-3, "clamp")
+    assert st == "clamped" and f == pytest.approx(f_hi, rel=1e-9)
+
+
+def test_below_range_ramps_to_zero_and_negative_is_zero(cal):
+    f_lo = float(truth(0.1e-3))
+    f, st = cal.predict_with_status(0.05e-3)
+    assert st == "extrapolated" and f == pytest.approx(f_lo / 2, rel=1e-9)
+    assert cal.predict(0.0) == 0.0
+    assert cal.predict(-1e-3) == 0.0
+    with pytest.raises(ValueError, match="NaN"):
+        cal.predict(float("nan"))
+
+
+def test_never_negative_even_with_negative_intercept():
+    d = np.linspace(0.2e-3, 2e-3, 20)
+    cal = ForceCalibration.fit(d, 3000 * d - 0.5, 1)  # F(0.2 mm) = 0.1 N, intercept -0.5 N
+    assert cal.coefficients[0] == pytest.approx(-0.5)
+    f = cal.predict(np.linspace(0, 3e-3, 200))
+    assert (f >= 0).all()
+
+
+# ------------------------------------------------------------------------------------------------------ file
+def test_file_round_trip(tmp_path, cal):
+    p = cal.save(tmp_path / "x.force.json")
+    back = ForceCalibration.load(p)
+    assert back.coefficients == cal.coefficients
+    assert back.depth_range == cal.depth_range and back.force_range == cal.force_range
+    assert back.r2 == pytest.approx(cal.r2) and back.rmse == pytest.approx(cal.rmse)
+    assert back.sensor_model_id == "unit-test" and back.created == cal.created
+    assert len(back.samples) == len(cal.samples)
+    xs = np.linspace(0, 4e-3, 33)
+    np.testing.assert_array_equal(back.predict(xs), cal.predict(xs))
+    doc = json.loads(p.read_text())
+    for key in ("coefficients", "degree", "depth_range_m", "force_range_n"):
+        assert key in doc["model"]
+    for key in ("r2", "rmse_n"):
+        assert key in doc["quality"]
+    assert {"residual_n", "depth_m", "force_n"} <= set(doc["samples"][0])
+
+
+def _edit(path, fn):
+    doc = json.loads(open(path).read())
+    fn(doc)
+    with open(path, "w") as fh:
+        json.dump(doc, fh)
+
+
+@pytest.mark.parametrize("mutate,field", [
+    (lambda d: d.update(version=2), "version"),
+    (lambda d: d.update(format="something-else"), "format"),
+    (lambda d: d["model"].update(degree=0), "model.degree"),
+    (lambda d: d["model"].update(coefficients=[1.0, 2.0]), "model.coefficients"),
+    (lambda d: d["model"]["coefficients"].__setitem__(1, "x"), "model.coefficients"),
+    (lambda d: d["model"].update(depth_range_m=[0.002, 0.001]), "model.depth_range_m"),
+    (lambda d: d["model"].update(force_range_n="0..5"), "model.force_range_n"),
+    (lambda d: d["model"].update(coefficients=[0.0, 1000.0, -1e6, 0.0]), "model.coefficients"),  # turns over
+    (lambda d: d.pop("model"), "model"),
+])
+def test_bad_files_name_file_and_field(cal_file, mutate, field):
+    _edit(cal_file, mutate)
+    with pytest.raises(ModelFileError) as ei:
+        ForceCalibration.load(cal_file)
+    msg = str(ei.value)
+    assert cal_file in msg and f"'{field}'" in msg
+
+
+def test_corrupt_and_missing_files(tmp_path):
+    p = tmp_path / "bad.force.json"
+    p.write_text('{"format": "teletouch-force-calibration", "version": 1, "model": {')
+    with pytest.raises(ModelFileError, match="corrupt JSON at line 1"):
+        ForceCalibration.load(p)
+    with pytest.raises(ModelFileError, match="not found"):
+        ForceCalibration.load(tmp_path / "nothing.json")
+    with pytest.raises(ModelFileError, match="packaged"):
+        resolve_calibration("no-such-calibration")
+
+
+def test_plot_written(tmp_path):
+    d = np.linspace(0.1e-3, 2e-3, 15)
+    dd = np.concatenate([d, d[::-1]])
+    cal = ForceCalibration.fit(dd, truth(dd) + np.r_[np.full(15, 0.1), np.full(15, -0.1)], 3,
+                               phases=["loading"] * 15 + ["unloading"] * 15)
+    p = cal.save_plot(tmp_path / "fig3.png")
+    assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------------------------------------------ CSV
+def test_csv_round_trip_and_fit(tmp_path):
+    d = np.linspace(0.1e-3, 2e-3, 12)
+    rows = [{"depth_m": float(x), "force_n": float(truth(x)), "phase": "loading", "cycle": 1} for x in d]
+    p = write_pairs_csv(tmp_path / "pairs.csv", rows)
+    data = read_pairs_csv(p)
+    np.testing.assert_allclose(data["depth_m"], d, rtol=1e-8)
+    assert data["phase"] == ["loading"] * 12 and data["cycle"] == [1] * 12
+    cal = ForceCalibration.fit(data["depth_m"], data["force_n"], 3)
+    np.testing.assert_allclose(cal.coefficients, TRUE, rtol=1e-4, atol=1e-6)
+
+
+def test_csv_in_mm_and_errors_name_line(tmp_path):
+    p = tmp_path / "mm.csv"
+    p.write_text("# a comment\ndepth_mm,force\n0.5,1.0\n1.0,2.5\n")
+    data = read_pairs_csv(p)
+    np.testing.assert_allclose(data["depth_m"], [0.5e-3, 1.0e-3])
+    assert data["phase"] is None
+    p.write_text("depth_m,force_n\n0.0005,1.0\n0.001,abc\n")
+    with pytest.raises(CalibrationError, match=r"mm\.csv:3: column 'force_n'"):
+        read_pairs_csv(p)
+    p.write_text("x,y\n1,2\n")
+    with pytest.raises(CalibrationError, match=r"mm\.csv:1: header"):
+        read_pairs_csv(p)
+
+
+# ------------------------------------------------------------------------------------------------------ component
+def test_component_maps_and_gates_contact(cal_file):
+    with Harness(PolyForce, {"calibration": cal_file}) as h:
+        out = h.step(0.01, max_depth=1e-3)
+        assert out["force"] == pytest.approx(float(truth(1e-3))) and out["status"] == "ok"
+        out = h.step(0.02, max_depth=1e-5)  # below the contact threshold
+        assert out["force"] == 0.0 and out["status"] == "no-contact"
+        out = h.step(0.03, max_depth=1e-3, contact_area=0.0)
+        assert out["force"] == 0.0 and out["status"] == "no-contact"
+        out = h.step(0.04, max_depth=1e-3, contact_area=1e-6, contact_mask=np.zeros((4, 4), bool))
+        assert out["force"] == 0.0 and out["status"] == "no-contact"
+        m = np.zeros((4, 4), bool)
+        m[1, 1] = True
+        out = h.step(0.05, max_depth=1e-3, contact_mask=m)
+        assert out["force"] > 1.0 and out["status"] == "ok"
+
+
+def test_component_guards(cal_file):
+    with Harness(PolyForce, {"calibration": cal_file, "out_of_range": "clamp", "max_force": 5.0}) as h:
+        for bad in (float("nan"), float("inf"), -1e-3):
+            out = h.step(h.t + 0.01, max_depth=bad)
+            assert out["force"] == 0.0 and out["status"] == "invalid-input"
+        out = h.step(h.t + 0.01, max_depth=-1e-6)  # small negative: no contact, not invalid
+        assert out == {"force": 0.0, "status": "no-contact"}
+        out = h.step(h.t + 0.01, max_depth=3e-3)
+        assert out["status"] == "clamped" and out["force"] == 5.0  # max_force below F(d_hi)
+        assert h.comp.counts["invalid-input"] == 3
+    with Harness(PolyForce, {"calibration": cal_file}) as h:
+        out = h.step(0.01, max_depth=3e-3)
+        assert out["status"] == "extrapolated" and math.isfinite(out["force"])
+
+
+def test_component_outputs_only_on_new_depth_with_its_stamp(cal_file):
+    from teletouch import Sample
+
+    with Harness(PolyForce, {"calibration": cal_file}) as h:
+        h.t = 1.0
+        h.set(max_depth=Sample(1e-3, 0.95))
+        out = h.comp.step(1.0, h.inputs)
+        assert out["force"].stamp == 0.95
+        assert h.comp.step(1.01, h.inputs) is None  # same sample: nothing new
+
+
+def test_component_faults_after_repeated_invalid(cal_file):
+    from teletouch.errors import ComponentFault
+
+    with Harness(PolyForce, {"calibration": cal_file, "fault_after_invalid": 3}) as h:
+        h.step(0.01, max_depth=float("nan"))
+        h.step(0.02, max_depth=float("nan"))
+        with pytest.raises(ComponentFault, match="3 invalid"):
+            h.step(0.03, max_depth=float("nan"))
+
+
+def test_median_rejects_outlier_and_lowpass_lags(cal_file):
+    with Harness(PolyForce, {"calibration": cal_file, "median_window": 3}) as h:
+        outs = [h.step(0.01 * (i + 1), max_depth=d)["force"] for i, d in enumerate([1e-3, 1e-3, 1.9e-3, 1e-3])]
+        assert max(outs[1:]) == pytest.approx(float(truth(1e-3)))  # the 1.9 mm spike never comes out
+    with Harness(PolyForce, {"calibration": cal_file, "lowpass_cutoff": 5.0}) as h:
+        f0 = h.step(0.0, max_depth=0.5e-3)["force"]
+        f1 = h.step(1 / 60, max_depth=1.5e-3)["force"]
+        target = float(truth(1.5e-3))
+        tau = 1 / (2 * math.pi * 5.0)
+        alpha = (1 / 60) / (tau + 1 / 60)
+        assert f1 == pytest.approx(f0 + alpha * (target - f0))
+        assert h.step(2 / 60, max_depth=0.0)["force"] == 0.0  # release: exactly zero at once
+
+
+def test_component_bad_calibration_refuses_to_configure(tmp_path):
+    p = tmp_path / "broken.force.json"
+    p.write_text("not json")
+    h = Harness(PolyForce, {"calibration": str(p)})
+    with pytest.raises(ModelFileError, match="broken.force.json"):
+        h.comp.configure()
+
+
+def test_component_in_a_graph(cal_file):
+    reg = make_registry("teletouch.plugins.estimators.poly_force")
+    text = f"""
+name: t
+clock: sim
+duration: 1.0
+nodes:
+  - id: depth
+    plugin: mock-sensor
+    rate: 60
+    params: {{signal: ramp, amplitude: 0.002}}
+  - id: force
+    plugin: poly-force
+    rate: 60
+    params: {{calibration: "{cal_file}"}}
+    inputs: {{max_depth: depth.value}}
+"""
+    seen = []
+    result, rt = run_yaml(text, reg, taps=[lambda n, t, o: seen.append(o) if n == "force" else None])
+    assert result.status == "ok", result.message
+    forces = [o["force"].value for o in seen]
+    statuses = [o["status"].value for o in seen]
+    assert statuses[0] == "no-contact" and forces[0] == 0.0
+    assert "ok" in statuses
+    assert all(f >= 0 for f in forces) and np.all(np.diff(forces) >= 0)
