@@ -1,0 +1,153 @@
+"""sim-gripper: a simulated parallel gripper (position servo) closing on an object, with a gel fingertip.
+
+The servo tracks the (clamped, speed-limited) opening setpoint with a first-order response of the given bandwidth;
+it pushes with the force ``min(max_effort, servo_stiffness * (opening - setpoint))`` when blocked. Between the
+fingers sits an object of ``object_width``, rigid or compliant (``object_stiffness``). The penetration of the
+fingers into the object is shared in series by the fingertip gel(s) and the object; the gel's force-indentation law
+is sim-digit's (``teletouch.plugins.sensors.gel.gel_force``), so ``indentation`` wired into sim-digit makes the
+simulated DIGIT see exactly the squeeze whose force the gripper reports. Deterministic under the sim clock.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Literal
+
+from pydantic import Field, model_validator
+
+from teletouch import Port, Sample, hookimpl
+from teletouch.units import Hertz, Meters, NewtonsPerMeter, Pascals
+
+from .follower_common import FOLLOWER_OUTPUTS, FollowerBase, FollowerParams, Reading, clamp
+from .follower_contact import blocked_opening, split_penetration
+
+
+def load_gel_law(p: Any) -> tuple[Callable[[float], float], Any]:
+    """The fingertip gel's force law F(d) (sim-digit's ``gel_force``) for the object's surface as indenter."""
+    from teletouch.plugins.sensors import gel
+
+    indenter = gel.Indenter.parse(p.indenter, p.indenter_radius, p.indenter_tip_radius)
+    material = gel.GelMaterial(p.gel_modulus if p.gel_modulus is not None else gel.DEFAULT_MODULUS,
+                               gel.DEFAULT_POISSON, p.gel_thickness)
+    gel_force = gel.gel_force
+    return (lambda d: gel_force(d, indenter, material)), indenter
+
+
+class SimGripper(FollowerBase):
+    """Simulated parallel gripper squeezing an object through a gel fingertip (contact, indentation, force)."""
+
+    name = "sim-gripper"
+    default_rate = 1000.0
+    outputs = dict(FOLLOWER_OUTPUTS, **{
+        "contact": Port("bool", (), "", "the fingers touch the object"),
+        "indentation": Port("float64", (), "m", "how far the object presses into the fingertip gel (drives "
+                                               "sim-digit's indentation input)"),
+        "contact_force": Port("float64", (), "N", "ground-truth squeezing force"),
+    })
+
+    class Params(FollowerParams):
+        initial_opening: Meters | None = Field(None, description="opening at start (None: max_opening)",
+                                               json_schema_extra={"unit": "m"})
+        bandwidth: Hertz = Field(10.0, gt=0, description="servo bandwidth (first-order)",
+                                 json_schema_extra={"unit": "Hz"})
+        servo_stiffness: NewtonsPerMeter = Field(4000.0, gt=0, description="force per metre of position error "
+                                                 "when blocked (up to max_effort)", json_schema_extra={"unit": "N/m"})
+        object_width: Meters | None = Field(0.04, ge=0, description="object between the fingers (None: no object)",
+                                            json_schema_extra={"unit": "m"})
+        object_stiffness: NewtonsPerMeter | None = Field(None, gt=0, description="object compliance in series "
+                                                         "with the gel (None: rigid)",
+                                                         json_schema_extra={"unit": "N/m"})
+        indenter: Literal["sphere", "probe", "flat"] = Field("sphere", description="shape of the object's surface "
+                                                             "where it presses into the gel (sim-digit's indenter)")
+        indenter_radius: Meters = Field(0.005, gt=0, description="indenter radius (sphere/flat; cylinder of the "
+                                        "probe)", json_schema_extra={"unit": "m"})
+        indenter_tip_radius: Meters | None = Field(None, gt=0, description="probe's tip radius (None: 10 mm)",
+                                                   json_schema_extra={"unit": "m"})
+        gel_modulus: Pascals | None = Field(None, gt=0, description="gel Young's modulus (None: sim-digit's "
+                                            "default, Shore 10A)", json_schema_extra={"unit": "Pa"})
+        gel_thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the thin-layer "
+                                             "correction (None: half space)", json_schema_extra={"unit": "m"})
+        gel_fingers: int = Field(1, ge=1, le=2, description="fingers with a gel pad (1: one DIGIT, the other rigid)")
+
+        @model_validator(mode="after")
+        def _initial(self) -> "SimGripper.Params":
+            if self.initial_opening is not None and not (self.min_opening <= self.initial_opening
+                                                         <= self.max_opening):
+                raise ValueError(f"initial_opening {self.initial_opening} m is outside "
+                                 f"[{self.min_opening}, {self.max_opening}] m")
+            return self
+
+    # hardware hooks: the simulated servo ----------------------------------------------------------------------
+    def _hw_open(self) -> None:
+        p = self.params
+        self.gel, self.indenter = load_gel_law(p)
+        x0 = p.max_opening if p.initial_opening is None else p.initial_opening
+        self.x = x0
+        self.v = 0.0
+        self.target = x0
+        self.t_sim: float | None = None
+        self.indentation = 0.0
+        self.force = 0.0
+        if p.object_width is not None and x0 < p.object_width:
+            self._contact_at(x0)
+
+    def _hw_read(self) -> Reading:
+        return Reading(self.x, self.v, self.force)
+
+    def _hw_write(self, opening: float) -> None:
+        self.target = opening
+
+    # physics ---------------------------------------------------------------------------------------------------
+    def _contact_at(self, x: float) -> None:
+        p = self.params
+        pen = (p.object_width - x) if p.object_width is not None else 0.0
+        if pen > 0:
+            self.indentation, self.force = split_penetration(pen, self.gel, p.gel_fingers, p.object_stiffness)
+        else:
+            self.indentation, self.force = 0.0, 0.0
+
+    def advance(self, t: float) -> None:
+        """Move the fingers from the last step's time to ``t`` towards ``self.target``."""
+        p = self.params
+        if self.t_sim is None:
+            self.t_sim = t
+            return
+        dt = t - self.t_sim
+        if dt <= 0:
+            return
+        self.t_sim = t
+        x = self.x
+        x_free = x + (self.target - x) * (1.0 - math.exp(-2.0 * math.pi * p.bandwidth * dt))
+        x_free = clamp(x_free, x - p.max_speed * dt, x + p.max_speed * dt)
+        w = p.object_width
+        if w is not None and x_free < w and self.target < w:
+            x_block = blocked_opening(w, self.target, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
+                                      p.object_stiffness)
+            # quasi-static contact: the fingers go no further into the object than where the servo's force
+            # balances the contact force (and are pushed back out to there if they are further in)
+            x_new = max(x_free, x_block)
+        else:
+            x_new = x_free
+        self.v = (x_new - x) / dt
+        self.x = x_new
+        self._contact_at(x_new)
+
+    def step(self, t: float, inputs: Any) -> dict[str, Any]:
+        target = self.command_target(t, inputs)
+        self._hw_write(target)
+        self.advance(t)
+        out = self.outputs_from(self.read_state(t), t)
+        out["contact"] = Sample(self.force > 0.0, t)
+        out["indentation"] = Sample(self.indentation, t)
+        out["contact_force"] = Sample(self.force, t)
+        return out
+
+    def status(self) -> dict[str, Any]:
+        d = super().status()
+        d.update(indentation=getattr(self, "indentation", None), contact_force=getattr(self, "force", None))
+        return d
+
+
+@hookimpl
+def teletouch_components():
+    return [SimGripper]

@@ -1,0 +1,173 @@
+"""sim-gripper: servo limits, contact with rigid and compliant objects through the gel law, safe state, determinism."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from pydantic import ValidationError
+
+from teletouch.testing import Harness, make_registry, run_yaml
+
+from teletouch.plugins.devices import follower_contact as fc
+from teletouch.plugins.devices.sim_gripper import SimGripper
+
+MOD = "teletouch.plugins.devices.sim_gripper"
+
+
+def run_to(h, cmd, t0, seconds, dt=1e-3, **extra):
+    out = {}
+    n = int(round(seconds / dt))
+    for k in range(1, n + 1):
+        out = h.step(t0 + k * dt, opening_command=cmd, **extra)
+    return out, t0 + n * dt
+
+
+def test_free_motion_obeys_speed_limit_and_range():
+    with Harness(SimGripper, {"object_width": None, "max_speed": 0.05, "max_opening": 0.09}) as h:
+        o = h.step(0.0, opening_command=0.0)
+        assert o["opening"] == pytest.approx(0.09)
+        prev = 0.09
+        for k in range(1, 400):
+            o = h.step(k * 1e-3, opening_command=0.0)
+            assert prev - o["opening"] <= 0.05 * 1e-3 + 1e-12
+            assert o["velocity"] >= -0.05 - 1e-9
+            prev = o["opening"]
+        assert o["velocity"] == pytest.approx(-0.05, rel=1e-6)
+        o, t = run_to(h, 0.0, 0.4, 2.5)
+        assert o["opening"] == pytest.approx(0.0, abs=1e-6)  # min_opening
+        assert o["contact"] is False and o["contact_force"] == 0.0 and o["effort"] == 0.0
+        o, t = run_to(h, 0.5, t, 3.0)  # beyond max_opening: clamped
+        assert o["opening"] == pytest.approx(0.09, abs=1e-6)
+
+
+def test_rigid_object_gel_takes_all_penetration():
+    p = {"object_width": 0.04, "object_stiffness": None, "max_effort": 10.0, "servo_stiffness": 4000.0}
+    with Harness(SimGripper, p) as h:
+        o, t = run_to(h, 0.036, 0.0, 2.0)
+        gel = h.comp.gel
+        pen = 0.04 - o["opening"]
+        assert o["contact"] is True
+        assert pen > 0
+        assert o["indentation"] == pytest.approx(pen, rel=1e-9)  # one gel finger, rigid object
+        assert o["contact_force"] == pytest.approx(gel(o["indentation"]), rel=1e-9)
+        # the servo's force at equilibrium balances the contact force
+        servo = min(10.0, 4000.0 * (o["opening"] - 0.036))
+        assert o["contact_force"] == pytest.approx(servo, rel=1e-6)
+        assert o["effort"] == o["contact_force"]
+        assert abs(o["velocity"]) < 1e-9
+        # squeezing harder saturates at the effort limit
+        o, t = run_to(h, 0.0, t, 2.0)
+        assert o["contact_force"] == pytest.approx(10.0, rel=1e-6)
+        assert o["opening"] > 0.0  # the object stops the fingers
+        # opening again releases the object completely
+        o, t = run_to(h, 0.06, t, 2.0)
+        assert o["contact"] is False and o["indentation"] == 0.0 and o["contact_force"] == 0.0
+
+
+def test_compliant_object_in_series_with_gel():
+    k = 2000.0
+    with Harness(SimGripper, {"object_width": 0.04, "object_stiffness": k, "gel_fingers": 2}) as h:
+        o, t = run_to(h, 0.03, 0.0, 2.0)
+        d, f = o["indentation"], o["contact_force"]
+        assert f == pytest.approx(h.comp.gel(d), rel=1e-9)
+        assert 0.04 - o["opening"] == pytest.approx(2 * d + f / k, rel=1e-7)
+    with Harness(SimGripper, {"object_width": 0.04, "object_stiffness": None, "gel_fingers": 2}) as h2:
+        o2, _ = run_to(h2, 0.03, 0.0, 2.0)
+    # a softer object gives way: the gel is pressed in less for the same command
+    assert d < o2["indentation"]
+
+
+def test_split_penetration_solver():
+    from teletouch.plugins.sensors.gel import Indenter, gel_force
+
+    ball = Indenter.sphere(0.005)
+    gel = lambda d: gel_force(d, ball)  # noqa: E731
+    for pen in (1e-5, 1e-4, 1e-3, 5e-3):
+        d, f = fc.split_penetration(pen, gel, 1, 500.0)
+        assert d + f / 500.0 == pytest.approx(pen, rel=1e-9)
+        assert 0 < d < pen
+    assert fc.split_penetration(-1e-3, gel) == (0.0, 0.0)
+    x = fc.blocked_opening(0.04, 0.035, 3000.0, 5.0, gel, 1, None)
+    f = gel(0.04 - x)
+    assert f == pytest.approx(min(5.0, 3000.0 * (x - 0.035)), rel=1e-7)
+    assert fc.blocked_opening(0.04, 0.05, 3000.0, 5.0, gel) == 0.04
+
+
+def test_nan_command_holds_and_safe_state():
+    with Harness(SimGripper, {"object_width": None}) as h:
+        o, t = run_to(h, 0.05, 0.0, 2.0)
+        assert o["opening"] == pytest.approx(0.05, abs=1e-6)
+        o, t = run_to(h, math.nan, t, 0.5)
+        assert o["opening"] == pytest.approx(0.05, abs=1e-6)
+        h.comp.safe_state()  # hold: later commands are ignored
+        o, t = run_to(h, 0.01, t, 0.5)
+        assert o["opening"] == pytest.approx(0.05, abs=1e-6)
+    with Harness(SimGripper, {"object_width": 0.04, "safe_mode": "open"}) as h:
+        o, t = run_to(h, 0.03, 0.0, 2.0)
+        assert o["contact"] is True
+        h.comp.safe_state()
+        o, t = run_to(h, 0.03, t, 2.0)
+        assert o["opening"] == pytest.approx(0.09, abs=1e-6) and o["contact"] is False
+
+
+def test_params_are_validated():
+    with pytest.raises(ValidationError, match="min_opening"):
+        SimGripper.Params(min_opening=0.05, max_opening=0.04)
+    with pytest.raises(ValidationError, match="initial_opening"):
+        SimGripper.Params(initial_opening=0.2)
+    assert SimGripper.Params(object_width="35mm").object_width == pytest.approx(0.035)
+
+
+def test_uses_sim_digit_gel_law(monkeypatch):
+    """sim-gripper's contact force is sim-digit's gel_force of its indentation, with the configured indenter."""
+    from teletouch.plugins.sensors import gel
+
+    calls = []
+    real = gel.gel_force
+
+    def spy(d, indenter, *a, **kw):
+        calls.append(indenter)
+        return real(d, indenter, *a, **kw)
+
+    monkeypatch.setattr(gel, "gel_force", spy)
+    p = {"object_width": 0.04, "indenter": "probe", "indenter_radius": "5mm", "indenter_tip_radius": "10mm"}
+    with Harness(SimGripper, p) as h:
+        o, _ = run_to(h, 0.035, 0.0, 2.0)
+    assert calls and all(c.kind == "probe" and c.radius == 0.005 and c.tip_radius == 0.010 for c in calls)
+    assert o["contact_force"] == pytest.approx(real(o["indentation"], gel.Indenter.probe(0.005, 0.010)), rel=1e-9)
+    # a stiffer gel is pressed in less by the same servo command
+    with Harness(SimGripper, dict(p, gel_modulus="2MPa")) as h:
+        o2, _ = run_to(h, 0.035, 0.0, 2.0)
+    assert o2["indentation"] < o["indentation"]
+
+
+GRAPH = """
+name: sim-follower
+clock: sim
+duration: 3
+nodes:
+  - id: cmd
+    plugin: mock-sensor
+    rate: 100
+    params: {signal: sine, amplitude: 0.02, offset: 0.045, frequency: 0.5}
+  - id: gripper
+    plugin: sim-gripper
+    rate: 1kHz
+    params: {object_width: 35mm, object_stiffness: 3000}
+    inputs: {opening_command: cmd.value}
+"""
+
+
+def test_graph_is_deterministic_and_reaches_contact():
+    reg = make_registry(MOD)
+    traces = []
+    for _ in range(2):
+        rows = []
+        res, rt = run_yaml(GRAPH, reg, taps=[lambda n, t, o, rows=rows: rows.append(
+            (t, o["opening"].value, o["contact_force"].value)) if n == "gripper" else None])
+        assert res.status == "ok", res.summary()
+        traces.append(rows)
+    assert traces[0] == traces[1]
+    assert max(r[2] for r in traces[0]) > 0.5  # the sine closes to 25 mm < 35 mm object
+    assert min(r[1] for r in traces[0]) > 0.025
