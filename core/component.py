@@ -21,7 +21,7 @@ import re
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Iterator, Mapping
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 __all__ = [
     "Kind", "Port", "Sample", "Inputs", "Params", "Component", "Device", "Context", "NAME_RE",
@@ -154,9 +154,36 @@ class Inputs:
 
 
 class Params(BaseModel):
-    """Base class of component parameters: unknown fields are refused, values are validated on assignment."""
+    """Base class of component parameters: unknown fields are refused, values are validated on assignment.
+
+    A field whose schema names a unit (``json_schema_extra={"unit": "Hz"}``, or ``teletouch.units.quantity``)
+    also accepts a string with units, converted to SI: ``cutoff: 2kHz`` -> 2000.0, ``radius: 5mm`` -> 0.005.
+    """
 
     model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _parse_units(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        from .units import parse_quantity
+
+        out = None
+        for fname, f in cls.model_fields.items():
+            extra = f.json_schema_extra
+            unit = extra.get("unit") if isinstance(extra, dict) else None
+            key = f.alias or fname
+            value = data.get(key)
+            if unit and isinstance(value, str) and unit not in ("", "1"):
+                try:
+                    parsed = parse_quantity(value, unit)
+                except ValueError as exc:
+                    raise ValueError(f"{key}: {exc}") from None
+                if out is None:
+                    out = dict(data)
+                out[key] = parsed
+        return data if out is None else out
 
 
 class Context:

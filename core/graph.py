@@ -413,6 +413,11 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             except ValidationError as exc:
                 for e in exc.errors():
                     loc = [str(x) for x in e["loc"]]
+                    if not loc and e["type"] == "value_error":  # a model-level check that names its field first
+                        head = str(e.get("ctx", {}).get("error", "")).split(":", 1)[0]
+                        if head in cls.Params.model_fields:
+                            loc = [head]
+                            e = dict(e, msg=str(e["ctx"]["error"]).split(": ", 1)[1], input=spec.params.get(head))
                     fname = ".".join(loc) or "?"
                     w = pwhere.get(loc[0], pwhere_default) if loc else pwhere_default
                     if e["type"] == "extra_forbidden":

@@ -240,3 +240,14 @@ def test_json_schema_covers_plugins(reg):
     gain_params = thens["mock-gain"]["properties"]["params"]
     assert gain_params["properties"]["gain"]["default"] == 1.0
     assert gain_params["additionalProperties"] is False
+
+
+def test_params_with_units_accept_quantities(reg):
+    spec = load_graph_text(GOOD.replace("{signal: step, amplitude: 2.0}",
+                                        "{signal: step, amplitude: 2.0, frequency: 2kHz, step_time: 20 ms}"),
+                           "g.yaml", registry=reg)
+    p = spec.node("source").params_obj
+    assert p.frequency == 2000.0 and p.step_time == pytest.approx(0.02)
+    errs = errors_of(GOOD.replace("{signal: step, amplitude: 2.0}", "{signal: step, frequency: 3 kg}"), reg)
+    assert any("g.yaml:8:" in e and "param 'frequency' = '3 kg'" in e and "expected a quantity in Hz" in e
+               for e in errs), errs
