@@ -1,0 +1,262 @@
+"""Simulated leader: an Omega.7 gripper and handle driven by a simulated operator (same ports as ``omega7``).
+
+Gripper: a 1-DoF mass (device + the operator's fingers) with viscous and Coulomb friction and end stops at 0 and
+``max_opening``. Forces on it: the rendered ``gripper_force`` (clamped to the device limit, positive opens) and the
+operator's hand impedance tracking the intent (see ``operator.py``). So a rendered force pushes the hand back as it
+would a person's: at rest ``opening = intent + F / hand_stiffness`` (within the Coulomb band).
+
+Handle: 3 axes, mass and damping, gravity compensated, a spherical workspace. Forces: the commanded ``force``
+(clamped to the device limit), the optional ``external_force`` (a simulated environment, e.g. the force-calibration
+press rig) and, when the operator holds the device, an arm impedance around ``hand_position``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
+from teletouch.units import (
+    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds,
+)
+
+from .omega7 import (
+    LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE, OMEGA7_MAX_FORCE, OMEGA7_MAX_GRIPPER_FORCE,
+    OMEGA7_WORKSPACE_RADIUS, ForceGuard,
+)
+from .operator import HandImpedance, OperatorState, make_intent, validate_intent
+
+
+def _u(unit: str) -> dict[str, str]:
+    return {"unit": unit}
+
+
+class SimOmega7(Device):
+    """Simulated Omega.7 leader with an operator hand model (sim and wall clocks)."""
+
+    name = "sim-omega7"
+    kind = Kind.DEVICE
+    default_rate = 1000.0
+    inputs = {
+        **LEADER_INPUTS,
+        "external_force": Port("float64", (3,), "N", "force of a simulated environment on the handle (press rig)",
+                               required=False),
+        "intent_opening": Port("float64", (), "m", "opening the operator wants now; overrides the scripted intent "
+                                                   "while it is fresh", required=False),
+    }
+    outputs = {
+        **LEADER_OUTPUTS,
+        "hand_force": Port("float64", (), "N", "ground truth: force of the operator's fingers on the gripper "
+                                               "(positive opens)"),
+        "intended_opening": Port("float64", (), "m", "ground truth: the operator's intended opening (NaN: hand off)"),
+    }
+
+    class Params(Params):
+        intent: Any = Field("hold", description="operator intent: a name (none | hold | close-and-hold | "
+                                                "trajectory | registered) or {type: NAME, ...its parameters}")
+        max_gripper_force: Newtons = Field(OMEGA7_MAX_GRIPPER_FORCE, ge=0, le=OMEGA7_MAX_GRIPPER_FORCE,
+                                           description="gripper force limit", json_schema_extra=_u("N"))
+        max_force: Newtons = Field(OMEGA7_MAX_FORCE, ge=0, le=OMEGA7_MAX_FORCE,
+                                   description="translational force limit (norm)", json_schema_extra=_u("N"))
+        command_timeout: Seconds | None = Field(0.1, gt=0, description="a command older than this gives zero force",
+                                                json_schema_extra=_u("s"))
+        # gripper mechanics
+        max_opening: Meters = Field(OMEGA7_GRIPPER_RANGE, gt=0, description="gripper end stop",
+                                    json_schema_extra=_u("m"))
+        initial_opening: Meters | None = Field(None, ge=0, description="start opening (default: the intent's, "
+                                                                       "else half open)", json_schema_extra=_u("m"))
+        gripper_mass: Kilograms = Field(0.02, gt=0, description="effective gripper mass at the fingers",
+                                        json_schema_extra=_u("kg"))
+        gripper_damping: NewtonSecondsPerMeter = Field(0.5, ge=0, description="gripper viscous friction",
+                                                       json_schema_extra=_u("N*s/m"))
+        gripper_coulomb: Newtons = Field(0.05, ge=0, description="gripper Coulomb friction",
+                                         json_schema_extra=_u("N"))
+        # operator's hand (pinch) impedance
+        hand_stiffness: NewtonsPerMeter = Field(300.0, gt=0, description="pinch stiffness of the operator",
+                                                json_schema_extra=_u("N/m"))
+        hand_damping: NewtonSecondsPerMeter = Field(3.0, ge=0, description="pinch damping of the operator",
+                                                    json_schema_extra=_u("N*s/m"))
+        hand_mass: Kilograms = Field(0.01, ge=0, description="moving finger mass added while holding",
+                                     json_schema_extra=_u("kg"))
+        hand_max_force: Newtons = Field(40.0, gt=0, description="largest pinch force the operator uses",
+                                        json_schema_extra=_u("N"))
+        # handle mechanics
+        handle_mass: Kilograms = Field(0.25, gt=0, description="effective handle mass", json_schema_extra=_u("kg"))
+        handle_damping: NewtonSecondsPerMeter = Field(5.0, ge=0, description="handle viscous damping",
+                                                      json_schema_extra=_u("N*s/m"))
+        workspace_radius: Meters = Field(OMEGA7_WORKSPACE_RADIUS, gt=0, description="spherical workspace",
+                                         json_schema_extra=_u("m"))
+        initial_position: tuple[Meters, Meters, Meters] = Field((0.0, 0.0, 0.0), description="start position (m)")
+        # operator's arm impedance on the handle (only while a hand holds the device)
+        arm_stiffness: NewtonsPerMeter = Field(300.0, ge=0, description="arm/hand stiffness on the handle",
+                                               json_schema_extra=_u("N/m"))
+        arm_damping: NewtonSecondsPerMeter = Field(10.0, ge=0, description="arm/hand damping on the handle",
+                                                   json_schema_extra=_u("N*s/m"))
+        hand_position: tuple[Meters, Meters, Meters] = Field((0.0, 0.0, 0.0),
+                                                             description="where the operator holds the handle (m)")
+        button_intervals: list[tuple[Seconds, Seconds]] = Field(default_factory=list,
+                                                                description="[[t_on, t_off], ...] button pressed")
+        substep: Seconds = Field(2.5e-4, gt=0, le=0.01, description="largest internal integration step",
+                                 json_schema_extra=_u("s"))
+
+        @field_validator("intent", mode="before")
+        @classmethod
+        def _intent(cls, v: Any) -> dict[str, Any]:
+            return validate_intent(v)
+
+        @field_validator("button_intervals")
+        @classmethod
+        def _intervals(cls, v: list[tuple[float, float]]) -> list[tuple[float, float]]:
+            for i, (a, b) in enumerate(v):
+                if not b > a:
+                    raise ValueError(f"button_intervals[{i}]: t_off must be after t_on, got ({a}, {b})")
+            return v
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def configure(self) -> None:
+        p = self.params
+        self.intent = make_intent(dict(p.intent))
+        self.intent_name = p.intent["type"]
+        self.hand = HandImpedance(p.hand_stiffness, p.hand_damping, p.hand_max_force)
+        self.guard = ForceGuard(p.max_gripper_force, p.max_force, p.command_timeout)
+        self.state = OperatorState()
+        x0 = p.initial_opening
+        if x0 is None:
+            d = self.intent.desired(0.0, self.state)
+            x0 = d[0] if d is not None else 0.5 * p.max_opening
+        self.x = min(max(float(x0), 0.0), p.max_opening)
+        self.v = 0.0
+        self.pos = np.array(p.initial_position, dtype=float)
+        self.vel = np.zeros(3)
+        self.hand_pos = np.array(p.hand_position, dtype=float)
+        self.last_t: float | None = None
+        self.g_applied = 0.0
+        self.f_applied = np.zeros(3)
+        self.f_hand = 0.0
+        self.x_intent = math.nan
+        self.enabled = False
+        self.safe = True
+        self.faults = 0
+        self._io_prev: tuple[float, float] | None = None  # last (stamp, value) of intent_opening
+        self._io_vel = 0.0
+
+    def activate(self) -> None:
+        self.enabled = True
+        self.safe = False
+        self.last_t = None
+
+    def deactivate(self) -> None:
+        self.enabled = False
+        self.g_applied = 0.0
+        self.f_applied = np.zeros(3)
+
+    def safe_state(self) -> None:
+        self.safe = True
+        self.g_applied = 0.0
+        self.f_applied = np.zeros(3)
+
+    # ------------------------------------------------------------------------------------------------ stepping
+    def _desired(self, t: float, inputs: Any) -> tuple[float, float] | None:
+        s = inputs.get("intent_opening")
+        to = self.params.command_timeout
+        if s is not None and (to is None or t - s.stamp <= to):
+            x = float(s.value)
+            if math.isfinite(x):
+                prev = self._io_prev
+                if prev is not None and s.stamp > prev[0]:
+                    self._io_vel = (x - prev[1]) / (s.stamp - prev[0])
+                if prev is None or s.stamp != prev[0]:
+                    self._io_prev = (s.stamp, x)
+                return x, self._io_vel
+        return self.intent.desired(t, self.state)
+
+    def step(self, t: float, inputs: Any) -> dict[str, Any]:
+        p = self.params
+        g, f, problem = self.guard.apply(t, inputs)
+        if problem is not None or self.safe or not self.enabled:
+            g, f = 0.0, np.zeros(3)
+        self.g_applied, self.f_applied = g, f
+        if problem is not None:
+            self.faults += 1
+            self.safe_state()
+            raise ComponentFault(problem, self.id)
+        ext = inputs.value("external_force") if "external_force" in inputs else None
+        if ext is not None:
+            ext = np.asarray(ext, dtype=float).reshape(3)
+            if not np.all(np.isfinite(ext)):
+                ext = None
+        dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
+        self.last_t = t
+        st = self.state
+        st.t, st.opening, st.velocity, st.gripper_force, st.position = t, self.x, self.v, g, self.pos
+        des = self._desired(t, inputs)
+        if dt > 0:
+            n = max(1, int(math.ceil(dt / p.substep - 1e-9)))
+            h = dt / n
+            for _ in range(n):
+                self._integrate(h, g, f, ext, des)
+        else:
+            self.f_hand = 0.0 if des is None else self.hand.force(self.x, self.v, des[0], des[1])
+        self.x_intent = math.nan if des is None else des[0]
+        button = any(a <= t < b for a, b in p.button_intervals)
+        return {"gripper_opening": self.x, "gripper_velocity": self.v, "position": self.pos.copy(),
+                "button": button, "hand_force": self.f_hand, "intended_opening": self.x_intent}
+
+    def _integrate(self, h: float, g: float, f: np.ndarray, ext: np.ndarray | None,
+                   des: tuple[float, float] | None) -> None:
+        p = self.params
+        # gripper: m x'' = F_render + F_hand - b x' - Coulomb
+        if des is None:
+            fh, m = 0.0, p.gripper_mass
+        else:
+            fh, m = self.hand.force(self.x, self.v, des[0], des[1]), p.gripper_mass + p.hand_mass
+        self.f_hand = fh
+        drive = g + fh - p.gripper_damping * self.v
+        fc = p.gripper_coulomb
+        v = self.v
+        if abs(v) < 1e-9 and abs(drive) <= fc:
+            v = 0.0  # static friction holds
+        else:
+            sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
+            v_new = v + h * (drive - fc * sgn) / m
+            if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
+                v_new = 0.0  # friction stops it, it does not reverse it
+            v = v_new
+        x = self.x + h * v
+        if x <= 0.0:
+            x, v = 0.0, max(v, 0.0)
+        elif x >= p.max_opening:
+            x, v = p.max_opening, min(v, 0.0)
+        self.x, self.v = x, v
+        # handle: M p'' = F_cmd + F_ext + F_arm - b p'
+        force = f - p.handle_damping * self.vel
+        if ext is not None:
+            force = force + ext
+        if des is not None:
+            force = force + p.arm_stiffness * (self.hand_pos - self.pos) - p.arm_damping * self.vel
+        mass = p.handle_mass
+        self.vel = self.vel + h * force / mass
+        self.pos = self.pos + h * self.vel
+        r = float(np.linalg.norm(self.pos))
+        if r > p.workspace_radius:
+            nrm = self.pos / r
+            self.pos = nrm * p.workspace_radius
+            out = float(self.vel @ nrm)
+            if out > 0:
+                self.vel = self.vel - out * nrm
+
+    def status(self) -> dict[str, Any]:
+        if not hasattr(self, "guard"):
+            return {}
+        return {"gripper_opening": self.x, "gripper_force": self.g_applied, "hand_force": self.f_hand,
+                "intent": self.intent_name, "intended_opening": self.x_intent,
+                "force_norm": float(np.linalg.norm(self.f_applied)), "clamped": self.guard.clamped,
+                "stale_commands": self.guard.stale, "faults": self.faults, "safe": self.safe}
+
+
+@hookimpl
+def teletouch_components():
+    return [SimOmega7]
