@@ -30,3 +30,18 @@ def _no_plugin_env(monkeypatch):
     """Tests build their own registries; the user's environment must not leak in."""
     monkeypatch.delenv("TELETOUCH_BLOCK_PLUGINS", raising=False)
     monkeypatch.delenv("TELETOUCH_PLUGINS", raising=False)
+
+
+_skipped: list[str] = []
+
+
+def pytest_runtest_logreport(report):
+    if report.skipped:
+        _skipped.append(report.nodeid)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """On CI nothing may skip (every extra is installed there): a skip fails the run."""
+    if os.environ.get("CI") and _skipped and session.exitstatus == 0:
+        print(f"\nCI: {len(_skipped)} test(s) skipped, which CI does not allow: " + ", ".join(_skipped[:10]))
+        session.exitstatus = 1
