@@ -1,0 +1,85 @@
+"""Time-domain passivity observer and controller (TDPA) for the leader port of a teleoperator. Pure functions.
+
+Sign convention (the leader port of docs/ports.md): the force ``f`` the controller sends to the leader is positive
+when it pushes the operator's fingers apart, the leader velocity ``v`` is positive when the gripper opens. The power
+that flows *from the operator into the teleoperator* (controller + follower + environment + sensing) is therefore
+
+    P_in = -f * v        (closing against a resisting force: P_in > 0, the network absorbs energy)
+
+The **observer** integrates it, ``E(k) = E(k-1) + P_in(k) * dt``. A passive network never returns more energy than it
+received, so ``E >= 0``; delays (a 30-60 Hz force estimate, the follower's servo lag) make the loop active and drive
+``E`` negative. The **controller** then adds a damping force ``-alpha * v`` with
+
+    alpha = -E_predicted / (v^2 dt),   0 <= alpha <= max_damping,
+
+just enough to dissipate the deficit in one step, capped at what the device can render (Omega.7: 40 N*s/m). The
+energy is then book-kept with the force that was really sent (after saturation and rate limits), so the observer
+stays honest even when the controller cannot dissipate everything at once.
+
+A positive energy reservoir lets an active loop run on energy the operator stored earlier (e.g. in a squeezed
+object); ``leak_time`` makes the positive part of ``E`` decay with that time constant, so stored energy from long
+ago cannot feed an oscillation (a conservative choice: it can add a little damping when the grip is released).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "commit"]
+
+
+@dataclass
+class PassivityState:
+    """The observer's memory."""
+
+    energy: float = 0.0        #: observed energy (J), including what the controller dissipated
+    alpha: float = 0.0         #: damping applied in the last step (N*s/m)
+    dissipated: float = 0.0    #: total energy dissipated by the controller (J)
+    active_steps: int = 0      #: steps in which damping was injected
+
+
+def port_power(force: float, velocity: float) -> float:
+    """Power (W) flowing from the operator into the teleoperator at the leader port."""
+    return -force * velocity
+
+
+def observe(energy: float, force: float, velocity: float, dt: float, leak_time: float | None = None) -> float:
+    """One observer step: the energy after ``dt`` with ``force`` applied at ``velocity`` (leak on the positive part)."""
+    e = energy
+    if leak_time is not None and leak_time > 0 and e > 0:
+        e *= math.exp(-dt / leak_time)
+    return e + port_power(force, velocity) * dt
+
+
+def damping_for(energy_pred: float, velocity: float, dt: float, max_damping: float, v_min: float = 1e-4) -> float:
+    """The damping (N*s/m) that dissipates a negative predicted energy within one step, within [0, max_damping]."""
+    if energy_pred >= 0.0 or dt <= 0.0 or abs(velocity) < v_min:
+        return 0.0
+    alpha = -energy_pred / (velocity * velocity * dt)
+    if not math.isfinite(alpha):
+        return max_damping
+    return min(alpha, max_damping)
+
+
+def passivity_force(state: PassivityState, force: float, velocity: float, dt: float, max_damping: float,
+                    leak_time: float | None = None, v_min: float = 1e-4) -> tuple[float, float]:
+    """The force to send (``force`` plus the controller's damping) and the damping used; does not change ``state``.
+
+    Call :func:`commit` with the force finally sent (after saturation/rate limits) to advance the observer.
+    """
+    e_pred = observe(state.energy, force, velocity, dt, leak_time)
+    alpha = damping_for(e_pred, velocity, dt, max_damping, v_min)
+    return force - alpha * velocity, alpha
+
+
+def commit(state: PassivityState, force_sent: float, force_undamped: float, velocity: float, dt: float,
+           alpha: float, leak_time: float | None = None) -> PassivityState:
+    """Advance the observer with the force really sent; records the dissipated part. Returns ``state``."""
+    state.energy = observe(state.energy, force_sent, velocity, dt, leak_time)
+    state.alpha = alpha
+    if alpha > 0.0:
+        state.active_steps += 1
+        # energy absorbed by the damping part of what was sent (may be less than alpha*v^2*dt after limits)
+        state.dissipated += max(0.0, port_power(force_sent - force_undamped, velocity) * dt)
+    return state

@@ -1,0 +1,433 @@
+"""Bilateral teleoperation controllers for a gripper: position-force (the paper's), position-position, no-feedback.
+
+All three have the ports of docs/ports.md (Controller):
+
+- in  ``leader_opening`` (m), optional ``leader_velocity`` (m/s), optional ``follower_opening`` (m), ``force`` (N,
+  sensed, e.g. poly-force at 30-60 Hz);
+- out ``opening_command`` (m, to the follower), ``gripper_force`` (N, to the leader, positive pushes the operator's
+  fingers apart), ``energy`` (J, passivity observer), and ``damping`` (N*s/m, what the passivity controller added).
+
+The control law of ``position-force`` (each step, at >= 1 kHz):
+
+1. follower:  ``x_fd = clip(scale * x_l + offset, opening_min, opening_max)``; a missing, stale or non-finite leader
+   opening holds the last command (the follower keeps its position);
+2. force: every new force sample ``f_s`` is shaped, ``f = sign * min(k_f * deadband(f_s), max_force)``, and the
+   output ramps linearly from its present value to ``f`` over ``smoothing_time`` (a first-order hold: the hand never
+   sees the camera-rate staircase; the added latency is ``smoothing_time`` to the full value, ``smoothing_time/2``
+   on average). A force older than ``stale_after`` or non-finite fades linearly to zero over ``fade_time``;
+3. passivity (on by default): the time-domain passivity observer over the leader port, and damping ``-alpha * v_l``
+   when the observed energy goes negative, ``alpha <= max_damping`` (Omega.7: 40 N*s/m), see passivity.py;
+4. safety: the total leader force is rate-limited (``max_force_rate``), clipped to ``+-max_force`` and forced to 0
+   when anything is non-finite: nothing but a finite force within limits ever leaves the controller.
+
+``position-position`` replaces step 2 by a PD on the position error,
+``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
+follower side being the follower's own position servo. ``no-feedback`` sends no force at all.
+The pure functions here are tested without the runtime; the components are thin wrappers around them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+from pydantic import Field, model_validator
+
+from teletouch import Component, Kind, Params, Port, hookimpl
+from teletouch.units import Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
+
+from .passivity import PassivityState, commit, passivity_force
+
+__all__ = [
+    "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit", "finite_or",
+    "ForceHold", "Differentiator", "PositionForce", "PositionPosition", "NoFeedback",
+]
+
+OMEGA7_MAX_GRIPPER_FORCE = 8.0     # N (CHAI3D's device table)
+OMEGA7_MAX_DAMPING = 40.0          # N*s/m
+
+
+# ------------------------------------------------------------------------------------------------ pure functions
+def map_opening(x_leader: float, scale: float, offset: float, lo: float, hi: float) -> float:
+    """Follower opening command (m) for a leader opening (m): ``clip(scale * x + offset, lo, hi)``."""
+    x = scale * x_leader + offset
+    return lo if x < lo else hi if x > hi else x
+
+
+def unmap_opening(x_follower: float, scale: float, offset: float) -> float:
+    """The follower opening expressed on the leader's scale (inverse of :func:`map_opening` without limits)."""
+    return (x_follower - offset) / scale
+
+
+def deadband(f: float, width: float) -> float:
+    """Continuous deadband on a normal force: 0 below ``width``, ``f - width`` above (no step at the edge).
+    A negative sensed normal force is not physical and is taken as 0."""
+    return f - width if f > width else 0.0
+
+
+def saturate(f: float, limit: float) -> float:
+    """Clip to ``[-limit, limit]``."""
+    return -limit if f < -limit else limit if f > limit else f
+
+
+def shape_force(f_sensed: float, gain: float, sign: int, width: float, limit: float) -> float:
+    """Leader force (N) for a sensed force (N): sign * min(gain * deadband(f), limit); non-finite gives 0."""
+    if not math.isfinite(f_sensed):
+        return 0.0
+    return sign * min(gain * deadband(f_sensed, width), limit)
+
+
+def rate_limit(previous: float, target: float, max_rate: float, dt: float) -> float:
+    """Move from ``previous`` towards ``target`` by at most ``max_rate * dt``."""
+    step = max_rate * dt
+    d = target - previous
+    if d > step:
+        return previous + step
+    if d < -step:
+        return previous - step
+    return target
+
+
+def finite_or(x: Any, default: float) -> float:
+    """``float(x)`` if it is a finite number, else ``default``."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return default
+    return v if math.isfinite(v) else default
+
+
+class ForceHold:
+    """Hold + smooth a slow force estimate for a fast loop: linear ramps from the present value to each new target.
+
+    ``set(t, target, duration)`` starts a ramp; ``value(t)`` reads it. A ramp restarts from wherever the output is,
+    so the output is continuous whatever arrives (never a jump in the operator's hand).
+    """
+
+    __slots__ = ("v0", "v1", "t0", "duration")
+
+    def __init__(self, value: float = 0.0):
+        self.v0 = self.v1 = value
+        self.t0 = 0.0
+        self.duration = 0.0
+
+    def value(self, t: float) -> float:
+        if self.duration <= 0.0 or t >= self.t0 + self.duration:
+            return self.v1
+        if t <= self.t0:
+            return self.v0
+        return self.v0 + (self.v1 - self.v0) * (t - self.t0) / self.duration
+
+    def set(self, t: float, target: float, duration: float) -> None:
+        self.v0 = self.value(t)
+        self.v1 = target
+        self.t0 = t
+        self.duration = duration
+
+    @property
+    def target(self) -> float:
+        return self.v1
+
+
+class Differentiator:
+    """d/dt of a sampled signal with a first-order low-pass (cutoff ``hz``); robust to repeated or missing samples."""
+
+    __slots__ = ("tau", "x", "t", "v")
+
+    def __init__(self, hz: float):
+        self.tau = 1.0 / (2.0 * math.pi * hz)
+        self.x: float | None = None
+        self.t: float | None = None
+        self.v = 0.0
+
+    def update(self, t: float, x: float) -> float:
+        if self.x is None or self.t is None:
+            self.x, self.t = x, t
+            return self.v
+        dt = t - self.t
+        if dt <= 0.0:
+            return self.v
+        raw = (x - self.x) / dt
+        a = dt / (self.tau + dt)
+        self.v += a * (raw - self.v)
+        self.x, self.t = x, t
+        return self.v
+
+    def reset(self) -> None:
+        self.x = self.t = None
+        self.v = 0.0
+
+
+# ------------------------------------------------------------------------------------------------ components
+_IN = {
+    "leader_opening": Port("float64", (), "m", "leader gripper opening", required=True),
+    "leader_velocity": Port("float64", (), "m/s", "leader gripper velocity (differentiated if not wired)",
+                            required=False),
+    "follower_opening": Port("float64", (), "m", "follower opening (for the status, and position-position)",
+                             required=False),
+    "force": Port("float64", (), "N", "sensed grip force (camera rate)", required=True),
+}
+_OUT = {
+    "opening_command": Port("float64", (), "m", "follower opening command"),
+    "gripper_force": Port("float64", (), "N", "leader gripper force; positive pushes the fingers apart"),
+    "energy": Port("float64", (), "J", "passivity observer: energy the operator put into the teleoperator"),
+    "damping": Port("float64", (), "N*s/m", "damping injected by the passivity controller"),
+}
+
+
+class _CommonParams(Params):
+    scale: float = Field(1.0, gt=0, description="follower opening per leader opening (position scale)")
+    offset: Meters = Field(0.0, description="added to the scaled leader opening", json_schema_extra={"unit": "m"})
+    opening_min: Meters = Field(0.0, ge=0, description="smallest follower command", json_schema_extra={"unit": "m"})
+    opening_max: Meters = Field(0.09, gt=0, description="largest follower command (PAL gripper: 0.09 m)",
+                                json_schema_extra={"unit": "m"})
+    max_force: Newtons = Field(OMEGA7_MAX_GRIPPER_FORCE, gt=0,
+                               description="limit of the leader force (Omega.7 gripper: 8 N)",
+                               json_schema_extra={"unit": "N"})
+    max_force_rate: float = Field(200.0, gt=0, description="rate limit of the leader force",
+                                  json_schema_extra={"unit": "N/s"})
+    leader_stale_after: Seconds = Field(0.05, gt=0, description="a leader opening older than this holds the "
+                                        "follower and fades the force", json_schema_extra={"unit": "s"})
+    fade_time: Seconds = Field(0.2, gt=0, description="time to fade the force to zero when its source is lost",
+                               json_schema_extra={"unit": "s"})
+    passivity: bool = Field(True, description="time-domain passivity observer and controller on the leader port")
+    max_damping: NewtonSecondsPerMeter = Field(OMEGA7_MAX_DAMPING, ge=0,
+                                               description="cap of the injected damping (Omega.7: 40 N*s/m)",
+                                               json_schema_extra={"unit": "N*s/m"})
+    energy_leak_time: Seconds | None = Field(1.0, gt=0, description="time constant of the decay of stored "
+                                             "(positive) observed energy; null: no leak",
+                                             json_schema_extra={"unit": "s"})
+    velocity_cutoff: float = Field(50.0, gt=0, description="low-pass of differentiated velocities",
+                                   json_schema_extra={"unit": "Hz"})
+
+    @model_validator(mode="after")
+    def _check(self) -> "_CommonParams":
+        if self.opening_min >= self.opening_max:
+            raise ValueError(f"opening_min ({self.opening_min} m) must be below opening_max ({self.opening_max} m)")
+        return self
+
+
+class _Bilateral(Component):
+    """Shared follower mapping, leader-force safety chain and passivity; subclasses give the force law."""
+
+    kind = Kind.CONTROLLER
+    default_rate = 1000.0
+    inputs = dict(_IN)
+    outputs = dict(_OUT)
+    Params = _CommonParams
+
+    # -- lifecycle
+    def configure(self) -> None:
+        self._reset()
+
+    def activate(self) -> None:
+        self._reset()
+
+    def _reset(self) -> None:
+        p = self.params
+        self.t_last: float | None = None
+        self.command: float | None = None       # last follower command (m)
+        self.x_l = math.nan
+        self.v_l = 0.0
+        self.x_f = math.nan
+        self.out_force = 0.0                     # last leader force sent (N)
+        self.pas = PassivityState()
+        self.vel_l = Differentiator(p.velocity_cutoff)
+        self.vel_f = Differentiator(p.velocity_cutoff)
+        self.leader_ok = False
+        self.state = "waiting"                   # waiting | ok | stale-force | bad-force | stale-leader
+        self.invalid_inputs = 0
+        self.force_held = 0.0
+        self.fading = False
+        self.leader_fade_rate: float | None = None
+
+    # -- helpers
+    def _leader(self, t: float, inputs: Any) -> bool:
+        p = self.params
+        s = inputs["leader_opening"]
+        if s is None or t - s.stamp > p.leader_stale_after:
+            return False
+        x = finite_or(s.value, math.nan)
+        if not math.isfinite(x):
+            self.invalid_inputs += 1
+            return False
+        self.x_l = x
+        v_raw = inputs.get("leader_velocity")
+        v = math.nan
+        if v_raw is not None and t - v_raw.stamp <= p.leader_stale_after:
+            v = finite_or(v_raw.value, math.nan)
+        vd = self.vel_l.update(s.stamp, x)
+        self.v_l = v if math.isfinite(v) else vd
+        return True
+
+    def _follower(self, t: float, inputs: Any) -> bool:
+        s = inputs.get("follower_opening")
+        if s is None or t - s.stamp > self.params.leader_stale_after:
+            return False
+        x = finite_or(s.value, math.nan)
+        if not math.isfinite(x):
+            self.invalid_inputs += 1
+            return False
+        self.x_f = x
+        self.vel_f.update(s.stamp, x)
+        return True
+
+    def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
+        """The desired leader force before passivity and limits (N)."""
+        return 0.0
+
+    # -- the step
+    def step(self, t: float, inputs: Any) -> dict[str, float]:
+        p = self.params
+        dt = 0.0 if self.t_last is None else max(0.0, t - self.t_last)
+        self.t_last = t
+        self.leader_ok = self._leader(t, inputs)
+        follower_ok = self._follower(t, inputs)
+        if self.leader_ok:
+            self.command = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
+        f_fb = self.feedback(t, inputs, follower_ok)
+        v = self.v_l if self.leader_ok else 0.0
+        if not self.leader_ok:
+            f_fb = 0.0
+            if self.state != "waiting":
+                self.state = "stale-leader"
+        alpha = 0.0
+        f_des = f_fb
+        if p.passivity and self.leader_ok:
+            f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time)
+        # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness
+        if self.leader_ok:
+            self.leader_fade_rate = None
+            max_rate = p.max_force_rate
+        else:
+            if self.leader_fade_rate is None:
+                self.leader_fade_rate = max(abs(self.out_force) / p.fade_time, 1e-6)
+            max_rate = self.leader_fade_rate
+        f = rate_limit(self.out_force, f_des, max_rate, dt)
+        f = saturate(f, p.max_force)
+        if not math.isfinite(f):
+            f = 0.0
+        if p.passivity and self.leader_ok:
+            commit(self.pas, f, f_fb, v, dt, alpha, p.energy_leak_time)
+            if not math.isfinite(self.pas.energy):
+                self.pas = PassivityState()
+        self.out_force = f
+        out: dict[str, float] = {"gripper_force": f, "energy": self.pas.energy, "damping": alpha}
+        if self.command is not None:
+            out["opening_command"] = self.command
+        return out
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "force_N": round(self.force_held, 3),
+            "leader_mm": round(self.x_l * 1e3, 2) if math.isfinite(self.x_l) else None,
+            "follower_mm": round(self.x_f * 1e3, 2) if math.isfinite(self.x_f) else None,
+            "energy_mJ": round(self.pas.energy * 1e3, 3),
+            "feedback_N": round(self.out_force, 3),
+            "damping": round(self.pas.alpha, 2),
+            "state": self.state,
+        }
+
+
+class PositionForce(_Bilateral):
+    """Position-force teleoperation: the follower tracks the leader, the leader renders the sensed force."""
+
+    name = "position-force"
+
+    class Params(_CommonParams):
+        force_scale: float = Field(1.0, ge=0, description="k_f: leader force per sensed force")
+        force_sign: Literal[1, -1] = Field(1, description="+1: sensed grip force pushes the operator's fingers "
+                                           "apart (docs/ports.md); -1 for a device wired the other way")
+        deadband: Newtons = Field(0.02, ge=0, description="sensed forces below this are not rendered "
+                                  "(continuous: the width is subtracted)", json_schema_extra={"unit": "N"})
+        smoothing_time: Seconds = Field(1.0 / 60.0, ge=0, description="each new estimate is reached by a linear "
+                                        "ramp of this length (latency: this to the full value, half on average)",
+                                        json_schema_extra={"unit": "s"})
+        stale_after: Seconds = Field(0.1, gt=0, description="a force estimate older than this fades to zero",
+                                     json_schema_extra={"unit": "s"})
+
+    def _reset(self) -> None:
+        super()._reset()
+        self.hold = ForceHold(0.0)
+        self.last_stamp: float | None = None
+        self.latencies: list[float] = []        # controller time of first use - force stamp, per new estimate
+        self.bad_force = 0
+
+    def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
+        p = self.params
+        s = inputs["force"]
+        if s is not None and s.stamp != self.last_stamp:
+            self.last_stamp = s.stamp
+            f_s = finite_or(s.value, math.nan)
+            if math.isfinite(f_s):
+                if len(self.latencies) < 100_000:
+                    self.latencies.append(t - s.stamp)
+                self.force_held = f_s
+                if t - s.stamp <= p.stale_after:
+                    self.hold.set(t, shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force),
+                                  p.smoothing_time)
+                    self.fading = False
+                    self.state = "ok"
+            else:
+                self.bad_force += 1
+                self.invalid_inputs += 1
+                self.force_held = 0.0
+                self.state = "bad-force"
+                self._fade(t)
+        if s is None:
+            self.state = "waiting" if self.state == "waiting" else self.state
+        elif t - s.stamp > p.stale_after and self.state != "bad-force":
+            self.state = "stale-force"
+            self._fade(t)
+        return self.hold.value(t)
+
+    def _fade(self, t: float) -> None:
+        if not self.fading:
+            self.fading = True
+            self.hold.set(t, 0.0, self.params.fade_time)
+
+
+class PositionPosition(_Bilateral):
+    """Position-position baseline: a PD on the leader-follower position error is rendered to the operator."""
+
+    name = "position-position"
+    inputs = dict(_IN, follower_opening=Port("float64", (), "m", "follower opening", required=True),
+                  force=Port("float64", (), "N", "sensed force (not used by this law)", required=False))
+
+    class Params(_CommonParams):
+        kp: NewtonsPerMeter = Field(400.0, ge=0, description="stiffness of the position coupling on the leader",
+                                    json_schema_extra={"unit": "N/m"})
+        kd: NewtonSecondsPerMeter = Field(2.0, ge=0, description="damping of the position coupling on the leader",
+                                          json_schema_extra={"unit": "N*s/m"})
+
+    def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
+        p = self.params
+        if not follower_ok or not self.leader_ok:
+            self.state = "stale-follower" if self.leader_ok else self.state
+            self.force_held = 0.0
+            return 0.0
+        self.state = "ok"
+        x_fb = unmap_opening(self.x_f, p.scale, p.offset)
+        v_fb = self.vel_f.v / p.scale
+        f = p.kp * (x_fb - self.x_l) + p.kd * (v_fb - self.v_l)
+        self.force_held = f
+        return saturate(f, p.max_force)
+
+
+class NoFeedback(_Bilateral):
+    """No force feedback: the follower tracks the leader, the operator feels nothing."""
+
+    name = "no-feedback"
+    inputs = dict(_IN, force=Port("float64", (), "N", "sensed force (shown in the status only)", required=False))
+
+    def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
+        f = finite_or(inputs.value("force"), 0.0)
+        self.force_held = f
+        if self.leader_ok:
+            self.state = "ok"
+        return 0.0
+
+
+@hookimpl
+def teletouch_components():
+    return [PositionForce, PositionPosition, NoFeedback]

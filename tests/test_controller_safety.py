@@ -1,0 +1,143 @@
+"""Safety of the teleoperation controllers: stale force fades, NaN never leaves, saturation, rate limit, faults."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+
+from teletouch import Sample
+from teletouch.plugins.controllers.position_force import NoFeedback, PositionForce, PositionPosition
+from teletouch.testing import Harness, make_registry, run_yaml
+
+PLUGIN = "teletouch.plugins.controllers.position_force"
+
+
+def test_stale_force_fades_to_zero_smoothly():
+    p = {"deadband": 0.0, "passivity": False, "stale_after": 0.1, "fade_time": 0.2}
+    f = []
+    with Harness(PositionForce, p) as h:
+        for k in range(800):
+            t = k * 1e-3
+            vals = {"leader_opening": 0.02}
+            if k % 17 == 0 and t < 0.2:           # the estimator stops at 0.2 s
+                vals["force"] = Sample(3.0, t)
+            f.append(h.step(t, **vals)["gripper_force"])
+        assert h.comp.state == "stale-force"
+    assert f[180] == pytest.approx(3.0)
+    last = max(k for k in range(0, 200, 17))
+    k_stale = int((last / 1000 + 0.1) * 1000)
+    assert f[k_stale - 1] == pytest.approx(3.0)                     # held while fresh enough
+    assert f[k_stale + 100] == pytest.approx(1.5, abs=0.05)         # half-way through the fade
+    assert all(v == 0.0 for v in f[k_stale + 205:])                 # zero after fade_time
+    fade = f[k_stale - 1:]
+    assert max(abs(b - a) for a, b in zip(fade, fade[1:])) <= 3.0 / 200 + 1e-9   # no jump
+
+
+def test_nan_force_never_leaves_and_fades(tmp_path):
+    # the core's mock sensor turns NaN at 0.5 s; the controller's outputs stay finite and the force fades out
+    text = """
+name: nan-force
+clock: sim
+duration: 1.2
+nodes:
+  - {id: hand, plugin: mock-sensor, rate: 1kHz, params: {signal: constant, amplitude: 0.02}}
+  - {id: est, plugin: mock-sensor, rate: 60, params: {signal: constant, amplitude: 2.0, nan_at: 0.5}}
+  - id: ctl
+    plugin: position-force
+    rate: 1kHz
+    params: {fade_time: 0.2}
+    inputs: {leader_opening: hand.value, force: est.value}
+  - {id: leader, plugin: mock-device, rate: 1kHz, inputs: {command: ctl.gripper_force}}
+"""
+    rec = []
+    res, rt = run_yaml(text, make_registry(PLUGIN), taps=[lambda n, t, o: rec.append((t, dict(o))) if n == "ctl"
+                                                          else None])
+    assert res.status == "ok", res.summary()
+    for t, o in rec:
+        for k, v in o.items():
+            assert math.isfinite(v), (t, k, v)
+    f = {round(t, 3): o["gripper_force"] for t, o in rec}
+    assert f[0.49] == pytest.approx(1.98)
+    assert f[1.0] == 0.0
+    assert rt.component("ctl").bad_force > 0
+    assert rt.latest("leader", "command_applied").value == 0.0
+
+
+def test_nan_or_stale_leader_holds_follower_and_fades_force():
+    p = {"deadband": 0.0, "passivity": False, "fade_time": 0.1, "leader_stale_after": 0.05}
+    with Harness(PositionForce, p) as h:
+        for k in range(100):
+            out = h.step(k * 1e-3, leader_opening=0.015 - 1e-5 * k, force=2.0)
+        cmd = out["opening_command"]
+        f0 = out["gripper_force"]
+        assert f0 == pytest.approx(2.0, abs=0.01)   # a sample every step: the ramps act as a low-pass
+        outs = [h.step(0.1 + k * 1e-3, leader_opening=math.nan, force=2.0) for k in range(1, 200)]
+    assert all(o["opening_command"] == cmd for o in outs)          # follower holds its last command
+    f = [o["gripper_force"] for o in outs]
+    assert f[-1] == 0.0 and all(b <= a + 1e-12 for a, b in zip(f, f[1:]))
+    assert h.comp.state == "stale-leader"
+    # a leader that never arrived: no follower command at all, no force
+    with Harness(PositionForce) as h:
+        out = h.step(0.0, force=3.0)
+        out = h.step(0.001, force=3.0)
+    assert "opening_command" not in out and out["gripper_force"] == 0.0
+
+
+@pytest.mark.parametrize("cls", [PositionForce, PositionPosition, NoFeedback])
+def test_outputs_always_finite_and_within_limits_under_garbage(cls):
+    rng = random.Random(1)
+    bad = [math.nan, math.inf, -math.inf, 1e300, -1e300, "x", None]
+    with Harness(cls, {"max_force": 5.0, "max_force_rate": 1e9, "smoothing_time": 0.0}
+                 if cls is PositionForce else {"max_force": 5.0, "max_force_rate": 1e9}) as h:
+        for k in range(3000):
+            def pick(scale):
+                return rng.choice(bad) if rng.random() < 0.2 else rng.uniform(-scale, scale)
+            vals = {"leader_opening": pick(0.05), "leader_velocity": pick(5.0), "follower_opening": pick(0.05),
+                    "force": pick(100.0)}
+            vals = {k2: v for k2, v in vals.items() if v is not None}
+            out = h.step(k * 1e-3, **vals)
+            for name, v in out.items():
+                assert isinstance(v, float) and math.isfinite(v), (k, name, v)
+            assert abs(out["gripper_force"]) <= 5.0
+            if "opening_command" in out:
+                assert 0.0 <= out["opening_command"] <= 0.09
+
+
+def test_saturation_and_rate_limit_of_the_leader_force():
+    p = {"deadband": 0.0, "passivity": False, "max_force": 3.0, "max_force_rate": 100.0, "smoothing_time": 0.0}
+    with Harness(PositionForce, p) as h:
+        f = [h.step(k * 1e-3, leader_opening=0.02, force=Sample(50.0, k * 1e-3))["gripper_force"]
+             for k in range(100)]
+    assert max(f) == 3.0                                            # saturated at max_force
+    assert max(b - a for a, b in zip(f, f[1:])) <= 0.1 + 1e-12      # 100 N/s * 1 ms
+    assert f[30] == pytest.approx(3.0) and f[10] == pytest.approx(1.0)   # first step has dt = 0
+
+
+@pytest.mark.parametrize("fail_in", ["est", "ctl-input"])
+def test_devices_reach_safe_states_on_fault(fail_in):
+    # a fault anywhere stops the graph; the leader ends with zero force, the follower holds its position
+    est = "{signal: constant, amplitude: 2.0, fail_at: 0.4}" if fail_in == "est" else "{signal: constant, amplitude: 2.0}"
+    hand = "{signal: ramp, amplitude: -0.01, offset: 0.02}" if fail_in == "est" else \
+        "{signal: ramp, amplitude: -0.01, offset: 0.02, fail_at: 0.4}"
+    text = f"""
+name: fault
+clock: sim
+duration: 1.0
+nodes:
+  - {{id: hand, plugin: mock-sensor, rate: 1kHz, params: {hand}}}
+  - {{id: est, plugin: mock-sensor, rate: 60, params: {est}}}
+  - id: ctl
+    plugin: position-force
+    rate: 1kHz
+    inputs: {{leader_opening: hand.value, force: est.value}}
+  - {{id: leader, plugin: mock-device, rate: 1kHz, params: {{safe_value: 0.0}}, inputs: {{command: ctl.gripper_force}}}}
+  - {{id: follower, plugin: mock-device, rate: 1kHz, params: {{tau: 0.01}}, inputs: {{command: ctl.opening_command}}}}
+"""
+    res, rt = run_yaml(text, make_registry(PLUGIN))
+    assert res.status == "fault" and res.exit_code == 3
+    leader, follower = rt.component("leader"), rt.component("follower")
+    assert leader.safe_calls >= 1 and leader.command == 0.0
+    assert follower.safe_calls >= 1 and follower.command == pytest.approx(follower.state)
+    assert leader.lifecycle[-2:] == ["deactivate", "close"]
