@@ -6,6 +6,8 @@ A graph file::
     include: base.yaml            # optional; a list is allowed. Nodes with the same id are merged (override).
     clock: sim                    # sim (deterministic, as fast as possible) or wall (real time)
     duration: 10                  # s (or "10s"); optional
+    realtime_priority: 0          # SCHED_FIFO priority for threads at >= 200 Hz in wall mode (0: off; needs
+                                  # CAP_SYS_NICE / rtprio limits, as for ros2_control's control thread)
     faults:
       on_fault: stop              # default reaction to a node's fault: stop | degrade
       max_overruns: 10            # consecutive missed periods before a node faults (wall clock; 0 = never)
@@ -40,7 +42,7 @@ from .errors import GraphError, GraphValidationError, Location
 from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 
-TOP_KEYS = ("name", "description", "include", "clock", "duration", "faults", "nodes")
+TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
 NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "remove", "description")
 FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace")
 FAULT_ACTIONS = ("stop", "degrade")
@@ -88,6 +90,7 @@ class GraphSpec:
     duration: float | None = None
     faults: FaultPolicy = field(default_factory=FaultPolicy)
     description: str = ""
+    realtime_priority: int = 0
 
     def node(self, node_id: str) -> NodeSpec:
         for n in self.nodes:
@@ -314,6 +317,12 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             err(f"duration: {exc}", doc.loc("duration"))
             dur = None
 
+    rt_prio = doc.get("realtime_priority", 0)
+    if not isinstance(rt_prio, int) or isinstance(rt_prio, bool) or not 0 <= rt_prio <= 99:
+        err(f"realtime_priority: expected an integer 0-99 (0 = normal scheduling), got {rt_prio!r}",
+            doc.loc("realtime_priority"))
+        rt_prio = 0
+
     faults = FaultPolicy()
     fdoc = doc.get("faults", {})
     if not isinstance(fdoc, dict):
@@ -496,7 +505,8 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
     if errors:
         raise GraphValidationError(errors)
     return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
-                     duration=dur, faults=faults, description=str(doc.get("description") or ""))
+                     duration=dur, faults=faults, description=str(doc.get("description") or ""),
+                     realtime_priority=rt_prio)
 
 
 # ------------------------------------------------------------------------------------------------ JSON schema
@@ -544,6 +554,8 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
             "include": {"anyOf": [{"type": "string"}, {"type": "array", "items": {"type": "string"}}]},
             "clock": {"enum": list(CLOCKS)},
             "duration": {**number_or_qty, "description": "s"},
+            "realtime_priority": {"type": "integer", "minimum": 0, "maximum": 99,
+                                  "description": "SCHED_FIFO priority of threads running at >= 200 Hz (0: off)"},
             "faults": {"type": "object", "properties": {
                 "on_fault": {"enum": list(FAULT_ACTIONS)},
                 "max_overruns": {"type": "integer", "minimum": 0},

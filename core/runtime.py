@@ -18,6 +18,7 @@ from __future__ import annotations
 import ctypes
 import heapq
 import math
+import os
 import sys
 import threading
 import time
@@ -456,6 +457,13 @@ class Runtime:
 
     def _wall_loop(self, members: list[_Node], rate: float) -> None:
         _set_timer_slack(1000)
+        prio = self.spec.realtime_priority
+        if prio and rate >= 200:
+            try:
+                os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(prio))
+            except (OSError, AttributeError) as exc:
+                self.log(f"realtime_priority {prio}: cannot use SCHED_FIFO ({exc}); running with normal "
+                         f"scheduling (grant CAP_SYS_NICE or an rtprio limit in /etc/security/limits.conf)")
         period = 1.0 / rate
         spin = min(2e-4, period * 0.2)
         perf = time.perf_counter
