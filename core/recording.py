@@ -1,0 +1,981 @@
+"""Record every port of a running graph to MCAP (the ROS 2 bag format), read recordings back, plot them.
+
+``teletouch run graph.yaml --record run.mcap`` builds a :class:`Recorder` and adds its :meth:`Recorder.tap` to the
+runtime. The tap only puts ``(node, t, outputs)`` on a queue; a writer thread encodes and writes, so a 1 kHz loop
+pays about a microsecond per step. Every ``flush_interval`` (0.5 s) the writer closes the MCAP chunk in progress and
+flushes the file, so a crash or ``kill -9`` leaves a file that :func:`open_recording` reads up to the last flush.
+
+One MCAP channel per output port, topic ``/<node>/<port>`` ('-' becomes '_' so ROS tools accept it). Messages are
+ROS 2 messages in CDR with ``ros2msg`` schemas where a standard message fits, so ``ros2 bag``, Foxglove and the
+``mcap`` libraries read them:
+
+======================================  ==============================================================
+value                                   message
+======================================  ==============================================================
+float, unit N (scalar or 3-vector)      geometry_msgs/msg/WrenchStamped (scalar on force.z)
+other float scalar                      std_msgs/msg/Float64
+bool / int / str scalar                 std_msgs/msg/Bool / Int64 / String
+1-D or N-D float array                  std_msgs/msg/Float64MultiArray (layout keeps the shape)
+uint8 image (rows, cols, 3) BGR         sensor_msgs/msg/CompressedImage, PNG (lossless) or JPEG
+uint8 (rows, cols) / bool mask          sensor_msgs/msg/CompressedImage, PNG mono8 (mask: 0/255)
+float32 / float64 (rows, cols)          sensor_msgs/msg/Image, 32FC1 / 64FC1 (depth maps, m)
+anything else                           JSON (schemaless), {"value": ...}
+======================================  ==============================================================
+
+Times: the MCAP ``publish_time`` and every ``header.stamp`` are the sample's own stamp (a camera's capture time),
+``log_time`` is the graph time of the step that produced it; both as Unix-epoch nanoseconds, ``epoch + graph time``,
+where ``epoch`` (metadata record ``teletouch``, key ``graph_epoch_ns``) is the Unix time of graph time 0. The
+readers give graph time back in seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import math
+import os
+import queue
+import re
+import struct
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from .component import Sample
+from .errors import TeletouchError
+from .hookspecs import hookimpl
+
+__all__ = [
+    "Recorder", "RecordingError", "Recording", "ChannelInfo", "open_recording", "read_signals", "iter_images",
+    "plot_recording", "ros_time", "ros_time_ns", "from_ros_time", "image_msg", "image_from_msg", "ros2msg_definition",
+]
+
+FLUSH_INTERVAL = 0.5
+
+
+class RecordingError(TeletouchError):
+    """A recording could not be written or read."""
+
+
+# --------------------------------------------------------------------------------------------- ROS 2 helpers
+def ros_time(seconds: float) -> Any:
+    """A builtin_interfaces/Time for Unix-epoch ``seconds`` (never negative)."""
+    return ros_time_ns(int(round(seconds * 1e9)))
+
+
+def ros_time_ns(ns: int) -> Any:
+    """A builtin_interfaces/Time for Unix-epoch nanoseconds (never negative)."""
+    from builtin_interfaces.msg import Time
+
+    ns = max(0, int(ns))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def from_ros_time(stamp: Any) -> float:
+    """Unix-epoch seconds of a builtin_interfaces/Time."""
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def image_msg(array: np.ndarray, stamp_s: float, frame_id: str = "", stamp_ns: int | None = None) -> Any:
+    """A sensor_msgs/Image from a BGR uint8 (rows, cols, 3), mono uint8 (rows, cols) or float (rows, cols) array."""
+    from sensor_msgs.msg import Image
+
+    a = np.ascontiguousarray(array)
+    if a.dtype == np.uint8 and a.ndim == 3 and a.shape[2] == 3:
+        enc = "bgr8"
+    elif a.dtype == np.uint8 and a.ndim == 2:
+        enc = "mono8"
+    elif a.dtype == np.float32 and a.ndim == 2:
+        enc = "32FC1"
+    elif a.dtype == np.float64 and a.ndim == 2:
+        enc = "64FC1"
+    elif a.dtype == np.uint16 and a.ndim == 2:
+        enc = "16UC1"
+    else:
+        raise ValueError(f"no sensor_msgs/Image encoding for a {a.dtype} array of shape {a.shape}")
+    m = Image()
+    m.header.stamp = ros_time_ns(stamp_ns) if stamp_ns is not None else ros_time(stamp_s)
+    m.header.frame_id = frame_id
+    m.height, m.width = int(a.shape[0]), int(a.shape[1])
+    m.encoding = enc
+    m.is_bigendian = int(sys.byteorder == "big")
+    m.step = int(a.strides[0])
+    m.data = a.tobytes()
+    return m
+
+
+def image_from_msg(msg: Any) -> np.ndarray:
+    """The array of a sensor_msgs/Image: bgr8/rgb8/bgra8 -> BGR uint8 (rows, cols, 3); mono8 -> uint8 (rows, cols);
+    32FC1/64FC1 -> float (rows, cols); 16UC1 (depth in mm, the ROS convention) -> float32 metres."""
+    enc = msg.encoding.lower()
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    buf = np.frombuffer(msg.data, dtype=np.uint8)
+    if buf.size < h * step:
+        raise ValueError(f"sensor_msgs/Image: {buf.size} data bytes for height {h} x step {step}")
+    rows = buf[: h * step].reshape(h, step)
+    big = bool(msg.is_bigendian)
+    if enc in ("bgr8", "rgb8", "8uc3"):
+        img = rows[:, : w * 3].reshape(h, w, 3)
+        return np.ascontiguousarray(img[:, :, ::-1] if enc == "rgb8" else img)
+    if enc in ("bgra8", "rgba8", "8uc4"):
+        img = rows[:, : w * 4].reshape(h, w, 4)[:, :, :3]
+        return np.ascontiguousarray(img[:, :, ::-1] if enc == "rgba8" else img)
+    if enc in ("mono8", "8uc1"):
+        return np.ascontiguousarray(rows[:, :w])
+    if enc in ("32fc1", "64fc1", "16uc1", "mono16"):
+        dt = {"32fc1": "f4", "64fc1": "f8", "16uc1": "u2", "mono16": "u2"}[enc]
+        dt = np.dtype((">" if big else "<") + dt)
+        a = rows[:, : w * dt.itemsize].copy().view(dt).reshape(h, w)
+        if enc == "16uc1":
+            return a.astype(np.float32) * np.float32(1e-3)
+        return a.astype(a.dtype.newbyteorder("="))
+    raise ValueError(f"sensor_msgs/Image encoding '{msg.encoding}' is not supported "
+                     f"(bgr8, rgb8, bgra8, rgba8, mono8, 32FC1, 64FC1, 16UC1)")
+
+
+_PRIMS = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
+          "int64", "uint64", "string", "wstring"}
+_IDL_TO_MSG = {"boolean": "bool", "octet": "byte", "float": "float32", "double": "float64", "long": "int32",
+               "unsigned long": "uint32", "long long": "int64", "unsigned long long": "uint64", "short": "int16",
+               "unsigned short": "uint16"}
+
+
+def _msg_class(type_name: str) -> Any:
+    """'geometry_msgs/msg/WrenchStamped' or 'geometry_msgs/WrenchStamped' -> the rclpy message class."""
+    import importlib
+
+    parts = type_name.split("/")
+    pkg, name = parts[0], parts[-1]
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def _field_to_msg(t: str) -> tuple[str, str | None]:
+    """An introspection type ('sequence<double>', 'std_msgs/Header', 'double[9]', 'string<=10') as .msg syntax, and
+    the message type it depends on (or None)."""
+    suffix = ""
+    m = re.fullmatch(r"sequence<(.+?)(?:,\s*(\d+))?>", t)
+    if m:
+        t, bound = m.group(1), m.group(2)
+        suffix = f"[<={bound}]" if bound else "[]"
+    else:
+        m = re.fullmatch(r"(.+)\[(\d+)\]", t)
+        if m:
+            t, suffix = m.group(1), f"[{m.group(2)}]"
+    t = _IDL_TO_MSG.get(t, t)
+    base = t.split("<=")[0]
+    if base in _PRIMS:
+        return t + suffix, None
+    return t + suffix, t
+
+
+def ros2msg_definition(type_name: str) -> str:
+    """The ``ros2msg`` schema text of a message type as MCAP wants it: the type's fields, then every type it
+    depends on after a line of 80 '=' and ``MSG: pkg/Name`` (the format rosbag2 writes)."""
+
+    def fields(name: str) -> tuple[list[str], list[str]]:
+        cls = _msg_class(name)
+        lines, deps = [], []
+        for fname, ftype in cls.get_fields_and_field_types().items():
+            text, dep = _field_to_msg(ftype)
+            lines.append(f"{text} {fname}")
+            if dep is not None:
+                deps.append(dep)
+        return lines, deps
+
+    main_lines, todo = fields(type_name)
+    out = ["\n".join(main_lines)]
+    seen: set[str] = set()
+    while todo:
+        dep = todo.pop(0)
+        if dep in seen:
+            continue
+        seen.add(dep)
+        lines, more = fields(dep)
+        out.append("=" * 80 + "\nMSG: " + dep + "\n" + "\n".join(lines))
+        todo.extend(more)
+    return "\n".join(out) + "\n"
+
+
+# --------------------------------------------------------------------------------------------- codecs
+def _is_scalar_number(v: Any) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, Sample):
+        return {"value": _jsonable(v.value), "stamp": v.stamp}
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.generic,)):
+        return v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return repr(v)  # JSON has no NaN/inf; the reader turns these strings back into floats
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (str, int, bool)) or v is None:
+        return v
+    return repr(v)
+
+
+class _Codec:
+    """How one channel's values become message bytes and back."""
+
+    kind = ""
+    ros_type: str | None = None  # None: JSON
+
+    def __init__(self, recorder_opts: dict[str, Any] | None = None):
+        self.opts = recorder_opts or {}
+
+    def accepts(self, v: Any) -> bool:
+        return True
+
+    def encode(self, v: Any, stamp_ns: int, frame_id: str) -> bytes:
+        from rclpy.serialization import serialize_message
+
+        return serialize_message(self.build(v, stamp_ns, frame_id))
+
+    def build(self, v: Any, stamp_ns: int, frame_id: str) -> Any:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def decode(self, data: bytes, meta: dict[str, str]) -> Any:
+        from rclpy.serialization import deserialize_message
+
+        return self.unpack(deserialize_message(data, _msg_class(self.ros_type)), meta)
+
+    def unpack(self, msg: Any, meta: dict[str, str]) -> Any:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class _Wrench(_Codec):
+    kind = "wrench"
+    ros_type = "geometry_msgs/msg/WrenchStamped"
+
+    def accepts(self, v):
+        return _is_scalar_number(v) or (isinstance(v, np.ndarray) and v.shape in ((), (3,))
+                                        and v.dtype.kind in "fiu")
+
+    def build(self, v, stamp_ns, frame_id):
+        from geometry_msgs.msg import WrenchStamped
+
+        m = WrenchStamped()
+        m.header.stamp = ros_time_ns(stamp_ns)
+        m.header.frame_id = frame_id
+        a = np.asarray(v, dtype=float)
+        if a.shape == (3,):
+            m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = (float(x) for x in a)
+        else:
+            m.wrench.force.z = float(a)
+        return m
+
+    def unpack(self, msg, meta):
+        f = msg.wrench.force
+        if meta.get("shape") == "[3]":
+            return np.array([f.x, f.y, f.z])
+        return float(f.z)
+
+
+class _Float64(_Codec):
+    kind = "float64"
+    ros_type = "std_msgs/msg/Float64"
+
+    def accepts(self, v):
+        return _is_scalar_number(v) or (isinstance(v, np.ndarray) and v.shape == () and v.dtype.kind in "fiu")
+
+    def build(self, v, stamp_ns, frame_id):
+        from std_msgs.msg import Float64
+
+        return Float64(data=float(v))
+
+    def unpack(self, msg, meta):
+        return float(msg.data)
+
+
+class _Bool(_Codec):
+    kind = "bool"
+    ros_type = "std_msgs/msg/Bool"
+
+    def accepts(self, v):
+        return isinstance(v, (bool, np.bool_))
+
+    def build(self, v, stamp_ns, frame_id):
+        from std_msgs.msg import Bool
+
+        return Bool(data=bool(v))
+
+    def unpack(self, msg, meta):
+        return bool(msg.data)
+
+
+class _Int64(_Codec):
+    kind = "int64"
+    ros_type = "std_msgs/msg/Int64"
+
+    def accepts(self, v):
+        return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)) and -2**63 <= v < 2**63
+
+    def build(self, v, stamp_ns, frame_id):
+        from std_msgs.msg import Int64
+
+        return Int64(data=int(v))
+
+    def unpack(self, msg, meta):
+        return int(msg.data)
+
+
+class _String(_Codec):
+    kind = "string"
+    ros_type = "std_msgs/msg/String"
+
+    def accepts(self, v):
+        return isinstance(v, str)
+
+    def build(self, v, stamp_ns, frame_id):
+        from std_msgs.msg import String
+
+        return String(data=v)
+
+    def unpack(self, msg, meta):
+        return str(msg.data)
+
+
+class _Array(_Codec):
+    kind = "array"
+    ros_type = "std_msgs/msg/Float64MultiArray"
+
+    def accepts(self, v):
+        return isinstance(v, np.ndarray) and v.ndim >= 1 and v.dtype.kind in "fiub"
+
+    def build(self, v, stamp_ns, frame_id):
+        from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+        a = np.asarray(v, dtype=np.float64)
+        m = Float64MultiArray()
+        stride = a.size
+        for i, n in enumerate(a.shape):
+            m.layout.dim.append(MultiArrayDimension(label=f"dim{i}", size=int(n), stride=int(stride)))
+            stride = stride // n if n else 0
+        m.data = a.ravel().tolist() if a.size < 64 else a.ravel()
+        return m
+
+    def unpack(self, msg, meta):
+        shape = tuple(int(d.size) for d in msg.layout.dim)
+        a = np.asarray(msg.data, dtype=np.float64)
+        a = a.reshape(shape) if shape else a
+        return a.astype(bool) if meta.get("dtype") == "bool" else a
+
+
+class _Compressed(_Codec):
+    kind = "compressed"
+    ros_type = "sensor_msgs/msg/CompressedImage"
+
+    def accepts(self, v):
+        return (isinstance(v, np.ndarray) and ((v.dtype == np.uint8 and (v.ndim == 2 or (v.ndim == 3 and v.shape[2]
+                                                                                          == 3)))
+                                               or (v.dtype == bool and v.ndim == 2)))
+
+    def build(self, v, stamp_ns, frame_id):
+        import cv2
+        from sensor_msgs.msg import CompressedImage
+
+        a = v.astype(np.uint8) * 255 if v.dtype == bool else v
+        enc = "bgr8" if a.ndim == 3 else "mono8"
+        fmt = "png" if (self.opts.get("image_format", "png") == "png" or v.dtype == bool) else "jpeg"
+        if fmt == "png":
+            ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, int(self.opts.get("png_level", 1))])
+        else:
+            ok, buf = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, int(self.opts.get("jpeg_quality", 90))])
+        if not ok:
+            raise ValueError(f"cv2.imencode failed for a {a.dtype} {a.shape} image")
+        m = CompressedImage()
+        m.header.stamp = ros_time_ns(stamp_ns)
+        m.header.frame_id = frame_id
+        m.format = f"{enc}; {fmt} compressed {enc}"  # image_transport's compressed format string
+        m.data = buf.tobytes()
+        return m
+
+    def unpack(self, msg, meta):
+        import cv2
+
+        a = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if a is None:
+            raise RecordingError(f"could not decode a CompressedImage ({msg.format})")
+        return a > 127 if meta.get("dtype") == "bool" else a
+
+
+class _Raw(_Codec):
+    kind = "image"
+    ros_type = "sensor_msgs/msg/Image"
+
+    def accepts(self, v):
+        return isinstance(v, np.ndarray) and v.ndim == 2 and v.dtype in (np.float32, np.float64, np.uint16)
+
+    def build(self, v, stamp_ns, frame_id):
+        return image_msg(v, 0.0, frame_id, stamp_ns=stamp_ns)
+
+    def unpack(self, msg, meta):
+        return image_from_msg(msg)
+
+
+class _Json(_Codec):
+    kind = "json"
+    ros_type = None
+
+    def encode(self, v, stamp_ns, frame_id):
+        return json.dumps({"value": _jsonable(v)}, allow_nan=False).encode()
+
+    def decode(self, data, meta):
+        v = json.loads(data)["value"]
+        if isinstance(v, str) and v in ("nan", "inf", "-inf"):
+            return float(v)
+        if isinstance(v, dict) and "png" in v:
+            import cv2
+
+            return cv2.imdecode(np.frombuffer(base64.b64decode(v["png"]), np.uint8), cv2.IMREAD_UNCHANGED)
+        if isinstance(v, list) and meta.get("dtype") not in (None, "any"):
+            try:
+                return np.asarray(v, dtype=meta["dtype"])
+            except (TypeError, ValueError):
+                return v
+        return v
+
+
+class _JsonImage(_Json):
+    """Without ROS 2 message packages: images as base64 PNG inside JSON."""
+
+    kind = "json-image"
+
+    def accepts(self, v):
+        return _Compressed().accepts(v)
+
+    def encode(self, v, stamp_ns, frame_id):
+        import cv2
+
+        a = v.astype(np.uint8) * 255 if v.dtype == bool else v
+        ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise ValueError(f"cv2.imencode failed for a {a.dtype} {a.shape} image")
+        return json.dumps({"value": {"png": base64.b64encode(buf.tobytes()).decode()}}).encode()
+
+    def decode(self, data, meta):
+        a = super().decode(data, meta)
+        return a > 127 if meta.get("dtype") == "bool" else a
+
+
+_CODECS: dict[str, type[_Codec]] = {c.kind: c for c in (_Wrench, _Float64, _Bool, _Int64, _String, _Array,
+                                                          _Compressed, _Raw, _Json, _JsonImage)}
+
+
+def _choose_codec(value: Any, unit: str, ros: bool, opts: dict[str, Any]) -> _Codec:
+    if not ros:
+        return _JsonImage(opts) if _JsonImage().accepts(value) else _Json(opts)
+    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "fiub":
+        value = value.item()
+    order: list[type[_Codec]] = [_Bool, _String]
+    if unit == "N":
+        order.append(_Wrench)
+    order += [_Float64, _Compressed, _Raw, _Array]
+    for cls in order:
+        c = cls(opts)
+        if c.accepts(value):
+            return c
+    return _Json(opts)
+
+
+def _ros_available() -> bool:
+    try:
+        import rclpy.serialization  # noqa: F401
+        import geometry_msgs.msg  # noqa: F401
+        import sensor_msgs.msg  # noqa: F401
+        import std_msgs.msg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------------------------- writing
+_STOP = object()
+
+
+@dataclass
+class _Chan:
+    id: int
+    codec: _Codec
+    fallback: int | None = None  # JSON channel for values the codec cannot take
+
+
+class Recorder:
+    """Records taps to an MCAP file from a writer thread; see the module docstring.
+
+    Parameters: ``image_format`` "png" (lossless, default: a replay gives the same force) or "jpeg";
+    ``flush_interval`` seconds between flushes (at most this much plus the writer's backlog is lost on a crash);
+    ``ros_encoding`` False writes JSON everywhere (also the fallback when the ROS 2 message packages are missing);
+    ``max_queue`` items waiting for the writer before new ones are dropped (counted, reported at close).
+    """
+
+    def __init__(self, path: str | os.PathLike, spec: Any = None, *, image_format: str = "png",
+                 jpeg_quality: int = 90, flush_interval: float = FLUSH_INTERVAL, ros_encoding: bool | None = None,
+                 max_queue: int = 20000, log: Callable[[str], None] | None = None):
+        from mcap.writer import CompressionType, Writer
+
+        if image_format not in ("png", "jpeg"):
+            raise RecordingError(f"image_format: expected 'png' or 'jpeg', got {image_format!r}")
+        self.path = str(path)
+        self.spec = spec
+        self.flush_interval = float(flush_interval)
+        self.ros = _ros_available() if ros_encoding is None else bool(ros_encoding)
+        if self.ros and not _ros_available():
+            raise RecordingError("ros_encoding=True needs rclpy and the ROS 2 message packages "
+                                 "(pip install 'teletouch[ros2]')")
+        self.opts = {"image_format": image_format, "jpeg_quality": jpeg_quality}
+        self.log = log or (lambda m: print(f"[recording] {m}", file=sys.stderr))
+        self.max_queue = int(max_queue)
+        self.clock = getattr(spec, "clock", "wall")
+        self._ports = self._port_table(spec)
+        try:
+            self._fh = open(self.path, "wb")
+        except OSError as exc:
+            raise RecordingError(f"cannot write the recording {self.path}: {exc}") from exc
+        try:
+            compression = CompressionType.LZ4
+            import lz4.frame  # noqa: F401
+        except ImportError:  # pragma: no cover - lz4 ships with mcap's usual installs
+            compression = CompressionType.NONE
+        self._writer = Writer(self._fh, chunk_size=4 * 1024 * 1024, compression=compression)
+        self._writer.start(profile="ros2" if self.ros else "", library="teletouch")
+        from . import __version__
+
+        self._writer.add_metadata("teletouch", {
+            "teletouch_version": __version__,
+            "graph": str(getattr(spec, "name", "") or ""),
+            "graph_file": str(getattr(spec, "file", "") or ""),
+            "clock": str(self.clock),
+            "flush_interval_s": repr(self.flush_interval),
+        })
+        self._fh.flush()
+        self._schemas: dict[str, int] = {}
+        self._chans: dict[tuple[str, str], _Chan] = {}
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._epoch_ns: int | None = None
+        self.fatal: str | None = None
+        self._epoch_lock = threading.Lock()
+        self._closed = False
+        self.messages = 0
+        self.dropped = 0
+        self.errors: list[str] = []
+        self._seq = 0
+        self._thread = threading.Thread(target=self._run, name="teletouch-recorder", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------------------------------------ API
+    def tap(self, node_id: str, t: float, outputs: dict) -> None:
+        """Runtime tap: called after every step with outputs; cheap and thread-safe (enqueue only)."""
+        if self._closed or self.fatal is not None:
+            return
+        if self._epoch_ns is None:
+            self._set_epoch(t)
+        if self.max_queue and self._q.qsize() >= self.max_queue:
+            self.dropped += len(outputs)
+            return
+        self._q.put((node_id, t, dict(outputs)))
+
+    def close(self) -> None:
+        """Write everything queued, the summary and the footer; close the file. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._q.put(_STOP)
+        self._thread.join()
+        try:
+            if self.fatal is None:
+                self._writer.finish()
+        finally:
+            self._fh.close()
+        if self.dropped:
+            self.log(f"{self.dropped} samples dropped: the writer fell behind (max_queue {self.max_queue})")
+        for e in self.errors[:5]:
+            self.log(e)
+        self.log(f"wrote {self.messages} messages on {len(self._chans)} channels to {self.path}")
+        if self.fatal is not None:
+            raise RecordingError(f"recording {self.path} stopped early: {self.fatal}")
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------------------------ internals
+    @staticmethod
+    def _port_table(spec: Any) -> dict[tuple[str, str], Any]:
+        table = {}
+        for n in getattr(spec, "nodes", []) or []:
+            cls = getattr(n, "cls", None)
+            for pname, port in (getattr(cls, "outputs", None) or {}).items():
+                table[(n.id, pname)] = port
+        return table
+
+    def _set_epoch(self, t: float) -> None:
+        with self._epoch_lock:
+            if self._epoch_ns is None:
+                # wall clock: graph time t is "now", so epoch = Unix time of graph time 0. sim clock: graph time is
+                # not real time; graph time 0 is placed at the first recorded step's Unix time.
+                epoch = time.time_ns() - (int(round(t * 1e9)) if self.clock == "wall" else 0)
+                self._q.put(("__epoch__", epoch, None))
+                self._epoch_ns = epoch
+
+    def _schema(self, ros_type: str | None) -> int:
+        if ros_type is None:
+            return 0
+        sid = self._schemas.get(ros_type)
+        if sid is None:
+            sid = self._writer.register_schema(ros_type, "ros2msg", ros2msg_definition(ros_type).encode())
+            self._schemas[ros_type] = sid
+        return sid
+
+    def _register(self, node: str, port: str, codec: _Codec, suffix: str = "") -> int:
+        p = self._ports.get((node, port))
+        topic = "/" + re.sub(r"[^A-Za-z0-9_/]", "_", f"{node}/{port}") + suffix
+        meta = {"node": node, "port": port, "codec": codec.kind,
+                "dtype": p.dtype if p is not None else "any",
+                "unit": p.unit if p is not None else "any",
+                "shape": json.dumps(list(p.shape)) if p is not None and p.shape is not None else "null",
+                "description": p.description if p is not None else ""}
+        return self._writer.register_channel(topic, "cdr" if codec.ros_type else "json",
+                                             self._schema(codec.ros_type), meta)
+
+    def _channel(self, node: str, port: str, value: Any) -> _Chan:
+        ch = self._chans.get((node, port))
+        if ch is None:
+            p = self._ports.get((node, port))
+            codec = _choose_codec(value, p.unit if p is not None else "", self.ros, self.opts)
+            ch = _Chan(self._register(node, port, codec), codec)
+            self._chans[(node, port)] = ch
+        return ch
+
+    def _write_one(self, node: str, t: float, port: str, v: Any) -> None:
+        stamp = t
+        if v.__class__ is Sample:
+            stamp, v = v.stamp, v.value
+        epoch = self._epoch_ns or 0
+        stamp_ns = epoch + int(round(stamp * 1e9))
+        ch = self._channel(node, port, v)
+        codec, cid = ch.codec, ch.id
+        if isinstance(v, np.ndarray) and v.shape == () and not isinstance(codec, _Json):
+            v = v.item()
+        if not codec.accepts(v):
+            if ch.fallback is None:
+                ch.fallback = self._register(node, port, _Json(), suffix="/json")
+            codec, cid = _Json(), ch.fallback
+        data = codec.encode(v, stamp_ns, node)
+        self._seq += 1
+        self._writer.add_message(cid, log_time=max(0, epoch + int(round(t * 1e9))), data=data,
+                                 publish_time=max(0, stamp_ns), sequence=self._seq)
+        self.messages += 1
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as exc:  # the file cannot be written (disk full, ...): stop recording, say so at close
+            self.fatal = f"{type(exc).__name__}: {exc}"
+            self.log(f"recording stopped: {self.fatal}")
+
+    def _loop(self) -> None:
+        q = self._q
+        next_flush = time.monotonic() + self.flush_interval
+        while True:
+            try:
+                item = q.get(timeout=max(0.0, next_flush - time.monotonic()))
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                return
+            if item is not None:
+                node, t, outputs = item
+                if node == "__epoch__":
+                    self._writer.add_metadata("teletouch.time", {"graph_epoch_ns": str(int(t)),
+                                                                 "clock": str(self.clock)})
+                else:
+                    for port, v in outputs.items():
+                        try:
+                            self._write_one(node, t, port, v)
+                        except Exception as exc:  # keep recording the other ports
+                            if len(self.errors) < 100:
+                                self.errors.append(f"{node}.{port} at t={t:.3f}: {type(exc).__name__}: {exc}")
+            if time.monotonic() >= next_flush:
+                self._writer.flush()  # closes the chunk in progress and flushes the file
+                next_flush = time.monotonic() + self.flush_interval
+
+
+# --------------------------------------------------------------------------------------------- reading
+@dataclass
+class ChannelInfo:
+    id: int
+    topic: str
+    key: str  # "node.port" for teletouch recordings, the topic otherwise
+    message_encoding: str
+    schema_name: str
+    metadata: dict[str, str]
+    count: int = 0
+
+
+@dataclass
+class Recording:
+    """Everything in an MCAP file, read sequentially (works on files cut short by a crash)."""
+
+    path: str
+    channels: dict[int, ChannelInfo] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    truncated: bool = False
+    epoch_ns: int | None = None
+
+    def graph_time(self, ns: int) -> float:
+        return (ns - (self.epoch_ns or 0)) * 1e-9
+
+
+def _codec_for(ch: ChannelInfo) -> _Codec:
+    kind = ch.metadata.get("codec")
+    if kind in _CODECS:
+        return _CODECS[kind]()
+    if ch.message_encoding == "json":
+        return _Json()
+    for c in _CODECS.values():
+        if c.ros_type and c.ros_type.replace("/msg/", "/") == ch.schema_name.replace("/msg/", "/"):
+            return c()
+    raise RecordingError(f"{ch.topic}: no decoder for schema '{ch.schema_name}' ({ch.message_encoding})")
+
+
+def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
+    """Yield (channel, mcap Message) in file order; stop quietly (rec.truncated) where a crash cut the file."""
+    import struct as _struct
+
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Footer, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, Any] = {}
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise RecordingError(f"cannot read the recording {path}: {exc}") from exc
+    with fh:
+        reader = StreamReader(fh, skip_magic=False)
+        it = reader.records
+        while True:
+            try:
+                r = next(it)
+            except StopIteration:
+                return
+            except (McapError, _struct.error, EOFError, ValueError, RuntimeError) as exc:
+                if isinstance(exc, McapError) and type(exc).__name__ == "InvalidMagic" and fh.tell() <= 8:
+                    raise RecordingError(f"{path} is not an MCAP file") from exc
+                rec.truncated = True  # the end of a file whose writer was killed
+                return
+            if isinstance(r, Schema):
+                schemas[r.id] = r
+            elif isinstance(r, Channel):
+                meta = dict(r.metadata)
+                key = f"{meta['node']}.{meta['port']}" if "node" in meta and "port" in meta else r.topic
+                if r.topic.endswith("/json") and "node" in meta:
+                    key += "/json"
+                sname = schemas[r.schema_id].name if r.schema_id in schemas else ""
+                rec.channels[r.id] = ChannelInfo(r.id, r.topic, key, r.message_encoding, sname, meta)
+            elif isinstance(r, Metadata):
+                rec.metadata[r.name] = dict(r.metadata)
+                if r.name == "teletouch.time" and "graph_epoch_ns" in r.metadata:
+                    rec.epoch_ns = int(r.metadata["graph_epoch_ns"])
+            elif isinstance(r, Message):
+                ch = rec.channels.get(r.channel_id)
+                if ch is not None:
+                    ch.count += 1
+                    yield ch, r
+            elif isinstance(r, Footer):
+                return
+
+
+def open_recording(path: str | os.PathLike, decode: bool = True, keys: Any = None,
+                   ) -> tuple[Recording, list[tuple[str, float, float, Any]]]:
+    """Read a recording: its :class:`Recording` description and a list of (key, stamp_s, log_s, value) in file
+    order (graph time, s). ``keys``: only these "node.port" keys; ``decode=False`` gives the raw bytes."""
+    rec = Recording(str(path))
+    out = []
+    codecs: dict[int, _Codec] = {}
+    first_ns = None
+    for ch, msg in _iter_raw(str(path), rec):
+        if keys is not None and ch.key not in keys:
+            continue
+        if first_ns is None:
+            first_ns = msg.publish_time
+        if decode:
+            c = codecs.get(ch.id)
+            if c is None:
+                c = codecs[ch.id] = _codec_for(ch)
+            value = c.decode(msg.data, ch.metadata)
+        else:
+            value = msg.data
+        out.append((ch.key, msg.publish_time, msg.log_time, value))
+    if rec.epoch_ns is None:  # not a teletouch recording: times from its first message
+        rec.epoch_ns = first_ns or 0
+    e = rec.epoch_ns
+    return rec, [(k, (p - e) * 1e-9, (lt - e) * 1e-9, v) for k, p, lt, v in out]
+
+
+def _is_image(ch: ChannelInfo) -> bool:
+    return ch.metadata.get("codec") in ("compressed", "image", "json-image") or ch.schema_name.endswith(
+        ("CompressedImage", "/Image"))
+
+
+def _is_colour(ch: ChannelInfo) -> bool:
+    """A BGR uint8 image channel (by the port's declared dtype/shape, else by the CompressedImage format)."""
+    if ch.metadata.get("codec") not in ("compressed", "json-image") and not ch.schema_name.endswith(
+            "CompressedImage"):
+        return False
+    if ch.metadata.get("dtype") == "bool":
+        return False
+    shape = json.loads(ch.metadata.get("shape", "null") or "null")
+    return shape is None or len(shape) == 3
+
+
+def read_signals(path: str | os.PathLike, images: bool = False,
+                 ) -> dict[str, tuple[np.ndarray, Any]]:
+    """{"node.port": (stamps_s, values)} for every channel. Numbers give a float array; equal-shape arrays a stacked
+    array (N, ...); strings and the rest a list. Images and depth maps only with ``images=True`` (a list)."""
+    rec = Recording(str(path))
+    for _ in _iter_raw(str(path), rec):  # first pass: channel kinds, cheap (no decoding)
+        pass
+    keys = {ch.key for ch in rec.channels.values() if images or not _is_image(ch)}
+    rec, items = open_recording(path, keys=keys)
+    grouped: dict[str, tuple[list[float], list[Any]]] = {}
+    for key, stamp, _log, value in items:
+        ts, vs = grouped.setdefault(key, ([], []))
+        ts.append(stamp)
+        vs.append(value)
+    out: dict[str, tuple[np.ndarray, Any]] = {}
+    for key, (ts, vs) in grouped.items():
+        out[key] = (np.asarray(ts, dtype=float), _stack(vs))
+    return out
+
+
+def _stack(vs: list[Any]) -> Any:
+    if all(isinstance(v, bool) for v in vs):
+        return np.asarray(vs, dtype=bool)
+    if all(_is_scalar_number(v) for v in vs):
+        return np.asarray(vs, dtype=float)
+    if all(isinstance(v, np.ndarray) for v in vs) and len({v.shape for v in vs}) == 1 and vs:
+        if vs[0].ndim <= 1:
+            return np.stack(vs)
+    return vs
+
+
+def iter_images(path: str | os.PathLike, port: str | None = None) -> Iterator[tuple[float, np.ndarray]]:
+    """Yield (stamp_s, BGR uint8 image) for the colour images of a recording, in recorded order; stamps are the
+    capture times on the recording's graph clock. ``port``: "node.port", a port name or a topic; None: the only
+    colour-image channel (an error names the choices if there are several)."""
+    path = str(path)
+    rec = Recording(path)
+    for _ in _iter_raw(path, rec):
+        pass
+    colour = [ch for ch in rec.channels.values() if _is_colour(ch)]
+    if port is None:
+        chosen = colour
+        if len({c.key for c in chosen}) > 1:
+            raise RecordingError(f"{path}: several image channels ({', '.join(sorted(c.key for c in chosen))}); "
+                                 f"choose one with port=")
+    else:
+        chosen = [c for c in rec.channels.values() if _is_image(c) and port in (
+            c.key, c.topic, c.metadata.get("port"))]
+        if not chosen:
+            raise RecordingError(f"{path}: no image channel '{port}'; image channels: "
+                                 f"{', '.join(sorted(c.key for c in colour)) or '(none)'}")
+    if not chosen:
+        raise RecordingError(f"{path}: the recording has no images")
+    ids = {c.id for c in chosen}
+    rec2 = Recording(path)
+    codecs: dict[int, _Codec] = {}
+    for ch, msg in _iter_raw(path, rec2):
+        if ch.id not in ids:
+            continue
+        c = codecs.get(ch.id) or codecs.setdefault(ch.id, _codec_for(ch))
+        img = c.decode(msg.data, ch.metadata)
+        if img.ndim == 2:
+            import cv2
+
+            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        yield (msg.publish_time - (rec.epoch_ns if rec.epoch_ns is not None else 0)) * 1e-9, img
+
+
+# --------------------------------------------------------------------------------------------- plotting
+def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = None,
+                   select: str | None = None) -> list[Path]:
+    """One PNG per node (a subplot per signal) of every numeric signal; returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    outdir = Path(outdir) if outdir is not None else path.with_name(path.stem + "_plots")
+    sig = read_signals(path)
+    rec = Recording(str(path))
+    for _ in _iter_raw(str(path), rec):
+        pass
+    units = {ch.key: ch.metadata.get("unit", "") for ch in rec.channels.values()}
+    groups: dict[str, list[str]] = {}
+    for key, (ts, vs) in sorted(sig.items()):
+        if select and not re.search(select, key):
+            continue
+        if isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and vs.ndim in (1, 2) and len(ts):
+            groups.setdefault(key.split(".")[0], []).append(key)
+    if not groups:
+        raise RecordingError(f"{path}: no numeric signals to plot" + (f" matching '{select}'" if select else ""))
+    outdir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for node, keys in groups.items():
+        fig, axes = plt.subplots(len(keys), 1, figsize=(9, 2.2 * len(keys) + 0.6), sharex=True, squeeze=False)
+        for ax, key in zip(axes[:, 0], keys):
+            ts, vs = sig[key]
+            vals = vs.astype(float)
+            if vals.ndim == 1:
+                ax.plot(ts, vals, lw=1)
+            else:
+                for j in range(vals.shape[1]):
+                    ax.plot(ts, vals[:, j], lw=1, label=f"[{j}]")
+                ax.legend(loc="upper right", fontsize=7)
+            unit = units.get(key, "")
+            ax.set_ylabel(f"{key.split('.', 1)[-1]}" + (f" [{unit}]" if unit and unit != "any" else ""), fontsize=8)
+            ax.grid(alpha=0.3)
+        axes[-1, 0].set_xlabel("graph time [s]")
+        fig.suptitle(f"{path.name}: {node}", fontsize=10)
+        fig.tight_layout()
+        out = outdir / f"{re.sub(r'[^A-Za-z0-9_.-]', '_', node)}.png"
+        fig.savefig(out, dpi=90)
+        plt.close(fig)
+        written.append(out)
+    return written
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    try:
+        files = plot_recording(args.file, args.output, args.select)
+    except RecordingError as exc:
+        print(f"teletouch plot: {exc}", file=sys.stderr)
+        return 1
+    for f in files:
+        print(f)
+    return 0
+
+
+@hookimpl
+def teletouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("plot", help="plot the signals of a recording (one PNG per node)")
+    p.add_argument("file", metavar="FILE.mcap", help="a recording made with `teletouch run --record`")
+    p.add_argument("-o", "--output", default=None, help="output folder (default: FILE_plots next to the file)")
+    p.add_argument("--select", default=None, metavar="REGEX", help="only signals whose node.port matches")
+    p.set_defaults(func=_cmd_plot)
