@@ -334,7 +334,7 @@ class Runtime:
             else:
                 self._run_wall(duration, progress, progress_interval)
         except KeyboardInterrupt:
-            status = ("interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C): devices driven to their safe state")
+            status = ("interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
             self._stop_evt.set()
             self._join()
         finally:

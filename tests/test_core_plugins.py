@@ -162,3 +162,31 @@ def test_cli_validate_and_run_exit_codes(tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith("teletouch: fault: node 'source' exception")
     r = _cli("schema")
     assert r.returncode == 0 and json.loads(r.stdout)["title"] == "teletouch graph"
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_stops_wall_clock_run_with_safe_devices(tmp_path, sig):
+    import signal
+    import time
+
+    graph = tmp_path / "g.yaml"
+    graph.write_text(textwrap.dedent("""\
+        clock: wall
+        nodes:
+          - {id: src, plugin: mock-sensor, rate: 100}
+          - {id: dev, plugin: mock-device, rate: 500, inputs: {command: src.value}}
+        """))
+    p = subprocess.Popen([sys.executable, "-m", "teletouch", "run", str(graph), "--progress-interval", "0.1"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    line = ""
+    while time.time() < deadline:  # wait until the live view shows the graph running
+        line = p.stderr.readline()
+        if line.startswith("t="):
+            break
+    assert line.startswith("t="), line
+    p.send_signal(getattr(signal, sig))
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert err.strip().splitlines()[-1] == ("teletouch: interrupted: interrupted (Ctrl-C or SIGTERM): devices "
+                                            "driven to their safe state")
