@@ -108,15 +108,16 @@ class FollowerBase(Device):
         self._last_good = time.monotonic()
         self._prev: tuple[float, float] | None = None  # (graph time, opening) for finite differences
         self._bad_commands = 0
-        self._opened = False
+        self._ready = False
+        self._opened = True  # close() releases whatever _hw_open() got before it failed
         self._hw_open()
-        self._opened = True
         first = self._hw_read()
         if first is None or not math.isfinite(first.opening):
             raise HardwareError(f"{self.name}: no valid state from the gripper after connecting; check power, "
                                 f"cabling and configuration")
         self._last_reading = first
         self._setpoint = clamp(first.opening, self.params.min_opening, self.params.max_opening)
+        self._ready = True
 
     def activate(self) -> None:
         self._safe = False
@@ -190,7 +191,7 @@ class FollowerBase(Device):
         return self._setpoint
 
     def safe_state(self) -> None:
-        if not getattr(self, "_opened", False):
+        if not getattr(self, "_ready", False):
             return
         try:
             self._safe = True

@@ -1,0 +1,373 @@
+"""An emulated Dynamixel servo (Protocol 2.0) on a pseudo-terminal, for testing the dynamixel-gripper driver.
+
+The driver opens the pty's slave path with dynamixel-sdk's ``PortHandler`` exactly as it would open /dev/ttyUSB0;
+this emulator sits on the master side, decodes the instruction packets byte by byte (header, CRC-16, byte
+stuffing) and answers with status packets like the servo's firmware: PING, READ, WRITE, SYNC_READ, SYNC_WRITE,
+REBOOT; CRC, access, range and instruction errors in the status packet's error byte; a hardware-error alert bit;
+and it can be told to stop answering or to corrupt its answers.
+
+Timing: the emulator reads the baud rate the driver set on the pty (termios) and waits for the time the bytes would
+take on a real wire (10 bits per byte, instruction and status) plus the servo's Return_Delay_Time, so a run at
+57600 baud is as slow as the real bus.
+
+The servo model: current-based position mode; the horn moves towards Goal_Position at ``speed`` ticks/s; an object
+(``block_at`` ticks, approached in the ``closing`` direction) stops it there, and the current rises to
+``min(Goal_Current, current_gain * |goal - block_at|)``.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import struct
+import termios
+import threading
+import time
+import tty
+from dataclasses import dataclass
+
+# --- Protocol 2.0 constants (ROBOTIS e-Manual) ------------------------------------------------------------------
+HEADER = b"\xff\xff\xfd\x00"
+INST_PING, INST_READ, INST_WRITE, INST_REBOOT = 0x01, 0x02, 0x03, 0x08
+INST_STATUS, INST_SYNC_READ, INST_SYNC_WRITE = 0x55, 0x82, 0x83
+BROADCAST = 0xFE
+ERR_RESULT_FAIL, ERR_INSTRUCTION, ERR_CRC, ERR_DATA_RANGE, ERR_DATA_LENGTH, ERR_DATA_LIMIT, ERR_ACCESS = range(1, 8)
+ALERT = 0x80
+# Hardware_Error_Status bits
+HW_INPUT_VOLTAGE, HW_OVERHEATING, HW_ENCODER, HW_ELECTRICAL_SHOCK, HW_OVERLOAD = 0x01, 0x04, 0x08, 0x10, 0x20
+
+BAUDS = {getattr(termios, f"B{b}"): b for b in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000,
+                                                 921600, 1000000, 1152000, 2000000, 2500000, 3000000, 3500000,
+                                                 4000000) if hasattr(termios, f"B{b}")}
+
+
+def _crc_table() -> list[int]:
+    table = []
+    for i in range(256):
+        c = i << 8
+        for _ in range(8):
+            c = ((c << 1) ^ 0x8005) if c & 0x8000 else (c << 1)
+        table.append(c & 0xFFFF)
+    return table
+
+
+_CRC = _crc_table()
+
+
+def crc16(data: bytes) -> int:
+    """CRC-16 (polynomial 0x8005, initial 0, not reflected) of Protocol 2.0."""
+    c = 0
+    for b in data:
+        c = ((c << 8) ^ _CRC[((c >> 8) ^ b) & 0xFF]) & 0xFFFF
+    return c
+
+
+def stuff(body: bytes) -> bytes:
+    """Insert 0xFD after every FF FF FD in the instruction/parameter field (the header's FF FF FD is before it)."""
+    out = bytearray()
+    for b in body:
+        out.append(b)
+        if b == 0xFD and len(out) >= 3 and out[-3:-1] == b"\xff\xff":
+            out.append(0xFD)
+    return bytes(out)
+
+
+def unstuff(body: bytes) -> bytes:
+    out = bytearray()
+    i = 0
+    while i < len(body):
+        out.append(body[i])
+        if body[i] == 0xFD and len(out) >= 3 and out[-3:-1] == b"\xff\xff" and i + 1 < len(body) \
+                and body[i + 1] == 0xFD:
+            i += 1  # drop the stuffed byte
+        i += 1
+    return bytes(out)
+
+
+def packet(dxl_id: int, inst: int, params: bytes) -> bytes:
+    body = stuff(bytes([inst]) + params)
+    head = HEADER + bytes([dxl_id]) + struct.pack("<H", len(body) + 2)
+    msg = head + body
+    return msg + struct.pack("<H", crc16(msg))
+
+
+@dataclass(frozen=True)
+class Table:
+    """Addresses (address, size) of the items the emulator models; ``eeprom_end``: first RAM address."""
+
+    model_number: int
+    firmware: int
+    eeprom_end: int
+    return_delay: tuple[int, int]
+    operating_mode: tuple[int, int]
+    current_limit: tuple[int, int]
+    max_position: tuple[int, int]
+    min_position: tuple[int, int]
+    torque_enable: tuple[int, int]
+    hardware_error: tuple[int, int] | None
+    goal_current: tuple[int, int]
+    goal_position: tuple[int, int]
+    present_current: tuple[int, int]
+    present_velocity: tuple[int, int]
+    present_position: tuple[int, int]
+    current_limit_default: int
+    max_position_default: int
+    min_position_default: int
+    velocity_unit_rpm: float
+    size: int = 1024
+
+
+XM430_W350 = Table(1020, 48, 64, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (64, 1), (70, 1), (102, 2), (116, 4),
+                   (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229)
+# ROBOTIS RH-P12-RN: its own control table (e-Manual); Hardware_Error_Status not modelled here.
+RH_P12_RN = Table(35073, 1, 512, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (512, 1), None, (550, 2), (564, 4),
+                  (574, 2), (576, 4), (580, 4), 820, 1150, 0, 0.01)
+
+MODELS = {"xm430-w350": XM430_W350, "rh-p12-rn": RH_P12_RN}
+
+
+class DynamixelEmulator:
+    """One or more servos on one emulated bus; ``port`` is the path to give PortHandler."""
+
+    def __init__(self, dxl_id: int = 15, model: str = "xm430-w350", *, position: int = 2048,
+                 speed: float = 3000.0, block_at: int | None = None, closing: int = 1, current_gain: float = 2.0,
+                 wire_timing: bool = True, return_delay: int = 0):
+        self.table = MODELS[model]
+        self.id = dxl_id
+        self.mem = bytearray(self.table.size)
+        t = self.table
+        self._put(("m", 0, 2), t.model_number)
+        self.mem[6] = t.firmware
+        self.mem[7] = dxl_id
+        self._put(t.return_delay, return_delay)
+        self._put(t.operating_mode, 3)
+        self._put(t.current_limit, t.current_limit_default)
+        self._put(t.max_position, t.max_position_default)
+        self._put(t.min_position, t.min_position_default)
+        self._put(t.goal_position, position)
+        self._put(t.present_position, position)
+        self.pos = float(position)
+        self.speed = speed
+        self.block_at = block_at
+        self.closing = closing
+        self.current_gain = current_gain
+        self.wire_timing = wire_timing
+        # fault injection
+        self.silent = False          # stop answering (cable pulled, servo dead)
+        self.corrupt_crc = False     # answer with a wrong CRC
+        self.status_error = 0        # error byte added to every status packet
+        self.write_error = 0         # error byte answered to every WRITE (the write is not applied)
+        # observation
+        self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
+        self.raw_rx = bytearray()
+        self.raw_tx = bytearray()
+        self.crc_errors = 0
+        self._lock = threading.Lock()
+        self._last = time.monotonic()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.port = os.ttyname(self.slave)
+
+    # --- control table helpers -------------------------------------------------------------------------------
+    def _put(self, item, value: int) -> None:
+        addr, size = item[-2], item[-1]
+        struct.pack_into({1: "<B", 2: "<H", 4: "<I"}[size], self.mem, addr, int(value) & ((1 << (8 * size)) - 1))
+
+    def get(self, item) -> int:
+        addr, size = item[-2], item[-1]
+        return struct.unpack_from({1: "<B", 2: "<h", 4: "<i"}[size], self.mem, addr)[0]
+
+    def inject_hardware_error(self, bits: int = HW_OVERLOAD) -> None:
+        """What the firmware does on overload etc.: set Hardware_Error_Status, torque off, alert bit in statuses."""
+        with self._lock:
+            if self.table.hardware_error is not None:
+                self._put(self.table.hardware_error, bits)
+            self._put(self.table.torque_enable, 0)
+            self._alert = True
+
+    _alert = False
+
+    # --- life cycle ------------------------------------------------------------------------------------------
+    def start(self) -> "DynamixelEmulator":
+        self._thread = threading.Thread(target=self._serve, name="dxl-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        for fd in (self.master, self.slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> "DynamixelEmulator":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def baudrate(self) -> int:
+        try:
+            speed = termios.tcgetattr(self.master)[5]
+        except termios.error:
+            return 57600
+        return BAUDS.get(speed, 57600)
+
+    # --- physics ---------------------------------------------------------------------------------------------
+    def _update(self) -> None:
+        now = time.monotonic()
+        dt = now - self._last
+        self._last = now
+        t = self.table
+        torque = self.get(t.torque_enable) == 1
+        goal = self.get(t.goal_position)
+        current = 0.0
+        if torque:
+            err = goal - self.pos
+            step = max(-self.speed * dt, min(self.speed * dt, err))
+            new = self.pos + step
+            if self.block_at is not None:
+                c = self.closing
+                if (new - self.block_at) * c > 0:  # would move into the object
+                    new = float(self.block_at) if (self.pos - self.block_at) * c <= 0 else self.pos
+                if (new - self.block_at) * c >= 0 and (goal - self.block_at) * c > 0:
+                    squeeze = self.current_gain * abs(goal - self.block_at)
+                    current = c * min(self.get(t.goal_current), squeeze)
+            vel_ticks = (new - self.pos) / dt if dt > 0 else 0.0
+            self.pos = new
+        else:
+            vel_ticks = 0.0
+        rpm = vel_ticks / 4096.0 * 60.0
+        self._put(t.present_velocity, int(round(rpm / t.velocity_unit_rpm)))
+        self._put(t.present_position, int(round(self.pos)))
+        self._put(t.present_current, int(round(current)))
+
+    # --- protocol --------------------------------------------------------------------------------------------
+    def _serve(self) -> None:
+        buf = bytearray()
+        while not self._stop.is_set():
+            try:
+                r, _, _ = select.select([self.master], [], [], 0.05)
+            except (OSError, ValueError):
+                return
+            if not r:
+                continue
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:
+                return
+            self.raw_rx += data
+            buf += data
+            while True:
+                i = buf.find(HEADER)
+                if i < 0:
+                    del buf[:max(0, len(buf) - 3)]
+                    break
+                del buf[:i]
+                if len(buf) < 7:
+                    break
+                length = struct.unpack_from("<H", buf, 5)[0]
+                total = 7 + length
+                if len(buf) < total:
+                    break
+                pkt = bytes(buf[:total])
+                del buf[:total]
+                self._handle(pkt)
+
+    def _handle(self, pkt: bytes) -> None:
+        dxl_id = pkt[4]
+        body = unstuff(pkt[7:-2])
+        if crc16(pkt[:-2]) != struct.unpack_from("<H", pkt, len(pkt) - 2)[0]:
+            self.crc_errors += 1
+            if dxl_id == self.id:
+                self._reply(len(pkt), ERR_CRC, b"")
+            return
+        inst, params = body[0], body[1:]
+        if dxl_id not in (self.id, BROADCAST):
+            return
+        with self._lock:
+            self.rx_packets.append((time.monotonic(), dxl_id, inst, params))
+            self._update()
+            if inst == INST_PING:
+                self._reply(len(pkt), 0, struct.pack("<HB", self.table.model_number, self.table.firmware))
+            elif inst == INST_READ:
+                if len(params) != 4:
+                    return self._reply(len(pkt), ERR_DATA_LENGTH, b"")
+                addr, n = struct.unpack("<HH", params)
+                if addr + n > self.table.size:
+                    return self._reply(len(pkt), ERR_ACCESS, b"")
+                self._reply(len(pkt), 0, bytes(self.mem[addr:addr + n]))
+            elif inst == INST_WRITE:
+                if len(params) < 3:
+                    return self._reply(len(pkt), ERR_DATA_LENGTH, b"")
+                addr = struct.unpack_from("<H", params)[0]
+                err = self.write_error or self._write(addr, params[2:])
+                if dxl_id == self.id:
+                    self._reply(len(pkt), err, b"")
+            elif inst == INST_SYNC_WRITE:
+                addr, n = struct.unpack_from("<HH", params)
+                rec = params[4:]
+                for k in range(0, len(rec) - n, n + 1):
+                    if rec[k] == self.id:
+                        self._write(addr, rec[k + 1:k + 1 + n])
+            elif inst == INST_SYNC_READ:
+                addr, n = struct.unpack_from("<HH", params)
+                if self.id in params[4:]:
+                    self._reply(len(pkt), 0, bytes(self.mem[addr:addr + n]))
+            elif inst == INST_REBOOT:
+                self._reply(len(pkt), 0, b"")
+                if self.table.hardware_error is not None:
+                    self._put(self.table.hardware_error, 0)
+                self._put(self.table.torque_enable, 0)
+                self._alert = False
+            elif dxl_id == self.id:
+                self._reply(len(pkt), ERR_INSTRUCTION, b"")
+
+    def _write(self, addr: int, data: bytes) -> int:
+        t = self.table
+        if addr + len(data) > t.size:
+            return ERR_ACCESS
+        ro = [t.present_current, t.present_velocity, t.present_position] + \
+             ([t.hardware_error] if t.hardware_error else [])
+        for a, s in ro:
+            if addr < a + s and a < addr + len(data):
+                return ERR_ACCESS
+        if addr < t.eeprom_end and self.get(t.torque_enable) == 1:
+            return ERR_ACCESS  # EEPROM is locked while the torque is on
+        backup = bytes(self.mem[addr:addr + len(data)])
+        self.mem[addr:addr + len(data)] = data
+        if self.get(t.goal_current) > self.get(t.current_limit) or self.get(t.goal_current) < 0:
+            self.mem[addr:addr + len(data)] = backup
+            return ERR_DATA_LIMIT
+        g = self.get(t.goal_position)
+        if self.get(t.operating_mode) in (3, 5) and not (self.get(t.min_position) <= g <= self.get(t.max_position)):
+            self.mem[addr:addr + len(data)] = backup
+            return ERR_DATA_LIMIT
+        if self._alert and self.get(t.torque_enable) == 1:
+            self._put(t.torque_enable, 0)  # cannot enable torque while in hardware error
+            return ERR_RESULT_FAIL
+        return 0
+
+    def _reply(self, rx_len: int, err: int, params: bytes) -> None:
+        if self.silent:
+            return
+        err |= self.status_error
+        if self._alert:
+            err |= ALERT
+        out = bytearray(packet(self.id, INST_STATUS, bytes([err]) + params))
+        if self.corrupt_crc:
+            out[-1] ^= 0x5A
+        if self.wire_timing:
+            baud = self.baudrate()
+            delay = (rx_len + len(out)) * 10.0 / baud + 2e-6 * self.get(self.table.return_delay)
+            time.sleep(delay)
+        self.raw_tx += out
+        try:
+            os.write(self.master, bytes(out))
+        except OSError:
+            pass

@@ -1,0 +1,218 @@
+"""dynamixel-gripper against an emulated Protocol 2.0 servo on a pseudo-terminal (real dynamixel-sdk serial path)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fakes.dynamixel_emulator import (  # noqa: E402
+    ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator, crc16, packet, stuff, unstuff,
+)
+
+from teletouch import HardwareError  # noqa: E402
+from teletouch.testing import Harness  # noqa: E402
+from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+FAST = {"baudrate": 1000000}
+
+
+@pytest.fixture
+def emu():
+    e = DynamixelEmulator(15, position=1024, block_at=1800, closing=1)
+    e.start()
+    yield e
+    e.stop()
+
+
+def harness(emu, **params):
+    h = Harness(DynamixelGripper, dict(FAST, port=emu.port, **params))
+    h.ctx.clock_kind = "wall"
+    return h
+
+
+def configure_fails(h, match):
+    try:
+        with pytest.raises(HardwareError, match=match):
+            h.comp.configure()
+    finally:
+        h.comp.close()
+
+
+def drive(h, cmd, seconds, period=0.005):
+    t_end = time.monotonic() + seconds
+    out = {}
+    while time.monotonic() < t_end:
+        h.t = time.monotonic()
+        out = h.step(h.t, opening_command=cmd)
+        time.sleep(period)
+    return out
+
+
+def wait_for(cond, timeout=1.0):
+    t_end = time.monotonic() + timeout
+    while not cond() and time.monotonic() < t_end:
+        time.sleep(0.002)
+    return cond()
+
+
+def test_crc_and_stuffing_helpers():
+    # ROBOTIS e-Manual example: PING to ID 1 is FF FF FD 00 01 03 00 01 19 4E
+    assert crc16(bytes.fromhex("FFFFFD0001030001")) == 0x4E19
+    assert packet(1, 0x01, b"") == bytes.fromhex("FFFFFD0001030001194E")
+    body = bytes([0x55, 0x00, 0xFF, 0xFF, 0xFD, 0x00])
+    assert stuff(body) == bytes([0x55, 0x00, 0xFF, 0xFF, 0xFD, 0xFD, 0x00])
+    assert unstuff(stuff(body)) == body
+
+
+def test_sdk_round_trip_with_byte_stuffing(emu):
+    import dynamixel_sdk as sdk
+
+    port, ph = sdk.PortHandler(emu.port), sdk.PacketHandler(2.0)
+    assert port.openPort() and port.setBaudRate(1000000)
+    try:
+        emu._put(emu.table.operating_mode, 4)  # extended position: no position limit
+        value = 0x00FDFFFF  # little endian FF FF FD 00 on the wire: must be stuffed both ways
+        res, err = ph.write4ByteTxRx(port, 15, 116, value)
+        assert (res, err) == (sdk.COMM_SUCCESS, 0)
+        # (dynamixel-sdk 4.1.0's addStuffing builds the stuffed packet in a local list and sends the original, so
+        # the instruction goes out unstuffed; the emulator reads it by its length field, as the firmware does)
+        assert emu.get(emu.table.goal_position) == value
+        emu._put(emu.table.present_position, value)
+        emu.pos = float(value)
+        got, res, err = ph.read4ByteTxRx(port, 15, 132)
+        assert res == sdk.COMM_SUCCESS and got == value
+        assert b"\xff\xff\xfd\xfd" in bytes(emu.raw_tx)
+        assert emu.crc_errors == 0
+        # EEPROM is locked while the torque is on: an access error in the status packet
+        ph.write1ByteTxRx(port, 15, 64, 1)
+        res, err = ph.write1ByteTxRx(port, 15, 11, 3)
+        assert res == sdk.COMM_SUCCESS and err == ERR_ACCESS
+        # a corrupted instruction is answered with a CRC error
+        bad = bytearray(packet(15, 0x02, bytes([132, 0, 4, 0])))
+        bad[-1] ^= 0xFF
+        port.clearPort()
+        port.writePort(bytes(bad))
+        time.sleep(0.05)
+        assert emu.crc_errors == 1
+    finally:
+        port.closePort()
+
+
+def test_configures_current_based_position_and_squeezes(emu):
+    with harness(emu, max_effort=5.0, newtons_per_amp=10.0) as h:
+        assert emu.get(emu.table.operating_mode) == 5
+        assert emu.get(emu.table.torque_enable) == 1
+        assert emu.get(emu.table.goal_current) == 186  # ceil(5 N / 10 N/A / 2.69 mA)
+        o = drive(h, 0.04, 0.8)
+        assert o["opening"] == pytest.approx(0.04, abs=1e-3)
+        assert o["effort"] == pytest.approx(0.0, abs=0.1)
+        o = drive(h, 0.0, 1.5)
+        # the object (at 1800 ticks) stops the fingers; the grip force is capped by Goal_Current
+        assert o["opening"] == pytest.approx(h.comp.opening_for(1800), abs=2e-4)
+        assert o["effort"] == pytest.approx(186 * 2.69e-3 * 10.0, rel=1e-6)
+        assert emu.get(emu.table.goal_position) == 2048  # commanded closed (0 m)
+        # speed limit of the setpoint: Goal_Position never moved faster than max_speed
+        gp = [(t, int.from_bytes(p[5:9], "little")) for (t, _i, inst, p) in emu.rx_packets if inst == 0x83]
+        moving = [(t, g) for t, g in gp if 1502 < g < 2048]
+        assert len(moving) > 20
+        speed = (moving[-1][1] - moving[0][1]) * 0.075 / 1024 / (moving[-1][0] - moving[0][0])
+        assert 0.03 < speed < 0.05 * 1.05
+        h.comp.safe_state()  # hold: Goal_Position := present position
+        assert wait_for(lambda: emu.get(emu.table.goal_position) == 1800)
+        drive(h, 0.07, 0.1)
+        assert emu.get(emu.table.goal_position) == 1800  # commands ignored after the safe state
+
+
+def test_safe_state_open(emu):
+    with harness(emu, safe_mode="open") as h:
+        drive(h, 0.03, 0.2)
+        h.comp.safe_state()
+        assert wait_for(lambda: emu.get(emu.table.goal_position) == 1024)  # ticks_open
+
+
+def test_no_servo_is_a_clear_error(emu):
+    emu.silent = True
+    t0 = time.monotonic()
+    configure_fails(harness(emu), r"ping: no valid answer from Dynamixel ID 15 .*baud rate")
+    assert time.monotonic() - t0 < 2.0
+    configure_fails(Harness(DynamixelGripper, {"port": "/dev/nonexistent-dxl"}), "cannot open /dev/nonexistent-dxl")
+
+
+def test_wrong_model_and_refused_write(emu):
+    configure_fails(harness(emu, model="rh-p12-rn"), "model number 1020, expected 35073")
+    emu.write_error = ERR_ACCESS
+    configure_fails(harness(emu), "Torque_Enable=0.*refused it.*not available")
+    emu.write_error = 0
+    emu.status_error = ERR_ACCESS
+    configure_fails(harness(emu), "ping.*refused it")
+
+
+def test_servo_stops_answering_then_fault_or_recovery(emu):
+    with harness(emu, read_timeout=0.3) as h:
+        drive(h, 0.05, 0.2)
+        emu.silent = True  # a short dropout: recovers
+        drive(h, 0.05, 0.1)
+        emu.silent = False
+        o = drive(h, 0.05, 0.2)
+        assert o["opening"] == pytest.approx(0.05, abs=1e-3)
+        emu.silent = True  # gone for good: a fault within the timeout
+        t0 = time.monotonic()
+        with pytest.raises(HardwareError, match=r"no valid state.*failed reads"):
+            drive(h, 0.05, 3.0)
+        assert time.monotonic() - t0 < 1.0
+        emu.silent = False
+
+
+def test_corrupt_answers_fault(emu):
+    with harness(emu, read_timeout=0.2) as h:
+        drive(h, 0.05, 0.1)
+        emu.corrupt_crc = True
+        with pytest.raises(HardwareError, match="Incorrect status packet|no valid state"):
+            drive(h, 0.05, 2.0)
+        emu.corrupt_crc = False
+
+
+def test_hardware_error_alert(emu):
+    with harness(emu, error_check_period=0.05) as h:
+        drive(h, 0.05, 0.1)
+        emu.inject_hardware_error(HW_OVERLOAD)
+        with pytest.raises(HardwareError, match="overload"):
+            drive(h, 0.05, 1.0)
+
+
+def test_other_control_table_by_config():
+    with DynamixelEmulator(1, "rh-p12-rn", position=0, block_at=500, closing=1) as emu:
+        p = {"model": "rh-p12-rn", "dxl_id": 1, "ticks_open": 0, "ticks_closed": 740,
+             "opening_at_ticks_open": 0.106, "opening_at_ticks_closed": 0.0, "max_opening": 0.106,
+             "newtons_per_amp": 100.0, "max_effort": 30.0, "max_speed": 0.2}
+        with harness(emu, **p) as h:
+            assert emu.get(emu.table.goal_current) == 75  # ceil(30 / 100 / 4.02 mA)
+            o = drive(h, 0.0, 1.0)
+            assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
+            assert o["effort"] == pytest.approx(75 * 4.02e-3 * 100.0, rel=1e-6)
+        # the same servo, described by a user's table instead of the preset
+        table = {"torque_enable": [512, 1], "hardware_error_status": None, "goal_current": [550, 2],
+                 "goal_position": [564, 4], "present_current": [574, 2], "present_velocity": [576, 4],
+                 "present_position": [580, 4], "current_unit": 4.02e-3, "velocity_unit_rpm": 0.01}
+        with harness(emu, **dict(p, model="x-series", control_table=table)) as h:
+            o = drive(h, 0.0, 0.2)
+            assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
+
+
+def test_params_validation():
+    with pytest.raises(ValidationError, match="baudrate 12345"):
+        DynamixelGripper.Params(baudrate=12345)
+    with pytest.raises(ValidationError, match="unknown model 'xl999'"):
+        DynamixelGripper.Params(model="xl999")
+    with pytest.raises(ValidationError, match="goal_curent"):
+        DynamixelGripper.Params(control_table={"goal_curent": [102, 2]})
+    with pytest.raises(ValidationError, match="ticks_open and ticks_closed"):
+        DynamixelGripper.Params(ticks_open=5, ticks_closed=5)
