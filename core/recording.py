@@ -212,15 +212,15 @@ def _jsonable(v: Any) -> Any:
         return {"value": _jsonable(v.value), "stamp": v.stamp}
     if isinstance(v, np.ndarray):
         return v.tolist()
-    if isinstance(v, (np.generic,)):
-        return v.item()
+    if isinstance(v, np.generic):
+        return _jsonable(v.item())
     if isinstance(v, float) and not math.isfinite(v):
         return repr(v)  # JSON has no NaN/inf; the reader turns these strings back into floats
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
         return [_jsonable(x) for x in v]
-    if isinstance(v, (str, int, bool)) or v is None:
+    if isinstance(v, (str, int, bool, float)) or v is None:
         return v
     return repr(v)
 

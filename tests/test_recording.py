@@ -1,0 +1,306 @@
+"""MCAP recording: round trip through the mcap library and a ROS 2 decoder, images, CLI --record, teletouch plot."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rclpy.serialization import deserialize_message
+
+from teletouch import Component, Kind, Port, Sample, hookimpl
+from teletouch.cli import main as cli_main
+from teletouch.recording import (
+    Recorder, RecordingError, iter_images, open_recording, read_signals, ros2msg_definition,
+)
+from teletouch.testing import load_text, make_registry
+from teletouch.runtime import Runtime
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _frames(shared_data: Path, n: int = 4) -> list[np.ndarray]:
+    files = sorted((shared_data / "digit-presses-qvga").glob("*.png"))[:n]
+    frames = [cv2.imread(str(f), cv2.IMREAD_COLOR) for f in files]
+    assert all(f is not None and f.shape == (320, 240, 3) for f in frames)
+    return frames
+
+
+class FakeTactile(Component):
+    """Test source: real DIGIT frames (stamped 5 ms before the step, like a camera), a force, a depth map."""
+
+    name = "fake-tactile"
+    kind = Kind.SENSOR
+    default_rate = 30.0
+    outputs = {"image": Port("uint8", (None, None, 3), "", "BGR frame"),
+               "depth": Port("float32", (None, None), "m", "depth"),
+               "contact_mask": Port("bool", (None, None), "", "mask"),
+               "force": Port("float64", (), "N", "force"),
+               "centroid": Port("float64", (2,), "m", "centroid"),
+               "status": Port("str", (), "", "status"),
+               "contact": Port("bool", (), "", "contact")}
+    frames: list[np.ndarray] = []
+
+    def configure(self):
+        self.k = 0
+
+    def step(self, t, inputs):
+        img = self.frames[self.k % len(self.frames)]
+        self.k += 1
+        depth = np.full((8, 6), 1e-4 * self.k, np.float32)
+        return {"image": Sample(img, t - 0.005), "depth": depth, "contact_mask": depth > 5e-4,
+                "force": 0.5 * self.k, "centroid": np.array([1e-3, -2e-3]) * self.k,
+                "status": "ok" if self.k % 2 else "no-contact", "contact": bool(self.k % 2)}
+
+
+class _Plugin:
+    @staticmethod
+    @hookimpl
+    def teletouch_components():
+        return [FakeTactile]
+
+
+GRAPH = """
+clock: sim
+duration: 1
+nodes:
+  - {id: tactile, plugin: fake-tactile, rate: 30}
+  - {id: src, plugin: mock-sensor, rate: 100, params: {signal: sine, amplitude: 2.0, frequency: 1.0}}
+  - {id: dev, plugin: mock-device, rate: 200, params: {tau: 0.02}, inputs: {command: src.value}}
+"""
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory, shared_data):
+    FakeTactile.frames = _frames(shared_data)
+    reg = make_registry(_Plugin)
+    spec = load_text(GRAPH, reg)
+    path = tmp_path_factory.mktemp("rec") / "run.mcap"
+    rt = Runtime(spec, log=lambda m: None)
+    rec = Recorder(path, spec, log=lambda m: None)
+    rt.add_tap(rec.tap)
+    result = rt.run()
+    rec.close()
+    assert result.status == "ok", result.message
+    assert rec.errors == [] and rec.dropped == 0
+    return path, rec
+
+
+def test_mcap_round_trip_with_ros2_encodings(recorded):
+    path, rec = recorded
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        header = reader.get_header()
+        channels = {c.topic: c for c in summary.channels.values()}
+        schemas = {s.id: s for s in summary.schemas.values()}
+        assert header.profile == "ros2"
+        expect = {"/tactile/image": "sensor_msgs/msg/CompressedImage", "/tactile/depth": "sensor_msgs/msg/Image",
+                  "/tactile/contact_mask": "sensor_msgs/msg/CompressedImage",
+                  "/tactile/force": "geometry_msgs/msg/WrenchStamped",
+                  "/tactile/centroid": "std_msgs/msg/Float64MultiArray", "/tactile/status": "std_msgs/msg/String",
+                  "/tactile/contact": "std_msgs/msg/Bool", "/src/value": "std_msgs/msg/Float64",
+                  "/dev/state": "std_msgs/msg/Float64"}
+        for topic, ros_type in expect.items():
+            ch = channels[topic]
+            assert ch.message_encoding == "cdr"
+            assert schemas[ch.schema_id].name == ros_type
+            assert schemas[ch.schema_id].encoding == "ros2msg"
+        counts = summary.statistics.channel_message_counts
+        assert counts[channels["/src/value"].id] == 101  # 100 Hz for 1 s, both ends
+        assert counts[channels["/tactile/image"].id] == 31
+        assert sum(counts.values()) == rec.messages
+    # a standard ROS 2 decoder (schema text + CDR, no rclpy) reads every message
+    with open(path, "rb") as fh:
+        n = 0
+        for schema, channel, message, msg in make_reader(fh, decoder_factories=[DecoderFactory()]) \
+                .iter_decoded_messages():
+            n += 1
+            if channel.topic == "/tactile/force":
+                stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                assert stamp == message.publish_time
+                assert msg.header.frame_id == "tactile"
+            if channel.topic == "/tactile/image":
+                assert msg.format == "bgr8; png compressed bgr8"
+        assert n == rec.messages
+
+
+def test_signals_values_and_stamps(recorded):
+    path, _ = recorded
+    sig = read_signals(path)
+    assert "tactile.image" not in sig and "tactile.depth" not in sig  # images only on request
+    t, v = sig["src.value"]
+    assert len(t) == 101 and np.allclose(np.diff(t), 0.01, atol=1e-9)
+    assert np.allclose(v, 2.0 * np.sin(2 * np.pi * t), atol=1e-12)
+    t, f = sig["tactile.force"]
+    assert np.allclose(f, 0.5 * np.arange(1, 32))
+    assert np.allclose(t, np.arange(31) / 30.0, atol=1e-9)
+    t, c = sig["tactile.centroid"]
+    assert c.shape == (31, 2) and np.allclose(c[3], [4e-3, -8e-3])
+    _, st = sig["tactile.status"]
+    assert st[:2] == ["ok", "no-contact"]
+    _, ct = sig["tactile.contact"]
+    assert ct.dtype == bool and ct[0] and not ct[1]
+    t, d = sig["dev.state"]
+    assert len(t) == 201 and abs(d[-1]) < 2.0 and np.max(np.abs(d)) > 1.0
+    full = read_signals(path, images=True)
+    _, depth = full["tactile.depth"]
+    assert depth[4].dtype == np.float32 and depth[4].shape == (8, 6) and np.allclose(depth[4], 5e-4)
+    _, mask = full["tactile.contact_mask"]
+    assert mask[5].dtype == bool and mask[5].all() and not mask[3].any()
+
+
+def test_iter_images_lossless_with_capture_stamps(recorded, shared_data):
+    path, _ = recorded
+    frames = _frames(shared_data)
+    got = list(iter_images(path))
+    assert len(got) == 31
+    for k, (stamp, img) in enumerate(got):
+        assert img.dtype == np.uint8 and img.shape == (320, 240, 3)
+        assert np.array_equal(img, frames[k % len(frames)])  # PNG: bit-exact
+        assert stamp == pytest.approx(k / 30.0 - 0.005, abs=1e-9)  # the sample's capture stamp, not the step time
+    assert len(list(iter_images(path, port="tactile.image"))) == 31
+    with pytest.raises(RecordingError, match="no image channel 'nope'.*tactile.image"):
+        next(iter_images(path, port="nope"))
+
+
+def test_jpeg_and_json_fallback(tmp_path, shared_data):
+    frames = _frames(shared_data, 2)
+    for kw, n_close in (({"image_format": "jpeg"}, False), ({"ros_encoding": False}, True)):
+        path = tmp_path / f"x{len(kw)}{list(kw)[0]}.mcap"
+        with Recorder(path, None, log=lambda m: None, **kw) as rec:
+            for k in range(4):
+                rec.tap("cam", k * 0.1, {"image": frames[k % 2], "x": float("nan") if k == 3 else k * 1.5,
+                                         "info": {"a": k}})
+        ims = list(iter_images(path))
+        assert len(ims) == 4
+        err = np.abs(ims[1][1].astype(int) - frames[1].astype(int))
+        if n_close:
+            assert err.max() == 0  # PNG inside JSON
+        else:
+            assert 0 < err.mean() < 4  # JPEG: lossy, close
+        sig = read_signals(path)
+        assert np.allclose(sig["cam.x"][1][:3], [0, 1.5, 3.0]) and math.isnan(sig["cam.x"][1][3])
+        assert sig["cam.info"][1][2] == {"a": 2}
+    with open(tmp_path / "x1ros_encoding.mcap", "rb") as fh:
+        chans = make_reader(fh).get_summary().channels.values()
+        assert {c.message_encoding for c in chans} == {"json"}
+
+
+PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
+              "int64", "uint64", "string", "wstring"}
+
+
+def test_ros2msg_schema_matches_the_installed_msg_files():
+    """The schema text declares the same fields as the .msg files the ROS 2 packages install."""
+    share = Path(sys.prefix) / "share"
+    for ros_type in ("geometry_msgs/msg/WrenchStamped", "sensor_msgs/msg/Image", "sensor_msgs/msg/JointState",
+                     "sensor_msgs/msg/CompressedImage", "std_msgs/msg/Float64MultiArray"):
+        text = ros2msg_definition(ros_type)
+        blocks = text.split("=" * 80 + "\n")
+        pkg, _, name = ros_type.split("/")
+        deps = {b.split("\n", 1)[0][5:]: b.split("\n", 1)[1] for b in blocks[1:]}
+        for type_name, body in [(f"{pkg}/{name}", blocks[0]), *deps.items()]:
+            p, n = type_name.split("/")
+            msg_file = share / p / "msg" / f"{n}.msg"
+            assert msg_file.is_file(), msg_file
+            want = []
+            for line in msg_file.read_text().splitlines():
+                tokens = line.split("#", 1)[0].split()
+                if len(tokens) < 2 or "=" in tokens[1]:
+                    continue  # blank, comment or constant
+                ftype, fname = tokens[:2]
+                base = ftype.split("[")[0].split("<=")[0]
+                if "/" not in base and base not in PRIMITIVES:
+                    ftype = f"{p}/{ftype}"  # a type of the same package
+                want.append(f"{ftype} {fname}")
+            got = [ln for ln in body.strip().splitlines()]
+            assert got == want, (type_name, got, want)
+
+
+def test_cli_run_record_and_plot(tmp_path, repo_root):
+    rec_path = tmp_path / "loop.mcap"
+    code = cli_main(["run", str(repo_root / "examples" / "mock-loop.yaml"), "--duration", "1", "--quiet",
+                     "--record", str(rec_path)])
+    assert code == 0
+    sig = read_signals(rec_path)
+    assert set(sig) >= {"source.value", "scale.y", "device.state", "device.command_applied"}
+    t, y = sig["scale.y"]
+    assert len(t) == 101 and np.allclose(y, 0.02 * np.sin(2 * np.pi * 0.5 * t))
+    out = tmp_path / "plots"
+    code = subprocess.run([sys.executable, "-m", "teletouch", "plot", str(rec_path), "-o", str(out)],
+                          capture_output=True, text=True, timeout=60)
+    assert code.returncode == 0, code.stderr
+    files = sorted(out.glob("*.png"))
+    assert [f.name for f in files] == ["device.png", "scale.png", "source.png"]
+    assert [str(f) for f in files] == sorted(code.stdout.split())
+    img = cv2.imread(str(out / "device.png"))
+    assert img is not None and img.shape[0] > 200 and img.std() > 10  # drawn, not blank
+    bad = tmp_path / "bad.mcap"
+    bad.write_text("not mcap")
+    r = subprocess.run([sys.executable, "-m", "teletouch", "plot", str(bad)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 1 and "not an MCAP file" in r.stderr
+
+
+CRASH_GRAPH = """
+clock: wall
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100, params: {signal: ramp, amplitude: 1.0}}
+  - {id: dev, plugin: mock-device, rate: 200, inputs: {command: src.value}}
+"""
+
+
+def test_kill_9_mid_recording_keeps_everything_up_to_the_last_flush(tmp_path):
+    import os
+    import signal
+    import time
+
+    graph = tmp_path / "crash.yaml"
+    graph.write_text(CRASH_GRAPH)
+    path = tmp_path / "crash.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "teletouch", "run", str(graph), "--duration", "60", "--quiet",
+                             "--record", str(path)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:  # wait for the run to be well under way
+            time.sleep(0.25)
+            if path.exists() and path.stat().st_size > 20_000:
+                break
+        assert proc.poll() is None, proc.stderr.read().decode()
+        time.sleep(1.0)
+        os.kill(proc.pid, signal.SIGKILL)
+        killed_at = time.time_ns()
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    rec, items = open_recording(path)
+    assert rec.truncated  # no footer: the reader stopped at the cut
+    kill_t = (killed_at - rec.epoch_ns) * 1e-9
+    t = np.array([s for k, s, _, _ in items if k == "src.value"])
+    v = np.array([x for k, _, _, x in items if k == "src.value"])
+    assert len(t) > 100
+    assert np.allclose(v, t, atol=1e-6)  # the ramp's value is its own time: nothing garbled
+    assert t[-1] > kill_t - 1.0, f"lost {kill_t - t[-1]:.3f} s (> 1 s) at kill -9"
+    assert np.all(np.diff(t) > 0) and np.max(np.diff(t)) < 0.25  # no hole before the last flush
+    with open(path, "rb") as fh:  # the mcap library itself reads the cut file too (stream mode)
+        from mcap.stream_reader import StreamReader
+        from mcap.records import Message
+
+        n = 0
+        try:
+            for r in StreamReader(fh).records:
+                n += isinstance(r, Message)
+        except Exception:
+            pass
+        assert n >= len(t)
+    meta = rec.metadata["teletouch"]
+    assert meta["clock"] == "wall" and json.loads(meta["flush_interval_s"]) <= 0.5
