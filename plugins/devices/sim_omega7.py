@@ -55,7 +55,7 @@ class SimOmega7(Device):
     }
 
     class Params(Params):
-        intent: Any = Field("hold", description="operator intent: a name (none | hold | close-and-hold | "
+        intent: Any = Field("hold", validate_default=True, description="operator intent: a name (none | hold | close-and-hold | "
                                                 "trajectory | registered) or {type: NAME, ...its parameters}")
         max_gripper_force: Newtons = Field(OMEGA7_MAX_GRIPPER_FORCE, ge=0, le=OMEGA7_MAX_GRIPPER_FORCE,
                                            description="gripper force limit", json_schema_extra=_u("N"))
@@ -118,8 +118,9 @@ class SimOmega7(Device):
     # ------------------------------------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
         p = self.params
-        self.intent = make_intent(dict(p.intent))
-        self.intent_name = p.intent["type"]
+        spec = validate_intent(p.intent)
+        self.intent_name = spec["type"]
+        self.intent = make_intent(spec)
         self.hand = HandImpedance(p.hand_stiffness, p.hand_damping, p.hand_max_force)
         self.guard = ForceGuard(p.max_gripper_force, p.max_force, p.command_timeout)
         self.state = OperatorState()

@@ -1,0 +1,321 @@
+/*
+ * A stand-in for Force Dimension's libdhd, for tests and benchmarks of the omega7 driver without hardware.
+ *
+ * It exports the vendor's function names with the vendor's C signatures (dhd.h, "char ID = -1" selects the default
+ * device), so the ctypes binding in plugins/devices/dhd.py runs exactly the code path it runs against the real
+ * library. Return codes as the SDK documents them: 0 ok, 1 DHD_TIMEGUARD, 2 DHD_MOTOR_SATURATED, -1 error (the
+ * reason in dhdErrorGetLast / dhdErrorGetLastStr).
+ *
+ * Internal device model (deliberately simple and deterministic):
+ *  - gripper: a first-order spring towards a rest gap, gap = rest + sign * fg / GRIP_K with time constant GRIP_TAU,
+ *    integrated on real elapsed time; a left-handed unit (system type 37) reports a negative gripper angle and
+ *    linear velocity, and its gripper force acts in the opposite direction (the driver must undo that).
+ *  - handle: quasi-static spring towards a rest position, p = rest + F / HANDLE_K, first-order lag.
+ *  - force is produced only while enabled (dhdEnableForce) and the brakes are off; the SDK-side limits
+ *    (dhdSetMaxForce, dhdSetMaxGripperForce) clamp what is applied.
+ *
+ * Test controls (not part of the vendor API) start with standin_.
+ * Build: gcc -shared -fPIC -O2 -o libdhd.so dhd_standin.c -lm
+ */
+#include <math.h>
+#include <stdbool.h>
+#include <stdio.h>
+#include <string.h>
+#include <time.h>
+
+#define DHD_TIMEGUARD 1
+#define DHD_MOTOR_SATURATED 2
+
+/* error codes, numbered as in the SDK's dhdc.h */
+#define DHD_NO_ERROR 0
+#define DHD_ERROR 1
+#define DHD_ERROR_COM 2
+#define DHD_ERROR_NO_DEVICE_FOUND 5
+#define DHD_ERROR_NOT_AVAILABLE 6
+#define DHD_ERROR_DEVICE_NOT_READY 12
+#define DHD_ERROR_INVALID_INDEX 15
+
+#define GRIP_K 400.0 /* N/m */
+#define GRIP_TAU 0.005 /* s */
+#define HANDLE_K 500.0 /* N/m */
+#define HANDLE_TAU 0.01 /* s */
+
+static struct {
+    int present;        /* a device is plugged in (dhdOpen finds it) */
+    int connected;      /* 0 after standin_unplug(): every call fails with DHD_ERROR_COM */
+    int open;
+    int serial;
+    int system_type;    /* 35 omega.7 right, 37 omega.7 left */
+    int force_enabled;
+    int brakes;
+    int gravity;
+    int timeguard_every; /* every Nth force write returns DHD_TIMEGUARD (0: never) */
+    long writes;
+    long calls;
+    double max_force, max_gripper_force;
+    double f[3], fg;    /* as commanded */
+    double fa[3], fga;  /* as applied */
+    double rest_gap, gap, gap_vel;
+    double rest[3], pos[3];
+    int buttons[4];
+    double com_freq;    /* kHz */
+    double t_last;
+    int last_error;
+    char last_str[128];
+} S;
+
+static double now_s(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return ts.tv_sec + ts.tv_nsec * 1e-9;
+}
+
+static int fail(int code, const char *msg) {
+    S.last_error = code;
+    snprintf(S.last_str, sizeof S.last_str, "%s", msg);
+    return -1;
+}
+
+static int ok(void) {
+    S.last_error = DHD_NO_ERROR;
+    return 0;
+}
+
+static double hand_sign(void) { return S.system_type == 37 ? -1.0 : 1.0; }
+
+/* checks done by every device call */
+static int check(char ID) {
+    S.calls++;
+    if (!S.connected) return fail(DHD_ERROR_COM, "communication error between the host and the haptic device");
+    if (!S.open) return fail(DHD_ERROR_DEVICE_NOT_READY, "device not open");
+    if (ID != -1 && ID != 0) return fail(DHD_ERROR_INVALID_INDEX, "invalid device ID");
+    return 0;
+}
+
+static void apply_forces(void) {
+    int on = S.force_enabled && !S.brakes;
+    double n = sqrt(S.f[0] * S.f[0] + S.f[1] * S.f[1] + S.f[2] * S.f[2]);
+    double k = (on && n > S.max_force && n > 0) ? S.max_force / n : 1.0;
+    for (int i = 0; i < 3; i++) S.fa[i] = on ? S.f[i] * k : 0.0;
+    double g = S.fg;
+    if (g > S.max_gripper_force) g = S.max_gripper_force;
+    if (g < -S.max_gripper_force) g = -S.max_gripper_force;
+    S.fga = on ? g : 0.0;
+}
+
+/* advance the model to the current time */
+static void advance(void) {
+    double t = now_s();
+    double dt = t - S.t_last;
+    S.t_last = t;
+    if (dt <= 0) return;
+    if (dt > 0.05) dt = 0.05;
+    double target = S.rest_gap + hand_sign() * S.fga / GRIP_K; /* fga along the SDK axis */
+    if (target < 0) target = 0;
+    if (target > 0.025) target = 0.025;
+    double a = 1.0 - exp(-dt / GRIP_TAU);
+    double old = S.gap;
+    S.gap += (target - S.gap) * a;
+    S.gap_vel = (S.gap - old) / dt;
+    double b = 1.0 - exp(-dt / HANDLE_TAU);
+    for (int i = 0; i < 3; i++) S.pos[i] += (S.rest[i] + S.fa[i] / HANDLE_K - S.pos[i]) * b;
+}
+
+/* ------------------------------------------------------------------------------------------- test controls */
+void standin_reset(void) {
+    memset(&S, 0, sizeof S);
+    S.present = 1;
+    S.connected = 1;
+    S.serial = 12345;
+    S.system_type = 35;
+    S.brakes = 1;
+    S.max_force = 12.0;
+    S.max_gripper_force = 8.0;
+    S.rest_gap = 0.015;
+    S.gap = 0.015;
+    S.com_freq = 4.0;
+    S.t_last = now_s();
+    snprintf(S.last_str, sizeof S.last_str, "no error");
+}
+void standin_set_present(int v) { S.present = v; }
+void standin_unplug(void) { S.connected = 0; }
+void standin_replug(void) { S.connected = 1; }
+void standin_set_system_type(int t) { S.system_type = t; }
+void standin_set_timeguard_every(int n) { S.timeguard_every = n; }
+void standin_set_rest(double gap, double x, double y, double z) {
+    S.rest_gap = gap; S.gap = gap;
+    S.rest[0] = x; S.rest[1] = y; S.rest[2] = z;
+    S.pos[0] = x; S.pos[1] = y; S.pos[2] = z;
+}
+void standin_set_button(int index, int value) { if (index >= 0 && index < 4) S.buttons[index] = value; }
+void standin_set_com_freq(double khz) { S.com_freq = khz; }
+/* out: fx fy fz fg as applied, then as commanded */
+void standin_get_forces(double *applied4, double *commanded4) {
+    for (int i = 0; i < 3; i++) { applied4[i] = S.fa[i]; commanded4[i] = S.f[i]; }
+    applied4[3] = S.fga; commanded4[3] = S.fg;
+}
+/* out: open, force_enabled, brakes, gravity */
+void standin_get_flags(int *flags4) {
+    flags4[0] = S.open; flags4[1] = S.force_enabled; flags4[2] = S.brakes; flags4[3] = S.gravity;
+}
+void standin_get_limits(double *lim2) { lim2[0] = S.max_force; lim2[1] = S.max_gripper_force; }
+long standin_get_writes(void) { return S.writes; }
+long standin_get_calls(void) { return S.calls; }
+
+__attribute__((constructor)) static void init(void) { standin_reset(); }
+
+/* ------------------------------------------------------------------------------------------- vendor API */
+int dhdGetSDKVersion(int *major, int *minor, int *release, int *revision) {
+    *major = 3; *minor = 17; *release = 0; *revision = 0;   /* "3.17.0-standin" */
+    return 0;
+}
+int dhdErrorGetLast(void) { return S.last_error; }
+const char *dhdErrorGetLastStr(void) { return S.last_str; }
+const char *dhdErrorGetStr(int error) {
+    switch (error) {
+    case DHD_NO_ERROR: return "no error";
+    case DHD_ERROR_COM: return "communication error between the host and the haptic device";
+    case DHD_ERROR_NO_DEVICE_FOUND: return "no compatible Force Dimension device found";
+    case DHD_ERROR_DEVICE_NOT_READY: return "device not open";
+    default: return "undocumented error";
+    }
+}
+int dhdGetDeviceCount(void) { return S.connected && S.present ? 1 : 0; }
+
+static int do_open(void) {
+    if (!S.present || !S.connected) return fail(DHD_ERROR_NO_DEVICE_FOUND, "no compatible Force Dimension device found");
+    S.open = 1;
+    S.force_enabled = 0;
+    S.brakes = 1;
+    S.t_last = now_s();
+    ok();
+    return 0; /* device ID */
+}
+int dhdOpen(void) { return do_open(); }
+int dhdOpenID(char index) {
+    if (index != 0) return fail(DHD_ERROR_NO_DEVICE_FOUND, "no compatible Force Dimension device found at that index");
+    return do_open();
+}
+int dhdOpenSerial(int serial) {
+    if (serial != S.serial) return fail(DHD_ERROR_NO_DEVICE_FOUND, "no device with that serial number");
+    return do_open();
+}
+int dhdClose(char ID) {
+    if (!S.open) return fail(DHD_ERROR_DEVICE_NOT_READY, "device not open");
+    S.open = 0;
+    S.force_enabled = 0;
+    S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
+    apply_forces();
+    return ok();
+}
+int dhdGetDeviceID(void) { return S.open ? 0 : -1; }
+int dhdGetSystemType(char ID) {
+    if (check(ID)) return -1;
+    ok();
+    return S.system_type;
+}
+int dhdGetSerialNumber(unsigned short *sn, char ID) {
+    if (check(ID)) return -1;
+    *sn = (unsigned short)S.serial;
+    return ok();
+}
+bool dhdIsLeftHanded(char ID) {
+    if (check(ID)) return false;
+    ok();
+    return S.system_type == 37;
+}
+int dhdEnableForce(unsigned char val, char ID) {
+    if (check(ID)) return -1;
+    S.force_enabled = val ? 1 : 0;
+    if (!val) { S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0; }
+    apply_forces();
+    return ok();
+}
+int dhdSetBrakes(int val, char ID) {
+    if (check(ID)) return -1;
+    S.brakes = val ? 1 : 0;
+    apply_forces();
+    return ok();
+}
+int dhdSetGravityCompensation(int val, char ID) {
+    if (check(ID)) return -1;
+    S.gravity = val ? 1 : 0;
+    return ok();
+}
+int dhdSetMaxForce(double f, char ID) {
+    if (check(ID)) return -1;
+    S.max_force = f < 0 ? 12.0 : f; /* a negative value removes the limit */
+    return ok();
+}
+double dhdGetMaxForce(char ID) {
+    if (check(ID)) return -1.0;
+    ok();
+    return S.max_force;
+}
+int dhdSetMaxGripperForce(double f, char ID) {
+    if (check(ID)) return -1;
+    S.max_gripper_force = f < 0 ? 8.0 : f;
+    return ok();
+}
+int dhdGetPosition(double *px, double *py, double *pz, char ID) {
+    if (check(ID)) return -1;
+    advance();
+    *px = S.pos[0]; *py = S.pos[1]; *pz = S.pos[2];
+    return ok();
+}
+int dhdGetLinearVelocity(double *vx, double *vy, double *vz, char ID) {
+    if (check(ID)) return -1;
+    *vx = *vy = *vz = 0.0;
+    return ok();
+}
+int dhdGetGripperGap(double *g, char ID) {
+    if (check(ID)) return -1;
+    advance();
+    *g = S.gap;
+    return ok();
+}
+int dhdGetGripperAngleRad(double *a, char ID) {
+    if (check(ID)) return -1;
+    advance();
+    *a = hand_sign() * S.gap / 0.05; /* small-angle model: 50 mm finger radius */
+    return ok();
+}
+int dhdGetGripperLinearVelocity(double *vg, char ID) {
+    if (check(ID)) return -1;
+    advance();
+    *vg = hand_sign() * S.gap_vel;
+    return ok();
+}
+int dhdSetForceAndGripperForce(double fx, double fy, double fz, double fg, char ID) {
+    if (check(ID)) return -1;
+    advance();
+    S.f[0] = fx; S.f[1] = fy; S.f[2] = fz;
+    S.fg = fg; /* in the SDK's gripper axis, which follows the (mirrored) angle on a left unit */
+    apply_forces();
+    S.writes++;
+    ok();
+    if (!S.force_enabled) return 0;
+    if (S.timeguard_every > 0 && S.writes % S.timeguard_every == 0) return DHD_TIMEGUARD;
+    double n = sqrt(fx * fx + fy * fy + fz * fz);
+    if (n > S.max_force || fabs(fg) > S.max_gripper_force) return DHD_MOTOR_SATURATED;
+    return 0;
+}
+int dhdGetButton(int index, char ID) {
+    if (check(ID)) return -1;
+    if (index < 0 || index >= 4) return fail(DHD_ERROR_INVALID_INDEX, "invalid button index");
+    ok();
+    return S.buttons[index];
+}
+double dhdGetComFreq(char ID) {
+    if (check(ID)) return 0.0;
+    ok();
+    return S.com_freq;
+}
+int dhdStop(char ID) {
+    if (check(ID)) return -1;
+    S.force_enabled = 0;
+    S.brakes = 1;
+    S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
+    apply_forces();
+    return ok();
+}
