@@ -1,0 +1,645 @@
+"""Automated force calibration: a haptic device presses a probe into the gel in fixed steps (the paper's II-B).
+
+Components:
+
+- ``press-routine`` (controller): commands the leader's translational ``force`` with a PID position loop along the
+  press axis (PD on the two other axes) and runs a state machine::
+
+      wait -> approach (descend slowly until the depth estimator sees contact) -> backoff
+           -> [ step (ramp to the next displacement) -> hold (settle) -> record ] x loading + unloading
+           -> retract -> next cycle ... -> done (write samples, request the end of the run)
+      any fault (limit, stale/NaN input, timeout, the abort button) -> abort-retract -> aborted (fault)
+
+  At each step it records the displacement, the device force (the force it applies along the press axis, averaged
+  over the record window once settled: the device has no force sensor, at rest its command balances the gel), the
+  mean max depth of the camera frames captured in the window, the phase (loading/unloading) and the cycle.
+- ``sim-press-rig`` (device, simulation only): the physical coupling between the leader's handle and the simulated
+  gel. From the handle position it computes the probe's indentation (for ``sim-digit``'s ``indentation`` input),
+  its position over the sensor (``sim-digit``'s ``position``) and the gel's reaction on the handle (for
+  ``sim-omega7``'s ``external_force``) with the same gel model as ``sim-digit``
+  (:func:`teletouch.plugins.sensors.gel.gel_force`).
+
+Command line (added to ``teletouch calibrate``)::
+
+    teletouch calibrate force --graph examples/calibrate-force-sim.yaml -o sim.force.json
+    teletouch calibrate force --csv pairs.csv -o sensor.force.json
+
+Both write the calibration file, a Fig.-3-style PNG and (for a graph) the samples as CSV.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
+from teletouch.units import (
+    Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals, Seconds,
+)
+
+from .poly_force import CalibrationError, ForceCalibration, read_pairs_csv, write_pairs_csv
+
+__all__ = ["PressRoutine", "SimPressRig", "fit_samples", "run_press_calibration"]
+
+
+def _u(unit: str) -> dict[str, str]:
+    return {"unit": unit}
+
+
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+# ================================================================================================ the press routine
+class PressRoutine(Component):
+    """Force calibration: presses a probe held by the leader into the gel in fixed steps and records (depth, force)."""
+
+    name = "press-routine"
+    kind = Kind.CONTROLLER
+    default_rate = 1000.0
+    inputs = {
+        "position": Port("float64", (3,), "m", "leader end-effector position", required=True),
+        "max_depth": Port("float64", (), "m", "max depth from the depth estimator", required=True),
+        "abort": Port("bool", (), "", "abort when true (e.g. the leader's button)", required=False),
+        "reference_depth": Port("float64", (), "m", "ground-truth max depth to record beside (simulation)",
+                                required=False),
+        "reference_force": Port("float64", (), "N", "ground-truth force to record beside (simulation)",
+                                required=False),
+    }
+    outputs = {
+        "force": Port("float64", (3,), "N", "translational force command to the leader"),
+        "target": Port("float64", (3,), "m", "position the loop tracks"),
+        "state": Port("str", (), "", "state of the routine"),
+        "progress": Port("float64", (), "", "fraction of the routine done (0..1)"),
+    }
+
+    class Params(Params):
+        axis: Literal["x", "y", "z"] = Field("z", description="press axis of the leader")
+        direction: Literal[-1, 1] = Field(-1, description="sign of the press along the axis (-1: towards -axis)")
+        cycles: int = Field(3, ge=1, le=100, description="press cycles (each loads and unloads)")
+        step: Meters = Field(1e-4, gt=0, description="displacement step", json_schema_extra=_u("m"))
+        max_displacement: Meters = Field(2e-3, gt=0, description="deepest displacement beyond the touch point",
+                                         json_schema_extra=_u("m"))
+        approach_speed: MetersPerSecond = Field(1e-3, gt=0, description="speed while searching for the gel",
+                                                json_schema_extra=_u("m/s"))
+        max_approach: Meters = Field(0.03, gt=0, description="give up if no contact after this travel",
+                                     json_schema_extra=_u("m"))
+        move_speed: MetersPerSecond = Field(4e-3, gt=0, description="speed between steps and when retracting",
+                                            json_schema_extra=_u("m/s"))
+        backoff: Meters = Field(5e-4, ge=0, description="retreat above the touch point before the steps",
+                                json_schema_extra=_u("m"))
+        touch_depth: Meters = Field(3e-5, gt=0, description="max depth that counts as touching",
+                                    json_schema_extra=_u("m"))
+        settle_time: Seconds = Field(0.4, ge=0, description="hold before recording", json_schema_extra=_u("s"))
+        record_time: Seconds = Field(0.25, gt=0, description="averaging window at each step",
+                                     json_schema_extra=_u("s"))
+        settle_tolerance: Meters = Field(2e-5, gt=0, description="position error allowed when recording",
+                                         json_schema_extra=_u("m"))
+        hold_timeout: Seconds = Field(3.0, gt=0, description="abort if a step does not settle within this",
+                                      json_schema_extra=_u("s"))
+        kp: NewtonsPerMeter = Field(2000.0, gt=0, description="position gain", json_schema_extra=_u("N/m"))
+        kd: NewtonSecondsPerMeter = Field(40.0, ge=0, description="velocity gain", json_schema_extra=_u("N*s/m"))
+        ki: float = Field(2.0e4, ge=0, description="integral gain on the press axis", json_schema_extra=_u("N/(m*s)"))
+        max_force: Newtons = Field(10.0, gt=0, description="abort if the press needs more than this",
+                                   json_schema_extra=_u("N"))
+        max_depth_limit: Meters = Field(3e-3, gt=0, description="abort if the gel is pressed deeper than this",
+                                        json_schema_extra=_u("m"))
+        max_tracking_error: Meters = Field(2e-3, gt=0, description="abort if the probe is this far from its "
+                                           "target", json_schema_extra=_u("m"))
+        input_timeout: Seconds = Field(0.5, gt=0, description="abort if position or depth is older than this",
+                                       json_schema_extra=_u("s"))
+        samples_csv: str | None = Field(None, description="write the samples here when done (optional)")
+
+    SATURATION_TIME = 0.1  # s of a saturated press before aborting
+
+    STATES = ("wait", "approach", "backoff", "step", "hold", "record", "retract", "done", "abort-retract",
+              "aborted")
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def configure(self) -> None:
+        p = self.params
+        if p.step > p.max_displacement:
+            raise ValueError(f"step ({p.step * 1e3:.3f} mm) is larger than max_displacement "
+                             f"({p.max_displacement * 1e3:.3f} mm)")
+        self.u = np.zeros(3)
+        self.u[AXES[p.axis]] = float(p.direction)
+        n = int(math.floor(p.max_displacement / p.step + 1e-9))
+        load = [k * p.step for k in range(0, n + 1)]
+        self.plan = [(d, "loading") for d in load] + [(d, "unloading") for d in reversed(load[:-1])]
+        self.samples: list[dict[str, Any]] = []
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = "wait"
+        self.cycle = 0
+        self.index = 0
+        self.t_state = 0.0
+        self.home: np.ndarray | None = None  # start position
+        self.touch: float | None = None  # press coordinate of the touch point
+        self.target = None  # target position (3,)
+        self.goal = None  # where the ramp ends
+        self.integral = 0.0
+        self.last_t: float | None = None
+        self.pos: np.ndarray | None = None
+        self.vel = np.zeros(3)
+        self.cmd = np.zeros(3)
+        self.abort_reason: str | None = None
+        self.window: dict[str, list] = {}
+        self.last_depth_stamp: float | None = None
+        self.events: list[tuple[float, str]] = []
+        self.done_points = 0
+        self.saturated_since: float | None = None
+
+    def activate(self) -> None:
+        self.reset()
+
+    # ------------------------------------------------------------------------------------------------ helpers
+    @property
+    def total_points(self) -> int:
+        return len(self.plan) * self.params.cycles
+
+    def _s(self, pos: np.ndarray) -> float:
+        """Press coordinate: how far pos is along the press direction."""
+        return float(pos @ self.u)
+
+    def _at(self, s: float) -> np.ndarray:
+        """The home position moved to press coordinate s."""
+        assert self.home is not None
+        return self.home + (s - self._s(self.home)) * self.u
+
+    def _go(self, t: float, state: str) -> None:
+        self.events.append((t, state))
+        self.state = state
+        self.t_state = t
+
+    def _abort(self, t: float, reason: str) -> None:
+        if self.state in ("abort-retract", "aborted"):
+            return
+        self.abort_reason = reason
+        self.ctx.log(f"aborting: {reason}; retracting")
+        self.goal = self.home.copy() if self.home is not None and self.pos is not None else None
+        self._go(t, "abort-retract" if self.goal is not None else "aborted")
+
+    def _ramp(self, dt: float, speed: float) -> bool:
+        """Move the target towards the goal at ``speed``; True once it is there."""
+        if self.target is None or self.goal is None:
+            return True
+        delta = self.goal - self.target
+        dist = float(np.linalg.norm(delta))
+        stepd = speed * dt
+        if dist <= stepd or dist == 0.0:
+            self.target = self.goal.copy()
+            return True
+        self.target = self.target + delta * (stepd / dist)
+        return False
+
+    # ------------------------------------------------------------------------------------------------ stepping
+    def step(self, t: float, inputs: Any) -> dict[str, Any]:
+        p = self.params
+        dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
+        self.last_t = t
+        ps = inputs["position"]
+        pos = None
+        if ps is not None:
+            v = np.asarray(ps.value, dtype=float).reshape(-1)
+            if v.shape == (3,) and np.all(np.isfinite(v)) and t - ps.stamp <= p.input_timeout:
+                pos = v
+        ds = inputs["max_depth"]
+        depth = None
+        if ds is not None and t - ds.stamp <= p.input_timeout:
+            try:
+                depth = float(ds.value)
+            except (TypeError, ValueError):
+                depth = math.nan
+        new_depth = ds is not None and ds.stamp != self.last_depth_stamp
+        if new_depth:
+            self.last_depth_stamp = ds.stamp
+
+        # --- faults ---------------------------------------------------------------------------------------
+        if self.state not in ("wait", "done", "aborted"):
+            if pos is None:
+                # cannot steer without a position: no retract possible, zero force at once
+                self.abort_reason = self.abort_reason or "leader position lost (stale, missing or NaN)"
+                self._go(t, "aborted")
+            elif self.state != "abort-retract":
+                if depth is None:
+                    self._abort(t, f"no max depth for more than {p.input_timeout:g} s")
+                elif not math.isfinite(depth):
+                    self._abort(t, f"max depth is {depth}")
+                elif depth > p.max_depth_limit:
+                    self._abort(t, f"max depth {depth * 1e3:.3f} mm beyond the limit "
+                                   f"{p.max_depth_limit * 1e3:.3f} mm")
+                elif bool(inputs.value("abort", False)):
+                    self._abort(t, "abort input (button) pressed")
+                elif self.target is not None and float(np.linalg.norm(self.target - pos)) > p.max_tracking_error:
+                    self._abort(t, f"probe {np.linalg.norm(self.target - pos) * 1e3:.2f} mm from its target")
+
+        # --- velocity estimate ------------------------------------------------------------------------------
+        if pos is not None:
+            if self.pos is not None and dt > 0:
+                raw = (pos - self.pos) / dt
+                a = dt / (dt + 0.002)  # 2 ms filter on the differentiated position
+                self.vel = self.vel + a * (raw - self.vel)
+            self.pos = pos
+
+        st = self.state
+        if st == "wait":
+            if pos is not None and depth is not None and math.isfinite(depth):
+                self.home = pos.copy()
+                self.target = pos.copy()
+                self.goal = self._at(self._s(pos) + p.max_approach)
+                self.ctx.log(f"start at {np.round(pos * 1e3, 3).tolist()} mm; approaching")
+                self._go(t, "approach")
+        elif st == "approach":
+            arrived = self._ramp(dt, p.approach_speed)
+            if depth is not None and new_depth and depth >= p.touch_depth:
+                self.touch = self._s(pos)
+                self.ctx.log(f"touch at {self.touch * 1e3:.3f} mm along the press axis (depth "
+                             f"{depth * 1e3:.3f} mm)")
+                self._begin_cycle(t)
+            elif arrived:
+                self._abort(t, f"no contact after {p.max_approach * 1e3:.1f} mm of approach: is the sensor "
+                               f"under the probe?")
+        elif st == "backoff":
+            if self._ramp(dt, p.move_speed) and t - self.t_state > 0.05:
+                self._next_point(t)
+        elif st == "step":
+            if self._ramp(dt, p.move_speed):
+                self._go(t, "hold")
+        elif st == "hold":
+            settled = abs(self._s(self.target) - self._s(pos)) <= p.settle_tolerance
+            if t - self.t_state >= p.settle_time and settled:
+                self.window = {"force": [], "depth": [], "pos": [], "ref_depth": [], "ref_force": [],
+                               "depth_stamps": []}
+                self._go(t, "record")
+            elif t - self.t_state > p.hold_timeout:
+                self._abort(t, f"step did not settle within {p.hold_timeout:g} s (error "
+                               f"{abs(self._s(self.target) - self._s(pos)) * 1e6:.1f} um)")
+        elif st == "record":
+            w = self.window
+            w["force"].append(float(self.cmd @ self.u))
+            w["pos"].append(self._s(pos))
+            if new_depth and ds.stamp >= self.t_state:
+                w["depth"].append(depth)
+                w["depth_stamps"].append(ds.stamp)
+            rd = inputs.value("reference_depth")
+            rf = inputs.value("reference_force")
+            if rd is not None:
+                w["ref_depth"].append(float(rd))
+            if rf is not None:
+                w["ref_force"].append(float(rf))
+            if t - self.t_state >= p.record_time and w["depth"]:
+                self._store(t)
+                self._next_point(t)
+        elif st == "retract":
+            if self._ramp(dt, p.move_speed):
+                self.cycle += 1
+                if self.cycle >= p.cycles:
+                    self._finish(t)
+                else:
+                    self._begin_cycle(t)
+        elif st == "abort-retract":
+            if self._ramp(dt, p.move_speed) and (pos is None or
+                                                 float(np.linalg.norm(self.goal - pos)) < 5 * p.settle_tolerance
+                                                 or t - self.t_state > 5.0):
+                self._go(t, "aborted")
+
+        # --- control ----------------------------------------------------------------------------------------
+        if self.state in ("wait", "done", "aborted") or pos is None or self.target is None:
+            self.cmd = np.zeros(3)
+        else:
+            self.cmd = self._control(dt, pos)
+        out = {"force": self.cmd.copy(), "state": self.state, "progress": self.progress}
+        if self.target is not None:
+            out["target"] = self.target.copy()
+        if self.state == "aborted":
+            self.cmd = np.zeros(3)
+            out["force"] = np.zeros(3)
+            raise ComponentFault(f"press routine aborted: {self.abort_reason}", self.id)
+        return out
+
+    def _control(self, dt: float, pos: np.ndarray) -> np.ndarray:
+        p = self.params
+        err = self.target - pos
+        f = p.kp * err - p.kd * self.vel
+        e_s = float(err @ self.u)
+        f_s = float(f @ self.u)
+        # integral on the press axis only, with anti-windup (frozen while saturated)
+        candidate = self.integral + p.ki * e_s * dt
+        if abs(f_s + candidate) <= p.max_force:
+            self.integral = candidate
+        f = f + self.integral * self.u
+        n = float(np.linalg.norm(f))
+        press = float(f @ self.u)
+        t = self.last_t or 0.0
+        if press > p.max_force and self.state != "abort-retract":
+            if self.saturated_since is None:
+                self.saturated_since = t
+            elif t - self.saturated_since >= self.SATURATION_TIME:
+                self._abort(t, f"the press needs {press:.2f} N, more than max_force {p.max_force:g} N")
+        else:
+            self.saturated_since = None
+        if n > p.max_force:
+            f = f * (p.max_force / n)
+        return f
+
+    def _begin_cycle(self, t: float) -> None:
+        p = self.params
+        assert self.touch is not None
+        self.index = 0
+        self.goal = self._at(self.touch - p.backoff)
+        self.ctx.log(f"cycle {self.cycle + 1}/{p.cycles}")
+        self._go(t, "backoff")
+
+    def _next_point(self, t: float) -> None:
+        if self.index >= len(self.plan):
+            self.goal = self.home.copy()
+            self._go(t, "retract")
+            return
+        disp, _ = self.plan[self.index]
+        self.goal = self._at(self.touch + disp)
+        self._go(t, "step")
+
+    def _store(self, t: float) -> None:
+        w = self.window
+        disp, phase = self.plan[self.index]
+        rec = {
+            "depth_m": float(np.mean(w["depth"])),
+            "force_n": float(np.mean(w["force"])),
+            "phase": phase,
+            "cycle": self.cycle,
+            "displacement_m": float(np.mean(w["pos"]) - self.touch),
+            "gt_max_depth_m": float(np.mean(w["ref_depth"])) if w["ref_depth"] else None,
+            "gt_force_n": float(np.mean(w["ref_force"])) if w["ref_force"] else None,
+            "target_displacement_m": disp,
+            "depth_std_m": float(np.std(w["depth"])),
+            "force_std_n": float(np.std(w["force"])),
+            "frames": len(w["depth"]),
+            "time_s": t,
+        }
+        self.samples.append(rec)
+        self.index += 1
+        self.done_points += 1
+
+    def _finish(self, t: float) -> None:
+        self._go(t, "done")
+        self.cmd = np.zeros(3)
+        if self.params.samples_csv:
+            write_pairs_csv(self.params.samples_csv, self.samples)
+        self.ctx.request_stop(f"press routine done: {len(self.samples)} samples in {self.params.cycles} cycle(s)")
+
+    @property
+    def progress(self) -> float:
+        if self.state == "done":
+            return 1.0
+        return min(1.0, self.done_points / max(1, self.total_points))
+
+    def status(self) -> dict[str, Any]:
+        if not hasattr(self, "state"):
+            return {}
+        return {"state": self.state, "cycle": self.cycle + 1, "samples": len(self.samples),
+                "force_n": float(self.cmd @ self.u) if hasattr(self, "u") else 0.0}
+
+
+# ================================================================================================ the simulated rig
+class SimPressRig(Device):
+    """Simulated press rig: the probe on the leader's handle meets the simulated gel (indentation and reaction)."""
+
+    name = "sim-press-rig"
+    kind = Kind.DEVICE
+    default_rate = 1000.0
+    inputs = {"position": Port("float64", (3,), "m", "leader end-effector position (the probe's tip)",
+                               required=True)}
+    outputs = {
+        "indentation": Port("float64", (), "m", "probe indentation into the gel (to sim-digit)"),
+        "indenter_position": Port("float64", (2,), "m", "probe axis relative to the image centre (to sim-digit)"),
+        "force": Port("float64", (3,), "N", "the gel's reaction on the handle (to the leader's external_force)"),
+        "contact_force": Port("float64", (), "N", "ground truth: normal force between probe and gel"),
+    }
+
+    class Params(Params):
+        surface: Meters = Field(-0.005, description="handle z at which the probe's tip touches the gel",
+                                json_schema_extra=_u("m"))
+        sensor_center: tuple[Meters, Meters] = Field((0.0, 0.0), description="handle (x, y) over the image centre "
+                                                     "(m); handle x is image x (columns), handle y image y (rows)")
+        indenter: Literal["probe", "sphere", "flat"] = Field("probe", description="probe shape (as sim-digit)")
+        radius: Meters = Field(0.005, gt=0, description="probe radius", json_schema_extra=_u("m"))
+        tip_radius: Meters = Field(0.010, gt=0, description="radius of the probe's curved tip",
+                                   json_schema_extra=_u("m"))
+        modulus: Pascals | None = Field(None, gt=0, description="gel Young's modulus (None: the gel model's "
+                                        "default, as sim-digit)", json_schema_extra=_u("Pa"))
+        poisson: float | None = Field(None, ge=0, le=0.5, description="gel Poisson ratio (None: default)")
+        thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the thin-layer "
+                                         "correction (None: half space, as sim-digit's default)",
+                                         json_schema_extra=_u("m"))
+        damping: NewtonSecondsPerMeter = Field(5.0, ge=0, description="gel damping while in contact (never "
+                                               "pulls)", json_schema_extra=_u("N*s/m"))
+
+    def configure(self) -> None:
+        from teletouch.plugins.sensors.gel import Indenter, gel_force  # the same gel model as sim-digit
+
+        p = self.params
+        self._gel_force = gel_force
+        self.indenter = Indenter.parse(p.indenter, p.radius, p.tip_radius if p.indenter == "probe" else None)
+        self.last: tuple[float, float] | None = None
+        self.d = 0.0
+        self.f = 0.0
+        self.safe = False
+
+    def activate(self) -> None:
+        self.safe = False
+        self.last = None
+
+    def gel(self, indentation: float) -> float:
+        p = self.params
+        return self._gel_force(indentation, self.indenter, p.modulus, p.poisson, p.thickness)
+
+    def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
+        s = inputs["position"]
+        if s is None:
+            return None
+        pos = np.asarray(s.value, dtype=float).reshape(3)
+        if not np.all(np.isfinite(pos)):
+            raise ComponentFault(f"leader position {pos.tolist()} is not finite", self.id)
+        p = self.params
+        d = max(0.0, p.surface - float(pos[2]))
+        rate = 0.0
+        if self.last is not None and t > self.last[0]:
+            rate = (d - self.last[1]) / (t - self.last[0])
+        self.last = (t, d)
+        f = self.gel(d) if d > 0 else 0.0
+        if d > 0:
+            f = max(0.0, f + p.damping * rate)
+        self.d, self.f = d, f
+        xy = np.array([pos[0] - p.sensor_center[0], pos[1] - p.sensor_center[1]])
+        return {"indentation": d, "indenter_position": xy, "force": np.array([0.0, 0.0, f]), "contact_force": f}
+
+    def safe_state(self) -> None:
+        self.safe = True  # the gel is passive: nothing to drive
+
+    def status(self) -> dict[str, Any]:
+        return {"indentation_mm": getattr(self, "d", 0.0) * 1e3, "gel_force_n": getattr(self, "f", 0.0)}
+
+
+# ================================================================================================ fitting + CLI
+def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: float = 3e-5, use: str = "all",
+                zero_intercept: bool = False, sensor_model_id: str = "", depth_source: str = "",
+                source: str = "") -> ForceCalibration:
+    """Fit a calibration from recorded samples, leaving out those without contact (depth < min_depth)."""
+    keep = [s for s in samples if s["depth_m"] >= min_depth]
+    if not keep:
+        raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm: did the probe "
+                               f"touch the gel?")
+    extra = {"excluded_no_contact": len(samples) - len(keep), "min_depth_m": min_depth}
+    return ForceCalibration.fit([s["depth_m"] for s in keep], [s["force_n"] for s in keep], degree,
+                                phases=[s.get("phase") or "" for s in keep],
+                                cycles=[int(s.get("cycle") or 0) for s in keep], use=use,
+                                zero_intercept=zero_intercept, sensor_model_id=sensor_model_id,
+                                depth_source=depth_source, source=source, extra=extra)
+
+
+def _sensor_model_id(spec: Any) -> tuple[str, str]:
+    """(sensor model id, depth source) guessed from the graph: the depth node's model, else the sensor node."""
+    sensor = ""
+    for n in spec.nodes:
+        if n.plugin in ("sim-digit", "digit", "replay"):
+            prm = n.params or {}
+            sensor = n.plugin + (f":{prm['serial']}" if prm.get("serial") else "")
+    depth = ""
+    for n in spec.nodes:
+        if n.plugin == "press-routine":
+            w = n.inputs.get("max_depth")
+            if w is not None:
+                src = spec.node(w.node)
+                depth = f"{w.node}.{w.source_port} ({src.plugin})"
+                model = (src.params or {}).get("model")
+                if model:
+                    return Path(str(model)).name, depth
+    return sensor, depth
+
+
+def run_press_calibration(graph: str, *, sets: list[str] | None = None, clock: str | None = None,
+                          duration: float | None = None, progress: bool = True,
+                          registry: Any = None) -> tuple[Any, PressRoutine, Any]:
+    """Run a press-routine graph; returns (run result, the routine component, the graph spec)."""
+    from teletouch.graph import load_graph
+    from teletouch.runtime import Runtime
+
+    spec = load_graph(graph, sets=sets or [], clock=clock, duration=duration, registry=registry)
+    ids = [n.id for n in spec.nodes if n.cls is not None and issubclass(n.cls, PressRoutine)]
+    if len(ids) != 1:
+        raise CalibrationError(f"{graph}: the graph needs exactly one press-routine node, found {len(ids)}")
+    if spec.clock == "sim" and spec.duration is None:
+        spec.duration = 3600.0
+    rt = Runtime(spec)
+    bar = None
+    cb = None
+    if progress:
+        try:
+            from tqdm import tqdm
+
+            bar = tqdm(total=100, desc="press calibration", unit="%", file=sys.stderr,
+                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
+        except ImportError:  # pragma: no cover - tqdm is a dependency of the venv
+            bar = None
+
+        def cb(runtime: Any, t: float) -> None:
+            comp = runtime.component(ids[0])
+            if bar is not None:
+                bar.n = int(round(100 * comp.progress))
+                bar.set_postfix_str(f"t={t:.1f}s {comp.state} cycle {comp.cycle + 1}/{comp.params.cycles} "
+                                    f"samples {len(comp.samples)}")
+                bar.refresh()
+
+    try:
+        result = rt.run(spec.duration, progress=cb, progress_interval=0.5)
+    finally:
+        if bar is not None:
+            comp = rt.component(ids[0])
+            bar.n = int(round(100 * comp.progress))
+            bar.close()
+    return result, rt.component(ids[0]), spec
+
+
+def _cmd_calibrate_force(args: argparse.Namespace) -> int:
+    from teletouch.units import parse_quantity
+
+    out = Path(args.output)
+    plot = Path(args.plot) if args.plot else out.with_name(_stem(out) + ".png")
+    min_depth = parse_quantity(args.min_depth, "m")
+    if args.csv:
+        data = read_pairs_csv(args.csv)
+        samples = [{"depth_m": float(d), "force_n": float(f),
+                    "phase": (data["phase"][i] if data["phase"] else ""),
+                    "cycle": (data["cycle"][i] if data["cycle"] else 0)}
+                   for i, (d, f) in enumerate(zip(data["depth_m"], data["force_n"]))]
+        cal = fit_samples(samples, args.degree, min_depth=min_depth, use=args.use,
+                          zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or "",
+                          depth_source="csv", source=f"csv:{Path(args.csv).name}")
+    else:
+        duration = parse_quantity(args.duration, "s") if args.duration else None
+        result, routine, spec = run_press_calibration(args.graph, sets=args.sets, clock=args.clock,
+                                                      duration=duration, progress=not args.quiet)
+        samples_path = Path(args.samples) if args.samples else out.with_name(_stem(out) + ".samples.csv")
+        if routine.samples:
+            write_pairs_csv(samples_path, routine.samples)
+            print(f"wrote {len(routine.samples)} samples to {samples_path}", file=sys.stderr)
+        if routine.state != "done":
+            why = routine.abort_reason or result.message
+            print(f"teletouch: press routine did not finish ({result.status}: {why}); no calibration written",
+                  file=sys.stderr)
+            return result.exit_code or 3
+        model_id, depth_src = _sensor_model_id(spec)
+        cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
+                          zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or model_id,
+                          depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}")
+    cal.save(out)
+    cal.save_plot(plot)
+    print(cal.summary())
+    print(f"wrote {out} and {plot}")
+    return 0
+
+
+def _stem(p: Path) -> str:
+    name = p.name
+    for suf in (".force.json", ".json"):
+        if name.endswith(suf):
+            return name[: -len(suf)]
+    return p.stem
+
+
+@hookimpl
+def teletouch_components():
+    return [PressRoutine, SimPressRig]
+
+
+@hookimpl
+def teletouch_add_commands(calibrate: Any) -> None:
+    p = calibrate.add_parser("force", help="force calibration: run a press routine graph, or fit a CSV of "
+                                           "(depth, force) pairs",
+                             description="Fit max depth (m) -> force (N) with a least-squares polynomial. "
+                                         "Either run a graph with a press-routine node (the leader presses a "
+                                         "probe into the gel in steps) or fit an existing CSV.")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--graph", help="graph with a press-routine node (e.g. examples/calibrate-force-sim.yaml)")
+    src.add_argument("--csv", help="CSV with a header: depth_m (or depth_mm), force_n, optional phase, cycle")
+    p.add_argument("-o", "--output", default="force-calibration.force.json", help="calibration file to write")
+    p.add_argument("--plot", default=None, help="PNG to write (default: beside the output)")
+    p.add_argument("--samples", default=None, help="CSV of the recorded samples (default: beside the output)")
+    p.add_argument("--degree", type=int, default=3, help="polynomial degree (default 3)")
+    p.add_argument("--use", choices=("all", "loading", "unloading"), default="all",
+                   help="which samples make the fit (the other phase still gives the hysteresis gap)")
+    p.add_argument("--zero-intercept", action="store_true", help="force F(0) = 0")
+    p.add_argument("--min-depth", default="0.03mm", help="samples shallower than this are no contact (left out)")
+    p.add_argument("--sensor-model-id", default=None, help="recorded in the file (default: the depth model)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",
+                   help="override a graph parameter (repeatable)")
+    p.add_argument("--clock", choices=("sim", "wall"), default=None, help="override the graph's clock")
+    p.add_argument("--duration", default=None, help="longest run (s); default: the graph's, or 1 h simulated")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_calibrate_force)

@@ -1,0 +1,240 @@
+"""The press routine (state machine, abort -> retract -> safe state), the simulated rig and `teletouch calibrate force`.
+
+These graphs close the loop sim-omega7 <-> sim-press-rig without a camera: the routine reads the rig's indentation as
+its max depth, so each run takes a few seconds. The full camera pipeline is exercised by
+scripts/make_sim_force_calibration.py and benchmarks/force_accuracy.py.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from teletouch import ComponentFault
+from teletouch.plugins.estimators.force_calibration import PressRoutine, SimPressRig, fit_samples
+from teletouch.plugins.estimators.poly_force import ForceCalibration, read_pairs_csv
+from teletouch.plugins.sensors.gel import Indenter, gel_force
+from teletouch.testing import Harness, make_registry, run_yaml
+
+FAST = {"cycles": 1, "step": "0.25mm", "max_displacement": "1.5mm", "settle_time": 0.25, "record_time": 0.1,
+        "approach_speed": "2mm/s", "move_speed": "5mm/s"}
+
+
+def graph(routine: dict | None = None, leader: dict | None = None, rig: dict | None = None,
+          duration: float = 60.0) -> str:
+    r = dict(FAST, **(routine or {}))
+    lead = dict({"intent": "none"}, **(leader or {}))
+    return f"""
+name: press-test
+clock: sim
+duration: {duration}
+nodes:
+  - id: leader
+    plugin: sim-omega7
+    rate: 1000
+    params: {json.dumps(lead)}
+    inputs: {{force: routine.force, external_force: rig.force}}
+  - id: rig
+    plugin: sim-press-rig
+    rate: 1000
+    params: {json.dumps(rig or {})}
+    inputs: {{position: leader.position}}
+  - id: routine
+    plugin: press-routine
+    rate: 1000
+    params: {json.dumps(r)}
+    inputs: {{position: leader.position, max_depth: rig.indentation, reference_force: rig.contact_force,
+              abort: leader.button}}
+"""
+
+
+@pytest.fixture(scope="module")
+def reg():
+    return make_registry("teletouch.plugins.devices.sim_omega7", "teletouch.plugins.estimators.force_calibration")
+
+
+@pytest.fixture(scope="module")
+def full_run(reg):
+    log = []
+    result, rt = run_yaml(graph(routine={"cycles": 2}), reg,
+                          taps=[lambda n, t, o: log.append((t, o["force"][2])) if n == "rig" else None])
+    return result, rt, log
+
+
+# ------------------------------------------------------------------------------------------------ the full routine
+def test_routine_runs_all_steps_and_stops(full_run):
+    result, rt, _ = full_run
+    r = rt.component("routine")
+    assert result.status == "stopped" and "press routine done: 26 samples in 2 cycle(s)" in result.message
+    assert r.state == "done" and r.progress == 1.0
+    states = [s for _, s in r.events]
+    assert states[:3] == ["approach", "backoff", "step"]
+    assert states.count("retract") == 2 and states[-1] == "done"
+    # 0, 0.25 .. 1.5 mm loading, then 1.25 .. 0 unloading, per cycle
+    targets = [s["target_displacement_m"] for s in r.samples[:13]]
+    np.testing.assert_allclose(targets, [0, .25e-3, .5e-3, .75e-3, 1e-3, 1.25e-3, 1.5e-3,
+                                         1.25e-3, 1e-3, .75e-3, .5e-3, .25e-3, 0], atol=1e-12)
+    assert [s["phase"] for s in r.samples[:13]] == ["loading"] * 7 + ["unloading"] * 6
+    assert {s["cycle"] for s in r.samples} == {0, 1}
+
+
+def test_routine_records_the_steady_state_device_force(full_run):
+    _, rt, _ = full_run
+    r = rt.component("routine")
+    for s in r.samples:
+        assert abs(s["displacement_m"] - s["target_displacement_m"]) <= r.params.settle_tolerance + 1e-9
+        # at rest the command balances the gel: device force == ground-truth gel force
+        assert s["force_n"] == pytest.approx(s["gt_force_n"], abs=0.02 + 0.01 * s["gt_force_n"])
+        # and the gel model gives that force at the recorded depth
+        assert s["force_n"] == pytest.approx(gel_force(s["depth_m"], Indenter.probe()), rel=0.02, abs=0.02)
+
+
+def test_routine_ends_retracted_with_zero_force(full_run):
+    _, rt, log = full_run
+    leader = rt.component("leader")
+    rig = rt.component("rig")
+    assert rig.d == 0.0 and log[-1][1] == 0.0  # probe off the gel
+    assert leader.safe and np.all(leader.f_applied == 0)
+    assert max(f for _, f in log) < rt.component("routine").params.max_force
+
+
+def test_fit_of_routine_samples(full_run, tmp_path):
+    _, rt, _ = full_run
+    r = rt.component("routine")
+    cal = fit_samples(r.samples, 3)
+    assert cal.r2 > 0.999
+    assert cal.hysteresis["max_gap_n"] is not None and abs(cal.hysteresis["max_gap_n"]) < 0.1
+    d = np.linspace(0.1e-3, 1.5e-3, 20)
+    truth = np.array([gel_force(x, Indenter.probe()) for x in d])
+    assert np.max(np.abs(cal.predict(d) - truth)) < 0.05 * truth.max()
+
+
+# ------------------------------------------------------------------------------------------------ abort paths
+def test_abort_over_force_retracts_then_faults(reg):
+    log = []
+    result, rt = run_yaml(graph(routine={"max_force": 2.0, "max_displacement": "2mm"}), reg,
+                          taps=[lambda n, t, o: log.append((t, float(o["indentation"]))) if n == "rig" else None])
+    r = rt.component("routine")
+    assert result.status == "fault" and "max_force" in result.message and "safe state" in result.message
+    assert r.state == "aborted" and "abort-retract" in [s for _, s in r.events]
+    assert max(d for _, d in log) > 0.5e-3  # it was pressing
+    assert log[-1][1] == 0.0  # and retracted off the gel before stopping
+    assert rt.component("leader").safe and np.all(rt.component("leader").f_applied == 0)
+    assert len(r.samples) < 2 * len(r.plan)
+
+
+def test_abort_button(reg):
+    result, rt = run_yaml(graph(leader={"button_intervals": [[5.0, 5.5]]}), reg)
+    r = rt.component("routine")
+    assert result.status == "fault" and "button" in result.message
+    t_abort = next(t for t, s in r.events if s == "abort-retract")
+    assert 5.0 <= t_abort < 5.01
+    assert rt.component("rig").d == 0.0 and rt.component("leader").safe
+
+
+def test_no_gel_under_the_probe_aborts(reg):
+    result, rt = run_yaml(graph(routine={"max_approach": "3mm"}, rig={"surface": -0.02}), reg)
+    assert result.status == "fault" and "no contact after 3.0 mm" in result.message
+    assert rt.component("leader").safe
+
+
+def _harness_at_press(**params):
+    h = Harness(PressRoutine, dict(FAST, **params))
+    h.__enter__()
+    pos = np.zeros(3)
+    h.step(0.0, position=pos, max_depth=0.0)
+    assert h.comp.state == "approach"
+    return h
+
+
+def test_nan_depth_aborts_and_retracts():
+    h = _harness_at_press()
+    h.step(0.1, position=np.array([0, 0, -1e-4]), max_depth=math.nan)
+    assert h.comp.state == "abort-retract" and "NaN" in h.comp.abort_reason.replace("nan", "NaN")
+    out = h.step(0.101, position=np.array([0, 0, -1e-4]), max_depth=math.nan)
+    assert out["force"][2] > 0  # pulls the probe back up towards home
+    # at home: aborted -> fault, zero force
+    with pytest.raises(ComponentFault, match="NaN|nan"):
+        h.step(0.2, position=np.zeros(3), max_depth=0.0)
+    assert np.all(h.comp.cmd == 0)
+
+
+def test_lost_position_gives_zero_force_at_once():
+    h = _harness_at_press()
+    h.step(0.05, position=np.array([0, 0, -1e-5]), max_depth=0.0)
+    with pytest.raises(ComponentFault, match="position lost"):
+        h.step(0.06, position=np.array([np.nan, 0, 0]), max_depth=0.0)
+    assert np.all(h.comp.cmd == 0)
+
+
+def test_stale_depth_aborts():
+    h = _harness_at_press(input_timeout=0.2)
+    from teletouch import Sample
+
+    h.set(max_depth=Sample(0.0, 0.0))
+    h.t = 0.5
+    h.set(position=np.array([0, 0, -1e-4]))
+    h.comp.step(0.5, h.inputs)
+    assert h.comp.state == "abort-retract" and "no max depth" in h.comp.abort_reason
+
+
+def test_params_checked():
+    with pytest.raises(ValueError, match="larger than max_displacement"):
+        Harness(PressRoutine, {"step": "3mm", "max_displacement": "2mm"}).comp.configure()
+
+
+# ------------------------------------------------------------------------------------------------ the rig
+def test_rig_uses_the_gel_model():
+    with Harness(SimPressRig, {"surface": -0.005, "thickness": 0.004}) as h:
+        out = h.step(0.0, position=np.array([0.001, -0.002, -0.0062]))
+        d = 0.0012
+        assert out["indentation"] == pytest.approx(d)
+        np.testing.assert_allclose(out["indenter_position"], [0.001, -0.002])
+        expected = gel_force(d, Indenter.probe(0.005, 0.010), thickness=0.004)
+        assert out["force"][2] == pytest.approx(expected) and out["contact_force"] == pytest.approx(expected)
+        out = h.step(0.001, position=np.array([0, 0, 0.0]))
+        assert out["indentation"] == 0.0 and np.all(out["force"] == 0)
+        with pytest.raises(ComponentFault, match="not finite"):
+            h.step(0.002, position=np.array([0, 0, np.nan]))
+
+
+# ------------------------------------------------------------------------------------------------ command line
+def test_cli_csv(tmp_path, capsys):
+    from teletouch.cli import main
+
+    csv = tmp_path / "pairs.csv"
+    d = np.linspace(0.1e-3, 2e-3, 15)
+    f = [gel_force(x, Indenter.probe()) for x in d]
+    csv.write_text("depth_m,force_n\n" + "".join(f"{a},{b}\n" for a, b in zip(d, f)))
+    out = tmp_path / "cal.force.json"
+    assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out), "--sensor-model-id", "unit"]) == 0
+    cal = ForceCalibration.load(out)
+    assert cal.sensor_model_id == "unit" and cal.r2 > 0.999 and cal.source == "csv:pairs.csv"
+    assert (tmp_path / "cal.png").stat().st_size > 10_000
+    assert "R^2" in capsys.readouterr().out
+    csv.write_text("depth_m,force_n\n0.001,oops\n")
+    assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out)]) != 0
+    assert "pairs.csv:2: column 'force_n'" in capsys.readouterr().err
+
+
+def test_cli_graph(tmp_path, capsys):
+    from teletouch.cli import main
+
+    g = tmp_path / "press.yaml"
+    g.write_text(graph())
+    out = tmp_path / "sim.force.json"
+    assert main(["calibrate", "force", "--graph", str(g), "-o", str(out), "--quiet"]) == 0
+    cal = ForceCalibration.load(out)
+    assert cal.r2 > 0.999 and cal.source == "press-routine:press.yaml"
+    assert cal.depth_source == "rig.indentation (sim-press-rig)"
+    rows = read_pairs_csv(tmp_path / "sim.samples.csv")
+    assert len(rows["depth_m"]) == 13 and rows["phase"].count("unloading") == 6
+    # an aborting graph writes no calibration and fails
+    out2 = tmp_path / "none.force.json"
+    rc = main(["calibrate", "force", "--graph", str(g), "-o", str(out2), "--quiet",
+               "--set", "routine.max_force=1.0"])
+    assert rc != 0 and not out2.exists()
+    assert "did not finish" in capsys.readouterr().err
