@@ -1,0 +1,409 @@
+"""Gel model of a DIGIT: indenter shapes, the deformed gel surface (height map) and the normal force.
+
+Pure numpy, no teletouch imports, so estimators, benchmarks and simulated devices can use it directly::
+
+    from teletouch.plugins.sensors.gel import Indenter, gel_force, height_map
+    ball = Indenter.sphere(0.003)
+    f = gel_force(0.0008, ball)                                   # N
+    z = height_map(ball, 0.0008, (0.0, 0.0), 0.0, (320, 240), 1 / 17150)   # m, positive into the gel
+
+Force model (normal load of a rigid indenter on an elastic half space, Sneddon's framework):
+
+- sphere of radius R (Hertz):            F = 4/3 E* sqrt(R) d^1.5
+- flat punch of radius a (Boussinesq):   F = 2 E* a d
+- the paper's probe (a cylinder of radius a = 5 mm whose end is a spherical cap of radius Rt): Hertz on the cap
+  while the contact radius sqrt(Rt d) is below a, then the whole end face is in contact and the load grows like a
+  flat punch: F = 4/3 E* sqrt(Rt) d1^1.5 + 2 E* a (d - d1) for d > d1 = a^2 / Rt (continuous in value and slope).
+- any other shape (a user height map): the incremental stiffness dF/dd = 2 E* a_c(d) with the contact radius
+  a_c(d) = sqrt(A(d/2) / pi), where A(s) is the area where the rigid shape dips more than s below the gel plane.
+  This is exact for the flat punch and the paraboloid (Hertz), and is integrated numerically.
+
+E* = E / (1 - nu^2) (rigid indenter). Default E = 0.41 MPa, nu = 0.5: Gent's relation between Shore A hardness and
+Young's modulus, E[MPa] = 0.0981 (56 + 7.62336 S) / (0.137505 (254 - 2.54 S)), gives 0.41 MPa for the DIGIT's
+Shore 10A silicone (hardware notes); this yields 2.3 N at 1.25 mm and 3.0 N at 1.5 mm for a 5 mm radius sphere,
+the few newtons a DIGIT is used at. The gel is a 4-5 mm layer on a rigid window, which stiffens it; set
+``thickness`` to apply the bonded thin-layer correction of Dimitriadis et al. (Biophys. J. 2002, nu = 0.5):
+F *= 1 + 1.133 x + 1.283 x^2 + 0.769 x^3 + 0.0975 x^4, x = a_c / h (used for every shape, an approximation
+beyond the sphere).
+
+Surface (height map) model: inside the contact the gel takes the indenter's shape; outside it the gel surface sags
+as an elastic half space does around a Hertz contact,
+u(r) = [(2 a^2 - r^2) asin(a/r) + r a sqrt(1 - a^2/r^2)] / (pi R) for r > a, with the contact radius a = sqrt(R d)
+(for general shapes: the equivalent R = a_c^2 / d). ``deformation=False`` gives the rigid cap (the plain geometric
+intersection) instead. Depth maps are float32 in metres, positive into the gel.
+
+Positions are in metres from the image centre, x along columns, y along rows (docs/ports.md). ``tilt`` rotates the
+indenter about the axis through its centre parallel to the rows (y): its lowest point moves towards +x.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, Sequence
+
+import numpy as np
+
+__all__ = [
+    "Indenter", "GelMaterial", "gel_force", "height_map", "contact_radius", "indentation_for_contact_radius",
+    "shore_a_to_modulus", "contact_mask", "gel_surface", "GelSurface", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
+]
+
+#: Paper's unit: 17.15 px per mm at QVGA (320 x 240).
+QVGA_M_PER_PX = 1.0 / 17150.0
+#: Taxim's DIGIT: 0.0266 mm per px at VGA (640 x 480).
+VGA_M_PER_PX = 0.0266e-3
+#: the gel's sag around a contact is tapered to zero between these many contact radii from the axis
+SAG_TAPER = (1.5, 2.5)
+
+
+def shore_a_to_modulus(shore: float) -> float:
+    """Young's modulus (Pa) from a Shore A hardness, by Gent's relation (valid for roughly 10-90 A)."""
+    return 0.0981e6 * (56.0 + 7.62336 * shore) / (0.137505 * (254.0 - 2.54 * shore))
+
+
+DEFAULT_MODULUS = shore_a_to_modulus(10.0)  # ~0.41 MPa
+DEFAULT_POISSON = 0.5
+
+
+@dataclass(frozen=True)
+class GelMaterial:
+    """Elastic constants of the gel. ``thickness`` (m) enables the bonded thin-layer correction."""
+
+    modulus: float = DEFAULT_MODULUS
+    poisson: float = DEFAULT_POISSON
+    thickness: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.modulus > 0 and math.isfinite(self.modulus)):
+            raise ValueError(f"gel modulus must be a positive number of Pa, got {self.modulus!r}")
+        if not (0.0 <= self.poisson < 0.5 + 1e-12):
+            raise ValueError(f"gel Poisson ratio must be in [0, 0.5], got {self.poisson!r}")
+        if self.thickness is not None and not self.thickness > 0:
+            raise ValueError(f"gel thickness must be > 0 m, got {self.thickness!r}")
+
+    @property
+    def reduced_modulus(self) -> float:
+        return self.modulus / (1.0 - self.poisson ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class Indenter:
+    """A rigid indenter. Build with :meth:`sphere`, :meth:`probe`, :meth:`flat` or :meth:`from_height_map`.
+
+    kind: "sphere" (radius), "probe" (radius of the cylinder, tip_radius of its spherical end), "flat" (radius of
+    the punch), "map" (surface: heights in m above the indenter's lowest point, sampled every map_m_per_px metres,
+    centred on the indenter's axis; NaN or inf where there is no material).
+    """
+
+    kind: Literal["sphere", "probe", "flat", "map"]
+    radius: float = 0.0
+    tip_radius: float = 0.0
+    surface: np.ndarray | None = field(default=None, repr=False)
+    map_m_per_px: float = 0.0
+
+    # constructors ----------------------------------------------------------------------------------------------
+    @classmethod
+    def sphere(cls, radius: float) -> "Indenter":
+        _positive("sphere radius", radius)
+        return cls("sphere", radius=float(radius))
+
+    @classmethod
+    def probe(cls, radius: float = 0.005, tip_radius: float = 0.010) -> "Indenter":
+        """The paper's calibration probe: a cylinder of ``radius`` ending in a spherical cap of ``tip_radius``."""
+        _positive("probe radius", radius)
+        _positive("probe tip radius", tip_radius)
+        if tip_radius < radius:
+            raise ValueError(f"probe tip radius ({tip_radius} m) must be >= the cylinder radius ({radius} m)")
+        return cls("probe", radius=float(radius), tip_radius=float(tip_radius))
+
+    @classmethod
+    def flat(cls, radius: float) -> "Indenter":
+        _positive("flat punch radius", radius)
+        return cls("flat", radius=float(radius))
+
+    @classmethod
+    def from_height_map(cls, surface: np.ndarray, m_per_px: float) -> "Indenter":
+        """A user shape: ``surface[row, col]`` is the height (m) of the indenter's face above its lowest point."""
+        s = np.asarray(surface, dtype=np.float64)
+        if s.ndim != 2 or s.shape[0] < 2 or s.shape[1] < 2:
+            raise ValueError(f"indenter height map must be a 2-D array, got shape {s.shape}")
+        _positive("indenter height map m_per_px", m_per_px)
+        s = np.where(np.isfinite(s), s, np.inf)
+        if not np.isfinite(s).any():
+            raise ValueError("indenter height map has no finite value")
+        s = s - s[np.isfinite(s)].min()
+        return cls("map", surface=s, map_m_per_px=float(m_per_px))
+
+    @classmethod
+    def parse(cls, spec: str, radius: float | None = None, tip_radius: float | None = None) -> "Indenter":
+        """``"sphere"``, ``"probe"``, ``"flat"`` or a path to a ``.npy`` height map in m (m_per_px from radius)."""
+        if spec == "sphere":
+            return cls.sphere(radius if radius is not None else 0.003)
+        if spec == "probe":
+            return cls.probe(radius if radius is not None else 0.005,
+                             tip_radius if tip_radius is not None else 0.010)
+        if spec == "flat":
+            return cls.flat(radius if radius is not None else 0.003)
+        raise ValueError(f"unknown indenter {spec!r}; expected sphere, probe or flat")
+
+    # geometry --------------------------------------------------------------------------------------------------
+    @property
+    def extent(self) -> float:
+        """Radius (m) of the indenter's footprint."""
+        if self.kind == "map":
+            assert self.surface is not None
+            h, w = self.surface.shape
+            return 0.5 * math.hypot(h, w) * self.map_m_per_px
+        return self.radius
+
+    def profile(self, r: np.ndarray) -> np.ndarray:
+        """Height (m) of an axisymmetric indenter's face above its lowest point at radius r (inf outside)."""
+        r = np.asarray(r, dtype=np.float64)
+        if self.kind == "sphere":
+            R = self.radius
+            return np.where(r < R, R - np.sqrt(np.maximum(R * R - r * r, 0.0)), np.inf)
+        if self.kind == "probe":
+            Rt, a = self.tip_radius, self.radius
+            return np.where(r <= a, Rt - np.sqrt(np.maximum(Rt * Rt - r * r, 0.0)), np.inf)
+        if self.kind == "flat":
+            return np.where(r <= self.radius, 0.0, np.inf)
+        raise ValueError("profile() is for axisymmetric indenters")
+
+    def surface_at(self, x: np.ndarray, y: np.ndarray, tilt: float = 0.0) -> np.ndarray:
+        """Height (m) of the indenter's face above its lowest point at offsets (x, y) (m) from its axis."""
+        if tilt != 0.0 and self.kind != "sphere":  # a sphere is the same shape under any rotation
+            c, s = math.cos(tilt), math.sin(tilt)
+            # rotate about the y axis: a face point (u, y, h(u, y)) goes to (u c + h s, y, -u s + h c);
+            # to first order in the face height, the face seen from below is h(x / c) c - x tan(tilt).
+            z = self._surface_untilted(x / c, y) * c - x * (s / c)
+            finite = np.isfinite(z)
+            if finite.any():
+                z = z - z[finite].min()
+            return z
+        return self._surface_untilted(x, y)
+
+    def _surface_untilted(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        if self.kind != "map":
+            return self.profile(np.hypot(x, y))
+        assert self.surface is not None
+        s = self.surface
+        h, w = s.shape
+        col = np.asarray(x) / self.map_m_per_px + (w - 1) / 2.0
+        row = np.asarray(y) / self.map_m_per_px + (h - 1) / 2.0
+        ci = np.rint(col).astype(np.int64)
+        ri = np.rint(row).astype(np.int64)
+        inside = (ci >= 0) & (ci < w) & (ri >= 0) & (ri < h)
+        out = np.full(np.broadcast(ci, ri).shape, np.inf)
+        out[inside] = s[ri[inside], ci[inside]]
+        return out
+
+    def contact_area(self, s: float, tilt: float = 0.0) -> float:
+        """Area (m^2) where the rigid face dips more than ``s`` below the gel plane at indentation... i.e. the
+        geometric footprint {surface < s}."""
+        if s <= 0:
+            return 0.0
+        if self.kind == "sphere":
+            R = self.radius
+            s = min(s, R)
+            return math.pi * (2 * R * s - s * s)
+        if self.kind == "flat" and tilt == 0.0:
+            return math.pi * self.radius ** 2
+        if self.kind == "probe" and tilt == 0.0:
+            Rt, a = self.tip_radius, self.radius
+            r2 = 2 * Rt * s - s * s if s < Rt else Rt * Rt
+            return math.pi * min(r2, a * a)
+        # numerical: sample the face on a grid
+        ext = self.extent
+        n = 257
+        step = 2 * ext / (n - 1)
+        g = np.linspace(-ext, ext, n)
+        X, Y = np.meshgrid(g, g)
+        z = self.surface_at(X, Y, tilt)
+        return float(np.count_nonzero(z < s)) * step * step
+
+
+def _positive(what: str, v: float) -> None:
+    if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+        raise ValueError(f"{what} must be a positive number of metres, got {v!r}")
+
+
+def _material(modulus: float | GelMaterial | None, poisson: float | None, thickness: float | None) -> GelMaterial:
+    if isinstance(modulus, GelMaterial):
+        return modulus
+    return GelMaterial(DEFAULT_MODULUS if modulus is None else float(modulus),
+                       DEFAULT_POISSON if poisson is None else float(poisson), thickness)
+
+
+def contact_radius(indentation_m: float, indenter: Indenter, tilt_rad: float = 0.0) -> float:
+    """Radius (m) of the contact patch at an indentation (Hertz: sqrt(R d); flat punch: its radius)."""
+    d = float(indentation_m)
+    if d <= 0:
+        return 0.0
+    if indenter.kind == "sphere":
+        return math.sqrt(indenter.radius * min(d, indenter.radius))
+    if indenter.kind == "flat" and tilt_rad == 0.0:
+        return indenter.radius
+    if indenter.kind == "probe" and tilt_rad == 0.0:
+        return min(math.sqrt(indenter.tip_radius * d), indenter.radius)
+    return math.sqrt(indenter.contact_area(d / 2.0, tilt_rad) / math.pi)
+
+
+def indentation_for_contact_radius(a_m: float, indenter: Indenter) -> float:
+    """Inverse of :func:`contact_radius` for a sphere or the probe's cap (Hertz: d = a^2 / R)."""
+    if indenter.kind == "sphere":
+        return a_m * a_m / indenter.radius
+    if indenter.kind == "probe":
+        return a_m * a_m / indenter.tip_radius
+    raise ValueError(f"contact radius does not determine the indentation of a {indenter.kind} indenter")
+
+
+def _thin_layer(a_c: float, h: float | None) -> float:
+    if h is None:
+        return 1.0
+    x = a_c / h
+    return 1.0 + 1.133 * x + 1.283 * x * x + 0.769 * x ** 3 + 0.0975 * x ** 4
+
+
+def gel_force(indentation_m: float, indenter: Indenter, modulus: float | GelMaterial | None = None,
+              poisson: float | None = None, thickness: float | None = None, tilt_rad: float = 0.0) -> float:
+    """Normal force (N) the gel pushes back with at an indentation (m); 0 at or below 0, monotonic increasing.
+
+    ``modulus`` is Young's modulus (Pa) or a :class:`GelMaterial`; see the module docstring for the laws.
+    """
+    d = float(indentation_m)
+    if not math.isfinite(d):
+        raise ValueError(f"indentation must be a finite number of metres, got {indentation_m!r}")
+    if d <= 0.0:
+        return 0.0
+    mat = _material(modulus, poisson, thickness)
+    Es = mat.reduced_modulus
+    k = indenter.kind
+    if k == "sphere":
+        F = 4.0 / 3.0 * Es * math.sqrt(indenter.radius) * d ** 1.5
+    elif k == "flat" and tilt_rad == 0.0:
+        F = 2.0 * Es * indenter.radius * d
+    elif k == "probe" and tilt_rad == 0.0:
+        Rt, a = indenter.tip_radius, indenter.radius
+        d1 = a * a / Rt
+        if d <= d1:
+            F = 4.0 / 3.0 * Es * math.sqrt(Rt) * d ** 1.5
+        else:
+            F = 4.0 / 3.0 * Es * math.sqrt(Rt) * d1 ** 1.5 + 2.0 * Es * a * (d - d1)
+    else:
+        F = _numeric_force(d, indenter, Es, tilt_rad)
+    return float(F * _thin_layer(contact_radius(d, indenter, tilt_rad), mat.thickness))
+
+
+def _numeric_force(d: float, indenter: Indenter, Es: float, tilt: float, n: int = 64) -> float:
+    # dF/ds = 2 E* sqrt(A(s/2)/pi), integrated by the midpoint rule on n steps (A is monotonic in s).
+    ds = d / n
+    s = (np.arange(n) + 0.5) * ds
+    a = np.array([math.sqrt(indenter.contact_area(si / 2.0, tilt) / math.pi) for si in s])
+    return float(2.0 * Es * a.sum() * ds)
+
+
+def _hertz_sag(r: np.ndarray, a: float, R: float) -> np.ndarray:
+    """Surface displacement (m, into the gel) outside a Hertz contact of radius a, equivalent radius R."""
+    ratio = np.clip(a / np.maximum(r, 1e-12), 0.0, 1.0)
+    return ((2 * a * a - r * r) * np.arcsin(ratio) + r * a * np.sqrt(np.maximum(1.0 - ratio * ratio, 0.0))) / (
+        math.pi * R)
+
+
+def height_map(indenter: Indenter, indentation_m: float, position_m: Sequence[float] = (0.0, 0.0),
+               tilt_rad: float = 0.0, shape: tuple[int, int] = (320, 240), m_per_px: float = QVGA_M_PER_PX,
+               deformation: bool = True) -> np.ndarray:
+    """Depth (m, positive into the gel) of the gel surface, float32 of ``shape`` (rows, cols).
+
+    ``position_m`` is the indenter's axis relative to the image centre (x along columns, y along rows, m).
+    Inside the contact the depth is the indentation minus the indenter's face height (the analytic cap for a
+    sphere); with ``deformation`` the gel around it sags like an elastic half space (Hertz), else it stays flat.
+    """
+    return gel_surface(indenter, indentation_m, position_m, tilt_rad, shape, m_per_px, deformation).depth
+
+
+def contact_mask(indenter: Indenter, indentation_m: float, position_m: Sequence[float] = (0.0, 0.0),
+                 tilt_rad: float = 0.0, shape: tuple[int, int] = (320, 240), m_per_px: float = QVGA_M_PER_PX
+                 ) -> np.ndarray:
+    """Bool (rows, cols): pixels where the gel touches the indenter."""
+    return gel_surface(indenter, indentation_m, position_m, tilt_rad, shape, m_per_px, False).mask
+
+
+@dataclass
+class GelSurface:
+    """Result of :func:`gel_surface`: full-size depth (m) and contact mask, and the window (r0, r1, c0, c1) outside
+    which both are zero."""
+
+    depth: np.ndarray
+    mask: np.ndarray
+    window: tuple[int, int, int, int]
+
+
+def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[float] = (0.0, 0.0),
+                tilt_rad: float = 0.0, shape: tuple[int, int] = (320, 240), m_per_px: float = QVGA_M_PER_PX,
+                deformation: bool = True) -> GelSurface:
+    """Depth map, contact mask and the window that holds them (see :func:`height_map`)."""
+    rows, cols = int(shape[0]), int(shape[1])
+    d = float(indentation_m)
+    if not math.isfinite(d):
+        raise ValueError(f"indentation must be a finite number of metres, got {indentation_m!r}")
+    px, py = float(position_m[0]), float(position_m[1])
+    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(float(tilt_rad))):
+        raise ValueError(f"position and tilt must be finite, got {position_m!r}, {tilt_rad!r}")
+    if not m_per_px > 0:
+        raise ValueError(f"m_per_px must be > 0, got {m_per_px!r}")
+    depth = np.zeros((rows, cols), np.float32)
+    mask = np.zeros((rows, cols), bool)
+    empty = GelSurface(depth, mask, (0, 0, 0, 0))
+    if d <= 0.0:
+        return empty
+    cc = (cols - 1) / 2.0 + px / m_per_px
+    rc = (rows - 1) / 2.0 + py / m_per_px
+    a_c = contact_radius(d, indenter, tilt_rad)
+    # window: the footprint plus the sag's reach (SAG_TAPER[1] contact radii, where the tapered sag ends)
+    sag_end = SAG_TAPER[1] * a_c
+    reach = (max(indenter.extent, sag_end) if deformation else indenter.extent) + 2 * m_per_px
+    rr = int(math.ceil(reach / m_per_px))
+    r0, r1 = max(0, int(math.floor(rc)) - rr), min(rows, int(math.ceil(rc)) + rr + 1)
+    c0, c1 = max(0, int(math.floor(cc)) - rr), min(cols, int(math.ceil(cc)) + rr + 1)
+    if r0 >= r1 or c0 >= c1:
+        return empty
+    y = (np.arange(r0, r1, dtype=np.float64) - rc) * m_per_px
+    x = (np.arange(c0, c1, dtype=np.float64) - cc) * m_per_px
+    X, Y = np.meshgrid(x, y)
+    face = indenter.surface_at(X, Y, tilt_rad)
+    cap = np.maximum(d - face, 0.0)  # rigid intersection (0 where the face is inf)
+    k = indenter.kind
+    untilted = tilt_rad == 0.0 or k == "sphere"
+    full_face = k in ("flat", "probe") and untilted and a_c >= indenter.radius
+    if full_face:
+        inside = np.isfinite(face)
+    else:
+        # Hertz: the gel touches the face where it is within d/2 of the face's lowest point (r <= sqrt(R d))
+        inside = face <= d / 2.0
+    if deformation:
+        r = np.hypot(X, Y)
+        if full_face:
+            # outside the end face the gel sags like around a flat punch (Boussinesq), from the depth at the rim
+            a = indenter.radius
+            rim = d - float(indenter.profile(np.array(a)))
+
+            def sag_fn(rr):
+                return rim * (2.0 / math.pi) * np.arcsin(np.clip(a / np.maximum(rr, 1e-12), 0.0, 1.0))
+        else:
+            a = a_c
+            Req = a_c * a_c / d
+
+            def sag_fn(rr):
+                return _hertz_sag(rr, a_c, Req)
+        # the gel is a layer on a rigid window, so its sag dies out sooner than a half space's: the half-space sag,
+        # tapered smoothly (cosine) to zero between SAG_TAPER[0] and SAG_TAPER[1] contact radii
+        t0, t1 = SAG_TAPER[0] * a, SAG_TAPER[1] * a
+        u = np.clip((r - t0) / max(t1 - t0, 1e-12), 0.0, 1.0)
+        sag = sag_fn(r) * (0.5 + 0.5 * np.cos(np.pi * u))
+        z = np.where(inside, cap, np.minimum(sag, d / 2.0 if not full_face else d))
+    else:
+        z = cap
+    depth[r0:r1, c0:c1] = np.clip(z, 0.0, d)
+    mask[r0:r1, c0:c1] = inside
+    return GelSurface(depth, mask, (r0, r1, c0, c1))

@@ -1,0 +1,136 @@
+"""Optical model of a real DIGIT: render a camera image from a gel height map.
+
+The model is Taxim's polynomial table (vocdex/Taxim, MIT), fitted on ball presses of a real DIGIT at VGA: for a
+surface point with gradient angle m = arctan(|grad z|) and direction d = atan2(dz/drow, dz/dcol) the intensity change
+of each channel at pixel (x = column, y = row of the 640 x 480 portrait image) is c0 x^2 + c1 y^2 + c2 x y + c3 x +
+c4 y + c5 with c = table[channel, m_bin, d_bin]. Channel k of the table applies to OpenCV's channel k (B, G, R).
+Rendering adds (table(gradient) - table(flat)) to a real background frame, so an untouched gel is exactly the
+background. Coordinates of other resolutions are scaled to the 640 x 480 frame.
+
+Package data (plugins/sensors/data/, from ../shared/data, MIT, see data/README.md): ``polycalib.npz`` (the table,
+float32), ``background_qvga.png`` (per-pixel median of the 10 digit-presses-qvga images, the paper's DIGIT) and
+``background_vga.png`` (per-pixel median of the digit-presses-vga frames, the DIGIT the table was fitted on).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from teletouch.errors import ModelFileError
+
+DATA = Path(__file__).resolve().parent / "data"
+TABLE_FILE = DATA / "polycalib.npz"
+BINS = 125
+TABLE_ROWS, TABLE_COLS = 640, 480  # portrait VGA frame the table's pixel coordinates refer to
+#: (rows, cols) of each resolution, portrait
+RESOLUTIONS = {"qvga": (320, 240), "vga": (640, 480)}
+
+
+def load_table(path: str | Path | None = None) -> np.ndarray:
+    """The table as float32 (3, bins, bins, 6), channels in OpenCV order (B, G, R)."""
+    p = Path(path) if path is not None else TABLE_FILE
+    try:
+        with np.load(p) as z:
+            t = np.stack([np.asarray(z[k], np.float32) for k in ("grad_r", "grad_g", "grad_b")])
+    except FileNotFoundError:
+        raise ModelFileError(f"{p}: optical model not found") from None
+    except KeyError as e:
+        raise ModelFileError(f"{p}: optical model lacks array {e}; expected grad_r, grad_g, grad_b") from None
+    except Exception as e:  # zip/pickle errors
+        raise ModelFileError(f"{p}: cannot read optical model ({e})") from None
+    if t.shape[1:] != (BINS, BINS, 6):
+        raise ModelFileError(f"{p}: optical table has shape {t.shape[1:]}, expected ({BINS}, {BINS}, 6)")
+    if not np.isfinite(t).all():
+        raise ModelFileError(f"{p}: optical table holds non-finite values")
+    return t
+
+
+def load_background(resolution: str = "qvga", path: str | Path | None = None) -> np.ndarray:
+    """A real no-contact frame as float32 BGR (rows, cols, 3), resized to ``resolution`` if needed."""
+    import cv2
+
+    rows, cols = RESOLUTIONS[resolution]
+    p = Path(path) if path is not None else DATA / f"background_{resolution}.png"
+    if p.is_dir():
+        img = median_background(p)
+    else:
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if img is None:
+            raise ModelFileError(f"{p}: cannot read background image (missing or not an image)")
+    if img.shape[:2] == (cols, rows):  # landscape frame: rotate to the portrait convention
+        img = np.ascontiguousarray(np.rot90(img))
+    if img.shape[:2] != (rows, cols):
+        img = cv2.resize(img, (cols, rows), interpolation=cv2.INTER_AREA)
+    return img.astype(np.float32)
+
+
+def median_background(folder: str | Path) -> np.ndarray:
+    """Per-pixel median (uint8 BGR) of the images in a folder: a clean background when the contact moves."""
+    import cv2
+
+    files = sorted(f for f in Path(folder).iterdir() if f.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp"))
+    imgs = [cv2.imread(str(f), cv2.IMREAD_COLOR) for f in files]
+    imgs = [i for i in imgs if i is not None]
+    if not imgs:
+        raise ModelFileError(f"{folder}: no readable images for a background")
+    shape = imgs[0].shape
+    imgs = [i for i in imgs if i.shape == shape]
+    return np.median(np.stack(imgs), axis=0).astype(np.uint8)
+
+
+class OpticalRenderer:
+    """Renders the intensity change caused by a height map, over a window of the image.
+
+    ``gain`` (3,) scales each channel's response (per-unit variation); ``offset_px`` shifts the optical centre of the
+    polynomial (per-unit variation of the LED placement), in pixels of this resolution.
+    """
+
+    def __init__(self, table: np.ndarray, shape: tuple[int, int], gain: np.ndarray | None = None,
+                 offset_px: tuple[float, float] = (0.0, 0.0)):
+        rows, cols = shape
+        self.shape = (int(rows), int(cols))
+        sy, sx = TABLE_ROWS / rows, TABLE_COLS / cols
+        y = (np.arange(rows, dtype=np.float64) + offset_px[1]) * sy
+        x = (np.arange(cols, dtype=np.float64) + offset_px[0]) * sx
+        X, Y = np.meshgrid(x, y)
+        # basis (rows, cols, 6): x^2, y^2, xy, x, y, 1
+        self.basis = np.stack([X * X, Y * Y, X * Y, X, Y, np.ones_like(X)], axis=-1).astype(np.float32)
+        g = np.ones(3, np.float32) if gain is None else np.asarray(gain, np.float32).reshape(3)
+        t = table.astype(np.float32) * g[:, None, None, None]
+        flat = t[:, 0, _DIR_FLAT, :]  # (3, 6): the bin of a zero gradient
+        # table relative to the flat surface, laid out (bins*bins, 6, 3) for one gather per pixel
+        self.rel = np.ascontiguousarray((t - flat[:, None, None, :]).transpose(1, 2, 3, 0).reshape(BINS * BINS, 6, 3))
+        self.flat_index = 0 * BINS + _DIR_FLAT
+
+    def bins(self, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
+        """Flat table index (m_bin * bins + d_bin) of slopes gr = dz/drow, gc = dz/dcol (dimensionless)."""
+        m = np.arctan(np.sqrt(gr * gr + gc * gc))
+        d = np.arctan2(gr, gc)
+        mb = np.minimum((m * (124.0 / (0.5 * math.pi))).astype(np.int32), BINS - 1)
+        db = np.minimum(((d + math.pi) * (124.0 / (2 * math.pi))).astype(np.int32), BINS - 1)
+        return mb * BINS + db
+
+    def delta(self, depth_m: np.ndarray, m_per_px: float, window: tuple[int, int, int, int] | None = None
+              ) -> np.ndarray:
+        """Intensity change (float32 (h, w, 3), BGR) over ``window`` = (r0, r1, c0, c1) of a depth map (m)."""
+        rows, cols = depth_m.shape
+        r0, r1, c0, c1 = window if window is not None else (0, rows, 0, cols)
+        # one pixel of margin for the central differences
+        R0, R1, C0, C1 = max(r0 - 1, 0), min(r1 + 1, rows), max(c0 - 1, 0), min(c1 + 1, cols)
+        z = depth_m[R0:R1, C0:C1].astype(np.float32) * np.float32(1.0 / m_per_px)
+        gr, gc = np.gradient(z) if min(z.shape) > 1 else (np.zeros_like(z), np.zeros_like(z))
+        sl = (slice(r0 - R0, r0 - R0 + (r1 - r0)), slice(c0 - C0, c0 - C0 + (c1 - c0)))
+        idx = self.bins(gr[sl], gc[sl]).ravel()
+        out = np.zeros((idx.size, 3), np.float32)
+        # slopes in the first angle bin (< 0.73 deg) render as the flat gel: that bin's direction is meaningless
+        sel = np.flatnonzero(idx >= BINS)
+        if sel.size:
+            coef = self.rel[idx[sel]]  # (n, 6, 3)
+            b = self.basis[r0:r1, c0:c1].reshape(-1, 6)[sel]
+            out[sel] = np.einsum("nj,njk->nk", b, coef)
+        return out.reshape(r1 - r0, c1 - c0, 3)
+
+_DIR_FLAT = int((0.0 + math.pi) * (124.0 / (2 * math.pi)))  # direction bin of atan2(0, 0) = 0 -> 62

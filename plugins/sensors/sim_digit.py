@@ -1,0 +1,267 @@
+"""``sim-digit``: a simulated DIGIT whose images come from the optical model of a real DIGIT.
+
+Pipeline per frame: indenter + indentation + position + tilt -> gel surface (:mod:`.gel`: Hertz contact with the
+elastic sag around it) -> the surface seen through the gel's thickness (Gaussian smoothing of the height map,
+``smoothing`` m) -> Taxim's polynomial table (:mod:`.optics`) on a real background frame -> per-unit variation,
+illumination drift, sensor noise -> uint8 BGR, portrait (QVGA 320 x 240, VGA 640 x 480).
+
+Ground truth on the side: ``gt_depth`` (the gel surface, m, positive into the gel, before the optical smoothing),
+``gt_max_depth``, ``gt_force`` (the gel model's normal force, N) and ``gt_contact_mask``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from teletouch import Component, Kind, Params, Port, hookimpl
+from teletouch.errors import ModelFileError
+from teletouch.units import Meters, Pascals, Radians, Seconds, parse_quantity
+
+from . import gel as _gel
+
+__all__ = ["SimDigit", "DigitSimulator", "M_PER_PX"]
+
+#: default pixel size per resolution: the paper's 17.15 px/mm at QVGA, Taxim's 0.0266 mm/px at VGA
+M_PER_PX = {"qvga": _gel.QVGA_M_PER_PX, "vga": _gel.VGA_M_PER_PX}
+DEFAULT_RADIUS = {"sphere": 0.003, "probe": 0.005, "flat": 0.003}
+
+
+class DigitSimulator:
+    """Renders DIGIT frames and their ground truth; the engine behind ``sim-digit`` (usable on its own).
+
+    ``render(indentation, position, tilt, t)`` returns (image uint8, GelSurface); results of the last pose are
+    cached, so a resting indenter costs a copy and the noise.
+    """
+
+    def __init__(self, resolution: str = "qvga", m_per_px: float | None = None,
+                 indenter: _gel.Indenter | None = None, material: _gel.GelMaterial | None = None,
+                 smoothing: float = 0.08e-3, deformation: bool = True, noise: float = 0.0, drift: float = 0.0,
+                 drift_period: float = 10.0, unit_variation: float = 0.0, seed: int = 0,
+                 background: str | Path | np.ndarray | None = None, optical_model: str | Path | None = None):
+        import cv2
+
+        from . import optics
+
+        self._cv2 = cv2
+        if resolution not in optics.RESOLUTIONS:
+            raise ValueError(f"resolution must be one of {sorted(optics.RESOLUTIONS)}, got {resolution!r}")
+        self.shape = optics.RESOLUTIONS[resolution]
+        self.m_per_px = float(m_per_px) if m_per_px else M_PER_PX[resolution]
+        self.indenter = indenter or _gel.Indenter.sphere(0.003)
+        self.material = material or _gel.GelMaterial()
+        self.smoothing_px = float(smoothing) / self.m_per_px
+        self.deformation = deformation
+        self.noise = float(noise)
+        self.drift = float(drift)
+        self.drift_period = float(drift_period)
+        rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(rng.integers(2 ** 63))
+        # per-unit variation: channel gains of the contact response and of the background, LED centre offset
+        uv = float(unit_variation)
+        resp_gain = 1.0 + uv * np.clip(rng.normal(0.0, 0.15, 3), -0.4, 0.4)
+        bg_gain = 1.0 + uv * np.clip(rng.normal(0.0, 0.05, 3), -0.15, 0.15)
+        offset = tuple(uv * rng.normal(0.0, 0.03, 2) * np.array(self.shape[::-1]))
+        self.drift_phase = float(rng.uniform(0, 2 * math.pi))
+        table = optics.load_table(optical_model)
+        if isinstance(background, np.ndarray):
+            bg = background.astype(np.float32)
+            if bg.shape != (*self.shape, 3):
+                raise ValueError(f"background array has shape {bg.shape}, expected {(*self.shape, 3)}")
+        else:
+            bg = optics.load_background(resolution, background)
+        self.background = np.clip(bg * bg_gain[None, None, :].astype(np.float32), 0, 255)
+        self.background_u8 = np.rint(self.background).astype(np.uint8)
+        self.renderer = optics.OpticalRenderer(table, self.shape, gain=resp_gain, offset_px=offset)
+        self.unit = {"response_gain": resp_gain.tolist(), "background_gain": bg_gain.tolist(),
+                     "optical_offset_px": [float(o) for o in offset]}
+        self._noise_bank: np.ndarray | None = None
+        if self.noise > 0:
+            self._noise_bank = np.clip(np.rint(self.rng.normal(0.0, self.noise, (8, *self.shape, 3))),
+                                       -127, 127).astype(np.int16)
+        self._key: tuple | None = None
+        self._clean: np.ndarray = self.background_u8
+        self._surface = _gel.gel_surface(self.indenter, 0.0, (0.0, 0.0), 0.0, self.shape, self.m_per_px)
+        self.renders = 0
+
+    def surface(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0) -> _gel.GelSurface:
+        return _gel.gel_surface(self.indenter, indentation, position, tilt, self.shape, self.m_per_px,
+                                self.deformation)
+
+    def force(self, indentation: float, tilt: float = 0.0) -> float:
+        return _gel.gel_force(indentation, self.indenter, self.material, tilt_rad=tilt)
+
+    def clean_image(self, surf: _gel.GelSurface) -> np.ndarray:
+        """The noise-free frame (uint8) for a gel surface."""
+        img = self.background_u8.copy()
+        r0, r1, c0, c1 = surf.window
+        if r1 <= r0 or c1 <= c0:
+            return img
+        rows, cols = self.shape
+        s = self.smoothing_px
+        m = int(math.ceil(3 * s)) + 1 if s > 0 else 1
+        w = (max(r0 - m, 0), min(r1 + m, rows), max(c0 - m, 0), min(c1 + m, cols))
+        z = surf.depth[w[0]:w[1], w[2]:w[3]]
+        if s > 0:
+            z = self._cv2.GaussianBlur(z, (0, 0), s, borderType=self._cv2.BORDER_REPLICATE)
+        full = np.zeros(self.shape, np.float32)
+        full[w[0]:w[1], w[2]:w[3]] = z
+        delta = self.renderer.delta(full, self.m_per_px, w)
+        img[w[0]:w[1], w[2]:w[3]] = np.clip(self.background[w[0]:w[1], w[2]:w[3]] + delta + 0.5, 0, 255
+                                            ).astype(np.uint8)
+        return img
+
+    def render(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0, t: float = 0.0
+               ) -> tuple[np.ndarray, _gel.GelSurface]:
+        d = max(float(indentation), 0.0)
+        key = (d, float(position[0]), float(position[1]), float(tilt)) if d > 0 else (0.0,)
+        if key != self._key:
+            self._surface = self.surface(d, position, tilt)
+            self._clean = self.clean_image(self._surface)
+            self._key = key
+            self.renders += 1
+        img = self._clean
+        offset = self.drift * math.sin(2 * math.pi * t / self.drift_period + self.drift_phase) if self.drift else 0.0
+        if self._noise_bank is None and offset == 0.0:
+            return img.copy(), self._surface
+        acc = img.astype(np.int16)
+        if self._noise_bank is not None:
+            k = int(self.rng.integers(len(self._noise_bank)))
+            acc += self._noise_bank[k]
+        if offset:
+            acc += np.int16(round(offset))
+        return np.clip(acc, 0, 255).astype(np.uint8), self._surface
+
+
+class SimDigit(Component):
+    """Simulated DIGIT: realistic images from the optical model of a real DIGIT, with ground truth."""
+
+    name = "sim-digit"
+    kind = Kind.SENSOR
+    default_rate = 60.0
+    inputs = {
+        "indentation": Port("float64", (), "m", "how far the indenter presses into the gel (<= 0: no contact)",
+                            required=False),
+        "position": Port("float64", (2,), "m", "indenter centre from the image centre (x along columns, y rows)",
+                         required=False),
+        "tilt": Port("float64", (), "rad", "indenter tilt about the axis along the rows", required=False),
+    }
+    outputs = {
+        "image": Port("uint8", (None, None, 3), "", "BGR, portrait (QVGA 320x240, VGA 640x480)"),
+        "gt_depth": Port("float32", (None, None), "m", "true gel depth map, positive into the gel"),
+        "gt_max_depth": Port("float64", (), "m", "maximum of gt_depth"),
+        "gt_force": Port("float64", (), "N", "normal force of the gel model"),
+        "gt_contact_mask": Port("bool", (None, None), "", "pixels where the gel touches the indenter"),
+    }
+
+    class Params(Params):
+        resolution: Literal["qvga", "vga"] = Field("qvga", description="qvga: 320x240 rows x cols, vga: 640x480")
+        m_per_px: Meters | None = Field(None, gt=0, description="pixel size (default 1/17150 m at QVGA, "
+                                        "0.0266 mm at VGA)", json_schema_extra={"unit": "m"})
+        indenter: Literal["sphere", "probe", "flat", "map"] = Field("sphere", description="indenter shape")
+        indenter_radius: Meters | None = Field(None, gt=0, description="sphere/flat/probe radius (default 3 mm; "
+                                               "probe 5 mm)", json_schema_extra={"unit": "m"})
+        tip_radius: Meters = Field(0.010, gt=0, description="radius of the probe's curved tip",
+                                   json_schema_extra={"unit": "m"})
+        indenter_map: str | None = Field(None, description=".npy height map (m above the lowest point) for "
+                                         "indenter=map")
+        indenter_map_m_per_px: Meters | None = Field(None, gt=0, description="sample spacing of indenter_map "
+                                                     "(default: the image's)", json_schema_extra={"unit": "m"})
+        modulus: Pascals = Field(_gel.DEFAULT_MODULUS, gt=0, description="gel Young's modulus (Shore 10A ~0.41 MPa)",
+                                 json_schema_extra={"unit": "Pa"})
+        poisson: float = Field(0.5, ge=0, le=0.5, description="gel Poisson ratio")
+        gel_thickness: Meters | None = Field(None, gt=0, description="apply the bonded thin-layer correction for "
+                                             "this thickness (None: half space)", json_schema_extra={"unit": "m"})
+        deformation: bool = Field(True, description="gel sags around the contact (False: rigid cap)")
+        smoothing: Meters = Field(0.08e-3, ge=0, description="blur of the surface seen through the gel",
+                                  json_schema_extra={"unit": "m"})
+        indentation: Meters = Field(0.0, description="static indentation when the input is not wired",
+                                    json_schema_extra={"unit": "m"})
+        position: tuple[Meters, Meters] = Field((0.0, 0.0), description="static indenter position (x, y) in m, "
+                                                "e.g. [0.002, -0.001] or '2mm, -1mm'")
+        tilt: Radians = Field(0.0, description="static tilt", json_schema_extra={"unit": "rad"})
+        noise: float = Field(0.0, ge=0, description="std of pixel noise (intensity levels)")
+        drift: float = Field(0.0, ge=0, description="amplitude of global illumination drift (intensity levels)")
+        drift_period: Seconds = Field(10.0, gt=0, description="period of the illumination drift",
+                                      json_schema_extra={"unit": "s"})
+        unit_variation: float = Field(0.0, ge=0, le=3, description="per-unit variation (0: the reference DIGIT; "
+                                      "1: typical spread of LED colour, gain and centring)")
+        seed: int = Field(0, description="random seed (noise, drift phase, unit variation)")
+        background: str | None = Field(None, description="background image or folder of no-contact frames "
+                                       "(default: the shipped real frame)")
+        optical_model: str | None = Field(None, description="polynomial table .npz (default: the shipped one)")
+
+        @field_validator("position", mode="before")
+        @classmethod
+        def _pos(cls, v: Any) -> Any:
+            if isinstance(v, str):
+                parts = [p for p in v.replace(",", " ").split() if p]
+                v = [parse_quantity(p, "m") for p in parts]
+            if isinstance(v, (list, tuple)) and len(v) != 2:
+                raise ValueError(f"position needs two values (x, y) in m, got {v!r}")
+            return v
+
+    def configure(self) -> None:
+        p = self.params
+        self.sim = DigitSimulator(
+            resolution=p.resolution, m_per_px=p.m_per_px, indenter=self._indenter(),
+            material=_gel.GelMaterial(p.modulus, p.poisson, p.gel_thickness), smoothing=p.smoothing,
+            deformation=p.deformation, noise=p.noise, drift=p.drift, drift_period=p.drift_period,
+            unit_variation=p.unit_variation, seed=p.seed, background=p.background, optical_model=p.optical_model)
+        self._last: dict[str, float] = {}
+
+    def _indenter(self) -> _gel.Indenter:
+        p = self.params
+        if p.indenter == "map":
+            if not p.indenter_map:
+                raise ValueError("indenter=map needs indenter_map (a .npy height map in m)")
+            try:
+                surface = np.load(p.indenter_map)
+            except Exception as e:
+                raise ModelFileError(f"{p.indenter_map}: cannot read indenter height map ({e})") from None
+            mpp = p.indenter_map_m_per_px or p.m_per_px or M_PER_PX[p.resolution]
+            try:
+                return _gel.Indenter.from_height_map(surface, mpp)
+            except ValueError as e:
+                raise ModelFileError(f"{p.indenter_map}: {e}") from None
+        radius = p.indenter_radius or DEFAULT_RADIUS[p.indenter]
+        if p.indenter == "probe":
+            return _gel.Indenter.probe(radius, p.tip_radius)
+        return _gel.Indenter.sphere(radius) if p.indenter == "sphere" else _gel.Indenter.flat(radius)
+
+    def step(self, t: float, inputs) -> dict[str, Any]:
+        p = self.params
+        d = _finite(inputs.value("indentation", p.indentation), "indentation")
+        pos = inputs.value("position", p.position)
+        pos = np.asarray(pos, np.float64).reshape(-1)
+        if pos.shape != (2,) or not np.isfinite(pos).all():
+            raise ValueError(f"position must be two finite values (x, y) in m, got {pos!r}")
+        tilt = _finite(inputs.value("tilt", p.tilt), "tilt")
+        img, surf = self.sim.render(d, pos, tilt, t)
+        force = self.sim.force(max(d, 0.0), tilt)
+        max_depth = float(surf.depth.max()) if d > 0 else 0.0
+        self._last = {"indentation": max(d, 0.0), "force": force, "max_depth": max_depth}
+        return {"image": img, "gt_depth": surf.depth, "gt_max_depth": max_depth, "gt_force": force,
+                "gt_contact_mask": surf.mask}
+
+    def status(self) -> dict[str, Any]:
+        return dict(self._last)
+
+
+def _finite(v: Any, what: str) -> float:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a number, got {v!r}") from None
+    if not math.isfinite(f):
+        raise ValueError(f"{what} must be finite, got {f!r}")
+    return f
+
+
+@hookimpl
+def teletouch_components():
+    return [SimDigit]
