@@ -1,0 +1,428 @@
+"""Leader without force feedback: a USB HID device (3Dconnexion SpaceMouse, or a gamepad trigger) read with hidapi
+and mapped to a gripper opening. Position-only teleoperation: ``gripper_force`` and ``force`` are accepted (so the
+plugin swaps with ``omega7`` by one line of YAML) and ignored.
+
+The report parsers are pure functions of the report bytes (tested on reports in the devices' documented layouts):
+
+- SpaceMouse: report 1 = translation x, y, z (int16 little-endian; newer models append rotation in the same report),
+  report 2 = rotation, report 3 = button bitmask. A SpaceMouse cap springs back to centre, so by default one axis
+  drives the opening *rate* (integrated, with a dead band); ``mode: position`` maps deflection to opening directly.
+- DualShock 4 / DualSense (USB and Bluetooth reports): the analog trigger (R2 by default) maps to the opening,
+  released = ``max_opening``, fully pressed = ``min_opening``; the cross button is the button.
+- ``generic``: any HID pad with an 8-bit trigger at a known byte (``report_id``, ``trigger_offset``, ``button_*``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from teletouch import Device, HardwareError, Kind, Params, hookimpl
+from teletouch.units import Meters, MetersPerSecond
+
+from .omega7 import LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE
+
+# --------------------------------------------------------------------------------------------------- known devices
+# (vendor id, product id) -> (profile, name); from spacenavd's and Linux hid-sony/hid-playstation's device tables.
+KNOWN_DEVICES: dict[tuple[int, int], tuple[str, str]] = {
+    (0x046D, 0xC603): ("spacemouse", "SpaceMouse Plus XT"),
+    (0x046D, 0xC605): ("spacemouse", "CadMan"),
+    (0x046D, 0xC606): ("spacemouse", "SpaceMouse Classic"),
+    (0x046D, 0xC621): ("spacemouse", "SpaceBall 5000"),
+    (0x046D, 0xC623): ("spacemouse", "SpaceTraveler"),
+    (0x046D, 0xC625): ("spacemouse", "SpacePilot"),
+    (0x046D, 0xC626): ("spacemouse", "SpaceNavigator"),
+    (0x046D, 0xC627): ("spacemouse", "SpaceExplorer"),
+    (0x046D, 0xC628): ("spacemouse", "SpaceNavigator for Notebooks"),
+    (0x046D, 0xC629): ("spacemouse", "SpacePilot Pro"),
+    (0x046D, 0xC62B): ("spacemouse", "SpaceMouse Pro"),
+    (0x256F, 0xC62E): ("spacemouse", "SpaceMouse Wireless (cable)"),
+    (0x256F, 0xC62F): ("spacemouse", "SpaceMouse Wireless (receiver)"),
+    (0x256F, 0xC631): ("spacemouse", "SpaceMouse Pro Wireless (cable)"),
+    (0x256F, 0xC632): ("spacemouse", "SpaceMouse Pro Wireless (receiver)"),
+    (0x256F, 0xC633): ("spacemouse", "SpaceMouse Enterprise"),
+    (0x256F, 0xC635): ("spacemouse", "SpaceMouse Compact"),
+    (0x256F, 0xC652): ("spacemouse", "3Dconnexion Universal Receiver"),
+    (0x054C, 0x05C4): ("dualshock4", "DualShock 4"),
+    (0x054C, 0x09CC): ("dualshock4", "DualShock 4 (v2)"),
+    (0x054C, 0x0CE6): ("dualsense", "DualSense"),
+    (0x054C, 0x0DF2): ("dualsense", "DualSense Edge"),
+}
+
+SPACEMOUSE_AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
+SPACEMOUSE_FULL_SCALE = 350.0  # counts at full deflection (typical; some models reach ~500)
+
+
+# --------------------------------------------------------------------------------------------------- parsing
+@dataclass(frozen=True)
+class SpaceMouseState:
+    """Raw counts of the six axes and the button bitmask (as last reported)."""
+
+    tx: int = 0
+    ty: int = 0
+    tz: int = 0
+    rx: int = 0
+    ry: int = 0
+    rz: int = 0
+    buttons: int = 0
+
+    def axis(self, name: str) -> int:
+        return getattr(self, name)
+
+
+@dataclass(frozen=True)
+class GamepadState:
+    """Triggers in 0..1 (0 released) and named buttons."""
+
+    l2: float = 0.0
+    r2: float = 0.0
+    cross: bool = False
+    circle: bool = False
+    square: bool = False
+    triangle: bool = False
+    l1: bool = False
+    r1: bool = False
+
+    def trigger(self, name: str) -> float:
+        return getattr(self, name)
+
+
+def _report(data: Any) -> bytes:
+    return bytes(data)
+
+
+def parse_spacemouse(report: Any, state: SpaceMouseState = SpaceMouseState()) -> SpaceMouseState:
+    """Update ``state`` with one SpaceMouse report (report id first). Unknown or short reports leave it unchanged."""
+    r = _report(report)
+    if not r:
+        return state
+    rid = r[0]
+    if rid == 1 and len(r) >= 7:
+        tx, ty, tz = struct.unpack_from("<hhh", r, 1)
+        state = replace(state, tx=tx, ty=ty, tz=tz)
+        if len(r) >= 13:  # newer models: rotation in the same report
+            rx, ry, rz = struct.unpack_from("<hhh", r, 7)
+            state = replace(state, rx=rx, ry=ry, rz=rz)
+        return state
+    if rid == 2 and len(r) >= 7:
+        rx, ry, rz = struct.unpack_from("<hhh", r, 1)
+        return replace(state, rx=rx, ry=ry, rz=rz)
+    if rid == 3 and len(r) >= 2:
+        return replace(state, buttons=int.from_bytes(r[1:min(len(r), 5)], "little"))
+    return state
+
+
+def parse_dualshock4(report: Any, state: GamepadState = GamepadState()) -> GamepadState:
+    """DualShock 4 input report: 0x01 over USB (64 bytes), 0x11 over Bluetooth (same layout two bytes later)."""
+    r = _report(report)
+    if len(r) < 10:
+        return state
+    if r[0] == 0x01:
+        o = 0
+    elif r[0] == 0x11 and len(r) >= 12:
+        o = 2
+    else:
+        return state
+    b5, b6 = r[5 + o], r[6 + o]
+    return GamepadState(l2=r[8 + o] / 255.0, r2=r[9 + o] / 255.0, square=bool(b5 & 0x10), cross=bool(b5 & 0x20),
+                        circle=bool(b5 & 0x40), triangle=bool(b5 & 0x80), l1=bool(b6 & 0x01), r1=bool(b6 & 0x02))
+
+
+def parse_dualsense(report: Any, state: GamepadState = GamepadState()) -> GamepadState:
+    """DualSense input report: 0x01 over USB, 0x31 over Bluetooth (same layout one byte later)."""
+    r = _report(report)
+    if len(r) < 11:
+        return state
+    if r[0] == 0x01:
+        o = 0
+    elif r[0] == 0x31 and len(r) >= 12:
+        o = 1
+    else:
+        return state
+    b8, b9 = r[8 + o], r[9 + o]
+    return GamepadState(l2=r[5 + o] / 255.0, r2=r[6 + o] / 255.0, square=bool(b8 & 0x10), cross=bool(b8 & 0x20),
+                        circle=bool(b8 & 0x40), triangle=bool(b8 & 0x80), l1=bool(b9 & 0x01), r1=bool(b9 & 0x02))
+
+
+def parse_generic_trigger(report: Any, state: GamepadState, report_id: int | None, trigger_offset: int,
+                          button_offset: int | None, button_mask: int) -> GamepadState:
+    """A pad with an 8-bit trigger at ``trigger_offset`` (byte index in the report as read, report id included
+    when the device uses report ids). The trigger goes to ``r2`` and the button to ``cross``."""
+    r = _report(report)
+    if report_id is not None and (not r or r[0] != report_id):
+        return state
+    if len(r) <= trigger_offset or (button_offset is not None and len(r) <= button_offset):
+        return state
+    cross = bool(r[button_offset] & button_mask) if button_offset is not None else False
+    return replace(state, r2=r[trigger_offset] / 255.0, cross=cross)
+
+
+def deadband(x: float, band: float) -> float:
+    """Zero inside |x| <= band, then rescaled so that 1 still maps to 1."""
+    if abs(x) <= band:
+        return 0.0
+    return math.copysign((abs(x) - band) / (1.0 - band), x) if band < 1.0 else 0.0
+
+
+def trigger_to_opening(value: float, min_opening: float, max_opening: float) -> float:
+    """Released trigger (0) = fully open, fully pressed (1) = closed."""
+    v = min(max(value, 0.0), 1.0)
+    return max_opening - v * (max_opening - min_opening)
+
+
+def axis_to_unit(counts: int, full_scale: float, invert: bool) -> float:
+    x = counts / full_scale
+    x = min(max(x, -1.0), 1.0)
+    return -x if invert else x
+
+
+def integrate_rate(opening: float, unit: float, dt: float, max_speed: float, band: float, min_opening: float,
+                   max_opening: float) -> tuple[float, float]:
+    """Rate control: returns (new opening, velocity)."""
+    v = deadband(unit, band) * max_speed
+    x = opening + v * dt
+    if x < min_opening:
+        x, v = min_opening, 0.0
+    elif x > max_opening:
+        x, v = max_opening, 0.0
+    return x, v
+
+
+# --------------------------------------------------------------------------------------------------- enumeration
+UDEV_HINT = ("give your user access to the device: create /etc/udev/rules.d/70-teletouch-hid.rules with "
+             'KERNEL=="hidraw*", ATTRS{idVendor}=="%04x", MODE="0660", TAG+="uaccess" '
+             "then run: sudo udevadm control --reload-rules && sudo udevadm trigger (and replug the device)")
+
+
+def _hid() -> Any:
+    try:
+        import hid  # hidapi (cython-hidapi)
+    except ImportError as exc:  # pragma: no cover - hidapi is a dependency
+        raise HardwareError(f"hidapi is not installed ({exc}): pip install hidapi") from None
+    return hid
+
+
+def find_devices(vendor_id: int | None = None, product_id: int | None = None, profile: str = "auto",
+                 hid: Any = None) -> list[dict[str, Any]]:
+    """HID devices that match: known SpaceMice/gamepads (``profile`` auto), or the given vendor/product ids."""
+    hid = hid or _hid()
+    out = []
+    for d in hid.enumerate(vendor_id or 0, product_id or 0):
+        key = (d.get("vendor_id", 0), d.get("product_id", 0))
+        known = KNOWN_DEVICES.get(key)
+        if vendor_id is None and product_id is None and known is None:
+            continue
+        if profile not in ("auto", "generic") and known is not None and known[0] != profile:
+            continue
+        # a SpaceMouse exposes its multi-axis collection on usage page 1 (generic desktop), usage 8
+        if known and known[0] == "spacemouse" and d.get("usage_page") not in (None, 0, 1):
+            continue
+        out.append(dict(d, profile=(known[0] if known else "generic"), name=(known[1] if known else
+                                                                            d.get("product_string") or "HID")))
+    return out
+
+
+def open_device(info: dict[str, Any], hid: Any = None) -> Any:
+    """Open one enumerated device (non-blocking reads). Raises HardwareError saying why (permission: udev hint)."""
+    hid = hid or _hid()
+    path = info["path"]
+    dev = hid.device()
+    try:
+        dev.open_path(path)
+    except (OSError, IOError) as exc:
+        spath = path.decode(errors="replace") if isinstance(path, bytes) else str(path)
+        vid = info.get("vendor_id", 0)
+        if os.path.exists(spath) and not os.access(spath, os.R_OK | os.W_OK):
+            raise HardwareError(f"permission denied opening {info.get('name', 'HID device')} at {spath}; "
+                                + UDEV_HINT % vid) from None
+        raise HardwareError(f"could not open {info.get('name', 'HID device')} ({vid:04x}:"
+                            f"{info.get('product_id', 0):04x}) at {spath}: {exc}; if it is a permission problem, "
+                            + UDEV_HINT % vid + "; also check that no other program (spacenavd, Steam) holds it"
+                            ) from None
+    dev.set_nonblocking(1)
+    return dev
+
+
+def _parse_id(v: Any) -> Any:
+    if isinstance(v, str):
+        try:
+            return int(v, 0)
+        except ValueError:
+            raise ValueError(f"expected an integer id such as 0x256f or 9583, got {v!r}") from None
+    return v
+
+
+class HidLeader(Device):
+    """SpaceMouse or gamepad trigger as a position-only leader (hidapi); ignores force commands."""
+
+    name = "hid-leader"
+    kind = Kind.DEVICE
+    default_rate = 250.0
+    requires_wall_clock = True
+    inputs = dict(LEADER_INPUTS)
+    outputs = dict(LEADER_OUTPUTS)
+
+    class Params(Params):
+        device: Literal["auto", "spacemouse", "dualshock4", "dualsense", "generic"] = Field(
+            "auto", description="report format; auto: from the vendor/product id of the first known device")
+        vendor_id: int | None = Field(None, ge=0, le=0xFFFF, description="USB vendor id (e.g. 0x256f)")
+        product_id: int | None = Field(None, ge=0, le=0xFFFF, description="USB product id")
+        path: str | None = Field(None, description="hidapi path (e.g. /dev/hidraw3) to pick one of several")
+        min_opening: Meters = Field(0.0, ge=0, description="opening when closed", json_schema_extra={"unit": "m"})
+        max_opening: Meters = Field(OMEGA7_GRIPPER_RANGE, gt=0, description="opening when open",
+                                    json_schema_extra={"unit": "m"})
+        # SpaceMouse
+        axis: Literal["tx", "ty", "tz", "rx", "ry", "rz"] = Field("tz", description="SpaceMouse axis that drives "
+                                                                                  "the opening")
+        invert: bool = Field(False, description="reverse the SpaceMouse axis")
+        mode: Literal["rate", "position"] = Field("rate", description="SpaceMouse: deflection sets the opening "
+                                                                      "speed (rate) or the opening (position)")
+        max_speed: MetersPerSecond = Field(0.05, gt=0, description="opening speed at full deflection (rate mode)",
+                                           json_schema_extra={"unit": "m/s"})
+        dead_band: float = Field(0.08, ge=0, lt=1, description="fraction of full deflection ignored")
+        full_scale: float = Field(SPACEMOUSE_FULL_SCALE, gt=0, description="counts at full deflection")
+        position_scale: Meters = Field(0.01, ge=0, description="position output per full deflection "
+                                                               "(SpaceMouse translation)",
+                                       json_schema_extra={"unit": "m"})
+        button_bit: int = Field(0, ge=0, le=31, description="SpaceMouse button (bit of the bitmask)")
+        # gamepads
+        trigger: Literal["r2", "l2"] = Field("r2", description="gamepad trigger that closes the gripper")
+        report_id: int | None = Field(None, ge=0, le=255, description="generic: report id (None: no ids)")
+        trigger_offset: int = Field(0, ge=0, description="generic: byte index of the 8-bit trigger")
+        button_offset: int | None = Field(None, ge=0, description="generic: byte index of the button")
+        button_mask: int = Field(1, ge=1, le=255, description="generic: bit mask of the button")
+        max_reports: int = Field(64, ge=1, description="reports drained per step at most")
+
+        @field_validator("vendor_id", "product_id", "report_id", mode="before")
+        @classmethod
+        def _ids(cls, v: Any) -> Any:
+            return _parse_id(v)
+
+        @field_validator("max_opening")
+        @classmethod
+        def _range(cls, v: float, info: Any) -> float:
+            lo = info.data.get("min_opening", 0.0)
+            if v <= lo:
+                raise ValueError(f"max_opening ({v}) must be above min_opening ({lo})")
+            return v
+
+    def configure(self) -> None:
+        p = self.params
+        hid = _hid()
+        found = find_devices(p.vendor_id, p.product_id, p.device, hid=hid)
+        if p.path is not None:
+            found = [d for d in found if (d["path"].decode(errors="replace") if isinstance(d["path"], bytes)
+                                          else str(d["path"])) == p.path]
+        if not found:
+            n_all = len(hid.enumerate(0, 0))
+            want = (f"{p.vendor_id or 0:04x}:{p.product_id or 0:04x}" if p.vendor_id or p.product_id else
+                    "a 3Dconnexion SpaceMouse (vendor 046d/256f) or a Sony gamepad (054c)")
+            where = f" at {p.path}" if p.path else ""
+            raise HardwareError(f"no HID leader found: looked for {want}{where} among {n_all} HID device(s); "
+                                f"check the USB cable/receiver and that the device shows in lsusb; if lsusb shows it "
+                                f"but hidapi lists nothing, it is a permission problem: "
+                                + UDEV_HINT % (p.vendor_id or 0x256F))
+        info = found[0]
+        self.info = info
+        self.profile = p.device if p.device != "auto" else info["profile"]
+        if self.profile == "generic" and p.device == "auto":
+            raise HardwareError(f"{info['name']} ({info.get('vendor_id', 0):04x}:{info.get('product_id', 0):04x}) "
+                                f"is not a known SpaceMouse/gamepad: set device: generic with trigger_offset "
+                                f"(and report_id, button_offset) for its report layout")
+        self.dev = open_device(info, hid=hid)
+        self.sm = SpaceMouseState()
+        self.pad = GamepadState()
+        self.opening = p.max_opening
+        self.velocity = 0.0
+        self.last_t: float | None = None
+        self.reports = 0
+
+    def activate(self) -> None:
+        self.last_t = None
+
+    def _parse(self, report: Any) -> None:
+        p = self.params
+        if self.profile == "spacemouse":
+            self.sm = parse_spacemouse(report, self.sm)
+        elif self.profile == "dualshock4":
+            self.pad = parse_dualshock4(report, self.pad)
+        elif self.profile == "dualsense":
+            self.pad = parse_dualsense(report, self.pad)
+        else:
+            self.pad = parse_generic_trigger(report, self.pad, p.report_id, p.trigger_offset, p.button_offset,
+                                             p.button_mask)
+
+    def step(self, t: float, inputs: Any) -> dict[str, Any]:
+        p = self.params
+        try:
+            for _ in range(p.max_reports):
+                r = self.dev.read(64)
+                if not r:
+                    break
+                self.reports += 1
+                self._parse(r)
+        except (OSError, IOError, ValueError) as exc:
+            raise HardwareError(f"{self.info['name']} stopped answering ({exc}): check the USB cable") from None
+        dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
+        self.last_t = t
+        position = np.zeros(3)
+        if self.profile == "spacemouse":
+            sm = self.sm
+            u = axis_to_unit(sm.axis(p.axis), p.full_scale, p.invert)
+            if p.mode == "rate":
+                self.opening, self.velocity = integrate_rate(self.opening, u, dt, p.max_speed, p.dead_band,
+                                                             p.min_opening, p.max_opening)
+            else:
+                x = p.min_opening + 0.5 * (deadband(u, p.dead_band) + 1.0) * (p.max_opening - p.min_opening)
+                self.velocity = 0.0 if dt <= 0 else (x - self.opening) / dt
+                self.opening = x
+            position = np.array([axis_to_unit(v, p.full_scale, False) for v in (sm.tx, sm.ty, sm.tz)]) \
+                * p.position_scale
+            button = bool(sm.buttons >> p.button_bit & 1)
+        else:
+            x = trigger_to_opening(self.pad.trigger(p.trigger), p.min_opening, p.max_opening)
+            self.velocity = 0.0 if dt <= 0 else (x - self.opening) / dt
+            self.opening = x
+            button = self.pad.cross
+        return {"gripper_opening": self.opening, "gripper_velocity": self.velocity, "position": position,
+                "button": button}
+
+    def safe_state(self) -> None:
+        """No actuator: nothing to make safe (force commands are never sent)."""
+
+    def close(self) -> None:
+        dev = getattr(self, "dev", None)
+        if dev is not None:
+            self.dev = None
+            try:
+                dev.close()
+            except Exception:
+                pass
+
+    def status(self) -> dict[str, Any]:
+        if not hasattr(self, "dev"):
+            return {}
+        return {"device": self.info.get("name", ""), "profile": self.profile, "gripper_opening": self.opening,
+                "reports": self.reports}
+
+
+@hookimpl
+def teletouch_components():
+    return [HidLeader]
+
+
+@hookimpl
+def teletouch_discover_devices():
+    try:
+        found = find_devices()
+    except Exception:
+        return []
+    return [{"kind": d["profile"], "id": d.get("serial_number") or f"{d['vendor_id']:04x}:{d['product_id']:04x}",
+             "path": d["path"].decode(errors="replace") if isinstance(d["path"], bytes) else str(d["path"]),
+             "details": {"name": d["name"], "plugin": "hid-leader"}} for d in found]

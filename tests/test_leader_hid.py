@@ -1,0 +1,272 @@
+"""hid-leader: pure report parsers on report bytes in the devices' layouts, and the driver over hidapi's interface.
+
+There is no HID device (and no /dev/uhid to emulate one) on CI machines, so the driver tests replace hidapi's
+``enumerate``/``device`` with a fake that returns report bytes exactly as hidapi does (lists of ints)."""
+
+from __future__ import annotations
+
+import struct
+
+import hid
+import numpy as np
+import pytest
+
+from teletouch import HardwareError
+from teletouch.plugins.devices import hid_leader as hl
+from teletouch.testing import Harness, make_registry, run_yaml
+
+# ------------------------------------------------------------------------------------------------ reports
+# SpaceNavigator (046d:c626), cap pushed down and slightly right: report 1 = tx, ty, tz int16 LE
+SN_TRANSLATION = bytes.fromhex("01 1e00 f6ff 5e01")  # tx=30 ty=-10 tz=350
+SN_ROTATION = bytes.fromhex("02 0500 0000 9cff")  # rx=5 ry=0 rz=-100
+SN_BUTTON_RIGHT = bytes.fromhex("03 02")  # right button
+SN_BUTTONS_NONE = bytes.fromhex("03 00")
+# SpaceMouse Compact (256f:c635): report 1 carries all six axes
+SMC_ALL_AXES = bytes.fromhex("01 0000 0000 a8fe 0a00 f4ff 0000")  # tz=-344 rx=10 ry=-12
+# DualShock 4 over USB (report 0x01, 64 bytes): sticks centred, dpad neutral (8) + cross (0x20), R2 at 0xc0
+DS4_USB = bytes.fromhex("01 80 7f 81 80 28 00 00 00 c0") + bytes(54)
+DS4_USB_RELEASED = bytes.fromhex("01 80 7f 81 80 08 00 00 00 00") + bytes(54)
+# DualShock 4 over Bluetooth (report 0x11): the same fields two bytes later, L2 at 0x40, L1 pressed
+DS4_BT = bytes.fromhex("11 c0 00 80 80 80 80 08 01 00 40 00") + bytes(66)
+# DualSense over USB (report 0x01): L2 at byte 5, R2 at 6, buttons at 8 (cross 0x20), 9 (R1 0x02)
+DS_USB = bytes.fromhex("01 80 80 80 80 00 ff 12 28 02 00") + bytes(53)
+DS_BT = bytes.fromhex("31 00 80 80 80 80 00 33 12 08 00 00") + bytes(66)
+
+
+def test_spacemouse_reports():
+    s = hl.parse_spacemouse(SN_TRANSLATION)
+    assert (s.tx, s.ty, s.tz) == (30, -10, 350)
+    s = hl.parse_spacemouse(SN_ROTATION, s)
+    assert (s.tx, s.tz, s.rx, s.ry, s.rz) == (30, 350, 5, 0, -100)  # translation kept
+    s = hl.parse_spacemouse(SN_BUTTON_RIGHT, s)
+    assert s.buttons == 2 and s.tz == 350
+    assert hl.parse_spacemouse(SN_BUTTONS_NONE, s).buttons == 0
+    c = hl.parse_spacemouse(SMC_ALL_AXES)
+    assert (c.tz, c.rx, c.ry, c.rz) == (-344, 10, -12, 0)
+    # short or unknown reports change nothing
+    assert hl.parse_spacemouse(bytes.fromhex("01 1e00"), s) == s
+    assert hl.parse_spacemouse(bytes.fromhex("17 0102 0304 0506"), s) == s
+    assert hl.parse_spacemouse(b"", s) == s
+    # hidapi gives lists of ints
+    assert hl.parse_spacemouse(list(SN_TRANSLATION)).tz == 350
+
+
+def test_dualshock4_and_dualsense_reports():
+    g = hl.parse_dualshock4(DS4_USB)
+    assert g.r2 == pytest.approx(0xC0 / 255) and g.l2 == 0.0 and g.cross and not g.circle
+    g = hl.parse_dualshock4(DS4_USB_RELEASED, g)
+    assert g.r2 == 0.0 and not g.cross
+    b = hl.parse_dualshock4(DS4_BT)
+    assert b.l2 == pytest.approx(0x40 / 255) and b.r2 == 0.0 and b.l1 and not b.cross
+    assert hl.parse_dualshock4(bytes.fromhex("05 ff ff"), g) == g  # output report id / short: unchanged
+    d = hl.parse_dualsense(DS_USB)
+    assert d.r2 == 1.0 and d.l2 == 0.0 and d.cross and d.r1
+    e = hl.parse_dualsense(DS_BT)
+    assert e.r2 == pytest.approx(0x33 / 255) and not e.cross
+
+
+def test_generic_trigger_report():
+    st = hl.GamepadState()
+    r = bytes([0x03, 0x00, 0x7F, 0x04])
+    g = hl.parse_generic_trigger(r, st, report_id=3, trigger_offset=2, button_offset=3, button_mask=0x04)
+    assert g.r2 == pytest.approx(127 / 255) and g.cross
+    assert hl.parse_generic_trigger(r, st, report_id=1, trigger_offset=2, button_offset=3, button_mask=4) == st
+    assert hl.parse_generic_trigger(r, st, report_id=None, trigger_offset=9, button_offset=None,
+                                    button_mask=1) == st
+
+
+def test_mappings():
+    assert hl.trigger_to_opening(0.0, 0.0, 0.025) == 0.025
+    assert hl.trigger_to_opening(1.0, 0.002, 0.025) == pytest.approx(0.002)
+    assert hl.trigger_to_opening(0.5, 0.0, 0.02) == pytest.approx(0.01)
+    assert hl.trigger_to_opening(7.0, 0.0, 0.02) == 0.0  # clipped
+    assert hl.deadband(0.05, 0.1) == 0.0
+    assert hl.deadband(1.0, 0.1) == 1.0 and hl.deadband(-0.55, 0.1) == pytest.approx(-0.5)
+    assert hl.axis_to_unit(700, 350, False) == 1.0 and hl.axis_to_unit(175, 350, True) == -0.5
+    x, v = hl.integrate_rate(0.01, 1.0, 0.1, 0.05, 0.0, 0.0, 0.025)
+    assert x == pytest.approx(0.015) and v == pytest.approx(0.05)
+    x, v = hl.integrate_rate(0.024, 1.0, 0.1, 0.05, 0.0, 0.0, 0.025)
+    assert x == 0.025 and v == 0.0
+
+
+# ------------------------------------------------------------------------------------------------ driver
+class FakeDevice:
+    def __init__(self, backend):
+        self.backend = backend
+        self.opened = None
+
+    def open_path(self, path):
+        if self.backend.open_error:
+            raise OSError("open failed")
+        self.opened = path
+
+    def set_nonblocking(self, v):
+        self.nonblocking = v
+
+    def read(self, n):
+        if self.backend.unplugged:
+            raise OSError("read error")
+        return list(self.backend.reports.pop(0)[:n]) if self.backend.reports else []
+
+    def close(self):
+        self.backend.closed = True
+
+
+class FakeHid:
+    """hidapi's module interface: enumerate() -> dicts, device() -> an object with open_path/read/close."""
+
+    def __init__(self, devices):
+        self.devices = devices
+        self.reports: list[bytes] = []
+        self.open_error = False
+        self.unplugged = False
+        self.closed = False
+
+    def enumerate(self, vid=0, pid=0):
+        return [dict(d) for d in self.devices if (not vid or d["vendor_id"] == vid) and (not pid or
+                                                                                      d["product_id"] == pid)]
+
+    def device(self):
+        return FakeDevice(self)
+
+
+def info(vid, pid, path=b"/dev/hidraw7", usage_page=1, name=""):
+    return {"vendor_id": vid, "product_id": pid, "path": path, "usage_page": usage_page, "usage": 8,
+            "product_string": name, "serial_number": "", "interface_number": 0}
+
+
+@pytest.fixture
+def fake_hid(monkeypatch):
+    backend = FakeHid([info(0x046D, 0xC52B, b"/dev/hidraw1", name="Unifying Receiver")])
+    monkeypatch.setattr(hid, "enumerate", backend.enumerate)
+    monkeypatch.setattr(hid, "device", backend.device)
+    return backend
+
+
+def test_no_device_is_a_clear_error(fake_hid):
+    h = Harness(hl.HidLeader, {})
+    with pytest.raises(HardwareError, match="no HID leader found.*among 1 HID device.*udev"):
+        h.comp.configure()
+    h.comp.close()
+    assert hl.teletouch_discover_devices() == []
+
+
+def test_permission_denied_gives_the_udev_hint(fake_hid, tmp_path, monkeypatch):
+    node = tmp_path / "hidraw9"
+    node.write_bytes(b"")
+    fake_hid.devices.append(info(0x256F, 0xC635, str(node).encode()))
+    fake_hid.open_error = True
+    monkeypatch.setattr(hl.os, "access", lambda p, mode: False)  # the test runs as root: pretend it is a user
+    with pytest.raises(HardwareError) as ei:
+        Harness(hl.HidLeader, {}).comp.configure()
+    msg = str(ei.value)
+    assert "permission denied" in msg and str(node) in msg and 'ATTRS{idVendor}=="256f"' in msg
+    assert "udevadm" in msg
+
+
+def test_open_failure_without_a_hidraw_node_still_explains(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x09CC, b"1-4:1.3"))
+    fake_hid.open_error = True
+    with pytest.raises(HardwareError,
+                       match=r"could not open DualShock 4 \(v2\) \(054c:09cc\) at 1-4:1.3: open failed.*spacenavd"):
+        Harness(hl.HidLeader, {}).comp.configure()
+
+
+def test_unknown_device_needs_the_generic_layout(fake_hid):
+    with pytest.raises(HardwareError, match="not a known SpaceMouse/gamepad: set device: generic"):
+        Harness(hl.HidLeader, {"vendor_id": "0x046d", "product_id": 0xC52B}).comp.configure()
+
+
+def test_spacemouse_rate_control_and_button(fake_hid):
+    fake_hid.devices.append(info(0x046D, 0xC626))
+    assert hl.teletouch_discover_devices()[0]["kind"] == "spacemouse"
+    with Harness(hl.HidLeader, {"max_speed": "20mm/s", "dead_band": 0.1}) as h:
+        assert h.comp.profile == "spacemouse"
+        out = h.step(0.0, gripper_force=5.0)  # ignored: position-only
+        assert out["gripper_opening"] == pytest.approx(0.025)  # starts open
+        pull = bytes.fromhex("01 0000 0000") + struct.pack("<h", -350)
+        fake_hid.reports += [pull, SN_BUTTON_RIGHT]
+        out = h.step(0.004)
+        assert out["gripper_velocity"] == pytest.approx(-0.020)
+        for i in range(2, 102):
+            out = h.step(i * 0.004)
+        assert out["gripper_opening"] == pytest.approx(0.025 - 0.020 * 0.404, abs=1e-9)  # 101 steps of 4 ms
+        assert out["button"] is False  # right button is bit 1; button_bit 0 (left)
+        np.testing.assert_allclose(out["position"], [0.0, 0.0, -0.01])
+        fake_hid.reports += [bytes.fromhex("01 0000 0000 1000")]  # inside the dead band: stops
+        x = h.step(0.5)["gripper_opening"]
+        assert h.step(0.6)["gripper_opening"] == x
+    assert fake_hid.closed
+
+
+def test_spacemouse_position_mode(fake_hid):
+    fake_hid.devices.append(info(0x256F, 0xC635))
+    with Harness(hl.HidLeader, {"mode": "position", "dead_band": 0.0, "button_bit": 1}) as h:
+        fake_hid.reports += [b"\x01" + bytes(12), SN_BUTTON_RIGHT]
+        out = h.step(0.0)
+        assert out["gripper_opening"] == pytest.approx(0.0125)  # centred cap: half open
+        assert out["button"] is True
+        fake_hid.reports += [SMC_ALL_AXES]
+        assert h.step(0.005)["gripper_opening"] == pytest.approx(0.0125 * (1 - 344 / 350))
+        fake_hid.reports += [bytes.fromhex("01 0000 0000") + struct.pack("<h", 175)]
+        assert h.step(0.01)["gripper_opening"] == pytest.approx(0.0125 * 1.5)
+
+
+def test_dualshock_trigger_maps_to_opening(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+    with Harness(hl.HidLeader, {"min_opening": "2mm", "max_opening": "22mm"}) as h:
+        fake_hid.reports += [DS4_USB]
+        out = h.step(0.0)
+        assert out["gripper_opening"] == pytest.approx(0.022 - (0xC0 / 255) * 0.020)
+        assert out["button"] is True and not out["position"].any()
+        fake_hid.reports += [DS4_USB_RELEASED]
+        out = h.step(0.1)
+        assert out["gripper_opening"] == pytest.approx(0.022) and out["gripper_velocity"] > 0
+
+
+def test_unplug_is_a_hardware_fault(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x0CE6))
+    with Harness(hl.HidLeader, {}) as h:
+        fake_hid.reports += [DS_USB]
+        assert h.step(0.0)["gripper_opening"] == pytest.approx(0.0)
+        fake_hid.unplugged = True
+        with pytest.raises(HardwareError, match="DualSense stopped answering"):
+            h.step(0.01)
+        h.comp.safe_state()
+
+
+def test_params_are_checked():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="integer id"):
+        hl.HidLeader.Params(vendor_id="sony")
+    with pytest.raises(ValidationError, match="must be above min_opening"):
+        hl.HidLeader.Params(min_opening=0.02, max_opening=0.01)
+
+
+GRAPH = """
+name: hid-swap
+clock: wall
+duration: 0.3
+nodes:
+  - id: force
+    plugin: mock-sensor
+    rate: 250
+    params: {signal: constant, amplitude: 1.0}
+  - id: leader
+    plugin: hid-leader
+    rate: 250
+    params: {device: dualshock4}
+    inputs: {gripper_force: force.value}
+"""
+
+
+def test_hid_leader_runs_in_a_graph_wired_like_omega7(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+    fake_hid.reports += [DS4_USB] * 5
+    reg = make_registry("teletouch.plugins.devices.hid_leader")
+    seen: set = set()
+    result, rt = run_yaml(GRAPH, reg, taps=[lambda n, t, out: n == "leader" and seen.update(out)])
+    assert result.status == "ok", result.summary()
+    assert seen == {"gripper_opening", "gripper_velocity", "position", "button"}
+    assert rt.latest("leader", "gripper_opening").value == pytest.approx(0.025 * (1 - 0xC0 / 255))
