@@ -196,58 +196,75 @@ class SimOmega7(Device):
         des = self._desired(t, inputs)
         if dt > 0:
             n = max(1, int(math.ceil(dt / p.substep - 1e-9)))
-            h = dt / n
-            for _ in range(n):
-                self._integrate(h, g, f, ext, des)
+            self._integrate(dt / n, n, g, f, ext, des)
         else:
             self.f_hand = 0.0 if des is None else self.hand.force(self.x, self.v, des[0], des[1])
         self.x_intent = math.nan if des is None else des[0]
         button = any(a <= t < b for a, b in p.button_intervals)
-        return {"gripper_opening": self.x, "gripper_velocity": self.v, "position": self.pos.copy(),
+        return {"gripper_opening": self.x, "gripper_velocity": self.v, "position": self.pos,  # a new array every step
                 "button": button, "hand_force": self.f_hand, "intended_opening": self.x_intent}
 
-    def _integrate(self, h: float, g: float, f: np.ndarray, ext: np.ndarray | None,
+    def _integrate(self, h: float, n: int, g: float, f: np.ndarray, ext: np.ndarray | None,
                    des: tuple[float, float] | None) -> None:
+        """n semi-implicit Euler steps of h seconds (plain floats: this runs at up to 4 kHz x substeps)."""
         p = self.params
-        # gripper: m x'' = F_render + F_hand - b x' - Coulomb
-        if des is None:
-            fh, m = 0.0, p.gripper_mass
-        else:
-            fh, m = self.hand.force(self.x, self.v, des[0], des[1]), p.gripper_mass + p.hand_mass
-        self.f_hand = fh
-        drive = g + fh - p.gripper_damping * self.v
-        fc = p.gripper_coulomb
-        v = self.v
-        if abs(v) < 1e-9 and abs(drive) <= fc:
-            v = 0.0  # static friction holds
-        else:
-            sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
-            v_new = v + h * (drive - fc * sgn) / m
-            if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
-                v_new = 0.0  # friction stops it, it does not reverse it
-            v = v_new
-        x = self.x + h * v
-        if x <= 0.0:
-            x, v = 0.0, max(v, 0.0)
-        elif x >= p.max_opening:
-            x, v = p.max_opening, min(v, 0.0)
-        self.x, self.v = x, v
-        # handle: M p'' = F_cmd + F_ext + F_arm - b p'
-        force = f - p.handle_damping * self.vel
+        x, v = self.x, self.v
+        x_max = p.max_opening
+        b, fc = p.gripper_damping, p.gripper_coulomb
+        hand = des is not None
+        m = p.gripper_mass + (p.hand_mass if hand else 0.0)
+        if hand:
+            k_h, b_h, f_max = self.hand.stiffness, self.hand.damping, self.hand.max_force
+            x_d, v_d = des
+        fh = 0.0
+        # handle
+        px, py, pz = (float(c) for c in self.pos)
+        vx, vy, vz = (float(c) for c in self.vel)
+        fx, fy, fz = (float(c) for c in f)
         if ext is not None:
-            force = force + ext
-        if des is not None:
-            force = force + p.arm_stiffness * (self.hand_pos - self.pos) - p.arm_damping * self.vel
-        mass = p.handle_mass
-        self.vel = self.vel + h * force / mass
-        self.pos = self.pos + h * self.vel
-        r = float(np.linalg.norm(self.pos))
-        if r > p.workspace_radius:
-            nrm = self.pos / r
-            self.pos = nrm * p.workspace_radius
-            out = float(self.vel @ nrm)
-            if out > 0:
-                self.vel = self.vel - out * nrm
+            fx, fy, fz = fx + float(ext[0]), fy + float(ext[1]), fz + float(ext[2])
+        bt, mass = p.handle_damping, p.handle_mass
+        k_a, b_a = (p.arm_stiffness, p.arm_damping) if hand else (0.0, 0.0)
+        hx, hy, hz = (float(c) for c in self.hand_pos)
+        r_max = p.workspace_radius
+        for _ in range(n):
+            # gripper: m x'' = F_render + F_hand - b x' - Coulomb
+            if hand:
+                fh = k_h * (x_d - x) + b_h * (v_d - v)
+                fh = f_max if fh > f_max else (-f_max if fh < -f_max else fh)
+            drive = g + fh - b * v
+            if abs(v) < 1e-9 and abs(drive) <= fc:
+                v = 0.0  # static friction holds
+            else:
+                sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
+                v_new = v + h * (drive - fc * sgn) / m
+                if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
+                    v_new = 0.0  # friction stops it, it does not reverse it
+                v = v_new
+            x += h * v
+            if x <= 0.0:
+                x, v = 0.0, max(v, 0.0)
+            elif x >= x_max:
+                x, v = x_max, min(v, 0.0)
+            # handle: M p'' = F_cmd + F_ext + F_arm - b p'
+            bb = bt + b_a
+            vx += h * (fx + k_a * (hx - px) - bb * vx) / mass
+            vy += h * (fy + k_a * (hy - py) - bb * vy) / mass
+            vz += h * (fz + k_a * (hz - pz) - bb * vz) / mass
+            px += h * vx
+            py += h * vy
+            pz += h * vz
+            r2 = px * px + py * py + pz * pz
+            if r2 > r_max * r_max:
+                r = math.sqrt(r2)
+                nx, ny, nz = px / r, py / r, pz / r
+                px, py, pz = nx * r_max, ny * r_max, nz * r_max
+                out = vx * nx + vy * ny + vz * nz
+                if out > 0:
+                    vx, vy, vz = vx - out * nx, vy - out * ny, vz - out * nz
+        self.x, self.v, self.f_hand = x, v, fh
+        self.pos = np.array((px, py, pz))
+        self.vel = np.array((vx, vy, vz))
 
     def status(self) -> dict[str, Any]:
         if not hasattr(self, "guard"):

@@ -1,0 +1,158 @@
+"""Haptic loop rate of the omega7 driver against the stand-in libdhd (tests/fakes/dhd_standin.c), in wall-clock time.
+
+For each rate (1 kHz, 4 kHz) it runs a graph `force source -> omega7` on the core runtime with the wall clock and
+reports the achieved rate, the p99 period jitter and the overruns, next to the same graph with `sim-omega7` (pure
+Python physics) as a reference. It also times the raw ctypes calls of one driver cycle (3 reads + button + one force
+write) and one full driver step() outside the runtime.
+
+    python benchmarks/leader_loop.py [--quick] [--duration S]
+
+Prints one JSON object as its last line. Timings on a shared 2-core machine are noisy: read the ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SRC = REPO / "tests" / "fakes" / "dhd_standin.c"
+
+GRAPH = """
+name: leader-loop
+clock: wall
+nodes:
+  - id: source
+    plugin: mock-sensor
+    rate: RATE
+    params: {signal: sine, amplitude: 2.0, frequency: 1.0}
+  - id: leader
+    plugin: PLUGIN
+    rate: RATE
+    params: {PARAMS}
+    inputs: {gripper_force: source.value}
+faults: {max_overruns: 0}
+"""
+
+
+def build(folder: Path) -> Path:
+    gcc = shutil.which("gcc") or shutil.which("cc")
+    if not gcc:
+        sys.exit("gcc is needed to build the libdhd stand-in")
+    out = folder / "libdhd.so"
+    subprocess.run([gcc, "-shared", "-fPIC", "-O2", "-o", str(out), str(SRC), "-lm"], check=True)
+    return out
+
+
+def run_graph(plugin: str, params: str, rate: float, duration: float) -> dict:
+    from teletouch.testing import make_registry, run_yaml
+
+    reg = make_registry("teletouch.plugins.devices.omega7", "teletouch.plugins.devices.sim_omega7")
+    text = GRAPH.replace("RATE", f"{rate:g}").replace("PLUGIN", plugin).replace("PARAMS", params)
+    result, rt = run_yaml(text, reg, duration=duration)
+    node = next(n for n in result.nodes if n.id == "leader")
+    out = {"status": result.status, "rate_hz": rate, "achieved_rate_hz": round(node.achieved_rate, 1),
+           "achieved_ratio": round(node.achieved_rate / rate, 4),
+           "period_jitter_p99_us": None if node.period_jitter_p99_s is None
+           else round(node.period_jitter_p99_s * 1e6, 1),
+           "overruns": node.overruns, "mean_step_us": round(node.mean_step_s * 1e6, 2),
+           "max_step_us": round(node.max_step_s * 1e6, 1), "steps": node.steps}
+    if plugin == "omega7":
+        st = rt.component("leader").status() if hasattr(rt.component("leader"), "guard") else {}
+        out["timeguards"] = st.get("timeguards")
+    return out
+
+
+def raw_calls(lib_path: Path, cycles: int) -> dict:
+    from teletouch.plugins.devices import dhd
+
+    d = dhd.load(lib_path)
+    d.open()
+    d.enable_force(True)
+    d.set_brakes(False)
+    perf = time.perf_counter
+    # one driver cycle through the binding
+    t0 = perf()
+    for _ in range(cycles):
+        d.position()
+        d.gripper_gap()
+        d.gripper_velocity()
+        d.button(0)
+        d.set_forces(0.0, 0.0, 0.0, 1.0)
+    binding = (perf() - t0) / cycles
+    # the same five calls on the bare ctypes functions (no Python wrapper, no error check)
+    lib, i = d.lib, d.id
+    px, py, pz, pg, pv = d._px, d._py, d._pz, d._pg, d._pv
+    gp, gg, gv, gb, sf = (lib.dhdGetPosition, lib.dhdGetGripperGap, lib.dhdGetGripperLinearVelocity,
+                          lib.dhdGetButton, lib.dhdSetForceAndGripperForce)
+    t0 = perf()
+    for _ in range(cycles):
+        gp(px, py, pz, i)
+        gg(pg, i)
+        gv(pv, i)
+        gb(0, i)
+        sf(0.0, 0.0, 0.0, 1.0, i)
+    bare = (perf() - t0) / cycles
+    d.set_forces(0.0, 0.0, 0.0, 0.0)
+    d.enable_force(False)
+    d.close()
+    return {"cycles": cycles, "binding_cycle_us": round(binding * 1e6, 3), "bare_ctypes_cycle_us":
+            round(bare * 1e6, 3), "binding_overhead_ratio": round(binding / bare, 2)}
+
+
+def driver_step(sdk: Path, cycles: int) -> dict:
+    import numpy as np
+
+    from teletouch import Sample
+    from teletouch.plugins.devices.omega7 import Omega7
+    from teletouch.plugins.devices.sim_omega7 import SimOmega7
+    from teletouch.testing import Harness
+
+    out = {}
+    for name, cls, params in (("omega7", Omega7, {"sdk_path": str(sdk)}), ("sim_omega7", SimOmega7, {})):
+        with Harness(cls, params) as h:
+            h.set(gripper_force=Sample(1.0, 0.0), force=Sample(np.zeros(3), 0.0))
+            comp, inputs = h.comp, h.inputs
+            perf = time.perf_counter
+            t0 = perf()
+            for k in range(cycles):
+                comp.step(k * 1e-3 * 0.01, inputs)  # keep commands fresh (< command_timeout)
+            out[f"{name}_step_us"] = round((perf() - t0) / cycles * 1e6, 3)
+    out["omega7_vs_sim_step_ratio"] = round(out["omega7_step_us"] / out["sim_omega7_step_us"], 3)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="1 s per run instead of 3 s")
+    ap.add_argument("--duration", type=float, default=None, help="seconds per run")
+    ap.add_argument("--rates", default="1000,4000", help="comma-separated loop rates (Hz)")
+    args = ap.parse_args()
+    duration = args.duration or (1.0 if args.quick else 3.0)
+    rates = [float(r) for r in args.rates.split(",")]
+    with tempfile.TemporaryDirectory() as tmp:
+        lib = build(Path(tmp))
+        results: dict = {"benchmark": "leader_loop", "duration_s": duration, "runs": []}
+        for rate in rates:
+            for plugin, params in (("omega7", f"sdk_path: {tmp}"), ("sim-omega7", "intent: hold")):
+                r = run_graph(plugin, params, rate, duration)
+                r["plugin"] = plugin
+                results["runs"].append(r)
+                print(f"{plugin:<11} {rate:>6.0f} Hz: achieved {r['achieved_rate_hz']:8.1f} Hz, jitter p99 "
+                      f"{r['period_jitter_p99_us']} us, overruns {r['overruns']}, step {r['mean_step_us']} us",
+                      file=sys.stderr)
+        cycles = 20000 if args.quick else 100000
+        results["raw_ctypes"] = raw_calls(lib, cycles)
+        results["driver_step"] = driver_step(Path(tmp), cycles // 4)
+    print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
