@@ -117,12 +117,15 @@ def driver_step(sdk: Path, cycles: int) -> dict:
     out = {}
     for name, cls, params in (("omega7", Omega7, {"sdk_path": str(sdk)}), ("sim_omega7", SimOmega7, {})):
         with Harness(cls, params) as h:
-            h.set(gripper_force=Sample(1.0, 0.0), force=Sample(np.zeros(3), 0.0))
-            comp, inputs = h.comp, h.inputs
+            comp, inputs, slots = h.comp, h.inputs, h.slots
+            zero3 = np.zeros(3)
             perf = time.perf_counter
             t0 = perf()
             for k in range(cycles):
-                comp.step(k * 1e-3 * 0.01, inputs)  # keep commands fresh (< command_timeout)
+                t = k * 1e-3  # 1 kHz steps: sim-omega7 does 4 substeps of 0.25 ms
+                slots["gripper_force"].sample = Sample(1.0, t)
+                slots["force"].sample = Sample(zero3, t)
+                comp.step(t, inputs)
             out[f"{name}_step_us"] = round((perf() - t0) / cycles * 1e6, 3)
     out["omega7_vs_sim_step_ratio"] = round(out["omega7_step_us"] / out["sim_omega7_step_us"], 3)
     return out
