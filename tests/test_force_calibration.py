@@ -188,7 +188,7 @@ def test_params_checked():
 
 # ------------------------------------------------------------------------------------------------ the rig
 def test_rig_uses_the_gel_model():
-    with Harness(SimPressRig, {"surface": -0.005, "thickness": 0.004}) as h:
+    with Harness(SimPressRig, {"surface": -0.005, "gel_thickness": 0.004}) as h:
         out = h.step(0.0, position=np.array([0.001, -0.002, -0.0062]))
         d = 0.0012
         assert out["indentation"] == pytest.approx(d)

@@ -427,16 +427,17 @@ class SimPressRig(Device):
                                 json_schema_extra=_u("m"))
         sensor_center: tuple[Meters, Meters] = Field((0.0, 0.0), description="handle (x, y) over the image centre "
                                                      "(m); handle x is image x (columns), handle y image y (rows)")
+        # the gel and the probe: keep these equal to sim-digit's parameters of the same names
         indenter: Literal["probe", "sphere", "flat"] = Field("probe", description="probe shape (as sim-digit)")
-        radius: Meters = Field(0.005, gt=0, description="probe radius", json_schema_extra=_u("m"))
+        indenter_radius: Meters = Field(0.005, gt=0, description="probe radius", json_schema_extra=_u("m"))
         tip_radius: Meters = Field(0.010, gt=0, description="radius of the probe's curved tip",
                                    json_schema_extra=_u("m"))
         modulus: Pascals | None = Field(None, gt=0, description="gel Young's modulus (None: the gel model's "
                                         "default, as sim-digit)", json_schema_extra=_u("Pa"))
         poisson: float | None = Field(None, ge=0, le=0.5, description="gel Poisson ratio (None: default)")
-        thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the thin-layer "
-                                         "correction (None: half space, as sim-digit's default)",
-                                         json_schema_extra=_u("m"))
+        gel_thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the thin-layer "
+                                             "correction (None: half space, as sim-digit's default)",
+                                             json_schema_extra=_u("m"))
         damping: NewtonSecondsPerMeter = Field(5.0, ge=0, description="gel damping while in contact (never "
                                                "pulls)", json_schema_extra=_u("N*s/m"))
 
@@ -445,7 +446,8 @@ class SimPressRig(Device):
 
         p = self.params
         self._gel_force = gel_force
-        self.indenter = Indenter.parse(p.indenter, p.radius, p.tip_radius if p.indenter == "probe" else None)
+        self.indenter = Indenter.parse(p.indenter, p.indenter_radius,
+                                       p.tip_radius if p.indenter == "probe" else None)
         self.last: tuple[float, float] | None = None
         self.d = 0.0
         self.f = 0.0
@@ -457,7 +459,7 @@ class SimPressRig(Device):
 
     def gel(self, indentation: float) -> float:
         p = self.params
-        return self._gel_force(indentation, self.indenter, p.modulus, p.poisson, p.thickness)
+        return self._gel_force(indentation, self.indenter, p.modulus, p.poisson, p.gel_thickness)
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["position"]
@@ -540,28 +542,32 @@ def run_press_calibration(graph: str, *, sets: list[str] | None = None, clock: s
     bar = None
     cb = None
     if progress:
-        try:
+        comp = rt.component(ids[0])
+        if sys.stderr.isatty():
             from tqdm import tqdm
 
-            bar = tqdm(total=100, desc="press calibration", unit="%", file=sys.stderr,
-                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {postfix}")
-        except ImportError:  # pragma: no cover - tqdm is a dependency of the venv
-            bar = None
+            bar = tqdm(total=comp.total_points, desc="press calibration", unit="step", file=sys.stderr)
+        seen = [0]
 
         def cb(runtime: Any, t: float) -> None:
-            comp = runtime.component(ids[0])
+            n = len(comp.samples)
             if bar is not None:
-                bar.n = int(round(100 * comp.progress))
-                bar.set_postfix_str(f"t={t:.1f}s {comp.state} cycle {comp.cycle + 1}/{comp.params.cycles} "
-                                    f"samples {len(comp.samples)}")
+                bar.n = n
+                bar.set_postfix_str(f"t={t:.1f}s {comp.state}, cycle {comp.cycle + 1}/{comp.params.cycles}")
                 bar.refresh()
+                return
+            for s in comp.samples[seen[0]:n]:  # not a terminal: one line per recorded step
+                print(f"[{100 * comp.progress:5.1f}%] t={t:7.1f}s cycle {s['cycle'] + 1} {s['phase']:<9} "
+                      f"displacement {s['displacement_m'] * 1e3:6.3f} mm  depth {s['depth_m'] * 1e3:6.3f} mm  "
+                      f"force {s['force_n']:6.3f} N", file=sys.stderr, flush=True)
+            seen[0] = n
 
     try:
         result = rt.run(spec.duration, progress=cb, progress_interval=0.5)
     finally:
+        if cb is not None:
+            cb(rt, rt.now())
         if bar is not None:
-            comp = rt.component(ids[0])
-            bar.n = int(round(100 * comp.progress))
             bar.close()
     return result, rt.component(ids[0]), spec
 

@@ -385,7 +385,7 @@ class ForceCalibration:
 
         path = Path(path)
         lo, hi = self.depth_range
-        fig, (ax, axr) = plt.subplots(2, 1, figsize=(6.4, 6.4), sharex=True,
+        fig, (ax, axr) = plt.subplots(2, 1, figsize=(6.8, 6.6), sharex=True, layout="constrained",
                                       gridspec_kw={"height_ratios": [3, 1.3]})
         try:
             styles = {"loading": ("tab:blue", "^", "loading"), "unloading": ("tab:orange", "v", "unloading"),
@@ -401,7 +401,7 @@ class ForceCalibration:
                 axr.scatter(x, r, s=10, c=color, marker=marker, alpha=0.7)
             xs = np.linspace(lo, hi, 300)
             ax.plot(xs * 1e3, _polyval(self.coefficients, xs), "k-", lw=1.6,
-                    label=f"degree-{self.degree} fit, $R^2$ = {self.r2:.4f}")
+                    label=f"degree-{self.degree} fit, $R^2$ = {self.r2:.5f}")
             h = self.hysteresis or {}
             for ph, color in (("loading", "tab:blue"), ("unloading", "tab:orange")):
                 sub = h.get(ph)
@@ -417,9 +417,10 @@ class ForceCalibration:
             axr.axhline(0.0, color="k", lw=0.8)
             axr.set_xlabel("max depth (mm)")
             axr.set_ylabel("residual (N)")
-            axr.set_title(f"RMSE {self.rmse:.3f} N", fontsize=9)
+            frange = self.force_range[1] - self.force_range[0]
+            pct = f" ({100 * self.rmse / frange:.2f}% of the force range)" if frange > 0 else ""
+            axr.set_title(f"residuals: RMSE {self.rmse:.4f} N{pct}", fontsize=9)
             axr.grid(True, alpha=0.3)
-            fig.tight_layout()
             path.parent.mkdir(parents=True, exist_ok=True)
             fig.savefig(path, dpi=110)
         finally:
