@@ -23,10 +23,20 @@ def run_to(h, cmd, t0, seconds, dt=1e-3, **extra):
     return out, t0 + n * dt
 
 
+def test_shape_setpoint():
+    from teletouch.plugins.devices.follower_common import shape_setpoint
+
+    assert shape_setpoint(0.05, 0.0, 0.0, 0.09, 0.1, 0.0) == 0.05  # no time, no motion
+    assert shape_setpoint(0.05, 0.0, 0.0, 0.09, 0.1, 0.01) == pytest.approx(0.049)
+    assert shape_setpoint(0.05, 0.5, 0.0, 0.09, 10.0, 1.0) == 0.09  # clamped to the range
+    assert shape_setpoint(math.nan, 0.5, 0.0, 0.09, 0.1, 0.01) == 0.09
+
+
 def test_free_motion_obeys_speed_limit_and_range():
     with Harness(SimGripper, {"object_width": None, "max_speed": 0.05, "max_opening": 0.09}) as h:
         o = h.step(0.0, opening_command=0.0)
         assert o["opening"] == pytest.approx(0.09)
+        assert h.comp._setpoint == 0.09  # the first step does not jump the setpoint
         prev = 0.09
         for k in range(1, 400):
             o = h.step(k * 1e-3, opening_command=0.0)

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from teletouch import HardwareError, hookimpl
 from teletouch.units import Meters, Newtons, Seconds
 
-from .follower_common import FollowerBase, FollowerParams, Reading
+from .follower_common import FollowerBase, FollowerParams, OpeningMap, Reading
 
 Item = tuple[int, int]  # (address, size in bytes)
 
@@ -119,6 +119,7 @@ class DynamixelGripper(FollowerBase):
         def _table(self) -> "DynamixelGripper.Params":
             if self.ticks_open == self.ticks_closed:
                 raise ValueError("ticks_open and ticks_closed must differ")
+            OpeningMap(self.ticks_open, self.opening_at_ticks_open, self.ticks_closed, self.opening_at_ticks_closed)
             self.table()  # validates control_table
             return self
 
@@ -128,17 +129,16 @@ class DynamixelGripper(FollowerBase):
             return ControlTable(**items)
 
     # mapping ---------------------------------------------------------------------------------------------------
-    def _scale(self) -> float:
+    @property
+    def map(self) -> OpeningMap:
         p = self.params
-        return (p.opening_at_ticks_closed - p.opening_at_ticks_open) / (p.ticks_closed - p.ticks_open)  # m/tick
+        return OpeningMap(p.ticks_open, p.opening_at_ticks_open, p.ticks_closed, p.opening_at_ticks_closed)
 
     def ticks_for(self, opening: float) -> int:
-        p = self.params
-        return int(round(p.ticks_open + (opening - p.opening_at_ticks_open) / self._scale()))
+        return self.map.counts(opening)
 
     def opening_for(self, ticks: float) -> float:
-        p = self.params
-        return p.opening_at_ticks_open + (ticks - p.ticks_open) * self._scale()
+        return self.map.opening(ticks)
 
     # hardware --------------------------------------------------------------------------------------------------
     def _where(self) -> str:
@@ -247,7 +247,7 @@ class DynamixelGripper(FollowerBase):
         ticks = get(t.present_position)
         vel_ticks = get(t.present_velocity) * t.velocity_unit_rpm / 60.0 * t.ticks_per_rev
         amps = get(t.present_current) * t.current_unit
-        return Reading(self.opening_for(ticks), vel_ticks * self._scale(), abs(amps) * p.newtons_per_amp,
+        return Reading(self.opening_for(ticks), vel_ticks * self.map.scale, abs(amps) * p.newtons_per_amp,
                        0.5 * (t0 + t1))
 
     def read_state(self, t: float) -> Reading:

@@ -23,8 +23,8 @@ from pydantic import Field, model_validator
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
 from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
 
-__all__ = ["FollowerParams", "FollowerBase", "Reading", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS", "clamp",
-           "shape_setpoint"]
+__all__ = ["FollowerParams", "FollowerBase", "Reading", "OpeningMap", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS",
+           "clamp", "shape_setpoint"]
 
 FOLLOWER_INPUTS = {
     "opening_command": Port("float64", (), "m", "desired distance between the fingers", required=True),
@@ -43,10 +43,35 @@ def clamp(x: float, lo: float, hi: float) -> float:
 def shape_setpoint(previous: float, command: float, lo: float, hi: float, max_speed: float, dt: float) -> float:
     """Clamp ``command`` to [lo, hi] and move from ``previous`` towards it by at most ``max_speed * dt``."""
     target = clamp(command, lo, hi)
-    if dt <= 0 or not math.isfinite(previous):
+    if not math.isfinite(previous):
         return target
-    step = max_speed * dt
+    step = max_speed * max(dt, 0.0)  # no time elapsed (first step): no motion
     return clamp(target, previous - step, previous + step)
+
+
+@dataclass(frozen=True)
+class OpeningMap:
+    """Linear map between the actuator's position counts and the opening: two calibration points."""
+
+    counts_open: float
+    opening_open: float
+    counts_closed: float
+    opening_closed: float
+
+    def __post_init__(self) -> None:
+        if self.counts_open == self.counts_closed or self.opening_open == self.opening_closed:
+            raise ValueError("the open and closed calibration points must differ in counts and in opening")
+
+    @property
+    def scale(self) -> float:
+        """Metres of opening per count (negative when the counts grow while closing)."""
+        return (self.opening_closed - self.opening_open) / (self.counts_closed - self.counts_open)
+
+    def counts(self, opening: float) -> int:
+        return int(round(self.counts_open + (opening - self.opening_open) / self.scale))
+
+    def opening(self, counts: float) -> float:
+        return self.opening_open + (counts - self.counts_open) * self.scale
 
 
 class FollowerParams(Params):

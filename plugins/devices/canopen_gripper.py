@@ -1,0 +1,329 @@
+"""canopen-gripper: an electric gripper behind a CiA 402 drive on CANopen (canopen on python-can), profile position.
+
+Start-up (all through the canopen library): connect the bus; check the node answers SDO and is a CiA 402 device
+(0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040, asynchronous;
+TPDO1: statusword 0x6041 + position actual 0x6064, TPDO2: current actual 0x6078 + velocity actual 0x606C, both on
+SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in 0x6061); profile velocity 0x6081
+from ``max_speed``; max current 0x6073 from ``max_effort``; target := actual; NMT operational; then the CiA 402 state
+machine to OPERATION ENABLED (canopen's BaseNode402).
+
+Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
+set-point" edge, bit 5 "change set immediately"), transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
+triggers. A drive in FAULT (statusword), an EMCY, a lost heartbeat or missing TPDOs end in a HardwareError naming the
+cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS file is optional (without
+one, the standard CiA 301/402 objects above are assumed).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from pydantic import Field, model_validator
+
+from teletouch import HardwareError, hookimpl
+from teletouch.units import Meters, Newtons, Seconds
+
+from .follower_common import FollowerBase, FollowerParams, OpeningMap, Reading
+
+PROFILE_POSITION = 1
+CW_ENABLE = 0x000F
+CW_NEW_SETPOINT = 0x0010
+CW_CHANGE_IMMEDIATELY = 0x0020
+
+
+def _od_var(index: int, name: str, dtype: int, access: str, sub: int = 0) -> Any:
+    from canopen.objectdictionary import ODVariable
+
+    v = ODVariable(name, index, sub)
+    v.data_type = dtype
+    v.access_type = access
+    return v
+
+
+def standard_od(node_id: int) -> Any:
+    """Object dictionary of the standard CiA 301/402 objects this driver uses (when no EDS file is given)."""
+    import canopen
+    from canopen import objectdictionary as o
+    from canopen.objectdictionary import ODRecord
+
+    od = canopen.ObjectDictionary()
+    od.node_id = node_id
+    for index, name, dtype, access in (
+            (0x1000, "Device type", o.UNSIGNED32, "ro"), (0x1001, "Error register", o.UNSIGNED8, "ro"),
+            (0x1017, "Producer heartbeat time", o.UNSIGNED16, "rw"), (0x603F, "Error code", o.UNSIGNED16, "ro"),
+            (0x6040, "Controlword", o.UNSIGNED16, "rw"), (0x6041, "Statusword", o.UNSIGNED16, "ro"),
+            (0x6060, "Modes of operation", o.INTEGER8, "rw"),
+            (0x6061, "Modes of operation display", o.INTEGER8, "ro"),
+            (0x6064, "Position actual value", o.INTEGER32, "ro"),
+            (0x606C, "Velocity actual value", o.INTEGER32, "ro"), (0x6073, "Max current", o.UNSIGNED16, "rw"),
+            (0x6075, "Motor rated current", o.UNSIGNED32, "rw"),
+            (0x6077, "Torque actual value", o.INTEGER16, "ro"),
+            (0x6078, "Current actual value", o.INTEGER16, "ro"), (0x607A, "Target position", o.INTEGER32, "rw"),
+            (0x6081, "Profile velocity", o.UNSIGNED32, "rw"), (0x6502, "Supported drive modes", o.UNSIGNED32, "ro")):
+        od.add_object(_od_var(index, name, dtype, access))
+    for n in range(4):
+        for com, mapping, kind in ((0x1400, 0x1600, "RPDO"), (0x1800, 0x1A00, "TPDO")):
+            rec = ODRecord(f"{kind}{n + 1} communication parameter", com + n)
+            for sub, name, dtype in ((0, "Highest sub-index supported", o.UNSIGNED8), (1, "COB-ID", o.UNSIGNED32),
+                                     (2, "Transmission type", o.UNSIGNED8), (3, "Inhibit time", o.UNSIGNED16),
+                                     (5, "Event timer", o.UNSIGNED16)):
+                rec.add_member(_od_var(com + n, name, dtype, "ro" if sub == 0 else "rw", sub))
+            od.add_object(rec)
+            mp = ODRecord(f"{kind}{n + 1} mapping parameter", mapping + n)
+            mp.add_member(_od_var(mapping + n, "Number of mapped objects", o.UNSIGNED8, "rw", 0))
+            for sub in range(1, 9):
+                mp.add_member(_od_var(mapping + n, f"Mapped object {sub}", o.UNSIGNED32, "rw", sub))
+            od.add_object(mp)
+    return od
+
+
+class CanopenGripper(FollowerBase):
+    """Gripper on a CiA 402 CANopen drive (profile position mode), via canopen and python-can."""
+
+    name = "canopen-gripper"
+    default_rate = 200.0
+    requires_wall_clock = True  # the drive moves in real time; speed limits use the graph's time steps
+
+    class Params(FollowerParams):
+        interface: str = Field("socketcan", description="python-can interface (socketcan, pcan, kvaser, virtual..)")
+        channel: str = Field("can0", description="python-can channel")
+        bitrate: int = Field(1000000, gt=0, description="CAN bit rate", json_schema_extra={"unit": "bit/s"})
+        node_id: int = Field(1, ge=1, le=127, description="CANopen node id of the drive")
+        eds: str | None = Field(None, description="EDS/DCF file of the drive (None: standard CiA 402 objects)")
+        counts_open: int = Field(0, description="position (0x6064 counts) with the fingers open")
+        counts_closed: int = Field(100000, description="position (counts) with the fingers closed")
+        opening_at_counts_open: Meters = Field(0.08, ge=0, json_schema_extra={"unit": "m"},
+                                               description="opening at counts_open")
+        opening_at_counts_closed: Meters = Field(0.0, ge=0, json_schema_extra={"unit": "m"},
+                                                 description="opening at counts_closed")
+        newtons_per_amp: float = Field(20.0, gt=0, description="grip force per ampere of motor current "
+                                       "(calibrate for your gripper)", json_schema_extra={"unit": "N/A"})
+        max_opening: Meters = Field(0.08, gt=0, description="largest opening commanded",
+                                    json_schema_extra={"unit": "m"})
+        max_effort: Newtons = Field(20.0, gt=0, description="grip force limit (sets max current 0x6073)",
+                                    json_schema_extra={"unit": "N"})
+        sdo_timeout: Seconds = Field(0.3, gt=0, description="SDO response timeout", json_schema_extra={"unit": "s"})
+        pdo_timeout: Seconds = Field(0.05, gt=0, description="wait this long for the TPDOs after each SYNC",
+                                     json_schema_extra={"unit": "s"})
+        heartbeat_period: Seconds = Field(0.1, ge=0, description="drive heartbeat period (0: off); three missed "
+                                          "heartbeats are a fault", json_schema_extra={"unit": "s"})
+
+        @model_validator(mode="after")
+        def _map(self) -> "CanopenGripper.Params":
+            OpeningMap(self.counts_open, self.opening_at_counts_open, self.counts_closed,
+                       self.opening_at_counts_closed)
+            return self
+
+    # ------------------------------------------------------------------------------------------------------------
+    @property
+    def map(self) -> OpeningMap:
+        p = self.params
+        return OpeningMap(p.counts_open, p.opening_at_counts_open, p.counts_closed, p.opening_at_counts_closed)
+
+    def _where(self) -> str:
+        p = self.params
+        return f"CANopen node {p.node_id} on {p.interface}:{p.channel}"
+
+    def _sdo(self, what: str, fn: Any) -> Any:
+        from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+        try:
+            return fn()
+        except SdoAbortedError as exc:
+            raise HardwareError(f"{what}: {self._where()} refused it (SDO abort: {exc})") from exc
+        except SdoCommunicationError as exc:
+            raise HardwareError(f"{what}: no SDO answer from {self._where()} ({exc}); check power, wiring, "
+                                f"termination, bit rate and node id") from exc
+
+    def _hw_open(self) -> None:
+        import can
+        import canopen
+
+        p = self.params
+        self.network = canopen.Network()
+        try:
+            self.network.connect(interface=p.interface, channel=p.channel, bitrate=p.bitrate)
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise HardwareError(f"cannot open CAN interface {p.interface}:{p.channel} ({exc}); check the adapter "
+                                f"and that the interface is up (ip link set {p.channel} up type can bitrate "
+                                f"{p.bitrate})") from exc
+        try:
+            od = p.eds if p.eds else standard_od(p.node_id)
+            node = canopen.BaseNode402(p.node_id, od)
+        except Exception as exc:  # a broken EDS file
+            raise HardwareError(f"cannot use the object dictionary {p.eds!r}: {exc}") from exc
+        self.network.add_node(node)
+        self.node = node
+        node.sdo.RESPONSE_TIMEOUT = p.sdo_timeout
+        node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry forever in canopen 2.4)
+        self.emcys: list[Any] = []
+        node.emcy.add_callback(self.emcys.append)
+        dev = self._sdo("reading device type 0x1000", lambda: node.sdo[0x1000].raw)
+        if dev & 0xFFFF != 402:
+            raise HardwareError(f"{self._where()} is not a CiA 402 drive: device type 0x{dev:08X} (profile "
+                                f"{dev & 0xFFFF}); check the node id")
+        node.nmt.state = "PRE-OPERATIONAL"
+        self._map_pdos()
+        if p.heartbeat_period > 0:
+            self._sdo("writing heartbeat 0x1017", lambda: setattr(node.sdo[0x1017], "raw",
+                                                                   int(round(p.heartbeat_period * 1000))))
+        self._sdo("writing mode 0x6060", lambda: setattr(node.sdo[0x6060], "raw", PROFILE_POSITION))
+        mode = self._sdo("reading mode display 0x6061", lambda: node.sdo[0x6061].raw)
+        if mode != PROFILE_POSITION:
+            raise HardwareError(f"{self._where()} did not enter profile position mode (0x6061 = {mode})")
+        scale = abs(self.map.scale)
+        self._sdo("writing profile velocity 0x6081",
+                  lambda: setattr(node.sdo[0x6081], "raw", max(1, int(round(p.max_speed / scale)))))
+        self.rated_ma = self._sdo("reading rated current 0x6075", lambda: node.sdo[0x6075].raw)
+        if not self.rated_ma:
+            raise HardwareError(f"{self._where()} reports a rated current (0x6075) of 0 mA")
+        permille = int(math.ceil(p.max_effort / p.newtons_per_amp / (self.rated_ma / 1000.0) * 1000.0))
+        self.max_current = min(permille, 0xFFFF)
+        self._sdo("writing max current 0x6073", lambda: setattr(node.sdo[0x6073], "raw", self.max_current))
+        actual = self._sdo("reading position 0x6064", lambda: node.sdo[0x6064].raw)
+        self._target = actual
+        self._cw = CW_ENABLE | CW_CHANGE_IMMEDIATELY
+        self._send_setpoint(actual, toggle=False)
+        node.nmt.state = "OPERATIONAL"
+        node.setup_402_state_machine(read_pdos=False)
+        # SYNC drives the TPDOs that carry the statusword while the state machine is walked
+        self.network.sync.start(0.005)
+        try:
+            node.state = "OPERATION ENABLED"
+        except (RuntimeError, ValueError) as exc:
+            raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
+                                f"0x{node.statusword:04X}, {self._emcy_text()})") from exc
+        finally:
+            self.network.sync.stop()
+        self._hb_seen = time.monotonic()
+
+    def _map_pdos(self) -> None:
+        n = self.node
+
+        def configure() -> None:
+            n.tpdo.read()
+            n.rpdo.read()
+            for m in list(n.tpdo.map.values()) + list(n.rpdo.map.values()):
+                m.clear()
+                m.enabled = False
+            t1, t2, r1 = n.tpdo[1], n.tpdo[2], n.rpdo[1]
+            t1.add_variable(0x6041)
+            t1.add_variable(0x6064)
+            t2.add_variable(0x6078)
+            t2.add_variable(0x606C)
+            r1.add_variable(0x607A)  # the target first: the drive latches it on the controlword's edge
+            r1.add_variable(0x6040)
+            for m, tt in ((t1, 1), (t2, 1), (r1, 255)):
+                m.trans_type = tt
+                m.enabled = True
+            n.tpdo.save()
+            n.rpdo.save()
+
+        self._sdo("mapping PDOs", configure)
+        self.tp1, self.tp2, self.rp1 = n.tpdo[1], n.tpdo[2], n.rpdo[1]
+
+    def _send_setpoint(self, counts: int, toggle: bool = True) -> None:
+        r = self.rp1
+        r[0x607A].raw = int(counts)
+        if toggle:  # new set-point: bit 4 low then high
+            r[0x6040].raw = self._cw & ~CW_NEW_SETPOINT
+            r.transmit()
+            r[0x6040].raw = self._cw | CW_NEW_SETPOINT
+        else:
+            r[0x6040].raw = self._cw & ~CW_NEW_SETPOINT
+        r.transmit()
+
+    def _emcy_text(self) -> str:
+        if not self.emcys:
+            return "no EMCY received"
+        e = self.emcys[-1]
+        return f"last EMCY {e}"
+
+    def _wait_tpdo(self, pdo: Any, before: float | None, deadline: float) -> bool:
+        with pdo.receive_condition:
+            while pdo.timestamp == before:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                pdo.receive_condition.wait(left)
+        return True
+
+    def _hw_read(self) -> Reading | None:
+        p, n = self.params, self.node
+        if p.heartbeat_period > 0:
+            hb = n.nmt.timestamp
+            if hb is not None:
+                self._hb_seen = max(self._hb_seen, time.monotonic() - (time.time() - hb))
+            if time.monotonic() - self._hb_seen > 3 * p.heartbeat_period:
+                self.last_error = f"no heartbeat for {time.monotonic() - self._hb_seen:.3f} s"
+                if time.monotonic() - self._hb_seen > p.read_timeout:
+                    raise HardwareError(f"{self._where()}: {self.last_error}; the drive is gone (power, cable)")
+        b1, b2 = self.tp1.timestamp, self.tp2.timestamp
+        t0 = time.monotonic()
+        self.network.sync.transmit()
+        deadline = t0 + p.pdo_timeout
+        ok = self._wait_tpdo(self.tp1, b1, deadline) and self._wait_tpdo(self.tp2, b2, deadline)
+        t1 = time.monotonic()
+        if not ok:
+            self.last_error = f"no TPDO within {p.pdo_timeout * 1e3:.0f} ms of SYNC"
+            return None
+        sw = self.tp1[0x6041].raw
+        if sw & 0x4F == 0x08 or sw & 0x4F == 0x0F:
+            code = self._fault_code()
+            raise HardwareError(f"{self._where()} is in FAULT (statusword 0x{sw:04X}, error code {code}, "
+                                f"{self._emcy_text()}); clear the cause, then reset the drive")
+        if sw & 0x6F != 0x27:
+            raise HardwareError(f"{self._where()} left OPERATION ENABLED (statusword 0x{sw:04X}, "
+                                f"{self._emcy_text()})")
+        counts = self.tp1[0x6064].raw
+        amps = self.tp2[0x6078].raw / 1000.0 * self.rated_ma / 1000.0
+        vel = self.tp2[0x606C].raw * self.map.scale
+        return Reading(self.map.opening(counts), vel, abs(amps) * p.newtons_per_amp, 0.5 * (t0 + t1))
+
+    def _fault_code(self) -> str:
+        try:
+            return f"0x{self.node.sdo[0x603F].raw:04X}"
+        except Exception:
+            return "unreadable"
+
+    def read_state(self, t: float) -> Reading:
+        try:
+            return super().read_state(t)
+        except HardwareError as exc:
+            if "no valid state" in str(exc):
+                raise HardwareError(f"{exc}: {self._where()}, last problem: {getattr(self, 'last_error', '?')}")\
+                    from None
+            raise
+
+    def _hw_write(self, opening: float) -> None:
+        counts = self.map.counts(opening)
+        if counts != self._target:
+            self._target = counts
+            self._send_setpoint(counts)
+
+    def _hw_close(self) -> None:
+        net = getattr(self, "network", None)
+        if net is None:
+            return
+        self.network = None
+        try:
+            net.sync.stop()
+        except Exception:
+            pass
+        try:
+            net.disconnect()
+        except Exception:
+            pass
+
+    def status(self) -> dict[str, Any]:
+        d = super().status()
+        d["emcy"] = len(getattr(self, "emcys", []))
+        return d
+
+
+
+@hookimpl
+def teletouch_components():
+    return [CanopenGripper]

@@ -1,0 +1,298 @@
+"""An emulated CiA 402 servo drive: a canopen LocalNode on python-can's virtual bus, for the canopen-gripper tests.
+
+The drive speaks real CANopen frames on a virtual channel: an SDO server (LocalNode), NMT slave with heartbeat, PDOs
+configured by the master through SDO (0x1400/0x1600 receive, 0x1800/0x1A00 transmit), TPDOs sent on SYNC
+(transmission types 1-240), RPDOs applied on reception, EMCY on faults. Its firmware is the CiA 402 state machine
+(controlword 0x6040 -> statusword 0x6041) and profile position mode (0x6060 = 1): a rising edge of controlword bit 4
+("new set-point") latches target position 0x607A, acknowledged by statusword bit 12; the axis moves towards it at
+profile velocity 0x6081 (counts/s). An object at ``block_at`` counts (approached in the ``closing`` direction) stops
+it, and the current rises to ``min(max current 0x6073, current_gain * |target - block_at|)`` (per mille of the rated
+current 0x6075). ``go_silent()`` makes the node vanish from the bus (no SDO, PDO or heartbeat); ``inject_fault()``
+sends an EMCY and enters FAULT.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+
+import canopen
+from canopen import objectdictionary as od_mod
+from canopen.objectdictionary import ODRecord, ODVariable
+
+U8, U16, U32 = od_mod.UNSIGNED8, od_mod.UNSIGNED16, od_mod.UNSIGNED32
+I8, I16, I32 = od_mod.INTEGER8, od_mod.INTEGER16, od_mod.INTEGER32
+
+STATUS = {"NOT READY TO SWITCH ON": 0x0000, "SWITCH ON DISABLED": 0x0040, "READY TO SWITCH ON": 0x0021,
+          "SWITCHED ON": 0x0023, "OPERATION ENABLED": 0x0027, "QUICK STOP ACTIVE": 0x0007, "FAULT": 0x0008}
+DEVICE_TYPE_402 = 0x00020192  # CiA 402, servo drive
+
+
+def _var(name, index, sub, dtype, access="rw", default=0):
+    v = ODVariable(name, index, sub)
+    v.data_type = dtype
+    v.access_type = access
+    v.default = default
+    return v
+
+
+def drive_od(node_id: int) -> canopen.ObjectDictionary:
+    """The drive's object dictionary (communication profile, 4 RPDOs/TPDOs, CiA 402 objects it implements)."""
+    od = canopen.ObjectDictionary()
+    od.node_id = node_id
+    od.add_object(_var("Device type", 0x1000, 0, U32, "ro", DEVICE_TYPE_402))
+    od.add_object(_var("Error register", 0x1001, 0, U8, "ro", 0))
+    od.add_object(_var("Producer heartbeat time", 0x1017, 0, U16, "rw", 0))
+    ident = ODRecord("Identity object", 0x1018)
+    ident.add_member(_var("Number of entries", 0x1018, 0, U8, "ro", 2))
+    ident.add_member(_var("Vendor-ID", 0x1018, 1, U32, "ro", 0x00000ABC))
+    ident.add_member(_var("Product code", 0x1018, 2, U32, "ro", 0x00000402))
+    od.add_object(ident)
+    for n in range(4):
+        for com, mapping, base, kind in ((0x1400, 0x1600, 0x200, "RPDO"), (0x1800, 0x1A00, 0x180, "TPDO")):
+            rec = ODRecord(f"{kind}{n + 1} communication parameter", com + n)
+            rec.add_member(_var("Highest sub-index supported", com + n, 0, U8, "ro", 5))
+            rec.add_member(_var("COB-ID", com + n, 1, U32, "rw", 0x80000000 | (base + 0x100 * n + node_id)))
+            rec.add_member(_var("Transmission type", com + n, 2, U8, "rw", 255))
+            rec.add_member(_var("Inhibit time", com + n, 3, U16, "rw", 0))
+            rec.add_member(_var("Event timer", com + n, 5, U16, "rw", 0))
+            od.add_object(rec)
+            mp = ODRecord(f"{kind}{n + 1} mapping parameter", mapping + n)
+            mp.add_member(_var("Number of mapped objects", mapping + n, 0, U8, "rw", 0))
+            for s in range(1, 9):
+                mp.add_member(_var(f"Mapped object {s}", mapping + n, s, U32, "rw", 0))
+            od.add_object(mp)
+    for index, name, dtype, access, default in (
+            (0x603F, "Error code", U16, "ro", 0),
+            (0x6040, "Controlword", U16, "rw", 0),
+            (0x6041, "Statusword", U16, "ro", STATUS["SWITCH ON DISABLED"]),
+            (0x6060, "Modes of operation", I8, "rw", 0),
+            (0x6061, "Modes of operation display", I8, "ro", 0),
+            (0x6064, "Position actual value", I32, "ro", 0),
+            (0x606C, "Velocity actual value", I32, "ro", 0),
+            (0x6073, "Max current", U16, "rw", 1000),
+            (0x6075, "Motor rated current", U32, "rw", 2000),
+            (0x6077, "Torque actual value", I16, "ro", 0),
+            (0x6078, "Current actual value", I16, "ro", 0),
+            (0x607A, "Target position", I32, "rw", 0),
+            (0x6081, "Profile velocity", U32, "rw", 100000),
+            (0x6083, "Profile acceleration", U32, "rw", 1000000),
+            (0x6502, "Supported drive modes", U32, "ro", 0x0000000D)):
+        od.add_object(_var(name, index, 0, dtype, access, default))
+    return od
+
+
+class Cia402Drive:
+    """The emulated drive. ``channel`` names the virtual CAN bus shared with the driver under test."""
+
+    def __init__(self, node_id: int = 5, channel: str = "teletouch-vcan", *, position: int = 0,
+                 block_at: int | None = None, closing: int = 1, current_gain: float = 0.5,
+                 device_type: int = DEVICE_TYPE_402):
+        self.node_id = node_id
+        self.channel = channel
+        self.od = drive_od(node_id)
+        self.od[0x1000].default = device_type
+        self.pos = float(position)
+        self.vel = 0.0
+        self.block_at = block_at
+        self.closing = closing
+        self.current_gain = current_gain
+        self.state = "SWITCH ON DISABLED"
+        self.silent = False
+        self.syncs = 0
+        self.latched = 0
+        self.rpdo_frames = 0
+        self._cw = 0
+        self._batch = False
+        self._pdo_dirty = True
+        self._hooked: set[int] = set()
+        self._lock = threading.RLock()
+        self._last = None
+        self.network = canopen.Network()
+        self.node = canopen.LocalNode(node_id, self.od)
+
+    # --- life cycle ------------------------------------------------------------------------------------------
+    def start(self) -> "Cia402Drive":
+        self.network.connect(interface="virtual", channel=self.channel, receive_own_messages=False)
+        self.network.add_node(self.node)
+        n = self.node
+        n.data_store.setdefault(0x6064, {})[0] = struct.pack("<i", int(self.pos))
+        n.data_store.setdefault(0x607A, {})[0] = struct.pack("<i", int(self.pos))
+        n.add_write_callback(self._on_write)
+        self.network.subscribe(0x80, self._on_sync)
+        self.network.subscribe(0, self._on_nmt)  # after the NmtSlave's own handler
+        # boot-up message, then PRE-OPERATIONAL (as a drive does after power-on)
+        self.network.send_message(0x700 + self.node_id, [0])
+        n.nmt.state = "PRE-OPERATIONAL"
+        self._status()
+        return self
+
+    def stop(self) -> None:
+        try:
+            self.node.nmt.stop_heartbeat()
+        except Exception:
+            pass
+        self.network.disconnect()
+
+    def __enter__(self) -> "Cia402Drive":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # --- fault injection -------------------------------------------------------------------------------------
+    def go_silent(self) -> None:
+        """The node vanishes (power loss, cable): no SDO answers, no PDOs, no heartbeat."""
+        self.silent = True
+        self.node.nmt.stop_heartbeat()
+        self.network.unsubscribe(self.node.sdo.rx_cobid)
+
+    def inject_fault(self, code: int = 0x2310, register: int = 0x02) -> None:
+        """A drive fault (default 0x2310: continuous over-current): EMCY, FAULT state, 0x603F set."""
+        with self._lock:
+            self.state = "FAULT"
+            self.node.data_store.setdefault(0x603F, {})[0] = struct.pack("<H", code)
+            self.node.data_store.setdefault(0x1001, {})[0] = bytes([register])
+            self._status()
+        self.node.emcy.send(code, register)
+
+    # --- helpers ---------------------------------------------------------------------------------------------
+    def get(self, index: int, sub: int = 0) -> int:
+        obj = self.od[index] if sub == 0 else self.od[index][sub]
+        return obj.decode_raw(self.node.get_data(index, sub))
+
+    def _put(self, index: int, value: int) -> None:
+        self.node.data_store.setdefault(index, {})[0] = self.od[index].encode_raw(int(value))
+
+    def _status(self, ack: bool | None = None) -> None:
+        sw = STATUS[self.state] | 0x0200 | (0x0010 if self.state not in ("SWITCH ON DISABLED", "FAULT") else 0)
+        old = self.get(0x6041)
+        if ack is None:
+            sw |= old & 0x1000
+        elif ack:
+            sw |= 0x1000
+        target = self.get(0x607A)
+        if abs(self.pos - target) < 1.0 or (self.block_at is not None and
+                                            (target - self.block_at) * self.closing > 0 and
+                                            abs(self.pos - self.block_at) < 1.0):
+            sw |= 0x0400  # target reached (or blocked against the object)
+        self._put(0x6041, sw)
+
+    # --- firmware --------------------------------------------------------------------------------------------
+    def _on_write(self, index, subindex, od, data):
+        if 0x1400 <= index <= 0x1BFF:
+            self._pdo_dirty = True
+        elif index == 0x6060:
+            (mode,) = struct.unpack("<b", data)
+            self._put(0x6061, mode)
+        elif index == 0x6040 and not self._batch:
+            self._controlword(struct.unpack("<H", data)[0])
+
+    def _controlword(self, cw: int) -> None:
+        with self._lock:
+            prev, self._cw = self._cw, cw
+            s = self.state
+            if s == "FAULT":
+                if cw & 0x80 and not prev & 0x80:
+                    self.state = "SWITCH ON DISABLED"
+                    self._put(0x603F, 0)
+                    self._put(0x1001, 0)
+                    self.node.emcy.reset()
+            elif cw & 0x82 == 0x00:
+                self.state = "SWITCH ON DISABLED"
+            elif cw & 0x86 == 0x02:
+                self.state = "QUICK STOP ACTIVE" if s == "OPERATION ENABLED" else "SWITCH ON DISABLED"
+            elif cw & 0x87 == 0x06:
+                if s in ("SWITCH ON DISABLED", "SWITCHED ON", "OPERATION ENABLED"):
+                    self.state = "READY TO SWITCH ON"
+            elif cw & 0x8F == 0x07:
+                if s in ("READY TO SWITCH ON", "OPERATION ENABLED"):
+                    self.state = "SWITCHED ON"
+            elif cw & 0x8F == 0x0F:
+                if s in ("SWITCHED ON", "QUICK STOP ACTIVE"):
+                    self.state = "OPERATION ENABLED"
+            ack = None
+            if self.state == "OPERATION ENABLED" and self.get(0x6061) == 1:
+                if cw & 0x10 and not prev & 0x10:
+                    self.latched = self.get(0x607A)
+                    ack = True
+                elif not cw & 0x10:
+                    ack = False
+            self._status(ack)
+
+    def _apply_rpdo(self, pdo_map) -> None:
+        if self.silent or self.node.nmt.state not in ("OPERATIONAL",):
+            return
+        self.rpdo_frames += 1
+        with self._lock:
+            self._batch = True
+            cw = None
+            try:
+                for var in pdo_map:
+                    data = var.get_data()
+                    self.node.set_data(var.index, var.subindex, data)
+                    if var.index == 0x6040:
+                        cw = struct.unpack("<H", data)[0]
+            finally:
+                self._batch = False
+            if cw is not None:
+                self._controlword(cw)
+
+    def _reload_pdos(self) -> None:
+        for m in list(self.node.rpdo.map.values()):
+            if m.enabled and m.cob_id is not None:
+                try:
+                    self.network.unsubscribe(m.cob_id, m.on_message)
+                except (KeyError, ValueError):
+                    pass
+        self.node.tpdo.read()
+        self.node.rpdo.read()
+        for no, m in self.node.rpdo.map.items():
+            if no not in self._hooked:
+                m.add_callback(self._apply_rpdo)
+                self._hooked.add(no)
+        self._pdo_dirty = False
+
+    def _physics(self) -> None:
+        now = time.monotonic()
+        dt = 0.0 if self._last is None else now - self._last
+        self._last = now
+        old = self.pos
+        current = 0.0
+        if self.state == "OPERATION ENABLED":
+            target = float(self.latched)
+            v = float(self.get(0x6081))
+            new = old + max(-v * dt, min(v * dt, target - old))
+            if self.block_at is not None:
+                c = self.closing
+                if (new - self.block_at) * c > 0:
+                    new = float(self.block_at) if (old - self.block_at) * c <= 0 else old
+                if (new - self.block_at) * c >= 0 and (target - self.block_at) * c > 0:
+                    current = c * min(self.get(0x6073), self.current_gain * abs(target - self.block_at))
+            self.pos = new
+        self.vel = (self.pos - old) / dt if dt > 0 else 0.0
+        self._put(0x6064, int(round(self.pos)))
+        self._put(0x606C, int(round(self.vel)))
+        self._put(0x6078, int(round(current)))
+        self._put(0x6077, int(round(current)))
+        self._status()
+
+    def _on_nmt(self, can_id, data, timestamp) -> None:
+        if not self.silent and self.node.nmt.state == "OPERATIONAL" and self._pdo_dirty:
+            with self._lock:
+                self._reload_pdos()
+
+    def _on_sync(self, can_id, data, timestamp) -> None:
+        if self.silent or self.node.nmt.state != "OPERATIONAL":
+            return
+        self.syncs += 1
+        with self._lock:
+            if self._pdo_dirty:
+                self._reload_pdos()
+            self._physics()
+            for m in self.node.tpdo.map.values():
+                if m.enabled and m.trans_type is not None and 1 <= m.trans_type <= 240:
+                    for var in m:
+                        var.set_data(self.node.get_data(var.index, var.subindex))
+                    m.transmit()

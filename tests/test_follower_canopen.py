@@ -1,0 +1,165 @@
+"""canopen-gripper against an emulated CiA 402 drive (canopen LocalNode) on python-can's virtual bus."""
+
+from __future__ import annotations
+
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fakes.canopen_drive import Cia402Drive  # noqa: E402
+
+from teletouch import HardwareError  # noqa: E402
+from teletouch.testing import Harness  # noqa: E402
+from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture
+def channel():
+    return f"tt-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def drive(channel):
+    d = Cia402Drive(5, channel, position=0, block_at=60000)
+    d.start()
+    yield d
+    d.stop()
+
+
+def harness(channel, **params):
+    h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5}, **params))
+    h.ctx.clock_kind = "wall"
+    return h
+
+
+def configure_fails(h, match):
+    try:
+        with pytest.raises(HardwareError, match=match):
+            h.comp.configure()
+    finally:
+        h.comp.close()
+
+
+def drive_for(h, cmd, seconds, period=0.005):
+    t_end = time.monotonic() + seconds
+    out = {}
+    while time.monotonic() < t_end:
+        h.t = time.monotonic()
+        out = h.step(h.t, opening_command=cmd)
+        time.sleep(period)
+    return out
+
+
+def wait_for(cond, timeout=1.0):
+    t_end = time.monotonic() + timeout
+    while not cond() and time.monotonic() < t_end:
+        time.sleep(0.002)
+    return cond()
+
+
+def test_start_up_sequence(drive, channel):
+    with harness(channel, max_effort=10.0, newtons_per_amp=20.0, max_speed=0.04) as h:
+        assert drive.state == "OPERATION ENABLED"
+        assert drive.node.nmt.state == "OPERATIONAL"
+        assert drive.get(0x6061) == 1  # profile position
+        # PDO mapping written by the master through SDO: TPDO1 statusword + position, RPDO1 target + controlword
+        assert drive.get(0x1A00, 1) >> 16 == 0x6041 and drive.get(0x1A00, 2) >> 16 == 0x6064
+        assert drive.get(0x1600, 1) >> 16 == 0x607A and drive.get(0x1600, 2) >> 16 == 0x6040
+        assert drive.get(0x1800, 2) == 1  # TPDO on every SYNC
+        assert drive.get(0x1017) == 100  # heartbeat 100 ms
+        assert drive.get(0x6081) == round(0.04 / (0.08 / 100000))  # profile velocity, counts/s
+        assert drive.get(0x6073) == 250  # 10 N / 20 N/A = 0.5 A = 250 per mille of 2 A
+        assert h.comp.node.nmt.timestamp is not None  # heartbeats arrive
+
+
+def test_closes_on_object_with_capped_current(drive, channel):
+    with harness(channel, max_effort=10.0, newtons_per_amp=20.0) as h:
+        o = drive_for(h, 0.06, 0.6)
+        assert o["opening"] == pytest.approx(0.06, abs=1e-4)
+        assert o["effort"] == pytest.approx(0.0, abs=1e-9)
+        o = drive_for(h, 0.0, 1.6)
+        assert o["opening"] == pytest.approx(h.comp.map.opening(60000), abs=1e-6)  # blocked by the object
+        assert o["effort"] == pytest.approx(0.250 * 2.0 * 20.0, rel=1e-6)  # max current 250 per mille of 2 A
+        assert drive.latched == 100000  # the final set-point (0 m) was latched by the set-point handshake
+        assert drive.get(0x6041) & 0x1000  # set-point acknowledged
+        h.comp.safe_state()  # hold: target := actual position
+        assert wait_for(lambda: drive.latched == 60000)
+        drive_for(h, 0.08, 0.1)
+        assert drive.latched == 60000  # commands are ignored after the safe state
+
+
+def test_setpoint_speed_limited(drive, channel):
+    with harness(channel, max_speed=0.02) as h:
+        drive.profile_log = []
+        t0 = time.monotonic()
+        o = drive_for(h, 0.0, 0.5)
+        dt = time.monotonic() - t0
+        assert o["opening"] > 0.08 - 0.02 * dt - 1e-3
+        assert o["velocity"] == pytest.approx(-0.02, rel=0.2)
+
+
+def test_safe_state_open(drive, channel):
+    with harness(channel, safe_mode="open") as h:
+        drive_for(h, 0.07, 0.3)
+        h.comp.safe_state()
+        assert wait_for(lambda: drive.latched == 0)
+
+
+def test_no_node_on_bus(channel):
+    t0 = time.monotonic()
+    configure_fails(harness(channel, sdo_timeout=0.2), r"no SDO answer from CANopen node 5 .*node id")
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_bad_interface():
+    configure_fails(Harness(CanopenGripper, {"interface": "no-such-interface", "channel": "x"}),
+                    "cannot open CAN interface no-such-interface:x")
+
+
+def test_not_a_402_device(channel):
+    with Cia402Drive(5, channel, device_type=0x00000191):
+        configure_fails(harness(channel), r"not a CiA 402 drive: device type 0x00000191")
+
+
+def test_fault_with_emcy(drive, channel):
+    with harness(channel) as h:
+        drive_for(h, 0.05, 0.2)
+        drive.inject_fault(0x2310)
+        with pytest.raises(HardwareError, match=r"FAULT .*error code 0x2310.*EMCY Code 0x2310, Current"):
+            drive_for(h, 0.05, 1.0)
+
+
+def test_node_goes_silent(drive, channel):
+    with harness(channel, read_timeout=0.3, pdo_timeout=0.02) as h:
+        drive_for(h, 0.05, 0.2)
+        drive.go_silent()
+        t0 = time.monotonic()
+        with pytest.raises(HardwareError, match=r"no valid state|no heartbeat"):
+            drive_for(h, 0.05, 3.0)
+        assert time.monotonic() - t0 < 1.0
+
+
+def test_with_eds_file(drive, channel, tmp_path):
+    import canopen
+
+    eds = tmp_path / "drive.eds"
+    canopen.export_od(drive.od, str(eds))
+    with harness(channel, eds=str(eds)) as h:
+        o = drive_for(h, 0.075, 0.3)
+        assert o["opening"] == pytest.approx(0.075, abs=1e-4)
+    configure_fails(harness(channel, eds=str(tmp_path / "missing.eds")), "cannot use the object dictionary")
+
+
+def test_params_validation():
+    with pytest.raises(ValidationError, match="calibration points must differ"):
+        CanopenGripper.Params(counts_open=5, counts_closed=5)
+    with pytest.raises(ValidationError, match="node_id"):
+        CanopenGripper.Params(node_id=200)
