@@ -285,3 +285,21 @@ def test_sim_leader_in_a_graph_and_nan_from_upstream_stops_it_safely():
     assert result.status == "fault"
     assert any(f.node == "leader" and "not finite" in f.message for f in result.faults)
     assert rt.component("leader").g_applied == 0.0 and rt.component("leader").safe
+
+
+class CloseWhenTilted:
+    """A reactive intent (like a pivoting operator): close to 3 mm while the perceived angle exceeds 0.3 rad."""
+
+    name = "test-close-when-tilted"
+
+    def desired(self, t, state):
+        return (0.003 if state.extra.get("cue", 0.0) > 0.3 else 0.018), 0.0
+
+
+def test_intent_cue_input_reaches_the_intent():
+    with Harness(SimOmega7, {"intent": {"type": f"{__name__}:CloseWhenTilted"}}) as h:
+        out = settle(h, 1.0, intent_cue=0.1)
+        assert out["gripper_opening"] == pytest.approx(0.018, abs=3e-4)
+        out = settle(h, 1.0, intent_cue=0.5)
+        assert out["gripper_opening"] == pytest.approx(0.003, abs=3e-4)
+        assert h.comp.state.extra["cue"] == 0.5

@@ -46,6 +46,9 @@ class SimOmega7(Device):
                                required=False),
         "intent_opening": Port("float64", (), "m", "opening the operator wants now; overrides the scripted intent "
                                                    "while it is fresh", required=False),
+        "intent_cue": Port("float64", (), "any", "what the operator perceives besides the force (e.g. the object's "
+                                               "angle, rad): given to the intent as state.extra['cue']",
+                           required=False),
     }
     outputs = {
         **LEADER_OUTPUTS,
@@ -193,6 +196,10 @@ class SimOmega7(Device):
         self.last_t = t
         st = self.state
         st.t, st.opening, st.velocity, st.gripper_force, st.position = t, self.x, self.v, g, self.pos
+        cue = inputs.get("intent_cue") if "intent_cue" in inputs else None
+        if cue is not None:
+            st.extra["cue"] = cue.value
+            st.extra["cue_stamp"] = cue.stamp
         des = self._desired(t, inputs)
         if dt > 0:
             n = max(1, int(math.ceil(dt / p.substep - 1e-9)))
