@@ -327,3 +327,17 @@ nodes:
     assert statuses[0] == "no-contact" and forces[0] == 0.0
     assert "ok" in statuses
     assert all(f >= 0 for f in forces) and np.all(np.diff(forces) >= 0)
+
+
+def test_packaged_sim_calibration_loads_and_meets_the_fit_target():
+    path = resolve_calibration("sim-digit-qvga")
+    cal = ForceCalibration.load(path)
+    assert cal.r2 >= 0.998 and cal.degree == 3
+    assert cal.sensor_model_id == "sim-digit-qvga"
+    lo, hi = cal.depth_range
+    assert lo < 0.2e-3 and hi > 1.5e-3
+    f = cal.predict(np.linspace(0, 1.5 * hi, 100))
+    assert np.all(np.diff(f) >= 0) and f[0] == 0.0
+    with Harness(PolyForce) as h:  # the component's default calibration is the packaged one
+        assert h.step(0.0, max_depth=0.0)["force"] == 0.0
+        assert h.step(0.1, max_depth=1e-3)["force"] == pytest.approx(cal.predict(1e-3))
