@@ -27,6 +27,7 @@ SRC = REPO / "tests" / "fakes" / "dhd_standin.c"
 GRAPH = """
 name: leader-loop
 clock: wall
+realtime_priority: PRIO
 nodes:
   - id: source
     plugin: mock-sensor
@@ -50,14 +51,15 @@ def build(folder: Path) -> Path:
     return out
 
 
-def run_graph(plugin: str, params: str, rate: float, duration: float) -> dict:
+def run_graph(plugin: str, params: str, rate: float, duration: float, prio: int = 0) -> dict:
     from teletouch.testing import make_registry, run_yaml
 
     reg = make_registry("teletouch.plugins.devices.omega7", "teletouch.plugins.devices.sim_omega7")
-    text = GRAPH.replace("RATE", f"{rate:g}").replace("PLUGIN", plugin).replace("PARAMS", params)
+    text = (GRAPH.replace("RATE", f"{rate:g}").replace("PLUGIN", plugin).replace("PARAMS", params)
+            .replace("PRIO", str(prio)))
     result, rt = run_yaml(text, reg, duration=duration)
     node = next(n for n in result.nodes if n.id == "leader")
-    out = {"status": result.status, "rate_hz": rate, "achieved_rate_hz": round(node.achieved_rate, 1),
+    out = {"status": result.status, "realtime_priority": prio, "rate_hz": rate, "achieved_rate_hz": round(node.achieved_rate, 1),
            "achieved_ratio": round(node.achieved_rate / rate, 4),
            "period_jitter_p99_us": None if node.period_jitter_p99_s is None
            else round(node.period_jitter_p99_s * 1e6, 1),
@@ -136,20 +138,24 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="1 s per run instead of 3 s")
     ap.add_argument("--duration", type=float, default=None, help="seconds per run")
     ap.add_argument("--rates", default="1000,4000", help="comma-separated loop rates (Hz)")
+    ap.add_argument("--realtime-priority", type=int, default=20,
+                    help="also run the loops with this SCHED_FIFO priority (0: only normal scheduling)")
     args = ap.parse_args()
     duration = args.duration or (1.0 if args.quick else 3.0)
     rates = [float(r) for r in args.rates.split(",")]
     with tempfile.TemporaryDirectory() as tmp:
         lib = build(Path(tmp))
         results: dict = {"benchmark": "leader_loop", "duration_s": duration, "runs": []}
-        for rate in rates:
-            for plugin, params in (("omega7", f"sdk_path: {tmp}"), ("sim-omega7", "intent: hold")):
-                r = run_graph(plugin, params, rate, duration)
-                r["plugin"] = plugin
-                results["runs"].append(r)
-                print(f"{plugin:<11} {rate:>6.0f} Hz: achieved {r['achieved_rate_hz']:8.1f} Hz, jitter p99 "
-                      f"{r['period_jitter_p99_us']} us, overruns {r['overruns']}, step {r['mean_step_us']} us",
-                      file=sys.stderr)
+        prios = [0] + ([args.realtime_priority] if args.realtime_priority > 0 else [])
+        for prio in prios:
+            for rate in rates:
+                for plugin, params in (("omega7", f"sdk_path: {tmp}"), ("sim-omega7", "intent: hold")):
+                    r = run_graph(plugin, params, rate, duration, prio)
+                    r["plugin"] = plugin
+                    results["runs"].append(r)
+                    print(f"{plugin:<11} {rate:>6.0f} Hz prio {prio:>2}: achieved {r['achieved_rate_hz']:8.1f} Hz, "
+                          f"jitter p99 {r['period_jitter_p99_us']} us, overruns {r['overruns']}, "
+                          f"step {r['mean_step_us']} us", file=sys.stderr)
         cycles = 20000 if args.quick else 100000
         results["raw_ctypes"] = raw_calls(lib, cycles)
         results["driver_step"] = driver_step(Path(tmp), cycles // 4)
