@@ -181,6 +181,20 @@ def test_stale_depth_aborts():
     assert h.comp.state == "abort-retract" and "no max depth" in h.comp.abort_reason
 
 
+def test_start_in_contact_refused_and_touch_needs_consecutive_frames():
+    h = Harness(PressRoutine, dict(FAST, touch_frames=3))
+    h.__enter__()
+    with pytest.raises(ComponentFault, match="already pressed"):
+        h.step(0.0, position=np.zeros(3), max_depth=0.2e-3)
+    assert np.all(h.comp.cmd == 0)
+    h = _harness_at_press(touch_frames=3)
+    for i, d in enumerate([0.1e-3, 0.0, 0.1e-3, 0.1e-3]):  # a single noisy frame is not a touch
+        h.step(0.02 * (i + 1), position=np.array([0, 0, -1e-5 * i]), max_depth=d)
+        assert h.comp.state == "approach"
+    h.step(0.1, position=np.array([0, 0, -5e-5]), max_depth=0.1e-3)
+    assert h.comp.state == "backoff" and h.comp.touch == pytest.approx(5e-5)
+
+
 def test_params_checked():
     with pytest.raises(ValueError, match="larger than max_displacement"):
         Harness(PressRoutine, {"step": "3mm", "max_displacement": "2mm"}).comp.configure()

@@ -95,6 +95,8 @@ class PressRoutine(Component):
                                 json_schema_extra=_u("m"))
         touch_depth: Meters = Field(3e-5, gt=0, description="max depth that counts as touching",
                                     json_schema_extra=_u("m"))
+        touch_frames: int = Field(2, ge=1, le=30, description="consecutive depth frames at or above touch_depth "
+                                  "that make a touch (noise rejection)")
         settle_time: Seconds = Field(0.4, ge=0, description="hold before recording", json_schema_extra=_u("s"))
         record_time: Seconds = Field(0.25, gt=0, description="averaging window at each step",
                                      json_schema_extra=_u("s"))
@@ -154,6 +156,7 @@ class PressRoutine(Component):
         self.events: list[tuple[float, str]] = []
         self.done_points = 0
         self.saturated_since: float | None = None
+        self.touch_count = 0
 
     def activate(self) -> None:
         self.reset()
@@ -249,7 +252,11 @@ class PressRoutine(Component):
 
         st = self.state
         if st == "wait":
-            if pos is not None and depth is not None and math.isfinite(depth):
+            if pos is not None and depth is not None and math.isfinite(depth) and depth >= p.touch_depth:
+                self.abort_reason = (f"the gel is already pressed ({depth * 1e3:.3f} mm) at the start: lift the "
+                                     f"probe off the sensor")
+                self._go(t, "aborted")
+            elif pos is not None and depth is not None and math.isfinite(depth):
                 self.home = pos.copy()
                 self.target = pos.copy()
                 self.goal = self._at(self._s(pos) + p.max_approach)
@@ -257,7 +264,9 @@ class PressRoutine(Component):
                 self._go(t, "approach")
         elif st == "approach":
             arrived = self._ramp(dt, p.approach_speed)
-            if depth is not None and new_depth and depth >= p.touch_depth:
+            if new_depth:
+                self.touch_count = self.touch_count + 1 if depth >= p.touch_depth else 0
+            if self.touch_count >= p.touch_frames:
                 self.touch = self._s(pos)
                 self.ctx.log(f"touch at {self.touch * 1e3:.3f} mm along the press axis (depth "
                              f"{depth * 1e3:.3f} mm)")
