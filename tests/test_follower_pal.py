@@ -1,0 +1,139 @@
+"""pal-gripper over real ROS 2 (rclpy, DDS on loopback) against a simulated PAL gripper controller node."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
+
+from teletouch import HardwareError  # noqa: E402
+from teletouch.testing import Harness  # noqa: E402
+from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
+
+DOMAIN = 61  # this module's own ROS_DOMAIN_ID (other ROS 2 tests may run at the same time on this machine)
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture(autouse=True)
+def _localhost_ros(monkeypatch):
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(DOMAIN))
+
+
+@pytest.fixture
+def robot():
+    r = PalGripperNode("/tiago", domain_id=DOMAIN, object_width=0.04)
+    r.start()
+    yield r
+    r.stop()
+
+
+def harness(**params):
+    h = Harness(PalGripper, dict({"namespace": "tiago", "domain_id": DOMAIN, "connect_timeout": 2.0}, **params))
+    h.ctx.clock_kind = "wall"
+    return h
+
+
+def drive(h, cmd, seconds, period=0.01):
+    t_end = time.monotonic() + seconds
+    out = {}
+    while time.monotonic() < t_end:
+        h.t = time.monotonic()
+        out = h.step(h.t, opening_command=cmd)
+        time.sleep(period)
+    return out
+
+
+def configure_fails(h, match):
+    try:
+        with pytest.raises(HardwareError, match=match):
+            h.comp.configure()
+    finally:
+        h.comp.close()
+
+
+def test_follows_and_squeezes(robot):
+    with harness(max_effort=12.0) as h:
+        assert h.comp.command_topic == "/tiago/gripper_controller/joint_trajectory"
+        o = drive(h, 0.06, 0.6)
+        assert o["opening"] == pytest.approx(0.06, abs=1e-3)
+        assert robot.pos[0] == pytest.approx(robot.pos[1])  # both fingers at half the opening
+        assert o["effort"] == 0.0
+        o = drive(h, 0.0, 0.8)
+        assert o["opening"] == pytest.approx(0.04, abs=1e-4)  # the object stops the fingers
+        # effort limited by the driver: the setpoint backs off while the effort exceeds max_effort
+        assert o["effort"] == pytest.approx(12.0, abs=3.0)
+        assert h.comp._setpoint == pytest.approx(0.04 - 2 * 12.0 / 2000.0, abs=0.004)
+        drive(h, 0.0, 0.8)  # longer than the controller's goal_time: the republished goal is never aborted
+        assert robot.aborted == 0 and robot.rejected == 0
+        assert abs(robot.effort[0]) > 5.0
+        h.comp.safe_state()  # hold the measured opening
+        time.sleep(0.2)
+        assert robot.opening == pytest.approx(0.04, abs=1e-4)
+        assert h.comp._sent == pytest.approx(0.04, abs=1e-4)
+
+
+def test_speed_limit_and_clamp(robot):
+    with harness(max_speed=0.05) as h:
+        t0 = time.monotonic()
+        o = drive(h, 0.2, 0.1)  # beyond the range: clamped to 0.09 (already there)
+        assert o["opening"] == pytest.approx(0.09, abs=1e-4)
+        o = drive(h, 0.05, 0.3)
+        assert o["opening"] > 0.09 - 0.05 * (time.monotonic() - t0) - 2e-3
+        assert o["velocity"] < -0.01  # closing (the finger speed itself is the robot's)
+
+
+def test_safe_state_open(robot):
+    with harness(safe_mode="open") as h:
+        drive(h, 0.03, 1.0)
+        h.comp.safe_state()
+        time.sleep(1.0)
+        assert robot.opening == pytest.approx(0.09, abs=1e-3)
+
+
+def test_no_controller():
+    t0 = time.monotonic()
+    configure_fails(harness(connect_timeout=0.5), r"no controller subscribes to /tiago/gripper_controller/joint_traj")
+    assert time.monotonic() - t0 < 3.0
+
+
+def test_wrong_joint_names(robot):
+    configure_fails(harness(connect_timeout=0.5, joint_names=["left", "right"]), r"messages without both joints")
+
+
+def test_robot_goes_silent(robot):
+    with harness(read_timeout=0.3) as h:
+        drive(h, 0.07, 0.2)
+        robot.publishing = False
+        t0 = time.monotonic()
+        with pytest.raises(HardwareError, match=r"/joint_states silent"):
+            drive(h, 0.07, 3.0)
+        assert time.monotonic() - t0 < 1.0
+
+
+def test_own_context_leaves_global_rclpy_alone(robot):
+    import rclpy
+
+    rclpy.init(domain_id=DOMAIN)  # as the ROS 2 bridge would in the same process
+    try:
+        with harness() as h:
+            drive(h, 0.08, 0.2)
+        assert rclpy.ok()  # the driver's shutdown did not touch the global context
+    finally:
+        rclpy.shutdown()
+    with harness() as h:  # and it works without any global context
+        o = drive(h, 0.07, 0.5)
+        assert o["opening"] == pytest.approx(0.07, abs=1e-3)
+    assert not rclpy.ok()
+    assert os.environ["ROS_DOMAIN_ID"] == str(DOMAIN)
+    assert math.isfinite(o["velocity"])
