@@ -247,6 +247,14 @@ def test_motor_saturation_is_counted(sdk_dir, standin):
         assert h.comp.status()["saturated"] == 1
 
 
+def test_sdk_error_codes_are_reported_with_the_sdk_message(sdk_dir, standin):
+    with harness(sdk_dir, button_index=9) as h:  # the stand-in has 4 buttons: the SDK answers -1
+        with pytest.raises(dhd.DhdError) as ei:
+            h.step(0.0)
+        assert ei.value.code == 15 and "dhdGetButton failed: invalid button index (error 15)" in str(ei.value)
+        assert not isinstance(ei.value, dhd.DeviceLostError)
+
+
 def test_com_freq_is_reported(sdk_dir, standin):
     standin.set_com_freq(3.9)
     with harness(sdk_dir) as h:

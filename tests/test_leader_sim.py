@@ -303,3 +303,25 @@ def test_intent_cue_input_reaches_the_intent():
         out = settle(h, 1.0, intent_cue=0.5)
         assert out["gripper_opening"] == pytest.approx(0.003, abs=3e-4)
         assert h.comp.state.extra["cue"] == 0.5
+
+
+@pytest.mark.parametrize("port,value", [("external_force", np.array([0.0, math.nan, 0.0])),
+                                        ("intent_opening", math.inf)])
+def test_non_finite_environment_inputs_fault_too(port, value):
+    with Harness(SimOmega7, {"intent": "hold"}) as h:
+        settle(h, 0.05, gripper_force=1.0)
+        with pytest.raises(ComponentFault, match="not finite"):
+            h.step(h.t + 1e-3, **{port: value})
+        assert h.comp.g_applied == 0.0 and h.comp.safe
+
+
+def test_bad_intent_in_a_graph_names_the_file_line_and_field():
+    from teletouch.errors import GraphValidationError
+    from teletouch.testing import load_text
+
+    reg = make_registry("teletouch.plugins.devices.sim_omega7")
+    text = GRAPH.replace("intent: {type: hold, opening: 12mm}", "intent: {type: close-and-hold, speed: -1}")
+    with pytest.raises(GraphValidationError) as ei:
+        load_text(text.replace("NAN_AT", "null"), reg)
+    msg = str(ei.value)
+    assert "<test>:" in msg and "intent.speed" in msg and "greater than 0" in msg

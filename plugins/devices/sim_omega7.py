@@ -168,13 +168,16 @@ class SimOmega7(Device):
         to = self.params.command_timeout
         if s is not None and (to is None or t - s.stamp <= to):
             x = float(s.value)
-            if math.isfinite(x):
-                prev = self._io_prev
-                if prev is not None and s.stamp > prev[0]:
-                    self._io_vel = (x - prev[1]) / (s.stamp - prev[0])
-                if prev is None or s.stamp != prev[0]:
-                    self._io_prev = (s.stamp, x)
-                return x, self._io_vel
+            if not math.isfinite(x):
+                self.faults += 1
+                self.safe_state()
+                raise ComponentFault(f"intent_opening is {x} (not finite)", self.id)
+            prev = self._io_prev
+            if prev is not None and s.stamp > prev[0]:
+                self._io_vel = (x - prev[1]) / (s.stamp - prev[0])
+            if prev is None or s.stamp != prev[0]:
+                self._io_prev = (s.stamp, x)
+            return x, self._io_vel
         return self.intent.desired(t, self.state)
 
     def step(self, t: float, inputs: Any) -> dict[str, Any]:
@@ -191,7 +194,9 @@ class SimOmega7(Device):
         if ext is not None:
             ext = np.asarray(ext, dtype=float).reshape(3)
             if not np.all(np.isfinite(ext)):
-                ext = None
+                self.faults += 1
+                self.safe_state()
+                raise ComponentFault(f"external_force {ext.tolist()} is not finite", self.id)
         dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
         self.last_t = t
         st = self.state
