@@ -304,3 +304,37 @@ def test_kill_9_mid_recording_keeps_everything_up_to_the_last_flush(tmp_path):
         assert n >= len(t)
     meta = rec.metadata["teletouch"]
     assert meta["clock"] == "wall" and json.loads(meta["flush_interval_s"]) <= 0.5
+
+
+def test_hand_written_cdr_equals_rclpy_serialization():
+    """The recorder writes CDR itself (fast); rclpy's own serializer gives the same bytes but for padding."""
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Bool, Float64, Int64, String
+
+    from teletouch.recording import _CODECS
+
+    def same(a: bytes, b: bytes) -> bool:
+        return len(a) == len(b) and deserialize_message(a, type_) == deserialize_message(b, type_)
+
+    stamp = 1_700_000_000_123_456_789
+    w = WrenchStamped()
+    w.header.stamp.sec, w.header.stamp.nanosec, w.header.frame_id = 1_700_000_000, 123_456_789, "abcd"
+    w.wrench.force.z = -2.5
+    type_ = WrenchStamped
+    assert same(_CODECS["wrench"]().encode(-2.5, stamp, "abcd"), serialize_message(w))
+    w.wrench.force.x, w.wrench.force.y = 1.0, 2.0
+    assert same(_CODECS["wrench"]().encode(np.array([1.0, 2.0, -2.5]), stamp, "abcd"), serialize_message(w))
+    for type_, kind, v in ((Float64, "float64", 3.25), (Int64, "int64", -7), (String, "string", "no-contact")):
+        assert same(_CODECS[kind]().encode(v, 0, ""), serialize_message(type_(data=v)))
+    type_ = Bool
+    for v in (True, False):
+        assert deserialize_message(_CODECS["bool"]().encode(v, 0, ""), Bool).data is v
+    type_ = Image
+    depth = np.arange(12, dtype=np.float32).reshape(3, 4) * 1e-4
+    im = Image()
+    im.header.stamp.sec, im.header.stamp.nanosec, im.header.frame_id = 1_700_000_000, 123_456_789, "x"
+    im.height, im.width, im.encoding, im.is_bigendian, im.step = 3, 4, "32FC1", 0, 16
+    im.data = depth.tobytes()
+    assert same(_CODECS["image"]().encode(depth, stamp, "x"), serialize_message(im))
