@@ -59,7 +59,8 @@ def run_graph(plugin: str, params: str, rate: float, duration: float, prio: int 
             .replace("PRIO", str(prio)))
     result, rt = run_yaml(text, reg, duration=duration)
     node = next(n for n in result.nodes if n.id == "leader")
-    out = {"status": result.status, "realtime_priority": prio, "rate_hz": rate, "achieved_rate_hz": round(node.achieved_rate, 1),
+    out = {"status": result.status, "realtime_priority": prio, "rate_hz": rate,
+           "achieved_rate_hz": round(node.achieved_rate, 1),
            "achieved_ratio": round(node.achieved_rate / rate, 4),
            "period_jitter_p99_us": None if node.period_jitter_p99_s is None
            else round(node.period_jitter_p99_s * 1e6, 1),

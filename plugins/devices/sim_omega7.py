@@ -58,8 +58,9 @@ class SimOmega7(Device):
     }
 
     class Params(Params):
-        intent: Any = Field("hold", validate_default=True, description="operator intent: a name (none | hold | close-and-hold | "
-                                                "trajectory | registered) or {type: NAME, ...its parameters}")
+        intent: Any = Field("hold", validate_default=True,
+                            description="operator intent: a name (none | hold | close-and-hold | "
+                                        "trajectory | registered) or {type: NAME, ...its parameters}")
         max_gripper_force: Newtons = Field(OMEGA7_MAX_GRIPPER_FORCE, ge=0, le=OMEGA7_MAX_GRIPPER_FORCE,
                                            description="gripper force limit", json_schema_extra=_u("N"))
         max_force: Newtons = Field(OMEGA7_MAX_FORCE, ge=0, le=OMEGA7_MAX_FORCE,
