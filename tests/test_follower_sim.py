@@ -141,13 +141,13 @@ def test_uses_sim_digit_gel_law(monkeypatch):
         return real(d, indenter, *a, **kw)
 
     monkeypatch.setattr(gel, "gel_force", spy)
-    p = {"object_width": 0.04, "indenter": "probe", "indenter_radius": "5mm", "indenter_tip_radius": "10mm"}
+    p = {"object_width": 0.04, "indenter": "probe", "indenter_radius": "5mm", "tip_radius": "10mm"}
     with Harness(SimGripper, p) as h:
         o, _ = run_to(h, 0.035, 0.0, 2.0)
     assert calls and all(c.kind == "probe" and c.radius == 0.005 and c.tip_radius == 0.010 for c in calls)
     assert o["contact_force"] == pytest.approx(real(o["indentation"], gel.Indenter.probe(0.005, 0.010)), rel=1e-9)
     # a stiffer gel is pressed in less by the same servo command
-    with Harness(SimGripper, dict(p, gel_modulus="2MPa")) as h:
+    with Harness(SimGripper, dict(p, modulus="2MPa")) as h:
         o2, _ = run_to(h, 0.035, 0.0, 2.0)
     assert o2["indentation"] < o["indentation"]
 
@@ -181,3 +181,37 @@ def test_graph_is_deterministic_and_reaches_contact():
     assert traces[0] == traces[1]
     assert max(r[2] for r in traces[0]) > 0.5  # the sine closes to 25 mm < 35 mm object
     assert min(r[1] for r in traces[0]) > 0.025
+
+
+SIM_DIGIT_GRAPH = """
+name: squeeze-sim-digit
+clock: sim
+duration: 1.5
+nodes:
+  - id: cmd
+    plugin: mock-sensor
+    rate: 100
+    params: {signal: constant, amplitude: 0.0375}
+  - id: gripper
+    plugin: sim-gripper
+    rate: 1kHz
+    params: {object_width: 40mm, object_stiffness: 5000, indenter: probe, indenter_radius: 5mm, tip_radius: 10mm}
+    inputs: {opening_command: cmd.value}
+  - id: digit
+    plugin: sim-digit
+    rate: 30
+    params: {indenter: probe, indenter_radius: 5mm, tip_radius: 10mm}
+    inputs: {indentation: gripper.indentation}
+"""
+
+
+def test_sim_digit_sees_what_the_fingers_squeeze():
+    """sim-gripper's indentation drives sim-digit; both give the same force for it (one gel model)."""
+    reg = make_registry(MOD, "teletouch.plugins.sensors.sim_digit")
+    res, rt = run_yaml(SIM_DIGIT_GRAPH, reg)
+    assert res.status == "ok", res.summary()
+    d = rt.latest("gripper", "indentation").value
+    f = rt.latest("gripper", "contact_force").value
+    assert d > 0.5e-3 and f > 0.5
+    assert rt.latest("digit", "gt_force").value == pytest.approx(f, rel=1e-9)
+    assert rt.latest("digit", "gt_max_depth").value == pytest.approx(d, rel=0.05)

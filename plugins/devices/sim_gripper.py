@@ -18,17 +18,25 @@ from pydantic import Field, model_validator
 from teletouch import Port, Sample, hookimpl
 from teletouch.units import Hertz, Meters, NewtonsPerMeter, Pascals
 
+from teletouch.plugins.sensors import gel as _gel  # numpy only
+
 from .follower_common import FOLLOWER_OUTPUTS, FollowerBase, FollowerParams, Reading, clamp
 from .follower_contact import blocked_opening, split_penetration
 
+DEFAULT_RADIUS = {"sphere": 0.003, "flat": 0.003, "probe": 0.005}  # sim-digit's defaults
+
 
 def load_gel_law(p: Any) -> tuple[Callable[[float], float], Any]:
-    """The fingertip gel's force law F(d) (sim-digit's ``gel_force``) for the object's surface as indenter."""
-    from teletouch.plugins.sensors import gel
-
-    indenter = gel.Indenter.parse(p.indenter, p.indenter_radius, p.indenter_tip_radius)
-    material = gel.GelMaterial(p.gel_modulus if p.gel_modulus is not None else gel.DEFAULT_MODULUS,
-                               gel.DEFAULT_POISSON, p.gel_thickness)
+    """The fingertip gel's force law F(d): sim-digit's ``gel_force`` with the same indenter and gel parameters."""
+    gel = _gel
+    radius = p.indenter_radius if p.indenter_radius is not None else DEFAULT_RADIUS[p.indenter]
+    if p.indenter == "probe":
+        indenter = gel.Indenter.probe(radius, p.tip_radius)
+    elif p.indenter == "sphere":
+        indenter = gel.Indenter.sphere(radius)
+    else:
+        indenter = gel.Indenter.flat(radius)
+    material = gel.GelMaterial(p.modulus, p.poisson, p.gel_thickness)
     gel_force = gel.gel_force
     return (lambda d: gel_force(d, indenter, material)), indenter
 
@@ -57,16 +65,18 @@ class SimGripper(FollowerBase):
         object_stiffness: NewtonsPerMeter | None = Field(None, gt=0, description="object compliance in series "
                                                          "with the gel (None: rigid)",
                                                          json_schema_extra={"unit": "N/m"})
+        # the gel, named and defaulted as sim-digit's parameters so that both nodes can share the same values
         indenter: Literal["sphere", "probe", "flat"] = Field("sphere", description="shape of the object's surface "
                                                              "where it presses into the gel (sim-digit's indenter)")
-        indenter_radius: Meters = Field(0.005, gt=0, description="indenter radius (sphere/flat; cylinder of the "
-                                        "probe)", json_schema_extra={"unit": "m"})
-        indenter_tip_radius: Meters | None = Field(None, gt=0, description="probe's tip radius (None: 10 mm)",
-                                                   json_schema_extra={"unit": "m"})
-        gel_modulus: Pascals | None = Field(None, gt=0, description="gel Young's modulus (None: sim-digit's "
-                                            "default, Shore 10A)", json_schema_extra={"unit": "Pa"})
-        gel_thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the thin-layer "
-                                             "correction (None: half space)", json_schema_extra={"unit": "m"})
+        indenter_radius: Meters | None = Field(None, gt=0, description="sphere/flat/probe radius (default 3 mm; "
+                                               "probe 5 mm), as sim-digit", json_schema_extra={"unit": "m"})
+        tip_radius: Meters = Field(0.010, gt=0, description="radius of the probe's curved tip",
+                                   json_schema_extra={"unit": "m"})
+        modulus: Pascals = Field(_gel.DEFAULT_MODULUS, gt=0, description="gel Young's modulus (Shore 10A ~0.41 MPa)",
+                                 json_schema_extra={"unit": "Pa"})
+        poisson: float = Field(0.5, ge=0, le=0.5, description="gel Poisson ratio")
+        gel_thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the bonded "
+                                             "thin-layer correction (None: half space)", json_schema_extra={"unit": "m"})
         gel_fingers: int = Field(1, ge=1, le=2, description="fingers with a gel pad (1: one DIGIT, the other rigid)")
 
         @model_validator(mode="after")
