@@ -344,7 +344,7 @@ def test_fault_elsewhere_drives_the_omega7_to_zero_force_and_brakes(sdk_dir, sta
     result, rt = run_yaml(graph("omega7", f"sdk_path: {sdk_dir}", duration=3.0, fail=", fail_at: 0.3"), reg)
     assert result.status == "fault"
     assert any(f.node == "force" for f in result.faults)
-    assert standin.lib.standin_get_writes() > 200
+    assert standin.lib.standin_get_writes() > 50  # it ran (0.3 s at 1 kHz, fewer on a loaded machine)
     applied, commanded = standin.forces()
     assert applied == [0.0] * 4 and commanded == [0.0] * 4
     fl = standin.flags()

@@ -114,9 +114,8 @@ static void advance(void) {
     if (target < 0) target = 0;
     if (target > 0.025) target = 0.025;
     double a = 1.0 - exp(-dt / GRIP_TAU);
-    double old = S.gap;
     S.gap += (target - S.gap) * a;
-    S.gap_vel = (S.gap - old) / dt;
+    S.gap_vel = (target - S.gap) / GRIP_TAU; /* the first-order model's derivative */
     double b = 1.0 - exp(-dt / HANDLE_TAU);
     for (int i = 0; i < 3; i++) S.pos[i] += (S.rest[i] + S.fa[i] / HANDLE_K - S.pos[i]) * b;
 }
