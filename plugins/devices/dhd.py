@@ -156,7 +156,7 @@ _ID = _c.c_byte  # C "char ID"
 
 # name: (restype, argtypes); every device call ends with the char ID
 _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
-    "dhdGetSDKVersion": (_c.c_int, [_c.POINTER(_c.c_int)] * 4),
+    "dhdGetSDKVersion": (None, [_c.POINTER(_c.c_int)] * 4),  # void
     "dhdErrorGetLast": (_c.c_int, []),
     "dhdErrorGetLastStr": (_c.c_char_p, []),
     "dhdGetDeviceCount": (_c.c_int, []),

@@ -164,9 +164,8 @@ long standin_get_calls(void) { return S.calls; }
 __attribute__((constructor)) static void init(void) { standin_reset(); }
 
 /* ------------------------------------------------------------------------------------------- vendor API */
-int dhdGetSDKVersion(int *major, int *minor, int *release, int *revision) {
+void dhdGetSDKVersion(int *major, int *minor, int *release, int *revision) {
     *major = 3; *minor = 17; *release = 0; *revision = 0;   /* "3.17.0-standin" */
-    return 0;
 }
 int dhdErrorGetLast(void) { return S.last_error; }
 const char *dhdErrorGetLastStr(void) { return S.last_str; }
