@@ -46,7 +46,8 @@ import numpy as np
 
 __all__ = [
     "Indenter", "GelMaterial", "gel_force", "height_map", "contact_radius", "indentation_for_contact_radius",
-    "shore_a_to_modulus", "contact_mask", "gel_surface", "GelSurface", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
+    "shore_a_to_modulus", "contact_mask", "gel_surface", "GelSurface", "radial_depth", "is_radial",
+    "support_radius", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
 ]
 
 #: Paper's unit: 17.15 px per mm at QVGA (320 x 240).
@@ -331,12 +332,75 @@ def contact_mask(indenter: Indenter, indentation_m: float, position_m: Sequence[
 
 @dataclass
 class GelSurface:
-    """Result of :func:`gel_surface`: full-size depth (m) and contact mask, and the window (r0, r1, c0, c1) outside
-    which both are zero."""
+    """Result of :func:`gel_surface`: full-size depth (m) and contact mask, the window (r0, r1, c0, c1) outside
+    which both are zero, and the indenter's axis in pixels (row, col)."""
 
     depth: np.ndarray
     mask: np.ndarray
     window: tuple[int, int, int, int]
+    center_px: tuple[float, float] = (0.0, 0.0)
+
+
+def is_radial(indenter: Indenter, tilt_rad: float = 0.0) -> bool:
+    """Whether the gel surface under this indenter is a function of the distance to its axis only."""
+    return indenter.kind == "sphere" or (indenter.kind in ("probe", "flat") and tilt_rad == 0.0)
+
+
+def support_radius(indenter: Indenter, indentation_m: float, tilt_rad: float = 0.0, deformation: bool = True
+                   ) -> float:
+    """Distance (m) from the axis beyond which the gel is undisturbed."""
+    d = float(indentation_m)
+    if d <= 0:
+        return 0.0
+    a_c = contact_radius(d, indenter, tilt_rad)
+    if not deformation:
+        if indenter.kind == "sphere":
+            return math.sqrt(max(2 * indenter.radius * min(d, indenter.radius) - min(d, indenter.radius) ** 2, 0))
+        return indenter.extent
+    return max(SAG_TAPER[1] * a_c, 0.0 if is_radial(indenter, tilt_rad) else indenter.extent)
+
+
+def _compose(face: np.ndarray, r: np.ndarray, d: float, indenter: Indenter, tilt_rad: float, deformation: bool
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (m) and contact from the face height above its lowest point and the distance to the axis."""
+    cap = np.maximum(d - face, 0.0)  # rigid intersection (0 where the face is inf)
+    a_c = contact_radius(d, indenter, tilt_rad)
+    full_face = indenter.kind in ("flat", "probe") and is_radial(indenter, tilt_rad) and a_c >= indenter.radius
+    if full_face:
+        inside = np.isfinite(face)
+    else:
+        # Hertz: the gel touches the face where it is within d/2 of the face's lowest point (r <= sqrt(R d))
+        inside = face <= d / 2.0
+    if not deformation:
+        return np.clip(cap, 0.0, d), inside
+    if full_face:
+        # outside the end face the gel sags like around a flat punch (Boussinesq), from the depth at the rim
+        a = indenter.radius
+        rim = d - float(indenter.profile(np.array(a)))
+        sag = rim * (2.0 / math.pi) * np.arcsin(np.clip(a / np.maximum(r, 1e-12), 0.0, 1.0))
+        limit = d
+    else:
+        a = a_c
+        sag = _hertz_sag(r, a_c, a_c * a_c / d)
+        limit = d / 2.0
+    # the gel is a layer on a rigid window, so its sag dies out sooner than a half space's: the half-space sag,
+    # tapered smoothly (cosine) to zero between SAG_TAPER[0] and SAG_TAPER[1] contact radii
+    t0, t1 = SAG_TAPER[0] * a, SAG_TAPER[1] * a
+    u = np.clip((r - t0) / max(t1 - t0, 1e-12), 0.0, 1.0)
+    sag = sag * (0.5 + 0.5 * np.cos(np.pi * u))
+    z = np.where(inside, cap, np.minimum(sag, limit))
+    return np.clip(z, 0.0, d), inside
+
+
+def radial_depth(indenter: Indenter, indentation_m: float, r_m: np.ndarray, deformation: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Depth (m) and contact (bool) at distances ``r_m`` from the axis, for an indenter where
+    :func:`is_radial` holds (float64 1-D profile; the same model as :func:`gel_surface`)."""
+    r = np.asarray(r_m, np.float64)
+    d = float(indentation_m)
+    if d <= 0:
+        return np.zeros_like(r), np.zeros(r.shape, bool)
+    return _compose(indenter.profile(r), r, d, indenter, 0.0, deformation)
 
 
 def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[float] = (0.0, 0.0),
@@ -354,15 +418,12 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         raise ValueError(f"m_per_px must be > 0, got {m_per_px!r}")
     depth = np.zeros((rows, cols), np.float32)
     mask = np.zeros((rows, cols), bool)
-    empty = GelSurface(depth, mask, (0, 0, 0, 0))
-    if d <= 0.0:
-        return empty
     cc = (cols - 1) / 2.0 + px / m_per_px
     rc = (rows - 1) / 2.0 + py / m_per_px
-    a_c = contact_radius(d, indenter, tilt_rad)
-    # window: the footprint plus the sag's reach (SAG_TAPER[1] contact radii, where the tapered sag ends)
-    sag_end = SAG_TAPER[1] * a_c
-    reach = (max(indenter.extent, sag_end) if deformation else indenter.extent) + 2 * m_per_px
+    empty = GelSurface(depth, mask, (0, 0, 0, 0), (rc, cc))
+    if d <= 0.0:
+        return empty
+    reach = support_radius(indenter, d, tilt_rad, deformation) + 2 * m_per_px
     rr = int(math.ceil(reach / m_per_px))
     r0, r1 = max(0, int(math.floor(rc)) - rr), min(rows, int(math.ceil(rc)) + rr + 1)
     c0, c1 = max(0, int(math.floor(cc)) - rr), min(cols, int(math.ceil(cc)) + rr + 1)
@@ -370,40 +431,23 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         return empty
     y = (np.arange(r0, r1, dtype=np.float64) - rc) * m_per_px
     x = (np.arange(c0, c1, dtype=np.float64) - cc) * m_per_px
-    X, Y = np.meshgrid(x, y)
-    face = indenter.surface_at(X, Y, tilt_rad)
-    cap = np.maximum(d - face, 0.0)  # rigid intersection (0 where the face is inf)
-    k = indenter.kind
-    untilted = tilt_rad == 0.0 or k == "sphere"
-    full_face = k in ("flat", "probe") and untilted and a_c >= indenter.radius
-    if full_face:
-        inside = np.isfinite(face)
-    else:
-        # Hertz: the gel touches the face where it is within d/2 of the face's lowest point (r <= sqrt(R d))
-        inside = face <= d / 2.0
-    if deformation:
-        r = np.hypot(X, Y)
-        if full_face:
-            # outside the end face the gel sags like around a flat punch (Boussinesq), from the depth at the rim
-            a = indenter.radius
-            rim = d - float(indenter.profile(np.array(a)))
-
-            def sag_fn(rr):
-                return rim * (2.0 / math.pi) * np.arcsin(np.clip(a / np.maximum(rr, 1e-12), 0.0, 1.0))
+    r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
+    if deformation and is_radial(indenter, tilt_rad):
+        # the (continuous) surface is a function of r: evaluate the model on a fine 1-D grid (1/16 px), interpolate
+        h = m_per_px / 16.0
+        grid = np.arange(0.0, reach + 2 * h, h)
+        zg, _ = radial_depth(indenter, d, grid, deformation)
+        z = np.interp(r, grid, zg)
+        # contact: where the face is within d/2 of its lowest point, or the whole end face
+        face = indenter.profile(r)
+        a_c = contact_radius(d, indenter, tilt_rad)
+        if indenter.kind in ("flat", "probe") and a_c >= indenter.radius:
+            inside = np.isfinite(face)
         else:
-            a = a_c
-            Req = a_c * a_c / d
-
-            def sag_fn(rr):
-                return _hertz_sag(rr, a_c, Req)
-        # the gel is a layer on a rigid window, so its sag dies out sooner than a half space's: the half-space sag,
-        # tapered smoothly (cosine) to zero between SAG_TAPER[0] and SAG_TAPER[1] contact radii
-        t0, t1 = SAG_TAPER[0] * a, SAG_TAPER[1] * a
-        u = np.clip((r - t0) / max(t1 - t0, 1e-12), 0.0, 1.0)
-        sag = sag_fn(r) * (0.5 + 0.5 * np.cos(np.pi * u))
-        z = np.where(inside, cap, np.minimum(sag, d / 2.0 if not full_face else d))
+            inside = face <= d / 2.0
     else:
-        z = cap
-    depth[r0:r1, c0:c1] = np.clip(z, 0.0, d)
+        X, Y = np.meshgrid(x, y)
+        z, inside = _compose(indenter.surface_at(X, Y, tilt_rad), r, d, indenter, tilt_rad, deformation)
+    depth[r0:r1, c0:c1] = z
     mask[r0:r1, c0:c1] = inside
-    return GelSurface(depth, mask, (r0, r1, c0, c1))
+    return GelSurface(depth, mask, (r0, r1, c0, c1), (rc, cc))

@@ -82,7 +82,7 @@ def median_background(folder: str | Path) -> np.ndarray:
 
 
 class OpticalRenderer:
-    """Renders the intensity change caused by a height map, over a window of the image.
+    """Renders the intensity change caused by a height map.
 
     ``gain`` (3,) scales each channel's response (per-unit variation); ``offset_px`` shifts the optical centre of the
     polynomial (per-unit variation of the LED placement), in pixels of this resolution.
@@ -92,26 +92,32 @@ class OpticalRenderer:
                  offset_px: tuple[float, float] = (0.0, 0.0)):
         rows, cols = shape
         self.shape = (int(rows), int(cols))
-        sy, sx = TABLE_ROWS / rows, TABLE_COLS / cols
-        y = (np.arange(rows, dtype=np.float64) + offset_px[1]) * sy
-        x = (np.arange(cols, dtype=np.float64) + offset_px[0]) * sx
-        X, Y = np.meshgrid(x, y)
-        # basis (rows, cols, 6): x^2, y^2, xy, x, y, 1
-        self.basis = np.stack([X * X, Y * Y, X * Y, X, Y, np.ones_like(X)], axis=-1).astype(np.float32)
+        self.sy, self.sx = TABLE_ROWS / rows, TABLE_COLS / cols
+        self.offset = (float(offset_px[0]), float(offset_px[1]))
         g = np.ones(3, np.float32) if gain is None else np.asarray(gain, np.float32).reshape(3)
         t = table.astype(np.float32) * g[:, None, None, None]
         flat = t[:, 0, _DIR_FLAT, :]  # (3, 6): the bin of a zero gradient
-        # table relative to the flat surface, laid out (bins*bins, 6, 3) for one gather per pixel
-        self.rel = np.ascontiguousarray((t - flat[:, None, None, :]).transpose(1, 2, 3, 0).reshape(BINS * BINS, 6, 3))
+        # table relative to the flat surface, one row of 18 per bin: coefficient j of channel k at column 3 j + k
+        rel = (t - flat[:, None, None, :]).transpose(1, 2, 3, 0).reshape(BINS * BINS, 18)
+        self.rel = np.ascontiguousarray(rel)
         self.flat_index = 0 * BINS + _DIR_FLAT
 
-    def bins(self, gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def bins(gr: np.ndarray, gc: np.ndarray) -> np.ndarray:
         """Flat table index (m_bin * bins + d_bin) of slopes gr = dz/drow, gc = dz/dcol (dimensionless)."""
         m = np.arctan(np.sqrt(gr * gr + gc * gc))
         d = np.arctan2(gr, gc)
         mb = np.minimum((m * (124.0 / (0.5 * math.pi))).astype(np.int32), BINS - 1)
         db = np.minimum(((d + math.pi) * (124.0 / (2 * math.pi))).astype(np.int32), BINS - 1)
         return mb * BINS + db
+
+    def shade(self, index: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Intensity change (float32 (n, 3), BGR) of table bins ``index`` at pixels (rows, cols) of this image."""
+        x = ((cols.astype(np.float32) + np.float32(self.offset[0])) * np.float32(self.sx))[:, None]
+        y = ((rows.astype(np.float32) + np.float32(self.offset[1])) * np.float32(self.sy))[:, None]
+        c = self.rel[index]
+        # c0 x^2 + c1 y^2 + c2 x y + c3 x + c4 y + c5, in Horner form
+        return c[:, 15:18] + x * (c[:, 9:12] + x * c[:, 0:3] + y * c[:, 6:9]) + y * (c[:, 12:15] + y * c[:, 3:6])
 
     def delta(self, depth_m: np.ndarray, m_per_px: float, window: tuple[int, int, int, int] | None = None
               ) -> np.ndarray:
@@ -128,9 +134,42 @@ class OpticalRenderer:
         # slopes in the first angle bin (< 0.73 deg) render as the flat gel: that bin's direction is meaningless
         sel = np.flatnonzero(idx >= BINS)
         if sel.size:
-            coef = self.rel[idx[sel]]  # (n, 6, 3)
-            b = self.basis[r0:r1, c0:c1].reshape(-1, 6)[sel]
-            out[sel] = np.einsum("nj,njk->nk", b, coef)
+            w = c1 - c0
+            out[sel] = self.shade(idx[sel], sel // w + r0, sel % w + c0)
         return out.reshape(r1 - r0, c1 - c0, 3)
+
+
+class RadialBlur:
+    """Exact 2-D Gaussian blur of a radially symmetric profile sampled every ``h`` px from r = 0, as a banded
+    matrix: g(r) = int f(r') r' / s^2 exp(-(r - r')^2 / 2 s^2) i0e(r r' / s^2) dr' (rows normalised to 1)."""
+
+    def __init__(self, sigma_px: float, h: float, n: int):
+        from scipy.special import i0e
+
+        self.h, self.n = h, n
+        half = int(math.ceil(4.0 * sigma_px / h)) if sigma_px > 0 else 0
+        offs = np.arange(-half, half + 1)
+        i = np.arange(n)[:, None]
+        j = i + offs[None, :]
+        valid = (j >= 0) & (j < n)
+        jc = np.clip(j, 0, n - 1)
+        if sigma_px > 0:
+            r, rp = i * h, jc * h
+            s2 = sigma_px * sigma_px
+            w = np.where(valid, rp / s2 * np.exp(-((r - rp) ** 2) / (2 * s2)) * i0e(r * rp / s2), 0.0)
+            w[0] = np.where(offs == 0, 1.0, 0.0) if w[0].sum() <= 0 else w[0]
+            w /= w.sum(axis=1, keepdims=True)
+        else:
+            w = (offs[None, :] == 0).astype(np.float64) * np.ones((n, 1))
+        self.index = jc.astype(np.int32)
+        self.weight = w.astype(np.float32)
+
+    def __call__(self, f: np.ndarray) -> np.ndarray:
+        m = f.shape[0]
+        if m > self.n:
+            raise ValueError(f"profile of {m} samples is longer than the blur's {self.n}")
+        idx = np.minimum(self.index[:m], m - 1)
+        return (f[idx] * self.weight[:m]).sum(axis=1)
+
 
 _DIR_FLAT = int((0.0 + math.pi) * (124.0 / (2 * math.pi)))  # direction bin of atan2(0, 0) = 0 -> 62

@@ -83,6 +83,12 @@ class DigitSimulator:
         if self.noise > 0:
             self._noise_bank = np.clip(np.rint(self.rng.normal(0.0, self.noise, (8, *self.shape, 3))),
                                        -127, 127).astype(np.int16)
+        # radial renderer: profiles sampled every 1/4 px, blurred exactly (see optics.RadialBlur)
+        self._h = 0.25
+        reach = math.hypot(*self.shape) + 8 * self.smoothing_px + 8
+        self._blur = optics.RadialBlur(self.smoothing_px, self._h, int(math.ceil(reach / self._h)) + 1)
+        self._bg_flat = self.background.reshape(-1, 3)
+        self.fast = True  # use the radial renderer where the surface is radial (False: the generic 2-D path)
         self._key: tuple | None = None
         self._clean: np.ndarray = self.background_u8
         self._surface = _gel.gel_surface(self.indenter, 0.0, (0.0, 0.0), 0.0, self.shape, self.m_per_px)
@@ -95,8 +101,14 @@ class DigitSimulator:
     def force(self, indentation: float, tilt: float = 0.0) -> float:
         return _gel.gel_force(indentation, self.indenter, self.material, tilt_rad=tilt)
 
-    def clean_image(self, surf: _gel.GelSurface) -> np.ndarray:
-        """The noise-free frame (uint8) for a gel surface."""
+    def clean_image(self, surf: _gel.GelSurface, indentation: float | None = None, tilt: float = 0.0
+                    ) -> np.ndarray:
+        """The noise-free frame (uint8) for a gel surface (``indentation`` given: the radial renderer may be used)."""
+        if (self.fast and indentation is not None and indentation > 0
+                and _gel.is_radial(self.indenter, tilt)):
+            img = self._radial_image(indentation, surf.center_px)
+            if img is not None:
+                return img
         img = self.background_u8.copy()
         r0, r1, c0, c1 = surf.window
         if r1 <= r0 or c1 <= c0:
@@ -115,13 +127,59 @@ class DigitSimulator:
                                             ).astype(np.uint8)
         return img
 
+    def _radial_image(self, d: float, center_px: tuple[float, float]) -> np.ndarray | None:
+        """Render a radially symmetric surface from its 1-D profile: exact blur, analytic slopes, and only the
+        pixels whose slope reaches the table's second angle bin are shaded. None if the profile is too long."""
+        h, mpp = self._h, self.m_per_px
+        rows, cols = self.shape
+        rc, cc = center_px
+        sup = _gel.support_radius(self.indenter, d, 0.0, self.deformation) / mpp
+        n = int(math.ceil((sup + 4 * self.smoothing_px + 2) / h)) + 1
+        if n > self._blur.n:
+            return None
+        grid = np.arange(n) * h
+        z, _ = _gel.radial_depth(self.indenter, d, grid * mpp, self.deformation)
+        g = self._blur(z * (1.0 / mpp))
+        slope = np.gradient(g, h)
+        mbg = np.minimum((np.arctan(np.abs(slope)) * (124.0 / (0.5 * math.pi))).astype(np.int32), 124)
+        nz = np.flatnonzero(mbg >= 1)
+        img = self.background_u8.copy()
+        if nz.size == 0:
+            return img
+        r_lim = (nz[-1] + 1) * h
+        r0, r1 = max(0, int(math.floor(rc - r_lim))), min(rows, int(math.ceil(rc + r_lim)) + 1)
+        c0, c1 = max(0, int(math.floor(cc - r_lim))), min(cols, int(math.ceil(cc + r_lim)) + 1)
+        if r0 >= r1 or c0 >= c1:
+            return img
+        dy = (np.arange(r0, r1) - rc).astype(np.float32)
+        dx = (np.arange(c0, c1) - cc).astype(np.float32)
+        r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
+        i = np.minimum((r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32), n - 1).ravel()
+        mb = mbg[i]
+        sel = np.flatnonzero(mb >= 1)
+        if sel.size == 0:
+            return img
+        w = c1 - c0
+        sr, sc = sel // w, sel % w
+        # the depth falls away from the axis, so its gradient points at the axis: the table's direction bin
+        # floor((atan2(gr, gc) + pi) / (2 pi / 124)) is the bin of the pixel's own angle around the axis in [0, 2 pi)
+        ang = np.arctan2(dy[sr], dx[sc])
+        ang = ang + np.where(slope[i[sel]] > 0, np.float32(math.pi), np.float32(0.0))  # rising: reversed
+        ang = np.mod(ang, np.float32(2 * math.pi))
+        db = np.minimum((ang * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124)
+        delta = self.renderer.shade(mb[sel] * 125 + db, sr + r0, sc + c0)
+        gidx = (sr + r0) * cols + (sc + c0)
+        flat = img.reshape(-1, 3)
+        flat[gidx] = np.clip(self._bg_flat[gidx] + delta + np.float32(0.5), 0, 255).astype(np.uint8)
+        return img
+
     def render(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0, t: float = 0.0
                ) -> tuple[np.ndarray, _gel.GelSurface]:
         d = max(float(indentation), 0.0)
         key = (d, float(position[0]), float(position[1]), float(tilt)) if d > 0 else (0.0,)
         if key != self._key:
             self._surface = self.surface(d, position, tilt)
-            self._clean = self.clean_image(self._surface)
+            self._clean = self.clean_image(self._surface, d, float(tilt))
             self._key = key
             self.renders += 1
         img = self._clean
