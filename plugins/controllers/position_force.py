@@ -199,6 +199,14 @@ class _CommonParams(Params):
                                              json_schema_extra={"unit": "s"})
     velocity_cutoff: float = Field(50.0, gt=0, description="low-pass of differentiated velocities",
                                    json_schema_extra={"unit": "Hz"})
+    leader_damping: NewtonSecondsPerMeter = Field(0.0, ge=0, description="constant damping rendered on the leader "
+                                                  "(passive; helps the slow force loop)",
+                                                  json_schema_extra={"unit": "N*s/m"})
+    free_space_reset: Seconds | None = Field(0.2, gt=0, description="while no force is exchanged an energy "
+                                             "deficit is forgiven with this time constant (null: never)",
+                                             json_schema_extra={"unit": "s"})
+    damping_smoothing: Seconds = Field(0.005, ge=0, description="time constant of the passivity damping's rise "
+                                       "(0: the exact one-step TDPA value)", json_schema_extra={"unit": "s"})
 
     @model_validator(mode="after")
     def _check(self) -> "_CommonParams":
@@ -291,10 +299,20 @@ class _Bilateral(Component):
             f_fb = 0.0
             if self.state != "waiting":
                 self.state = "stale-leader"
+        if p.leader_damping > 0.0 and self.leader_ok:
+            free = f_fb == 0.0
+            f_fb -= p.leader_damping * v
+        else:
+            free = f_fb == 0.0
         alpha = 0.0
         f_des = f_fb
         if p.passivity and self.leader_ok:
+            if free and self.pas.energy < 0.0 and p.free_space_reset and dt > 0:
+                self.pas.energy *= math.exp(-dt / p.free_space_reset)
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time)
+            if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
+                alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
+                f_des = f_fb - alpha * v
         # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness
         if self.leader_ok:
             self.leader_fade_rate = None
