@@ -549,12 +549,15 @@ class Recorder:
     Parameters: ``image_format`` "png" (lossless, default: a replay gives the same force) or "jpeg";
     ``flush_interval`` seconds between flushes (at most this much plus the writer's backlog is lost on a crash);
     ``ros_encoding`` False writes JSON everywhere (also the fallback when the ROS 2 message packages are missing);
-    ``max_queue`` items waiting for the writer before new ones are dropped (counted, reported at close).
+    ``max_queue`` items (or ``max_queue_bytes`` of arrays) waiting for the writer before new ones are dropped
+    (counted, reported at close; 0: no limit);
+    ``encode_threads`` threads compress images in parallel (cv2 releases the GIL; capped at the CPU count).
     """
 
     def __init__(self, path: str | os.PathLike, spec: Any = None, *, image_format: str = "png",
                  jpeg_quality: int = 90, flush_interval: float = FLUSH_INTERVAL, ros_encoding: bool | None = None,
-                 max_queue: int = 20000, log: Callable[[str], None] | None = None):
+                 max_queue: int = 20000, max_queue_bytes: int = 512 * 2**20, encode_threads: int = 4,
+                 log: Callable[[str], None] | None = None):
         from mcap.writer import CompressionType, Writer
 
         if image_format not in ("png", "jpeg"):
@@ -569,6 +572,11 @@ class Recorder:
         self.opts = {"image_format": image_format, "jpeg_quality": jpeg_quality}
         self.log = log or (lambda m: print(f"[recording] {m}", file=sys.stderr))
         self.max_queue = int(max_queue)
+        self.encode_threads = int(encode_threads)
+        self.max_queue_bytes = int(max_queue_bytes)
+        self._queued_bytes = 0
+        self._bytes_lock = threading.Lock()
+        self._lag_warned = False
         self.clock = getattr(spec, "clock", "wall")
         self._ports = self._port_table(spec)
         try:
@@ -614,14 +622,23 @@ class Recorder:
             return
         if self._epoch_ns is None:
             self._set_epoch(t)
+        nbytes = 0
+        for v in outputs.values():
+            if v.__class__ is Sample:
+                v = v.value
+            if v.__class__ is np.ndarray:
+                nbytes += v.nbytes
         if self.max_queue:
             n = self._q.qsize()
             if n > self.max_backlog:
                 self.max_backlog = n
-            if n >= self.max_queue:
+            if n >= self.max_queue or (nbytes and self._queued_bytes + nbytes > self.max_queue_bytes):
                 self.dropped += len(outputs)
                 return
-        self._q.put((node_id, t, dict(outputs)))
+        if nbytes:
+            with self._bytes_lock:
+                self._queued_bytes += nbytes
+        self._q.put((node_id, t, dict(outputs), nbytes))
 
     def close(self) -> None:
         """Write everything queued, the summary and the footer; close the file. Idempotent."""
@@ -665,7 +682,7 @@ class Recorder:
                 # wall clock: graph time t is "now", so epoch = Unix time of graph time 0. sim clock: graph time is
                 # not real time; graph time 0 is placed at the first recorded step's Unix time.
                 epoch = time.time_ns() - (int(round(t * 1e9)) if self.clock == "wall" else 0)
-                self._q.put(("__epoch__", epoch, None))
+                self._q.put(("__epoch__", epoch, None, 0))
                 self._epoch_ns = epoch
 
     def _schema(self, ros_type: str | None) -> int:
@@ -697,12 +714,15 @@ class Recorder:
             self._chans[(node, port)] = ch
         return ch
 
-    def _write_one(self, node: str, t: float, port: str, v: Any) -> None:
+    def _prepare(self, node: str, t: float, port: str, v: Any) -> tuple[int, int, int, Any, str]:
+        """(channel id, log ns, publish ns, encoded bytes or a Future of them, what) for one value. Images are
+        encoded by the pool (cv2 releases the GIL), everything else here."""
         stamp = t
         if v.__class__ is Sample:
             stamp, v = v.stamp, v.value
         epoch = self._epoch_ns or 0
         stamp_ns = epoch + int(round(stamp * 1e9))
+        log_ns = epoch + int(round(t * 1e9))
         ch = self._channel(node, port, v)
         codec, cid = ch.codec, ch.id
         if isinstance(v, np.ndarray) and v.shape == () and not isinstance(codec, _Json):
@@ -711,42 +731,86 @@ class Recorder:
             if ch.fallback is None:
                 ch.fallback = self._register(node, port, _Json(), suffix="/json")
             codec, cid = _Json(), ch.fallback
-        data = codec.encode(v, stamp_ns, node)
-        self._seq += 1
-        self._writer.add_message(cid, log_time=max(0, epoch + int(round(t * 1e9))), data=data,
-                                 publish_time=max(0, stamp_ns), sequence=self._seq)
-        self.messages += 1
+        what = f"{node}.{port} at t={t:.3f}"
+        if codec.kind in ("compressed", "json-image") and self._pool is not None:
+            return cid, log_ns, stamp_ns, self._pool.submit(codec.encode, v, stamp_ns, node), what
+        return cid, log_ns, stamp_ns, codec.encode(v, stamp_ns, node), what
+
+    def _emit(self, wait: bool) -> None:
+        """Write the prepared messages in order, as far as they are encoded (all of them if ``wait``)."""
+        pend = self._pending
+        while pend:
+            cid, log_ns, pub_ns, data, what = pend[0]
+            if not isinstance(data, (bytes, bytearray)):
+                if not wait and not data.done() and len(pend) <= self._max_inflight:
+                    return
+                try:
+                    data = data.result()
+                except Exception as exc:
+                    pend.popleft()
+                    self._error(what, exc)
+                    continue
+            pend.popleft()
+            self._seq += 1
+            self._writer.add_message(cid, log_time=max(0, log_ns), data=data, publish_time=max(0, pub_ns),
+                                     sequence=self._seq)
+            self.messages += 1
+
+    def _error(self, what: str, exc: BaseException) -> None:
+        if len(self.errors) < 100:
+            self.errors.append(f"{what}: {type(exc).__name__}: {exc}")
 
     def _run(self) -> None:
+        from collections import deque
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pending: deque = deque()
+        workers = max(1, min(self.encode_threads, os.cpu_count() or 1))
+        self._pool = ThreadPoolExecutor(workers, thread_name_prefix="teletouch-encode") if workers > 1 else None
+        self._max_inflight = 4 * workers
         try:
             self._loop()
         except Exception as exc:  # the file cannot be written (disk full, ...): stop recording, say so at close
             self.fatal = f"{type(exc).__name__}: {exc}"
             self.log(f"recording stopped: {self.fatal}")
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(wait=True)
 
     def _loop(self) -> None:
         q = self._q
         next_flush = time.monotonic() + self.flush_interval
         while True:
             try:
-                item = q.get(timeout=max(0.0, next_flush - time.monotonic()))
+                item = q.get(timeout=max(0.0, min(next_flush - time.monotonic(), 0.005 if self._pending else 1.0)))
             except queue.Empty:
                 item = None
             if item is _STOP:
+                self._emit(wait=True)
                 return
             if item is not None:
-                node, t, outputs = item
+                node, t, outputs, nbytes = item
+                if nbytes:
+                    with self._bytes_lock:
+                        self._queued_bytes -= nbytes
                 if node == "__epoch__":
                     self._writer.add_metadata("teletouch.time", {"graph_epoch_ns": str(int(t)),
                                                                  "clock": str(self.clock)})
                 else:
                     for port, v in outputs.items():
                         try:
-                            self._write_one(node, t, port, v)
+                            self._pending.append(self._prepare(node, t, port, v))
                         except Exception as exc:  # keep recording the other ports
-                            if len(self.errors) < 100:
-                                self.errors.append(f"{node}.{port} at t={t:.3f}: {type(exc).__name__}: {exc}")
+                            self._error(f"{node}.{port} at t={t:.3f}", exc)
+                    if self.clock == "wall" and not self._lag_warned and self._epoch_ns is not None:
+                        lag = (time.time_ns() - self._epoch_ns) * 1e-9 - t
+                        if lag > 1.0:
+                            self._lag_warned = True
+                            self.log(f"the writer is {lag:.1f} s behind the graph: a crash would lose more than "
+                                     f"1 s (image_format: jpeg is ~10x cheaper than png)")
+            self._emit(wait=False)
             if time.monotonic() >= next_flush:
+                self._emit(wait=True)
                 self._writer.flush()  # closes the chunk in progress and flushes the file
                 next_flush = time.monotonic() + self.flush_interval
 
