@@ -119,3 +119,13 @@ def test_killed_publisher_makes_the_controller_fade_the_force(tmp_path):
     pushed = np.median(ov[(ot > kill_t - 0.5) & (ot < kill_t - 0.05)])
     released = np.median(ov[ot > kill_t + 1.0])
     assert pushed - released == pytest.approx(1.98 / 300.0, abs=1e-3)
+
+
+def test_split_control_example_validates(repo_root):
+    from teletouch.graph import load_graph
+
+    spec = load_graph(str(repo_root / "examples" / "split-control.yaml"))
+    assert spec.node("ros").plugin == "ros2-subscribe" and spec.node("ctrl").inputs["force"].node == "ros"
+    sim = load_graph(str(repo_root / "examples" / "split-control.yaml"),
+                     sets=["leader.plugin=sim-omega7", "follower.plugin=sim-gripper"])
+    assert sim.node("leader").plugin == "sim-omega7"
