@@ -171,6 +171,15 @@ def test_servo_stops_answering_then_fault_or_recovery(emu):
         emu.silent = False
 
 
+def test_late_answer_is_not_taken_for_state(emu):
+    with harness(emu) as h:
+        drive(h, 0.05, 0.3)
+        emu.late_answers = 1
+        o = drive(h, 0.05, 0.2)
+        assert h.comp.comm_failures == 1 and "stale or short" in h.comp.last_comm_error
+        assert o["opening"] == pytest.approx(0.05, abs=1e-3)
+
+
 def test_corrupt_answers_fault(emu):
     with harness(emu, read_timeout=0.2) as h:
         drive(h, 0.05, 0.1)

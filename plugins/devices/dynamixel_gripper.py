@@ -240,6 +240,13 @@ class DynamixelGripper(FollowerBase):
             self.comm_failures += 1
             self.last_comm_error = self.ph.getTxRxResult(result)
             return None
+        if len(self.gsr.data_dict.get(p.dxl_id) or ()) != self._rd_len:
+            # a late status packet of an earlier, timed-out request was taken as this one's answer
+            self.comm_failures += 1
+            self.last_comm_error = f"stale or short status packet ({len(self.gsr.data_dict.get(p.dxl_id) or ())} " \
+                                   f"of {self._rd_len} bytes)"
+            self.port.clearPort()
+            return None
 
         def get(item: Item) -> int:
             return _signed(self.gsr.getData(p.dxl_id, item[0], item[1]), item[1])

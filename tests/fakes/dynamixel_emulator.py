@@ -157,6 +157,7 @@ class DynamixelEmulator:
         self.corrupt_crc = False     # answer with a wrong CRC
         self.status_error = 0        # error byte added to every status packet
         self.write_error = 0         # error byte answered to every WRITE (the write is not applied)
+        self.late_answers = 0        # answer this many SYNC_READs with a late 1-byte status first (as after a timeout)
         # observation
         self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
         self.raw_rx = bytearray()
@@ -318,6 +319,9 @@ class DynamixelEmulator:
             elif inst == INST_SYNC_READ:
                 addr, n = struct.unpack_from("<HH", params)
                 if self.id in params[4:]:
+                    if self.late_answers > 0:
+                        self.late_answers -= 1
+                        self._reply(0, 0, bytes(self.mem[70:71]))  # a late answer to an earlier 1-byte READ
                     self._reply(len(pkt), 0, bytes(self.mem[addr:addr + n]))
             elif inst == INST_REBOOT:
                 self._reply(len(pkt), 0, b"")

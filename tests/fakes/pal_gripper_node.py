@@ -169,3 +169,30 @@ class PalGripperNode:
                     msg.effort = list(self.effort) + [0.0]
                     self.pub.publish(msg)
                     self.published += 1
+
+
+def main(argv=None) -> int:
+    """Run the simulated gripper in its own process until stdin closes (benchmarks: no GIL shared with the driver)."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(description="simulated PAL gripper controller")
+    ap.add_argument("--namespace", default="")
+    ap.add_argument("--domain-id", type=int, default=0)
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--velocity-limit", type=float, default=0.05)
+    ap.add_argument("--opening", type=float, default=0.09)
+    a = ap.parse_args(argv)
+    node = PalGripperNode(a.namespace, domain_id=a.domain_id, rate=a.rate, velocity_limit=a.velocity_limit,
+                          opening=a.opening).start()
+    print("ready", flush=True)
+    try:
+        sys.stdin.read()
+    except KeyboardInterrupt:
+        pass
+    node.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,190 @@
+"""Follower drivers against their emulators: command-to-state round trip and achievable update rate, side by side.
+
+    python benchmarks/follower_latency.py [--quick]
+
+Transports: pal-gripper over ROS 2 (DDS on loopback, the simulated controller in its own process publishing
+/joint_states at 1 kHz),
+dynamixel-gripper over a pseudo-terminal at 57600 and 1000000 baud (the emulated servo waits the bytes' wire time),
+canopen-gripper on python-can's virtual bus (SYNC -> TPDO), and sim-gripper as the in-process reference.
+
+- round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware path (``_hw_write``), then reads state
+  (``_hw_read``) back to back until a state reflects it (the emulated actuators move instantly here); the time in
+  between, per command.
+- update rate: full ``step()`` calls (read state + send command) back to back for a while; ``fresh_state_hz`` counts
+  only steps that got a new measurement (ROS 2 state arrives asynchronously at the publisher's rate).
+
+Prints one JSON object as its last line. Absolute times depend on the machine (a shared 2-core box here); compare the
+ratios between transports measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+import time
+import uuid
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+os.environ.setdefault("ROS_LOCALHOST_ONLY", "1")
+DOMAIN = int(os.environ.get("TELETOUCH_BENCH_ROS_DOMAIN", "63"))
+
+from fakes.canopen_drive import Cia402Drive  # noqa: E402
+from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
+
+from teletouch.component import Context, Inputs, Sample, _Slot  # noqa: E402
+
+
+class PalProcess:
+    """The simulated PAL gripper in its own process (as the robot is another machine): no GIL shared with the driver."""
+
+    def __init__(self, domain: int, rate: float):
+        import subprocess
+
+        self.proc = subprocess.Popen(
+            [sys.executable, str(ROOT / "tests" / "fakes" / "pal_gripper_node.py"), "--domain-id", str(domain),
+             "--rate", str(rate), "--velocity-limit", "1000"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            text=True)
+        if self.proc.stdout.readline().strip() != "ready":
+            self.stop()
+            raise RuntimeError("simulated PAL gripper did not start")
+
+    def stop(self) -> None:
+        try:
+            self.proc.stdin.close()
+            self.proc.wait(timeout=5)
+        except Exception:
+            self.proc.kill()
+
+
+def percentile(xs, q):
+    xs = sorted(xs)
+    return xs[min(len(xs) - 1, int(q * (len(xs) - 1) + 0.5))]
+
+
+def make(cls, params):
+    ctx = Context(clock_kind="wall")
+    comp = cls(params, node_id=cls.name, ctx=ctx)
+    slot = _Slot()
+    return comp, slot, Inputs({"opening_command": slot})
+
+
+def round_trips(comp, n, a=0.03, b=0.06, tol=5e-4, timeout=0.5):
+    out = []
+    failures = 0
+    for k in range(n):
+        target = a if k % 2 == 0 else b
+        t0 = time.perf_counter()
+        comp._hw_write(target)
+        while True:
+            r = comp._hw_read()
+            now = time.perf_counter()
+            if r is not None and abs(r.opening - target) < tol:
+                out.append(now - t0)
+                break
+            if now - t0 > timeout:
+                failures += 1
+                break
+            time.sleep(20e-6)  # let the driver's own threads (rclpy executor, CAN notifier) take the GIL
+    return out, failures
+
+
+def update_rate(comp, slot, inputs, seconds):
+    t_end = time.perf_counter() + seconds
+    steps = fresh = 0
+    last_stamp = None
+    durations = []
+    t_start = time.perf_counter()
+    while True:
+        t0 = time.perf_counter()
+        if t0 >= t_end:
+            break
+        slot.sample = Sample(0.05 + 0.01 * math.sin(t0), t0)
+        out = comp.step(t0 - t_start, inputs)
+        durations.append(time.perf_counter() - t0)
+        steps += 1
+        stamp = comp._last_reading.mono if comp._last_reading is not None else None
+        if stamp is None or stamp != last_stamp:
+            fresh += 1
+            last_stamp = stamp
+        assert math.isfinite(out["opening"].value)
+    elapsed = time.perf_counter() - t_start
+    return {"update_rate_hz": steps / elapsed, "fresh_state_hz": fresh / elapsed,
+            "step_ms_p50": percentile(durations, 0.5) * 1e3, "step_ms_p99": percentile(durations, 0.99) * 1e3}
+
+
+def bench(name, cls, params, n, seconds, setup=None, round_trip=True):
+    emu = setup() if setup else None
+    comp, slot, inputs = make(cls, params(emu) if callable(params) else params)
+    try:
+        comp.configure()
+        comp.activate()
+        rts, failures = round_trips(comp, n) if round_trip else ([], 0)
+        res = {"round_trip_ms_p50": percentile(rts, 0.5) * 1e3 if rts else None,
+               "round_trip_ms_p90": percentile(rts, 0.9) * 1e3 if rts else None,
+               "round_trip_ms_max": max(rts) * 1e3 if rts else None,
+               "round_trip_mean_ms": statistics.fmean(rts) * 1e3 if rts else None,
+               "round_trips": len(rts), "round_trip_timeouts": failures}
+        res.update(update_rate(comp, slot, inputs, seconds))
+    finally:
+        try:
+            comp.safe_state()
+            comp.deactivate()
+        finally:
+            comp.close()
+            if emu is not None:
+                emu.stop()
+    rt = "n/a" if not rts else f"p50 {res['round_trip_ms_p50']:.3f} ms, p90 {res['round_trip_ms_p90']:.3f} ms"
+    print(f"{name:>22}: round trip {rt}; update {res['update_rate_hz']:.0f} Hz "
+          f"(fresh state {res['fresh_state_hz']:.0f} Hz), {failures} timeouts", file=sys.stderr)
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer round trips, shorter rate runs")
+    args = ap.parse_args(argv)
+    n, seconds = (40, 0.5) if args.quick else (200, 2.0)
+
+    from teletouch.plugins.devices.canopen_gripper import CanopenGripper
+    from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
+    from teletouch.plugins.devices.pal_gripper import PalGripper
+    from teletouch.plugins.devices.sim_gripper import SimGripper
+
+    fast = {"max_speed": 100.0, "max_opening": 0.08}  # the rate test moves at most 10 mm; speed limit off here
+    results = {}
+    # in-process model: no transport, so no round trip; its step rate is the reference for the drivers' overhead
+    results["sim-gripper"] = bench("sim-gripper", SimGripper, dict(fast, object_width=None, bandwidth=1e6),
+                                   n, seconds, round_trip=False)
+    for baud in (57600, 1000000):
+        results[f"dynamixel-{baud}"] = bench(
+            f"dynamixel @ {baud}", DynamixelGripper,
+            lambda emu, baud=baud: dict(fast, port=emu.port, baudrate=baud),
+            n, seconds, setup=lambda: DynamixelEmulator(15, position=1024, speed=1e9).start())
+    ch = f"bench-{uuid.uuid4().hex[:8]}"
+    results["canopen-virtual"] = bench(
+        "canopen (virtual CAN)", CanopenGripper, dict(fast, interface="virtual", channel=ch, node_id=4),
+        n, seconds, setup=lambda: Cia402Drive(4, ch, position=0).start())
+    results["pal-ros2-loopback"] = bench(
+        "pal (ROS 2 loopback)", PalGripper, dict(fast, domain_id=DOMAIN, time_from_start=0.001, connect_timeout=10.0),
+        n, seconds, setup=lambda: PalProcess(DOMAIN, 1000.0))
+
+    ref = results["dynamixel-1000000"]["round_trip_ms_p50"]
+    ratios = {k: (v["round_trip_ms_p50"] / ref if v["round_trip_ms_p50"] else None) for k, v in results.items()}
+    out = {"benchmark": "follower_latency", "quick": args.quick, "round_trips_per_driver": n,
+           "rate_seconds": seconds, "results": results,
+           "round_trip_p50_ratio_to_dynamixel_1mbaud": ratios,
+           "note": "emulators on this machine; absolute ms are context, compare ratios"}
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
