@@ -47,13 +47,15 @@ import numpy as np
 __all__ = [
     "Indenter", "GelMaterial", "gel_force", "height_map", "contact_radius", "indentation_for_contact_radius",
     "shore_a_to_modulus", "contact_mask", "gel_surface", "GelSurface", "radial_depth", "is_radial",
-    "support_radius", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
+    "support_radius", "contact_edge_radius", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
 ]
 
 #: Paper's unit: 17.15 px per mm at QVGA (320 x 240).
 QVGA_M_PER_PX = 1.0 / 17150.0
 #: Taxim's DIGIT: 0.0266 mm per px at VGA (640 x 480).
 VGA_M_PER_PX = 0.0266e-3
+#: sampling of the radial profile in GelSurface.profile (pixels)
+PROFILE_STEP_PX = 1.0 / 16.0
 #: the gel's sag around a contact is tapered to zero between these many contact radii from the axis
 SAG_TAPER = (1.5, 2.5)
 
@@ -339,6 +341,8 @@ class GelSurface:
     mask: np.ndarray
     window: tuple[int, int, int, int]
     center_px: tuple[float, float] = (0.0, 0.0)
+    #: radial surfaces: the depth (m, float32) against the distance from the axis, every PROFILE_STEP_PX pixels
+    profile: np.ndarray | None = None
 
 
 def is_radial(indenter: Indenter, tilt_rad: float = 0.0) -> bool:
@@ -392,6 +396,26 @@ def _compose(face: np.ndarray, r: np.ndarray, d: float, indenter: Indenter, tilt
     return np.clip(z, 0.0, d), inside
 
 
+def contact_edge_radius(indenter: Indenter, indentation_m: float) -> float:
+    """Radius (m) of the contact patch of a radial indenter in the surface model: where the face is within d/2 of
+    its lowest point (sqrt(R d - d^2/4) for a sphere), or the whole end face of a flat punch or a fully pressed
+    probe."""
+    d = float(indentation_m)
+    if d <= 0:
+        return 0.0
+    k = indenter.kind
+    if k == "flat":
+        return indenter.radius
+    R = indenter.radius if k == "sphere" else indenter.tip_radius
+    h = min(d / 2.0, R)
+    re = math.sqrt(max(2 * R * h - h * h, 0.0))
+    if k == "probe":
+        if contact_radius(d, indenter) >= indenter.radius:
+            return indenter.radius
+        return min(re, indenter.radius)
+    return re
+
+
 def radial_depth(indenter: Indenter, indentation_m: float, r_m: np.ndarray, deformation: bool = True
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Depth (m) and contact (bool) at distances ``r_m`` from the axis, for an indenter where
@@ -429,25 +453,30 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
     c0, c1 = max(0, int(math.floor(cc)) - rr), min(cols, int(math.ceil(cc)) + rr + 1)
     if r0 >= r1 or c0 >= c1:
         return empty
-    y = (np.arange(r0, r1, dtype=np.float64) - rc) * m_per_px
-    x = (np.arange(c0, c1, dtype=np.float64) - cc) * m_per_px
-    r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
     if deformation and is_radial(indenter, tilt_rad):
-        # the (continuous) surface is a function of r: evaluate the model on a fine 1-D grid (1/16 px), interpolate
-        h = m_per_px / 16.0
-        grid = np.arange(0.0, reach + 2 * h, h)
-        zg, _ = radial_depth(indenter, d, grid, deformation)
-        z = np.interp(r, grid, zg)
-        # contact: where the face is within d/2 of its lowest point, or the whole end face
-        face = indenter.profile(r)
-        a_c = contact_radius(d, indenter, tilt_rad)
-        if indenter.kind in ("flat", "probe") and a_c >= indenter.radius:
-            inside = np.isfinite(face)
-        else:
-            inside = face <= d / 2.0
+        # the (continuous) surface is a function of r: evaluate the model on a fine 1-D grid (1/16 px) and
+        # interpolate linearly (float32, in pixel units)
+        h = PROFILE_STEP_PX
+        n = int(math.ceil(reach / m_per_px / h)) + 3
+        zg, _ = radial_depth(indenter, d, np.arange(n) * (h * m_per_px), deformation)
+        zg = zg.astype(np.float32)
+        yp = (np.arange(r0, r1) - rc).astype(np.float32)
+        xp = (np.arange(c0, c1) - cc).astype(np.float32)
+        r2 = yp[:, None] ** 2 + xp[None, :] ** 2
+        t = np.sqrt(r2) * np.float32(1.0 / h)
+        i = np.minimum(t.astype(np.int32), n - 2)
+        frac = np.minimum(t - i, np.float32(1.0))
+        z = zg[i] + frac * (zg[i + 1] - zg[i])
+        # contact: where the face is within d/2 of its lowest point (or the whole end face)
+        re = contact_edge_radius(indenter, d) / m_per_px
+        inside = r2 <= np.float32(re * re)
     else:
+        y = (np.arange(r0, r1, dtype=np.float64) - rc) * m_per_px
+        x = (np.arange(c0, c1, dtype=np.float64) - cc) * m_per_px
+        r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
         X, Y = np.meshgrid(x, y)
         z, inside = _compose(indenter.surface_at(X, Y, tilt_rad), r, d, indenter, tilt_rad, deformation)
     depth[r0:r1, c0:c1] = z
     mask[r0:r1, c0:c1] = inside
-    return GelSurface(depth, mask, (r0, r1, c0, c1), (rc, cc))
+    return GelSurface(depth, mask, (r0, r1, c0, c1), (rc, cc), zg if deformation and is_radial(indenter, tilt_rad)
+                      else None)

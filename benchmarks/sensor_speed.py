@@ -1,0 +1,136 @@
+"""Speed of the sensor plugins (issue 3).
+
+1. sim-digit: simulated frames per second of CPU time (target >= 300 QVGA frames/s on one core, so a simulated DIGIT at 60 Hz
+   costs < 20 % of a core). Each frame has a new pose (indentation ramp and a moving centre, the worst case: nothing
+   cached); also a resting indenter (cached render + noise), the generic 2-D renderer, full-resolution shading
+   (stride 1) and VGA, side by side in one run. The component's step() is timed, ground truth included.
+2. digit driver: capture overhead per frame against a video source: the driver's capture thread (read + rotation
+   to portrait + newest-frame hand-over) and step() against a bare cv2.VideoCapture.read() loop on the same file.
+
+    python benchmarks/sensor_speed.py [--quick]
+
+Last line: one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _sim_fps(params: dict, n: int, moving: bool = True, fast: bool = True, stride: int | None = None
+             ) -> tuple[float, float]:
+    """(frames per CPU second of this process, frames per wall second). The machine is shared, so CPU time is the
+    measure of cost; wall time is given as context."""
+    from teletouch.plugins.sensors.sim_digit import SimDigit
+    from teletouch.testing import Harness
+
+    with Harness(SimDigit, params) as h:
+        h.comp.sim.fast = fast
+        if stride is not None:
+            h.comp.sim.stride = stride
+        poses = [(0.0003 + 0.0012 * (k % 97) / 97, np.array([0.002 * np.sin(k / 13), 0.003 * np.cos(k / 17)]))
+                 for k in range(n)]
+        h.step(0.0, indentation=0.001, position=poses[0][1])  # warm-up
+        t0, c0 = time.perf_counter(), time.process_time()
+        for k in range(n):
+            d, pos = poses[k] if moving else (0.001, poses[0][1])
+            out = h.step(k / 60.0, indentation=d, position=pos)
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+        assert out["image"].dtype == np.uint8
+    return n / max(dc, 1e-9), n / dt
+
+
+def _capture(path: Path, frames: int) -> dict:
+    import cv2
+
+    from teletouch import Context
+    from teletouch.plugins.sensors.digit import Digit
+    from teletouch.testing import Harness
+
+    # bare OpenCV: read every frame
+    cap = cv2.VideoCapture(str(path))
+    t0 = time.perf_counter()
+    n_raw = 0
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        n_raw += 1
+    raw = (time.perf_counter() - t0) / max(n_raw, 1)
+    cap.release()
+    # the driver, unpaced (as fast as the file decodes), consumer taking every frame it can
+    with Harness(Digit, {"source": str(path), "source_rate": 1e6, "on_eof": "stop"}) as h:
+        t_start = time.monotonic()
+        h.comp.ctx = Context(clock_kind="wall", from_monotonic=lambda m: m - t_start, request_stop=h._stop)
+        step_time, steps, got = 0.0, 0, 0
+        t0 = time.perf_counter()
+        while h.stopped is None and time.perf_counter() - t0 < 60:
+            s0 = time.perf_counter()
+            out = h.comp.step(0.0, h.inputs)
+            step_time += time.perf_counter() - s0
+            steps += 1
+            if out:
+                got += 1
+            else:
+                time.sleep(0.0002)
+        wall = time.perf_counter() - t0
+        g = h.comp.grabber
+        per_frame_thread = g.read_time / max(g.seq, 1)
+        out = {"frames": g.seq, "taken": got, "dropped": g.dropped,
+               "raw_read_ms": round(raw * 1e3, 4), "driver_capture_ms": round(per_frame_thread * 1e3, 4),
+               "capture_overhead_ms": round((per_frame_thread - raw) * 1e3, 4),
+               "capture_ratio_vs_raw": round(per_frame_thread / raw, 3),
+               "step_us": round(step_time / max(steps, 1) * 1e6, 2), "wall_s": round(wall, 3)}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer frames")
+    args = ap.parse_args(argv)
+    n = 150 if args.quick else 600
+    import cv2
+
+    res: dict = {"benchmark": "sensor_speed", "quick": args.quick}
+    q = {"resolution": "qvga"}
+    cases = {
+        "qvga_moving": (q, n, {}),
+        "qvga_resting": (q, n, {"moving": False}),
+        "qvga_noise_drift": (dict(q, noise=2.0, drift=3.0), n, {}),
+        "qvga_stride1": (q, n // 2, {"stride": 1}),
+        "qvga_generic_2d": (q, n // 3, {"fast": False}),
+        "qvga_probe": (dict(q, indenter="probe"), n // 2, {}),
+        "vga_moving": ({"resolution": "vga"}, n // 3, {}),
+    }
+    for name, (params, count, kw) in cases.items():
+        cpu, wall = _sim_fps(params, count, **kw)
+        res[f"sim_{name}_fps"] = round(cpu, 1)
+        res[f"sim_{name}_fps_wall"] = round(wall, 1)
+    res["sim_qvga_core_fraction_at_60hz"] = round(60.0 / res["sim_qvga_moving_fps"], 3)
+    res["speedup_radial_vs_generic"] = round(res["sim_qvga_moving_fps"] / res["sim_qvga_generic_2d_fps"], 2)
+    res["speedup_stride2_vs_stride1"] = round(res["sim_qvga_moving_fps"] / res["sim_qvga_stride1_fps"], 2)
+    res["target_qvga_fps"] = 300
+    res["pass"] = res["sim_qvga_moving_fps"] >= 300
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "digit.avi"
+        frames = 200 if args.quick else 600
+        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 60.0, (320, 240))
+        rng = np.random.default_rng(0)
+        base = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
+        for k in range(frames):
+            vw.write(np.roll(base, k, axis=1))
+        vw.release()
+        res["capture"] = _capture(path, frames)
+    print(json.dumps(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
