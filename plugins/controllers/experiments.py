@@ -398,6 +398,14 @@ def teletouch_components():
 # ================================================================================================ graphs
 
 
+#: the object's surface where it presses into the fingertip gel: the paper's probe (5 mm radius, curved tip), the
+#: same in sim-gripper (force) and sim-digit (image), the shape the force calibration was made with
+OBJECT_SURFACE = {"indenter": "probe", "indenter_radius": 0.005}
+
+DEFAULT_INTENT = {"type": "close-and-hold", "start_opening": 0.02, "target_opening": 0.010, "speed": 0.005,
+                  "start_time": 0.5, "hold_time": 3.0, "release": True}
+
+
 def sim_graph(controller: str = "position-force", sensor: str = "image", *, duration: float = 10.0,
               intent: dict[str, Any] | None = None, object_width: float = 0.015, extra_nodes: list | None = None,
               controller_params: dict[str, Any] | None = None, leader_params: dict[str, Any] | None = None,
@@ -405,19 +413,21 @@ def sim_graph(controller: str = "position-force", sensor: str = "image", *, dura
     """The simulated twin of the paper's setup as a graph document (examples/paper-sim.yaml is this with the
     defaults). ``sensor``: ``image`` (sim-digit -> depth -> poly-force, the real estimators) or ``ideal``
     (sim-force-sensor: ground truth at the camera rate, one frame late, noisy)."""
-    intent = intent or {"type": "close-and-hold", "start_opening": 0.02, "target_opening": 0.010,
-                        "speed": 0.005, "start_time": 0.5, "hold_time": 3.0, "release": True}
+    intent = intent or dict(DEFAULT_INTENT)
     nodes: list[dict[str, Any]] = [
         {"id": "leader", "plugin": "sim-omega7", "rate": 1000,
          "params": {"intent": intent, **(leader_params or {})},
          "inputs": {"gripper_force": "controller.gripper_force"}},
         {"id": "gripper", "plugin": "sim-gripper", "rate": 1000,
-         "params": {"object_width": object_width, "initial_opening": 0.02, **(gripper_params or {})},
+         "params": {"object_width": object_width, "initial_opening": 0.02, **OBJECT_SURFACE,
+                    **(gripper_params or {})},
          "inputs": {"opening_command": "controller.opening_command"}},
     ]
     if sensor == "image":
         nodes += [
-            {"id": "digit", "plugin": "sim-digit", "rate": 60, "inputs": {"indentation": "gripper.indentation"}},
+            {"id": "digit", "plugin": "sim-digit", "rate": 60,
+             "params": {"indenter": OBJECT_SURFACE["indenter"], "indenter_radius": OBJECT_SURFACE["indenter_radius"]},
+             "inputs": {"indentation": "gripper.indentation"}},
             {"id": "depth", "plugin": "depth", "rate": 60, "inputs": {"image": "digit.image"}},
             {"id": "force", "plugin": "poly-force", "rate": 60,
              "inputs": {"max_depth": "depth.max_depth", "contact_area": "depth.contact_area"}},

@@ -12,9 +12,16 @@ received, so ``E >= 0``; delays (a 30-60 Hz force estimate, the follower's servo
 
     alpha = -E_predicted / (v^2 dt),   0 <= alpha <= max_damping,
 
-just enough to dissipate the deficit in one step, capped at what the device can render (Omega.7: 40 N*s/m). The
+just enough to dissipate the deficit in one step, capped at what the device can render (Omega.7: 40 N*s/m). When
+the cap is not enough and the teleoperator is pushing the operator's fingers (energy flowing out), the rendered force
+is also reduced towards zero, never past it (Ryu and Hannaford's force-limiting variant; less force is always safe).
+The
 energy is then book-kept with the force that was really sent (after saturation and rate limits), so the observer
 stays honest even when the controller cannot dissipate everything at once.
+
+Where even ``max_damping`` cannot keep up (a high force scale on a stiff contact), two optional, always-safe
+measures remain: :func:`adapt_gain` lowers the scale of the rendered force smoothly while a deficit persists and
+restores it afterwards, and ``reduce_force`` cuts the force towards zero within one step (exact but abrupt).
 
 A positive energy reservoir lets an active loop run on energy the operator stored earlier (e.g. in a squeezed
 object); ``leak_time`` makes the positive part of ``E`` decay with that time constant, so stored energy from long
@@ -63,14 +70,38 @@ def damping_for(energy_pred: float, velocity: float, dt: float, max_damping: flo
 
 
 def passivity_force(state: PassivityState, force: float, velocity: float, dt: float, max_damping: float,
-                    leak_time: float | None = None, v_min: float = 1e-4) -> tuple[float, float]:
-    """The force to send (``force`` plus the controller's damping) and the damping used; does not change ``state``.
+                    leak_time: float | None = None, v_min: float = 1e-4,
+                    reduce_force: bool = True, reduce_margin: float = 0.0) -> tuple[float, float]:
+    """The force to send and the equivalent damping used (N*s/m); does not change ``state``.
 
+    First a damping ``-alpha * v`` with ``alpha <= max_damping``. If that cannot restore ``E >= 0`` and the
+    network is pushing energy out (``force * v > 0``), the rendered force is reduced towards zero (never past it)
+    by what remains beyond ``reduce_margin`` (J; a small deficit is left to the damping of the next steps): less force is always safe, and the operator is never pulled. The returned damping is the
+    equivalent ``(force - sent) / v``, so it can exceed ``max_damping`` only through that reduction.
     Call :func:`commit` with the force finally sent (after saturation/rate limits) to advance the observer.
     """
     e_pred = observe(state.energy, force, velocity, dt, leak_time)
     alpha = damping_for(e_pred, velocity, dt, max_damping, v_min)
-    return force - alpha * velocity, alpha
+    out = force - alpha * velocity
+    if reduce_force and alpha > 0.0:
+        e_after = e_pred + alpha * velocity * velocity * dt
+        if e_after + reduce_margin < 0.0 and out * velocity > 0.0:
+            cut = min(abs(out), -(e_after + reduce_margin) / (abs(velocity) * dt))
+            out -= math.copysign(cut, out)
+            alpha = (force - out) / velocity
+    return out, alpha
+
+
+def adapt_gain(gain: float, deficit_left: bool, dt: float, drop_rate: float = 2.0, recover_time: float = 1.0,
+               min_gain: float = 0.1) -> float:
+    """Scale (0..1] of the rendered feedback force. While a deficit remains that the capped damping could not
+    dissipate, the scale drops by ``drop_rate`` per second (smoothly: no chatter, never a jump); otherwise it
+    recovers towards 1 with the time constant ``recover_time``."""
+    if deficit_left:
+        gain -= drop_rate * dt
+    else:
+        gain += (1.0 - gain) * min(1.0, dt / recover_time)
+    return min(1.0, max(min_gain, gain))
 
 
 def commit(state: PassivityState, force_sent: float, force_undamped: float, velocity: float, dt: float,

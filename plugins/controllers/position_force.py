@@ -36,7 +36,7 @@ from pydantic import Field, model_validator
 from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.units import Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
 
-from .passivity import PassivityState, commit, passivity_force
+from .passivity import PassivityState, adapt_gain, commit, passivity_force
 
 __all__ = [
     "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit", "finite_or",
@@ -205,6 +205,14 @@ class _CommonParams(Params):
     free_space_reset: Seconds | None = Field(0.2, gt=0, description="while no force is exchanged an energy "
                                              "deficit is forgiven with this time constant (null: never)",
                                              json_schema_extra={"unit": "s"})
+    passivity_force_reduction: bool = Field(False, description="when max_damping is not enough, also cut the "
+                                            "rendered force towards zero within the step (never past it)")
+    passivity_gain_adaptation: bool = Field(False, description="when max_damping is not enough, lower the scale of "
+                                            "the rendered force smoothly (2/s, down to 0.1) and restore it (1 s)")
+    reduction_margin: float = Field(5e-4, ge=0, description="energy deficit left to the damping before the force "
+                                    "is cut", json_schema_extra={"unit": "J"})
+    gain_adaptation_margin: float = Field(2e-3, ge=0, description="energy deficit beyond which the force scale is "
+                                          "lowered", json_schema_extra={"unit": "J"})
     damping_smoothing: Seconds = Field(0.005, ge=0, description="time constant of the passivity damping's rise "
                                        "(0: the exact one-step TDPA value)", json_schema_extra={"unit": "s"})
 
@@ -248,6 +256,7 @@ class _Bilateral(Component):
         self.force_held = 0.0
         self.fading = False
         self.leader_fade_rate: float | None = None
+        self.gain = 1.0                          # passivity: scale of the rendered force (adapt_gain)
 
     # -- helpers
     def _leader(self, t: float, inputs: Any) -> bool:
@@ -305,11 +314,15 @@ class _Bilateral(Component):
         else:
             free = f_fb == 0.0
         alpha = 0.0
+        if p.passivity and p.passivity_gain_adaptation:
+            f_fb *= self.gain
         f_des = f_fb
         if p.passivity and self.leader_ok:
             if free and self.pas.energy < 0.0 and p.free_space_reset and dt > 0:
                 self.pas.energy *= math.exp(-dt / p.free_space_reset)
-            f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time)
+            f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time,
+                                           reduce_force=p.passivity_force_reduction,
+                                           reduce_margin=p.reduction_margin)
             if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
                 f_des = f_fb - alpha * v
@@ -327,6 +340,8 @@ class _Bilateral(Component):
             f = 0.0
         if p.passivity and self.leader_ok:
             commit(self.pas, f, f_fb, v, dt, alpha, p.energy_leak_time)
+            if p.passivity_gain_adaptation and dt > 0:
+                self.gain = adapt_gain(self.gain, self.pas.energy < -p.gain_adaptation_margin, dt)
             if not math.isfinite(self.pas.energy):
                 self.pas = PassivityState()
         self.out_force = f
