@@ -1,0 +1,126 @@
+"""The paper's experiments in simulation (reduced length) and the simulated pieces they use."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from contextlib import redirect_stdout
+from pathlib import Path
+
+import pytest
+import yaml
+
+from teletouch import Sample
+from teletouch.plugins.controllers.experiments import SimForceSensor, SimPivot, sim_graph
+from teletouch.testing import Harness
+from teletouch.units import parse_quantity
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_sim_pivot_holds_turns_stops_and_drops():
+    with Harness(SimPivot, {"lift_time": 0.0}) as h:
+        p = h.comp
+        hold_s, hold_k = p.holding_force(0.0), p.holding_force(0.0, kinetic=True)
+        assert hold_k > hold_s > 0
+        k = 0
+
+        def run(force, seconds):
+            nonlocal k
+            out = None
+            for _ in range(int(seconds * 1000)):
+                out = h.step(k * 1e-3, grip_force=force)
+                k += 1
+            return out
+
+        out = run(1.0, 0.2)                       # on its support until grasped firmly
+        assert out["angle"] == 0.0 and not p.supported is False
+        out = run(3.0, 0.5)                       # grasped: the support goes, the grip holds it
+        assert not p.supported and out["angle"] == 0.0 and not out["slipping"]
+        out = run(0.8 * hold_s, 0.3)              # loosened: it turns
+        assert out["slipping"] and out["angle"] > math.radians(2)
+        out = run(1.3 * hold_k, 0.5)              # regripped: kinetic friction stops it
+        a = out["angle"]
+        assert not out["slipping"]
+        out = run(1.3 * hold_k, 0.5)
+        assert out["angle"] == a and not out["dropped"]
+        out = run(0.0, 0.2)                       # let go: it falls out of the fingers
+        assert out["dropped"]
+
+
+def test_sim_force_sensor_delays_one_frame_and_keeps_zero_exact():
+    with Harness(SimForceSensor, {"noise": 0.05, "seed": 3}) as h:
+        assert h.step(0.0, force_true=0.0) == {}
+        out = h.step(1 / 60, force_true=2.0)
+        assert out["force"] == 0.0                # the previous frame, exactly zero without contact
+        h.step(2 / 60, force_true=2.0)
+        s = h.comp.buf[0]
+        assert s[0] == pytest.approx(1 / 60) and s[1] == pytest.approx(2.0, abs=0.3) and s[1] != 2.0
+
+
+def _normalise(v):
+    if isinstance(v, dict):
+        return {k: _normalise(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_normalise(x) for x in v]
+    if isinstance(v, str):
+        try:
+            return round(parse_quantity(v), 9)
+        except ValueError:
+            return v
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return round(float(v), 9)
+    return v
+
+
+def test_paper_sim_yaml_is_the_experiment_graph():
+    doc = yaml.safe_load((REPO / "examples" / "paper-sim.yaml").read_text())
+    ref = sim_graph()
+    assert doc["clock"] == "sim" and doc["duration"] == ref["duration"]
+    got = {n["id"]: _normalise({k: n.get(k, {}) for k in ("plugin", "rate", "params", "inputs")})
+           for n in doc["nodes"]}
+    want = {n["id"]: _normalise({k: n.get(k, {}) for k in ("plugin", "rate", "params", "inputs")})
+            for n in ref["nodes"]}
+    assert got == want
+    assert [n["plugin"] for n in doc["nodes"]] == ["sim-omega7", "sim-gripper", "sim-digit", "depth", "poly-force",
+                                                 "position-force"]
+
+
+def _cli(*argv):
+    from teletouch.cli import main
+
+    buf = io.StringIO()
+    with redirect_stdout(buf):
+        code = main(list(argv))
+    return code, buf.getvalue()
+
+
+def test_contact_experiment_cli_reduced(tmp_path):
+    code, out = _cli("experiment", "contact", "--sensor", "ideal", "--duration", "5", "--json", "--out",
+                     str(tmp_path))
+    assert code == 0
+    res = json.loads(out.strip().splitlines()[-1])
+    w, wo = res["with_feedback"]["mean_error_m"], res["without_feedback"]["mean_error_m"]
+    assert 0 < w <= 0.3e-3                        # target: <= 0.3 mm with feedback (paper 0.6 mm)
+    assert wo > 3 * w                             # clearly larger without
+    assert res["with_feedback"]["max_rendered_force_n"] > 0.5
+    assert res["without_feedback"]["max_rendered_force_n"] == 0.0
+    assert json.loads((tmp_path / "contact.json").read_text())["with_feedback"]["mean_error_m"] == w
+    assert (tmp_path / "contact.png").stat().st_size > 10_000
+
+
+def test_pivot_experiment_cli_reduced(tmp_path):
+    code, out = _cli("experiment", "pivot", "--trials", "1", "--time-limit", "20", "--json", "--out",
+                     str(tmp_path))
+    assert code == 0
+    res = json.loads(out.strip().splitlines()[-1])
+    for key in ("visual_force", "visual_only"):
+        s = res[key]
+        assert s["trials"] == 1 and 0.0 <= s["success_rate"] <= 1.0
+        assert sum(s["outcomes"].values()) == 1
+    assert res["paper"]["visual_force"]["success_rate"] == 0.867
+    full = json.loads((tmp_path / "pivot.json").read_text())
+    trial = full["visual_force"]["per_trial"][0]
+    assert trial["outcome"] in ("success", "overshoot", "undershoot", "dropped", "timeout")
+    assert (tmp_path / "pivot.png").stat().st_size > 10_000
