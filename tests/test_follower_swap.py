@@ -122,3 +122,32 @@ def test_real_drivers_refuse_the_sim_clock(plugin):
     text = GRAPH.format(plugin=plugin, hardware="").replace("clock: wall", "clock: sim")
     with pytest.raises(GraphValidationError, match="follower"):
         load_text(text, make_registry(*MODULES))
+
+
+@pytest.mark.parametrize("plugin", ["dynamixel-gripper", "canopen-gripper", "pal-gripper"])
+def test_hardware_lost_mid_run_is_a_fault_not_a_freeze(plugin):
+    """The emulated hardware vanishes mid-run: the graph stops with a fault naming it, well before its duration."""
+    import threading
+
+    reg = make_registry(*MODULES)
+    h = _Hardware(plugin)
+    with h as hardware:
+        text = GRAPH.format(plugin=plugin, hardware=hardware).replace("duration: 1.6", "duration: 10")
+
+        def vanish():
+            if plugin == "dynamixel-gripper":
+                h.emu.silent = True
+            elif plugin == "canopen-gripper":
+                h.emu.go_silent()
+            else:
+                h.emu.publishing = False
+
+        timer = threading.Timer(0.8, vanish)
+        timer.start()
+        res, rt = run_yaml(text, reg)
+        timer.cancel()
+    assert res.status == "fault", res.summary()
+    assert res.exit_code == 3
+    assert "follower" in res.message and "HardwareError" in res.message
+    assert res.wall_time < 5.0
+    assert rt.component("follower")._safe

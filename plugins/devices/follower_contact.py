@@ -18,8 +18,6 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-from scipy.optimize import brentq
-
 GelLaw = Callable[[float], float]
 
 XTOL = 1e-13
@@ -32,6 +30,8 @@ def split_penetration(p: float, gel: GelLaw, n_gel: int = 1, k_object: float | N
     if k_object is None or math.isinf(k_object):
         d = p / n_gel
         return d, float(gel(d))
+    from scipy.optimize import brentq
+
     hi = p / n_gel
     f = lambda d: n_gel * d + float(gel(d)) / k_object - p  # noqa: E731
     if f(hi) <= 0:  # numerically no compliance left for the object
@@ -45,6 +45,8 @@ def blocked_opening(width: float, target: float, kp: float, fmax: float, gel: Ge
     """The opening at which a servo commanded to ``target`` (< width) balances the contact force."""
     if target >= width:
         return width
+    from scipy.optimize import brentq
+
     comp = 0.0 if k_object is None or math.isinf(k_object) else 1.0 / k_object
 
     def h(d: float) -> float:
