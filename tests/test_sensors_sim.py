@@ -263,3 +263,42 @@ def test_simulator_caches_a_resting_pose():
     assert np.array_equal(a, b) and sim.renders == 1
     sim.render(0.0011)
     assert sim.renders == 2
+
+
+@pytest.mark.parametrize("res", ["qvga", "vga"])
+def test_radial_renderer_agrees_with_the_generic_2d_path(res):
+    """The fast path (1-D profile, exact radial blur, analytic slopes, every 2nd pixel shaded) renders what the
+    direct path (2-D blur of the depth map, central differences, every pixel) renders."""
+    fast = DigitSimulator(res)
+    slow = DigitSimulator(res, stride=1)
+    slow.fast = False
+    bg = fast.background_u8.astype(float)
+    for d, pos, ind in ((0.0006, (0.0, 0.0), None), (0.0012, (0.002, -0.003), None),
+                        (0.0011, (-0.001, 0.001), Indenter.probe())):
+        if ind is not None:
+            fast.indenter = slow.indenter = ind
+        a = fast.render(d, pos)[0].astype(float) - bg
+        b = slow.render(d, pos)[0].astype(float) - bg
+        assert np.abs(b).max() > 30
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+        assert np.abs(a - b).mean() < 0.5
+
+
+def test_tilt_input_changes_the_image_of_a_flat_punch():
+    with Harness(SimDigit, {"indenter": "flat", "indenter_radius": 0.002, "indentation": 0.0004}) as h:
+        flat = h.step(0.0)
+        tilted = h.step(0.1, tilt=0.08)
+        assert tilted["gt_force"] < flat["gt_force"]
+        assert tilted["gt_contact_mask"].sum() < flat["gt_contact_mask"].sum()
+        bg = h.comp.sim.background_u8.astype(int)
+        d0 = np.abs(flat["image"].astype(int) - bg).sum(axis=2)
+        d1 = np.abs(tilted["image"].astype(int) - bg).sum(axis=2)
+        cols = np.arange(d0.shape[1])
+
+        def cx(w):
+            return (w.sum(axis=0) * cols).sum() / w.sum()
+
+        # the contact, the depth and the image response of the tilted punch move towards +x (its deepest edge)
+        assert cx(tilted["gt_contact_mask"]) > cx(flat["gt_contact_mask"]) + 7
+        assert cx(tilted["gt_depth"]) > cx(flat["gt_depth"]) + 7
+        assert cx(d1) > cx(d0) + 5

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Literal, Sequence
 
 import numpy as np
@@ -138,18 +139,6 @@ class Indenter:
         s = s - s[np.isfinite(s)].min()
         return cls("map", surface=s, map_m_per_px=float(m_per_px))
 
-    @classmethod
-    def parse(cls, spec: str, radius: float | None = None, tip_radius: float | None = None) -> "Indenter":
-        """``"sphere"``, ``"probe"``, ``"flat"`` or a path to a ``.npy`` height map in m (m_per_px from radius)."""
-        if spec == "sphere":
-            return cls.sphere(radius if radius is not None else 0.003)
-        if spec == "probe":
-            return cls.probe(radius if radius is not None else 0.005,
-                             tip_radius if tip_radius is not None else 0.010)
-        if spec == "flat":
-            return cls.flat(radius if radius is not None else 0.003)
-        raise ValueError(f"unknown indenter {spec!r}; expected sphere, probe or flat")
-
     # geometry --------------------------------------------------------------------------------------------------
     @property
     def extent(self) -> float:
@@ -202,8 +191,8 @@ class Indenter:
         return out
 
     def contact_area(self, s: float, tilt: float = 0.0) -> float:
-        """Area (m^2) where the rigid face dips more than ``s`` below the gel plane at indentation... i.e. the
-        geometric footprint {surface < s}."""
+        """Geometric footprint (m^2) at depth ``s``: the area where the rigid face is less than ``s`` above its
+        lowest point."""
         if s <= 0:
             return 0.0
         if self.kind == "sphere":
@@ -216,14 +205,27 @@ class Indenter:
             Rt, a = self.tip_radius, self.radius
             r2 = 2 * Rt * s - s * s if s < Rt else Rt * Rt
             return math.pi * min(r2, a * a)
-        # numerical: sample the face on a grid
-        ext = self.extent
-        n = 257
-        step = 2 * ext / (n - 1)
+        heights, cell = _face_samples(self, float(tilt))
+        return float(np.searchsorted(heights, s, side="left")) * cell
+
+
+@lru_cache(maxsize=32)
+def _face_samples(indenter: Indenter, tilt: float) -> tuple[np.ndarray, float]:
+    """Sorted finite face heights (m) of an indenter sampled on a grid, and the area (m^2) of one sample: the
+    footprint at depth s is (number of heights < s) x area. A user map is its own grid when untilted."""
+    if indenter.kind == "map" and tilt == 0.0:
+        assert indenter.surface is not None
+        z = indenter.surface.ravel()
+        cell = indenter.map_m_per_px ** 2
+    else:
+        ext = indenter.extent
+        n = 513
         g = np.linspace(-ext, ext, n)
         X, Y = np.meshgrid(g, g)
-        z = self.surface_at(X, Y, tilt)
-        return float(np.count_nonzero(z < s)) * step * step
+        z = indenter.surface_at(X, Y, tilt).ravel()
+        cell = (g[1] - g[0]) ** 2
+    z = np.sort(z[np.isfinite(z)])
+    return z, float(cell)
 
 
 def _positive(what: str, v: float) -> None:
@@ -298,12 +300,13 @@ def gel_force(indentation_m: float, indenter: Indenter, modulus: float | GelMate
     return float(F * _thin_layer(contact_radius(d, indenter, tilt_rad), mat.thickness))
 
 
-def _numeric_force(d: float, indenter: Indenter, Es: float, tilt: float, n: int = 64) -> float:
+def _numeric_force(d: float, indenter: Indenter, Es: float, tilt: float, n: int = 128) -> float:
     # dF/ds = 2 E* sqrt(A(s/2)/pi), integrated by the midpoint rule on n steps (A is monotonic in s).
+    heights, cell = _face_samples(indenter, float(tilt))
     ds = d / n
     s = (np.arange(n) + 0.5) * ds
-    a = np.array([math.sqrt(indenter.contact_area(si / 2.0, tilt) / math.pi) for si in s])
-    return float(2.0 * Es * a.sum() * ds)
+    area = np.searchsorted(heights, s / 2.0, side="left") * cell
+    return float(2.0 * Es * np.sqrt(area / math.pi).sum() * ds)
 
 
 def _hertz_sag(r: np.ndarray, a: float, R: float) -> np.ndarray:
@@ -361,7 +364,9 @@ def support_radius(indenter: Indenter, indentation_m: float, tilt_rad: float = 0
         if indenter.kind == "sphere":
             return math.sqrt(max(2 * indenter.radius * min(d, indenter.radius) - min(d, indenter.radius) ** 2, 0))
         return indenter.extent
-    return max(SAG_TAPER[1] * a_c, 0.0 if is_radial(indenter, tilt_rad) else indenter.extent)
+    if is_radial(indenter, tilt_rad):
+        return SAG_TAPER[1] * a_c
+    return indenter.extent + SAG_TAPER[1] * a_c  # the sag is centred on the contact, somewhere in the footprint
 
 
 def _compose(face: np.ndarray, r: np.ndarray, d: float, indenter: Indenter, tilt_rad: float, deformation: bool
@@ -475,7 +480,23 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         x = (np.arange(c0, c1, dtype=np.float64) - cc) * m_per_px
         r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
         X, Y = np.meshgrid(x, y)
-        z, inside = _compose(indenter.surface_at(X, Y, tilt_rad), r, d, indenter, tilt_rad, deformation)
+        face = indenter.surface_at(X, Y, tilt_rad)
+        if deformation and not is_radial(indenter, tilt_rad):
+            # general shape: the gel touches the face where it is within d/2 of its lowest point (as in Hertz);
+            # around that patch the gel sags like around a Hertz contact of the same area, centred on the patch
+            inside = face <= d / 2.0
+            if inside.any():
+                xc, yc = float(X[inside].mean()), float(Y[inside].mean())
+                a_eq = math.sqrt(inside.sum() * m_per_px * m_per_px / math.pi)
+                rc_ = np.hypot(X - xc, Y - yc)
+                t0, t1 = SAG_TAPER[0] * a_eq, SAG_TAPER[1] * a_eq
+                u = np.clip((rc_ - t0) / max(t1 - t0, 1e-12), 0.0, 1.0)
+                sag = _hertz_sag(rc_, a_eq, a_eq * a_eq / d) * (0.5 + 0.5 * np.cos(np.pi * u))
+                z = np.clip(np.where(inside, np.maximum(d - face, 0.0), np.minimum(sag, d / 2.0)), 0.0, d)
+            else:  # the patch is smaller than a pixel
+                z = np.clip(d - face, 0.0, d)
+        else:
+            z, inside = _compose(face, r, d, indenter, tilt_rad, deformation)
     depth[r0:r1, c0:c1] = z
     mask[r0:r1, c0:c1] = inside
     return GelSurface(depth, mask, (r0, r1, c0, c1), (rc, cc), zg if deformation and is_radial(indenter, tilt_rad)
