@@ -71,7 +71,7 @@ def test_routine_runs_all_steps_and_stops(full_run):
     assert result.status == "stopped" and "press routine done: 26 samples in 2 cycle(s)" in result.message
     assert r.state == "done" and r.progress == 1.0
     states = [s for _, s in r.events]
-    assert states[:3] == ["approach", "backoff", "step"]
+    assert states[:4] == ["approach", "backoff", "tare", "step"]
     assert states.count("retract") == 2 and states[-1] == "done"
     # 0, 0.25 .. 1.5 mm loading, then 1.25 .. 0 unloading, per cycle
     targets = [s["target_displacement_m"] for s in r.samples[:13]]
@@ -90,6 +90,16 @@ def test_routine_records_the_steady_state_device_force(full_run):
         assert s["force_n"] == pytest.approx(s["gt_force_n"], abs=0.02 + 0.01 * s["gt_force_n"])
         # and the gel model gives that force at the recorded depth
         assert s["force_n"] == pytest.approx(gel_force(s["depth_m"], Indenter.probe()), rel=0.02, abs=0.02)
+
+
+def test_tare_removes_the_device_offset(reg):
+    result, rt = run_yaml(graph(routine={"max_displacement": "1mm", "step": "0.5mm"}, rig={"probe_weight": 0.5}),
+                          reg)
+    assert result.status == "stopped", result.message
+    r = rt.component("routine")
+    assert r.tare == pytest.approx(-0.5, abs=0.01)  # holding the probe up against its weight
+    for s in r.samples:
+        assert s["force_n"] == pytest.approx(s["gt_force_n"], abs=0.02 + 0.01 * s["gt_force_n"])
 
 
 def test_routine_ends_retracted_with_zero_force(full_run):

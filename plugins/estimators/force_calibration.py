@@ -91,7 +91,8 @@ class PressRoutine(Component):
                                      json_schema_extra=_u("m"))
         move_speed: MetersPerSecond = Field(4e-3, gt=0, description="speed between steps and when retracting",
                                             json_schema_extra=_u("m/s"))
-        backoff: Meters = Field(5e-4, ge=0, description="retreat above the touch point before the steps",
+        backoff: Meters = Field(5e-4, ge=0, description="retreat above the touch point before the steps (the "
+                                "device's force offset is measured there, off the gel)",
                                 json_schema_extra=_u("m"))
         touch_depth: Meters = Field(3e-5, gt=0, description="max depth that counts as touching",
                                     json_schema_extra=_u("m"))
@@ -119,7 +120,7 @@ class PressRoutine(Component):
 
     SATURATION_TIME = 0.1  # s of a saturated press before aborting
 
-    STATES = ("wait", "approach", "backoff", "step", "hold", "record", "retract", "done", "abort-retract",
+    STATES = ("wait", "approach", "backoff", "tare", "step", "hold", "record", "retract", "done", "abort-retract",
               "aborted")
 
     # ------------------------------------------------------------------------------------------------ lifecycle
@@ -157,6 +158,8 @@ class PressRoutine(Component):
         self.done_points = 0
         self.saturated_since: float | None = None
         self.touch_count = 0
+        self.tare = 0.0
+        self.arrived: float | None = None
 
     def activate(self) -> None:
         self.reset()
@@ -275,8 +278,23 @@ class PressRoutine(Component):
                 self._abort(t, f"no contact after {p.max_approach * 1e3:.1f} mm of approach: is the sensor "
                                f"under the probe?")
         elif st == "backoff":
-            if self._ramp(dt, p.move_speed) and t - self.t_state > 0.05:
-                self._next_point(t)
+            if self._ramp(dt, p.move_speed):
+                if self.arrived is None:
+                    self.arrived = t
+                if t - self.arrived >= p.settle_time:
+                    self.window = {"force": []}
+                    self._go(t, "tare")
+        elif st == "tare":
+            # off the gel: the force the loop needs to hold still here (gravity-compensation error, friction) is
+            # the device's offset, subtracted from this cycle's samples
+            if depth >= p.touch_depth:
+                self._abort(t, f"the probe still touches the gel ({depth * 1e3:.3f} mm) at the backoff point: "
+                               f"increase backoff")
+            else:
+                self.window["force"].append(float(self.cmd @ self.u))
+                if t - self.t_state >= p.record_time:
+                    self.tare = float(np.mean(self.window["force"]))
+                    self._next_point(t)
         elif st == "step":
             if self._ramp(dt, p.move_speed):
                 self._go(t, "hold")
@@ -362,6 +380,7 @@ class PressRoutine(Component):
         assert self.touch is not None
         self.index = 0
         self.goal = self._at(self.touch - p.backoff)
+        self.arrived = None
         self.ctx.log(f"cycle {self.cycle + 1}/{p.cycles}")
         self._go(t, "backoff")
 
@@ -379,7 +398,8 @@ class PressRoutine(Component):
         disp, phase = self.plan[self.index]
         rec = {
             "depth_m": float(np.mean(w["depth"])),
-            "force_n": float(np.mean(w["force"])),
+            "force_n": float(np.mean(w["force"])) - self.tare,
+            "tare_n": self.tare,
             "phase": phase,
             "cycle": self.cycle,
             "displacement_m": float(np.mean(w["pos"]) - self.touch),
@@ -449,14 +469,21 @@ class SimPressRig(Device):
                                              json_schema_extra=_u("m"))
         damping: NewtonSecondsPerMeter = Field(5.0, ge=0, description="gel damping while in contact (never "
                                                "pulls)", json_schema_extra=_u("N*s/m"))
+        probe_weight: Newtons = Field(0.0, ge=0, description="weight of the probe the device does not compensate "
+                                      "(pulls the handle down; the routine's tare removes it)",
+                                      json_schema_extra=_u("N"))
 
     def configure(self) -> None:
         from teletouch.plugins.sensors.gel import Indenter, gel_force  # the same gel model as sim-digit
 
         p = self.params
         self._gel_force = gel_force
-        self.indenter = Indenter.parse(p.indenter, p.indenter_radius,
-                                       p.tip_radius if p.indenter == "probe" else None)
+        if p.indenter == "probe":
+            self.indenter = Indenter.probe(p.indenter_radius, p.tip_radius)
+        elif p.indenter == "sphere":
+            self.indenter = Indenter.sphere(p.indenter_radius)
+        else:
+            self.indenter = Indenter.flat(p.indenter_radius)
         self.last: tuple[float, float] | None = None
         self.d = 0.0
         self.f = 0.0
@@ -488,7 +515,8 @@ class SimPressRig(Device):
             f = max(0.0, f + p.damping * rate)
         self.d, self.f = d, f
         xy = np.array([pos[0] - p.sensor_center[0], pos[1] - p.sensor_center[1]])
-        return {"indentation": d, "indenter_position": xy, "force": np.array([0.0, 0.0, f]), "contact_force": f}
+        return {"indentation": d, "indenter_position": xy, "force": np.array([0.0, 0.0, f - p.probe_weight]),
+                "contact_force": f}
 
     def safe_state(self) -> None:
         self.safe = True  # the gel is passive: nothing to drive
