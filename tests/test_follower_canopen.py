@@ -73,6 +73,7 @@ def test_start_up_sequence(drive, channel):
         # PDO mapping written by the master through SDO: TPDO1 statusword + position, RPDO1 target + controlword
         assert drive.get(0x1A00, 1) >> 16 == 0x6041 and drive.get(0x1A00, 2) >> 16 == 0x6064
         assert drive.get(0x1600, 1) >> 16 == 0x607A and drive.get(0x1600, 2) >> 16 == 0x6040
+        assert drive.get(0x1A00, 3) >> 16 == 0x6061 and drive.get(0x1600, 3) >> 16 == 0x6060
         assert drive.get(0x1800, 2) == 1  # TPDO on every SYNC
         assert drive.get(0x1017) == 100  # heartbeat 100 ms
         assert drive.get(0x6081) == round(0.04 / (0.08 / 100000))  # profile velocity, counts/s
@@ -135,6 +136,14 @@ def test_fault_with_emcy(drive, channel):
         drive.inject_fault(0x2310)
         with pytest.raises(HardwareError, match=r"FAULT .*error code 0x2310.*EMCY Code 0x2310, Current"):
             drive_for(h, 0.05, 1.0)
+
+
+def test_mode_change_is_a_fault(drive, channel):
+    with harness(channel) as h:
+        drive_for(h, 0.05, 0.1)
+        drive.node.set_data(0x6060, 0, bytes([3]))  # someone switches the drive to profile velocity
+        with pytest.raises(HardwareError, match=r"left profile position mode \(0x6061 = 3\)"):
+            drive_for(h, 0.05, 0.5)
 
 
 def test_node_goes_silent(drive, channel):

@@ -1,9 +1,9 @@
 """canopen-gripper: an electric gripper behind a CiA 402 drive on CANopen (canopen on python-can), profile position.
 
 Start-up (all through the canopen library): connect the bus; check the node answers SDO and is a CiA 402 device
-(0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040, asynchronous;
-TPDO1: statusword 0x6041 + position actual 0x6064, TPDO2: current actual 0x6078 + velocity actual 0x606C, both on
-SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in 0x6061); profile velocity 0x6081
+(0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060, asynchronous;
+TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078 + velocity
+actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in 0x6061); profile velocity 0x6081
 from ``max_speed``; max current 0x6073 from ``max_effort``; target := actual; NMT operational; then the CiA 402 state
 machine to OPERATION ENABLED (canopen's BaseNode402).
 
@@ -211,10 +211,12 @@ class CanopenGripper(FollowerBase):
             t1, t2, r1 = n.tpdo[1], n.tpdo[2], n.rpdo[1]
             t1.add_variable(0x6041)
             t1.add_variable(0x6064)
+            t1.add_variable(0x6061)
             t2.add_variable(0x6078)
             t2.add_variable(0x606C)
             r1.add_variable(0x607A)  # the target first: the drive latches it on the controlword's edge
             r1.add_variable(0x6040)
+            r1.add_variable(0x6060)
             for m, tt in ((t1, 1), (t2, 1), (r1, 255)):
                 m.trans_type = tt
                 m.enabled = True
@@ -226,6 +228,7 @@ class CanopenGripper(FollowerBase):
 
     def _send_setpoint(self, counts: int, toggle: bool = True) -> None:
         r = self.rp1
+        r[0x6060].raw = PROFILE_POSITION
         r[0x607A].raw = int(counts)
         if toggle:  # new set-point: bit 4 low then high
             r[0x6040].raw = self._cw & ~CW_NEW_SETPOINT
@@ -277,6 +280,9 @@ class CanopenGripper(FollowerBase):
         if sw & 0x6F != 0x27:
             raise HardwareError(f"{self._where()} left OPERATION ENABLED (statusword 0x{sw:04X}, "
                                 f"{self._emcy_text()})")
+        mode = self.tp1[0x6061].raw
+        if mode != PROFILE_POSITION:
+            raise HardwareError(f"{self._where()} left profile position mode (0x6061 = {mode})")
         counts = self.tp1[0x6064].raw
         amps = self.tp2[0x6078].raw / 1000.0 * self.rated_ma / 1000.0
         vel = self.tp2[0x606C].raw * self.map.scale
