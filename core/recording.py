@@ -550,7 +550,8 @@ class Recorder:
     ``flush_interval`` seconds between flushes (at most this much plus the writer's backlog is lost on a crash);
     ``ros_encoding`` False writes JSON everywhere (also the fallback when the ROS 2 message packages are missing);
     ``max_queue`` items (or ``max_queue_bytes`` of arrays) waiting for the writer before new ones are dropped
-    (counted, reported at close; 0: no limit);
+    (counted, reported at close; 0: no limit) on a wall clock; on a simulated clock the tap waits for the writer
+    instead (nothing is lost, the simulation slows down);
     ``encode_threads`` threads compress images in parallel (cv2 releases the GIL; capped at the CPU count).
     """
 
@@ -632,9 +633,12 @@ class Recorder:
             n = self._q.qsize()
             if n > self.max_backlog:
                 self.max_backlog = n
-            if n >= self.max_queue or (nbytes and self._queued_bytes + nbytes > self.max_queue_bytes):
-                self.dropped += len(outputs)
-                return
+            while n >= self.max_queue or (nbytes and self._queued_bytes + nbytes > self.max_queue_bytes):
+                if self.clock != "sim" or not self._thread.is_alive():
+                    self.dropped += len(outputs)  # real time: never block the node's thread
+                    return
+                time.sleep(0.001)  # simulated clock: wait for the writer, record everything
+                n = self._q.qsize()
         if nbytes:
             with self._bytes_lock:
                 self._queued_bytes += nbytes
@@ -882,6 +886,8 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
             if isinstance(r, Schema):
                 schemas[r.id] = r
             elif isinstance(r, Channel):
+                if r.id in rec.channels:
+                    continue  # repeated in the summary section
                 meta = dict(r.metadata)
                 key = f"{meta['node']}.{meta['port']}" if "node" in meta and "port" in meta else r.topic
                 if r.topic.endswith("/json") and "node" in meta:
@@ -995,6 +1001,9 @@ def iter_images(path: str | os.PathLike, port: str | None = None) -> Iterator[tu
         if not chosen:
             raise RecordingError(f"{path}: no image channel '{port}'; image channels: "
                                  f"{', '.join(sorted(c.key for c in colour)) or '(none)'}")
+        if len({c.key for c in chosen}) > 1:
+            raise RecordingError(f"{path}: '{port}' matches several image channels "
+                                 f"({', '.join(sorted(c.key for c in chosen))}); give node.port")
     if not chosen:
         raise RecordingError(f"{path}: the recording has no images")
     ids = {c.id for c in chosen}

@@ -338,3 +338,20 @@ def test_hand_written_cdr_equals_rclpy_serialization():
     im.height, im.width, im.encoding, im.is_bigendian, im.step = 3, 4, "32FC1", 0, 16
     im.data = depth.tobytes()
     assert same(_CODECS["image"]().encode(depth, stamp, "x"), serialize_message(im))
+
+
+def test_a_file_cut_anywhere_reads_up_to_the_cut(recorded, tmp_path):
+    """A crash can stop the writer at any byte: the reader returns a prefix of the messages, never raises."""
+    path, rec = recorded
+    data = path.read_bytes()
+    _, full = open_recording(path, decode=False)
+    cut_file = tmp_path / "cut.mcap"
+    previous = 0
+    for cut in sorted({int(len(data) * f) for f in np.linspace(0.0, 1.0, 41)} | {9, 30, 100}):
+        cut_file.write_bytes(data[:cut])
+        r, items = open_recording(cut_file, decode=False)
+        assert r.truncated == (cut < len(data))
+        assert len(items) >= previous  # more file, never fewer messages
+        assert [i[:2] for i in items] == [i[:2] for i in full[:len(items)]]  # a prefix, in order
+        previous = len(items)
+    assert previous == len(full) == rec.messages
