@@ -26,11 +26,15 @@ the few newtons a DIGIT is used at. The gel is a 4-5 mm layer on a rigid window,
 F *= 1 + 1.133 x + 1.283 x^2 + 0.769 x^3 + 0.0975 x^4, x = a_c / h (used for every shape, an approximation
 beyond the sphere).
 
-Surface (height map) model: inside the contact the gel takes the indenter's shape; outside it the gel surface sags
-as an elastic half space does around a Hertz contact,
-u(r) = [(2 a^2 - r^2) asin(a/r) + r a sqrt(1 - a^2/r^2)] / (pi R) for r > a, with the contact radius a = sqrt(R d)
-(for general shapes: the equivalent R = a_c^2 / d). ``deformation=False`` gives the rigid cap (the plain geometric
-intersection) instead. Depth maps are float32 in metres, positive into the gel.
+Surface (height map) model: the gel touches the indenter where its face is within d/2 of its lowest point (Hertz:
+r <= sqrt(R d); a flat punch or a fully pressed probe: the whole end face) and takes the indenter's shape there (the
+analytic cap, d - face). Around the contact it sags as an elastic half space does around a Hertz contact,
+u(r) = [(2 a^2 - r^2) asin(a/r) + r a sqrt(1 - a^2/r^2)] / (pi R) for r > a (R = a^2 / d; around a full end face:
+Boussinesq's u = u_rim (2/pi) asin(a/r)), tapered by a cosine to zero between SAG_TAPER = 1.5 and 2.5 contact radii
+because the real gel is a thin layer on a rigid window (it keeps the render local; the sag near the contact is what
+the realism benchmark sees). General shapes use the same rule, the sag centred on the contact patch with its
+equivalent radius. ``deformation=False`` gives the rigid cap (the plain geometric intersection) instead. Depth
+maps are float32 in metres, positive into the gel.
 
 Positions are in metres from the image centre, x along columns, y along rows (docs/ports.md). ``tilt`` rotates the
 indenter about the axis through its centre parallel to the rows (y): its lowest point moves towards +x.
