@@ -411,8 +411,9 @@ def sim_graph(controller: str = "position-force", sensor: str = "image", *, dura
               controller_params: dict[str, Any] | None = None, leader_params: dict[str, Any] | None = None,
               gripper_params: dict[str, Any] | None = None, seed: int = 0, name: str = "paper-sim") -> dict:
     """The simulated twin of the paper's setup as a graph document (examples/paper-sim.yaml is this with the
-    defaults). ``sensor``: ``image`` (sim-digit -> depth -> poly-force, the real estimators) or ``ideal``
-    (sim-force-sensor: ground truth at the camera rate, one frame late, noisy)."""
+    defaults). ``sensor``: ``image`` (sim-digit -> depth -> poly-force, the real estimators), ``gt`` (sim-digit's
+    ground-truth max depth -> poly-force: no depth estimation) or ``ideal`` (sim-force-sensor: ground-truth force at
+    the camera rate, one frame late, noisy)."""
     intent = intent or dict(DEFAULT_INTENT)
     nodes: list[dict[str, Any]] = [
         {"id": "leader", "plugin": "sim-omega7", "rate": 1000,
@@ -432,11 +433,18 @@ def sim_graph(controller: str = "position-force", sensor: str = "image", *, dura
             {"id": "force", "plugin": "poly-force", "rate": 60,
              "inputs": {"max_depth": "depth.max_depth", "contact_area": "depth.contact_area"}},
         ]
+    elif sensor == "gt":
+        nodes += [
+            {"id": "digit", "plugin": "sim-digit", "rate": 60,
+             "params": {"indenter": OBJECT_SURFACE["indenter"], "indenter_radius": OBJECT_SURFACE["indenter_radius"]},
+             "inputs": {"indentation": "gripper.indentation"}},
+            {"id": "force", "plugin": "poly-force", "rate": 60, "inputs": {"max_depth": "digit.gt_max_depth"}},
+        ]
     elif sensor == "ideal":
         nodes += [{"id": "force", "plugin": "sim-force-sensor", "rate": 60, "params": {"seed": seed},
                    "inputs": {"force_true": "gripper.contact_force"}}]
     else:
-        raise ValueError(f"sensor must be 'image' or 'ideal', got {sensor!r}")
+        raise ValueError(f"sensor must be 'image', 'gt' or 'ideal', got {sensor!r}")
     nodes.append({"id": "controller", "plugin": controller, "rate": 1000, "params": dict(controller_params or {}),
                   "inputs": {"leader_opening": "leader.gripper_opening",
                              "leader_velocity": "leader.gripper_velocity",
@@ -788,8 +796,9 @@ def teletouch_add_commands(subparsers: Any) -> None:
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
     c = sub.add_parser("contact", help="rigid-object contact with and without force feedback (paper Fig. 4)")
     c.add_argument("--duration", default="6", help="length of each run, s (default 6)")
-    c.add_argument("--sensor", choices=("image", "ideal"), default="image",
-                   help="image: sim-digit + depth + poly-force (default); ideal: ground truth at camera rate")
+    c.add_argument("--sensor", choices=("image", "gt", "ideal"), default="image",
+                   help="image: sim-digit + depth + poly-force (default); gt: sim-digit's true max depth + "
+                        "poly-force; ideal: true force at camera rate")
     c.add_argument("--out", default="teletouch-experiments", help="folder for contact.json and contact.png")
     c.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
     c.set_defaults(func=_cmd_contact)
@@ -797,7 +806,7 @@ def teletouch_add_commands(subparsers: Any) -> None:
     q.add_argument("--trials", type=int, default=15, help="trials per condition (default 15, as the paper)")
     q.add_argument("--time-limit", default="30", help="time limit of a trial, s (default 30)")
     q.add_argument("--seed", type=int, default=0, help="first seed")
-    q.add_argument("--sensor", choices=("image", "ideal"), default="ideal",
+    q.add_argument("--sensor", choices=("image", "gt", "ideal"), default="ideal",
                    help="ideal: camera-rate ground truth (default, fast); image: the full estimator chain")
     q.add_argument("--out", default="teletouch-experiments", help="folder for pivot.json and pivot.png")
     q.add_argument("--json", action="store_true", help="print the summary as one JSON object")

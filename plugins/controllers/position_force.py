@@ -209,7 +209,7 @@ class _CommonParams(Params):
                                             "rendered force towards zero within the step (never past it)")
     passivity_gain_adaptation: bool = Field(False, description="when max_damping is not enough, lower the scale of "
                                             "the rendered force smoothly (2/s, down to 0.1) and restore it (1 s)")
-    reduction_margin: float = Field(5e-4, ge=0, description="energy deficit left to the damping before the force "
+    reduction_margin: float = Field(0.0, ge=0, description="energy deficit left to the damping before the force "
                                     "is cut", json_schema_extra={"unit": "J"})
     gain_adaptation_margin: float = Field(2e-3, ge=0, description="energy deficit beyond which the force scale is "
                                           "lowered", json_schema_extra={"unit": "J"})
