@@ -302,3 +302,12 @@ def test_tilt_input_changes_the_image_of_a_flat_punch():
         assert cx(tilted["gt_contact_mask"]) > cx(flat["gt_contact_mask"]) + 7
         assert cx(tilted["gt_depth"]) > cx(flat["gt_depth"]) + 7
         assert cx(d1) > cx(d0) + 5
+
+
+def test_unit_variation_draws_a_different_sensor_per_seed():
+    ref = DigitSimulator(unit_variation=0.0, seed=3).unit
+    assert ref["response_gain"] == [1.0, 1.0, 1.0] and ref["blur_gain"] == 1.0
+    a, b = DigitSimulator(unit_variation=1.0, seed=3), DigitSimulator(unit_variation=1.0, seed=4)
+    assert a.unit != b.unit and DigitSimulator(unit_variation=1.0, seed=3).unit == a.unit
+    ia, ib = a.render(0.001)[0].astype(float), b.render(0.001)[0].astype(float)
+    assert np.abs(ia - ib).mean() > 1.0

@@ -68,6 +68,9 @@ class DigitSimulator:
         bg_gain = 1.0 + uv * np.clip(rng.normal(0.0, 0.05, 3), -0.15, 0.15)
         offset = tuple(uv * rng.normal(0.0, 0.03, 2) * np.array(self.shape[::-1]))
         self.drift_phase = float(rng.uniform(0, 2 * math.pi))
+        # ... and the gel's/LED diffusion: how much the surface is blurred
+        blur_gain = float(1.0 + uv * np.clip(rng.normal(0.0, 0.2), -0.5, 0.5))
+        self.smoothing_px *= blur_gain
         table = optics.load_table(optical_model)
         if isinstance(background, np.ndarray):
             bg = background.astype(np.float32)
@@ -79,7 +82,7 @@ class DigitSimulator:
         self.background_u8 = np.rint(self.background).astype(np.uint8)
         self.renderer = optics.OpticalRenderer(table, self.shape, gain=resp_gain, offset_px=offset)
         self.unit = {"response_gain": resp_gain.tolist(), "background_gain": bg_gain.tolist(),
-                     "optical_offset_px": [float(o) for o in offset]}
+                     "optical_offset_px": [float(o) for o in offset], "blur_gain": blur_gain}
         self._noise_bank: np.ndarray | None = None
         if self.noise > 0:
             self._noise_bank = np.clip(np.rint(self.rng.normal(0.0, self.noise, (8, *self.shape, 3))),
@@ -276,7 +279,7 @@ class SimDigit(Component):
         drift_period: Seconds = Field(10.0, gt=0, description="period of the illumination drift",
                                       json_schema_extra={"unit": "s"})
         unit_variation: float = Field(0.0, ge=0, le=3, description="per-unit variation (0: the reference DIGIT; "
-                                      "1: typical spread of LED colour, gain and centring)")
+                                      "1: typical spread of LED colour, gain, centring and gel blur)")
         seed: int = Field(0, description="random seed (noise, drift phase, unit variation)")
         background: str | None = Field(None, description="background image or folder of no-contact frames "
                                        "(default: the shipped real frame)")
