@@ -398,9 +398,11 @@ class _Compressed(_Codec):
     ros_type = "sensor_msgs/msg/CompressedImage"
 
     def accepts(self, v):
-        return (isinstance(v, np.ndarray) and ((v.dtype == np.uint8 and (v.ndim == 2 or (v.ndim == 3 and v.shape[2]
-                                                                                          == 3)))
-                                               or (v.dtype == bool and v.ndim == 2)))
+        if not isinstance(v, np.ndarray):
+            return False
+        if v.dtype == np.uint8:
+            return v.ndim == 2 or (v.ndim == 3 and v.shape[2] == 3)
+        return v.dtype == bool and v.ndim == 2
 
     def encode(self, v, stamp_ns, frame_id):
         import cv2
@@ -859,8 +861,6 @@ def _codec_for(ch: ChannelInfo) -> _Codec:
 
 def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
     """Yield (channel, mcap Message) in file order; stop quietly (rec.truncated) where a crash cut the file."""
-    import struct as _struct
-
     from mcap.exceptions import McapError
     from mcap.records import Channel, Footer, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
@@ -878,7 +878,7 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                 r = next(it)
             except StopIteration:
                 return
-            except (McapError, _struct.error, EOFError, ValueError, RuntimeError) as exc:
+            except (McapError, struct.error, EOFError, ValueError, RuntimeError) as exc:
                 if isinstance(exc, McapError) and type(exc).__name__ == "InvalidMagic" and fh.tell() <= 8:
                     raise RecordingError(f"{path} is not an MCAP file") from exc
                 rec.truncated = True  # the end of a file whose writer was killed

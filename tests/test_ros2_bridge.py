@@ -11,7 +11,7 @@ import pytest
 import rclpy
 from rclpy.context import Context as RosContext
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 
 from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import Image, JointState
