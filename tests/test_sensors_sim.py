@@ -311,3 +311,10 @@ def test_unit_variation_draws_a_different_sensor_per_seed():
     assert a.unit != b.unit and DigitSimulator(unit_variation=1.0, seed=3).unit == a.unit
     ia, ib = a.render(0.001)[0].astype(float), b.render(0.001)[0].astype(float)
     assert np.abs(ia - ib).mean() > 1.0
+
+
+def test_noise_is_fresh_every_frame():
+    with Harness(SimDigit, {"noise": 3.0, "seed": 2, "indentation": 0.001}) as h:
+        frames = [h.step(k / 60)["image"].astype(float) for k in range(4)]
+    for a, b in zip(frames, frames[1:]):
+        assert (a - b).std() == pytest.approx(3.0 * math.sqrt(2), rel=0.15)

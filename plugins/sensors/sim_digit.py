@@ -83,10 +83,12 @@ class DigitSimulator:
         self.renderer = optics.OpticalRenderer(table, self.shape, gain=resp_gain, offset_px=offset)
         self.unit = {"response_gain": resp_gain.tolist(), "background_gain": bg_gain.tolist(),
                      "optical_offset_px": [float(o) for o in offset], "blur_gain": blur_gain}
-        self._noise_bank: np.ndarray | None = None
+        # sensor noise: a long buffer of Gaussian noise; each frame takes a slice at a random offset
+        self._noise_buf: np.ndarray | None = None
+        self._npix = self.shape[0] * self.shape[1] * 3
         if self.noise > 0:
-            self._noise_bank = np.clip(np.rint(self.rng.normal(0.0, self.noise, (8, *self.shape, 3))),
-                                       -127, 127).astype(np.int16)
+            noise = self.rng.standard_normal(4 * self._npix, dtype=np.float32) * np.float32(self.noise)
+            self._noise_buf = np.clip(np.rint(noise), -127, 127).astype(np.int16)
         # radial renderer: profiles sampled every 1/4 px, blurred exactly (see optics.RadialBlur)
         self._h = 0.25
         reach = math.hypot(*self.shape) + 8 * self.smoothing_px + 8
@@ -216,12 +218,12 @@ class DigitSimulator:
             self.renders += 1
         img = self._clean
         offset = self.drift * math.sin(2 * math.pi * t / self.drift_period + self.drift_phase) if self.drift else 0.0
-        if self._noise_bank is None and offset == 0.0:
+        if self._noise_buf is None and offset == 0.0:
             return img.copy(), self._surface
         acc = img.astype(np.int16)
-        if self._noise_bank is not None:
-            k = int(self.rng.integers(len(self._noise_bank)))
-            acc += self._noise_bank[k]
+        if self._noise_buf is not None:
+            o = int(self.rng.integers(0, self._noise_buf.size - self._npix + 1))
+            acc += self._noise_buf[o:o + self._npix].reshape(acc.shape)
         if offset:
             acc += np.int16(round(offset))
         return np.clip(acc, 0, 255).astype(np.uint8), self._surface
