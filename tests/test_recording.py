@@ -20,7 +20,7 @@ from teletouch.cli import main as cli_main
 from teletouch.recording import (
     Recorder, RecordingError, iter_images, open_recording, read_signals, ros2msg_definition,
 )
-from teletouch.testing import load_text, make_registry
+from teletouch.testing import load_text, make_registry, run_yaml
 from teletouch.runtime import Runtime
 
 pytestmark = pytest.mark.timeout(120)
@@ -355,3 +355,21 @@ def test_a_file_cut_anywhere_reads_up_to_the_cut(recorded, tmp_path):
         assert [i[:2] for i in items] == [i[:2] for i in full[:len(items)]]  # a prefix, in order
         previous = len(items)
     assert previous == len(full) == rec.messages
+
+
+def test_replay_sensor_plays_a_recording_back(recorded, shared_data):
+    """The replay sensor (another area) reads our recording through iter_images: the same frames, in order."""
+    path, _ = recorded
+    frames = _frames(shared_data)
+    reg = make_registry("teletouch.plugins.sensors.replay")
+    got = []
+    result, _ = run_yaml(f"""
+clock: sim
+duration: 5
+nodes:
+  - {{id: cam, plugin: replay, rate: 120, params: {{path: "{path}", port: tactile.image}}}}
+""", reg, taps=[lambda n, t, o: got.append(o["image"])])
+    assert result.status == "stopped", result.message  # the replay ends the run at the recording's end
+    imgs = [s.value if isinstance(s, Sample) else s for s in got]
+    assert len(imgs) == 31
+    assert all(np.array_equal(img, frames[k % len(frames)]) for k, img in enumerate(imgs))
