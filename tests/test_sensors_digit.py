@@ -17,7 +17,7 @@ import pytest
 
 from teletouch import Context, GraphValidationError, HardwareError
 from teletouch.plugins.sensors import discovery
-from teletouch.plugins.sensors.digit import Digit, FrameGrabber, led_value, to_portrait
+from teletouch.plugins.sensors.digit import Digit, FrameGrabber, led_command, led_value, to_portrait
 from teletouch.testing import Harness, make_registry, run_yaml
 
 
@@ -150,6 +150,8 @@ def test_digit_permission_denied_names_the_udev_rule(fake_sys):
 def test_led_value_and_params():
     assert led_value(15) == 0xFFF
     assert led_value((1, 2, 3)) == 0x123
+    assert led_command((1, 2, 3), 203) == 0x123 and led_command(15, None) == 0xFFF
+    assert led_command(15, 101) == 255 and led_command((1, 7, 3), 105) == 7 * 17  # old firmware: one 0..255 level
     with pytest.raises(ValueError):
         led_value(16)
     with pytest.raises(ValueError, match="0..15"):

@@ -3,7 +3,8 @@
 - Finds the sensor by serial number (or takes the first one) from the USB ids 2833:0209 in sysfs and pyusb
   (:mod:`.discovery`); ``source`` opens a /dev node, a video file or a URL instead, through the same capture code.
 - Stream modes qvga60, qvga30 (320 x 240), vga30, vga15 (640 x 480); LED intensity 0-15 per channel, packed
-  (r << 8) | (g << 4) | b and sent through CAP_PROP_ZOOM as the DIGIT firmware expects.
+  (r << 8) | (g << 4) | b and sent through CAP_PROP_ZOOM as the DIGIT firmware expects (firmware revision < 200:
+  one global intensity, 17 x level).
 - Orientation (the one convention of teletouch): the camera delivers landscape frames; the driver rotates them
   90 degrees counter-clockwise (transpose, then flip the rows: what digit-interface's get_frame returns), so images
   are **portrait**, QVGA 320 rows x 240 cols. Frames that are already portrait (a recorded teletouch video) are
@@ -32,7 +33,7 @@ from teletouch.units import Hertz, Seconds
 
 from . import discovery
 
-__all__ = ["Digit", "FrameGrabber", "STREAMS", "led_value", "to_portrait"]
+__all__ = ["Digit", "FrameGrabber", "STREAMS", "led_value", "led_command", "to_portrait"]
 
 #: stream mode -> (width, height, fps) as the camera sends it (landscape)
 STREAMS: dict[str, tuple[int, int, int]] = {
@@ -50,6 +51,17 @@ def led_value(intensity: int | tuple[int, int, int] | list[int]) -> int:
         if not (isinstance(c, (int, np.integer)) and 0 <= c <= 15):
             raise ValueError(f"LED intensity must be 0..15 per channel, got {intensity!r}")
     return (int(r) << 8) | (int(g) << 4) | int(b)
+
+
+def led_command(intensity: int | tuple[int, int, int] | list[int], firmware_revision: int | None) -> int:
+    """The CAP_PROP_ZOOM value for an LED intensity (0..15 per channel). Firmware revision >= 200 (or unknown):
+    per channel, (r << 8) | (g << 4) | b. Older firmware has one global intensity on a 0..255 scale (17 per level)
+    and no per-channel control: the brightest channel is used."""
+    packed = led_value(intensity)
+    if firmware_revision is not None and firmware_revision < 200:
+        level = max((packed >> 8) & 0xF, (packed >> 4) & 0xF, packed & 0xF)
+        return level * 17
+    return packed
 
 
 def to_portrait(frame: np.ndarray) -> np.ndarray:
@@ -218,7 +230,12 @@ class Digit(Component):
                                 + ("is another program using the DIGIT? unplug and replug it"
                                    if is_device else "not a readable video file or stream"))
         self.cap = cap
-        self.led = led_value(p.led_intensity)
+        rev = self.info.firmware_revision if self.info is not None else None
+        self.led = led_command(p.led_intensity, rev)
+        if rev is not None and rev < 200 and not isinstance(p.led_intensity, int) \
+                and len(set(p.led_intensity)) > 1:
+            self.ctx.log(f"DIGIT {self.info.serial}: firmware {self.info.firmware} has no per-channel LED control; "
+                         f"using one intensity (update the DIGIT firmware)")
         if is_device:
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
             cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
