@@ -107,7 +107,7 @@ def test_same_graph_each_follower(plugin):
     # the follower tracks the 1 Hz, +-10 mm sine within a few mm (lag of each transport included)
     errs = sorted(abs(c - o) for _t, c, o, _e in late)
     median, worst = errs[len(errs) // 2], errs[-1]
-    assert median < 0.005 and worst < 0.02, f"{plugin}: tracking error median {median * 1e3:.1f} mm, " \
+    assert median < 0.005 and worst < 0.03, f"{plugin}: tracking error median {median * 1e3:.1f} mm, " \
                                              f"max {worst * 1e3:.1f} mm"
     openings = [o for _t, _c, o, _e in late]
     assert max(openings) - min(openings) > 0.012

@@ -52,7 +52,7 @@ class PalGripper(FollowerBase):
                                            json_schema_extra={"unit": "m/s"})
         max_effort: Newtons = Field(16.0, gt=0, description="grip force above which the fingers close no further",
                                     json_schema_extra={"unit": "N"})
-        time_from_start: Seconds = Field(0.05, gt=0, description="time given to reach each setpoint",
+        time_from_start: Seconds = Field(0.03, gt=0, description="time given to reach each setpoint",
                                          json_schema_extra={"unit": "s"})
         republish_period: Seconds = Field(0.1, gt=0, description="resend an unchanged setpoint this often",
                                           json_schema_extra={"unit": "s"})
