@@ -215,8 +215,8 @@ class PivotOperator(Component):
         start_opening: Meters = Field(0.022, description="hand opening at the start", json_schema_extra={"unit": "m"})
         hold_force: Newtons = Field(3.0, gt=0, description="firm grip force (force strategy)",
                                     json_schema_extra={"unit": "N"})
-        squeeze: Meters = Field(0.0015, gt=0, description="closing beyond the seen contact (position strategy)",
-                                json_schema_extra={"unit": "m"})
+        squeeze: Meters = Field(0.0025, gt=0, description="closing beyond the seen contact (position strategy; "
+                                "without a felt force people over-grip)", json_schema_extra={"unit": "m"})
         loosen_rate_force: float = Field(0.3, gt=0, description="grip force decrease while loosening",
                                          json_schema_extra={"unit": "N/s"})
         loosen_rate_position: float = Field(0.0006, gt=0, description="hand opening speed while loosening",
