@@ -109,3 +109,12 @@ def test_gain_adaptation_drops_smoothly_and_recovers():
     for _ in range(3000):                             # 3 time constants without deficit
         g = adapt_gain(g, False, 1e-3)
     assert g == pytest.approx(1 - 0.9 * 2.718281828 ** -3, abs=2e-3)
+
+
+def test_observer_runs_without_the_controller():
+    # passivity off: the energy output still observes the port, and no damping is added
+    with Harness(PositionForce, {"passivity": False, "deadband": 0.0, "smoothing_time": 0.0}) as h:
+        for k in range(100):
+            out = h.step(k * 1e-3, leader_opening=0.02 + 1e-5 * k, leader_velocity=0.01, force=Sample(2.0, k * 1e-3))
+    assert out["energy"] < 0 and out["damping"] == 0.0      # pushing the fingers open: energy flows out
+    assert out["gripper_force"] == pytest.approx(2.0)

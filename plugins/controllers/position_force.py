@@ -190,7 +190,8 @@ class _CommonParams(Params):
                                         "follower and fades the force", json_schema_extra={"unit": "s"})
     fade_time: Seconds = Field(0.2, gt=0, description="time to fade the force to zero when its source is lost",
                                json_schema_extra={"unit": "s"})
-    passivity: bool = Field(True, description="time-domain passivity observer and controller on the leader port")
+    passivity: bool = Field(True, description="time-domain passivity controller on the leader port (the observer "
+                            "always runs and feeds the energy output)")
     max_damping: NewtonSecondsPerMeter = Field(OMEGA7_MAX_DAMPING, ge=0,
                                                description="cap of the injected damping (Omega.7: 40 N*s/m)",
                                                json_schema_extra={"unit": "N*s/m"})
@@ -317,9 +318,9 @@ class _Bilateral(Component):
         if p.passivity and p.passivity_gain_adaptation:
             f_fb *= self.gain
         f_des = f_fb
+        if self.leader_ok and free and self.pas.energy < 0.0 and p.free_space_reset and dt > 0:
+            self.pas.energy *= math.exp(-dt / p.free_space_reset)
         if p.passivity and self.leader_ok:
-            if free and self.pas.energy < 0.0 and p.free_space_reset and dt > 0:
-                self.pas.energy *= math.exp(-dt / p.free_space_reset)
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time,
                                            reduce_force=p.passivity_force_reduction,
                                            reduce_margin=p.reduction_margin)
@@ -338,9 +339,9 @@ class _Bilateral(Component):
         f = saturate(f, p.max_force)
         if not math.isfinite(f):
             f = 0.0
-        if p.passivity and self.leader_ok:
+        if self.leader_ok:                       # the observer always runs; it acts only with passivity on
             commit(self.pas, f, f_fb, v, dt, alpha, p.energy_leak_time)
-            if p.passivity_gain_adaptation and dt > 0:
+            if p.passivity and p.passivity_gain_adaptation and dt > 0:
                 self.gain = adapt_gain(self.gain, self.pas.energy < -p.gain_adaptation_margin, dt)
             if not math.isfinite(self.pas.energy):
                 self.pas = PassivityState()
