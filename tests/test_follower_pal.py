@@ -101,6 +101,64 @@ def test_safe_state_open(robot):
         assert robot.opening == pytest.approx(0.09, abs=1e-3)
 
 
+def test_controller_aborts_a_goal_it_cannot_reach(robot):
+    """Published once, a goal inside the object is aborted after goal_time (the controller then holds and the grip
+    force vanishes); the driver's default republishing keeps it alive (test_follows_and_squeezes)."""
+    with harness(republish_period=30.0) as h:
+        drive(h, 0.03, 0.6)
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end and robot.aborted == 0:
+            h.t = time.monotonic()
+            h.comp._hw_read()
+            time.sleep(0.01)
+        assert robot.aborted >= 1
+        time.sleep(0.05)
+        assert robot.effort == [0.0, 0.0] and robot.opening == pytest.approx(0.04, abs=1e-4)
+
+
+def test_controller_limits_and_rejections(robot):
+    import rclpy
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN)
+    node = rclpy.create_node("raw_commander", context=ctx)
+    pub = node.create_publisher(JointTrajectory, "/tiago/gripper_controller/joint_trajectory", 10)
+    try:
+        t_end = time.monotonic() + 2.0
+        while pub.get_subscription_count() == 0 and time.monotonic() < t_end:
+            time.sleep(0.01)
+
+        def send(names, positions):
+            msg = JointTrajectory()
+            msg.joint_names = names
+            pt = JointTrajectoryPoint()
+            pt.positions = positions
+            pt.time_from_start.sec = 1
+            msg.points = [pt]
+            pub.publish(msg)
+
+        robot.object_width = None
+        send(["gripper_right_finger_joint", "gripper_left_finger_joint"], [0.01, 0.02])  # any order, by name
+        time.sleep(1.3)
+        assert robot.pos == pytest.approx([0.02, 0.01], abs=1e-4)
+        send(["gripper_left_finger_joint", "gripper_right_finger_joint"], [0.08, 0.08])  # beyond the limit
+        send(["arm_1_joint"], [0.1])  # not this controller's joints: rejected
+        time.sleep(1.3)
+        assert robot.pos == pytest.approx([0.045, 0.045], abs=1e-6)
+        assert robot.rejected == 1
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+
+
+def test_effort_nan_when_not_reported(robot):
+    robot.report_effort = False
+    with harness() as h:
+        o = drive(h, 0.08, 0.2)
+        assert math.isnan(o["effort"]) and o["opening"] == pytest.approx(0.08, abs=2e-3)
+
+
 def test_no_controller():
     t0 = time.monotonic()
     configure_fails(harness(connect_timeout=0.5), r"no controller subscribes to /tiago/gripper_controller/joint_traj")

@@ -44,6 +44,7 @@ class PalGripperNode:
         self.aborted = 0
         self.published = 0
         self.publishing = True
+        self.report_effort = True  # False: JointState without efforts (as some robots publish)
         self._traj: list[tuple[float, list[float]]] = []  # (monotonic time, positions)
         self._goal: list[float] | None = None
         self._lock = threading.Lock()
@@ -166,7 +167,7 @@ class PalGripperNode:
                     msg.name = list(JOINTS) + ["arm_1_joint"]
                     msg.position = list(self.pos) + [0.3]
                     msg.velocity = list(self.vel) + [0.0]
-                    msg.effort = list(self.effort) + [0.0]
+                    msg.effort = list(self.effort) + [0.0] if self.report_effort else []
                     self.pub.publish(msg)
                     self.published += 1
 
