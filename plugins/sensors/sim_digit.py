@@ -6,7 +6,8 @@ elastic sag around it) -> the surface seen through the gel's thickness (Gaussian
 illumination drift, sensor noise -> uint8 BGR, portrait (QVGA 320 x 240, VGA 640 x 480).
 
 Ground truth on the side: ``gt_depth`` (the gel surface, m, positive into the gel, before the optical smoothing),
-``gt_max_depth``, ``gt_force`` (the gel model's normal force, N) and ``gt_contact_mask``.
+``gt_max_depth``, ``gt_force`` (the gel model's normal force, N) and ``gt_contact_mask``. The ground-truth arrays are
+read-only (they are shared while the pose does not change); ``image`` is a fresh array every step.
 """
 
 from __future__ import annotations
@@ -213,6 +214,9 @@ class DigitSimulator:
         key = (d, float(position[0]), float(position[1]), float(tilt)) if d > 0 else (0.0,)
         if key != self._key:
             self._surface = self.surface(d, position, tilt)
+            # shared by every step at this pose (and by every consumer): read-only
+            self._surface.depth.flags.writeable = False
+            self._surface.mask.flags.writeable = False
             self._clean = self.clean_image(self._surface, d, float(tilt))
             self._key = key
             self.renders += 1
