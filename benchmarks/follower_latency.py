@@ -7,11 +7,12 @@ Transports: pal-gripper over ROS 2 (DDS on loopback, the simulated controller in
 dynamixel-gripper over a pseudo-terminal at 57600 and 1000000 baud (the emulated servo waits the bytes' wire time),
 canopen-gripper on python-can's virtual bus (SYNC -> TPDO), and sim-gripper as the in-process reference.
 
-- round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware path (``_hw_write``), then reads state
-  (``_hw_read``) back to back until a state reflects it (the emulated actuators move instantly here); the time in
-  between, per command.
-- update rate: full ``step()`` calls (read state + send command) back to back (a 20 us yield between) for a while; ``fresh_state_hz`` counts
-  only steps that got a new measurement (ROS 2 state arrives asynchronously at the publisher's rate).
+- round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware
+  path (``_hw_write``), then reads state (``_hw_read``) back to back until a state reflects it (the emulated
+  actuators move instantly here); the time in between, per command.
+- update rate: full ``step()`` calls (read state + send command) back to back (a 20 us yield between) for a while;
+  ``fresh_state_hz`` counts only steps that got a new measurement (ROS 2 state arrives asynchronously at the
+  publisher's rate).
 
 Prints one JSON object as its last line. Absolute times depend on the machine (a shared 2-core box here); compare the
 ratios between transports measured in the same run.

@@ -1,15 +1,15 @@
 """canopen-gripper: an electric gripper behind a CiA 402 drive on CANopen (canopen on python-can), profile position.
 
 Start-up (all through the canopen library): connect the bus; check the node answers SDO and is a CiA 402 device
-(0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060, asynchronous;
-TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078 + velocity
-actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in 0x6061); profile velocity 0x6081
-from ``max_speed``; max current 0x6073 from ``max_effort``; target := actual; NMT operational; then the CiA 402 state
-machine to OPERATION ENABLED (canopen's BaseNode402).
+(0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060,
+asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078
++ velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in
+0x6061); profile velocity 0x6081 from ``max_speed``; max current 0x6073 from ``max_effort``; target := actual; NMT
+operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402).
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"), transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
-triggers. A drive in FAULT (statusword), an EMCY, a lost heartbeat or missing TPDOs end in a HardwareError naming the
+triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat or missing TPDOs end in a HardwareError naming the
 cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS file is optional (without
 one, the standard CiA 301/402 objects above are assumed).
 """

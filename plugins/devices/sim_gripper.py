@@ -76,7 +76,8 @@ class SimGripper(FollowerBase):
                                  json_schema_extra={"unit": "Pa"})
         poisson: float = Field(0.5, ge=0, le=0.5, description="gel Poisson ratio")
         gel_thickness: Meters | None = Field(None, gt=0, description="gel layer thickness for the bonded "
-                                             "thin-layer correction (None: half space)", json_schema_extra={"unit": "m"})
+                                             "thin-layer correction (None: half space)",
+                                             json_schema_extra={"unit": "m"})
         gel_fingers: int = Field(1, ge=1, le=2, description="fingers with a gel pad (1: one DIGIT, the other rigid)")
 
         @model_validator(mode="after")
