@@ -92,8 +92,7 @@ def test_discovery_merges_pyusb(fake_sys):
     assert [d.serial for d in found] == ["D20001", "D20002", "D29999"]
     assert found[2].mode == "dfu" and found[2].path is None
     assert "DFU mode" in discovery.describe(found)
-    locked = SimpleNamespace(idVendor=0x2833, idProduct=0x0209, bus=2, address=3, bcdDevice=0x203)
-    type(locked)  # serial_number raises like pyusb without permission
+    # serial_number raises like pyusb's without permission to read the device's strings
     locked = type("Dev", (), {"idVendor": 0x2833, "idProduct": 0x0209, "bus": 2, "address": 3, "bcdDevice": 0x203,
                               "serial_number": property(lambda self: bad_serial())})()
     only_usb = discovery.find_digits(root / "none", dev, usb_find=lambda: [locked])
