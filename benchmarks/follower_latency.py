@@ -10,7 +10,8 @@ canopen-gripper on python-can's virtual bus (SYNC -> TPDO), and sim-gripper as t
 - round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware
   path (``_hw_write``), then reads state (``_hw_read``) back to back until a state reflects it (the emulated
   actuators move instantly here); the time in between, per command.
-- update rate: full ``step()`` calls (read state + send command) back to back (a 20 us yield between) for a while;
+- update rate: full ``step()`` calls (read state + send command) back to back (a 20 us yield between, none for the
+  thread-less sim-gripper) for a while;
   ``fresh_state_hz`` counts only steps that got a new measurement (ROS 2 state arrives asynchronously at the
   publisher's rate).
 
@@ -97,7 +98,7 @@ def round_trips(comp, n, a=0.03, b=0.06, tol=5e-4, timeout=0.5):
     return out, failures
 
 
-def update_rate(comp, slot, inputs, seconds):
+def update_rate(comp, slot, inputs, seconds, yield_s=20e-6):
     t_end = time.perf_counter() + seconds
     steps = fresh = 0
     last_stamp = None
@@ -116,7 +117,8 @@ def update_rate(comp, slot, inputs, seconds):
             fresh += 1
             last_stamp = stamp
         assert math.isfinite(out["opening"].value)
-        time.sleep(20e-6)  # yield the GIL to the driver's own threads, as the runtime's sleeps do
+        if yield_s:
+            time.sleep(yield_s)  # yield the GIL to the driver's own threads, as the runtime's sleeps do
     elapsed = time.perf_counter() - t_start
     return {"update_rate_hz": steps / elapsed, "fresh_state_hz": fresh / elapsed,
             "step_ms_p50": percentile(durations, 0.5) * 1e3, "step_ms_p99": percentile(durations, 0.99) * 1e3}
@@ -134,7 +136,7 @@ def bench(name, cls, params, n, seconds, setup=None, round_trip=True):
                "round_trip_ms_max": max(rts) * 1e3 if rts else None,
                "round_trip_mean_ms": statistics.fmean(rts) * 1e3 if rts else None,
                "round_trips": len(rts), "round_trip_timeouts": failures}
-        res.update(update_rate(comp, slot, inputs, seconds))
+        res.update(update_rate(comp, slot, inputs, seconds, 20e-6 if round_trip else 0.0))
     finally:
         try:
             comp.safe_state()
