@@ -211,7 +211,8 @@ def test_capture_path_on_a_video_file(video):
         assert all(b > a for a, b in zip(stamps, stamps[1:]))
         assert 0 < stamps[0] < stamps[-1] < time.monotonic() - t0
         # stamps are capture times: at 120 Hz, consecutive frames about 1/120 s apart on average
-        assert (stamps[-1] - stamps[0]) / (idx[-1] - idx[0]) == pytest.approx(1 / 120, rel=0.5)
+        per_frame = (stamps[-1] - stamps[0]) / (idx[-1] - idx[0])
+        assert 0.7 / 120 < per_frame < 5 / 120  # paced (never faster), slower only on a loaded machine
         st = h.comp.status()
         assert st["frames"] == 10 and st["captured"] >= 10
 
@@ -233,8 +234,10 @@ def test_slow_consumer_gets_newest_frame_and_counts_drops(video):
 
 def test_loop_and_eof_fault_like_unplugged(video):
     with Harness(Digit, {"source": str(video), "source_rate": 400.0, "on_eof": "loop"}) as h:
-        time.sleep(0.2)
-        assert h.comp.grabber.seq > 30 and h.comp.grabber.error is None
+        deadline = time.monotonic() + 5
+        while h.comp.grabber.seq <= 30 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert h.comp.grabber.seq > 30 and h.comp.grabber.error is None and not h.comp.grabber.eof
     with Harness(Digit, {"source": str(video), "source_rate": 400.0, "on_eof": "fault"}) as h:
         video.unlink()  # the file goes away while it is being read, like a DIGIT pulled out of its port
         deadline = time.monotonic() + 5
