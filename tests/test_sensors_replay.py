@@ -131,6 +131,11 @@ def test_replay_teletouch_recording(tmp_path, shared_data):
     for (_, s), f in zip(got, frames):
         assert np.array_equal(s.value, f)  # PNG in the recording: lossless
     assert np.diff([s.stamp for _, s in got]) == pytest.approx([0.05] * 4, abs=1e-6)
+    # looping a recording continues at its own frame interval
+    result, rt, got = _run(_graph(path, node_rate=100, loop=True), duration=0.5)
+    stamps = [s.stamp for _, s in got]
+    assert len(got) >= 10 and rt.component("cam").skipped == 0 and rt.component("cam").passes >= 1
+    assert np.diff(stamps) == pytest.approx([0.05] * (len(stamps) - 1), abs=1e-6)
     with pytest.raises(ModelFileError, match="no image channel 'nope'"):
         with Harness(Replay, {"path": str(path), "port": "nope"}):
             pass

@@ -228,7 +228,12 @@ class Replay(Component):
             self.passes += 1
             if not p.loop or not any_good:
                 return
-            period = (1.0 / p.rate) if p.rate else (1.0 / self.source.native_rate if self.source.native_rate else 0)
+            if p.rate:
+                period = 1.0 / p.rate
+            elif self.source.native_rate:
+                period = 1.0 / self.source.native_rate
+            else:  # recorded stamps: the mean interval
+                period = last_due / k if k > 0 else 0.0
             offset += last_due + period
 
     def _orient(self, name: str, img: np.ndarray) -> np.ndarray | None:
