@@ -124,3 +124,12 @@ def test_pivot_experiment_cli_reduced(tmp_path):
     trial = full["visual_force"]["per_trial"][0]
     assert trial["outcome"] in ("success", "overshoot", "undershoot", "dropped", "timeout")
     assert (tmp_path / "pivot.png").stat().st_size > 10_000
+
+
+def test_experiment_cli_rejects_bad_arguments(capsys):
+    from teletouch.cli import main
+
+    assert main(["experiment", "contact", "--duration", "5 kg"]) == 2
+    assert "--duration" in capsys.readouterr().err
+    assert main(["experiment", "pivot", "--trials", "0"]) == 2
+    assert "--trials" in capsys.readouterr().err

@@ -755,7 +755,13 @@ def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float 
 def _cmd_contact(args: argparse.Namespace) -> int:
     from teletouch.units import parse_quantity
 
-    duration = parse_quantity(args.duration, "s")
+    try:
+        duration = parse_quantity(args.duration, "s")
+        if not duration >= 1.0:
+            raise ValueError(f"must be at least 1 s (the operator starts closing at 0.5 s), got {args.duration!r}")
+    except ValueError as exc:
+        print(f"teletouch experiment contact: --duration: {exc}", file=sys.stderr)
+        return 2
     res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out)
     if args.json:
         print(json.dumps(res))
@@ -771,7 +777,17 @@ def _cmd_contact(args: argparse.Namespace) -> int:
 def _cmd_pivot(args: argparse.Namespace) -> int:
     from teletouch.units import parse_quantity
 
-    res = experiment_pivot(trials=args.trials, sensor=args.sensor, time_limit=parse_quantity(args.time_limit, "s"),
+    try:
+        time_limit = parse_quantity(args.time_limit, "s")
+        if not time_limit > 0:
+            raise ValueError(f"must be positive, got {args.time_limit!r}")
+    except ValueError as exc:
+        print(f"teletouch experiment pivot: --time-limit: {exc}", file=sys.stderr)
+        return 2
+    if args.trials < 1:
+        print(f"teletouch experiment pivot: --trials: expected at least 1, got {args.trials}", file=sys.stderr)
+        return 2
+    res = experiment_pivot(trials=args.trials, sensor=args.sensor, time_limit=time_limit,
                            seed=args.seed, out=args.out, progress=not args.json)
     if args.json:
         slim = {k: ({kk: vv for kk, vv in v.items() if kk != "per_trial"} if isinstance(v, dict) and "per_trial" in v
