@@ -30,6 +30,8 @@ def _no_plugin_env(monkeypatch):
     """Tests build their own registries; the user's environment must not leak in."""
     monkeypatch.delenv("TELETOUCH_BLOCK_PLUGINS", raising=False)
     monkeypatch.delenv("TELETOUCH_PLUGINS", raising=False)
+    monkeypatch.delenv("TELETOUCH_SYSFS_ROOT", raising=False)
+    monkeypatch.delenv("TELETOUCH_DEV_ROOT", raising=False)
 
 
 _skipped: list[str] = []
