@@ -503,16 +503,17 @@ CONTACT_KEYS = ["leader.gripper_opening", "leader.intended_opening", "gripper.op
                 "gripper.contact_force", "force.force", "controller.gripper_force", "controller.energy"]
 
 
-def run_contact_once(feedback: bool, *, sensor: str = "image", duration: float = 6.0, registry: Any = None,
+def run_contact_once(feedback: bool | str, *, sensor: str = "image", duration: float = 6.0, registry: Any = None,
                      settle: float = 0.0) -> tuple[dict[str, Any], Recorder]:
-    """One run of the rigid-object contact experiment. Returns (metrics, recorder)."""
+    """One run of the rigid-object contact experiment. ``feedback``: True (position-force), False (no-feedback)
+    or a controller plugin name. Returns (metrics, recorder)."""
     import numpy as np
 
     hold = max(0.5, duration - 0.5 - 2.0 - 2.0)
     intent = {"type": "close-and-hold", "start_opening": 0.02, "target_opening": 0.010, "speed": 0.005,
               "start_time": 0.5, "hold_time": hold, "release": True}
-    doc = sim_graph("position-force" if feedback else "no-feedback", sensor, duration=duration, intent=intent,
-                    name="contact-" + ("feedback" if feedback else "no-feedback"))
+    controller = feedback if isinstance(feedback, str) else "position-force" if feedback else "no-feedback"
+    doc = sim_graph(controller, sensor, duration=duration, intent=intent, name="contact-" + controller)
     rt = build_runtime(doc, registry)
     rec = Recorder(CONTACT_KEYS)
     rt.add_tap(rec)
@@ -588,7 +589,7 @@ def contact_plot(path: Path, runs: dict[str, Recorder]) -> None:
 
 
 def experiment_contact(duration: float = 6.0, sensor: str = "image", out: str | Path | None = None,
-                       registry: Any = None, plot: bool = True) -> dict[str, Any]:
+                       registry: Any = None, plot: bool = True, baselines: bool = False) -> dict[str, Any]:
     """Run the contact experiment with and without feedback; write metrics JSON and the Fig.-4 plot."""
     with_m, with_r = run_contact_once(True, sensor=sensor, duration=duration, registry=registry)
     without_m, without_r = run_contact_once(False, sensor=sensor, duration=duration, registry=registry)
@@ -603,13 +604,18 @@ def experiment_contact(duration: float = 6.0, sensor: str = "image", out: str | 
         "paper_mean_error_m": 0.0006,
         "target_with_feedback_m": 0.0003,
     }
+    runs = {"with force feedback": with_r, "without force feedback": without_r}
+    if baselines:
+        pp_m, pp_r = run_contact_once("position-position", sensor=sensor, duration=duration, registry=registry)
+        result["position_position"] = pp_m
+        runs["position-position baseline"] = pp_r
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "contact.json").write_text(json.dumps(result, indent=2) + "\n")
         result["files"] = [str(out / "contact.json")]
         if plot:
-            contact_plot(out / "contact.png", {"with force feedback": with_r, "without force feedback": without_r})
+            contact_plot(out / "contact.png", runs)
             result["files"].append(str(out / "contact.png"))
     return result
 
@@ -762,7 +768,7 @@ def _cmd_contact(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"teletouch experiment contact: --duration: {exc}", file=sys.stderr)
         return 2
-    res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out)
+    res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out, baselines=args.baselines)
     if args.json:
         print(json.dumps(res))
     else:
@@ -817,6 +823,7 @@ def teletouch_add_commands(subparsers: Any) -> None:
                         "poly-force; ideal: true force at camera rate")
     c.add_argument("--out", default="teletouch-experiments", help="folder for contact.json and contact.png")
     c.add_argument("--json", action="store_true", help="print the metrics as one JSON object")
+    c.add_argument("--baselines", action="store_true", help="also run the position-position baseline")
     c.set_defaults(func=_cmd_contact)
     q = sub.add_parser("pivot", help="in-hand pivoting, visual + force vs visual only, seeded trials")
     q.add_argument("--trials", type=int, default=15, help="trials per condition (default 15, as the paper)")

@@ -216,6 +216,9 @@ class _CommonParams(Params):
                                           "lowered", json_schema_extra={"unit": "J"})
     damping_smoothing: Seconds = Field(0.005, ge=0, description="time constant of the passivity damping's rise "
                                        "(0: the exact one-step TDPA value)", json_schema_extra={"unit": "s"})
+    damping_release: Seconds = Field(0.05, ge=0, description="time constant of the passivity damping's decay "
+                                     "(no step in the hand when the deficit is paid; dissipates a little more)",
+                                     json_schema_extra={"unit": "s"})
 
     @model_validator(mode="after")
     def _check(self) -> "_CommonParams":
@@ -326,6 +329,11 @@ class _Bilateral(Component):
                                            reduce_margin=p.reduction_margin)
             if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
+                f_des = f_fb - alpha * v
+            elif p.damping_release > 0.0 and alpha < self.pas.alpha:
+                alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_release)
+                if alpha < 1e-3 * p.max_damping:
+                    alpha = 0.0
                 f_des = f_fb - alpha * v
         # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness
         if self.leader_ok:
