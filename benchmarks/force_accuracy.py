@@ -30,7 +30,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def make_components(depth_source: str, depth_model: str, seed: int, noise: float, drift: float):
+def make_components(depth_source: str, depth_model: str, seed: int, noise: float, drift: float,
+                    depth_module: str = "teletouch.plugins.estimators.depth"):
     from teletouch.plugins.sensors.sim_digit import SimDigit
     from teletouch.testing import Harness
 
@@ -41,9 +42,21 @@ def make_components(depth_source: str, depth_model: str, seed: int, noise: float
     if depth_source == "depth":
         from teletouch.testing import make_registry
 
-        cls = make_registry("teletouch.plugins.estimators.depth").get("depth").cls
+        cls = make_registry(depth_module).get("depth").cls
         depth = Harness(cls, {"model": depth_model})
     return sensor, depth
+
+
+def indentation_for_force(force: float, sensor) -> float:
+    """Invert sim-digit's gel model (monotonic) by bisection: the indentation (m) that gives ``force`` (N)."""
+    a, b = 0.0, 0.01
+    for _ in range(60):
+        m = 0.5 * (a + b)
+        if sensor.comp.sim.force(m, 0.0) < force:
+            a = m
+        else:
+            b = m
+    return 0.5 * (a + b)
 
 
 def main() -> int:
@@ -51,6 +64,8 @@ def main() -> int:
     ap.add_argument("--calibration", default="sim-digit-qvga", help="force calibration (file or packaged name)")
     ap.add_argument("--depth-source", choices=("auto", "depth", "gt"), default="auto")
     ap.add_argument("--depth-model", default="sim-digit-qvga", help="depth model for the depth component")
+    ap.add_argument("--depth-module", default="teletouch.plugins.estimators.depth",
+                    help="module providing the `depth` component")
     ap.add_argument("--presses", type=int, default=120)
     ap.add_argument("--no-contact-frames", type=int, default=60)
     ap.add_argument("--noise", type=float, default=2.0, help="sim-digit pixel noise (levels)")
@@ -70,7 +85,7 @@ def main() -> int:
         try:
             from teletouch.testing import make_registry
 
-            make_registry("teletouch.plugins.estimators.depth").get("depth")
+            make_registry(args.depth_module).get("depth")
             from teletouch.plugins.estimators.poly_force import DATA_DIR
 
             ok = Path(args.depth_model).is_file() or (DATA_DIR / f"{args.depth_model}.model").is_file()
@@ -94,7 +109,8 @@ def main() -> int:
     lo, hi = cal.depth_range
     frange = cal.force_range[1] - cal.force_range[0]
 
-    sensor, depth = make_components(depth_source, args.depth_model, args.seed, args.noise, args.drift)
+    sensor, depth = make_components(depth_source, args.depth_model, args.seed, args.noise, args.drift,
+                                    args.depth_module)
     mapper = Harness(PolyForce, {"calibration": str(resolve_calibration(cal_path))})
     rng = np.random.default_rng(args.seed)
     rows = []
@@ -124,10 +140,13 @@ def main() -> int:
                 return {"gt_force": out["gt_force"], "gt_max_depth": out["gt_max_depth"], "max_depth": md,
                         "force": f["force"], "status": f["status"]}
 
-            # held-out presses: other positions, indentation inside the calibrated range (true depth in [lo, hi])
+            # held-out presses: other positions; the true indentation spans the calibrated force range (the gel
+            # model's force between the calibration's lowest and 97% of its highest force)
+            ind_lo = indentation_for_force(max(cal.force_range[0], 0.02), sensor)
+            ind_hi = indentation_for_force(0.97 * cal.force_range[1], sensor)
             for _ in range(args.presses):
                 pos = np.array([rng.uniform(-2.0e-3, 2.0e-3), rng.uniform(-4.0e-3, 4.0e-3)])
-                ind = rng.uniform(max(lo, 0.1e-3), 0.97 * hi)
+                ind = rng.uniform(ind_lo, ind_hi)
                 r = frame(ind, pos)
                 r.update(indentation=ind, x=pos[0], y=pos[1])
                 rows.append(r)
@@ -166,6 +185,7 @@ def main() -> int:
         "fit_samples": sum(1 for s in cal.samples if s.get("used", True)),
         "calibrated_depth_range_mm": [round(lo * 1e3, 4), round(hi * 1e3, 4)],
         "calibrated_force_range_n": [round(x, 4) for x in cal.force_range],
+        "heldout_true_indentation_mm": [round(ind_lo * 1e3, 4), round(ind_hi * 1e3, 4)],
         "hysteresis_max_gap_n": (cal.hysteresis or {}).get("max_gap_n"),
         "heldout_presses": len(rows),
         "heldout_rmse_n": round(rmse, 5),
