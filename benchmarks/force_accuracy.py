@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+# accuracy, not speed, is measured here: one torch thread avoids oversubscribing a shared CPU (set before torch loads)
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 def make_components(depth_source: str, depth_model: str, seed: int, noise: float, drift: float,

@@ -59,7 +59,11 @@ def main() -> int:
     if args.quick:
         cmd += ["--set", "routine.cycles=1", "--set", "routine.step=0.25mm"]
     print("$ " + " ".join(cmd), file=sys.stderr)
-    rc = subprocess.call(cmd, cwd=REPO)
+    import os
+
+    env = dict(os.environ)
+    env.setdefault("OMP_NUM_THREADS", "1")  # the graph runs one frame at a time: one torch thread is fastest
+    rc = subprocess.call(cmd, cwd=REPO, env=env)
     tmp.cleanup()
     return rc
 
