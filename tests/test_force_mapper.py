@@ -332,6 +332,7 @@ nodes:
 def test_packaged_sim_calibration_loads_and_meets_the_fit_target():
     path = resolve_calibration("sim-digit-qvga")
     cal = ForceCalibration.load(path)
+    assert ForceCalibration.load("sim-digit-qvga").coefficients == cal.coefficients
     assert cal.r2 >= 0.998 and cal.degree == 3
     assert cal.sensor_model_id == "sim-digit-qvga"
     lo, hi = cal.depth_range

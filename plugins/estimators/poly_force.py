@@ -286,8 +286,9 @@ class ForceCalibration:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "ForceCalibration":
-        """Read a calibration file. Raises ModelFileError naming the file and the field for any problem."""
-        path = Path(path)
+        """Read a calibration file (or a packaged one by name, e.g. ``sim-digit-qvga``). Raises ModelFileError
+        naming the file and the field for any problem."""
+        path = resolve_calibration(str(path))
         try:
             text = path.read_text(encoding="utf-8")
         except FileNotFoundError:
