@@ -1,0 +1,336 @@
+"""`depth`: DIGIT frame -> depth map, max depth, contact mask, area and centroid (the paper's method, made fast).
+
+A per-pixel MLP (calibrated per sensor on ball presses, see ``teletouch calibrate depth``) turns colour into the gel's
+surface normal; normals become depth gradients; a DST Poisson solve turns them into depth (m, positive into the
+gel). The network only runs where the frame differs from the background, which is also the zero reference: an
+untouched gel has no gradient and hence no depth. Details: docs/depth.md; the computation: depth_pipeline.py.
+
+CLI (added by this plugin):
+  teletouch calibrate depth --images DIR --ball-diameter 6mm --px-per-mm 17.15 [--labels CSV] -o sensor.model
+  teletouch estimate --model sensor.model IMAGE... [--background F] [--json] [--save-depth DIR]
+                     [--force-calibration force.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
+from teletouch.units import Meters, parse_quantity
+
+__all__ = ["DepthEstimator"]
+
+
+class DepthEstimator(Component):
+    """DIGIT image -> depth map (m), max depth, contact mask/area/centroid (normal MLP + DST Poisson)."""
+
+    name = "depth"
+    kind = Kind.ESTIMATOR
+    default_rate = 60.0
+    inputs = {"image": Port("uint8", (None, None, 3), "", "BGR portrait frame (rows x cols x 3)", required=True)}
+    outputs = {
+        "depth": Port("float32", (None, None), "m", "depth map, positive where the gel is pressed in"),
+        "max_depth": Port("float64", (), "m", "largest depth"),
+        "contact_mask": Port("bool", (None, None), "", "pixels deeper than contact_depth"),
+        "contact_area": Port("float64", (), "m^2", "area of the contact mask"),
+        "centroid": Port("float64", (2,), "m", "depth-weighted contact centre from the image centre (x along "
+                                             "columns, y along rows); NaN without contact"),
+    }
+
+    class Params(Params):
+        model: str = Field("sim-digit-qvga", description="model file (.model from `teletouch calibrate depth`) "
+                           "or the name of a packaged model (sim-digit-qvga)")
+        device: str = Field("cpu", description="torch device: cpu, cuda, cuda:1, mps")
+        mode: Literal["auto", "sparse", "dense"] = Field(
+            "auto", description="sparse: network only on changed pixels (CPU default); dense: every pixel, "
+            "masked (GPU default)")
+        background: str | None = Field(None, description="a no-contact frame (image file) replacing the model's "
+                                       "background, e.g. recorded at start-up")
+        contact_depth: Meters = Field(3e-5, gt=0, description="depth above which a pixel is in contact",
+                                      json_schema_extra={"unit": "m"})
+        change_threshold: float | None = Field(None, gt=0, description="colour change (0-255 levels summed over "
+                                               "B, G, R) that counts as touched; default: the model's")
+        adapt_background: float = Field(0.0, ge=0.0, le=0.5, description="blend weight of each no-contact frame "
+                                        "into the background (0: off), follows slow illumination drift")
+        workers: int = Field(1, ge=1, le=64, description="scipy.fft worker threads for the CPU solve")
+
+    def configure(self) -> None:
+        from .depth_pipeline import DepthPipeline
+        from .normal_model import load_model
+
+        p = self.params
+        model = load_model(p.model)
+        bg = None
+        if p.background:
+            try:
+                bg = _read_image(p.background)
+            except FileNotFoundError as exc:
+                raise ModelFileError(str(exc)) from None
+            if bg.shape != (*model.shape, 3):
+                raise ModelFileError(f"{p.background}: background frame is {bg.shape[0]}x{bg.shape[1]}, the model "
+                                     f"{model.source} is for {model.shape[0]}x{model.shape[1]} images")
+        device = _check_device(p.device)
+        self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
+                                  contact_depth=p.contact_depth, workers=p.workers, background=bg)
+        self.model = model
+        self._bg = (bg if bg is not None else model.background).astype(np.float32)
+        self._last: dict[str, float] = {}
+        self._ms = math.nan
+
+    def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
+        s = inputs["image"]
+        if s is None:
+            return None
+        frame = s.value
+        try:
+            self.pipe.check_frame(frame)
+        except ValueError as exc:
+            raise ComponentFault(str(exc), self.id) from None
+        t0 = time.perf_counter()
+        res = self.pipe(frame)
+        self._ms = (time.perf_counter() - t0) * 1e3
+        a = self.params.adapt_background
+        if a > 0 and res.contact_area == 0.0 and not res.contact_mask.any():
+            self._bg += a * (frame.astype(np.float32) - self._bg)
+            self.pipe.set_background(self._bg)
+        self._last = {"max_depth_mm": res.max_depth * 1e3, "contact_area_mm2": res.contact_area * 1e6,
+                      "ms": self._ms}
+        st = s.stamp
+        return {"depth": Sample(res.depth, st), "max_depth": Sample(float(res.max_depth), st),
+                "contact_mask": Sample(res.contact_mask, st), "contact_area": Sample(float(res.contact_area), st),
+                "centroid": Sample(res.centroid.astype(np.float64), st)}
+
+    def status(self) -> dict[str, Any]:
+        return dict(self._last)
+
+
+def _check_device(device: str) -> str:
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ComponentFault(f"device {device!r}: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ComponentFault(f"device {device!r}: torch sees no CUDA GPU here; use device: cpu")
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ComponentFault(f"device {device!r}: MPS is not available; use device: cpu")
+    return device
+
+
+def _read_image(path: str | Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FileNotFoundError(f"{path}: not a readable image file")
+    return img
+
+
+# ------------------------------------------------------------------------------------------------------------ CLI
+
+def _px_per_m(text: str) -> float:
+    """'17.15' (px per mm) or '17.15px/mm' or '17150px/m' -> px per m."""
+    t = text.strip()
+    try:
+        return float(t) * 1e3
+    except ValueError:
+        pass
+    return parse_quantity(t, "px/m")
+
+
+def cmd_calibrate_depth(args: argparse.Namespace) -> int:
+    from .depth_calibration import (calibrate, load_images, median_background, px_per_mm_from_caliper,
+                                    read_labels, review_overlay, write_labels, auto_label)
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(msg, file=sys.stderr)
+
+    try:
+        if args.ball_diameter is None and args.ball_radius is None:
+            raise ValueError("give the ball size: --ball-diameter 6mm (or --ball-radius 3mm)")
+        radius = (parse_quantity(args.ball_radius, "m") if args.ball_radius is not None
+                  else parse_quantity(args.ball_diameter, "m") / 2.0)
+        if not 0 < radius < 0.05:
+            raise ValueError(f"ball radius {radius * 1e3:g} mm is implausible (expected e.g. --ball-diameter 6mm)")
+        images = load_images(args.images)
+        background = _read_image(args.background) if args.background else None
+        if background is not None:
+            images = [(n, im) for n, im in images if Path(n).name != Path(args.background).name]
+        if args.px_per_mm is not None:
+            px_per_m = _px_per_m(args.px_per_mm)
+        elif args.caliper is not None:
+            if args.caliper_gap is None:
+                raise ValueError("--caliper needs --caliper-gap (the distance between the tips, e.g. 5mm)")
+            bgc = background if background is not None else median_background([im for _, im in images])
+            px_per_m = px_per_mm_from_caliper(_read_image(args.caliper), bgc,
+                                              parse_quantity(args.caliper_gap, "m")) * 1e3
+            log(f"scale from the caliper image: {px_per_m / 1e3:.3f} px/mm")
+        else:
+            raise ValueError("give the scale: --px-per-mm 17.15, or --caliper IMAGE --caliper-gap 5mm")
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
+        return 2
+    labels = read_labels(args.labels) if args.labels else None
+    if args.labels_only:
+        bg = background if background is not None else median_background([im for _, im in images])
+        labs = [auto_label(n, im, bg, radius * px_per_m) for n, im in images]
+        out = write_labels(args.write_labels or Path(args.images) / "labels.auto.csv", labs)
+        _write_review(args.review, images, bg, labs, review_overlay)
+        n_unc = sum(1 for lb in labs if lb.uncertain and not lb.no_contact)
+        log(f"wrote {out} ({len(labs)} presses, {n_unc} uncertain): check it, fix rows, pass it with --labels")
+        return 0
+    if args.output is None:
+        print("teletouch calibrate depth: error: give the model file to write with -o FILE", file=sys.stderr)
+        return 2
+    try:
+        res = calibrate(images, radius, px_per_m, labels=labels, background=background, holdout=args.holdout,
+                        log=log, feature_set=args.features, epochs=args.epochs, seed=args.seed,
+                        stride=args.stride, progress=not args.quiet, hidden=tuple(args.hidden))
+    except ValueError as exc:
+        print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
+        return 2
+    if labels is None or args.write_labels:
+        out = write_labels(args.write_labels or Path(args.output).with_suffix(".labels.csv"), res.labels)
+        log(f"labels written to {out} (correct them and pass back with --labels)")
+    _write_review(args.review, images, res.background, res.labels, review_overlay)
+    res.model.training["total_seconds"] = round(res.seconds, 2)
+    res.model.save(args.output)
+    v = res.model.validation
+    summary = {"model": str(args.output), "seconds": round(res.seconds, 2), "presses": res.model.training["presses"],
+               "depth_gain": res.model.depth_gain, "change_threshold": res.model.change_threshold}
+    if v:
+        summary.update({"validation_presses": v["presses"], "median_abs_cap_error": v["median_abs_cap_error"],
+                        "median_sphere_radius_mm": v["median_sphere_radius_m"] * 1e3})
+    print(json.dumps(summary))
+    return 0
+
+
+def _write_review(folder: str | None, images: list, bg: np.ndarray, labels: list, overlay: Any) -> None:
+    if not folder:
+        return
+    import cv2
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    by = {lb.image: lb for lb in labels}
+    for name, im in images:
+        if name in by:
+            cv2.imwrite(str(out / (Path(name).stem + ".review.png")), overlay(im, bg, by[name]))
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    from .depth_pipeline import DepthPipeline
+    from .normal_model import load_model
+
+    model = load_model(args.model)
+    bg = _read_image(args.background) if args.background else None
+    pipe = DepthPipeline(model, device=_check_device(args.device), background=bg)
+    force = None
+    if args.force_calibration:
+        try:
+            from teletouch.plugins.estimators.poly_force import ForceCalibration
+        except ImportError as exc:  # pragma: no cover - poly_force ships with teletouch
+            print(f"teletouch estimate: error: force calibration support is missing: {exc}", file=sys.stderr)
+            return 2
+        force = ForceCalibration.load(args.force_calibration)
+    save = Path(args.save_depth) if args.save_depth else None
+    if save is not None:
+        save.mkdir(parents=True, exist_ok=True)
+    rc = 0
+    for path in args.images:
+        try:
+            frame = _read_image(path)
+            pipe.check_frame(frame)
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"teletouch estimate: error: {path}: {exc}", file=sys.stderr)
+            rc = 2
+            continue
+        t0 = time.perf_counter()
+        res = pipe(frame)
+        ms = (time.perf_counter() - t0) * 1e3
+        row: dict[str, Any] = {"image": str(path), "max_depth_m": res.max_depth,
+                               "contact_area_m2": res.contact_area,
+                               "centroid_m": [None if not math.isfinite(c) else float(c) for c in res.centroid],
+                               "ms": round(ms, 3)}
+        if force is not None:
+            row["force_N"] = float(force.predict(res.max_depth))
+        if save is not None:
+            stem = Path(path).stem
+            np.save(save / f"{stem}.npy", res.depth)
+            _save_depth_png(save / f"{stem}.png", res.depth)
+            row["depth_file"] = str(save / f"{stem}.npy")
+        if args.json:
+            print(json.dumps(row))
+        else:
+            f = f"  force {row['force_N']:.3f} N" if "force_N" in row else ""
+            print(f"{path}: max depth {res.max_depth * 1e3:.3f} mm  contact area {res.contact_area * 1e6:.2f} mm^2"
+                  f"{f}")
+    return rc
+
+
+def _save_depth_png(path: Path, depth: np.ndarray) -> None:
+    """Colour-mapped depth (turbo; 0 = dark blue, the scale's top = max(depth, 0.5 mm) = dark red), with a label."""
+    import cv2
+
+    top = max(float(depth.max()), 5e-4)
+    v = np.clip(depth / top * 255.0, 0, 255).astype(np.uint8)
+    img = cv2.applyColorMap(v, cv2.COLORMAP_TURBO)
+    cv2.putText(img, f"0-{top * 1e3:.2f}mm", (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1)
+    cv2.imwrite(str(path), img)
+
+
+@hookimpl
+def teletouch_components():
+    return [DepthEstimator]
+
+
+@hookimpl
+def teletouch_add_commands(subparsers, calibrate):
+    p = calibrate.add_parser("depth", help="calibrate the depth model of a DIGIT from ball presses",
+                             description="Train the per-pixel normal network from images of a ball pressed into "
+                             "the gel (~40 presses over the whole sensor; the ball somewhere else in each). "
+                             "Writes one model file for `teletouch estimate` and the `depth` component.")
+    p.add_argument("--images", required=True, help="folder of press images (PNG/JPEG), one resolution")
+    p.add_argument("--ball-diameter", default=None, help="ball diameter, e.g. 6mm")
+    p.add_argument("--ball-radius", default=None, help="or the ball radius, e.g. 3mm")
+    p.add_argument("--px-per-mm", default=None, help="image scale: 17.15 (px per mm) or 17.15px/mm")
+    p.add_argument("--caliper", default=None, help="or: an image of two caliper tips pressed into the gel")
+    p.add_argument("--caliper-gap", default=None, help="the distance between those tips, e.g. 5mm")
+    p.add_argument("--labels", default=None, help="contact circles CSV (image,center_x,center_y,radius_px[,note]); "
+                   "default: found automatically")
+    p.add_argument("--background", default=None, help="a no-contact frame; default: per-pixel median of the presses")
+    p.add_argument("--write-labels", default=None, help="where to write the labels used (default: beside -o)")
+    p.add_argument("--labels-only", action="store_true", help="only label the presses (write the CSV), no training")
+    p.add_argument("--review", default=None, metavar="DIR", help="write an overlay image per press for checking")
+    p.add_argument("--holdout", type=int, default=2, help="presses held out for validation (default 2)")
+    p.add_argument("--features", default="diffxy", choices=["diffxy", "rgbxy", "rgbxy+diff", "diff"],
+                   help="network inputs (default diffxy: difference from the background + position)")
+    p.add_argument("--hidden", type=int, nargs="+", default=[32, 32, 32], help="hidden layer sizes")
+    p.add_argument("--epochs", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stride", type=int, default=None, help="work-grid stride in px (default: rows / 160)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("-o", "--output", default=None, help="model file to write (e.g. sensor.model)")
+    p.set_defaults(func=cmd_calibrate_depth)
+
+    p = subparsers.add_parser("estimate", help="depth (and force) from DIGIT images with a calibrated model")
+    p.add_argument("images", nargs="+", metavar="IMAGE")
+    p.add_argument("--model", required=True, help="model file or packaged model name (sim-digit-qvga)")
+    p.add_argument("--background", default=None, help="a no-contact frame replacing the model's background")
+    p.add_argument("--force-calibration", default=None, metavar="FILE", help="force calibration (poly-force JSON): "
+                   "adds force_N")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--json", action="store_true", help="one JSON object per image on stdout (SI units)")
+    p.add_argument("--save-depth", default=None, metavar="DIR", help="write DIR/<stem>.npy (m) and a colour PNG")
+    p.set_defaults(func=cmd_estimate)

@@ -1,0 +1,604 @@
+"""Depth calibration from ball presses: background, automatic contact labels, ground-truth normals, training, metrics.
+
+Used by ``teletouch calibrate depth`` (plugins/estimators/depth.py), by benchmarks/depth_accuracy.py and by
+scripts/make_sim_depth_model.py, so every model is made by the same code.
+
+Labels CSV (the format of ../shared/data/digit-presses-*/labels.csv): ``image,center_x,center_y,radius_px[,note]``
+with x = column and y = row in pixels of the full-resolution image; an empty radius or a note starting with
+"uncertain" or "no contact" excludes the press from training (a "no contact" row marks a background frame).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+from teletouch.errors import ModelFileError
+
+from .normal_model import NormalModel, feature_count, make_net, xy_features
+
+__all__ = [
+    "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",
+    "review_overlay", "grid_images", "press_samples", "train_model", "cap_height_error", "sphere_fit_radius",
+    "far_false_depth", "evaluate_press", "px_per_mm_from_caliper", "default_stride", "calibrate",
+]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass
+class Label:
+    image: str
+    cx: float | None            # column, px (full resolution)
+    cy: float | None            # row, px
+    r: float | None             # contact radius, px
+    note: str = ""
+
+    @property
+    def uncertain(self) -> bool:
+        return self.r is None or self.cx is None or self.note.lower().startswith("uncertain")
+
+    @property
+    def no_contact(self) -> bool:
+        return self.note.lower().startswith("no contact") or (self.r is not None and self.r <= 0)
+
+    @property
+    def usable(self) -> bool:
+        return not self.uncertain and not self.no_contact
+
+
+# --- images and background -------------------------------------------------------------------------------------
+
+def load_images(folder: str | os.PathLike[str], names: Iterable[str] | None = None) -> list[tuple[str, np.ndarray]]:
+    """(name, uint8 BGR image) for every image in ``folder`` (sorted naturally), or for the given names."""
+    import cv2
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: no such folder of press images")
+    if names is None:
+        files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and ".review" not in p.name]
+        files.sort(key=lambda p: _natural_key(p.name))
+    else:
+        files = [folder / n for n in names]
+    out = []
+    for p in files:
+        img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+        if img is None:
+            raise FileNotFoundError(f"{p}: not a readable image (expected PNG/JPEG, {', '.join(IMAGE_EXTS)})")
+        out.append((p.name, img))
+    if not out:
+        raise FileNotFoundError(f"{folder}: no images ({', '.join(IMAGE_EXTS)})")
+    shapes = {im.shape for _, im in out}
+    if len(shapes) != 1:
+        raise ValueError(f"{folder}: images differ in size: {sorted(shapes)}; all presses must share one resolution")
+    return out
+
+
+def _natural_key(name: str) -> list[Any]:
+    import re
+
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def median_background(images: Sequence[np.ndarray]) -> np.ndarray:
+    """Per-pixel median of the presses: a clean background when the ball sits elsewhere in each image."""
+    if len(images) < 3:
+        raise ValueError("the background can be estimated from 3 or more presses (give --background otherwise)")
+    return np.median(np.stack(images), axis=0).round().astype(np.uint8)
+
+
+def default_stride(rows: int) -> int:
+    """Work-grid stride so that the grid is about 160 rows (QVGA 2, VGA 4)."""
+    return max(1, int(round(rows / 160)))
+
+
+# --- automatic labelling ---------------------------------------------------------------------------------------
+
+def _change_map(image: np.ndarray, background: np.ndarray, sigma: float) -> np.ndarray:
+    """Smoothed colour change |frame - background| summed over channels, with slow drift removed (high-pass)."""
+    import cv2
+
+    d = image.astype(np.float32) - background.astype(np.float32)
+    d -= np.median(d[::4, ::4].reshape(-1, 3), axis=0)
+    big = max(9.0, 6.0 * sigma)
+    d -= cv2.GaussianBlur(d, (0, 0), big)
+    s = np.abs(d).sum(axis=2)
+    return cv2.GaussianBlur(s, (0, 0), sigma)
+
+
+def auto_label(name: str, image: np.ndarray, background: np.ndarray, ball_radius_px: float,
+               level: float = 0.35) -> Label:
+    """Find the contact circle (centre, equal-area radius) of one press; flag what it is unsure of.
+
+    The colour-change map (drift high-passed, smoothed) of a ball press is an annulus (the flat centre of the cap
+    barely changes colour), so it is first closed (grey-level morphology over 0.6 ball radii) to fill the centre;
+    then thresholded at ``level`` x its robust peak; the region holding the most area is filled, and gives the
+    centroid and the radius sqrt(area / pi). ``level`` 0.35 sits between the conventions of the two shared label
+    sets (hand-drawn QVGA circles lie ~10% inside the colour change, VGA automatic ones on it).
+    """
+    import cv2
+
+    h, w = image.shape[:2]
+    sigma = max(1.0, ball_radius_px / 25.0)
+    s = _change_map(image, background, sigma)
+    s = s - float(np.median(s))
+    noise = float(np.median(np.abs(s))) * 1.4826 + 1e-6
+    k = int(ball_radius_px * 0.6) | 1
+    sc = cv2.morphologyEx(s, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    peak = float(np.percentile(sc, 99.9))
+    contrast = peak / noise
+    if contrast < 12.0:
+        return Label(name, None, None, 0.0, f"no contact: no colour change above the noise ({contrast:.0f} x noise)")
+    m = (sc > level * peak).astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    if n <= 1:
+        return Label(name, None, None, 0.0, "no contact: no region above the threshold")
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    k = int(np.argmax(areas)) + 1
+    cnts, _ = cv2.findContours((lab == k).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cnt = max(cnts, key=len)
+    filled = np.zeros((h, w), np.uint8)
+    cv2.drawContours(filled, [cnt], -1, 1, -1)
+    ys, xs = np.nonzero(filled)
+    area = float(xs.size)
+    r = math.sqrt(area / math.pi)
+    cx, cy = float(xs.mean()), float(ys.mean())
+    notes = []
+    x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
+    bw, bh = stats[k, cv2.CC_STAT_WIDTH], stats[k, cv2.CC_STAT_HEIGHT]
+    if x0 <= 1 or y0 <= 1 or x0 + bw >= w - 1 or y0 + bh >= h - 1:
+        notes.append("touches the image border")
+    if r > 0.95 * ball_radius_px:
+        notes.append(f"radius {r:.0f} px is not smaller than the ball's {ball_radius_px:.0f} px")
+    if r < 3:
+        notes.append("tiny contact")
+    perim = cv2.arcLength(cnt, True)
+    circ = 4 * math.pi * area / max(perim * perim, 1e-9)
+    if circ < 0.75:
+        notes.append(f"not round (circularity {circ:.2f})")
+    others = np.delete(areas, k - 1)
+    if others.size and others.max() > 0.3 * area:
+        notes.append("more than one contact")
+    if contrast < 25.0:
+        notes.append(f"weak contrast ({contrast:.0f} x noise)")
+    note = ("uncertain: " + "; ".join(notes)) if notes else ""
+    return Label(name, round(cx, 1), round(cy, 1), round(r, 1), note)
+
+
+def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
+    """Read a labels CSV; errors name the file, the line and the field."""
+    path = Path(path)
+    out: dict[str, Label] = {}
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        need = {"image", "center_x", "center_y", "radius_px"}
+        if reader.fieldnames is None or not need <= set(reader.fieldnames):
+            raise ModelFileError(f"{path}:1: expected the columns image,center_x,center_y,radius_px[,note], got "
+                                 f"{reader.fieldnames}")
+        for i, row in enumerate(reader, start=2):
+            vals: list[float | None] = []
+            for k in ("center_x", "center_y", "radius_px"):
+                t = (row.get(k) or "").strip()
+                if t == "":
+                    vals.append(None)
+                    continue
+                try:
+                    v = float(t)
+                except ValueError:
+                    raise ModelFileError(f"{path}:{i}: field {k} = {t!r} is not a number") from None
+                if not math.isfinite(v) or (k == "radius_px" and v < 0):
+                    raise ModelFileError(f"{path}:{i}: field {k} = {t!r} must be a finite number >= 0")
+                vals.append(v)
+            name = (row.get("image") or "").strip()
+            if not name:
+                raise ModelFileError(f"{path}:{i}: field image is empty")
+            out[name] = Label(name, vals[0], vals[1], vals[2], (row.get("note") or "").strip())
+    return out
+
+
+def write_labels(path: str | os.PathLike[str], labels: Iterable[Label]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(["image", "center_x", "center_y", "radius_px", "note"])
+        for lb in labels:
+            f = (lambda v: "" if v is None else f"{v:g}")
+            wr.writerow([lb.image, f(lb.cx), f(lb.cy), f(lb.r), lb.note])
+    return path
+
+
+def review_overlay(image: np.ndarray, background: np.ndarray, label: Label) -> np.ndarray:
+    """The press beside its difference image, with the contact circle drawn (green; red when uncertain)."""
+    import cv2
+
+    d = np.clip((image.astype(np.float32) - background.astype(np.float32)) * 3 + 128, 0, 255).astype(np.uint8)
+    out = np.hstack([image.copy(), d])
+    if label.cx is not None and label.r:
+        col = (0, 0, 255) if label.uncertain else (0, 255, 0)
+        for off in (0, image.shape[1]):
+            cv2.circle(out, (int(round(label.cx)) + off, int(round(label.cy))), int(round(label.r)), col, 1)
+    cv2.putText(out, label.note[:60] or "ok", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1)
+    return out
+
+
+# --- training data ---------------------------------------------------------------------------------------------
+
+def grid_images(image: np.ndarray, background: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0),
+                drift: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Block-averaged frame and diff on the work grid (float32 (gr, gc, 3)), exactly as the estimator computes
+    them (per-channel drift removed from the diff on a coarse grid)."""
+    x = image.astype(np.float32)
+    d = x - background.astype(np.float32)
+    if drift:
+        d -= np.median(d[::8, ::8].reshape(-1, 3), axis=0)
+    oy, ox = offset
+    h, w = image.shape[:2]
+    gr, gc = (h - oy) // stride, (w - ox) // stride
+
+    def pool(a: np.ndarray) -> np.ndarray:
+        a = a[oy: oy + gr * stride, ox: ox + gc * stride]
+        return a.reshape(gr, stride, gc, stride, 3).mean(axis=(1, 3))
+
+    return pool(x), pool(d)
+
+
+def sphere_normals(rows: np.ndarray, cols: np.ndarray, label: Label, ball_radius_px: float) -> np.ndarray:
+    """Ground-truth normals (nx, ny, nz) at full-resolution pixel positions: the ball's inside the contact circle,
+    (0, 0, 1) outside. nx = dx / R, ny = dy / R (dx along columns, dy along rows); depth gradient = -n_xy / nz."""
+    dx = np.asarray(cols, dtype=np.float64) - label.cx
+    dy = np.asarray(rows, dtype=np.float64) - label.cy
+    inside = dx * dx + dy * dy < label.r * label.r
+    nx = np.where(inside, dx / ball_radius_px, 0.0)
+    ny = np.where(inside, dy / ball_radius_px, 0.0)
+    nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, 1.0))
+    return np.stack([nx, ny, nz], axis=1).astype(np.float32)
+
+
+def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None, feature_set: str, stride: int,
+                  ball_radius_px: float, rng: np.random.Generator, flat_ratio: float = 1.0,
+                  offsets: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Features and target normals of one press (or one no-contact frame when ``label`` is None / no contact).
+
+    Every contact cell is used; flat cells are sampled to ``flat_ratio`` x the contact count, half of them in the
+    ring between 1 and 2.5 contact radii (where the gel is nearly flat but the colours change), half anywhere.
+    Each grid phase (``offsets``; default 0 and stride/2 in each direction) gives another view of the same press.
+    """
+    from .normal_model import features
+
+    h, w = image.shape[:2]
+    if offsets is None:
+        hs = stride // 2
+        offsets = sorted({(0, 0), (0, hs), (hs, 0), (hs, hs)})
+    xs_all, ys_all = [], []
+    for off in offsets:
+        gx_img, gd = grid_images(image, background, stride, off)
+        gr, gc = gx_img.shape[:2]
+        rr, cc = np.mgrid[0:gr, 0:gc]
+        # full-resolution position of each cell's centre
+        prow = rr * stride + off[0] + (stride - 1) / 2.0
+        pcol = cc * stride + off[1] + (stride - 1) / 2.0
+        prow, pcol = prow.ravel(), pcol.ravel()
+        if label is None or not label.usable:
+            sel = rng.choice(prow.size, size=min(prow.size, 400), replace=False)
+        else:
+            d2 = (pcol - label.cx) ** 2 + (prow - label.cy) ** 2
+            a2 = label.r ** 2
+            inside = np.nonzero(d2 < a2)[0]
+            ring = np.nonzero((d2 >= a2) & (d2 < 6.25 * a2))[0]
+            rest = np.nonzero(d2 >= 6.25 * a2)[0]
+            nflat = int(round(flat_ratio * inside.size))
+            pick_ring = rng.choice(ring, size=min(ring.size, nflat // 2), replace=False) if ring.size else ring
+            pick_rest = rng.choice(rest, size=min(rest.size, nflat - pick_ring.size), replace=False)
+            sel = np.concatenate([inside, pick_ring, pick_rest])
+        pix = gx_img.reshape(-1, 3)[sel]
+        dif = gd.reshape(-1, 3)[sel]
+        xs_all.append(features(feature_set, pix, dif, prow[sel], pcol[sel], (h, w)))
+        if label is None or not label.usable:
+            ys_all.append(np.tile(np.array([[0, 0, 1]], np.float32), (sel.size, 1)))
+        else:
+            ys_all.append(sphere_normals(prow[sel], pcol[sel], label, ball_radius_px))
+    return np.concatenate(xs_all), np.concatenate(ys_all)
+
+
+# --- training --------------------------------------------------------------------------------------------------
+
+def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
+                px_per_m: float, ball_radius_m: float = 0.003, feature_set: str = "rgbxy+diff",
+                hidden: Sequence[int] = (32, 32, 32), epochs: int = 60, lr: float = 1e-3, batch: int = 1024,
+                dropout: float = 0.05, seed: int = 0, stride: int | None = None, flat_ratio: float = 1.0,
+                validation: Sequence[str] = (), progress: bool = True, fit_gain: bool = True,
+                log: Callable[[str], None] | None = None) -> NormalModel:
+    """Train the normal MLP on the usable presses (minus ``validation`` names) and return the model.
+
+    Adam (lr 1e-3), MSE on the unit normal, dropout 0.05 (the paper's defaults); seeded and reproducible (same
+    seed, same data, same thread count -> same weights). Validation presses are evaluated with the full depth
+    pipeline (cap-height error, sphere radius, far-field false depth) and the numbers go into the model file.
+    """
+    import torch
+
+    t_start = time.perf_counter()
+    h, w = images[0][1].shape[:2]
+    stride = stride or default_stride(h)
+    ball_radius_px = ball_radius_m * px_per_m
+    rng = np.random.default_rng(seed)
+    torch.manual_seed(seed)
+    train_names, X, Y = [], [], []
+    for name, img in images:
+        lb = labels.get(name)
+        if name in validation:
+            continue
+        if lb is None:
+            continue
+        if lb.no_contact:
+            x, y = press_samples(img, background, None, feature_set, stride, ball_radius_px, rng)
+        elif lb.usable:
+            x, y = press_samples(img, background, lb, feature_set, stride, ball_radius_px, rng, flat_ratio)
+        else:
+            continue
+        train_names.append(name)
+        X.append(x)
+        Y.append(y)
+    # the background itself: no contact anywhere
+    x, y = press_samples(background, background, None, feature_set, stride, ball_radius_px, rng)
+    X.append(x)
+    Y.append(y)
+    if not any(labels.get(n) is not None and labels[n].usable for n in train_names):
+        raise ValueError("no usable labelled press to train on (all missing, uncertain or held out)")
+    Xa = np.concatenate(X)
+    Ya = np.concatenate(Y)
+    mean = Xa.mean(axis=0)
+    std = Xa.std(axis=0) + 1e-6
+    Xn = torch.from_numpy((Xa - mean) / std)
+    Yt = torch.from_numpy(Ya)
+    net = make_net(feature_count(feature_set), tuple(hidden), dropout)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    gen = torch.Generator().manual_seed(seed)
+    n = Xn.shape[0]
+    it: Iterable[int] = range(epochs)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(it, desc="training", unit="epoch", leave=False)
+        it = bar
+    loss_v = float("nan")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)       # small batches: one thread is fastest and does not fight other processes
+    try:
+        net.train()
+        for _ in it:
+            perm = torch.randperm(n, generator=gen)
+            tot = 0.0
+            for i in range(0, n, batch):
+                idx = perm[i:i + batch]
+                opt.zero_grad()
+                loss = torch.nn.functional.mse_loss(net(Xn[idx]), Yt[idx])
+                loss.backward()
+                opt.step()
+                tot += float(loss.detach()) * idx.numel()
+            loss_v = tot / n
+            if bar is not None:
+                bar.set_postfix(loss=f"{loss_v:.5f}")
+    finally:
+        torch.set_num_threads(threads)
+        if bar is not None:
+            bar.close()
+    net.eval()
+    model = NormalModel.from_net(
+        net, feature_set=feature_set, hidden=tuple(hidden), feat_mean=mean.astype(np.float32),
+        feat_std=std.astype(np.float32), background=np.ascontiguousarray(background, dtype=np.uint8),
+        px_per_m=px_per_m, ball_radius_m=ball_radius_m, stride=stride,
+        change_threshold=change_threshold(images, labels, background, stride, train_names))
+    # depth gain: the regression shrinks the normals a little; one scale, fitted on the training presses' cap
+    # heights (measured / expected), corrects it.
+    from .depth_pipeline import DepthPipeline
+
+    pipe = DepthPipeline(model)
+    ratios = []
+    for name, img in images:
+        lb = labels.get(name)
+        if name in train_names and lb is not None and lb.usable and _inside(lb, img.shape, 1.2):
+            measured, expected, _ = cap_height_error(pipe(img).depth, lb, px_per_m, ball_radius_m)
+            if measured > 0:
+                ratios.append(expected / measured)
+    if fit_gain and ratios:
+        model.depth_gain = float(np.clip(np.median(ratios), 0.5, 2.0))
+    train_s = time.perf_counter() - t_start
+    model.training = {"presses": train_names, "samples": int(n), "epochs": epochs, "lr": lr, "batch": batch,
+                      "dropout": dropout, "seed": seed, "loss": "mse", "optimizer": "adam", "final_loss": loss_v,
+                      "flat_ratio": flat_ratio, "seconds": round(train_s, 2), "gain_presses": len(ratios),
+                      "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    if log:
+        log(f"trained on {len(train_names)} frames, {n} samples, {epochs} epochs, loss {loss_v:.5f}, "
+            f"{train_s:.1f} s")
+    if validation:
+        from .depth_pipeline import DepthPipeline
+
+        pipe = DepthPipeline(model)
+        per = []
+        for name, img in images:
+            if name in validation and name in labels and labels[name].usable:
+                per.append(evaluate_press(pipe, img, labels[name], ball_radius_m))
+        model.validation = summarize(per)
+        if log and per:
+            log(f"validation on {len(per)} presses: median cap-height error "
+                f"{100 * model.validation['median_abs_cap_error']:.1f}%, sphere radius "
+                f"{1000 * model.validation['median_sphere_radius_m']:.2f} mm")
+    return model
+
+
+def _inside(label: Label, shape: tuple[int, ...], k: float) -> bool:
+    """True when the circle of k contact radii around the press lies inside the image."""
+    h, w = shape[:2]
+    return (label.cx - k * label.r >= 0 and label.cy - k * label.r >= 0 and label.cx + k * label.r <= w - 1
+            and label.cy + k * label.r <= h - 1)
+
+
+def change_threshold(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
+                     stride: int, names: Sequence[str]) -> float:
+    """The estimator's contact threshold for this sensor: 1.25 x the 99.9th percentile of its change statistic
+    (|diff| summed over channels on the work grid, 3 x 3 box-blurred) away from the presses (beyond 2.5 radii)."""
+    import cv2
+
+    vals = []
+    for name, img in images:
+        lb = labels.get(name)
+        if name not in names or lb is None or not (lb.usable or lb.no_contact):
+            continue
+        _, gd = grid_images(img, background, stride)
+        a = cv2.blur(np.abs(gd).sum(axis=2), (3, 3), borderType=cv2.BORDER_REPLICATE)
+        if lb.usable:
+            gr, gc = a.shape
+            rr, cc = np.mgrid[0:gr, 0:gc]
+            far = ((cc * stride + (stride - 1) / 2 - lb.cx) ** 2 + (rr * stride + (stride - 1) / 2 - lb.cy) ** 2
+                   > (2.5 * lb.r) ** 2)
+            vals.append(a[far])
+        else:
+            vals.append(a.ravel())
+    if not vals:
+        return 16.0
+    return float(max(6.0, 1.25 * np.percentile(np.concatenate(vals), 99.9)))
+
+
+# --- metrics ---------------------------------------------------------------------------------------------------
+
+def cap_height_error(depth: np.ndarray, label: Label, px_per_m: float, ball_radius_m: float = 0.003
+                     ) -> tuple[float, float, float]:
+    """(measured, expected, relative error) of the cap height: depth at the centre (disk of radius
+    max(2 px, a/10)) minus depth on the ring a-2 <= r <= a+2 px, against R - sqrt(R^2 - a^2)."""
+    h, w = depth.shape
+    rr, cc = np.ogrid[0:h, 0:w]
+    r = np.sqrt((cc - label.cx) ** 2 + (rr - label.cy) ** 2)
+    a = label.r
+    centre = depth[r <= max(2.0, a / 10.0)].mean()
+    ring = depth[(r >= a - 2) & (r <= a + 2)].mean()
+    measured = float(centre - ring)
+    a_m = a / px_per_m
+    R = ball_radius_m
+    expected = R - math.sqrt(max(R * R - a_m * a_m, 0.0))
+    return measured, expected, measured / expected - 1.0
+
+
+def sphere_fit_radius(depth: np.ndarray, label: Label, px_per_m: float) -> float:
+    """Radius (m) of the sphere fitted (algebraically, least squares) to the reconstructed surface inside the
+    contact circle (r <= 0.9 a)."""
+    h, w = depth.shape
+    rr, cc = np.mgrid[0:h, 0:w]
+    sel = (cc - label.cx) ** 2 + (rr - label.cy) ** 2 <= (0.9 * label.r) ** 2
+    x = cc[sel] / px_per_m
+    y = rr[sel] / px_per_m
+    z = -depth[sel].astype(np.float64)      # the ball's surface: depth grows into the gel
+    A = np.stack([x, y, z, np.ones_like(x)], axis=1)
+    b = -(x * x + y * y + z * z)
+    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
+    D, E, F, G = sol
+    val = (D * D + E * E + F * F) / 4.0 - G
+    return float(math.sqrt(val)) if val > 0 else float("nan")
+
+
+def far_false_depth(depth: np.ndarray, label: Label) -> float:
+    """max |depth| (m) beyond twice the contact radius."""
+    h, w = depth.shape
+    rr, cc = np.ogrid[0:h, 0:w]
+    far = (cc - label.cx) ** 2 + (rr - label.cy) ** 2 > (2 * label.r) ** 2
+    return float(np.abs(depth[far]).max()) if far.any() else 0.0
+
+
+def evaluate_press(pipe: Any, image: np.ndarray, label: Label, ball_radius_m: float = 0.003) -> dict[str, Any]:
+    res = pipe(image)
+    px_per_m = pipe.model.px_per_m
+    measured, expected, err = cap_height_error(res.depth, label, px_per_m, ball_radius_m)
+    return {"image": label.image, "cx": label.cx, "cy": label.cy, "radius_px": label.r,
+            "cap_measured_mm": round(measured * 1e3, 4), "cap_expected_mm": round(expected * 1e3, 4),
+            "cap_error": round(err, 4), "sphere_radius_mm": round(sphere_fit_radius(res.depth, label,
+                                                                                       px_per_m) * 1e3, 3),
+            "max_depth_mm": round(res.max_depth * 1e3, 4),
+            "far_false_depth_mm": round(far_false_depth(res.depth, label) * 1e3, 4)}
+
+
+def summarize(per: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    if not per:
+        return {}
+    err = np.array([p["cap_error"] for p in per])
+    rad = np.array([p["sphere_radius_mm"] for p in per]) * 1e-3
+    far = np.array([p["far_false_depth_mm"] for p in per]) * 1e-3
+    return {"presses": len(per), "median_abs_cap_error": float(np.median(np.abs(err))),
+            "median_cap_error": float(np.median(err)), "median_sphere_radius_m": float(np.nanmedian(rad)),
+            "max_far_false_depth_m": float(far.max()), "per_press": list(per)}
+
+
+# --- scale from a caliper image --------------------------------------------------------------------------------
+
+def px_per_mm_from_caliper(image: np.ndarray, background: np.ndarray, gap_m: float) -> float:
+    """px per mm from an image of the two tips of a caliper (set to ``gap_m``) pressed into the gel: the distance
+    between the centroids of the two strongest contact regions, divided by the gap."""
+    import cv2
+
+    s = _change_map(image, background, 1.5)
+    floor = float(np.median(s))
+    peak = float(np.percentile(s, 99.9))
+    m = (s > floor + 0.4 * (peak - floor)).astype(np.uint8)
+    n, lab, stats, cents = cv2.connectedComponentsWithStats(m, connectivity=8)
+    if n < 3:
+        raise ValueError("the caliper image must show two separate contacts (the two tips); found "
+                         f"{max(n - 1, 0)}")
+    order = np.argsort(stats[1:, cv2.CC_STAT_AREA])[::-1][:2] + 1
+    (x1, y1), (x2, y2) = cents[order[0]], cents[order[1]]
+    dist_px = math.hypot(x2 - x1, y2 - y1)
+    return dist_px / (gap_m * 1e3)
+
+
+# --- the whole calibration -------------------------------------------------------------------------------------
+
+@dataclass
+class CalibrationResult:
+    model: NormalModel
+    labels: list[Label]
+    background: np.ndarray
+    seconds: float
+    notes: list[str] = field(default_factory=list)
+
+
+def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px_per_m: float,
+              labels: dict[str, Label] | None = None, background: np.ndarray | None = None,
+              holdout: int = 2, log: Callable[[str], None] | None = None, **train_kw: Any) -> CalibrationResult:
+    """Background (given or median), labels (given or automatic), training with ``holdout`` presses held out for
+    validation (spread over the sensor), then a final... model trained on the training presses."""
+    t0 = time.perf_counter()
+    log = log or (lambda m: None)
+    if background is None:
+        background = median_background([im for _, im in images])
+        log(f"background: per-pixel median of {len(images)} presses")
+    elif background.shape != images[0][1].shape:
+        raise ValueError(f"background is {background.shape}, the presses are {images[0][1].shape}")
+    ball_px = ball_radius_m * px_per_m
+    if labels is None:
+        labels = {name: auto_label(name, img, background, ball_px) for name, img in images}
+        n_unc = sum(1 for lb in labels.values() if lb.uncertain and not lb.no_contact)
+        log(f"labelled {len(labels)} presses automatically ({n_unc} uncertain, excluded)")
+    else:
+        missing = [n for n, _ in images if n not in labels]
+        if missing:
+            log(f"no label for {len(missing)} image(s), not used: {', '.join(missing[:5])}")
+    usable = [n for n, _ in images if n in labels and labels[n].usable]
+    if len(usable) < 2:
+        raise ValueError(f"only {len(usable)} usable press(es); record more (the paper used ~40) or fix the labels")
+    holdout = max(0, min(holdout, len(usable) - 1))
+    # hold out presses spread over the sensor: every k-th in order of position along the rows
+    val: list[str] = []
+    if holdout:
+        order = sorted(usable, key=lambda n: (labels[n].cy, labels[n].cx))
+        step = len(order) / holdout
+        val = [order[int((i + 0.5) * step)] for i in range(holdout)]
+    model = train_model(images, labels, background, px_per_m, ball_radius_m, validation=val, log=log, **train_kw)
+    return CalibrationResult(model=model, labels=[labels[n] for n, _ in images if n in labels],
+                             background=background, seconds=time.perf_counter() - t0)

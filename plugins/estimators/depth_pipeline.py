@@ -1,0 +1,255 @@
+"""Frame -> depth map, the estimator's computation (no framework code; the `depth` component wraps it).
+
+Steps (torch tensors end to end, on any torch device; the Poisson solve by scipy.fft on CPU, by torch.fft elsewhere):
+
+1. ``diff = frame - background`` (float), minus the per-channel median of diff over a coarse grid (global
+   illumination drift cancels).
+2. Work grid: the frame and diff are area-averaged in ``stride x stride`` blocks (the DIGIT's optics blur far more
+   than one pixel, so nothing is lost; the model was trained on the same grid).
+3. Change mask: cells whose smoothed colour change exceeds ``change_threshold`` (in 0..255 levels summed over the
+   channels), dilated by ``dilate`` cells. Outside it the gel is flat by definition: normal (0, 0, 1), zero
+   gradient. This is the zero reference: without contact there is no gradient, hence no depth.
+4. The MLP runs on the masked cells only (``mode="sparse"``, CPU default) or on every cell then multiplied by the
+   mask (``mode="dense"``, the GPU default; branch-free and batchable). Normals -> gradients
+   ``gx = -nx / max(nz, nz_min)`` (and gy), dimensionless.
+5. Depth by the DST Poisson solve on the mask's bounding box plus a margin (sparse) or on the whole grid (dense);
+   depth outside the change mask is set to 0 (the zero reference) and, unless ``clamp_negative=False``, negative
+   depth (the gel cannot rise above its rest plane by more than microns) to 0; then metres (x stride / px_per_m x the model's
+   depth gain) and bilinear upsampling to the frame's size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from teletouch.errors import ModelFileError
+
+from . import poisson
+from .normal_model import NormalModel, feature_count
+
+__all__ = ["DepthResult", "DepthPipeline", "contact_summary"]
+
+
+@dataclass
+class DepthResult:
+    depth: np.ndarray          # float32 (rows, cols) m, positive into the gel
+    max_depth: float           # m
+    contact_mask: np.ndarray   # bool (rows, cols)
+    contact_area: float        # m^2
+    centroid: np.ndarray       # float64 (2,) m from the image centre (x along columns, y along rows); NaN if none
+
+
+def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """Contact mask (depth > contact_depth), its area (m^2) and depth-weighted centroid (m from the image centre)."""
+    mask = depth > contact_depth
+    n = int(np.count_nonzero(mask))
+    if n == 0:
+        return mask, 0.0, np.array([math.nan, math.nan])
+    rows, cols = np.nonzero(mask)
+    w = depth[rows, cols].astype(np.float64)
+    h, wd = depth.shape
+    cx = float((cols * w).sum() / w.sum()) - (wd - 1) / 2.0
+    cy = float((rows * w).sum() / w.sum()) - (h - 1) / 2.0
+    return mask, n * m_per_px * m_per_px, np.array([cx * m_per_px, cy * m_per_px])
+
+
+class DepthPipeline:
+    """A calibrated model + settings -> depth maps. ``pipeline(frame_bgr_uint8) -> DepthResult``."""
+
+    def __init__(self, model: NormalModel, device: str = "cpu", mode: str = "auto",
+                 change_threshold: float | None = None, dilate: int = 2, nz_min: float = 0.3,
+                 contact_depth: float = 3e-5, margin: int = 4, workers: int | None = None,
+                 drift_correction: bool = True, background: np.ndarray | None = None,
+                 clamp_negative: bool = True):
+        import torch
+
+        self.torch = torch
+        self.model = model
+        self.device = torch.device(device)
+        if mode == "auto":
+            mode = "sparse" if self.device.type == "cpu" else "dense"
+        if mode not in ("sparse", "dense"):
+            raise ValueError(f"mode must be 'auto', 'sparse' or 'dense', got {mode!r}")
+        self.mode = mode
+        self.change_threshold = float(model.change_threshold if change_threshold is None else change_threshold)
+        self.depth_gain = float(model.depth_gain)
+        self.dilate = int(dilate)
+        self.nz_min = float(nz_min)
+        self.contact_depth = float(contact_depth)
+        self.margin = int(margin)
+        self.workers = workers
+        self.drift_correction = drift_correction
+        self.clamp_negative = clamp_negative
+        self.stride = max(1, int(model.stride))
+        self.rows, self.cols = model.shape
+        self.grows, self.gcols = self.rows // self.stride, self.cols // self.stride
+        self.net = model.net(self.device)
+        self.mean = torch.as_tensor(model.feat_mean, dtype=torch.float32, device=self.device)
+        self.inv_std = 1.0 / torch.as_tensor(model.feat_std, dtype=torch.float32, device=self.device)
+        self.nfeat = feature_count(model.feature_set)
+        # grid coordinates in [-1, 1] (block centres in full-resolution pixels; same mapping as in training)
+        s = self.stride
+        gr = (torch.arange(self.grows, dtype=torch.float32) * s + (s - 1) / 2.0 + 0.5) * (2.0 / self.rows) - 1.0
+        gc = (torch.arange(self.gcols, dtype=torch.float32) * s + (s - 1) / 2.0 + 0.5) * (2.0 / self.cols) - 1.0
+        self.grid_y = gr[:, None].expand(self.grows, self.gcols).contiguous().to(self.device)
+        self.grid_x = gc[None, :].expand(self.grows, self.gcols).contiguous().to(self.device)
+        self.set_background(model.background if background is None else background)
+        self.m_per_cell = s / model.px_per_m * self.depth_gain
+
+    # ---------------------------------------------------------------------------------------------------------
+    def set_background(self, background: np.ndarray) -> None:
+        bg = np.asarray(background)
+        if bg.shape != (self.rows, self.cols, 3):
+            raise ModelFileError(f"background is {bg.shape}, expected ({self.rows}, {self.cols}, 3) like the model")
+        self.background = self.torch.as_tensor(np.ascontiguousarray(bg), device=self.device).float()
+
+    def check_frame(self, frame: np.ndarray) -> None:
+        if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.shape != (self.rows, self.cols, 3):
+            got = f"{frame.dtype} {frame.shape}" if isinstance(frame, np.ndarray) else type(frame).__name__
+            raise ValueError(f"expected a uint8 BGR image of {self.rows}x{self.cols}x3 (rows x cols, portrait) "
+                             f"like the model {self.model.source}, got {got}")
+
+    def _grid(self, frames: Any) -> tuple[Any, Any]:
+        """(B, rows, cols, 3) uint8 tensor -> block-averaged frame and drift-corrected diff, (B, 3, gr, gc)."""
+        import torch.nn.functional as F
+
+        torch = self.torch
+        x = frames.to(self.device, non_blocking=True).float()
+        d = x - self.background
+        if self.drift_correction:
+            # robust global offset per channel (the contact covers a small part of the frame)
+            sub = d[:, ::8, ::8, :].reshape(d.shape[0], -1, 3)
+            d = d - sub.median(dim=1).values[:, None, None, :]
+        x = x.permute(0, 3, 1, 2)
+        d = d.permute(0, 3, 1, 2)
+        s = self.stride
+        if s > 1:
+            x = F.avg_pool2d(x[..., : self.grows * s, : self.gcols * s], s)
+            d = F.avg_pool2d(d[..., : self.grows * s, : self.gcols * s], s)
+        return x, d
+
+    def _mask(self, d: Any) -> Any:
+        import kornia.filters as KF
+        import torch.nn.functional as F
+
+        a = d.abs().sum(dim=1, keepdim=True)
+        a = KF.box_blur(a, (3, 3), border_type="replicate")
+        m = (a > self.change_threshold).float()
+        # opening (drops specks of noise smaller than 3 x 3 cells), then dilation to take in the contact's rim
+        m = -F.max_pool2d(-m, 3, stride=1, padding=1)
+        k = 2 * (self.dilate + 1) + 1
+        m = F.max_pool2d(m, k, stride=1, padding=self.dilate + 1)
+        return m[:, 0] > 0.5
+
+    def _features(self, x: Any, d: Any) -> Any:
+        """(B, 3, gr, gc) frame and diff -> standardised (B, gr, gc, F) features."""
+        torch = self.torch
+        b = x.shape[0]
+        parts = []
+        fs = self.model.feature_set
+        if fs in ("rgbxy", "rgbxy+diff"):
+            parts.append(x * (1.0 / 255.0))
+        if fs in ("diffxy", "rgbxy+diff", "diff"):
+            parts.append(d * (1.0 / 255.0))
+        if fs != "diff":
+            parts.append(self.grid_x.expand(b, 1, -1, -1))
+            parts.append(self.grid_y.expand(b, 1, -1, -1))
+        f = torch.cat(parts, dim=1).permute(0, 2, 3, 1)
+        return (f - self.mean) * self.inv_std
+
+    def _gradients(self, n: Any) -> tuple[Any, Any]:
+        n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        nz = n[..., 2].clamp_min(self.nz_min)
+        return -n[..., 0] / nz, -n[..., 1] / nz
+
+    # ---------------------------------------------------------------------------------------------------------
+    def grid_depth(self, frame: np.ndarray) -> np.ndarray:
+        """Depth on the work grid (grows, gcols), metres, numpy float32."""
+        torch = self.torch
+        self.check_frame(frame)
+        with torch.inference_mode():
+            x, d = self._grid(torch.from_numpy(frame)[None])
+            m = self._mask(d)[0]
+            if self.mode == "dense":
+                gx, gy = self._dense_gradients(x, d, m[None])
+                z = poisson.integrate_torch(gx, gy)[0] if self.device.type != "cpu" else torch.from_numpy(
+                    poisson.integrate(gx[0].numpy(), gy[0].numpy(), self.workers))
+                z = z * m * self.m_per_cell
+                if self.clamp_negative:
+                    z = z.clamp_min(0.0)
+                return z.float().cpu().numpy()
+            idx = m.nonzero()
+            if idx.shape[0] == 0:
+                return np.zeros((self.grows, self.gcols), np.float32)
+            r, c = idx[:, 0], idx[:, 1]
+            f = self._features(x, d)[0][r, c]
+            gxs, gys = self._gradients(self.net(f))
+            gx = torch.zeros((self.grows, self.gcols), dtype=torch.float32, device=self.device)
+            gy = torch.zeros_like(gx)
+            gx[r, c] = gxs
+            gy[r, c] = gys
+            r0 = max(int(r.min()) - self.margin, 0)
+            r1 = min(int(r.max()) + 1 + self.margin, self.grows)
+            c0 = max(int(c.min()) - self.margin, 0)
+            c1 = min(int(c.max()) + 1 + self.margin, self.gcols)
+            gxn = gx.cpu().numpy()
+            gyn = gy.cpu().numpy()
+            mn = m.cpu().numpy()
+        z = poisson.integrate_window(gxn, gyn, (r0, r1, c0, c1), workers=self.workers)
+        z *= self.m_per_cell
+        z[~mn] = 0.0
+        if self.clamp_negative:
+            np.maximum(z, 0.0, out=z)
+        return z
+
+    def _dense_gradients(self, x: Any, d: Any, m: Any) -> tuple[Any, Any]:
+        f = self._features(x, d)
+        gx, gy = self._gradients(self.net(f))
+        mf = m.float()
+        return gx * mf, gy * mf
+
+    def batch_depth(self, frames: np.ndarray | Any) -> Any:
+        """Dense, batched: (B, rows, cols, 3) uint8 -> (B, rows, cols) float32 depth tensor (m) on the device."""
+        import torch.nn.functional as F
+
+        torch = self.torch
+        with torch.inference_mode():
+            t = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(frames))
+            x, d = self._grid(t)
+            m = self._mask(d)
+            gx, gy = self._dense_gradients(x, d, m)
+            z = poisson.integrate_torch(gx, gy) * m * self.m_per_cell
+            if self.clamp_negative:
+                z = z.clamp_min(0.0)
+            if self.stride > 1:
+                z = F.interpolate(z[:, None], size=(self.grows * self.stride, self.gcols * self.stride),
+                                  mode="bilinear", align_corners=False)[:, 0]
+                if z.shape[-2:] != (self.rows, self.cols):
+                    z = F.pad(z, (0, self.cols - z.shape[-1], 0, self.rows - z.shape[-2]), mode="replicate")
+            return z
+
+    def upsample(self, zg: np.ndarray) -> np.ndarray:
+        if self.stride == 1:
+            return zg.astype(np.float32, copy=False)
+        import cv2
+
+        s = self.stride
+        z = cv2.resize(zg, (self.gcols * s, self.grows * s), interpolation=cv2.INTER_LINEAR)
+        if z.shape != (self.rows, self.cols):
+            z = np.pad(z, ((0, self.rows - z.shape[0]), (0, self.cols - z.shape[1])), mode="edge")
+        return z.astype(np.float32, copy=False)
+
+    def max_depth(self, frame: np.ndarray) -> float:
+        """The fast path for force estimation: frame -> max depth (m) without building the full-size map."""
+        return max(0.0, float(self.grid_depth(frame).max()))
+
+    def __call__(self, frame: np.ndarray) -> DepthResult:
+        zg = self.grid_depth(frame)
+        depth = self.upsample(zg)
+        mask, area, centroid = contact_summary(depth, 1.0 / self.model.px_per_m, self.contact_depth)
+        return DepthResult(depth=depth, max_depth=max(0.0, float(zg.max())), contact_mask=mask,
+                           contact_area=area, centroid=centroid)
