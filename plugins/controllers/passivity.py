@@ -33,7 +33,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "commit"]
+__all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "reduce_force_to",
+           "adapt_gain", "commit"]
 
 
 @dataclass
@@ -74,22 +75,28 @@ def passivity_force(state: PassivityState, force: float, velocity: float, dt: fl
                     reduce_force: bool = True, reduce_margin: float = 0.0) -> tuple[float, float]:
     """The force to send and the equivalent damping used (N*s/m); does not change ``state``.
 
-    First a damping ``-alpha * v`` with ``alpha <= max_damping``. If that cannot restore ``E >= 0`` and the
-    network is pushing energy out (``force * v > 0``), the rendered force is reduced towards zero (never past it)
-    by what remains beyond ``reduce_margin`` (J; a small deficit is left to the damping of the next steps): less force is always safe, and the operator is never pulled. The returned damping is the
-    equivalent ``(force - sent) / v``, so it can exceed ``max_damping`` only through that reduction.
+    First a damping ``-alpha * v`` with ``alpha <= max_damping``; then, if ``reduce_force``, :func:`reduce_force_to`
+    whatever deficit remains. The returned damping is the equivalent ``(force - sent) / v``, so it exceeds
+    ``max_damping`` only through that reduction.
     Call :func:`commit` with the force finally sent (after saturation/rate limits) to advance the observer.
     """
     e_pred = observe(state.energy, force, velocity, dt, leak_time)
     alpha = damping_for(e_pred, velocity, dt, max_damping, v_min)
     out = force - alpha * velocity
     if reduce_force and alpha > 0.0:
-        e_after = e_pred + alpha * velocity * velocity * dt
-        if e_after + reduce_margin < 0.0 and out * velocity > 0.0:
-            cut = min(abs(out), -(e_after + reduce_margin) / (abs(velocity) * dt))
-            out -= math.copysign(cut, out)
-            alpha = (force - out) / velocity
+        cut = reduce_force_to(out, e_pred + alpha * velocity * velocity * dt, velocity, dt, reduce_margin)
+        if cut != out:
+            out, alpha = cut, (force - cut) / velocity
     return out, alpha
+
+
+def reduce_force_to(force: float, energy_after: float, velocity: float, dt: float, margin: float = 0.0) -> float:
+    """Cut ``force`` towards zero (never past it) by the deficit that remains beyond ``margin`` (J) when the
+    network is pushing energy out (``force * v > 0``); less force is always safe and the operator is never pulled."""
+    if energy_after + margin < 0.0 and force * velocity > 0.0 and dt > 0.0:
+        cut = min(abs(force), -(energy_after + margin) / (abs(velocity) * dt))
+        return force - math.copysign(cut, force)
+    return force
 
 
 def adapt_gain(gain: float, deficit_left: bool, dt: float, drop_rate: float = 2.0, recover_time: float = 1.0,

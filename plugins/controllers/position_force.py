@@ -36,7 +36,7 @@ from pydantic import Field, model_validator
 from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.units import Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
 
-from .passivity import PassivityState, adapt_gain, commit, passivity_force
+from .passivity import PassivityState, adapt_gain, commit, observe, passivity_force, reduce_force_to
 
 __all__ = [
     "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit", "finite_or",
@@ -324,17 +324,19 @@ class _Bilateral(Component):
         if self.leader_ok and free and self.pas.energy < 0.0 and p.free_space_reset and dt > 0:
             self.pas.energy *= math.exp(-dt / p.free_space_reset)
         if p.passivity and self.leader_ok:
+            # capped damping, raised and released smoothly; then (optionally) a cut of what is still missing
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time,
-                                           reduce_force=p.passivity_force_reduction,
-                                           reduce_margin=p.reduction_margin)
+                                           reduce_force=False)
             if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
-                f_des = f_fb - alpha * v
             elif p.damping_release > 0.0 and alpha < self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_release)
                 if alpha < 1e-3 * p.max_damping:
                     alpha = 0.0
-                f_des = f_fb - alpha * v
+            f_des = f_fb - alpha * v
+            if p.passivity_force_reduction and dt > 0:
+                e_after = observe(self.pas.energy, f_des, v, dt, p.energy_leak_time)
+                f_des = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin)
         # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness
         if self.leader_ok:
             self.leader_fade_rate = None
