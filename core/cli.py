@@ -133,7 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if getattr(args, "record", None):
         from .recording import Recorder
 
-        recorder = Recorder(args.record, spec)
+        recorder = Recorder(args.record, spec, image_format=args.record_images)
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
     old = signal.getsignal(signal.SIGTERM)
@@ -198,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
     p.add_argument("--progress-interval", type=float, default=0.5, help="live view period (s)")
     p.add_argument("--record", metavar="FILE.mcap", default=None, help="record every port to an MCAP file")
+    p.add_argument("--record-images", choices=("png", "jpeg"), default="png",
+                   help="image compression in the recording: png (lossless, ~17 ms/frame) or jpeg (~1 ms/frame)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")
