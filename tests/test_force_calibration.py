@@ -262,3 +262,14 @@ def test_cli_graph(tmp_path, capsys):
                "--set", "routine.max_force=1.0"])
     assert rc != 0 and not out2.exists()
     assert "did not finish" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["calibrate-force-sim.yaml", "calibrate-force.yaml"])
+def test_example_graphs_validate(repo_root, name):
+    from teletouch.graph import load_graph
+    from teletouch.registry import Registry
+
+    spec = load_graph(repo_root / "examples" / name, registry=Registry(autoload=True).load())
+    routine = spec.node("routine")
+    assert routine.plugin == "press-routine" and routine.inputs["max_depth"].node == "depth"
+    assert spec.node("leader").inputs["force"].node == "routine"
