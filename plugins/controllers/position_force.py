@@ -312,11 +312,9 @@ class _Bilateral(Component):
             f_fb = 0.0
             if self.state != "waiting":
                 self.state = "stale-leader"
+        free = f_fb == 0.0                       # no force exchanged: free space
         if p.leader_damping > 0.0 and self.leader_ok:
-            free = f_fb == 0.0
             f_fb -= p.leader_damping * v
-        else:
-            free = f_fb == 0.0
         alpha = 0.0
         if p.passivity and p.passivity_gain_adaptation:
             f_fb *= self.gain
