@@ -128,3 +128,11 @@ def test_params_are_validated():
     assert PositionForce.Params(deadband="50mN").deadband == pytest.approx(0.05)
     with pytest.raises(Exception):
         PositionForce.Params(force_sign=2)
+
+
+def test_constant_leader_damping_option():
+    p = {"leader_damping": 5.0, "passivity": False, "deadband": 0.0, "max_force_rate": 1e6}
+    with Harness(PositionForce, p) as h:
+        for k in range(20):
+            out = h.step(k * 1e-3, leader_opening=0.02 + 0.01 * k * 1e-3, leader_velocity=0.01)
+    assert out["gripper_force"] == pytest.approx(-0.05)            # opposes the motion
