@@ -235,20 +235,21 @@ def review_overlay(image: np.ndarray, background: np.ndarray, label: Label) -> n
 def grid_images(image: np.ndarray, background: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0),
                 drift: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Block-averaged frame and diff on the work grid (float32 (gr, gc, 3)), exactly as the estimator computes
-    them (per-channel drift removed from the diff on a coarse grid)."""
-    x = image.astype(np.float32)
-    d = x - background.astype(np.float32)
-    if drift:
-        d -= np.median(d[::8, ::8].reshape(-1, 3), axis=0)
+    them: block means of frame and background, their difference, minus its per-channel median over every 4th
+    cell (global illumination drift)."""
     oy, ox = offset
     h, w = image.shape[:2]
     gr, gc = (h - oy) // stride, (w - ox) // stride
 
     def pool(a: np.ndarray) -> np.ndarray:
-        a = a[oy: oy + gr * stride, ox: ox + gc * stride]
-        return a.reshape(gr, stride, gc, stride, 3).mean(axis=(1, 3))
+        a = a[oy: oy + gr * stride, ox: ox + gc * stride].astype(np.float32)
+        return a.reshape(gr, stride, gc, stride, 3).sum(axis=(1, 3)) * (1.0 / (stride * stride))
 
-    return pool(x), pool(d)
+    x = pool(image)
+    d = x - pool(background)
+    if drift:
+        d -= np.median(d[::4, ::4].reshape(-1, 3), axis=0)
+    return x, d
 
 
 def sphere_normals(rows: np.ndarray, cols: np.ndarray, label: Label, ball_radius_px: float) -> np.ndarray:

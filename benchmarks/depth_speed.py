@@ -1,0 +1,204 @@
+"""Speed of frame -> depth map -> max depth, side by side with a straightforward reference pipeline.
+
+Reference (written here, the plain reading of the paper's method): features of EVERY pixel of the full frame, the
+torch MLP on all of them, normals -> gradients, and a scipy DST-I Poisson solve of the whole frame's interior
+(eigenvalues computed on each call), minus the depth map of the background frame (the zero reference). Fast: teletouch's `depth` pipeline (work grid, network only on changed cells,
+windowed solve with cached eigenvalues). Both use the same calibrated model (trained here on the shared QVGA/VGA
+presses) and one torch thread; they run interleaved frame by frame, so load from other processes hits both alike.
+
+    python benchmarks/depth_speed.py [--quick] [--device cuda]
+
+Prints one JSON object as its last line: median ms per frame for each, the ratio, the max-depth agreement, VGA
+numbers and, with --device cuda, batched GPU throughput.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+
+
+def reference_max_depth(net, model, frame, torch, scipy_fft, zero=None):
+    """The straightforward pipeline: every pixel, full frame, plain DST solve, minus the zero-reference depth map
+    (the depth of the no-contact background frame, as the paper's code subtracts its first frames' depth)."""
+    z = reference_depth(net, model, frame, torch, scipy_fft)
+    if zero is not None:
+        z = z - zero
+    return float(z.max())
+
+
+def reference_depth(net, model, frame, torch, scipy_fft):
+    h, w = frame.shape[:2]
+    x = frame.astype(np.float32)
+    d = x - model.background.astype(np.float32)
+    d -= np.median(d[::8, ::8].reshape(-1, 3), axis=0)
+    rr, cc = np.mgrid[0:h, 0:w]
+    xs = (cc.astype(np.float32) + 0.5) * (2.0 / w) - 1.0
+    ys = (rr.astype(np.float32) + 0.5) * (2.0 / h) - 1.0
+    fs = model.feature_set
+    parts = []
+    if fs in ("rgbxy", "rgbxy+diff"):
+        parts.append(x.reshape(-1, 3) / 255.0)
+    if fs in ("diffxy", "rgbxy+diff", "diff"):
+        parts.append(d.reshape(-1, 3) / 255.0)
+    if fs != "diff":
+        parts += [xs.reshape(-1, 1), ys.reshape(-1, 1)]
+    f = (np.concatenate(parts, axis=1) - model.feat_mean) / model.feat_std
+    with torch.no_grad():
+        n = net(torch.from_numpy(f.astype(np.float32))).numpy()
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    nz = np.maximum(n[:, 2], 0.3)
+    gx = (-n[:, 0] / nz).reshape(h, w)
+    gy = (-n[:, 1] / nz).reshape(h, w)
+    # divergence (central differences) and the DST-I solve on the interior, zero boundary
+    fdiv = np.zeros((h, w), np.float64)
+    fdiv[:, 1:-1] += (gx[:, 2:] - gx[:, :-2]) / 2
+    fdiv[1:-1, :] += (gy[2:, :] - gy[:-2, :]) / 2
+    inner = fdiv[1:-1, 1:-1]
+    n1, n2 = inner.shape
+    k1 = np.arange(1, n1 + 1)
+    k2 = np.arange(1, n2 + 1)
+    lam = (2 * np.cos(np.pi * k1 / (n1 + 1)) - 2)[:, None] + (2 * np.cos(np.pi * k2 / (n2 + 1)) - 2)[None, :]
+    z = np.zeros((h, w))
+    z[1:-1, 1:-1] = scipy_fft.idstn(scipy_fft.dstn(inner, type=1) / lam, type=1)
+    return z * (1.0 / model.px_per_m * model.depth_gain)
+
+
+def train(ds: str, epochs: int, limit: int | None, log):
+    from teletouch.plugins.estimators import depth_calibration as C
+
+    folder = DATA / f"digit-presses-{ds}"
+    ims = C.load_images(folder)
+    labs = C.read_labels(folder / "labels.csv")
+    ims_p = [(n, im) for n, im in ims if labs.get(n) is not None and labs[n].usable]
+    if limit:
+        ims_p = ims_p[:limit]
+    bg = C.median_background([im for n, im in ims if n in labs and not labs[n].no_contact])
+    px_per_m = {"qvga": 17150.0, "vga": 1.0 / 0.0266e-3}[ds]
+    t0 = time.perf_counter()
+    model = C.train_model(ims_p, labs, bg, px_per_m, epochs=epochs, progress=False)
+    log(f"{ds}: trained on {len(ims_p)} presses in {time.perf_counter() - t0:.1f} s")
+    frames = [im for _, im in ims_p] + [bg]
+    return model, frames
+
+
+def bench(model, frames, reps: int, torch, scipy_fft):
+    from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
+
+    pipe = DepthPipeline(model, threads=1)
+    net = model.net()
+    zero = reference_depth(net, model, model.background, torch, scipy_fft)
+    for fr in frames[:2]:   # warm-up (caches, allocator)
+        pipe.max_depth(fr)
+        reference_max_depth(net, model, fr, torch, scipy_fft, zero)
+    t_ref, t_fast, agree = [], [], []
+    for _ in range(reps):
+        for fr in frames:
+            t0 = time.perf_counter()
+            a = reference_max_depth(net, model, fr, torch, scipy_fft, zero)
+            t1 = time.perf_counter()
+            b = pipe.max_depth(fr)
+            t2 = time.perf_counter()
+            t_ref.append(t1 - t0)
+            t_fast.append(t2 - t1)
+            if a > 1e-4:   # frames with contact (> 0.1 mm)
+                agree.append(b / a - 1.0)
+    full = []
+    for _ in range(max(1, reps // 2)):
+        for fr in frames:
+            t0 = time.perf_counter()
+            pipe(fr)
+            full.append(time.perf_counter() - t0)
+    ref_ms = float(np.median(t_ref) * 1e3)
+    fast_ms = float(np.median(t_fast) * 1e3)
+    agree_a = np.abs(np.array(agree)) if agree else np.array([np.nan])
+    return {"reference_ms": round(ref_ms, 3), "fast_ms": round(fast_ms, 3),
+            "fast_p90_ms": round(float(np.percentile(t_fast, 90) * 1e3), 3),
+            "speedup": round(ref_ms / fast_ms, 2),
+            "fast_full_outputs_ms": round(float(np.median(full) * 1e3), 3),
+            "max_depth_rel_diff_median": round(float(np.median(agree_a)), 4),
+            "max_depth_rel_diff_max": round(float(agree_a.max()), 4),
+            "frames": len(frames), "reps": reps, "grid": [pipe.grows, pipe.gcols], "stride": pipe.stride}
+
+
+def bench_gpu(model, frames, device: str, torch):
+    from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
+
+    pipe = DepthPipeline(model, device=device, mode="dense")
+    out = {}
+    single = []
+    for _ in range(3):
+        for fr in frames:
+            pipe.max_depth(fr)
+    for _ in range(10):
+        for fr in frames:
+            torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            pipe.max_depth(fr)
+            torch.cuda.synchronize()
+            single.append(time.perf_counter() - t0)
+    out["single_frame_ms"] = round(float(np.median(single) * 1e3), 3)
+    for b in (16, 64, 256):
+        batch = np.stack([frames[i % len(frames)] for i in range(b)])
+        tb = torch.from_numpy(batch).to(device)
+        pipe.batch_depth(tb)
+        torch.cuda.synchronize()
+        ts = []
+        for _ in range(10):
+            t0 = time.perf_counter()
+            z = pipe.batch_depth(tb)
+            z.amax(dim=(1, 2)).cpu()
+            torch.cuda.synchronize()
+            ts.append(time.perf_counter() - t0)
+        out[f"batch{b}_frames_per_s"] = round(b / float(np.median(ts)), 1)
+    cpu_pipe = DepthPipeline(model, mode="dense")
+    diffs = [abs(pipe.max_depth(fr) - cpu_pipe.max_depth(fr)) for fr in frames]
+    out["gpu_vs_cpu_dense_max_depth_abs_diff_m"] = float(max(diffs))
+    out["device_name"] = torch.cuda.get_device_name(0)
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions and epochs")
+    ap.add_argument("--device", default=None, help="also measure the dense batched path on this torch device")
+    ap.add_argument("--no-vga", action="store_true")
+    args = ap.parse_args()
+    warnings.filterwarnings("ignore")
+    import scipy.fft as scipy_fft
+    import torch
+
+    torch.set_num_threads(1)
+    log = lambda m: print(m, file=sys.stderr)  # noqa: E731
+    reps = 5 if args.quick else 20
+    epochs = 10 if args.quick else 30
+    result = {"benchmark": "depth_speed", "torch_threads": 1, "machine_note": "shared 2-core CPU: compare ratios"}
+    model, frames = train("qvga", epochs, None, log)
+    result["qvga"] = bench(model, frames, reps, torch, scipy_fft)
+    log(f"qvga: {result['qvga']}")
+    if not args.no_vga:
+        vmodel, vframes = train("vga", max(5, epochs // 3), 12, log)
+        result["vga"] = bench(vmodel, vframes, max(2, reps // 4), torch, scipy_fft)
+        log(f"vga: {result['vga']}")
+    if args.device:
+        result["gpu"] = {"qvga": bench_gpu(model, frames, args.device, torch)}
+        if not args.no_vga:
+            result["gpu"]["vga"] = bench_gpu(vmodel, vframes, args.device, torch)
+    q = result["qvga"]
+    result["targets"] = {"qvga_median_le_2ms": q["fast_ms"] <= 2.0, "speedup_ge_5x": q["speedup"] >= 5.0,
+                         "max_depth_within_2pct": q["max_depth_rel_diff_max"] <= 0.02}
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
