@@ -133,3 +133,23 @@ def test_experiment_cli_rejects_bad_arguments(capsys):
     assert "--duration" in capsys.readouterr().err
     assert main(["experiment", "pivot", "--trials", "0"]) == 2
     assert "--trials" in capsys.readouterr().err
+
+
+def test_main_job_runs_with_the_real_estimators():
+    # the README's quick start, shortened: examples/paper-sim.yaml with sim-digit -> depth -> poly-force
+    code, out = _cli("run", str(REPO / "examples" / "paper-sim.yaml"), "--duration", "2.5", "--quiet", "--json")
+    assert code == 0
+    res = json.loads(out.strip().splitlines()[-1])
+    assert res["status"] == "ok" and res["faults"] == []
+    nodes = {n["id"]: n for n in res["nodes"]}
+    assert nodes["controller"]["steps"] == 2501 and nodes["depth"]["steps"] == 151
+
+
+def test_contact_experiment_through_the_image_pipeline_reduced(tmp_path):
+    from teletouch.plugins.controllers.experiments import experiment_contact
+
+    res = experiment_contact(duration=4.0, sensor="image", out=tmp_path, plot=False)
+    w, wo = res["with_feedback"], res["without_feedback"]
+    assert w["max_rendered_force_n"] > 0.3                     # the estimated force reaches the hand
+    assert w["mean_error_m"] < 0.6e-3                          # the paper's 0.6 mm (0.3 mm needs an unbiased estimate)
+    assert wo["mean_error_m"] > 2 * w["mean_error_m"]
