@@ -57,11 +57,15 @@ class DepthEstimator(Component):
                                        "background, e.g. recorded at start-up")
         contact_depth: Meters = Field(3e-5, gt=0, description="depth above which a pixel is in contact",
                                       json_schema_extra={"unit": "m"})
+        contact_fraction: float = Field(0.5, ge=0.0, lt=1.0, description="in contact where depth > this fraction of "
+                                        "the max depth too (Hertz: the contact edge is at half the indentation)")
         change_threshold: float | None = Field(None, gt=0, description="colour change (0-255 levels summed over "
                                                "B, G, R) that counts as touched; default: the model's")
         adapt_background: float = Field(0.0, ge=0.0, le=0.5, description="blend weight of each no-contact frame "
                                         "into the background (0: off), follows slow illumination drift")
         workers: int = Field(1, ge=1, le=64, description="scipy.fft worker threads for the CPU solve")
+        threads: int | None = Field(1, ge=1, le=64, description="torch intra-op threads on CPU (process-wide; 1 is "
+                                    "fastest for one frame on a busy machine; None: leave torch's setting)")
 
     def configure(self) -> None:
         from .depth_pipeline import DepthPipeline
@@ -80,7 +84,8 @@ class DepthEstimator(Component):
                                      f"{model.source} is for {model.shape[0]}x{model.shape[1]} images")
         device = _check_device(p.device)
         self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
-                                  contact_depth=p.contact_depth, workers=p.workers, background=bg)
+                                  contact_depth=p.contact_depth, contact_fraction=p.contact_fraction,
+                                  workers=p.workers, background=bg, threads=p.threads)
         self.model = model
         self._bg = (bg if bg is not None else model.background).astype(np.float32)
         self._last: dict[str, float] = {}

@@ -43,9 +43,15 @@ class DepthResult:
     centroid: np.ndarray       # float64 (2,) m from the image centre (x along columns, y along rows); NaN if none
 
 
-def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float) -> tuple[np.ndarray, float, np.ndarray]:
-    """Contact mask (depth > contact_depth), its area (m^2) and depth-weighted centroid (m from the image centre)."""
-    mask = depth > contact_depth
+def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float, contact_fraction: float = 0.5
+                    ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Contact mask, its area (m^2) and depth-weighted centroid (m from the image centre).
+
+    A pixel is in contact where depth > max(contact_depth, contact_fraction x max depth): around a contact the gel
+    sags as well, and for a ball on an elastic half space (Hertz) the contact edge lies at half the indentation.
+    """
+    top = float(depth.max()) if depth.size else 0.0
+    mask = depth > max(contact_depth, contact_fraction * top)
     n = int(np.count_nonzero(mask))
     if n == 0:
         return mask, 0.0, np.array([math.nan, math.nan])
@@ -62,7 +68,7 @@ class DepthPipeline:
 
     def __init__(self, model: NormalModel, device: str = "cpu", mode: str = "auto",
                  change_threshold: float | None = None, dilate: int = 2, nz_min: float = 0.3,
-                 contact_depth: float = 3e-5, margin: int = 4, workers: int | None = None,
+                 contact_depth: float = 3e-5, contact_fraction: float = 0.5, margin: int = 4, workers: int | None = None,
                  drift_correction: bool = True, background: np.ndarray | None = None,
                  clamp_negative: bool = True, threads: int | None = None):
         import torch
@@ -83,6 +89,7 @@ class DepthPipeline:
         self.dilate = int(dilate)
         self.nz_min = float(nz_min)
         self.contact_depth = float(contact_depth)
+        self.contact_fraction = float(contact_fraction)
         self.margin = int(margin)
         self.workers = workers
         self.drift_correction = drift_correction
@@ -354,6 +361,7 @@ class DepthPipeline:
     def __call__(self, frame: np.ndarray) -> DepthResult:
         zg = self.grid_depth(frame)
         depth = self.upsample(zg)
-        mask, area, centroid = contact_summary(depth, 1.0 / self.model.px_per_m, self.contact_depth)
+        mask, area, centroid = contact_summary(depth, 1.0 / self.model.px_per_m, self.contact_depth,
+                                               self.contact_fraction)
         return DepthResult(depth=depth, max_depth=max(0.0, float(zg.max())), contact_mask=mask,
                            contact_area=area, centroid=centroid)

@@ -19,7 +19,6 @@ Pure functions: numpy/scipy for the CPU, and a torch version (:func:`integrate_t
 from __future__ import annotations
 
 import functools
-import os
 from typing import Any
 
 import numpy as np
@@ -142,7 +141,7 @@ def _eig_torch(n: int, m: int, dtype: Any, device: Any) -> Any:
     key = (n, m, str(dtype), str(device))
     lam = _TORCH_EIG.get(key)
     if lam is None:
-        lam = torch.as_tensor(eigenvalues(n, m), dtype=dtype, device=device)
+        lam = torch.as_tensor(np.array(eigenvalues(n, m)), dtype=dtype, device=device)
         _TORCH_EIG[key] = lam
     return lam
 

@@ -1,0 +1,145 @@
+"""The `depth` estimator on simulated DIGIT frames with ground truth (packaged model sim-digit-qvga)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from teletouch import ComponentFault, ModelFileError
+from teletouch.plugins.estimators.depth import DepthEstimator
+from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
+from teletouch.plugins.estimators.normal_model import load_model
+from teletouch.plugins.sensors import gel
+from teletouch.plugins.sensors.sim_digit import DigitSimulator
+from teletouch.testing import Harness, make_registry, run_yaml
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model("sim-digit-qvga")
+
+
+@pytest.fixture(scope="module")
+def sim():
+    # another seed than the one the packaged model was trained with
+    return DigitSimulator("qvga", noise=2.0, seed=99)
+
+
+@pytest.mark.parametrize("pos,d", [((0.0, 0.0), 0.8e-3), ((-2.5e-3, -4e-3), 0.5e-3), ((2.5e-3, 3.5e-3), 1.0e-3)])
+def test_ball_press_depth_against_ground_truth(model, sim, pos, d):
+    pipe = DepthPipeline(model)
+    img, surf = sim.render(d, pos, 0.0)
+    res = pipe(img)
+    gt = surf.depth
+    assert res.depth.dtype == np.float32 and res.depth.shape == (320, 240)
+    assert res.max_depth == pytest.approx(float(gt.max()), rel=0.3)
+    # the deepest point is where the ball is
+    r, c = np.unravel_index(np.argmax(res.depth), res.depth.shape)
+    m = model.m_per_px
+    assert math.hypot((c - 119.5) * m - pos[0], (r - 159.5) * m - pos[1]) < 0.4e-3
+    assert np.allclose(res.centroid, pos, atol=0.3e-3)
+    # contact area of the same order as the true one (Hertz contact radius sqrt(R d))
+    a = gel.contact_radius(d, gel.Indenter.sphere(0.003))
+    assert 0.3 * math.pi * a * a < res.contact_area < 3.0 * math.pi * a * a
+    # no depth far from the contact
+    rr, cc = np.mgrid[0:320, 0:240]
+    far = np.hypot((cc - 119.5) * m - pos[0], (rr - 159.5) * m - pos[1]) > 4 * a
+    assert np.abs(res.depth[far]).max() < 0.03e-3
+
+
+def test_no_contact_gives_no_depth_under_noise_and_drift(model):
+    s = DigitSimulator("qvga", noise=2.0, drift=4.0, drift_period=2.0, seed=5)
+    pipe = DepthPipeline(model)
+    for t in np.linspace(0, 2, 5):
+        res = pipe(s.render(0.0, t=float(t))[0])
+        assert res.max_depth < 0.02e-3
+        assert res.contact_area == 0.0 and not res.contact_mask.any()
+        assert np.isnan(res.centroid).all()
+
+
+def test_deeper_press_reads_deeper(model, sim):
+    pipe = DepthPipeline(model)
+    depths = [pipe(sim.render(d, (0.001, 0.0))[0]).max_depth for d in (0.3e-3, 0.6e-3, 0.9e-3, 1.2e-3)]
+    assert all(b > a for a, b in zip(depths, depths[1:]))
+
+
+def test_sparse_and_dense_paths_agree(model, sim):
+    img, _ = sim.render(0.7e-3, (0.0, 0.001))
+    a = DepthPipeline(model, mode="sparse")(img)
+    b = DepthPipeline(model, mode="dense")(img)
+    assert a.max_depth == pytest.approx(b.max_depth, rel=0.03)
+    assert np.abs(a.depth - b.depth).max() < 0.05 * b.max_depth
+    z = DepthPipeline(model, mode="dense").batch_depth(np.stack([img, img])).numpy()
+    assert z.shape == (2, 320, 240)
+    assert np.abs(z[0] - b.depth).max() < 1e-6 + 0.02 * b.max_depth
+
+
+def test_component_ports_stamps_and_errors(sim):
+    img, surf = sim.render(0.8e-3, (0.0, 0.0))
+    with Harness(DepthEstimator, {"model": "sim-digit-qvga"}) as h:
+        from teletouch import Sample
+
+        out = h.step(0.5, image=Sample(img, 0.48))
+        raw = h.comp.step(0.5, h.inputs)
+        assert raw["max_depth"].stamp == 0.48   # the capture time of the image
+        assert out["depth"].dtype == np.float32 and out["depth"].shape == (320, 240)
+        assert out["contact_mask"].dtype == bool
+        assert out["centroid"].dtype == np.float64 and out["centroid"].shape == (2,)
+        assert isinstance(out["max_depth"], float) and out["max_depth"] > 0.3e-3
+        assert out["contact_area"] > 0
+        assert h.comp.status()["max_depth_mm"] == pytest.approx(out["max_depth"] * 1e3)
+        with pytest.raises(ComponentFault, match="expected a uint8 BGR image of 320x240x3"):
+            h.step(0.6, image=np.zeros((640, 480, 3), np.uint8))
+    with pytest.raises(ModelFileError, match="no such model file"):
+        Harness(DepthEstimator, {"model": "/nonexistent/x.model"}).comp.configure()
+    with pytest.raises(ComponentFault, match="no CUDA GPU"):
+        import torch
+
+        if torch.cuda.is_available():  # pragma: no cover - CI has no GPU
+            raise ComponentFault("no CUDA GPU (skipped check on a GPU machine)")
+        Harness(DepthEstimator, {"device": "cuda"}).comp.configure()
+
+
+def test_background_adaptation_follows_illumination_drift(model):
+    bg = model.background.astype(np.int16)
+    # a strong local illumination change (not global: the median drift correction would remove that)
+    frame = bg.copy()
+    frame[100:160, 60:120] += 25
+    frame = np.clip(frame, 0, 255).astype(np.uint8)
+    with Harness(DepthEstimator, {"adapt_background": 0.0, "change_threshold": 200.0}) as h:
+        h.step(0.0, image=frame)
+        assert np.array_equal(h.comp.pipe._bg_grid_np, DepthPipeline(model)._bg_grid_np)
+    with Harness(DepthEstimator, {"adapt_background": 0.5, "change_threshold": 200.0}) as h:
+        for k in range(12):
+            h.step(k * 0.02, image=frame)
+        # the background has moved onto the new illumination: a normal threshold now sees no change there
+        h.comp.pipe.change_threshold = model.change_threshold
+        out = h.step(1.0, image=frame)
+        assert out["max_depth"] == 0.0
+
+
+def test_in_a_graph_with_sim_digit():
+    text = """
+name: depth-sim
+clock: sim
+nodes:
+  - id: digit
+    plugin: sim-digit
+    rate: 30
+    params: {indentation: 0.8mm, noise: 2}
+  - id: depth
+    plugin: depth
+    rate: 30
+    inputs: {image: digit.image}
+"""
+    rows = []
+    reg = make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
+    res, rt = run_yaml(text, reg, duration=0.2,
+                       taps=[lambda n, t, o: rows.append((n, t, o)) if n == "depth" else None])
+    assert res.status == "ok", res.message
+    md = [o["max_depth"] for n, t, o in rows if "max_depth" in o]
+    md = [v.value if hasattr(v, "value") else v for v in md]
+    assert len(md) >= 5
+    assert all(0.5e-3 < v < 1.1e-3 for v in md)

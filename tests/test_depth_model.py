@@ -1,0 +1,130 @@
+"""The depth model file: round trip, packaged names, and clear errors for wrong version, size or corrupt files."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from teletouch import ModelFileError
+from teletouch.plugins.estimators.normal_model import (FORMAT, VERSION, NormalModel, load_model, make_net,
+                                                       resolve_model)
+
+
+def _model(rows=32, cols=24, feature_set="diffxy"):
+    import torch
+
+    torch.manual_seed(0)
+    net = make_net(5, (8, 8))
+    rng = np.random.default_rng(0)
+    bg = rng.integers(0, 255, (rows, cols, 3), dtype=np.uint8)
+    return NormalModel.from_net(net, feature_set=feature_set, hidden=(8, 8), feat_mean=np.zeros(5, np.float32),
+                                feat_std=np.ones(5, np.float32), background=bg, px_per_m=17150.0, stride=2,
+                                change_threshold=12.5, depth_gain=1.1, training={"epochs": 3},
+                                validation={"median_abs_cap_error": 0.05})
+
+
+def test_round_trip(tmp_path):
+    m = _model()
+    p = m.save(tmp_path / "s.model")
+    m2 = load_model(p)
+    assert m2.meta() == m.meta()
+    assert m2.shape == (32, 24) and m2.stride == 2 and m2.depth_gain == 1.1 and m2.change_threshold == 12.5
+    assert np.array_equal(m2.background, m.background)
+    for k, v in m.state_dict.items():
+        assert np.array_equal(m2.state_dict[k], v)
+    x = __import__("torch").randn(7, 5)
+    assert np.allclose(m.net()(x).detach().numpy(), m2.net()(x).detach().numpy())
+    # no pickled objects inside: plain numpy arrays, readable with allow_pickle=False
+    with np.load(p, allow_pickle=False) as z:
+        meta = json.loads(str(z["meta"]))
+    assert meta["format"] == FORMAT and meta["version"] == VERSION and meta["orientation"] == "portrait-bgr"
+    assert meta["px_per_mm"] == pytest.approx(17.15)
+
+
+def _rewrite(src, dst, **changes):
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["meta"]))
+    for k, v in changes.pop("meta", {}).items():
+        meta[k] = v
+    arrays["meta"] = np.array(json.dumps(meta))
+    for k, v in changes.items():
+        if v is None:
+            arrays.pop(k, None)
+        else:
+            arrays[k] = v
+    np.savez(dst, **arrays)
+    return dst
+
+
+def test_wrong_version_names_file_and_versions(tmp_path):
+    p = _model().save(tmp_path / "a.model")
+    bad = _rewrite(p, tmp_path / "v2.npz", meta={"version": 2})
+    with pytest.raises(ModelFileError, match=r"v2\.npz.*version 2.*reads version 1"):
+        load_model(bad)
+
+
+def test_wrong_size(tmp_path):
+    p = _model().save(tmp_path / "a.model")
+    with pytest.raises(ModelFileError, match=r"a\.model: the model is for 32x24.*expected 320x240"):
+        load_model(p, expect_shape=(320, 240))
+    bad = _rewrite(p, tmp_path / "bg.npz", background=np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(ModelFileError, match=r"background is uint8 \(10, 10, 3\), expected uint8 \(32, 24, 3\)"):
+        load_model(bad)
+
+
+def test_corrupt_and_foreign_files(tmp_path):
+    p = _model().save(tmp_path / "a.model")
+    data = p.read_bytes()
+    trunc = tmp_path / "trunc.model"
+    trunc.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ModelFileError, match=r"trunc\.model: not a readable teletouch depth model"):
+        load_model(trunc)
+    text = tmp_path / "text.model"
+    text.write_text("hello")
+    with pytest.raises(ModelFileError, match="text.model"):
+        load_model(text)
+    other = tmp_path / "other.npz"
+    np.savez(other, meta=np.array(json.dumps({"format": "something-else"})))
+    with pytest.raises(ModelFileError, match="expected 'teletouch-depth-model'"):
+        load_model(other)
+    nometa = tmp_path / "nometa.npz"
+    np.savez(nometa, x=np.zeros(3))
+    with pytest.raises(ModelFileError, match="no 'meta' entry"):
+        load_model(nometa)
+    # a pickled object is refused (never executed)
+    pick = tmp_path / "pickle.npz"
+    np.savez(pick, meta=np.array([{"format": FORMAT}], dtype=object))
+    with pytest.raises(ModelFileError, match="pickle.npz"):
+        load_model(pick)
+
+
+def test_weights_must_fit_and_be_finite(tmp_path):
+    p = _model().save(tmp_path / "a.model")
+    with np.load(p) as z:
+        w = z["w.0.weight"].copy()
+    w[0, 0] = np.nan
+    bad = _rewrite(p, tmp_path / "nan.npz", **{"w.0.weight": w})
+    with pytest.raises(ModelFileError, match="weight 0.weight holds NaN"):
+        load_model(bad)
+    bad = _rewrite(p, tmp_path / "arch.npz", meta={"hidden": [16, 16]})
+    with pytest.raises(ModelFileError, match="do not fit a diffxy network with hidden sizes \\[16, 16\\]"):
+        load_model(bad)
+    bad = _rewrite(p, tmp_path / "norm.npz", feat_std=np.zeros(5, np.float32))
+    with pytest.raises(ModelFileError, match="input normalisation"):
+        load_model(bad)
+
+
+def test_packaged_model_by_name_and_unknown_names():
+    p = resolve_model("sim-digit-qvga")
+    assert p.name == "sim-digit-qvga.model"
+    m = load_model("sim-digit-qvga")
+    assert m.shape == (320, 240) and m.px_per_m == pytest.approx(17150.0)
+    assert m.validation and m.training["presses"]
+    assert p.stat().st_size < 2 * 1024 * 1024
+    with pytest.raises(ModelFileError, match=r"no-such: no such model file.*packaged: .*sim-digit-qvga"):
+        load_model("no-such")
