@@ -71,7 +71,7 @@ def test_routine_runs_all_steps_and_stops(full_run):
     assert result.status == "stopped" and "press routine done: 26 samples in 2 cycle(s)" in result.message
     assert r.state == "done" and r.progress == 1.0
     states = [s for _, s in r.events]
-    assert states[:4] == ["approach", "backoff", "tare", "step"]
+    assert states[:5] == ["move", "approach", "backoff", "tare", "step"]
     assert states.count("retract") == 2 and states[-1] == "done"
     # 0, 0.25 .. 1.5 mm loading, then 1.25 .. 0 unloading, per cycle
     targets = [s["target_displacement_m"] for s in r.samples[:13]]
@@ -90,6 +90,25 @@ def test_routine_records_the_steady_state_device_force(full_run):
         assert s["force_n"] == pytest.approx(s["gt_force_n"], abs=0.02 + 0.01 * s["gt_force_n"])
         # and the gel model gives that force at the recorded depth
         assert s["force_n"] == pytest.approx(gel_force(s["depth_m"], Indenter.probe()), rel=0.02, abs=0.02)
+
+
+def test_press_points_across_the_sensor(reg):
+    seen = []
+    routine = {"cycles": 3, "positions": [[0, 0], ["1mm", "-2mm"]], "max_displacement": "0.5mm"}
+    result, rt = run_yaml(graph(routine=routine), reg,
+                          taps=[lambda n, t, o: seen.append((t, o["indenter_position"].copy(), o["indentation"]))
+                                if n == "rig" else None])
+    assert result.status == "stopped", result.message
+    r = rt.component("routine")
+    pts = {s["cycle"]: s["press_point_m"] for s in r.samples}
+    assert pts[0] == [0.0, 0.0] and pts[2] == [0.0, 0.0]
+    np.testing.assert_allclose(pts[1], [1e-3, -2e-3], atol=1e-12)
+    # the probe reached the second point before touching the gel there, and never moved sideways while pressing
+    pressing = [(xy, d) for _, xy, d in seen if d > 0]
+    assert any(np.allclose(xy, [1e-3, -2e-3], atol=2e-5) for xy, _ in pressing)
+    assert all(np.allclose(xy, [0, 0], atol=2e-5) or np.allclose(xy, [1e-3, -2e-3], atol=2e-5)
+               for xy, _ in pressing)
+    assert [s for _, s in r.events].count("approach") == 3  # a touch search at each point
 
 
 def test_tare_removes_the_device_offset(reg):
@@ -156,6 +175,8 @@ def _harness_at_press(**params):
     h.__enter__()
     pos = np.zeros(3)
     h.step(0.0, position=pos, max_depth=0.0)
+    assert h.comp.state == "move"  # to the first press point: here, where it starts
+    h.step(0.001, position=pos, max_depth=0.0)
     assert h.comp.state == "approach"
     return h
 

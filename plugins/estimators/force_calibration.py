@@ -82,6 +82,11 @@ class PressRoutine(Component):
         axis: Literal["x", "y", "z"] = Field("z", description="press axis of the leader")
         direction: Literal[-1, 1] = Field(-1, description="sign of the press along the axis (-1: towards -axis)")
         cycles: int = Field(3, ge=1, le=100, description="press cycles (each loads and unloads)")
+        positions: list[tuple[Meters, Meters]] = Field(default_factory=list, description="press points (m) "
+                                                       "across the sensor, as offsets from the start position on "
+                                                       "the two other axes in x, y, z order; cycle k presses at "
+                                                       "positions[k % n], each with its own touch search; empty: "
+                                                       "all cycles at the start position")
         step: Meters = Field(1e-4, gt=0, description="displacement step", json_schema_extra=_u("m"))
         max_displacement: Meters = Field(2e-3, gt=0, description="deepest displacement beyond the touch point",
                                          json_schema_extra=_u("m"))
@@ -120,7 +125,7 @@ class PressRoutine(Component):
 
     SATURATION_TIME = 0.1  # s of a saturated press before aborting
 
-    STATES = ("wait", "approach", "backoff", "tare", "step", "hold", "record", "retract", "done", "abort-retract",
+    STATES = ("wait", "move", "approach", "backoff", "tare", "step", "hold", "record", "retract", "done", "abort-retract",
               "aborted")
 
     # ------------------------------------------------------------------------------------------------ lifecycle
@@ -131,6 +136,12 @@ class PressRoutine(Component):
                              f"({p.max_displacement * 1e3:.3f} mm)")
         self.u = np.zeros(3)
         self.u[AXES[p.axis]] = float(p.direction)
+        lateral = [i for i in range(3) if i != AXES[p.axis]]
+        self.offsets = []
+        for ox, oy in p.positions:
+            o = np.zeros(3)
+            o[lateral[0]], o[lateral[1]] = ox, oy
+            self.offsets.append(o)
         n = int(math.floor(p.max_displacement / p.step + 1e-9))
         load = [k * p.step for k in range(0, n + 1)]
         self.plan = [(d, "loading") for d in load] + [(d, "unloading") for d in reversed(load[:-1])]
@@ -143,6 +154,7 @@ class PressRoutine(Component):
         self.index = 0
         self.t_state = 0.0
         self.home: np.ndarray | None = None  # start position
+        self.origin: np.ndarray | None = None  # start of this cycle (home moved to the cycle's press point)
         self.touch: float | None = None  # press coordinate of the touch point
         self.target = None  # target position (3,)
         self.goal = None  # where the ramp ends
@@ -174,9 +186,9 @@ class PressRoutine(Component):
         return float(pos @ self.u)
 
     def _at(self, s: float) -> np.ndarray:
-        """The home position moved to press coordinate s."""
-        assert self.home is not None
-        return self.home + (s - self._s(self.home)) * self.u
+        """This cycle's start point moved to press coordinate s."""
+        assert self.origin is not None
+        return self.origin + (s - self._s(self.origin)) * self.u
 
     def _go(self, t: float, state: str) -> None:
         self.events.append((t, state))
@@ -188,7 +200,11 @@ class PressRoutine(Component):
             return
         self.abort_reason = reason
         self.ctx.log(f"aborting: {reason}; retracting")
-        self.goal = self.home.copy() if self.home is not None and self.pos is not None else None
+        # straight back out along the press axis to the start height (never sideways while pressing)
+        if self.home is not None and self.pos is not None and self.target is not None:
+            self.goal = self.target + (self._s(self.home) - self._s(self.target)) * self.u
+        else:
+            self.goal = None
         self._go(t, "abort-retract" if self.goal is not None else "aborted")
 
     def _ramp(self, dt: float, speed: float) -> bool:
@@ -262,9 +278,11 @@ class PressRoutine(Component):
             elif pos is not None and depth is not None and math.isfinite(depth):
                 self.home = pos.copy()
                 self.target = pos.copy()
-                self.goal = self._at(self._s(pos) + p.max_approach)
-                self.ctx.log(f"start at {np.round(pos * 1e3, 3).tolist()} mm; approaching")
-                self._go(t, "approach")
+                self.ctx.log(f"start at {np.round(pos * 1e3, 3).tolist()} mm")
+                self._move_to_cycle(t)
+        elif st == "move":
+            if self._ramp(dt, p.move_speed):
+                self._approach(t)
         elif st == "approach":
             arrived = self._ramp(dt, p.approach_speed)
             if new_depth:
@@ -328,6 +346,8 @@ class PressRoutine(Component):
                 self.cycle += 1
                 if self.cycle >= p.cycles:
                     self._finish(t)
+                elif self.offsets:
+                    self._move_to_cycle(t)
                 else:
                     self._begin_cycle(t)
         elif st == "abort-retract":
@@ -375,6 +395,22 @@ class PressRoutine(Component):
             f = f * (p.max_force / n)
         return f
 
+    def _move_to_cycle(self, t: float) -> None:
+        """Go (at the start height) over this cycle's press point, then search for the gel there."""
+        assert self.home is not None
+        off = self.offsets[self.cycle % len(self.offsets)] if self.offsets else np.zeros(3)
+        self.origin = self.home + off
+        self.goal = self.origin.copy()
+        self.touch = None
+        self.touch_count = 0
+        if self.offsets:
+            self.ctx.log(f"cycle {self.cycle + 1}: press point {np.round(self.origin * 1e3, 3).tolist()} mm")
+        self._go(t, "move")
+
+    def _approach(self, t: float) -> None:
+        self.goal = self._at(self._s(self.origin) + self.params.max_approach)
+        self._go(t, "approach")
+
     def _begin_cycle(self, t: float) -> None:
         p = self.params
         assert self.touch is not None
@@ -386,7 +422,7 @@ class PressRoutine(Component):
 
     def _next_point(self, t: float) -> None:
         if self.index >= len(self.plan):
-            self.goal = self.home.copy()
+            self.goal = self.origin.copy()
             self._go(t, "retract")
             return
         disp, _ = self.plan[self.index]
@@ -403,6 +439,7 @@ class PressRoutine(Component):
             "phase": phase,
             "cycle": self.cycle,
             "displacement_m": float(np.mean(w["pos"]) - self.touch),
+            "press_point_m": [float(v) for i, v in enumerate(self.origin - self.home) if i != AXES[self.params.axis]],
             "gt_max_depth_m": float(np.mean(w["ref_depth"])) if w["ref_depth"] else None,
             "gt_force_n": float(np.mean(w["ref_force"])) if w["ref_force"] else None,
             "target_displacement_m": disp,
