@@ -9,7 +9,9 @@ It runs exactly the user's command on the example graph:
 i.e. sim-omega7 + sim-press-rig + sim-digit + the depth estimator (model sim-digit-qvga) + press-routine, 3 cycles of
 0.1 mm steps to 2 mm. ``--depth-source gt`` uses sim-digit's ground-truth max depth instead of the depth estimator
 (for development before a depth model exists; the file then records depth_source sensor.gt_max_depth).
-``--quick`` runs one cycle of 0.25 mm steps (a smoke test; do not ship its output).
+``--quick`` runs one cycle of 0.25 mm steps (a smoke test; do not ship its output). ``--multi-point`` presses once
+at each of 5 points across the sensor (centre and (+-1.5 mm, +-3 mm)) instead of 3 cycles at the centre (the
+paper's protocol): the fit then averages the depth estimator's position dependence.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ def main() -> int:
     ap.add_argument("-o", "--output", default=str(OUT))
     ap.add_argument("--plot", default=str(PLOT))
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--multi-point", action="store_true")
     args = ap.parse_args()
     graph = GRAPH
     tmp = tempfile.TemporaryDirectory()
@@ -58,6 +61,9 @@ def main() -> int:
            "--sensor-model-id", "sim-digit-qvga"]
     if args.quick:
         cmd += ["--set", "routine.cycles=1", "--set", "routine.step=0.25mm"]
+    if args.multi_point:
+        pts = "[[0, 0], [1.5mm, 3mm], [-1.5mm, 3mm], [1.5mm, -3mm], [-1.5mm, -3mm]]"
+        cmd += ["--set", f"routine.positions={pts}", "--set", "routine.cycles=5"]
     print("$ " + " ".join(cmd), file=sys.stderr)
     import os
 
