@@ -77,9 +77,11 @@ class SimForceSensor(Component):
 
 
 class SimPivot(Component):
-    """A cylinder pinched off its centre of mass: gravity turns it about the pinch axis against the grip's
-    torsional friction (static/kinetic); it drops when the grip cannot carry its weight. It rests on a support
-    until the grip first holds it."""
+    """A cylinder pinched off its centre of mass that pivots under gravity against the grip's friction.
+
+    Gravity turns it about the pinch axis against the torsional friction of the contacts (static/kinetic, from the
+    grip force); it drops when the grip cannot carry its weight. It rests on a support until the grip first holds it.
+    """
 
     name = "sim-pivot"
     kind = Kind.SENSOR
@@ -190,9 +192,11 @@ class SimPivot(Component):
 
 
 class PivotOperator(Component):
-    """A simulated operator pivoting an object to a target angle: sees the angle (delay, bias, noise), feels the
-    grip force or not (strategy ``force`` or ``position``), moves the hand with tremor; drives sim-omega7's
-    ``intent_opening``."""
+    """A simulated operator who pivots a held object to a target angle (drives sim-omega7's intent_opening).
+
+    Sees the angle (delay, bias, noise), feels the grip force or not (strategy ``force`` or ``position``), moves the
+    hand with tremor and drift.
+    """
 
     name = "pivot-operator"
     kind = Kind.CONTROLLER
