@@ -49,9 +49,11 @@ def sim_speed(sensor: str, duration: float) -> dict:
             "mean_step_us": {n.id: n.mean_step_s * 1e6 for n in res.nodes}}
 
 
-def wall_timing(sensor: str, duration: float) -> dict:
+def wall_timing(sensor: str, duration: float, realtime_priority: int = 0) -> dict:
     doc = sim_graph(sensor=sensor, duration=duration)
     doc["clock"] = "wall"
+    if realtime_priority:
+        doc["realtime_priority"] = realtime_priority
     rt = build_runtime(doc)
     ctl = rt.component("controller")
     lock = threading.Lock()
@@ -130,6 +132,8 @@ def wall_controller_only(duration: float) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 s runs instead of 10 s")
+    ap.add_argument("--realtime", action="store_true", help="also the wall-clock run with realtime_priority 50 "
+                    "(SCHED_FIFO for the fast threads; needs root or CAP_SYS_NICE)")
     ap.add_argument("--sensor", choices=("image", "gt", "ideal"), default="image", help="the sensor chain under "
                     "test (gt: sim-digit's true max depth into poly-force, no depth estimation)")
     args = ap.parse_args()
@@ -143,6 +147,10 @@ def main() -> int:
         print(f"sim clock, ideal: {sim_ref['realtime_factor']:.2f}x real time "
               f"({sim_ref['realtime_factor_steady']:.2f}x after start-up)", file=sys.stderr)
     wall = wall_timing(args.sensor, dur)
+    wall_rt = wall_timing(args.sensor, dur, realtime_priority=50) if args.realtime else None
+    if wall_rt:
+        print(f"wall clock, SCHED_FIFO 50: controller jitter p99 {wall_rt['controller_jitter_p99_ms']:.3f} ms, "
+              f"frame->leader force p99 {wall_rt['frame_to_leader_force_p99_ms']:.2f} ms", file=sys.stderr)
     print(f"wall clock: controller jitter p99 {wall['controller_jitter_p99_ms']:.3f} ms, frame->leader force "
           f"p50 {wall['frame_to_leader_force_p50_ms']:.2f} ms p99 {wall['frame_to_leader_force_p99_ms']:.2f} ms",
           file=sys.stderr)
@@ -170,6 +178,9 @@ def main() -> int:
         "targets": {"sim_realtime_factor": ">= 5", "controller_jitter_p99_ms": "<= 0.25",
                     "frame_to_leader_force_p99_ms": "<= 5"},
         "controller_alone_jitter_p99_ms": solo["controller_jitter_p99_ms"],
+        "sched_fifo": None if wall_rt is None else {
+            k: wall_rt[k] for k in ("controller_jitter_p99_ms", "frame_to_leader_force_p50_ms",
+                                    "frame_to_leader_force_p99_ms", "estimate_to_leader_force_p99_ms")},
         "jitter_ratio_full_loop_to_controller_alone": wall["controller_jitter_p99_ms"] / solo["controller_jitter_p99_ms"],
         "load_average": load, "cpus": __import__("os").cpu_count(),
         "sim": sim, "sim_ideal": sim_ref, "wall": wall, "wall_controller_only": solo,
