@@ -110,7 +110,8 @@ def test_beyond_range_is_linear_from_end_slope_or_clamped(cal):
     hi = 2e-3
     f_hi = float(truth(hi))
     slope = TRUE[1] + 2 * TRUE[2] * hi + 3 * TRUE[3] * hi ** 2
-    f, st = cal.predict_with_status(3e-3)
+    assert cal.predict_with_status(3e-3) == cal.predict_with_status(3e-3, "clamp")  # clamp is the default
+    f, st = cal.predict_with_status(3e-3, "extrapolate")
     assert st == "extrapolated"
     assert f == pytest.approx(f_hi + slope * 1e-3, rel=1e-6)
     assert f < float(truth(3e-3))  # not the cubic tail
@@ -132,8 +133,9 @@ def test_never_negative_even_with_negative_intercept():
     d = np.linspace(0.2e-3, 2e-3, 20)
     cal = ForceCalibration.fit(d, 3000 * d - 0.5, 1)  # F(0.2 mm) = 0.1 N, intercept -0.5 N
     assert cal.coefficients[0] == pytest.approx(-0.5)
-    f = cal.predict(np.linspace(0, 3e-3, 200))
-    assert (f >= 0).all()
+    for policy in ("clamp", "extrapolate"):
+        f = cal.predict(np.linspace(0, 3e-3, 200), policy)
+        assert (f >= 0).all()
 
 
 # ------------------------------------------------------------------------------------------------------ file
@@ -254,9 +256,12 @@ def test_component_guards(cal_file):
         out = h.step(h.t + 0.01, max_depth=3e-3)
         assert out["status"] == "clamped" and out["force"] == 5.0  # max_force below F(d_hi)
         assert h.comp.counts["invalid-input"] == 3
-    with Harness(PolyForce, {"calibration": cal_file}) as h:
+    with Harness(PolyForce, {"calibration": cal_file, "out_of_range": "extrapolate"}) as h:
         out = h.step(0.01, max_depth=3e-3)
         assert out["status"] == "extrapolated" and math.isfinite(out["force"])
+    with Harness(PolyForce, {"calibration": cal_file}) as h:
+        out = h.step(0.01, max_depth=3e-3)
+        assert out["status"] == "clamped" and out["force"] == pytest.approx(float(truth(2e-3)))
 
 
 def test_component_outputs_only_on_new_depth_with_its_stamp(cal_file):
@@ -337,7 +342,7 @@ def test_packaged_sim_calibration_loads_and_meets_the_fit_target():
     assert cal.sensor_model_id == "sim-digit-qvga"
     lo, hi = cal.depth_range
     assert lo < 0.2e-3 and hi > 1.0e-3
-    f = cal.predict(np.linspace(0, 1.5 * hi, 100))
+    f = cal.predict(np.linspace(0, 1.5 * hi, 100), "extrapolate")
     assert np.all(np.diff(f) >= 0) and f[0] == 0.0
     with Harness(PolyForce) as h:  # the component's default calibration is the packaged one
         assert h.step(0.0, max_depth=0.0)["force"] == 0.0
