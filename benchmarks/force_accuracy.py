@@ -75,8 +75,8 @@ def main() -> int:
     ap.add_argument("--depth-module", default="teletouch.plugins.estimators.depth",
                     help="module providing the `depth` component")
     ap.add_argument("--presses", type=int, default=300)
-    ap.add_argument("--out-of-range", choices=("extrapolate", "clamp"), default="extrapolate",
-                    help="poly-force policy beyond the calibrated depth")
+    ap.add_argument("--out-of-range", choices=("extrapolate", "clamp"), default=None,
+                    help="poly-force policy beyond the calibrated depth (default: the component's)")
     ap.add_argument("--no-contact-frames", type=int, default=60)
     ap.add_argument("--noise", type=float, default=2.0, help="sim-digit pixel noise (levels)")
     ap.add_argument("--drift", type=float, default=2.0, help="sim-digit illumination drift (levels)")
@@ -121,7 +121,10 @@ def main() -> int:
 
     sensor, depth = make_components(depth_source, args.depth_model, args.seed, args.noise, args.drift,
                                     args.depth_module)
-    mapper = Harness(PolyForce, {"calibration": str(resolve_calibration(cal_path)), "out_of_range": args.out_of_range})
+    mparams = {"calibration": str(resolve_calibration(cal_path))}
+    if args.out_of_range:
+        mparams["out_of_range"] = args.out_of_range
+    mapper = Harness(PolyForce, mparams)
     rng = np.random.default_rng(args.seed)
     rows = []
     no_contact = []
@@ -201,7 +204,7 @@ def main() -> int:
         "heldout_true_indentation_mm": [round(ind_lo * 1e3, 4), round(ind_hi * 1e3, 4)],
         "hysteresis_max_gap_n": (cal.hysteresis or {}).get("max_gap_n"),
         "heldout_presses": len(rows),
-        "out_of_range_policy": args.out_of_range,
+        "out_of_range_policy": mapper.comp.params.out_of_range,
         "heldout_rmse_n": round(rmse, 5),
         "heldout_rmse_pct_of_range": round(100 * rmse / frange, 3),
         "heldout_rmse_pct_target": 3.0,
