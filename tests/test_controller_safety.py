@@ -35,7 +35,7 @@ def test_stale_force_fades_to_zero_smoothly():
     assert max(abs(b - a) for a, b in zip(fade, fade[1:])) <= 3.0 / 200 + 1e-9   # no jump
 
 
-def test_nan_force_never_leaves_and_fades(tmp_path):
+def test_nan_force_never_leaves_and_fades():
     # the core's mock sensor turns NaN at 0.5 s; the controller's outputs stay finite and the force fades out
     text = """
 name: nan-force

@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 import yaml
 
-from teletouch import Sample
 from teletouch.plugins.controllers.experiments import SimForceSensor, SimPivot, sim_graph
 from teletouch.testing import Harness
 from teletouch.units import parse_quantity
@@ -35,7 +34,7 @@ def test_sim_pivot_holds_turns_stops_and_drops():
             return out
 
         out = run(1.0, 0.2)                       # on its support until grasped firmly
-        assert out["angle"] == 0.0 and not p.supported is False
+        assert out["angle"] == 0.0 and p.supported
         out = run(3.0, 0.5)                       # grasped: the support goes, the grip holds it
         assert not p.supported and out["angle"] == 0.0 and not out["slipping"]
         out = run(0.8 * hold_s, 0.3)              # loosened: it turns

@@ -34,7 +34,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from teletouch import Component, Kind, Params, Port, hookimpl
-from teletouch.units import Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
+from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
 
 from .passivity import PassivityState, adapt_gain, commit, observe, passivity_force, reduce_force_to
 
