@@ -226,6 +226,16 @@ def test_start_in_contact_refused_and_touch_needs_consecutive_frames():
     assert h.comp.state == "backoff" and h.comp.touch == pytest.approx(5e-5)
 
 
+def test_missing_inputs_fault_at_start():
+    with Harness(PressRoutine, dict(FAST, start_timeout=1.0)) as h:
+        h.step(0.0, position=np.zeros(3))
+        h.step(0.9, position=np.zeros(3))
+        assert h.comp.state == "wait"
+        with pytest.raises(ComponentFault, match="no max depth within 1 s"):
+            h.step(1.1, position=np.zeros(3))
+        assert np.all(h.comp.cmd == 0)
+
+
 def test_params_checked():
     with pytest.raises(ValueError, match="larger than max_displacement"):
         Harness(PressRoutine, {"step": "3mm", "max_displacement": "2mm"}).comp.configure()

@@ -121,6 +121,8 @@ class PressRoutine(Component):
                                            "target", json_schema_extra=_u("m"))
         input_timeout: Seconds = Field(0.5, gt=0, description="abort if position or depth is older than this",
                                        json_schema_extra=_u("s"))
+        start_timeout: Seconds = Field(10.0, gt=0, description="fault if no position and depth arrive within "
+                                       "this after the start", json_schema_extra=_u("s"))
         samples_csv: str | None = Field(None, description="write the samples here when done (optional)")
 
     SATURATION_TIME = 0.1  # s of a saturated press before aborting
@@ -170,6 +172,7 @@ class PressRoutine(Component):
         self.done_points = 0
         self.saturated_since: float | None = None
         self.touch_count = 0
+        self.t_start: float | None = None
         self.tare = 0.0
         self.arrived: float | None = None
 
@@ -271,7 +274,13 @@ class PressRoutine(Component):
 
         st = self.state
         if st == "wait":
-            if pos is not None and depth is not None and math.isfinite(depth) and depth >= p.touch_depth:
+            if self.t_start is None:
+                self.t_start = t
+            if (pos is None or depth is None) and t - self.t_start > p.start_timeout:
+                missing = " and ".join(n for n, v in (("position", pos), ("max depth", depth)) if v is None)
+                self.abort_reason = f"no {missing} within {p.start_timeout:g} s of the start: check the wiring"
+                self._go(t, "aborted")
+            elif pos is not None and depth is not None and math.isfinite(depth) and depth >= p.touch_depth:
                 self.abort_reason = (f"the gel is already pressed ({depth * 1e3:.3f} mm) at the start: lift the "
                                      f"probe off the sensor")
                 self._go(t, "aborted")
