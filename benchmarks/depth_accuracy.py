@@ -26,6 +26,7 @@ Prints one JSON object as its last line.
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import math
 import sys
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
 def real(ds: str, folds: int, feature_set: str, epochs: int, log, fold_limit: int | None = None) -> dict:

@@ -8,8 +8,10 @@ presses) and one torch thread; they run interleaved frame by frame, so load from
 
     python benchmarks/depth_speed.py [--quick] [--device cuda]
 
-Prints one JSON object as its last line: median ms per frame for each, the ratio, the max-depth agreement, VGA
-numbers and, with --device cuda, batched GPU throughput.
+Prints one JSON object as its last line: median ms per frame for each (interleaved: `reference_ms`, `fast_ms`,
+`speedup`), the fast path alone over the same frames (`fast_alone_ms`; the interleaved reference evicts its caches),
+all five outputs (`fast_full_outputs_ms`), the max-depth agreement, VGA numbers and, with --device cuda, batched GPU
+throughput.
 """
 
 from __future__ import annotations
@@ -23,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+import os
+
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
 def reference_max_depth(net, model, frame, torch, scipy_fft, zero=None):
@@ -112,6 +116,12 @@ def bench(model, frames, reps: int, torch, scipy_fft):
             t_fast.append(t2 - t1)
             if a > 1e-4:   # frames with contact (> 0.1 mm)
                 agree.append(b / a - 1.0)
+    alone = []
+    for _ in range(reps):
+        for fr in frames:
+            t0 = time.perf_counter()
+            pipe.max_depth(fr)
+            alone.append(time.perf_counter() - t0)
     full = []
     for _ in range(max(1, reps // 2)):
         for fr in frames:
@@ -124,6 +134,7 @@ def bench(model, frames, reps: int, torch, scipy_fft):
     return {"reference_ms": round(ref_ms, 3), "fast_ms": round(fast_ms, 3),
             "fast_p90_ms": round(float(np.percentile(t_fast, 90) * 1e3), 3),
             "speedup": round(ref_ms / fast_ms, 2),
+            "fast_alone_ms": round(float(np.median(alone) * 1e3), 3),
             "fast_full_outputs_ms": round(float(np.median(full) * 1e3), 3),
             "max_depth_rel_diff_median": round(float(np.median(agree_a)), 4),
             "max_depth_rel_diff_max": round(float(agree_a.max()), 4),
@@ -134,6 +145,7 @@ def bench_gpu(model, frames, device: str, torch):
     from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
 
     pipe = DepthPipeline(model, device=device, mode="dense")
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     out = {}
     single = []
     for _ in range(3):
@@ -141,29 +153,29 @@ def bench_gpu(model, frames, device: str, torch):
             pipe.max_depth(fr)
     for _ in range(10):
         for fr in frames:
-            torch.cuda.synchronize()
+            sync()
             t0 = time.perf_counter()
             pipe.max_depth(fr)
-            torch.cuda.synchronize()
+            sync()
             single.append(time.perf_counter() - t0)
     out["single_frame_ms"] = round(float(np.median(single) * 1e3), 3)
     for b in (16, 64, 256):
         batch = np.stack([frames[i % len(frames)] for i in range(b)])
         tb = torch.from_numpy(batch).to(device)
         pipe.batch_depth(tb)
-        torch.cuda.synchronize()
+        sync()
         ts = []
         for _ in range(10):
             t0 = time.perf_counter()
             z = pipe.batch_depth(tb)
             z.amax(dim=(1, 2)).cpu()
-            torch.cuda.synchronize()
+            sync()
             ts.append(time.perf_counter() - t0)
         out[f"batch{b}_frames_per_s"] = round(b / float(np.median(ts)), 1)
     cpu_pipe = DepthPipeline(model, mode="dense")
     diffs = [abs(pipe.max_depth(fr) - cpu_pipe.max_depth(fr)) for fr in frames]
     out["gpu_vs_cpu_dense_max_depth_abs_diff_m"] = float(max(diffs))
-    out["device_name"] = torch.cuda.get_device_name(0)
+    out["device_name"] = torch.cuda.get_device_name(0) if torch.device(device).type == "cuda" else device
     return out
 
 
@@ -194,8 +206,10 @@ def main() -> int:
         if not args.no_vga:
             result["gpu"]["vga"] = bench_gpu(vmodel, vframes, args.device, torch)
     q = result["qvga"]
-    result["targets"] = {"qvga_median_le_2ms": q["fast_ms"] <= 2.0, "speedup_ge_5x": q["speedup"] >= 5.0,
-                         "max_depth_within_2pct": q["max_depth_rel_diff_max"] <= 0.02}
+    result["targets"] = {"qvga_median_le_2ms_interleaved": q["fast_ms"] <= 2.0,
+                         "qvga_median_le_2ms_alone": q["fast_alone_ms"] <= 2.0, "speedup_ge_5x": q["speedup"] >= 5.0,
+                         "max_depth_within_2pct_median": q["max_depth_rel_diff_median"] <= 0.02,
+                         "max_depth_within_2pct_every_frame": q["max_depth_rel_diff_max"] <= 0.02}
     print(json.dumps(result))
     return 0
 

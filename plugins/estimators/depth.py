@@ -86,6 +86,7 @@ class DepthEstimator(Component):
         self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
                                   contact_depth=p.contact_depth, contact_fraction=p.contact_fraction,
                                   workers=p.workers, background=bg, threads=p.threads)
+        self.pipe.warm_up()
         self.model = model
         self._bg = (bg if bg is not None else model.background).astype(np.float32)
         self._last: dict[str, float] = {}

@@ -67,7 +67,7 @@ class DepthPipeline:
     """A calibrated model + settings -> depth maps. ``pipeline(frame_bgr_uint8) -> DepthResult``."""
 
     def __init__(self, model: NormalModel, device: str = "cpu", mode: str = "auto",
-                 change_threshold: float | None = None, dilate: int = 2, nz_min: float = 0.3,
+                 change_threshold: float | None = None, dilate: int = 2, net_rim: int = 2, nz_min: float = 0.3,
                  contact_depth: float = 3e-5, contact_fraction: float = 0.5, margin: int = 4, workers: int | None = None,
                  drift_correction: bool = True, background: np.ndarray | None = None,
                  clamp_negative: bool = True, threads: int | None = None):
@@ -87,6 +87,7 @@ class DepthPipeline:
         self.change_threshold = float(model.change_threshold if change_threshold is None else change_threshold)
         self.depth_gain = float(model.depth_gain)
         self.dilate = int(dilate)
+        self.net_rim = int(net_rim)
         self.nz_min = float(nz_min)
         self.contact_depth = float(contact_depth)
         self.contact_fraction = float(contact_fraction)
@@ -120,6 +121,7 @@ class DepthPipeline:
         self._k3 = np.ones((3, 3), np.uint8)
         self._ones13 = np.ones((1, 3), np.float32)
         self._kd = np.ones((2 * (self.dilate + 1) + 1,) * 2, np.uint8)
+        self._kn = np.ones((2 * (min(self.net_rim, self.dilate) + 1) + 1,) * 2, np.uint8)
         self.m_per_cell = s / model.px_per_m * self.depth_gain
 
     # ---------------------------------------------------------------------------------------------------------
@@ -282,8 +284,9 @@ class DepthPipeline:
         a = cv2.blur(a, (3, 3), borderType=cv2.BORDER_REPLICATE)
         m = (a > self.change_threshold).astype(np.uint8)
         m = cv2.erode(m, self._k3)
-        m = cv2.dilate(m, self._kd)
-        nz_pts = cv2.findNonZero(m)
+        core = cv2.dilate(m, self._kn)     # the network runs here (the change region and a rim of `net_rim` cells)
+        m = cv2.dilate(m, self._kd)        # depth is kept here (the change region and a rim of `dilate` + 1 cells)
+        nz_pts = cv2.findNonZero(core)
         if nz_pts is None:
             return np.zeros((gr, gc), np.float32)
         nz_pts = nz_pts.reshape(-1, 2)
@@ -353,6 +356,17 @@ class DepthPipeline:
         if z.shape != (self.rows, self.cols):
             z = np.pad(z, ((0, self.rows - z.shape[0]), (0, self.cols - z.shape[1])), mode="edge")
         return z.astype(np.float32, copy=False)
+
+    def warm_up(self) -> None:
+        """Run the pipeline once on the background and on a synthetic touch, so that lazy imports and FFT set-up
+        (~0.1 s) happen here and not on the first real frame."""
+        bg = np.ascontiguousarray(self.model.background)
+        self(bg)
+        fake = bg.astype(np.int16)
+        r, c = self.rows // 2, self.cols // 2
+        k = max(self.rows // 16, 4)
+        fake[r - k: r + k, c - k: c + k] += 40
+        self(np.clip(fake, 0, 255).astype(np.uint8))
 
     def max_depth(self, frame: np.ndarray) -> float:
         """The fast path for force estimation: frame -> max depth (m) without building the full-size map."""
