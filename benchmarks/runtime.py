@@ -120,22 +120,28 @@ def sim_speed(duration: float) -> dict:
             "steps": sum(n.steps for n in res.nodes), "target_factor": 50.0, "pass": res.realtime_factor >= 50.0}
 
 
-def jitter(duration: float, burn_ms: float, priority: int = 0) -> dict:
+def jitter(duration: float, burn_ms: float, priority: int = 0, python_burn: bool = False,
+           isolate: bool = False) -> dict:
+    burn = (f"{{id: burn, plugin: mock-burn, rate: 60, params: {{burn: {burn_ms}ms}}"
+            + (", isolate: process}" if isolate else "}")) if python_burn else \
+        f"{{id: burn, plugin: bench-burn, rate: 60, params: {{ms: {burn_ms}}}}}"
     text = f"""
 clock: wall
 realtime_priority: {priority}
 faults: {{max_overruns: 0}}
 nodes:
   - {{id: fast, plugin: bench-stamp, rate: 1000}}
-  - {{id: burn, plugin: bench-burn, rate: 60, params: {{ms: {burn_ms}}}}}
+  - {burn}
 """
     rt = Runtime(load_text(text, REG), log=lambda m: None)
     res = rt.run(duration)
     starts = np.array(rt.component("fast").starts)
     periods = np.diff(starts[100:])  # skip warm-up
     err = np.abs(periods - 1e-3) * 1e3
-    burn = rt.component("burn").costs
-    return {"duration_s": duration, "steps": int(len(starts)), "period_error_ms": {
+    comp = rt.component("burn")
+    burn = getattr(comp, "costs", None) or [burn_ms * 1e-3]
+    return {"burn": ("python (holds the GIL)" if python_burn else "numpy") + (", isolated process" if isolate else ""),
+            "duration_s": duration, "steps": int(len(starts)), "period_error_ms": {
         "p50": float(np.percentile(err, 50)), "p99": float(np.percentile(err, 99)), "max": float(err.max())},
         "mean_period_ms": float(periods.mean() * 1e3), "burn_ms_median": statistics.median(burn) * 1e3,
         "burn_steps": len(burn), "overruns": {n.id: n.overruns for n in res.nodes},
@@ -158,6 +164,14 @@ def main() -> None:
     out["wall_clock_jitter_sched_fifo"] = jitter(dur, 8.0, priority=50)
     print(f"jitter p99 (SCHED_FIFO): {out['wall_clock_jitter_sched_fifo']['period_error_ms']['p99']:.3f} ms",
           file=sys.stderr)
+    # an estimator that holds the GIL (pure Python) in the same process, and the same isolated in a process
+    for key, iso in (("python_burn_inline", False), ("python_burn_isolated", True)):
+        out[f"wall_clock_jitter_{key}"] = jitter(dur, 8.0, priority=50, python_burn=True, isolate=iso)
+        print(f"jitter p99 ({key}, SCHED_FIFO): "
+              f"{out[f'wall_clock_jitter_{key}']['period_error_ms']['p99']:.3f} ms", file=sys.stderr)
+    a = out["wall_clock_jitter_python_burn_inline"]["period_error_ms"]["p99"]
+    b = out["wall_clock_jitter_python_burn_isolated"]["period_error_ms"]["p99"]
+    out["isolation_p99_ratio_inline_over_isolated"] = a / b if b > 0 else None
     print(json.dumps(out))
 
 

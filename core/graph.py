@@ -21,6 +21,7 @@ A graph file::
           max_depth: depth.max_depth                          # node.port
           mask: {from: depth.contact_mask, max_age: 0.1}      # with a staleness limit (s)
         on_fault: degrade         # optional, per node
+        isolate: process          # optional: run in a process of its own under the wall clock (see isolation.py)
 
 Every error names the file and line.
 """
@@ -43,7 +44,7 @@ from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
-NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "remove", "description")
+NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "remove", "description")
 FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace")
 FAULT_ACTIONS = ("stop", "degrade")
 CLOCKS = ("sim", "wall")
@@ -69,6 +70,7 @@ class NodeSpec:
     on_fault: str | None
     where: Location
     param_where: dict[str, Location] = field(default_factory=dict)
+    isolate: str = "none"
     # filled in by validation
     cls: type[Component] | None = None
     params_obj: Any = None
@@ -407,6 +409,14 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         if on_fault is not None and on_fault not in FAULT_ACTIONS:
             err(f"node '{nid}': on_fault: expected 'stop' or 'degrade', got {on_fault!r}", ld.loc("on_fault"))
             on_fault = None
+        isolate = ld.get("isolate", "none")
+        if isolate not in ("none", "process"):
+            err(f"node '{nid}': isolate: expected 'none' or 'process', got {isolate!r}", ld.loc("isolate"))
+            isolate = "none"
+        elif isolate == "process" and cls is not None and issubclass(cls, Device):
+            err(f"node '{nid}': isolate: process is for sensors, estimators and controllers; a device ({plugin}) "
+                f"stays in the runtime's process so it can always be driven to its safe state", ld.loc("isolate"))
+            isolate = "none"
         params = ld.get("params", {}) or {}
         if not isinstance(params, dict):
             err(f"node '{nid}': params must be a mapping of name: value", ld.loc("params"))
@@ -414,7 +424,8 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         pwhere = {k: params.loc(k) for k in params} if isinstance(params, LDict) else {}
         pwhere_default = ld.loc("params") if "params" in ld else ld.where
         spec = NodeSpec(id=nid, plugin=plugin if isinstance(plugin, str) else "", rate=rate,
-                        params=_plain(params), inputs={}, on_fault=on_fault, where=ld.where, param_where=pwhere)
+                        params=_plain(params), inputs={}, on_fault=on_fault, where=ld.where, param_where=pwhere,
+                        isolate=isolate)
         if cls is not None:
             spec.cls = cls
             try:
@@ -530,6 +541,8 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
             "params": {"type": "object"},
             "inputs": {"type": "object", "additionalProperties": wire},
             "on_fault": {"enum": list(FAULT_ACTIONS)},
+            "isolate": {"enum": ["none", "process"],
+                        "description": "run this node in a process of its own (wall clock)"},
             "remove": {"type": "boolean"},
             "description": {"type": "string"},
         },

@@ -4,6 +4,7 @@
 - ``mock-gain``: an estimator that multiplies its input by a gain (for wiring and rate tests).
 - ``mock-device``: mirrors its command into its state with a first-order lag, like ros2_control's GenericSystem;
   counts calls to ``safe_state`` so tests can check that the runtime drove it there.
+- ``mock-burn``: burns CPU in pure Python (holding the GIL) per step, like a heavy estimator.
 - ``noop``: does nothing (scheduler benchmarks).
 """
 
@@ -137,6 +138,38 @@ class MockDevice(Device):
             self.lifecycle.append("close")
 
 
+class MockBurn(Component):
+    """Burns CPU in pure Python (holding the GIL) each step, like a heavy estimator; echoes its input."""
+
+    name = "mock-burn"
+    kind = Kind.ESTIMATOR
+    inputs = {"x": Port("float64", (), "any", "passed through", required=False)}
+    outputs = {"y": Port("float64", (), "any", "the input (0 before any)"),
+               "pid": Port("int64", (), "", "process id that ran the step")}
+    default_rate = 60.0
+
+    class Params(Params):
+        burn: Seconds = Field(0.008, ge=0, description="CPU time to burn per step", json_schema_extra={"unit": "s"})
+        fail_at: Seconds | None = Field(None, description="raise from this time on", json_schema_extra={"unit": "s"})
+        stop_at: Seconds | None = Field(None, description="request a normal stop at this time",
+                                        json_schema_extra={"unit": "s"})
+
+    def step(self, t, inputs):
+        import os
+        import time
+
+        p = self.params
+        if p.fail_at is not None and t >= p.fail_at:
+            raise ValueError(f"mock-burn failure at t={t:.3f}")
+        if p.stop_at is not None and t >= p.stop_at:
+            self.ctx.request_stop(f"mock-burn stop at t={t:.3f}")
+        end = time.perf_counter() + p.burn
+        n = 0
+        while time.perf_counter() < end:
+            n += sum(range(200))
+        return {"y": inputs.value("x", 0.0), "pid": os.getpid()}
+
+
 class Noop(Component):
     """Does nothing (scheduler benchmarks)."""
 
@@ -150,4 +183,4 @@ class Noop(Component):
 
 @hookimpl
 def teletouch_components():
-    return [MockSensor, MockGain, MockDevice, Noop]
+    return [MockSensor, MockGain, MockDevice, MockBurn, Noop]

@@ -184,7 +184,13 @@ class Runtime:
             ctx = Context(now=self.now, clock_kind=self.clock, request_stop=self.request_stop,
                           log=lambda m, nid=n.id: self.log(f"[{nid}] {m}"), from_monotonic=self.from_monotonic)
             params = n.params_obj if n.params_obj is not None else n.cls.Params.model_validate(n.params)
-            comp = n.cls(params, node_id=n.id, ctx=ctx)
+            if n.isolate == "process" and self.clock == "wall":
+                from .isolation import ProcessProxy
+
+                comp = ProcessProxy(n.cls, params, node_id=n.id, ctx=ctx, t0_perf=0.0, t0_mono=0.0,
+                                    step_timeout=max(1.0, 20.0 / float(n.rate)))
+            else:
+                comp = n.cls(params, node_id=n.id, ctx=ctx)
             in_slots: dict[str, _Slot] = {}
             for port in n.cls.inputs:
                 w = n.inputs.get(port)
@@ -294,6 +300,20 @@ class Runtime:
                 return f"node '{node.id}' ({node.spec.plugin}) failed to activate: {_exc_line(exc)}"
         return None
 
+    def _start_clock(self) -> str | None:
+        """Wall clock: graph time 0 is the end of start-up (loading models, opening devices, spawning processes)."""
+        from .isolation import ProcessProxy
+
+        self._t0 = time.perf_counter()
+        self._t0_mono = time.monotonic()
+        for node in self.nodes:
+            if isinstance(node.comp, ProcessProxy):
+                try:
+                    node.comp.set_origin(self._t0, self._t0_mono)
+                except Exception as exc:
+                    return f"node '{node.id}' ({node.spec.plugin}) failed to start: {_exc_line(exc)}"
+        return None
+
     def _shutdown(self) -> None:
         for node in self.nodes:
             if node.is_device and node.state != "unconfigured":
@@ -326,6 +346,8 @@ class Runtime:
         status = None
         try:
             err = self._startup()
+            if err is None and self.clock == "wall":
+                err = self._start_clock()
             if err is not None:
                 status = ("startup-failed", EXIT_STARTUP, err)
                 self.faults.append(Fault("", "startup", err, 0.0, "stop"))

@@ -1,0 +1,165 @@
+"""Run a node's component in a process of its own (wall clock only): ``isolate: process`` in a graph.
+
+Python runs one thread at a time (the GIL). An image estimator that spends milliseconds per frame in Python code or
+in C calls that keep the lock can delay a 1 kHz haptic thread of the same process by as much. Isolated, the
+component runs in a child process: the parent's thread for that node sends the latest inputs through a pipe and waits
+for the outputs with the lock released, so the fast loop never waits for it.
+
+The child is started with the ``spawn`` method (no fork of a threaded process). The component class is sent by
+reference (its module must be importable), its parameters as a plain dict. Graph time is the same in both processes
+(``time.perf_counter`` and ``time.monotonic`` are system-wide clocks on Linux and macOS). Exceptions in the child come
+back as faults of the node, with the original type, message and place. Under the simulated clock isolation is
+ignored: the node runs inline, so runs stay deterministic.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+import traceback
+from typing import Any
+
+from .component import Component, Context, Inputs, Sample, _Slot
+from .errors import ComponentFault
+
+#: seconds a child may take to answer a lifecycle call (configure may load a model)
+LIFECYCLE_TIMEOUT = 120.0
+
+
+def _exc_text(exc: BaseException) -> str:
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float,
+                t0_mono: float) -> None:
+    stop_reason: list[str] = []
+    logs: list[str] = []
+    origin = [t0_perf, t0_mono]
+    ctx = Context(now=lambda: time.perf_counter() - origin[0], clock_kind="wall",
+                  request_stop=lambda r: stop_reason.append(r), log=logs.append,
+                  from_monotonic=lambda m: m - origin[1])
+    comp: Component | None = None
+    slots = {name: _Slot() for name in cls.inputs}
+    inputs = Inputs(slots)
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            break
+        op = msg[0]
+        try:
+            if op == "step":
+                _, t, ins = msg
+                for name, v in ins.items():
+                    slots[name].sample = None if v is None else Sample(v[0], v[1])
+                out = comp.step(t, inputs) or {}  # type: ignore[union-attr]
+                packed = {k: (("S", v.value, v.stamp) if isinstance(v, Sample) else ("V", v)) for k, v in out.items()}
+                conn.send(("out", packed, comp.status(), stop_reason[:], logs[:]))  # type: ignore[union-attr]
+                stop_reason.clear()
+                logs.clear()
+                continue
+            if op == "configure":
+                comp = cls(cls.Params.model_validate(params), node_id=node_id, ctx=ctx)
+                comp.configure()
+            elif op in ("activate", "deactivate"):
+                getattr(comp, op)()
+            elif op == "clock":
+                origin[:] = msg[1:]
+            elif op == "close":
+                if comp is not None:
+                    comp.close()
+                conn.send(("ok", logs[:]))
+                break
+            conn.send(("ok", logs[:]))
+            logs.clear()
+        except BaseException as exc:  # noqa: BLE001 - everything goes back to the parent
+            conn.send(("exc", _exc_text(exc), logs[:]))
+            logs.clear()
+    conn.close()
+
+
+class ProcessProxy(Component):
+    """Stands in for a component that runs in a child process; the runtime treats it like the component."""
+
+    def __init__(self, cls: type[Component], params: Any, *, node_id: str, ctx: Context, t0_perf: float,
+                 t0_mono: float, step_timeout: float):
+        super().__init__(params, node_id=node_id, ctx=ctx)
+        self.target = cls
+        self.inputs = cls.inputs
+        self.outputs = cls.outputs
+        self.name = cls.name
+        self.kind = cls.kind
+        self._t0 = (t0_perf, t0_mono)
+        self._step_timeout = step_timeout
+        self._status: dict[str, Any] = {}
+        self._conn: Any = None
+        self._proc: Any = None
+
+    # -------------------------------------------------------------------------------------------------- plumbing
+    def _call(self, *msg: Any, timeout: float) -> Any:
+        conn = self._conn
+        try:
+            conn.send(msg)
+            if not conn.poll(timeout):
+                raise ComponentFault(f"isolated process did not answer '{msg[0]}' within {timeout:.3g} s")
+            reply = conn.recv()
+        except (EOFError, BrokenPipeError, ConnectionResetError, OSError) as exc:
+            code = self._proc.exitcode if self._proc is not None else None
+            raise ComponentFault(f"isolated process died (exit code {code}) during '{msg[0]}': "
+                                 f"{type(exc).__name__}") from None
+        for line in reply[-1]:
+            self.ctx.log(line)
+        if reply[0] == "exc":
+            raise ComponentFault(f"in isolated process: {reply[1]}")
+        return reply
+
+    def configure(self) -> None:
+        mpctx = mp.get_context("spawn")
+        parent, child = mpctx.Pipe()
+        self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
+                                   args=(child, self.target, self.params.model_dump(), self.id, *self._t0))
+        self._proc.start()
+        child.close()
+        self._conn = parent
+        self._call("configure", timeout=LIFECYCLE_TIMEOUT)
+
+    def set_origin(self, t0_perf: float, t0_mono: float) -> None:
+        """The graph clock's origin (set by the runtime after start-up, before the first step)."""
+        self._t0 = (t0_perf, t0_mono)
+        self._call("clock", t0_perf, t0_mono, timeout=LIFECYCLE_TIMEOUT)
+
+    def activate(self) -> None:
+        self._call("activate", timeout=LIFECYCLE_TIMEOUT)
+
+    def step(self, t: float, inputs: Inputs) -> dict[str, Any]:
+        ins = {}
+        for name in self.inputs:
+            s = inputs[name]
+            ins[name] = None if s is None else (s.value, s.stamp)
+        _, packed, status, stop, _logs = self._call("step", t, ins, timeout=self._step_timeout)
+        self._status = status
+        if stop:
+            self.ctx.request_stop(stop[0])
+        return {k: (Sample(v[1], v[2]) if v[0] == "S" else v[1]) for k, v in packed.items()}
+
+    def deactivate(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._call("deactivate", timeout=LIFECYCLE_TIMEOUT)
+
+    def close(self) -> None:
+        try:
+            if self._proc is not None and self._proc.is_alive():
+                self._call("close", timeout=10.0)
+        finally:
+            if self._proc is not None:
+                self._proc.join(timeout=5.0)
+                if self._proc.is_alive():
+                    self._proc.kill()
+                    self._proc.join(timeout=5.0)
+            if self._conn is not None:
+                self._conn.close()
+
+    def status(self) -> dict[str, Any]:
+        return self._status
