@@ -19,7 +19,7 @@ A graph file::
         params: {degree: 3}
         inputs:
           max_depth: depth.max_depth                          # node.port
-          mask: {from: depth.contact_mask, max_age: 0.1}      # with a staleness limit (s)
+          contact_area: {from: depth.contact_area, max_age: 0.1}   # with a staleness limit (s)
         on_fault: degrade         # optional, per node
         isolate: process          # optional: run in a process of its own under the wall clock (see isolation.py)
 
