@@ -236,7 +236,7 @@ def grid_images(image: np.ndarray, background: np.ndarray, stride: int, offset: 
                 drift: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Block-averaged frame and diff on the work grid (float32 (gr, gc, 3)), exactly as the estimator computes
     them: block means of frame and background, their difference, minus its per-channel median over every 4th
-    cell (global illumination drift)."""
+    cell (global illumination drift, :func:`depth_pipeline.channel_offset`)."""
     oy, ox = offset
     h, w = image.shape[:2]
     gr, gc = (h - oy) // stride, (w - ox) // stride
@@ -245,10 +245,12 @@ def grid_images(image: np.ndarray, background: np.ndarray, stride: int, offset: 
         a = a[oy: oy + gr * stride, ox: ox + gc * stride].astype(np.float32)
         return a.reshape(gr, stride, gc, stride, 3).sum(axis=(1, 3)) * (1.0 / (stride * stride))
 
+    from .depth_pipeline import channel_offset
+
     x = pool(image)
     d = x - pool(background)
     if drift:
-        d -= np.median(d[::4, ::4].reshape(-1, 3), axis=0)
+        d -= channel_offset(d)
     return x, d
 
 

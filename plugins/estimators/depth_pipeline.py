@@ -31,7 +31,7 @@ from teletouch.errors import ModelFileError
 from . import poisson
 from .normal_model import NormalModel, feature_count
 
-__all__ = ["DepthResult", "DepthPipeline", "contact_summary"]
+__all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset"]
 
 
 @dataclass
@@ -61,6 +61,14 @@ def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float, co
     cx = float((cols * w).sum() / w.sum()) - (wd - 1) / 2.0
     cy = float((rows * w).sum() / w.sum()) - (h - 1) / 2.0
     return mask, n * m_per_px * m_per_px, np.array([cx * m_per_px, cy * m_per_px])
+
+
+def channel_offset(d: np.ndarray) -> np.ndarray:
+    """Global per-channel offset of a (rows, cols, 3) difference image: the median over every 4th cell (the
+    upper middle element; a contact covers a small part of the frame, so this is the illumination drift)."""
+    sub = np.ascontiguousarray(d[::4, ::4].reshape(-1, 3).T)
+    k = sub.shape[1] // 2
+    return np.partition(sub, k, axis=1)[:, k].astype(np.float32)
 
 
 class DepthPipeline:
@@ -159,7 +167,8 @@ class DepthPipeline:
         if self.drift_correction:
             # robust global offset per channel (the contact covers a small part of the frame)
             sub = d[:, :, ::4, ::4].reshape(d.shape[0], 3, -1)
-            d = d - sub.median(dim=2).values[:, :, None, None]
+            k = sub.shape[2] // 2
+            d = d - sub.sort(dim=2).values[:, :, k, None, None]
         return x, d
 
     def _mask(self, d: Any) -> Any:
@@ -269,56 +278,74 @@ class DepthPipeline:
         torch = self.torch
         gr, gc = self.grows, self.gcols
         s = self.stride
+        b = self._buffers()   # preallocated: fresh large arrays would cost page faults on every frame
+        x, d = b["x"], b["d"]
         if s > 1:
             # exact block means: 4 x the frame in uint16, OpenCV's area resize (integer), then / 4
-            f = frame[: gr * s, : gc * s].astype(np.uint16)
-            f <<= 2
-            x = cv2.resize(f, (gc, gr), interpolation=cv2.INTER_AREA).astype(np.float32)
-            x *= 0.25
+            np.multiply(frame[: gr * s, : gc * s], 4, out=b["u16"], dtype=np.uint16)
+            cv2.resize(b["u16"], (gc, gr), dst=b["x16"], interpolation=cv2.INTER_AREA)
+            np.multiply(b["x16"], np.float32(0.25), out=x, dtype=np.float32)
         else:
-            x = frame.astype(np.float32)
-        d = x - self._bg_grid_np
+            x[...] = frame
+        np.subtract(x, self._bg_grid_np, out=d)
         if self.drift_correction:
-            d -= np.median(np.ascontiguousarray(d[::4, ::4].reshape(-1, 3).T), axis=1)
-        a = cv2.transform(np.abs(d), self._ones13)
-        a = cv2.blur(a, (3, 3), borderType=cv2.BORDER_REPLICATE)
-        m = (a > self.change_threshold).astype(np.uint8)
-        m = cv2.erode(m, self._k3)
-        core = cv2.dilate(m, self._kn)     # the network runs here (the change region and a rim of `net_rim` cells)
-        m = cv2.dilate(m, self._kd)        # depth is kept here (the change region and a rim of `dilate` + 1 cells)
+            d -= channel_offset(d)
+        np.abs(d, out=b["absd"])
+        cv2.transform(b["absd"], self._ones13, dst=b["a"])
+        cv2.blur(b["a"], (3, 3), dst=b["a2"], borderType=cv2.BORDER_REPLICATE)
+        m = b["m"]
+        np.greater(b["a2"], self.change_threshold, out=b["mb"])
+        m[...] = b["mb"]
+        cv2.erode(m, self._k3, dst=b["m2"])
+        core = cv2.dilate(b["m2"], self._kn)   # the network runs here (change region + `net_rim` cells)
+        keep = cv2.dilate(b["m2"], self._kd)   # depth is kept here (change region + `dilate` + 1 cells)
         nz_pts = cv2.findNonZero(core)
         if nz_pts is None:
             return np.zeros((gr, gc), np.float32)
         nz_pts = nz_pts.reshape(-1, 2)
-        c = nz_pts[:, 0]
-        r = nz_pts[:, 1]
-        feats = np.empty((r.size, self.nfeat), np.float32)
+        c = nz_pts[:, 0].astype(np.intp)
+        r = nz_pts[:, 1].astype(np.intp)
+        idx = r * gc + c
+        feats = np.empty((idx.size, self.nfeat), np.float32)
         k = 0
         if self._use_rgb:
-            feats[:, 0:3] = x[r, c]
+            feats[:, 0:3] = x.reshape(-1, 3)[idx]
             k = 3
         if self._use_diff:
-            feats[:, k:k + 3] = d[r, c]
+            feats[:, k:k + 3] = d.reshape(-1, 3)[idx]
             k += 3
         if self._use_xy:
-            feats[:, k:k + 2] = self._xy_np[r, c]
+            feats[:, k:k + 2] = self._xy_np.reshape(-1, 2)[idx]
         n = self._fast_mlp(torch.from_numpy(feats)).numpy()
-        n /= np.maximum(np.sqrt((n * n).sum(axis=1, keepdims=True)), 1e-6)
-        nz = np.maximum(n[:, 2], self.nz_min)
-        gx = np.zeros((gr, gc), np.float32)
-        gy = np.zeros((gr, gc), np.float32)
-        gx[r, c] = -n[:, 0] / nz
-        gy[r, c] = -n[:, 1] / nz
+        nrm = np.sqrt(np.einsum("ij,ij->i", n, n))
+        nz = np.maximum(n[:, 2] / np.maximum(nrm, 1e-6), self.nz_min) * np.maximum(nrm, 1e-6)
+        gx = np.zeros(gr * gc, np.float32)
+        gy = np.zeros(gr * gc, np.float32)
+        gx[idx] = -n[:, 0] / nz
+        gy[idx] = -n[:, 1] / nz
         r0 = max(int(r.min()) - self.margin, 0)
         r1 = min(int(r.max()) + 1 + self.margin, gr)
         c0 = max(int(c.min()) - self.margin, 0)
         c1 = min(int(c.max()) + 1 + self.margin, gc)
-        z = poisson.integrate_window(gx, gy, (r0, r1, c0, c1), workers=self.workers)
+        z = poisson.integrate_window(gx.reshape(gr, gc), gy.reshape(gr, gc), (r0, r1, c0, c1),
+                                     workers=self.workers)
         z *= self.m_per_cell
-        z[m == 0] = 0.0
+        z[keep == 0] = 0.0
         if self.clamp_negative:
             np.maximum(z, 0.0, out=z)
         return z
+
+    def _buffers(self) -> dict[str, np.ndarray]:
+        b = getattr(self, "_buf", None)
+        if b is None:
+            gr, gc, s = self.grows, self.gcols, self.stride
+            b = {"u16": np.empty((gr * s, gc * s, 3), np.uint16), "x16": np.empty((gr, gc, 3), np.uint16),
+                 "x": np.empty((gr, gc, 3), np.float32), "d": np.empty((gr, gc, 3), np.float32),
+                 "absd": np.empty((gr, gc, 3), np.float32), "a": np.empty((gr, gc), np.float32),
+                 "a2": np.empty((gr, gc), np.float32), "mb": np.empty((gr, gc), bool),
+                 "m": np.empty((gr, gc), np.uint8), "m2": np.empty((gr, gc), np.uint8)}
+            self._buf = b
+        return b
 
     def _dense_gradients(self, x: Any, d: Any, m: Any) -> tuple[Any, Any]:
         f = self._features(x, d)
