@@ -11,8 +11,8 @@ background = per-pixel median of its training frames, and evaluated on the held-
 - false depth: max |depth| beyond 2 contact radii; max depth of a frame without contact (VGA: the real frame_49;
   QVGA has none, so a synthetic one: the background + noise (2 levels) + a global drift of 4 levels).
 
-QVGA is run with three network inputs (rgbxy = the paper's R, G, B, X, Y; diffxy = difference from the background
-+ X, Y, the default; rgbxy+diff) to show what the background difference brings.
+QVGA is run with four network inputs (rgbxy = the paper's R, G, B, X, Y; diffxy = difference from the background
++ X, Y, the default; rgbxy+diff; diff alone) to show what the background difference brings.
 
 Simulated (sim-digit, Taxim's optical model of a real DIGIT, pixel noise 2 levels): the packaged model
 sim-digit-qvga over indenters (6 and 10 mm balls, the paper's probe, a 4 mm flat punch), positions and
@@ -157,7 +157,7 @@ def main() -> int:
     t0 = time.perf_counter()
     result: dict = {"benchmark": "depth_accuracy", "quick": args.quick}
     epochs = 20 if args.quick else 40
-    features = ["diffxy"] if args.quick else ["diffxy", "rgbxy", "rgbxy+diff"]
+    features = ["diffxy"] if args.quick else ["diffxy", "rgbxy", "rgbxy+diff", "diff"]
     result["qvga"] = {fs: real("qvga", 5, fs, epochs, log) for fs in features}
     if not args.no_vga:
         result["vga"] = real("vga", 3 if not args.quick else 4, "diffxy", epochs // 2, log,

@@ -315,8 +315,8 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
 # --- training --------------------------------------------------------------------------------------------------
 
 def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
-                px_per_m: float, ball_radius_m: float = 0.003, feature_set: str = "rgbxy+diff",
-                hidden: Sequence[int] = (32, 32, 32), epochs: int = 60, lr: float = 1e-3, batch: int = 1024,
+                px_per_m: float, ball_radius_m: float = 0.003, feature_set: str = "diffxy",
+                hidden: Sequence[int] = (32, 32, 32), epochs: int = 40, lr: float = 1e-3, batch: int = 1024,
                 dropout: float = 0.05, seed: int = 0, stride: int | None = None, flat_ratio: float = 1.0,
                 validation: Sequence[str] = (), progress: bool = True, fit_gain: bool = True,
                 log: Callable[[str], None] | None = None) -> NormalModel:
@@ -574,8 +574,9 @@ class CalibrationResult:
 def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px_per_m: float,
               labels: dict[str, Label] | None = None, background: np.ndarray | None = None,
               holdout: int = 2, log: Callable[[str], None] | None = None, **train_kw: Any) -> CalibrationResult:
-    """Background (given or median), labels (given or automatic), training with ``holdout`` presses held out for
-    validation (spread over the sensor), then a final... model trained on the training presses."""
+    """The whole calibration: background (given, or the per-pixel median of the presses), labels (given, or found
+    by :func:`auto_label`), training on the usable presses with ``holdout`` of them (spread over the sensor) held
+    out and evaluated; their metrics go into the model file."""
     t0 = time.perf_counter()
     log = log or (lambda m: None)
     if background is None:
