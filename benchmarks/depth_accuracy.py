@@ -26,9 +26,8 @@ Prints one JSON object as its last line.
 from __future__ import annotations
 
 import argparse
-import os
 import json
-import math
+import os
 import sys
 import time
 import warnings

@@ -22,7 +22,7 @@ import numpy as np
 
 from teletouch.errors import ModelFileError
 
-from .normal_model import NormalModel, feature_count, make_net, xy_features
+from .normal_model import NormalModel, feature_count, make_net
 
 __all__ = [
     "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",

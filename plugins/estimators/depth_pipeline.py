@@ -1,21 +1,28 @@
 """Frame -> depth map, the estimator's computation (no framework code; the `depth` component wraps it).
 
-Steps (torch tensors end to end, on any torch device; the Poisson solve by scipy.fft on CPU, by torch.fft elsewhere):
+Two implementations of the same steps:
 
-1. ``diff = frame - background`` (float), minus the per-channel median of diff over a coarse grid (global
-   illumination drift cancels).
-2. Work grid: the frame and diff are area-averaged in ``stride x stride`` blocks (the DIGIT's optics blur far more
-   than one pixel, so nothing is lost; the model was trained on the same grid).
-3. Change mask: cells whose smoothed colour change exceeds ``change_threshold`` (in 0..255 levels summed over the
-   channels), dilated by ``dilate`` cells. Outside it the gel is flat by definition: normal (0, 0, 1), zero
-   gradient. This is the zero reference: without contact there is no gradient, hence no depth.
-4. The MLP runs on the masked cells only (``mode="sparse"``, CPU default) or on every cell then multiplied by the
-   mask (``mode="dense"``, the GPU default; branch-free and batchable). Normals -> gradients
-   ``gx = -nx / max(nz, nz_min)`` (and gy), dimensionless.
-5. Depth by the DST Poisson solve on the mask's bounding box plus a margin (sparse) or on the whole grid (dense);
-   depth outside the change mask is set to 0 (the zero reference) and, unless ``clamp_negative=False``, negative
-   depth (the gel cannot rise above its rest plane by more than microns) to 0; then metres (x stride / px_per_m x the model's
-   depth gain) and bilinear upsampling to the frame's size.
+- ``mode="dense"`` (the default on a GPU): torch tensors end to end on any torch device, kornia for the blur,
+  batched (:meth:`DepthPipeline.batch_depth`), the network on every cell (masked), the whole-grid DST solve by
+  torch.fft (scipy.fft on CPU).
+- ``mode="sparse"`` (the default on CPU): OpenCV for block means and morphology (several times faster than the
+  same torch calls on small CPU images), the torch network on the changed cells only (input scaling folded into
+  the first layer), the scipy.fft DST solve on their window. Both agree within ~1-2% of max depth (tested).
+
+Steps:
+
+1. Work grid: frame and background are block-averaged in ``stride x stride`` blocks (the DIGIT's optics blur far
+   more than one pixel, so nothing is lost; the model was trained on the same grid); ``diff = frame - background``
+   minus its per-channel median over every 4th cell (global illumination drift cancels).
+2. Change mask: cells whose colour change (|diff| summed over the channels, 3 x 3 box) exceeds
+   ``change_threshold`` (0..255 levels; the model's, fitted to the sensor's noise), opened (noise specks go),
+   dilated by ``dilate`` + 1 cells. Outside it the gel is flat by definition: normal (0, 0, 1), zero slope. This
+   is the zero reference: without contact there is no slope, hence no depth.
+3. The MLP gives normals; slopes ``gx = -nx / max(nz, nz_min)`` (and gy), dimensionless.
+4. Depth by the DST Poisson solve on the mask's bounding box plus ``margin`` cells (sparse) or on the whole grid
+   (dense); depth outside the change mask is set to 0 and, unless ``clamp_negative=False``, negative depth (the
+   gel does not rise above its rest plane by more than microns) to 0; then metres (x stride / px_per_m x the
+   model's depth gain) and bilinear upsampling to the frame's size.
 """
 
 from __future__ import annotations
