@@ -120,6 +120,24 @@ def sim_speed(duration: float) -> dict:
             "steps": sum(n.steps for n in res.nodes), "target_factor": 50.0, "pass": res.realtime_factor >= 50.0}
 
 
+def _cpu_times() -> list[int] | None:
+    try:
+        with open("/proc/stat") as fh:
+            return [int(x) for x in fh.readline().split()[1:]]
+    except OSError:
+        return None
+
+
+def machine_noise(before: list[int] | None, after: list[int] | None) -> dict:
+    """Share of CPU time stolen by the hypervisor and used by others while we measured: context for jitter."""
+    if not before or not after:
+        return {}
+    d = [b - a for a, b in zip(before, after)]
+    total = sum(d) or 1
+    return {"steal_fraction": d[7] / total if len(d) > 7 else None, "idle_fraction": d[3] / total,
+            "loadavg_1min": os.getloadavg()[0]}
+
+
 def jitter(duration: float, burn_ms: float, priority: int = 0, python_burn: bool = False,
            isolate: bool = False) -> dict:
     burn = (f"{{id: burn, plugin: mock-burn, rate: 60, params: {{burn: {burn_ms}ms}}"
@@ -134,7 +152,9 @@ nodes:
   - {burn}
 """
     rt = Runtime(load_text(text, REG), log=lambda m: None)
+    cpu0 = _cpu_times()
     res = rt.run(duration)
+    noise = machine_noise(cpu0, _cpu_times())
     starts = np.array(rt.component("fast").starts)
     periods = np.diff(starts[100:])  # skip warm-up
     err = np.abs(periods - 1e-3) * 1e3
@@ -145,7 +165,7 @@ nodes:
         "p50": float(np.percentile(err, 50)), "p99": float(np.percentile(err, 99)), "max": float(err.max())},
         "mean_period_ms": float(periods.mean() * 1e3), "burn_ms_median": statistics.median(burn) * 1e3,
         "burn_steps": len(burn), "overruns": {n.id: n.overruns for n in res.nodes},
-        "realtime_priority": priority, "target_p99_ms": 0.25, "pass": float(np.percentile(err, 99)) <= 0.25}
+        "realtime_priority": priority, "machine_noise": noise, "target_p99_ms": 0.25, "pass": float(np.percentile(err, 99)) <= 0.25}
 
 
 def main() -> None:
