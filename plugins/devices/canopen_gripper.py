@@ -333,3 +333,34 @@ class CanopenGripper(FollowerBase):
 @hookimpl
 def teletouch_components():
     return [CanopenGripper]
+
+
+def can_interfaces(sysfs_root: str | None = None) -> list[dict[str, Any]]:
+    """SocketCAN network interfaces (type 280 in sysfs), for `teletouch devices`."""
+    import os
+
+    root = os.path.join(sysfs_root or os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys"), "class", "net")
+    found = []
+    try:
+        names = sorted(os.listdir(root))
+    except OSError:
+        return []
+    for name in names:
+        def read(item: str) -> str:
+            try:
+                with open(os.path.join(root, name, item)) as fh:
+                    return fh.read().strip()
+            except OSError:
+                return ""
+
+        if read("type") != "280":  # ARPHRD_CAN
+            continue
+        found.append({"kind": "can", "id": name, "path": name,
+                      "details": {"state": read("operstate") or "unknown", "plugin": "canopen-gripper",
+                                  "params": {"interface": "socketcan", "channel": name}}})
+    return found
+
+
+@hookimpl
+def teletouch_discover_devices():
+    return can_interfaces()

@@ -298,3 +298,28 @@ def _signed(value: int, size: int) -> int:
 @hookimpl
 def teletouch_components():
     return [DynamixelGripper]
+
+
+#: USB ids of serial adapters used with Dynamixel servos (vendor, product) -> name
+KNOWN_ADAPTERS = {(0x0403, 0x6014): "ROBOTIS U2D2 (FTDI FT232H)", (0x0483, 0x5740): "ROBOTIS OpenCR",
+                  (0x2F5D, 0x2202): "ROBOTIS OpenRB-150"}
+
+
+def serial_ports() -> list[dict[str, Any]]:
+    """USB serial ports (pyserial's list), with the Dynamixel adapters named, for `teletouch devices`."""
+    from serial.tools import list_ports
+
+    found = []
+    for p in sorted(list_ports.comports(), key=lambda p: p.device):
+        if p.vid is None:
+            continue  # not a USB adapter (built-in UARTs)
+        name = KNOWN_ADAPTERS.get((p.vid, p.pid))
+        found.append({"kind": "serial", "id": p.serial_number or p.device, "path": p.device,
+                      "details": {"usb": f"{p.vid:04x}:{p.pid:04x}", "description": name or p.description or "",
+                                  "plugin": "dynamixel-gripper", "params": {"port": p.device}}})
+    return found
+
+
+@hookimpl
+def teletouch_discover_devices():
+    return serial_ports()
