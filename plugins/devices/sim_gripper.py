@@ -21,13 +21,17 @@ from teletouch.units import Hertz, Meters, NewtonsPerMeter, Pascals
 from teletouch.plugins.sensors import gel as _gel  # numpy only
 
 from .follower_common import FOLLOWER_OUTPUTS, FollowerBase, FollowerParams, Reading, clamp
-from .follower_contact import blocked_opening, split_penetration
+from .follower_contact import TabulatedGel, blocked_opening, split_penetration
 
 DEFAULT_RADIUS = {"sphere": 0.003, "flat": 0.003, "probe": 0.005}  # sim-digit's defaults
 
 
 def load_gel_law(p: Any) -> tuple[Callable[[float], float], Any]:
-    """The fingertip gel's force law F(d): sim-digit's ``gel_force`` with the same indenter and gel parameters."""
+    """The fingertip gel's force law F(d): sim-digit's ``gel_force`` with the same indenter and gel parameters.
+
+    It is the law's closed form with its constants computed once (``gel.force_law``, checked here against
+    ``gel_force`` itself), wrapped with a table for the contact solvers when there is an object to squeeze.
+    """
     gel = _gel
     radius = p.indenter_radius if p.indenter_radius is not None else DEFAULT_RADIUS[p.indenter]
     if p.indenter == "probe":
@@ -37,8 +41,16 @@ def load_gel_law(p: Any) -> tuple[Callable[[float], float], Any]:
     else:
         indenter = gel.Indenter.flat(radius)
     material = gel.GelMaterial(p.modulus, p.poisson, p.gel_thickness)
-    gel_force = gel.gel_force
-    return (lambda d: gel_force(d, indenter, material)), indenter
+    law = gel.force_law(indenter, material)
+    reach = max(p.object_width or 0.0, p.max_opening)
+    for k in range(41):  # the fast law is gel_force: same numbers (up to rounding) over the whole range
+        d = reach * (k / 40.0) ** 2
+        ref, fast = gel.gel_force(d, indenter, material), law(d)
+        if not abs(fast - ref) <= 1e-12 * abs(ref):
+            raise RuntimeError(f"gel.force_law disagrees with gel.gel_force at {d} m: {fast} N vs {ref} N")
+    if p.object_width is None:
+        return law, indenter
+    return TabulatedGel(law, reach), indenter
 
 
 class SimGripper(FollowerBase):

@@ -137,6 +137,13 @@ class SimOmega7(Device):
         self.pos = np.array(p.initial_position, dtype=float)
         self.vel = np.zeros(3)
         self.hand_pos = np.array(p.hand_position, dtype=float)
+        # the integrator's state as plain floats (small numpy arrays cost microseconds per operation)
+        self._p = tuple(float(c) for c in self.pos)
+        self._v = (0.0, 0.0, 0.0)
+        self._hand_p = tuple(float(c) for c in self.hand_pos)
+        self._zero3 = np.zeros(3)
+        self._zero3.flags.writeable = False
+
         self.last_t: float | None = None
         self.g_applied = 0.0
         self.f_applied = np.zeros(3)
@@ -185,7 +192,7 @@ class SimOmega7(Device):
         p = self.params
         g, f, problem = self.guard.apply(t, inputs)
         if problem is not None or self.safe or not self.enabled:
-            g, f = 0.0, np.zeros(3)
+            g, f = 0.0, self._zero3
         self.g_applied, self.f_applied = g, f
         if problem is not None:
             self.faults += 1
@@ -213,8 +220,10 @@ class SimOmega7(Device):
         else:
             self.f_hand = 0.0 if des is None else self.hand.force(self.x, self.v, des[0], des[1])
         self.x_intent = math.nan if des is None else des[0]
-        button = any(a <= t < b for a, b in p.button_intervals)
-        return {"gripper_opening": self.x, "gripper_velocity": self.v, "position": self.pos,  # a new array every step
+        intervals = p.button_intervals
+        button = any(a <= t < b for a, b in intervals) if intervals else False
+        return {"gripper_opening": self.x, "gripper_velocity": self.v,
+                "position": np.array(self._p),  # a new array every step
                 "button": button, "hand_force": self.f_hand, "intended_opening": self.x_intent}
 
     def _integrate(self, h: float, n: int, g: float, f: np.ndarray, ext: np.ndarray | None,
@@ -226,41 +235,61 @@ class SimOmega7(Device):
         b, fc = p.gripper_damping, p.gripper_coulomb
         hand = des is not None
         m = p.gripper_mass + (p.hand_mass if hand else 0.0)
+        fh = 0.0
         if hand:
             k_h, b_h, f_max = self.hand.stiffness, self.hand.damping, self.hand.max_force
             x_d, v_d = des
-        fh = 0.0
-        # handle
-        px, py, pz = (float(c) for c in self.pos)
-        vx, vy, vz = (float(c) for c in self.vel)
-        fx, fy, fz = (float(c) for c in f)
-        if ext is not None:
-            fx, fy, fz = fx + float(ext[0]), fy + float(ext[1]), fz + float(ext[2])
-        bt, mass = p.handle_damping, p.handle_mass
-        k_a, b_a = (p.arm_stiffness, p.arm_damping) if hand else (0.0, 0.0)
-        hx, hy, hz = (float(c) for c in self.hand_pos)
-        r_max = p.workspace_radius
-        for _ in range(n):
-            # gripper: m x'' = F_render + F_hand - b x' - Coulomb
-            if hand:
+            for _ in range(n):
+                # gripper: m x'' = F_render + F_hand - b x' - Coulomb
                 fh = k_h * (x_d - x) + b_h * (v_d - v)
                 fh = f_max if fh > f_max else (-f_max if fh < -f_max else fh)
-            drive = g + fh - b * v
-            if abs(v) < 1e-9 and abs(drive) <= fc:
-                v = 0.0  # static friction holds
-            else:
-                sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
-                v_new = v + h * (drive - fc * sgn) / m
-                if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
-                    v_new = 0.0  # friction stops it, it does not reverse it
-                v = v_new
-            x += h * v
-            if x <= 0.0:
-                x, v = 0.0, max(v, 0.0)
-            elif x >= x_max:
-                x, v = x_max, min(v, 0.0)
-            # handle: M p'' = F_cmd + F_ext + F_arm - b p'
-            bb = bt + b_a
+                drive = g + fh - b * v
+                if abs(v) < 1e-9 and abs(drive) <= fc:
+                    v = 0.0  # static friction holds
+                else:
+                    sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
+                    v_new = v + h * (drive - fc * sgn) / m
+                    if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
+                        v_new = 0.0  # friction stops it, it does not reverse it
+                    v = v_new
+                x += h * v
+                if x <= 0.0:
+                    x, v = 0.0, max(v, 0.0)
+                elif x >= x_max:
+                    x, v = x_max, min(v, 0.0)
+        else:
+            for _ in range(n):
+                drive = g + fh - b * v
+                if abs(v) < 1e-9 and abs(drive) <= fc:
+                    v = 0.0
+                else:
+                    sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
+                    v_new = v + h * (drive - fc * sgn) / m
+                    if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
+                        v_new = 0.0
+                    v = v_new
+                x += h * v
+                if x <= 0.0:
+                    x, v = 0.0, max(v, 0.0)
+                elif x >= x_max:
+                    x, v = x_max, min(v, 0.0)
+        self.x, self.v, self.f_hand = x, v, fh
+        # handle: M p'' = F_cmd + F_ext + F_arm - b p'
+        px, py, pz = self._p
+        vx, vy, vz = self._v
+        fx, fy, fz = f.tolist()
+        if ext is not None:
+            fx, fy, fz = fx + float(ext[0]), fy + float(ext[1]), fz + float(ext[2])
+        k_a, b_a = (p.arm_stiffness, p.arm_damping) if hand else (0.0, 0.0)
+        hx, hy, hz = self._hand_p
+        r_max = p.workspace_radius
+        if (vx == 0.0 and vy == 0.0 and vz == 0.0 and fx == 0.0 and fy == 0.0 and fz == 0.0
+                and (k_a == 0.0 or (px == hx and py == hy and pz == hz))
+                and px * px + py * py + pz * pz <= r_max * r_max):
+            return  # at rest with no force on it: the steps below would leave it exactly where it is
+        bt, mass = p.handle_damping, p.handle_mass
+        bb = bt + b_a
+        for _ in range(n):
             vx += h * (fx + k_a * (hx - px) - bb * vx) / mass
             vy += h * (fy + k_a * (hy - py) - bb * vy) / mass
             vz += h * (fz + k_a * (hz - pz) - bb * vz) / mass
@@ -275,9 +304,10 @@ class SimOmega7(Device):
                 out = vx * nx + vy * ny + vz * nz
                 if out > 0:
                     vx, vy, vz = vx - out * nx, vy - out * ny, vz - out * nz
-        self.x, self.v, self.f_hand = x, v, fh
-        self.pos = np.array((px, py, pz))
-        self.vel = np.array((vx, vy, vz))
+        self._p = (px, py, pz)
+        self._v = (vx, vy, vz)
+        self.pos = np.array(self._p)
+        self.vel = np.array(self._v)
 
     def status(self) -> dict[str, Any]:
         if not hasattr(self, "guard"):

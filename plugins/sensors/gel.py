@@ -52,7 +52,7 @@ import numpy as np
 __all__ = [
     "Indenter", "GelMaterial", "gel_force", "height_map", "contact_radius", "indentation_for_contact_radius",
     "shore_a_to_modulus", "contact_mask", "gel_surface", "GelSurface", "radial_depth", "is_radial",
-    "support_radius", "contact_edge_radius", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
+    "support_radius", "contact_edge_radius", "force_law", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
 ]
 
 #: Paper's unit: 17.15 px per mm at QVGA (320 x 240).
@@ -302,6 +302,80 @@ def gel_force(indentation_m: float, indenter: Indenter, modulus: float | GelMate
     else:
         F = _numeric_force(d, indenter, Es, tilt_rad)
     return float(F * _thin_layer(contact_radius(d, indenter, tilt_rad), mat.thickness))
+
+
+def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, poisson: float | None = None,
+              thickness: float | None = None, tilt_rad: float = 0.0):
+    """``gel_force`` for one indenter and gel as a function of the indentation alone, ``F(d)`` (N, d in m).
+
+    For the closed-form laws (sphere; flat punch and probe untilted) the constants are computed once and the
+    arithmetic is the same as :func:`gel_force`'s, operation for operation, so the result is the same number about
+    ten times faster (a 1 kHz simulation solves the law several times a step). Other shapes call ``gel_force``.
+    """
+    mat = _material(modulus, poisson, thickness)
+    Es = mat.reduced_modulus
+    h = mat.thickness
+    k = indenter.kind
+    isfinite, sqrt = math.isfinite, math.sqrt
+
+    def layer(a_c: float) -> float:  # _thin_layer's polynomial
+        x = a_c / h
+        return 1.0 + 1.133 * x + 1.283 * x * x + 0.769 * x ** 3 + 0.0975 * x ** 4
+
+    if k == "sphere":
+        R = indenter.radius
+        c = 4.0 / 3.0 * Es * math.sqrt(R)
+
+        def law(d: float) -> float:
+            d = float(d)
+            if d <= 0.0 or not d < math.inf:
+                if not isfinite(d):
+                    raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
+                return 0.0
+            F = c * d ** 1.5
+            if h is None:
+                return F * 1.0
+            return F * layer(sqrt(R * (d if d < R else R)))
+    elif k == "flat" and tilt_rad == 0.0:
+        c = 2.0 * Es * indenter.radius
+        fac = 1.0 if h is None else layer(indenter.radius)
+
+        def law(d: float) -> float:
+            d = float(d)
+            if d <= 0.0 or not d < math.inf:
+                if not isfinite(d):
+                    raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
+                return 0.0
+            return c * d * fac
+    elif k == "probe" and tilt_rad == 0.0:
+        Rt, a = indenter.tip_radius, indenter.radius
+        d1 = a * a / Rt
+        c = 4.0 / 3.0 * Es * math.sqrt(Rt)
+        f1 = 4.0 / 3.0 * Es * math.sqrt(Rt) * d1 ** 1.5
+        c2 = 2.0 * Es * a
+        fac_full = 1.0 if h is None else layer(a)
+
+        def law(d: float) -> float:
+            d = float(d)
+            if d <= 0.0 or not d < math.inf:
+                if not isfinite(d):
+                    raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
+                return 0.0
+            if d <= d1:
+                F = c * d ** 1.5
+                if h is None:
+                    return F * 1.0
+                a_c = sqrt(Rt * d)
+                return F * layer(a_c if a_c < a else a)
+            F = f1 + c2 * (d - d1)
+            if h is None:
+                return F * 1.0
+            a_c = sqrt(Rt * d)
+            return F * layer(a_c if a_c < a else a)
+    else:
+        def law(d: float) -> float:
+            return gel_force(d, indenter, mat, tilt_rad=tilt_rad)
+    return law
 
 
 def _numeric_force(d: float, indenter: Indenter, Es: float, tilt: float, n: int = 128) -> float:
