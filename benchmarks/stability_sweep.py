@@ -29,9 +29,20 @@ from teletouch.plugins.controllers.experiments import Recorder, build_runtime, s
 THRESHOLD_N = 0.2
 
 
-MODES = {"off": {"passivity": False},
-         "tdpa": {"passivity": True},
-         "tdpa+force-reduction": {"passivity": True, "passivity_force_reduction": True}}
+OLD = {"force_prediction": False, "passivity_observer": "leader-port", "passivity_controller": "damping"}
+MODES = {
+    # no passivity control, no prediction (the loop as it was before either)
+    "off": {"passivity": False, "force_prediction": False},
+    # the previous default: leader-port observer, damping capped at 40 N*s/m, no prediction
+    "tdpa-damping": {"passivity": True, **OLD},
+    "tdpa-damping+force-reduction": {"passivity": True, "passivity_force_reduction": True, **OLD},
+    # the new force path (damping + force cut, nothing in free space) without the contact-model prediction
+    "tdpa-force": {"passivity": True, "force_prediction": False},
+    # the prediction alone, passivity control off
+    "prediction-only": {"passivity": False},
+    # the default: contact-model prediction + passivity control on the force path
+    "default": {},
+}
 
 
 def run_one(force_scale: float, modulus: float, mode: str, sensor: str, duration: float) -> dict:
@@ -58,6 +69,8 @@ def run_one(force_scale: float, modulus: float, mode: str, sensor: str, duration
     return {"force_scale": force_scale, "gel_modulus_pa": modulus, "mode": mode,
             "p2p_leader_force_n": p2p, "p2p_contact_force_n": p2p_gt,
             "mean_leader_force_n": float(np.mean(f[win])) if win.any() else float("nan"),
+            "mean_contact_force_n": float(np.mean(fg[tg >= w0])) if (tg >= w0).any() else float("nan"),
+            "force_scale_gain_final": float(rt.component("controller").gain),
             "oscillates": bool(p2p_gt > THRESHOLD_N), "max_damping_used": float(np.max(d)) if len(d) else 0.0,
             "status": res.status}
 

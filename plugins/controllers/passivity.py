@@ -34,7 +34,7 @@ import math
 from dataclasses import dataclass
 
 __all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "reduce_force_to",
-           "adapt_gain", "commit"]
+           "adapt_gain", "commit", "modulate_force", "FollowerPort"]
 
 
 @dataclass
@@ -44,7 +44,9 @@ class PassivityState:
     energy: float = 0.0        #: observed energy (J), including what the controller dissipated
     alpha: float = 0.0         #: damping applied in the last step (N*s/m)
     dissipated: float = 0.0    #: total energy dissipated by the controller (J)
-    active_steps: int = 0      #: steps in which damping was injected
+    active_steps: int = 0      #: steps in which damping was injected (or the force was reduced)
+    gain: float = 1.0          #: force-path passivity controller: modulation of the feedback force (0..1]
+    follower_energy: float = 0.0   #: two-port observer: energy the environment gave back at the follower port (J)
 
 
 def port_power(force: float, velocity: float) -> float:
@@ -90,10 +92,12 @@ def passivity_force(state: PassivityState, force: float, velocity: float, dt: fl
     return out, alpha
 
 
-def reduce_force_to(force: float, energy_after: float, velocity: float, dt: float, margin: float = 0.0) -> float:
+def reduce_force_to(force: float, energy_after: float, velocity: float, dt: float, margin: float = 0.0,
+                    v_min: float = 0.0) -> float:
     """Cut ``force`` towards zero (never past it) by the deficit that remains beyond ``margin`` (J) when the
-    network is pushing energy out (``force * v > 0``); less force is always safe and the operator is never pulled."""
-    if energy_after + margin < 0.0 and force * velocity > 0.0 and dt > 0.0:
+    network is pushing energy out (``force * v > 0``, ``|v| >= v_min``); less force is always safe and the operator
+    is never pulled."""
+    if energy_after + margin < 0.0 and force * velocity > 0.0 and dt > 0.0 and abs(velocity) >= v_min:
         cut = min(abs(force), -(energy_after + margin) / (abs(velocity) * dt))
         return force - math.copysign(cut, force)
     return force
@@ -121,3 +125,91 @@ def commit(state: PassivityState, force_sent: float, force_undamped: float, velo
         # energy absorbed by the damping part of what was sent (may be less than alpha*v^2*dt after limits)
         state.dissipated += max(0.0, port_power(force_sent - force_undamped, velocity) * dt)
     return state
+
+
+def modulate_force(state: PassivityState, force: float, velocity: float, dt: float,
+                   leak_time: float | None = None, recover_time: float = 0.1, v_min: float = 1e-4) -> float:
+    """The force-path passivity controller (the default): the feedback force is scaled by a gain in [0, 1].
+
+    The gain drops at once to what keeps the predicted energy ``>= 0`` (the exact one-step TDPA cut of
+    :func:`reduce_force_to`: only while the network pushes energy out, ``force * v > 0``, and never past zero) and
+    recovers towards 1 with ``recover_time`` while the energy allows it. So the output always lies between 0 and the
+    feedback force: the controller never adds force, never reverses it (never pulls a hand the feedback would push),
+    and in free space (no feedback force) it does nothing at all. Updates ``state.gain``; returns the force to send.
+    """
+    g = state.gain
+    if dt > 0.0 and g < 1.0:
+        g += (1.0 - g) * min(1.0, dt / recover_time) if recover_time > 0 else 1.0 - g
+    f = g * force
+    if dt > 0.0 and f * velocity > 0.0 and abs(velocity) >= v_min:
+        e_pred = observe(state.energy, f, velocity, dt, leak_time)
+        if e_pred < 0.0:
+            f = reduce_force_to(f, e_pred, velocity, dt)
+            g = f / force
+    state.gain = min(1.0, max(0.0, g))
+    return f
+
+
+class FollowerPort:
+    """Two-port observer: the energy that crosses the follower port, from the force samples and the follower's
+    opening at their capture times.
+
+    The sensed force arrives late (a camera frame and the estimator); multiplying it by the follower's present
+    velocity would misplace the energy in time, so the opening is kept for ``history`` seconds and each new sample
+    ``(stamp, f)`` adds ``(f_prev + f) / 2 * (x_f(stamp) - x_f(stamp_prev)) / scale``: the energy the environment,
+    seen through the force scale (``f`` is the leader-equivalent force) and the position scale, gave into the
+    teleoperator between the two captures (opening while pushed apart: positive; squeezing: negative). With ideal,
+    undelayed coupling this cancels the leader port's energy exactly, so the observer sees only what the
+    teleoperator itself (delay, hold, servo lag) generates or stores, and the environment's stored energy
+    is neither credited to it nor forgotten.
+    """
+
+    __slots__ = ("ts", "xs", "n", "head", "prev")
+
+    def __init__(self, size: int = 256):
+        self.ts = [0.0] * size
+        self.xs = [0.0] * size
+        self.n = 0
+        self.head = 0
+        self.prev: tuple[float, float] | None = None     # (force, opening) at the last sample's capture
+
+    def record(self, t: float, x: float) -> None:
+        """Keep the follower opening ``x`` at time ``t`` (call every controller step with a fresh reading)."""
+        if self.n and t <= self.ts[(self.head - 1) % len(self.ts)]:
+            return
+        self.ts[self.head] = t
+        self.xs[self.head] = x
+        self.head = (self.head + 1) % len(self.ts)
+        if self.n < len(self.ts):
+            self.n += 1
+
+    def opening_at(self, t: float) -> float | None:
+        """The follower opening at time ``t`` (linear interpolation), or None when ``t`` is not covered."""
+        size = len(self.ts)
+        if not self.n:
+            return None
+        i = (self.head - 1) % size
+        if t >= self.ts[i]:
+            return self.xs[i] if t - self.ts[i] <= 0.005 else None
+        for _ in range(self.n - 1):
+            j = (i - 1) % size
+            if self.ts[j] <= t:
+                t0, t1 = self.ts[j], self.ts[i]
+                return self.xs[j] + (self.xs[i] - self.xs[j]) * (t - t0) / (t1 - t0)
+            i = j
+        return None
+
+    def sample(self, stamp: float, force: float, scale: float) -> float:
+        """Energy (J) the environment gave into the teleoperator since the last sample; 0 when it cannot be told."""
+        x = self.opening_at(stamp)
+        if x is None or not math.isfinite(force):
+            self.prev = None
+            return 0.0
+        prev, self.prev = self.prev, (force, x)
+        if prev is None:
+            return 0.0
+        return 0.5 * (prev[0] + force) * (x - prev[1]) / scale
+
+    def forget(self) -> None:
+        """A gap in the force samples: the next one starts a new interval."""
+        self.prev = None

@@ -36,7 +36,9 @@ from pydantic import Field, model_validator
 from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
 
-from .passivity import PassivityState, adapt_gain, commit, observe, passivity_force, reduce_force_to
+from .passivity import (
+    FollowerPort, PassivityState, adapt_gain, commit, modulate_force, observe, passivity_force, reduce_force_to,
+)
 
 __all__ = [
     "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit", "finite_or",
@@ -192,6 +194,17 @@ class _CommonParams(Params):
                                json_schema_extra={"unit": "s"})
     passivity: bool = Field(True, description="time-domain passivity controller on the leader port (the observer "
                             "always runs and feeds the energy output)")
+    passivity_controller: Literal["force", "damping"] = Field(
+        "force", description="force: scale the feedback force down (0..1, never past zero, recovering over "
+        "modulation_recovery) while the observed energy would go negative; damping: add -alpha*v, alpha <= "
+        "max_damping (the classic TDPA; it can drag in free space and pull the fingers while they open)")
+    passivity_observer: Literal["two-port", "leader-port"] = Field(
+        "leader-port", description="two-port: leader port + follower port (the sensed force and the follower "
+        "opening at its capture time), so the environment's stored energy is not the teleoperator's; "
+        "leader-port: the leader port only (the environment inside the observed one-port)")
+    modulation_recovery: Seconds = Field(0.1, ge=0, description="time constant with which the force-path "
+                                         "passivity controller restores the feedback force",
+                                         json_schema_extra={"unit": "s"})
     max_damping: NewtonSecondsPerMeter = Field(OMEGA7_MAX_DAMPING, ge=0,
                                                description="cap of the injected damping (Omega.7: 40 N*s/m)",
                                                json_schema_extra={"unit": "N*s/m"})
@@ -208,10 +221,29 @@ class _CommonParams(Params):
                                              json_schema_extra={"unit": "s"})
     passivity_force_reduction: bool = Field(False, description="when max_damping is not enough, also cut the "
                                             "rendered force towards zero within the step (never past it)")
-    passivity_gain_adaptation: bool = Field(False, description="when max_damping is not enough, lower the scale of "
-                                            "the rendered force smoothly (2/s, down to 0.1) and restore it (1 s)")
+    passivity_gain_adaptation: bool = Field(False, description="while the passivity controller has to cut the "
+                                            "force (or a deficit beyond gain_adaptation_margin remains), lower the "
+                                            "scale of the rendered force smoothly (gain_drop_rate, down to gain_min) "
+                                            "and restore it afterwards (gain_recover_time)")
+    gain_drop_rate: float = Field(5.0, gt=0, description="passivity_gain_adaptation: drop of the force scale per "
+                                  "second while the controller has to cut", json_schema_extra={"unit": "1/s"})
+    gain_recover_time: Seconds = Field(0.5, gt=0, description="passivity_gain_adaptation: time constant of the "
+                                       "recovery in free space", json_schema_extra={"unit": "s"})
+    gain_recover_time_contact: Seconds | None = Field(None, gt=0, description="passivity_gain_adaptation: time "
+                                                      "constant of the recovery while in contact (null: the scale "
+                                                      "recovers only in free space)", json_schema_extra={"unit": "s"})
+    gain_adaptation_power: float = Field(1e-3, ge=0, description="passivity_gain_adaptation: the force scale is "
+                                         "lowered while the force cut takes out more than this power on average",
+                                         json_schema_extra={"unit": "W"})
+    passivity_cut_time: Seconds = Field(0.1, gt=0, description="averaging time of the power taken out by the cut",
+                                        json_schema_extra={"unit": "s"})
+    gain_min: float = Field(0.1, gt=0, le=1, description="passivity_gain_adaptation: floor of the force scale")
     reduction_margin: float = Field(0.0, ge=0, description="energy deficit left to the damping before the force "
                                     "is cut", json_schema_extra={"unit": "J"})
+    reduction_min_velocity: float = Field(3e-3, ge=0, description="the force is cut only while the leader moves "
+                                          "faster than this (slower, the energy that leaks is tiny; cutting a "
+                                          "standing deficit on every tremor would make the force chatter)",
+                                          json_schema_extra={"unit": "m/s"})
     gain_adaptation_margin: float = Field(2e-3, ge=0, description="energy deficit beyond which the force scale is "
                                           "lowered", json_schema_extra={"unit": "J"})
     damping_smoothing: Seconds = Field(0.005, ge=0, description="time constant of the passivity damping's rise "
@@ -261,6 +293,9 @@ class _Bilateral(Component):
         self.fading = False
         self.leader_fade_rate: float | None = None
         self.gain = 1.0                          # passivity: scale of the rendered force (adapt_gain)
+        self.fport = FollowerPort()              # two-port observer: follower openings by time
+        self.cut_power = 0.0                     # average power taken out by the force cut (W)
+        self.cmd_hist = FollowerPort()           # follower commands by time (force prediction)
 
     # -- helpers
     def _leader(self, t: float, inputs: Any) -> bool:
@@ -291,6 +326,7 @@ class _Bilateral(Component):
             return False
         self.x_f = x
         self.vel_f.update(s.stamp, x)
+        self.fport.record(s.stamp, x)
         return True
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
@@ -306,6 +342,7 @@ class _Bilateral(Component):
         follower_ok = self._follower(t, inputs)
         if self.leader_ok:
             self.command = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
+            self.cmd_hist.record(t, self.command)
         f_fb = self.feedback(t, inputs, follower_ok)
         v = self.v_l if self.leader_ok else 0.0
         if not self.leader_ok:
@@ -316,13 +353,14 @@ class _Bilateral(Component):
         if p.leader_damping > 0.0 and self.leader_ok:
             f_fb -= p.leader_damping * v
         alpha = 0.0
+        cut = False                              # the passivity controller had to cut the force this step
         if p.passivity and p.passivity_gain_adaptation:
             f_fb *= self.gain
         f_des = f_fb
         if self.leader_ok and free and self.pas.energy < 0.0 and p.free_space_reset and dt > 0:
             self.pas.energy *= math.exp(-dt / p.free_space_reset)
         if p.passivity and self.leader_ok:
-            # capped damping, raised and released smoothly; then (optionally) a cut of what is still missing
+            # capped damping, raised and released smoothly; then a cut of what is still missing
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time,
                                            reduce_force=False)
             if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
@@ -332,9 +370,15 @@ class _Bilateral(Component):
                 if alpha < 1e-3 * p.max_damping:
                     alpha = 0.0
             f_des = f_fb - alpha * v
-            if p.passivity_force_reduction and dt > 0:
+            if p.passivity_controller == "force" and free:
+                f_des = f_fb                       # nothing in free space: no drag, no pull once contact is over
+            if (p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0:
                 e_after = observe(self.pas.energy, f_des, v, dt, p.energy_leak_time)
-                f_des = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin)
+                f_cut = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin, p.reduction_min_velocity)
+                cut = f_cut != f_des
+                # the power the cut takes out, averaged (passivity_cut_time): how hard the controller is working
+                self.cut_power += (abs((f_des - f_cut) * v) - self.cut_power) * min(1.0, dt / p.passivity_cut_time)
+                f_des = f_cut
         # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness
         if self.leader_ok:
             self.leader_fade_rate = None
@@ -350,10 +394,17 @@ class _Bilateral(Component):
         if self.leader_ok:                       # the observer always runs; it acts only with passivity on
             commit(self.pas, f, f_fb, v, dt, alpha, p.energy_leak_time)
             if p.passivity and p.passivity_gain_adaptation and dt > 0:
-                self.gain = adapt_gain(self.gain, self.pas.energy < -p.gain_adaptation_margin, dt)
+                short = self.cut_power > p.gain_adaptation_power or self.pas.energy < -p.gain_adaptation_margin
+                if short or free:
+                    self.gain = adapt_gain(self.gain, short, dt, p.gain_drop_rate, p.gain_recover_time, p.gain_min)
+                elif p.gain_recover_time_contact is not None:
+                    self.gain = adapt_gain(self.gain, False, dt, p.gain_drop_rate, p.gain_recover_time_contact,
+                                           p.gain_min)
             if not math.isfinite(self.pas.energy):
                 self.pas = PassivityState()
         self.out_force = f
+        if cut and v != 0.0:
+            alpha = (f_fb - f_des) / v               # the equivalent damping of damping + cut, for the output
         out: dict[str, float] = {"gripper_force": f, "energy": self.pas.energy, "damping": alpha}
         if self.command is not None:
             out["opening_command"] = self.command
@@ -387,10 +438,22 @@ class PositionForce(_Bilateral):
                                         json_schema_extra={"unit": "s"})
         stale_after: Seconds = Field(0.1, gt=0, description="a force estimate older than this fades to zero",
                                      json_schema_extra={"unit": "s"})
+        force_prediction: bool = Field(True, description="in contact, bridge the estimate's latency with a local "
+                                       "contact model: add k_f * K * (x_cmd(capture) - x_cmd(now)), K the "
+                                       "stiffness learnt from successive estimates (never past zero)")
+        prediction_max_stiffness: NewtonsPerMeter = Field(2e4, ge=0, description="cap of the learnt contact "
+                                                          "stiffness K", json_schema_extra={"unit": "N/m"})
+        prediction_min_motion: Meters = Field(5e-6, ge=0, description="K is learnt only from estimates this far "
+                                              "apart in follower command", json_schema_extra={"unit": "m"})
+        prediction_rate: float = Field(0.3, gt=0, le=1, description="weight of each new stiffness measurement")
 
     def _reset(self) -> None:
         super()._reset()
         self.hold = ForceHold(0.0)
+        self.xref = ForceHold(0.0)              # follower command at the capture of the estimate, ramped likewise
+        self.k_hat = 0.0                        # learnt contact stiffness (N/m, sensed force per follower metre)
+        self.pred_prev: tuple[float, float] | None = None
+        self.pred_on = False
         self.last_stamp: float | None = None
         self.latencies: list[float] = []        # controller time of first use - force stamp, per new estimate
         self.bad_force = 0
@@ -406,11 +469,20 @@ class PositionForce(_Bilateral):
                     self.latencies.append(t - s.stamp)
                 self.force_held = f_s
                 if t - s.stamp <= p.stale_after:
-                    self.hold.set(t, shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force),
-                                  p.smoothing_time)
+                    f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
+                    self.hold.set(t, f_l, p.smoothing_time)
                     self.fading = False
                     self.state = "ok"
+                    if p.force_prediction:
+                        self._learn(t, s.stamp, f_s)
+                    if p.passivity_observer == "two-port":
+                        e_f = self.fport.sample(s.stamp, f_l, p.scale)
+                        self.pas.energy += e_f
+                        self.pas.follower_energy += e_f
+                else:
+                    self.fport.forget()
             else:
+                self.fport.forget()
                 self.bad_force += 1
                 self.invalid_inputs += 1
                 self.force_held = 0.0
@@ -421,7 +493,33 @@ class PositionForce(_Bilateral):
         elif t - s.stamp > p.stale_after and self.state != "bad-force":
             self.state = "stale-force"
             self._fade(t)
-        return self.hold.value(t)
+        f = self.hold.value(t)
+        if self.pred_on and self.state == "ok" and self.command is not None and f != 0.0:
+            f_pred = f + p.force_sign * p.force_scale * self.k_hat * (self.xref.value(t) - self.command)
+            f = min(max(0.0, f_pred), p.max_force) if f > 0.0 else max(min(0.0, f_pred), -p.max_force)
+        return f
+
+    def _learn(self, t: float, stamp: float, f_s: float) -> None:
+        """Contact model for the prediction: the stiffness K = -dF/dx_cmd from successive estimates."""
+        p = self.params
+        x_s = self.cmd_hist.opening_at(stamp)
+        if x_s is None or not f_s > p.deadband:
+            self.pred_prev = None
+            self.pred_on = False
+            return
+        prev = self.pred_prev
+        if prev is not None and abs(x_s - prev[1]) > p.prediction_min_motion:
+            k = -(f_s - prev[0]) / (x_s - prev[1])
+            k = min(max(k, 0.0), p.prediction_max_stiffness)
+            self.k_hat += p.prediction_rate * (k - self.k_hat)
+            self.pred_prev = (f_s, x_s)
+        elif prev is None:
+            self.pred_prev = (f_s, x_s)
+        if self.pred_on:
+            self.xref.set(t, x_s, p.smoothing_time)
+        else:
+            self.xref = ForceHold(x_s)
+            self.pred_on = True
 
     def _fade(self, t: float) -> None:
         if not self.fading:
