@@ -120,3 +120,101 @@ def test_observer_runs_without_the_controller():
             out = h.step(k * 1e-3, leader_opening=0.02 + 1e-5 * k, leader_velocity=0.01, force=Sample(2.0, k * 1e-3))
     assert out["energy"] < 0 and out["damping"] == 0.0      # pushing the fingers open: energy flows out
     assert out["gripper_force"] == pytest.approx(2.0)
+
+
+def _opening_with_deficit(params, force, n=60, v=0.02):
+    """Leader opening at ``v`` with a standing energy deficit, the estimate at ``force``; returns the forces."""
+    out = []
+    with Harness(PositionForce, {"deadband": 0.0, "smoothing_time": 0.0, "max_force_rate": 1e6, **params}) as h:
+        h.step(0.0, leader_opening=0.015, leader_velocity=v, force=Sample(force, 0.0))
+        h.comp.pas.energy = -0.05                       # e.g. left over by the release of a contact
+        for k in range(1, n):
+            t = k * 1e-3
+            out.append(h.step(t, leader_opening=0.015 + v * t, leader_velocity=v, force=Sample(force, t))
+                       ["gripper_force"])
+    return out
+
+
+def test_no_drag_and_no_pull_in_free_space():
+    # after the contact: no force exchanged, a deficit left; the default controller sends exactly nothing
+    assert all(f == 0.0 for f in _opening_with_deficit({}, 0.0))
+    # the classic damping controller drags the opening fingers (a pull: negative force), capped at 40 N*s/m
+    f = _opening_with_deficit({"passivity_controller": "damping"}, 0.0)
+    assert min(f) == pytest.approx(-40.0 * 0.02, rel=0.05)
+
+
+def test_passivity_never_turns_the_contact_force_round():
+    # a small contact force while the fingers open fast with a large deficit: the force is taken away, not reversed
+    f = _opening_with_deficit({}, 0.1, v=0.05)
+    assert all(0.0 <= x <= 0.1 + 1e-12 for x in f) and f[-1] == 0.0
+    f = _opening_with_deficit({"passivity_controller": "damping"}, 0.1, v=0.05)
+    assert min(f) < -1.0
+
+
+def _spring_contact(prediction: bool, k_env=2000.0, w=0.015, v=-0.005, n=400):
+    """Leader closing at constant speed on a spring; the estimate is captured at 60 Hz and arrives one frame
+    later, stamped with its capture time (as the DIGIT chain does). Returns (time, rendered, true force) lists
+    and the controller."""
+    frame = 17
+    rows = []
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "force_prediction": prediction,
+                                 "max_force_rate": 1e6}) as h:
+        pending = None
+        for k in range(n):
+            t = k * 1e-3
+            x = 0.0155 + v * t
+            vals = {"leader_opening": x, "leader_velocity": v, "follower_opening": x}
+            if k % frame == 0:
+                if pending is not None:
+                    vals["force"] = Sample(*pending)
+                pending = (max(0.0, k_env * (w - x)), t)        # captured now, delivered one frame later
+            f = h.step(t, **vals)["gripper_force"]
+            rows.append((t, f, max(0.0, k_env * (w - x))))
+        return rows, h.comp
+
+
+def test_prediction_learns_the_contact_and_removes_the_latency():
+    rows, comp = _spring_contact(True)
+    assert comp.k_hat == pytest.approx(2000.0, rel=0.05)          # the learnt contact stiffness
+    late = [abs(f - g) for t, f, g in rows if t > 0.25]
+    assert max(late) < 0.05                                       # renders the present force, not a late one
+    rows0, _ = _spring_contact(False)
+    late0 = [abs(f - g) for t, f, g in rows0 if t > 0.25]
+    assert min(late0) > 0.1                                       # without: 2000 N/m * 5 mm/s * >10 ms behind
+
+
+def test_prediction_never_pulls_when_the_fingers_leave_the_contact():
+    # closing into the spring, then opening fast out of it: the predicted force goes to zero, never below
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e6}) as h:
+        pending, fs = None, []
+        for k in range(600):
+            t = k * 1e-3
+            x = 0.0155 - 0.005 * t if t < 0.3 else 0.014 + 0.05 * (t - 0.3)
+            vals = {"leader_opening": x}
+            if k % 17 == 0:
+                if pending is not None:
+                    vals["force"] = Sample(*pending)
+                pending = (max(0.0, 2000.0 * (0.015 - x)), t)
+            fs.append(h.step(t, **vals)["gripper_force"])
+        assert h.comp.k_hat > 1000.0
+    assert max(fs) > 1.0 and min(fs) == 0.0 and fs[-1] == 0.0
+
+
+def test_two_port_observer_sees_an_ideal_coupling_as_lossless():
+    # instantaneous coupling, force scale 2: the leader port takes in 2*F*dx, the follower port (seen through the
+    # force scale) gives 2*F*dx to the environment: the two-port observer stays at ~0, the leader port alone grows
+    def run(observer):
+        with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "force_prediction": False,
+                                     "smoothing_time": 0.0, "max_force_rate": 1e6, "force_scale": 2.0,
+                                     "energy_leak_time": None, "passivity_observer": observer}) as h:
+            for k in range(300):
+                t = k * 1e-3
+                x = 0.0155 - 0.005 * t
+                out = h.step(t, leader_opening=x, leader_velocity=-0.005, follower_opening=x,
+                             force=Sample(max(0.0, 2000.0 * (0.015 - x)), t))
+            return out["energy"], h.comp.pas.follower_energy
+    e_leader, _ = run("leader-port")
+    e_two, e_follower = run("two-port")
+    assert e_leader > 1e-4                                    # ~ 2 * 1/2 * 2000 N/m * (1 mm)^2 = 2 mJ
+    assert e_follower == pytest.approx(-e_leader, rel=0.02)
+    assert abs(e_two) < 0.02 * e_leader

@@ -543,12 +543,23 @@ def run_contact_once(feedback: bool | str, *, sensor: str = "image", duration: f
     fg_at_e = np.interp(te, tg, fg) if len(te) else np.zeros(0)
     in_c = fg_at_e > 0.05
     est_err = float(np.mean(np.abs(fe[in_c] - fg_at_e[in_c]))) if in_c.any() else math.nan
+    # the rendered force's ripple in contact: its largest deviation from a 50 ms moving average (chatter)
+    ripple = 0.0
+    if len(fr) > 51:
+        k = np.ones(51) / 51.0
+        smooth = np.convolve(fr, k, mode="same")
+        in_contact = np.interp(tr, tc, c.astype(float)) > 0.5
+        in_contact[:25] = in_contact[-25:] = False
+        if in_contact.any():
+            ripple = float(np.abs(fr - smooth)[in_contact].max())
     metrics = {
         "mean_error_m": mean_err,
         "max_error_m": float(err[cont].max()) if cont.any() else math.nan,
         "time_in_contact_s": float(cont.sum() * (tl[1] - tl[0])) if len(tl) > 1 and cont.any() else 0.0,
         "max_contact_force_n": float(fg.max()) if len(fg) else 0.0,
         "max_rendered_force_n": float(np.abs(fr).max()) if len(fr) else 0.0,
+        "min_rendered_force_n": float(fr.min()) if len(fr) else 0.0,
+        "rendered_force_ripple_n": ripple,
         "force_estimate_mae_n": est_err,
         "sim_time_s": res.sim_time,
         "wall_time_s": wall,

@@ -202,6 +202,8 @@ class _CommonParams(Params):
         "leader-port", description="two-port: leader port + follower port (the sensed force and the follower "
         "opening at its capture time), so the environment's stored energy is not the teleoperator's; "
         "leader-port: the leader port only (the environment inside the observed one-port)")
+    passivity_no_reversal: bool = Field(True, description="passivity_controller force: the damping never turns "
+                                        "the feedback force round (no pull where the contact pushes)")
     modulation_recovery: Seconds = Field(0.1, ge=0, description="time constant with which the force-path "
                                          "passivity controller restores the feedback force",
                                          json_schema_extra={"unit": "s"})
@@ -296,6 +298,8 @@ class _Bilateral(Component):
         self.fport = FollowerPort()              # two-port observer: follower openings by time
         self.cut_power = 0.0                     # average power taken out by the force cut (W)
         self.cmd_hist = FollowerPort()           # follower commands by time (force prediction)
+        self._record_commands = bool(getattr(p, "force_prediction", False))
+        self._two_port = p.passivity_observer == "two-port"
 
     # -- helpers
     def _leader(self, t: float, inputs: Any) -> bool:
@@ -326,7 +330,8 @@ class _Bilateral(Component):
             return False
         self.x_f = x
         self.vel_f.update(s.stamp, x)
-        self.fport.record(s.stamp, x)
+        if self._two_port:
+            self.fport.record(s.stamp, x)
         return True
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
@@ -342,7 +347,8 @@ class _Bilateral(Component):
         follower_ok = self._follower(t, inputs)
         if self.leader_ok:
             self.command = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
-            self.cmd_hist.record(t, self.command)
+            if self._record_commands:
+                self.cmd_hist.record(t, self.command)
         f_fb = self.feedback(t, inputs, follower_ok)
         v = self.v_l if self.leader_ok else 0.0
         if not self.leader_ok:
@@ -370,8 +376,11 @@ class _Bilateral(Component):
                 if alpha < 1e-3 * p.max_damping:
                     alpha = 0.0
             f_des = f_fb - alpha * v
-            if p.passivity_controller == "force" and free:
-                f_des = f_fb                       # nothing in free space: no drag, no pull once contact is over
+            if p.passivity_controller == "force":
+                if free:
+                    f_des = f_fb                   # nothing in free space: no drag, no pull once contact is over
+                elif p.passivity_no_reversal and f_des * f_fb < 0.0:
+                    f_des = 0.0                    # the damping may take the feedback force away, not reverse it
             if (p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0:
                 e_after = observe(self.pas.energy, f_des, v, dt, p.energy_leak_time)
                 f_cut = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin, p.reduction_min_velocity)
