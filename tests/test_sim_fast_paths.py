@@ -103,3 +103,22 @@ def test_poly_force_scalar_path_is_the_array_path():
         cal.predict_with_status(math.nan)
     with pytest.raises(ValueError, match="out_of_range"):
         cal.predict_with_status(1e-4, "wrap")
+
+
+def test_sim_digit_frames_do_not_depend_on_its_caches():
+    """The render caches (per-axis grids, distance maps) give every frame the numbers a cold simulator gives."""
+    import numpy as np
+
+    from teletouch.plugins.sensors.sim_digit import DigitSimulator
+
+    poses = [(1.2e-3, (0.0, 0.0)), (3e-4, (0.0013, -0.0021)), (1.5e-3, (0.0, 0.0)), (8e-4, (0.0013, -0.0021)),
+             (1.1e-3, (-0.004, 0.003)), (6e-4, (0.0, 0.0))]
+    warm = DigitSimulator(indenter=gel.Indenter.probe(0.005, 0.010))
+    for d, pos in poses:
+        img, surf = warm.render(d, pos)
+        cold = DigitSimulator(indenter=gel.Indenter.probe(0.005, 0.010))
+        img_c, surf_c = cold.render(d, pos)
+        assert np.array_equal(img, img_c) and np.array_equal(surf.depth, surf_c.depth)
+        assert np.array_equal(surf.mask, surf_c.mask)
+        assert warm.max_depth == float(surf.depth.max()) > 0
+        assert (img != warm.background_u8).any()

@@ -510,6 +510,20 @@ def radial_depth(indenter: Indenter, indentation_m: float, r_m: np.ndarray, defo
     return _compose(indenter.profile(r), r, d, indenter, 0.0, deformation)
 
 
+@lru_cache(maxsize=8)
+def _radial_grid(rows: int, cols: int, rc: float, cc: float, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Squared distance (px^2, float32) of every pixel to the axis at (rc, cc), that distance in profile steps of
+    ``h`` px, and its integer part: read-only, shared by every surface with that axis."""
+    yp = (np.arange(0, rows) - rc).astype(np.float32)
+    xp = (np.arange(0, cols) - cc).astype(np.float32)
+    r2 = yp[:, None] ** 2 + xp[None, :] ** 2
+    t = np.sqrt(r2) * np.float32(1.0 / h)
+    ti = t.astype(np.int32)
+    for a in (r2, t, ti):
+        a.flags.writeable = False
+    return r2, t, ti
+
+
 def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[float] = (0.0, 0.0),
                 tilt_rad: float = 0.0, shape: tuple[int, int] = (320, 240), m_per_px: float = QVGA_M_PER_PX,
                 deformation: bool = True) -> GelSurface:
@@ -543,13 +557,14 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         n = int(math.ceil(reach / m_per_px / h)) + 3
         zg, _ = radial_depth(indenter, d, np.arange(n) * (h * m_per_px), deformation)
         zg = zg.astype(np.float32)
-        yp = (np.arange(r0, r1) - rc).astype(np.float32)
-        xp = (np.arange(c0, c1) - cc).astype(np.float32)
-        r2 = yp[:, None] ** 2 + xp[None, :] ** 2
-        t = np.sqrt(r2) * np.float32(1.0 / h)
-        i = np.minimum(t.astype(np.int32), n - 2)
+        # the distances depend on the axis only: made once for the whole image (the same numbers), sliced here
+        r2_all, t_all, ti_all = _radial_grid(rows, cols, rc, cc, h)
+        r2 = r2_all[r0:r1, c0:c1]
+        t = t_all[r0:r1, c0:c1]
+        i = np.minimum(ti_all[r0:r1, c0:c1], n - 2)
         frac = np.minimum(t - i, np.float32(1.0))
-        z = zg[i] + frac * (zg[i + 1] - zg[i])
+        dz = zg[1:] - zg[:-1]  # zg[i + 1] - zg[i], the same float32 differences, once per profile sample
+        z = zg[i] + frac * dz[i]
         # contact: where the face is within d/2 of its lowest point (or the whole end face)
         re = contact_edge_radius(indenter, d) / m_per_px
         inside = r2 <= np.float32(re * re)

@@ -115,7 +115,7 @@ class OpticalRenderer:
         """Intensity change (float32 (n, 3), BGR) of table bins ``index`` at pixels (rows, cols) of this image."""
         x = ((cols.astype(np.float32) + np.float32(self.offset[0])) * np.float32(self.sx))[:, None]
         y = ((rows.astype(np.float32) + np.float32(self.offset[1])) * np.float32(self.sy))[:, None]
-        c = self.rel[index]
+        c = np.take(self.rel, index, axis=0)  # = self.rel[index], several times faster for rows
         # c0 x^2 + c1 y^2 + c2 x y + c3 x + c4 y + c5, in Horner form
         return c[:, 15:18] + x * (c[:, 9:12] + x * c[:, 0:3] + y * c[:, 6:9]) + y * (c[:, 12:15] + y * c[:, 3:6])
 

@@ -99,9 +99,11 @@ class DigitSimulator:
         self.stride = int(stride)
         if self.stride not in (1, 2, 3, 4):
             raise ValueError(f"render stride must be 1..4 px, got {stride!r}")
+        self._grids: dict[tuple, _Grid] = {}
         self._key: tuple | None = None
         self._clean: np.ndarray = self.background_u8
         self._surface = _gel.gel_surface(self.indenter, 0.0, (0.0, 0.0), 0.0, self.shape, self.m_per_px)
+        self.max_depth = 0.0  # of the last rendered surface (m)
         self.renders = 0
 
     def surface(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0) -> _gel.GelSurface:
@@ -171,16 +173,13 @@ class DigitSimulator:
         if r0 >= r1 or c0 >= c1:
             return img
         # shade a grid of every k-th pixel (at the centres of k x k blocks) and interpolate bilinearly: the
-        # gel's image is smooth at the pixel scale (k = 1: every pixel)
+        # gel's image is smooth at the pixel scale (k = 1: every pixel). The grid's geometry (distance to the axis,
+        # direction bins) depends on the axis and on where the window starts modulo k only: made once (_grid)
         k = self.stride
         ch, cw = -(-(r1 - r0) // k), -(-(c1 - c0) // k)
-        off = (k - 1) / 2.0
-        ys = r0 + off + k * np.arange(ch)
-        xs = c0 + off + k * np.arange(cw)
-        dy = (ys - rc).astype(np.float32)
-        dx = (xs - cc).astype(np.float32)
-        r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
-        i = np.minimum((r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32), n - 1).ravel()
+        grid = self._grid(rc, cc, r0 % k, c0 % k)
+        jr, jc = r0 // k, c0 // k
+        i = np.minimum(grid.q[jr:jr + ch, jc:jc + cw], n - 1).ravel()
         mb = mbg[i]
         sel = np.flatnonzero(mb >= 1)
         if sel.size == 0:
@@ -188,11 +187,10 @@ class DigitSimulator:
         sr, sc = sel // cw, sel % cw
         # the depth falls away from the axis, so its gradient points at the axis: the table's direction bin
         # floor((atan2(gr, gc) + pi) / (2 pi / 124)) is the bin of the pixel's own angle around the axis in [0, 2 pi)
-        ang = np.arctan2(dy[sr], dx[sc])
-        ang = ang + np.where(slope[i[sel]] > 0, np.float32(math.pi), np.float32(0.0))  # rising: reversed
-        ang = np.mod(ang, np.float32(2 * math.pi))
-        db = np.minimum((ang * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124)
-        shade = self.renderer.shade(mb[sel] * 125 + db, ys[sr], xs[sc])
+        # (reversed where the profile rises)
+        flat = (sr + jr) * grid.width + (sc + jc)
+        db = np.where(slope[i[sel]] > 0, grid.db_rising.ravel()[flat], grid.db_falling.ravel()[flat])
+        shade = self.renderer.shade(mb[sel] * 125 + db, grid.ys[sr + jr], grid.xs[sc + jc])
         if k == 1:
             gidx = (sr + r0) * cols + (sc + c0)
             flat = img.reshape(-1, 3)
@@ -208,6 +206,15 @@ class DigitSimulator:
         img[r0:r1, c0:c1] = region.astype(np.uint8)
         return img
 
+    def _grid(self, rc: float, cc: float, pr: int, pc: int) -> "_Grid":
+        key = (rc, cc, pr, pc)
+        g = self._grids.get(key)
+        if g is None:
+            if len(self._grids) > 16:
+                self._grids.clear()
+            g = self._grids[key] = _Grid(self.shape, self.stride, self._h, rc, cc, pr, pc)
+        return g
+
     def render(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0, t: float = 0.0
                ) -> tuple[np.ndarray, _gel.GelSurface]:
         d = max(float(indentation), 0.0)
@@ -218,6 +225,7 @@ class DigitSimulator:
             self._surface.depth.flags.writeable = False
             self._surface.mask.flags.writeable = False
             self._clean = self.clean_image(self._surface, d, float(tilt))
+            self.max_depth = float(self._surface.depth.max())
             self._key = key
             self.renders += 1
         img = self._clean
@@ -231,6 +239,32 @@ class DigitSimulator:
         if offset:
             acc += np.int16(round(offset))
         return np.clip(acc, 0, 255).astype(np.uint8), self._surface
+
+
+class _Grid:
+    """The coarse render grid of one axis position: pixel centres ``r0 + off + k j`` for windows starting at rows
+    ``= pr (mod k)`` and columns ``= pc (mod k)``, over the whole image. ``q``: distance to the axis in profile
+    samples of ``h`` px, rounded (before the profile length's cap); ``db_*``: the table's direction bin of a surface
+    falling (rising) away from the axis. The same numbers _radial_image used to compute for every frame."""
+
+    def __init__(self, shape: tuple[int, int], k: int, h: float, rc: float, cc: float, pr: int, pc: int):
+        rows, cols = shape
+        off = (k - 1) / 2.0
+        self.ys = pr + off + k * np.arange(-(-(rows - pr) // k))
+        self.xs = pc + off + k * np.arange(-(-(cols - pc) // k))
+        self.width = self.xs.size
+        dy = (self.ys - rc).astype(np.float32)
+        dx = (self.xs - cc).astype(np.float32)
+        r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
+        self.q = (r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32)
+        # contiguous operands, as the per-frame code had them (vectorised and strided loops may round differently)
+        ang = np.arctan2(np.repeat(dy, dx.size), np.tile(dx, dy.size))
+        bins = []
+        for add in (np.float32(0.0), np.float32(math.pi)):
+            a = np.mod(ang + np.full(ang.shape, add, np.float32), np.float32(2 * math.pi))
+            bins.append(np.minimum((a * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124
+                                   ).reshape(dy.size, dx.size))
+        self.db_falling, self.db_rising = bins
 
 
 class SimDigit(Component):
@@ -311,6 +345,7 @@ class SimDigit(Component):
             deformation=p.deformation, noise=p.noise, drift=p.drift, drift_period=p.drift_period,
             unit_variation=p.unit_variation, seed=p.seed, background=p.background, optical_model=p.optical_model,
             stride=p.render_stride)
+        self._force = _gel.force_law(self.sim.indenter, self.sim.material)  # gel_force, constants computed once
         self._last: dict[str, float] = {}
 
     def _indenter(self) -> _gel.Indenter:
@@ -341,8 +376,8 @@ class SimDigit(Component):
             raise ValueError(f"position must be two finite values (x, y) in m, got {pos!r}")
         tilt = _finite(inputs.value("tilt", p.tilt), "tilt")
         img, surf = self.sim.render(d, pos, tilt, t)
-        force = self.sim.force(max(d, 0.0), tilt)
-        max_depth = float(surf.depth.max()) if d > 0 else 0.0
+        force = self._force(max(d, 0.0)) if tilt == 0.0 else self.sim.force(max(d, 0.0), tilt)
+        max_depth = self.sim.max_depth if d > 0 else 0.0
         self._last = {"indentation": max(d, 0.0), "force": force, "max_depth": max_depth}
         return {"image": img, "gt_depth": surf.depth, "gt_max_depth": max_depth, "gt_force": force,
                 "gt_contact_mask": surf.mask}
