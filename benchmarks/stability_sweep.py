@@ -40,8 +40,9 @@ MODES = {
     "tdpa-force": {"passivity": True, "force_prediction": False},
     # the prediction alone, passivity control off
     "prediction-only": {"passivity": False},
-    # the default: contact-model prediction + passivity control on the force path
+    # the default: contact-model prediction + passivity control on the force path, two-port observer
     "default": {},
+    "default-leader-port": {"passivity_observer": "leader-port"},
 }
 
 

@@ -8,24 +8,29 @@ that flows *from the operator into the teleoperator* (controller + follower + en
 
 The **observer** integrates it, ``E(k) = E(k-1) + P_in(k) * dt``. A passive network never returns more energy than it
 received, so ``E >= 0``; delays (a 30-60 Hz force estimate, the follower's servo lag) make the loop active and drive
-``E`` negative. The **controller** then adds a damping force ``-alpha * v`` with
+``E`` negative. The **controller** (``position-force``'s default, ``passivity_controller: force``) then
 
-    alpha = -E_predicted / (v^2 dt),   0 <= alpha <= max_damping,
+1. adds a damping force ``-alpha * v``, ``alpha = -E_predicted / (v^2 dt)``, ``0 <= alpha <= max_damping`` (what the
+   device can render; Omega.7: 40 N*s/m), raised and released smoothly;
+2. cuts the feedback force towards zero, never past it, by what the capped damping leaves
+   (:func:`reduce_force_to`, Ryu and Hannaford's force-limiting PC on the force path; less force is always safe) while
+   the network pushes energy out and the leader moves faster than ``v_min`` (below it the energy is tiny, and cutting
+   a standing deficit on every tremor makes the force chatter);
+3. never turns the feedback force round and does nothing at all in free space: no drag, no pull on the fingers.
 
-just enough to dissipate the deficit in one step, capped at what the device can render (Omega.7: 40 N*s/m). When
-the cap is not enough and the teleoperator is pushing the operator's fingers (energy flowing out), the rendered force
-is also reduced towards zero, never past it (Ryu and Hannaford's force-limiting variant; less force is always safe).
-The
-energy is then book-kept with the force that was really sent (after saturation and rate limits), so the observer
-stays honest even when the controller cannot dissipate everything at once.
+The energy is book-kept with the force that was really sent (after saturation and rate limits), so the observer
+stays honest even when the controller cannot dissipate everything at once. ``passivity_controller: damping`` is the
+classic TDPA (damping alone, which drags the hand in free space and pulls opening fingers).
 
-Where even ``max_damping`` cannot keep up (a high force scale on a stiff contact), two optional, always-safe
-measures remain: :func:`adapt_gain` lowers the scale of the rendered force smoothly while a deficit persists and
-restores it afterwards, and ``reduce_force`` cuts the force towards zero within one step (exact but abrupt).
+**Two-port observer** (``position-force``'s default): :class:`FollowerPort` adds the follower port's energy, from the
+force samples and the follower's opening at their capture times, so that the object's stored energy is neither
+credited to the teleoperator nor forgotten (with the leader port alone, the leak below forgot the energy squeezed
+into the object, and its return on release read as a deficit: a damping dip of ~0.3 N in the hand when the grip
+opened).
 
 A positive energy reservoir lets an active loop run on energy the operator stored earlier (e.g. in a squeezed
 object); ``leak_time`` makes the positive part of ``E`` decay with that time constant, so stored energy from long
-ago cannot feed an oscillation (a conservative choice: it can add a little damping when the grip is released).
+ago cannot feed an oscillation. :func:`adapt_gain` (option) lowers the force scale while the cut keeps working.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import math
 from dataclasses import dataclass
 
 __all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "reduce_force_to",
-           "adapt_gain", "commit", "modulate_force", "FollowerPort"]
+           "adapt_gain", "commit", "FollowerPort"]
 
 
 @dataclass
@@ -45,7 +50,6 @@ class PassivityState:
     alpha: float = 0.0         #: damping applied in the last step (N*s/m)
     dissipated: float = 0.0    #: total energy dissipated by the controller (J)
     active_steps: int = 0      #: steps in which damping was injected (or the force was reduced)
-    gain: float = 1.0          #: force-path passivity controller: modulation of the feedback force (0..1]
     follower_energy: float = 0.0   #: two-port observer: energy the environment gave back at the follower port (J)
 
 
@@ -125,29 +129,6 @@ def commit(state: PassivityState, force_sent: float, force_undamped: float, velo
         # energy absorbed by the damping part of what was sent (may be less than alpha*v^2*dt after limits)
         state.dissipated += max(0.0, port_power(force_sent - force_undamped, velocity) * dt)
     return state
-
-
-def modulate_force(state: PassivityState, force: float, velocity: float, dt: float,
-                   leak_time: float | None = None, recover_time: float = 0.1, v_min: float = 1e-4) -> float:
-    """The force-path passivity controller (the default): the feedback force is scaled by a gain in [0, 1].
-
-    The gain drops at once to what keeps the predicted energy ``>= 0`` (the exact one-step TDPA cut of
-    :func:`reduce_force_to`: only while the network pushes energy out, ``force * v > 0``, and never past zero) and
-    recovers towards 1 with ``recover_time`` while the energy allows it. So the output always lies between 0 and the
-    feedback force: the controller never adds force, never reverses it (never pulls a hand the feedback would push),
-    and in free space (no feedback force) it does nothing at all. Updates ``state.gain``; returns the force to send.
-    """
-    g = state.gain
-    if dt > 0.0 and g < 1.0:
-        g += (1.0 - g) * min(1.0, dt / recover_time) if recover_time > 0 else 1.0 - g
-    f = g * force
-    if dt > 0.0 and f * velocity > 0.0 and abs(velocity) >= v_min:
-        e_pred = observe(state.energy, f, velocity, dt, leak_time)
-        if e_pred < 0.0:
-            f = reduce_force_to(f, e_pred, velocity, dt)
-            g = f / force
-    state.gain = min(1.0, max(0.0, g))
-    return f
 
 
 class FollowerPort:

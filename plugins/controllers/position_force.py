@@ -13,10 +13,16 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    opening holds the last command (the follower keeps its position);
 2. force: every new force sample ``f_s`` is shaped, ``f = sign * min(k_f * deadband(f_s), max_force)``, and the
    output ramps linearly from its present value to ``f`` over ``smoothing_time`` (a first-order hold: the hand never
-   sees the camera-rate staircase; the added latency is ``smoothing_time`` to the full value, ``smoothing_time/2``
-   on average). A force older than ``stale_after`` or non-finite fades linearly to zero over ``fade_time``;
-3. passivity (on by default): the time-domain passivity observer over the leader port, and damping ``-alpha * v_l``
-   when the observed energy goes negative, ``alpha <= max_damping`` (Omega.7: 40 N*s/m), see passivity.py;
+   sees the camera-rate staircase). In contact (``force_prediction``, on by default) a local contact model bridges
+   the estimate's latency: ``+ sign * k_f * K * (x_cmd(capture) - x_cmd(now))``, with ``K = -dF/dx_cmd`` learnt from
+   successive estimates and the follower commands at their capture times (never past zero, never beyond
+   ``max_force``); without it the rendered force is a delayed spring, an active element that makes stiff contacts
+   oscillate. A force older than ``stale_after`` or non-finite fades linearly to zero over ``fade_time``;
+3. passivity (on by default): the time-domain passivity observer over the leader and follower ports (two-port:
+   the follower's opening at each estimate's capture time); when the observed energy
+   would go negative, damping ``-alpha * v_l`` (``alpha <= max_damping``, Omega.7: 40 N*s/m) and a cut of the
+   feedback force towards zero for what the damping cannot dissipate; never a reversal of the contact force, nothing
+   in free space (see passivity.py);
 4. safety: the total leader force is rate-limited (``max_force_rate``), clipped to ``+-max_force`` and forced to 0
    when anything is non-finite: nothing but a finite force within limits ever leaves the controller.
 
@@ -37,7 +43,7 @@ from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
 
 from .passivity import (
-    FollowerPort, PassivityState, adapt_gain, commit, modulate_force, observe, passivity_force, reduce_force_to,
+    FollowerPort, PassivityState, adapt_gain, commit, observe, passivity_force, reduce_force_to,
 )
 
 __all__ = [
@@ -195,18 +201,15 @@ class _CommonParams(Params):
     passivity: bool = Field(True, description="time-domain passivity controller on the leader port (the observer "
                             "always runs and feeds the energy output)")
     passivity_controller: Literal["force", "damping"] = Field(
-        "force", description="force: scale the feedback force down (0..1, never past zero, recovering over "
-        "modulation_recovery) while the observed energy would go negative; damping: add -alpha*v, alpha <= "
-        "max_damping (the classic TDPA; it can drag in free space and pull the fingers while they open)")
+        "force", description="force: damping -alpha*v (alpha <= max_damping) and a cut of the feedback force towards "
+        "zero for what the damping leaves, never a reversal, nothing in free space; damping: the classic TDPA "
+        "(damping alone; it drags the hand in free space and pulls opening fingers)")
     passivity_observer: Literal["two-port", "leader-port"] = Field(
-        "leader-port", description="two-port: leader port + follower port (the sensed force and the follower "
+        "two-port", description="two-port: leader port + follower port (the sensed force and the follower "
         "opening at its capture time), so the environment's stored energy is not the teleoperator's; "
         "leader-port: the leader port only (the environment inside the observed one-port)")
     passivity_no_reversal: bool = Field(True, description="passivity_controller force: the damping never turns "
                                         "the feedback force round (no pull where the contact pushes)")
-    modulation_recovery: Seconds = Field(0.1, ge=0, description="time constant with which the force-path "
-                                         "passivity controller restores the feedback force",
-                                         json_schema_extra={"unit": "s"})
     max_damping: NewtonSecondsPerMeter = Field(OMEGA7_MAX_DAMPING, ge=0,
                                                description="cap of the injected damping (Omega.7: 40 N*s/m)",
                                                json_schema_extra={"unit": "N*s/m"})
@@ -221,8 +224,9 @@ class _CommonParams(Params):
     free_space_reset: Seconds | None = Field(0.2, gt=0, description="while no force is exchanged an energy "
                                              "deficit is forgiven with this time constant (null: never)",
                                              json_schema_extra={"unit": "s"})
-    passivity_force_reduction: bool = Field(False, description="when max_damping is not enough, also cut the "
-                                            "rendered force towards zero within the step (never past it)")
+    passivity_force_reduction: bool = Field(False, description="passivity_controller damping: when max_damping is "
+                                            "not enough, also cut the rendered force towards zero within the step "
+                                            "(the force controller always does)")
     passivity_gain_adaptation: bool = Field(False, description="while the passivity controller has to cut the "
                                             "force (or a deficit beyond gain_adaptation_margin remains), lower the "
                                             "scale of the rendered force smoothly (gain_drop_rate, down to gain_min) "
@@ -548,6 +552,11 @@ class PositionPosition(_Bilateral):
                                     json_schema_extra={"unit": "N/m"})
         kd: NewtonSecondsPerMeter = Field(2.0, ge=0, description="damping of the position coupling on the leader",
                                           json_schema_extra={"unit": "N*s/m"})
+        passivity_controller: Literal["force", "damping"] = Field(
+            "damping", description="the coupling force is not a contact force (it changes sign): the classic "
+            "damping TDPA by default")
+        passivity_observer: Literal["two-port", "leader-port"] = Field(
+            "leader-port", description="no sensed force here: the leader port only")
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         p = self.params
