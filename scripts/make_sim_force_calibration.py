@@ -46,6 +46,7 @@ def main() -> int:
     ap.add_argument("--plot", default=str(PLOT))
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--multi-point", action="store_true")
+    ap.add_argument("--depth-model", default=None, help="depth model file (default: the packaged sim-digit-qvga)")
     args = ap.parse_args()
     graph = GRAPH
     tmp = tempfile.TemporaryDirectory()
@@ -59,6 +60,8 @@ def main() -> int:
     cmd = [sys.executable, "-m", "teletouch", "calibrate", "force", "--graph", str(graph), "-o", args.output,
            "--plot", args.plot, "--samples", str(Path(tmp.name) / "samples.csv"),
            "--sensor-model-id", "sim-digit-qvga"]
+    if args.depth_model:
+        cmd += ["--set", f"depth.model={Path(args.depth_model).resolve()}"]
     if args.quick:
         cmd += ["--set", "routine.cycles=1", "--set", "routine.step=0.25mm"]
     if args.multi_point:

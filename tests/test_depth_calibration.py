@@ -45,7 +45,8 @@ def _compare(ims, labs, bg, ball_px):
 def test_auto_labels_against_hand_labels_qvga(qvga):
     ims, labs, bg = qvga
     dc, dr, auto = _compare(ims, labs, bg, 3 * 17.15)
-    # measured: centre 0.3-7 px (median ~2 px), radius -2..+17% (the hand circles lie ~8% inside the colour change)
+    # measured: centre 0.3-7 px (median ~2.4 px, 8/10 within 3 px), radius -2..+17% (the hand circles lie ~8% inside
+    # the colour change)
     assert np.median(dc) <= 3.0 and dc.max() <= 8.0
     assert np.mean(dc <= 3.0) >= 0.7
     assert abs(np.median(dr)) <= 0.10 and np.abs(dr).max() <= 0.2
@@ -55,10 +56,10 @@ def test_auto_labels_against_hand_labels_qvga(qvga):
 def test_auto_labels_against_vga_labels_and_no_contact(vga):
     ims, labs, bg = vga
     dc, dr, auto = _compare(ims, labs, bg, 3 / 0.0266)
-    # measured: radius within 10% on 46 of 47 usable presses (all within 14%); centre median ~4 px of 640x480
-    # (0.11 mm; those labels come from another automatic method), 36% within 3 px, 85% within 8 px
+    # measured: radius within 10% on 46 of 47 usable presses (all within 14%); centre median ~3.8 px of 640x480
+    # (0.1 mm; those labels come from another automatic method), 36% within 3 px, 89% within 8 px
     assert np.mean(np.abs(dr) <= 0.10) >= 0.95 and np.abs(dr).max() <= 0.15
-    assert np.median(dc) <= 5.0 and np.mean(dc <= 8.0) >= 0.8 and np.mean(dc <= 3.0) >= 0.3
+    assert np.median(dc) <= 4.2 and np.mean(dc <= 8.0) >= 0.8 and np.mean(dc <= 3.0) >= 0.3
     nc = C.auto_label("frame_49.jpg", dict(ims)["frame_49.jpg"], C.median_background(
         [im for n, im in ims if n != "frame_49.jpg"]), 3 / 0.0266)
     assert nc.no_contact and not nc.usable

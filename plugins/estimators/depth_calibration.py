@@ -150,7 +150,14 @@ def auto_label(name: str, image: np.ndarray, background: np.ndarray, ball_radius
     ys, xs = np.nonzero(filled)
     area = float(xs.size)
     r = math.sqrt(area / math.pi)
-    cx, cy = float(xs.mean()), float(ys.mean())
+    # centre: centroid of the changed pixels themselves (the unclosed map above the threshold, inside the region);
+    # the closing's fill can lean to one side where the annulus is weak (measured: closer to both shared label
+    # sets, QVGA 8/10 and VGA 20/47 within 3 px, against 7/10 and 15/47 for the filled region's centroid)
+    cyy, cxx = np.nonzero((s > level * peak) & (filled > 0))
+    if cxx.size >= 10:
+        cx, cy = float(cxx.mean()), float(cyy.mean())
+    else:
+        cx, cy = float(xs.mean()), float(ys.mean())
     notes = []
     x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
     bw, bh = stats[k, cv2.CC_STAT_WIDTH], stats[k, cv2.CC_STAT_HEIGHT]
