@@ -510,10 +510,26 @@ def radial_depth(indenter: Indenter, indentation_m: float, r_m: np.ndarray, defo
     return _compose(indenter.profile(r), r, d, indenter, 0.0, deformation)
 
 
+_AXES_SEEN: dict[tuple, int] = {}
+
+
+def _radial_grid(rows: int, cols: int, rc: float, cc: float, h: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """For an axis position seen before (a resting or squeezing indenter: most frames of a simulation), the squared
+    distance (px^2, float32) of every pixel to the axis at (rc, cc), that distance in profile steps of ``h`` px,
+    and its integer part (read-only, shared); None the first time (a moving indenter would only pay for them)."""
+    key = (rows, cols, rc, cc, h)
+    if key not in _AXES_SEEN:
+        if len(_AXES_SEEN) > 64:
+            _AXES_SEEN.clear()
+        _AXES_SEEN[key] = 1
+        return None
+    return _radial_grid_all(*key)
+
+
 @lru_cache(maxsize=8)
-def _radial_grid(rows: int, cols: int, rc: float, cc: float, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Squared distance (px^2, float32) of every pixel to the axis at (rc, cc), that distance in profile steps of
-    ``h`` px, and its integer part: read-only, shared by every surface with that axis."""
+def _radial_grid_all(rows: int, cols: int, rc: float, cc: float, h: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     yp = (np.arange(0, rows) - rc).astype(np.float32)
     xp = (np.arange(0, cols) - cc).astype(np.float32)
     r2 = yp[:, None] ** 2 + xp[None, :] ** 2
@@ -557,11 +573,16 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         n = int(math.ceil(reach / m_per_px / h)) + 3
         zg, _ = radial_depth(indenter, d, np.arange(n) * (h * m_per_px), deformation)
         zg = zg.astype(np.float32)
-        # the distances depend on the axis only: made once for the whole image (the same numbers), sliced here
-        r2_all, t_all, ti_all = _radial_grid(rows, cols, rc, cc, h)
-        r2 = r2_all[r0:r1, c0:c1]
-        t = t_all[r0:r1, c0:c1]
-        i = np.minimum(ti_all[r0:r1, c0:c1], n - 2)
+        grid = _radial_grid(rows, cols, rc, cc, h)
+        if grid is not None:  # an axis seen before: its distances made once for the whole image, sliced here
+            r2, t = grid[0][r0:r1, c0:c1], grid[1][r0:r1, c0:c1]
+            i = np.minimum(grid[2][r0:r1, c0:c1], n - 2)
+        else:  # the same numbers, for this window only
+            yp = (np.arange(r0, r1) - rc).astype(np.float32)
+            xp = (np.arange(c0, c1) - cc).astype(np.float32)
+            r2 = yp[:, None] ** 2 + xp[None, :] ** 2
+            t = np.sqrt(r2) * np.float32(1.0 / h)
+            i = np.minimum(t.astype(np.int32), n - 2)
         frac = np.minimum(t - i, np.float32(1.0))
         dz = zg[1:] - zg[:-1]  # zg[i + 1] - zg[i], the same float32 differences, once per profile sample
         z = zg[i] + frac * dz[i]

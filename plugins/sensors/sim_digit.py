@@ -99,7 +99,7 @@ class DigitSimulator:
         self.stride = int(stride)
         if self.stride not in (1, 2, 3, 4):
             raise ValueError(f"render stride must be 1..4 px, got {stride!r}")
-        self._grids: dict[tuple, _Grid] = {}
+        self._grids: dict[tuple, _Grid | bool] = {}
         self._key: tuple | None = None
         self._clean: np.ndarray = self.background_u8
         self._surface = _gel.gel_surface(self.indenter, 0.0, (0.0, 0.0), 0.0, self.shape, self.m_per_px)
@@ -178,8 +178,17 @@ class DigitSimulator:
         k = self.stride
         ch, cw = -(-(r1 - r0) // k), -(-(c1 - c0) // k)
         grid = self._grid(rc, cc, r0 % k, c0 % k)
-        jr, jc = r0 // k, c0 // k
-        i = np.minimum(grid.q[jr:jr + ch, jc:jc + cw], n - 1).ravel()
+        if grid is not None:
+            jr, jc = r0 // k, c0 // k
+            i = np.minimum(grid.q[jr:jr + ch, jc:jc + cw], n - 1).ravel()
+        else:
+            off = (k - 1) / 2.0
+            ys = r0 + off + k * np.arange(ch)
+            xs = c0 + off + k * np.arange(cw)
+            dy = (ys - rc).astype(np.float32)
+            dx = (xs - cc).astype(np.float32)
+            r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
+            i = np.minimum((r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32), n - 1).ravel()
         mb = mbg[i]
         sel = np.flatnonzero(mb >= 1)
         if sel.size == 0:
@@ -188,9 +197,16 @@ class DigitSimulator:
         # the depth falls away from the axis, so its gradient points at the axis: the table's direction bin
         # floor((atan2(gr, gc) + pi) / (2 pi / 124)) is the bin of the pixel's own angle around the axis in [0, 2 pi)
         # (reversed where the profile rises)
-        flat = (sr + jr) * grid.width + (sc + jc)
-        db = np.where(slope[i[sel]] > 0, grid.db_rising.ravel()[flat], grid.db_falling.ravel()[flat])
-        shade = self.renderer.shade(mb[sel] * 125 + db, grid.ys[sr + jr], grid.xs[sc + jc])
+        if grid is not None:
+            flat = (sr + jr) * grid.width + (sc + jc)
+            db = np.where(slope[i[sel]] > 0, grid.db_rising.ravel()[flat], grid.db_falling.ravel()[flat])
+            shade = self.renderer.shade(mb[sel] * 125 + db, grid.ys[sr + jr], grid.xs[sc + jc])
+        else:
+            ang = np.arctan2(dy[sr], dx[sc])
+            ang = ang + np.where(slope[i[sel]] > 0, np.float32(math.pi), np.float32(0.0))  # rising: reversed
+            ang = np.mod(ang, np.float32(2 * math.pi))
+            db = np.minimum((ang * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124)
+            shade = self.renderer.shade(mb[sel] * 125 + db, ys[sr], xs[sc])
         if k == 1:
             gidx = (sr + r0) * cols + (sc + c0)
             flat = img.reshape(-1, 3)
@@ -206,12 +222,17 @@ class DigitSimulator:
         img[r0:r1, c0:c1] = region.astype(np.uint8)
         return img
 
-    def _grid(self, rc: float, cc: float, pr: int, pc: int) -> "_Grid":
+    def _grid(self, rc: float, cc: float, pr: int, pc: int) -> "_Grid | None":
+        """The render grid of an axis position seen before (None the first time: a moving indenter would only
+        pay for it)."""
         key = (rc, cc, pr, pc)
         g = self._grids.get(key)
         if g is None:
-            if len(self._grids) > 16:
+            if len(self._grids) > 64:
                 self._grids.clear()
+            self._grids[key] = False
+            return None
+        if g is False:
             g = self._grids[key] = _Grid(self.shape, self.stride, self._h, rc, cc, pr, pc)
         return g
 
