@@ -52,6 +52,7 @@ def real(ds: str, folds: int, feature_set: str, epochs: int, log, fold_limit: in
     # folds spread over the sensor: sort by position, deal round-robin
     order = sorted(usable, key=lambda n: (labs[n].cy, labs[n].cx))
     per, nc, times, gains = [], [], [], []
+    per_plane = []   # the same models with the optional plane zero reference (`baseline: plane`)
     by = dict(ims)
     rng = np.random.default_rng(0)
     for f in range(folds if fold_limit is None else min(folds, fold_limit)):
@@ -64,8 +65,10 @@ def real(ds: str, folds: int, feature_set: str, epochs: int, log, fold_limit: in
         times.append(time.perf_counter() - t0)
         gains.append(model.depth_gain)
         pipe = DepthPipeline(model, threads=1)
+        pipe_plane = DepthPipeline(model, threads=1, baseline="plane")
         for n in val:
             per.append(C.evaluate_press(pipe, by[n], labs[n]))
+            per_plane.append(C.evaluate_press(pipe_plane, by[n], labs[n]))
         if nocontact:
             for n in nocontact:
                 nc.append(pipe(by[n]).max_depth)
@@ -88,9 +91,21 @@ def real(ds: str, folds: int, feature_set: str, epochs: int, log, fold_limit: in
         "far_false_depth_mm_median": round(float(np.median(far)), 4),
         "far_false_depth_mm_max": round(float(far.max()), 4),
         "far_false_depth_share_below_0.03mm": round(float(np.mean(far < 0.03)), 3),
+        "baseline_plane": _brief(per_plane),
         "train_seconds_per_fold": round(float(np.mean(times)), 1), "depth_gain": [round(g, 3) for g in gains],
         "per_press": per,
     }
+
+
+def _brief(per: list) -> dict:
+    err = np.array([p["cap_error"] for p in per])
+    far = np.array([p["far_false_depth_mm"] for p in per])
+    return {"median_abs_cap_error": round(float(np.median(np.abs(err))), 4),
+            "median_sphere_radius_mm": round(float(np.nanmedian([p["sphere_radius_mm"] for p in per])), 3),
+            "far_false_depth_mm_median": round(float(np.median(far)), 4),
+            "far_false_depth_mm_max": round(float(far.max()), 4),
+            "far_false_depth_share_below_0.03mm": round(float(np.mean(far < 0.03)), 3),
+            "median_max_depth_mm": round(float(np.median([p["max_depth_mm"] for p in per])), 4)}
 
 
 def sim(quick: bool, log) -> dict:
@@ -101,6 +116,7 @@ def sim(quick: bool, log) -> dict:
 
     model = load_model("sim-digit-qvga")
     pipe = DepthPipeline(model, threads=1)
+    pipe_plane = DepthPipeline(model, threads=1, baseline="plane")
     indenters = {"ball-6mm": gel.Indenter.sphere(0.003), "ball-10mm": gel.Indenter.sphere(0.005),
                  "probe": gel.Indenter.probe(0.005, 0.010), "flat-4mm": gel.Indenter.flat(0.002)}
     positions = [(0.0, 0.0), (-2.5e-3, -4e-3), (2.5e-3, 4e-3), (-3e-3, 3.5e-3), (3e-3, -3.5e-3)]
@@ -113,7 +129,7 @@ def sim(quick: bool, log) -> dict:
     for name, ind in indenters.items():
         s = DigitSimulator("qvga", indenter=ind, noise=2.0, seed=123)
         m_per_px = s.m_per_px
-        errs, rmses, rel = [], [], []
+        errs, rmses, rel, rel_plane = [], [], [], []
         for pos in positions:
             for d in depths:
                 img, surf = s.render(d, pos, 0.0, t=0.0)
@@ -124,6 +140,7 @@ def sim(quick: bool, log) -> dict:
                 e = res.max_depth - float(gt.max())
                 errs.append(e)
                 rel.append(e / float(gt.max()))
+                rel_plane.append(pipe_plane.max_depth(img) / float(gt.max()) - 1.0)
                 rmses.append(rmse)
                 rows.append({"indenter": name, "x_mm": pos[0] * 1e3, "y_mm": pos[1] * 1e3, "depth_mm": d * 1e3,
                              "gt_max_mm": round(float(gt.max()) * 1e3, 4),
@@ -131,7 +148,10 @@ def sim(quick: bool, log) -> dict:
         out[name] = {"frames": len(errs), "depth_rmse_mm_median": round(float(np.median(rmses)) * 1e3, 4),
                      "max_depth_error_mm_median": round(float(np.median(errs)) * 1e3, 4),
                      "max_depth_abs_rel_error_median": round(float(np.median(np.abs(rel))), 4),
-                     "max_depth_abs_rel_error_max": round(float(np.max(np.abs(rel))), 4)}
+                     "max_depth_abs_rel_error_max": round(float(np.max(np.abs(rel))), 4),
+                     "max_depth_rel_error_std": round(float(np.std(rel)), 4),
+                     "plane_max_depth_rel_error_median": round(float(np.median(rel_plane)), 4),
+                     "plane_max_depth_rel_error_std": round(float(np.std(rel_plane)), 4)}
         log(f"sim {name}: {out[name]}")
     s = DigitSimulator("qvga", noise=2.0, drift=4.0, drift_period=4.0, seed=7)
     nc = [pipe(s.render(0.0, (0, 0), 0.0, t=t)[0]).max_depth for t in np.linspace(0, 4, 9)]
@@ -167,7 +187,10 @@ def main() -> int:
     summary = {"qvga_median_abs_cap_error": q["median_abs_cap_error"],
                "qvga_median_sphere_radius_mm": q["median_sphere_radius_mm"],
                "qvga_far_false_depth_mm_max": q["far_false_depth_mm_max"],
-               "qvga_no_contact_max_depth_mm": q["no_contact_max_depth_mm"]}
+               "qvga_no_contact_max_depth_mm": q["no_contact_max_depth_mm"],
+               "qvga_plane_far_false_depth_mm_max": q["baseline_plane"]["far_false_depth_mm_max"],
+               "qvga_plane_far_false_depth_share_below_0.03mm": q["baseline_plane"][
+                   "far_false_depth_share_below_0.03mm"]}
     for fs in features[1:]:
         summary[f"qvga_{fs}_median_abs_cap_error"] = result["qvga"][fs]["median_abs_cap_error"]
     if "vga" in result:
@@ -175,7 +198,10 @@ def main() -> int:
         summary.update({"vga_median_abs_cap_error": v["median_abs_cap_error"],
                         "vga_median_sphere_radius_mm": v["median_sphere_radius_mm"],
                         "vga_far_false_depth_mm_max": v["far_false_depth_mm_max"],
-                        "vga_no_contact_max_depth_mm": v["no_contact_max_depth_mm"]})
+                        "vga_no_contact_max_depth_mm": v["no_contact_max_depth_mm"],
+                        "vga_plane_far_false_depth_mm_max": v["baseline_plane"]["far_false_depth_mm_max"],
+                        "vga_plane_far_false_depth_share_below_0.03mm": v["baseline_plane"][
+                            "far_false_depth_share_below_0.03mm"]})
     if "sim" in result:
         summary["sim_ball_6mm_rmse_mm"] = result["sim"]["ball-6mm"]["depth_rmse_mm_median"]
         summary["sim_ball_6mm_max_depth_rel_error"] = result["sim"]["ball-6mm"]["max_depth_abs_rel_error_median"]

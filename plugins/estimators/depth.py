@@ -64,6 +64,10 @@ class DepthEstimator(Component):
         adapt_background: float = Field(0.0, ge=0.0, le=0.5, description="blend weight of each no-contact frame "
                                         "into the background (0: off), follows slow illumination drift")
         workers: int = Field(1, ge=1, le=64, description="scipy.fft worker threads for the CPU solve")
+        baseline: Literal["none", "plane"] = Field(
+            "none", description="zero reference: none (depth outside the change region is 0) or plane (also "
+            "subtract the plane the solved depth has just outside it: less false depth beside a contact, reads "
+            "shallower; see docs/depth.md)")
         threads: int | None = Field(1, ge=1, le=64, description="torch intra-op threads on CPU (process-wide; 1 is "
                                     "fastest for one frame on a busy machine; None: leave torch's setting)")
 
@@ -85,7 +89,7 @@ class DepthEstimator(Component):
         device = _check_device(p.device)
         self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
                                   contact_depth=p.contact_depth, contact_fraction=p.contact_fraction,
-                                  workers=p.workers, background=bg, threads=p.threads)
+                                  workers=p.workers, background=bg, threads=p.threads, baseline=p.baseline)
         self.pipe.warm_up()
         self.model = model
         self._bg = (bg if bg is not None else model.background).astype(np.float32)

@@ -85,7 +85,7 @@ class DepthPipeline:
                  change_threshold: float | None = None, dilate: int = 2, net_rim: int = 2, nz_min: float = 0.3,
                  contact_depth: float = 3e-5, contact_fraction: float = 0.5, margin: int = 4, workers: int | None = None,
                  drift_correction: bool = True, background: np.ndarray | None = None,
-                 clamp_negative: bool = True, threads: int | None = None):
+                 clamp_negative: bool = True, threads: int | None = None, baseline: str = "none"):
         import torch
 
         if threads is not None and torch.device(device).type == "cpu":
@@ -110,6 +110,9 @@ class DepthPipeline:
         self.workers = workers
         self.drift_correction = drift_correction
         self.clamp_negative = clamp_negative
+        if baseline not in ("none", "plane"):
+            raise ValueError(f"baseline must be 'none' or 'plane', got {baseline!r}")
+        self.baseline = baseline
         self.stride = max(1, int(model.stride))
         self.rows, self.cols = model.shape
         self.grows, self.gcols = self.rows // self.stride, self.cols // self.stride
@@ -272,7 +275,10 @@ class DepthPipeline:
                 z = poisson.integrate_torch(gx, gy)[0]
             else:
                 z = torch.from_numpy(poisson.integrate(gx[0].numpy(), gy[0].numpy(), self.workers))
-            z = z * m[0] * self.m_per_cell
+            z = z * self.m_per_cell
+            if self.baseline == "plane":
+                z = self._baseline_torch(z[None].double(), m)[0]
+            z = z * m[0]
             if self.clamp_negative:
                 z = z.clamp_min(0.0)
             return z.float().cpu().numpy()
@@ -337,10 +343,48 @@ class DepthPipeline:
         z = poisson.integrate_window(gx.reshape(gr, gc), gy.reshape(gr, gc), (r0, r1, c0, c1),
                                      workers=self.workers)
         z *= self.m_per_cell
+        if self.baseline != "none":
+            self._subtract_baseline(z, keep, (r0, r1, c0, c1))
         z[keep == 0] = 0.0
         if self.clamp_negative:
             np.maximum(z, 0.0, out=z)
         return z
+
+    def _subtract_baseline(self, z: np.ndarray, keep: np.ndarray, box: tuple[int, int, int, int]) -> None:
+        """``baseline="plane"``: the zero reference is the gel's rest plane around the contact. The solve's depth
+        on the ring of cells just outside the kept region (flat by definition) is fitted by a plane (least squares)
+        and subtracted inside the window, so the depth meets zero where the kept region ends."""
+        import cv2
+
+        r0, r1, c0, c1 = box
+        kw = keep[r0:r1, c0:c1]
+        ring = (cv2.dilate(kw, self._k3) > 0) & (kw == 0)
+        rr, cc = np.nonzero(ring)
+        if rr.size < 8:
+            return
+        gy = (np.arange(r0, r1) - self.grows / 2.0) / self.grows
+        gx = (np.arange(c0, c1) - self.gcols / 2.0) / self.gcols
+        A = np.column_stack([np.ones(rr.size), gy[rr], gx[cc]])
+        coef, *_ = np.linalg.lstsq(A, z[r0:r1, c0:c1][rr, cc].astype(np.float64), rcond=None)
+        z[r0:r1, c0:c1] -= (coef[0] + coef[1] * gy[:, None] + coef[2] * gx[None, :]).astype(np.float32)
+
+    def _baseline_torch(self, z: Any, m: Any) -> Any:
+        """The same plane baseline on the dense path, batched: z (B, gr, gc), m the kept region (B, gr, gc)."""
+        import torch.nn.functional as F
+
+        torch = self.torch
+        mf = m.to(z.dtype)
+        ring = (F.max_pool2d(mf[:, None], 3, stride=1, padding=1)[:, 0] - mf).clamp_min(0.0)
+        gy = (torch.arange(self.grows, dtype=z.dtype, device=z.device) - self.grows / 2.0) / self.grows
+        gx = (torch.arange(self.gcols, dtype=z.dtype, device=z.device) - self.gcols / 2.0) / self.gcols
+        basis = torch.stack([torch.ones(self.grows, self.gcols, dtype=z.dtype, device=z.device),
+                             gy[:, None].expand(-1, self.gcols), gx[None, :].expand(self.grows, -1)])  # (3, gr, gc)
+        ata = torch.einsum("bhw,ihw,jhw->bij", ring, basis, basis)
+        atz = torch.einsum("bhw,ihw,bhw->bi", ring, basis, z)
+        ok = ring.sum(dim=(1, 2)) >= 8
+        eye = torch.eye(3, dtype=z.dtype, device=z.device)
+        coef = torch.linalg.solve(ata + 1e-9 * eye, atz[..., None])[..., 0] * ok[:, None]
+        return z - torch.einsum("bi,ihw->bhw", coef, basis)
 
     def _buffers(self) -> dict[str, np.ndarray]:
         b = getattr(self, "_buf", None)
@@ -370,7 +414,10 @@ class DepthPipeline:
             x, d = self._grid(t)
             m = self._mask(d)
             gx, gy = self._dense_gradients(x, d, m)
-            z = poisson.integrate_torch(gx, gy) * m * self.m_per_cell
+            z = poisson.integrate_torch(gx, gy) * self.m_per_cell
+            if self.baseline == "plane":
+                z = self._baseline_torch(z, m)
+            z = z * m
             if self.clamp_negative:
                 z = z.clamp_min(0.0)
             if self.stride > 1:
