@@ -36,6 +36,7 @@ ago cannot feed an oscillation. :func:`adapt_gain` (option) lowers the force sca
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 __all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "reduce_force_to",
@@ -145,39 +146,30 @@ class FollowerPort:
     is neither credited to it nor forgotten.
     """
 
-    __slots__ = ("ts", "xs", "n", "head", "prev")
+    __slots__ = ("hist", "prev")
 
     def __init__(self, size: int = 256):
-        self.ts = [0.0] * size
-        self.xs = [0.0] * size
-        self.n = 0
-        self.head = 0
+        self.hist: deque[tuple[float, float]] = deque(maxlen=size)     # (time, opening), oldest first
         self.prev: tuple[float, float] | None = None     # (force, opening) at the last sample's capture
 
     def record(self, t: float, x: float) -> None:
         """Keep the follower opening ``x`` at time ``t`` (call every controller step with a fresh reading)."""
-        if self.n and t <= self.ts[(self.head - 1) % len(self.ts)]:
-            return
-        self.ts[self.head] = t
-        self.xs[self.head] = x
-        self.head = (self.head + 1) % len(self.ts)
-        if self.n < len(self.ts):
-            self.n += 1
+        h = self.hist
+        if not h or t > h[-1][0]:
+            h.append((t, x))
 
     def opening_at(self, t: float) -> float | None:
         """The follower opening at time ``t`` (linear interpolation), or None when ``t`` is not covered."""
-        size = len(self.ts)
-        if not self.n:
+        h = self.hist
+        if not h:
             return None
-        i = (self.head - 1) % size
-        if t >= self.ts[i]:
-            return self.xs[i] if t - self.ts[i] <= 0.005 else None
-        for _ in range(self.n - 1):
-            j = (i - 1) % size
-            if self.ts[j] <= t:
-                t0, t1 = self.ts[j], self.ts[i]
-                return self.xs[j] + (self.xs[i] - self.xs[j]) * (t - t0) / (t1 - t0)
-            i = j
+        t1, x1 = h[-1]
+        if t >= t1:
+            return x1 if t - t1 <= 0.005 else None
+        for t0, x0 in reversed(h):
+            if t0 <= t:
+                return x0 + (x1 - x0) * (t - t0) / (t1 - t0)
+            t1, x1 = t0, x0
         return None
 
     def sample(self, stamp: float, force: float, scale: float) -> float:

@@ -385,7 +385,8 @@ class _Bilateral(Component):
                     f_des = f_fb                   # nothing in free space: no drag, no pull once contact is over
                 elif p.passivity_no_reversal and f_des * f_fb < 0.0:
                     f_des = 0.0                    # the damping may take the feedback force away, not reverse it
-            if (p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0:
+            if ((p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0
+                    and f_des * v > 0.0 and abs(v) >= p.reduction_min_velocity):
                 e_after = observe(self.pas.energy, f_des, v, dt, p.energy_leak_time)
                 f_cut = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin, p.reduction_min_velocity)
                 cut = f_cut != f_des
