@@ -106,7 +106,8 @@ def test_poly_force_scalar_path_is_the_array_path():
 
 
 def test_sim_digit_frames_do_not_depend_on_its_caches():
-    """The render caches (per-axis grids, distance maps) give every frame the numbers a cold simulator gives."""
+    """A simulator that has rendered other poses gives every frame the numbers a fresh one gives, and the max depth
+    it keeps with the pose is the surface's."""
     import numpy as np
 
     from teletouch.plugins.sensors.sim_digit import DigitSimulator

@@ -52,7 +52,8 @@ import numpy as np
 __all__ = [
     "Indenter", "GelMaterial", "gel_force", "height_map", "contact_radius", "indentation_for_contact_radius",
     "shore_a_to_modulus", "contact_mask", "gel_surface", "GelSurface", "radial_depth", "is_radial",
-    "support_radius", "contact_edge_radius", "force_law", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX", "VGA_M_PER_PX",
+    "support_radius", "contact_edge_radius", "force_law", "DEFAULT_MODULUS", "DEFAULT_POISSON", "QVGA_M_PER_PX",
+    "VGA_M_PER_PX",
 ]
 
 #: Paper's unit: 17.15 px per mm at QVGA (320 x 240).
@@ -353,7 +354,6 @@ def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, po
         c = 4.0 / 3.0 * Es * math.sqrt(Rt)
         f1 = 4.0 / 3.0 * Es * math.sqrt(Rt) * d1 ** 1.5
         c2 = 2.0 * Es * a
-        fac_full = 1.0 if h is None else layer(a)
 
         def law(d: float) -> float:
             d = float(d)
@@ -510,36 +510,6 @@ def radial_depth(indenter: Indenter, indentation_m: float, r_m: np.ndarray, defo
     return _compose(indenter.profile(r), r, d, indenter, 0.0, deformation)
 
 
-_AXES_SEEN: dict[tuple, int] = {}
-
-
-def _radial_grid(rows: int, cols: int, rc: float, cc: float, h: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """For an axis position seen before (a resting or squeezing indenter: most frames of a simulation), the squared
-    distance (px^2, float32) of every pixel to the axis at (rc, cc), that distance in profile steps of ``h`` px,
-    and its integer part (read-only, shared); None the first time (a moving indenter would only pay for them)."""
-    key = (rows, cols, rc, cc, h)
-    if key not in _AXES_SEEN:
-        if len(_AXES_SEEN) > 64:
-            _AXES_SEEN.clear()
-        _AXES_SEEN[key] = 1
-        return None
-    return _radial_grid_all(*key)
-
-
-@lru_cache(maxsize=8)
-def _radial_grid_all(rows: int, cols: int, rc: float, cc: float, h: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    yp = (np.arange(0, rows) - rc).astype(np.float32)
-    xp = (np.arange(0, cols) - cc).astype(np.float32)
-    r2 = yp[:, None] ** 2 + xp[None, :] ** 2
-    t = np.sqrt(r2) * np.float32(1.0 / h)
-    ti = t.astype(np.int32)
-    for a in (r2, t, ti):
-        a.flags.writeable = False
-    return r2, t, ti
-
-
 def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[float] = (0.0, 0.0),
                 tilt_rad: float = 0.0, shape: tuple[int, int] = (320, 240), m_per_px: float = QVGA_M_PER_PX,
                 deformation: bool = True) -> GelSurface:
@@ -573,19 +543,13 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         n = int(math.ceil(reach / m_per_px / h)) + 3
         zg, _ = radial_depth(indenter, d, np.arange(n) * (h * m_per_px), deformation)
         zg = zg.astype(np.float32)
-        grid = _radial_grid(rows, cols, rc, cc, h)
-        if grid is not None:  # an axis seen before: its distances made once for the whole image, sliced here
-            r2, t = grid[0][r0:r1, c0:c1], grid[1][r0:r1, c0:c1]
-            i = np.minimum(grid[2][r0:r1, c0:c1], n - 2)
-        else:  # the same numbers, for this window only
-            yp = (np.arange(r0, r1) - rc).astype(np.float32)
-            xp = (np.arange(c0, c1) - cc).astype(np.float32)
-            r2 = yp[:, None] ** 2 + xp[None, :] ** 2
-            t = np.sqrt(r2) * np.float32(1.0 / h)
-            i = np.minimum(t.astype(np.int32), n - 2)
+        yp = (np.arange(r0, r1) - rc).astype(np.float32)
+        xp = (np.arange(c0, c1) - cc).astype(np.float32)
+        r2 = yp[:, None] ** 2 + xp[None, :] ** 2
+        t = np.sqrt(r2) * np.float32(1.0 / h)
+        i = np.minimum(t.astype(np.int32), n - 2)
         frac = np.minimum(t - i, np.float32(1.0))
-        dz = zg[1:] - zg[:-1]  # zg[i + 1] - zg[i], the same float32 differences, once per profile sample
-        z = zg[i] + frac * dz[i]
+        z = zg[i] + frac * (zg[i + 1] - zg[i])
         # contact: where the face is within d/2 of its lowest point (or the whole end face)
         re = contact_edge_radius(indenter, d) / m_per_px
         inside = r2 <= np.float32(re * re)

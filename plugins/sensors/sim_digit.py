@@ -99,7 +99,6 @@ class DigitSimulator:
         self.stride = int(stride)
         if self.stride not in (1, 2, 3, 4):
             raise ValueError(f"render stride must be 1..4 px, got {stride!r}")
-        self._grids: dict[tuple, _Grid | bool] = {}
         self._key: tuple | None = None
         self._clean: np.ndarray = self.background_u8
         self._surface = _gel.gel_surface(self.indenter, 0.0, (0.0, 0.0), 0.0, self.shape, self.m_per_px)
@@ -173,22 +172,16 @@ class DigitSimulator:
         if r0 >= r1 or c0 >= c1:
             return img
         # shade a grid of every k-th pixel (at the centres of k x k blocks) and interpolate bilinearly: the
-        # gel's image is smooth at the pixel scale (k = 1: every pixel). The grid's geometry (distance to the axis,
-        # direction bins) depends on the axis and on where the window starts modulo k only: made once (_grid)
+        # gel's image is smooth at the pixel scale (k = 1: every pixel)
         k = self.stride
         ch, cw = -(-(r1 - r0) // k), -(-(c1 - c0) // k)
-        grid = self._grid(rc, cc, r0 % k, c0 % k)
-        if grid is not None:
-            jr, jc = r0 // k, c0 // k
-            i = np.minimum(grid.q[jr:jr + ch, jc:jc + cw], n - 1).ravel()
-        else:
-            off = (k - 1) / 2.0
-            ys = r0 + off + k * np.arange(ch)
-            xs = c0 + off + k * np.arange(cw)
-            dy = (ys - rc).astype(np.float32)
-            dx = (xs - cc).astype(np.float32)
-            r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
-            i = np.minimum((r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32), n - 1).ravel()
+        off = (k - 1) / 2.0
+        ys = r0 + off + k * np.arange(ch)
+        xs = c0 + off + k * np.arange(cw)
+        dy = (ys - rc).astype(np.float32)
+        dx = (xs - cc).astype(np.float32)
+        r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
+        i = np.minimum((r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32), n - 1).ravel()
         mb = mbg[i]
         sel = np.flatnonzero(mb >= 1)
         if sel.size == 0:
@@ -196,17 +189,11 @@ class DigitSimulator:
         sr, sc = sel // cw, sel % cw
         # the depth falls away from the axis, so its gradient points at the axis: the table's direction bin
         # floor((atan2(gr, gc) + pi) / (2 pi / 124)) is the bin of the pixel's own angle around the axis in [0, 2 pi)
-        # (reversed where the profile rises)
-        if grid is not None:
-            flat = (sr + jr) * grid.width + (sc + jc)
-            db = np.where(slope[i[sel]] > 0, grid.db_rising.ravel()[flat], grid.db_falling.ravel()[flat])
-            shade = self.renderer.shade(mb[sel] * 125 + db, grid.ys[sr + jr], grid.xs[sc + jc])
-        else:
-            ang = np.arctan2(dy[sr], dx[sc])
-            ang = ang + np.where(slope[i[sel]] > 0, np.float32(math.pi), np.float32(0.0))  # rising: reversed
-            ang = np.mod(ang, np.float32(2 * math.pi))
-            db = np.minimum((ang * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124)
-            shade = self.renderer.shade(mb[sel] * 125 + db, ys[sr], xs[sc])
+        ang = np.arctan2(dy[sr], dx[sc])
+        ang = ang + np.where(slope[i[sel]] > 0, np.float32(math.pi), np.float32(0.0))  # rising: reversed
+        ang = np.mod(ang, np.float32(2 * math.pi))
+        db = np.minimum((ang * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124)
+        shade = self.renderer.shade(mb[sel] * 125 + db, ys[sr], xs[sc])
         if k == 1:
             gidx = (sr + r0) * cols + (sc + c0)
             flat = img.reshape(-1, 3)
@@ -221,20 +208,6 @@ class DigitSimulator:
         np.clip(region, 0, 255, out=region)
         img[r0:r1, c0:c1] = region.astype(np.uint8)
         return img
-
-    def _grid(self, rc: float, cc: float, pr: int, pc: int) -> "_Grid | None":
-        """The render grid of an axis position seen before (None the first time: a moving indenter would only
-        pay for it)."""
-        key = (rc, cc, pr, pc)
-        g = self._grids.get(key)
-        if g is None:
-            if len(self._grids) > 64:
-                self._grids.clear()
-            self._grids[key] = False
-            return None
-        if g is False:
-            g = self._grids[key] = _Grid(self.shape, self.stride, self._h, rc, cc, pr, pc)
-        return g
 
     def render(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0, t: float = 0.0
                ) -> tuple[np.ndarray, _gel.GelSurface]:
@@ -260,32 +233,6 @@ class DigitSimulator:
         if offset:
             acc += np.int16(round(offset))
         return np.clip(acc, 0, 255).astype(np.uint8), self._surface
-
-
-class _Grid:
-    """The coarse render grid of one axis position: pixel centres ``r0 + off + k j`` for windows starting at rows
-    ``= pr (mod k)`` and columns ``= pc (mod k)``, over the whole image. ``q``: distance to the axis in profile
-    samples of ``h`` px, rounded (before the profile length's cap); ``db_*``: the table's direction bin of a surface
-    falling (rising) away from the axis. The same numbers _radial_image used to compute for every frame."""
-
-    def __init__(self, shape: tuple[int, int], k: int, h: float, rc: float, cc: float, pr: int, pc: int):
-        rows, cols = shape
-        off = (k - 1) / 2.0
-        self.ys = pr + off + k * np.arange(-(-(rows - pr) // k))
-        self.xs = pc + off + k * np.arange(-(-(cols - pc) // k))
-        self.width = self.xs.size
-        dy = (self.ys - rc).astype(np.float32)
-        dx = (self.xs - cc).astype(np.float32)
-        r = np.sqrt(dy[:, None] ** 2 + dx[None, :] ** 2)
-        self.q = (r * np.float32(1.0 / h) + np.float32(0.5)).astype(np.int32)
-        # contiguous operands, as the per-frame code had them (vectorised and strided loops may round differently)
-        ang = np.arctan2(np.repeat(dy, dx.size), np.tile(dx, dy.size))
-        bins = []
-        for add in (np.float32(0.0), np.float32(math.pi)):
-            a = np.mod(ang + np.full(ang.shape, add, np.float32), np.float32(2 * math.pi))
-            bins.append(np.minimum((a * np.float32(124.0 / (2 * math.pi))).astype(np.int32), 124
-                                   ).reshape(dy.size, dx.size))
-        self.db_falling, self.db_rising = bins
 
 
 class SimDigit(Component):
