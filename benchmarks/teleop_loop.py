@@ -3,16 +3,24 @@
 The graph is examples/paper-sim.yaml (sim-omega7 + sim-gripper at 1 kHz, sim-digit + depth + poly-force at 60 Hz, the
 position-force controller at 1 kHz), built by teletouch.plugins.controllers.experiments.sim_graph.
 
-- sim clock: graph seconds per wall second (target >= 5x real time), side by side with the same loop on the
-  ``ideal`` camera-rate sensor (no image pipeline), so the ratio shows what the image chain costs;
-- wall clock: the controller's period jitter p99, in the full loop and, side by side, alone (mock leader, estimate
-  and device: what the controller itself costs the 1 kHz thread) (target <= 0.25 ms, RunResult.nodes[i].period_jitter_p99_s) and the
+- sim clock: graph seconds per wall second (target >= 5x real time): over the whole run (start-up included: loading
+  the depth model), after start-up (``steady``), and per CPU second of the process (``steady_cpu``: what it would be
+  on a core of its own; this machine is shared), with each node's share of the wall time per simulated second; side
+  by side with the same loop on the ``ideal`` camera-rate sensor (no image pipeline), so the ratio shows what the
+  image chain costs;
+- wall clock: the controller's period jitter p99 (target <= 0.25 ms, RunResult.nodes[i].period_jitter_p99_s) and the
   sensor-to-leader-force latency: from the moment a frame is out of sim-digit to the end of the first controller
   step that uses the force estimated from it (target p99 <= 5 ms; it includes the estimators' own time), and from
   the estimate being out of poly-force to that controller step (the controller's pick-up). The smoothing ramp
-  (smoothing_time, 1/60 s) comes on top of that by design and is reported separately.
+  (smoothing_time, 1/60 s) comes on top of that by design and is reported separately. Compared side by side in one
+  run (``--wall-configs``): ``plain`` (normal scheduling), ``rt`` (``realtime_priority: 50``: SCHED_FIFO for the
+  1 kHz thread), ``rt-isolate`` (also ``isolate: process`` on depth), ``rt-isolate2`` (on depth and sim-digit)
+  and ``rt-est`` (``rt``, and the benchmark puts the 60 Hz estimator thread under SCHED_FIFO 40 from inside it: what
+  the runtime could offer for the image chain's latency, it does not yet), each with the machine's noise over its
+  run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``; and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
+  Overruns do not fault these runs (``max_overruns: 0``): they are counted.
 
-    python benchmarks/teleop_loop.py [--quick] [--sensor image|ideal]
+    python benchmarks/teleop_loop.py [--quick] [--sensor image|gt|ideal] [--wall-configs plain,rt,...] [--repeat N]
 
 Prints one JSON object as its last line.
 """
@@ -21,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import time
@@ -33,27 +42,61 @@ from teletouch.plugins.controllers.experiments import build_runtime, sim_graph
 def sim_speed(sensor: str, duration: float) -> dict:
     """Graph seconds per wall second; ``steady`` excludes start-up (model loading, caches, the first 0.5 s)."""
     rt = build_runtime(sim_graph(sensor=sensor, duration=duration))
-    mark: list[tuple[float, float]] = []
+    mark: list[tuple[float, float, float]] = []
 
     def progress(_rt, t: float) -> None:
         if not mark and t >= 0.5:
-            mark.append((time.perf_counter(), t))
+            mark.append((time.perf_counter(), time.process_time(), t))
 
+    c0 = time.process_time()
     res = rt.run(progress=progress, progress_interval=0.0)
-    end = time.perf_counter()
-    steady = (res.sim_time - mark[0][1]) / (end - mark[0][0]) if mark else float("nan")
+    end, cend = time.perf_counter(), time.process_time()
+    steady = (res.sim_time - mark[0][2]) / (end - mark[0][0]) if mark else float("nan")
+    steady_cpu = (res.sim_time - mark[0][2]) / (cend - mark[0][1]) if mark else float("nan")
     ctl = next(n for n in res.nodes if n.id == "controller")
     return {"sensor": sensor, "sim_time_s": res.sim_time, "wall_time_s": res.wall_time,
-            "realtime_factor": res.realtime_factor, "realtime_factor_steady": steady, "status": res.status,
+            "realtime_factor": res.realtime_factor, "realtime_factor_steady": steady,
+            "realtime_factor_steady_cpu": steady_cpu, "cpu_time_s": cend - c0, "status": res.status,
             "controller_mean_step_us": ctl.mean_step_s * 1e6,
-            "mean_step_us": {n.id: n.mean_step_s * 1e6 for n in res.nodes}}
+            "mean_step_us": {n.id: n.mean_step_s * 1e6 for n in res.nodes},
+            "wall_share_per_sim_s": {n.id: n.mean_step_s * n.steps / res.sim_time for n in res.nodes}}
 
 
-def wall_timing(sensor: str, duration: float, realtime_priority: int = 0) -> dict:
+def _cpu_times() -> list[int] | None:
+    try:
+        with open("/proc/stat") as fh:
+            return [int(x) for x in fh.readline().split()[1:]]
+    except OSError:
+        return None
+
+
+def machine_noise(before: list[int] | None, after: list[int] | None) -> dict:
+    """Share of the machine's CPU time stolen by the hypervisor, idle, and the load, over one measurement."""
+    if not before or not after:
+        return {}
+    d = [b - a for a, b in zip(before, after)]
+    total = sum(d) or 1
+    return {"steal_fraction": d[7] / total if len(d) > 7 else None, "idle_fraction": d[3] / total,
+            "loadavg_1min": os.getloadavg()[0]}
+
+
+#: wall-clock configurations compared side by side: (realtime_priority, nodes run with isolate: process, SCHED_FIFO
+#: priority the benchmark gives the 60 Hz thread from inside it: what the runtime does not do yet, 0 = none)
+WALL_CONFIGS = {"plain": (0, (), 0), "rt": (50, (), 0), "rt-isolate": (50, ("depth",), 0),
+                "rt-isolate2": (50, ("depth", "digit"), 0), "rt-est": (50, (), 40)}
+
+
+def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolate: tuple[str, ...] = (),
+                estimator_priority: int = 0) -> dict:
     doc = sim_graph(sensor=sensor, duration=duration)
     doc["clock"] = "wall"
+    doc["faults"] = {"max_overruns": 0}  # count overruns, do not stop the measurement on them
     if realtime_priority:
         doc["realtime_priority"] = realtime_priority
+    present = {n["id"] for n in doc["nodes"]}
+    for n in doc["nodes"]:
+        if n["id"] in isolate:
+            n["isolate"] = "process"
     rt = build_runtime(doc)
     ctl = rt.component("controller")
     lock = threading.Lock()
@@ -63,7 +106,15 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0) -> dic
     last_seen = [None]
     sensor_node = "force" if sensor == "ideal" else "digit"
 
+    est_thread: list[int] = []
+
     def tap(node: str, t: float, out: dict) -> None:
+        if estimator_priority and node == "force" and not est_thread:  # in the 60 Hz thread
+            est_thread.append(threading.get_native_id())
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(estimator_priority))
+            except OSError as exc:
+                print(f"estimator thread: cannot use SCHED_FIFO ({exc})", file=sys.stderr)
         if node == sensor_node and ("image" in out or sensor == "ideal"):
             frame_ready[0] = rt.now()
         if node == "force" and "force" in out:
@@ -81,12 +132,15 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0) -> dic
                     first_use.append((fr[0], fr[1], rt.now()))
 
     rt.add_tap(tap)
+    before = _cpu_times()
     res = rt.run()
+    noise = machine_noise(before, _cpu_times())
     ctl_stats = next(n for n in res.nodes if n.id == "controller")
     lat = np.array([c - a for a, b, c in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
     pick = np.array([c - b for a, b, c in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
     return {
-        "sensor": sensor, "status": res.status, "duration_s": res.sim_time,
+        "sensor": sensor, "realtime_priority": realtime_priority, "estimator_thread_priority": estimator_priority,
+        "isolated": sorted(n for n in isolate if n in present), "status": res.status, "duration_s": res.sim_time,
         "controller_rate_hz": ctl_stats.achieved_rate, "controller_overruns": ctl_stats.overruns,
         "controller_jitter_p99_ms": (ctl_stats.period_jitter_p99_s or float("nan")) * 1e3,
         "latency_samples": int(lat.size),
@@ -99,6 +153,7 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0) -> dic
         "nodes": {n.id: {"achieved_hz": n.achieved_rate, "overruns": n.overruns, "mean_step_ms": n.mean_step_s * 1e3,
                          "max_step_ms": n.max_step_s * 1e3,
                          "jitter_p99_ms": (n.period_jitter_p99_s or float("nan")) * 1e3} for n in res.nodes},
+        "machine": noise,
     }
 
 
@@ -122,68 +177,93 @@ def wall_controller_only(duration: float) -> dict:
     from teletouch.runtime import Runtime
 
     rt = Runtime(load_graph_text(CONTROLLER_ONLY, "<controller-only>"), log=lambda m: None)
+    before = _cpu_times()
     res = rt.run(duration)
     c = next(n for n in res.nodes if n.id == "controller")
     return {"controller_jitter_p99_ms": (c.period_jitter_p99_s or float("nan")) * 1e3,
             "controller_mean_step_us": c.mean_step_s * 1e6, "controller_overruns": c.overruns,
-            "achieved_hz": c.achieved_rate}
+            "achieved_hz": c.achieved_rate, "machine": machine_noise(before, _cpu_times())}
+
+
+KEYS = ("controller_jitter_p99_ms", "frame_to_leader_force_p50_ms", "frame_to_leader_force_p99_ms",
+        "estimate_to_leader_force_p50_ms", "estimate_to_leader_force_p99_ms", "controller_overruns")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="3 s runs instead of 10 s")
-    ap.add_argument("--realtime", action="store_true", help="also the wall-clock run with realtime_priority 50 "
-                    "(SCHED_FIFO for the fast threads; needs root or CAP_SYS_NICE)")
+    ap.add_argument("--realtime", action="store_true", help="(kept for old command lines: the realtime "
+                    "configurations are in --wall-configs by default)")
+    ap.add_argument("--wall-configs", default="plain,rt,rt-isolate,rt-isolate2,rt-est",
+                    help=f"comma-separated, of {', '.join(WALL_CONFIGS)} (empty: no wall-clock runs)")
+    ap.add_argument("--repeat", type=int, default=1, help="run the wall-clock configurations this many times, "
+                    "interleaved; each configuration reports the median over its runs")
     ap.add_argument("--sensor", choices=("image", "gt", "ideal"), default="image", help="the sensor chain under "
                     "test (gt: sim-digit's true max depth into poly-force, no depth estimation)")
     args = ap.parse_args()
+    configs = [c for c in args.wall_configs.split(",") if c]
+    for c in configs:
+        if c not in WALL_CONFIGS:
+            ap.error(f"--wall-configs: unknown configuration {c!r}; known: {', '.join(WALL_CONFIGS)}")
     dur = 3.0 if args.quick else 10.0
     w0 = time.perf_counter()
     sim = sim_speed(args.sensor, dur)
     print(f"sim clock, {args.sensor}: {sim['realtime_factor']:.2f}x real time "
-          f"({sim['realtime_factor_steady']:.2f}x after start-up)", file=sys.stderr)
+          f"({sim['realtime_factor_steady']:.2f}x after start-up, {sim['realtime_factor_steady_cpu']:.2f}x per CPU "
+          f"second)", file=sys.stderr)
     sim_ref = sim_speed("ideal", dur) if args.sensor != "ideal" else None
     if sim_ref:
         print(f"sim clock, ideal: {sim_ref['realtime_factor']:.2f}x real time "
               f"({sim_ref['realtime_factor_steady']:.2f}x after start-up)", file=sys.stderr)
-    wall = wall_timing(args.sensor, dur)
-    wall_rt = wall_timing(args.sensor, dur, realtime_priority=50) if args.realtime else None
-    if wall_rt:
-        print(f"wall clock, SCHED_FIFO 50: controller jitter p99 {wall_rt['controller_jitter_p99_ms']:.3f} ms, "
-              f"frame->leader force p99 {wall_rt['frame_to_leader_force_p99_ms']:.2f} ms", file=sys.stderr)
-    print(f"wall clock: controller jitter p99 {wall['controller_jitter_p99_ms']:.3f} ms, frame->leader force "
-          f"p50 {wall['frame_to_leader_force_p50_ms']:.2f} ms p99 {wall['frame_to_leader_force_p99_ms']:.2f} ms",
-          file=sys.stderr)
-    solo = wall_controller_only(dur)
-    print(f"wall clock, controller alone: jitter p99 {solo['controller_jitter_p99_ms']:.3f} ms", file=sys.stderr)
+    runs: dict[str, list[dict]] = {c: [] for c in configs}
+    for _ in range(max(1, args.repeat)):
+        for c in configs:
+            prio, iso, est = WALL_CONFIGS[c]
+            r = wall_timing(args.sensor, dur, prio, iso, est)
+            runs[c].append(r)
+            print(f"wall clock, {c}: controller jitter p99 {r['controller_jitter_p99_ms']:.3f} ms, frame->leader "
+                  f"force p50 {r['frame_to_leader_force_p50_ms']:.2f} ms p99 {r['frame_to_leader_force_p99_ms']:.2f} "
+                  f"ms, overruns {r['controller_overruns']}, steal {r['machine'].get('steal_fraction', 0):.3f}, "
+                  f"load {r['machine'].get('loadavg_1min', 0):.2f}", file=sys.stderr)
+    wall = {c: {k: float(np.median([r[k] for r in rs])) for k in KEYS} | {
+        "runs": len(rs), "steal_fraction": float(np.median([r["machine"].get("steal_fraction") or 0 for r in rs])),
+        "idle_fraction": float(np.median([r["machine"].get("idle_fraction", 0) for r in rs])),
+        "loadavg_1min": float(np.median([r["machine"].get("loadavg_1min", 0) for r in rs]))}
+        for c, rs in runs.items()}
+    if "plain" in wall:
+        base = wall["plain"]
+        for c, w in wall.items():
+            if c != "plain":
+                w["ratio_to_plain"] = {k: (w[k] / base[k] if base[k] else None) for k in (
+                    "controller_jitter_p99_ms", "frame_to_leader_force_p99_ms", "estimate_to_leader_force_p99_ms")}
+    solo = wall_controller_only(dur) if configs else None
+    if solo:
+        print(f"wall clock, controller alone: jitter p99 {solo['controller_jitter_p99_ms']:.3f} ms", file=sys.stderr)
     try:
-        load = list(__import__("os").getloadavg())
+        load = list(os.getloadavg())
     except OSError:
         load = None
+    best = min(wall, key=lambda c: wall[c]["controller_jitter_p99_ms"]) if wall else None
     out = {
         "benchmark": "teleop_loop",
         "sensor": args.sensor,
         "sim_realtime_factor": sim["realtime_factor"],
         "sim_realtime_factor_steady": sim["realtime_factor_steady"],
+        "sim_realtime_factor_steady_cpu": sim["realtime_factor_steady_cpu"],
         "sim_realtime_factor_ideal_sensor": sim_ref["realtime_factor_steady"] if sim_ref else None,
         "image_chain_cost_ratio": (sim_ref["realtime_factor_steady"] / sim["realtime_factor_steady"])
         if sim_ref else None,
-        "sim_wall_share_per_node": {k: v * 60 / 1e6 if k in ("digit", "depth", "force") else v * 1000 / 1e6
-                                    for k, v in sim["mean_step_us"].items()},
-        "controller_jitter_p99_ms": wall["controller_jitter_p99_ms"],
-        "frame_to_leader_force_p50_ms": wall["frame_to_leader_force_p50_ms"],
-        "frame_to_leader_force_p99_ms": wall["frame_to_leader_force_p99_ms"],
-        "estimate_to_leader_force_p50_ms": wall["estimate_to_leader_force_p50_ms"],
-        "estimate_to_leader_force_p99_ms": wall["estimate_to_leader_force_p99_ms"],
+        "sim_wall_share_per_node": sim["wall_share_per_sim_s"],
+        "wall": wall,
+        "best_wall_config": best,
+        "controller_jitter_p99_ms": wall[best]["controller_jitter_p99_ms"] if best else None,
+        "frame_to_leader_force_p50_ms": wall[best]["frame_to_leader_force_p50_ms"] if best else None,
+        "frame_to_leader_force_p99_ms": wall[best]["frame_to_leader_force_p99_ms"] if best else None,
         "targets": {"sim_realtime_factor": ">= 5", "controller_jitter_p99_ms": "<= 0.25",
                     "frame_to_leader_force_p99_ms": "<= 5"},
-        "controller_alone_jitter_p99_ms": solo["controller_jitter_p99_ms"],
-        "sched_fifo": None if wall_rt is None else {
-            k: wall_rt[k] for k in ("controller_jitter_p99_ms", "frame_to_leader_force_p50_ms",
-                                    "frame_to_leader_force_p99_ms", "estimate_to_leader_force_p99_ms")},
-        "jitter_ratio_full_loop_to_controller_alone": wall["controller_jitter_p99_ms"] / solo["controller_jitter_p99_ms"],
-        "load_average": load, "cpus": __import__("os").cpu_count(),
-        "sim": sim, "sim_ideal": sim_ref, "wall": wall, "wall_controller_only": solo,
+        "controller_alone_jitter_p99_ms": solo["controller_jitter_p99_ms"] if solo else None,
+        "load_average": load, "cpus": os.cpu_count(),
+        "sim": sim, "sim_ideal": sim_ref, "wall_runs": runs, "wall_controller_only": solo,
         "wall_time_s": time.perf_counter() - w0,
     }
     print(json.dumps(out))
