@@ -218,3 +218,32 @@ def test_two_port_observer_sees_an_ideal_coupling_as_lossless():
     assert e_leader > 1e-4                                    # ~ 2 * 1/2 * 2000 N/m * (1 mm)^2 = 2 mJ
     assert e_follower == pytest.approx(-e_leader, rel=0.02)
     assert abs(e_two) < 0.02 * e_leader
+
+
+@pytest.mark.parametrize("mode,oscillates", [
+    ({}, False),                                                               # the default
+    ({"force_prediction": False, "passivity_controller": "damping",
+      "passivity_observer": "leader-port"}, True),                              # the previous default
+    ({"passivity": False}, True),                                              # the prediction alone
+])
+def test_stiff_contact_at_high_force_scale_in_the_simulated_loop(mode, oscillates):
+    # the stability sweep's hardest corner (k_f = 4, 1 MPa gel): sim-omega7 + sim-gripper + sim-force-sensor
+    import numpy as np
+
+    from teletouch.plugins.controllers.experiments import Recorder, build_runtime, sim_graph
+
+    intent = {"type": "close-and-hold", "start_opening": 0.02, "target_opening": 0.010, "speed": 0.005,
+              "start_time": 0.5, "hold_time": 100.0, "release": False}
+    doc = sim_graph("position-force", "ideal", duration=4.0, intent=intent,
+                    controller_params={"force_scale": 4.0, **mode}, gripper_params={"modulus": 1.0e6})
+    rt = build_runtime(doc)
+    rec = Recorder(["gripper.contact_force", "controller.gripper_force"])
+    rt.add_tap(rec)
+    assert rt.run().status == "ok"
+    t, f = rec.series("gripper.contact_force")
+    p2p = float(np.ptp(f[t >= 2.5]))
+    assert (p2p > 0.2) == oscillates, p2p
+    _, fr = rec.series("controller.gripper_force")
+    assert np.all(np.isfinite(fr)) and np.abs(fr).max() <= 8.0
+    if not oscillates:
+        assert fr.min() >= 0.0 and f[t >= 2.5].mean() == pytest.approx(1.4 / 4, rel=0.3)   # full force scale

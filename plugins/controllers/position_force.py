@@ -535,6 +535,11 @@ class PositionForce(_Bilateral):
             self.xref = ForceHold(x_s)
             self.pred_on = True
 
+    def status(self) -> dict[str, Any]:
+        d = super().status()
+        d["contact_stiffness"] = round(getattr(self, "k_hat", 0.0), 1)     # N/m, learnt by the prediction
+        return d
+
     def _fade(self, t: float) -> None:
         if not self.fading:
             self.fading = True
