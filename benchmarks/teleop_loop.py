@@ -20,7 +20,10 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``; and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
   Overruns do not fault these runs (``max_overruns: 0``): they are counted.
 
-    python benchmarks/teleop_loop.py [--quick] [--sensor image|gt|ideal] [--wall-configs plain,rt,...] [--repeat N]
+    python benchmarks/teleop_loop.py [--quick] [--steps] [--sensor image|gt|ideal] [--wall-configs plain,rt,...]
+                                     [--repeat N]
+
+``--steps`` (also part of every run): the CPU time of one step() of each simulated node, stepped by hand.
 
 Prints one JSON object as its last line.
 """
@@ -185,6 +188,57 @@ def wall_controller_only(duration: float) -> dict:
             "achieved_hz": c.achieved_rate, "machine": machine_noise(before, _cpu_times())}
 
 
+def step_costs(n: int = 5000) -> dict:
+    """CPU time of one step() of each simulated node of the loop, stepped by hand (no runtime), in us: the
+    microsecond-scale costs the 10 s runs cannot separate from the machine's noise."""
+    import math
+
+    from teletouch import Sample
+    from teletouch.plugins.devices.sim_gripper import SimGripper
+    from teletouch.plugins.devices.sim_omega7 import SimOmega7
+    from teletouch.plugins.estimators.poly_force import PolyForce
+    from teletouch.plugins.sensors.sim_digit import SimDigit
+    from teletouch.testing import Harness
+
+    def bench(h, dt: float, feed, steps: int) -> float:
+        for k in range(200):  # warm-up
+            feed(h, k * dt)
+            h.comp.step(k * dt, h.inputs)
+        c0 = time.thread_time()
+        for k in range(200, 200 + steps):
+            feed(h, k * dt)
+            h.comp.step(k * dt, h.inputs)
+        return (time.thread_time() - c0) / steps * 1e6
+
+    out = {}
+    probe = {"initial_opening": 0.02, "indenter": "probe", "indenter_radius": 0.005}
+
+    def cmd(h, t):
+        h.slots["opening_command"].sample = Sample(0.012 + 0.0005 * math.sin(t), t)
+
+    for label, extra in (("free", {"object_width": None}), ("contact", {"object_width": 0.015}),
+                         ("compliant", {"object_width": 0.015, "object_stiffness": 3000.0})):
+        with Harness(SimGripper, dict(probe, **extra)) as h:
+            out[f"sim-gripper {label}"] = bench(h, 1e-3, cmd, n)
+    with Harness(SimOmega7, {"intent": {"type": "close-and-hold", "start_opening": 0.02,
+                                        "target_opening": 0.01}}) as h:
+        out["sim-omega7"] = bench(h, 1e-3, lambda h, t: setattr(h.slots["gripper_force"], "sample",
+                                                                Sample(0.5, t)), n)
+    with Harness(SimDigit, {"indenter": "probe", "indenter_radius": 0.005}) as h:
+        out["sim-digit moving"] = bench(h, 1 / 60, lambda h, t: setattr(
+            h.slots["indentation"], "sample", Sample(0.0008 + 0.0004 * math.sin(3 * t), t)), max(60, n // 20))
+        out["sim-digit still"] = bench(h, 1 / 60, lambda h, t: setattr(
+            h.slots["indentation"], "sample", Sample(0.0008, t)), max(60, n // 10))
+
+    def depth(h, t):
+        h.slots["max_depth"].sample = Sample(0.0005 + 0.0002 * math.sin(t), t)
+        h.slots["contact_area"].sample = Sample(1e-5, t)
+
+    with Harness(PolyForce, {}) as h:
+        out["poly-force"] = bench(h, 1 / 60, depth, n // 2)
+    return out
+
+
 KEYS = ("controller_jitter_p99_ms", "frame_to_leader_force_p50_ms", "frame_to_leader_force_p99_ms",
         "estimate_to_leader_force_p50_ms", "estimate_to_leader_force_p99_ms", "controller_overruns")
 
@@ -198,6 +252,8 @@ def main() -> int:
                     help=f"comma-separated, of {', '.join(WALL_CONFIGS)} (empty: no wall-clock runs)")
     ap.add_argument("--repeat", type=int, default=1, help="run the wall-clock configurations this many times, "
                     "interleaved; each configuration reports the median over its runs")
+    ap.add_argument("--steps", action="store_true", help="only the CPU cost of one step() of each simulated node "
+                    "(sim-gripper, sim-omega7, sim-digit, poly-force), stepped by hand")
     ap.add_argument("--sensor", choices=("image", "gt", "ideal"), default="image", help="the sensor chain under "
                     "test (gt: sim-digit's true max depth into poly-force, no depth estimation)")
     args = ap.parse_args()
@@ -207,6 +263,11 @@ def main() -> int:
             ap.error(f"--wall-configs: unknown configuration {c!r}; known: {', '.join(WALL_CONFIGS)}")
     dur = 3.0 if args.quick else 10.0
     w0 = time.perf_counter()
+    steps = step_costs(2000 if args.quick else 5000)
+    print("step() CPU cost: " + ", ".join(f"{k} {v:.1f} us" for k, v in steps.items()), file=sys.stderr)
+    if args.steps:
+        print(json.dumps({"benchmark": "teleop_loop", "step_cpu_us": steps}))
+        return 0
     sim = sim_speed(args.sensor, dur)
     print(f"sim clock, {args.sensor}: {sim['realtime_factor']:.2f}x real time "
           f"({sim['realtime_factor_steady']:.2f}x after start-up, {sim['realtime_factor_steady_cpu']:.2f}x per CPU "
@@ -254,6 +315,7 @@ def main() -> int:
         "image_chain_cost_ratio": (sim_ref["realtime_factor_steady"] / sim["realtime_factor_steady"])
         if sim_ref else None,
         "sim_wall_share_per_node": sim["wall_share_per_sim_s"],
+        "step_cpu_us": steps,
         "wall": wall,
         "best_wall_config": best,
         "controller_jitter_p99_ms": wall[best]["controller_jitter_p99_ms"] if best else None,
