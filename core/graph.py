@@ -22,6 +22,8 @@ A graph file::
           contact_area: {from: depth.contact_area, max_age: 0.1}   # with a staleness limit (s)
         on_fault: degrade         # optional, per node
         isolate: process          # optional: run in a process of its own under the wall clock (see isolation.py)
+        priority: 40              # optional: SCHED_FIFO priority of this node's thread (wall clock; default:
+                                  # realtime_priority for threads at >= 200 Hz, normal scheduling otherwise)
 
 Every error names the file and line.
 """
@@ -44,7 +46,8 @@ from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
-NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "remove", "description")
+NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
+             "description")
 FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace")
 FAULT_ACTIONS = ("stop", "degrade")
 CLOCKS = ("sim", "wall")
@@ -71,6 +74,7 @@ class NodeSpec:
     where: Location
     param_where: dict[str, Location] = field(default_factory=dict)
     isolate: str = "none"
+    priority: int | None = None
     # filled in by validation
     cls: type[Component] | None = None
     params_obj: Any = None
@@ -417,6 +421,12 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             err(f"node '{nid}': isolate: process is for sensors, estimators and controllers; a device ({plugin}) "
                 f"stays in the runtime's process so it can always be driven to its safe state", ld.loc("isolate"))
             isolate = "none"
+        priority = ld.get("priority")
+        if priority is not None and (not isinstance(priority, int) or isinstance(priority, bool)
+                                     or not 0 <= priority <= 99):
+            err(f"node '{nid}': priority: expected an integer 0-99 (SCHED_FIFO priority of its thread under the "
+                f"wall clock; 0 = normal scheduling), got {priority!r}", ld.loc("priority"))
+            priority = None
         params = ld.get("params", {}) or {}
         if not isinstance(params, dict):
             err(f"node '{nid}': params must be a mapping of name: value", ld.loc("params"))
@@ -425,7 +435,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         pwhere_default = ld.loc("params") if "params" in ld else ld.where
         spec = NodeSpec(id=nid, plugin=plugin if isinstance(plugin, str) else "", rate=rate,
                         params=_plain(params), inputs={}, on_fault=on_fault, where=ld.where, param_where=pwhere,
-                        isolate=isolate)
+                        isolate=isolate, priority=priority)
         if cls is not None:
             spec.cls = cls
             try:
@@ -541,6 +551,8 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
             "params": {"type": "object"},
             "inputs": {"type": "object", "additionalProperties": wire},
             "on_fault": {"enum": list(FAULT_ACTIONS)},
+            "priority": {"type": "integer", "minimum": 0, "maximum": 99,
+                         "description": "SCHED_FIFO priority of this node's thread (wall clock)"},
             "isolate": {"enum": ["none", "process"],
                         "description": "run this node in a process of its own (wall clock)"},
             "remove": {"type": "boolean"},

@@ -494,12 +494,12 @@ class Runtime:
 
     def _wall_loop(self, members: list[_Node], rate: float) -> None:
         _set_timer_slack(1000)
-        prio = self.spec.realtime_priority
-        if prio and rate >= 200:
+        prio = thread_priority(self.spec.realtime_priority, rate, [n.spec.priority for n in members])
+        if prio:
             try:
                 os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(prio))
             except (OSError, AttributeError) as exc:
-                self.log(f"realtime_priority {prio}: cannot use SCHED_FIFO ({exc}); running with normal "
+                self.log(f"priority {prio}: cannot use SCHED_FIFO ({exc}); running with normal "
                          f"scheduling (grant CAP_SYS_NICE or an rtprio limit in /etc/security/limits.conf)")
         period = 1.0 / rate
         spin = min(2e-4, period * 0.2)
@@ -561,6 +561,15 @@ class Runtime:
         for th in getattr(self, "_threads", []):
             if th is not threading.current_thread():
                 th.join(timeout=1.0)
+
+
+def thread_priority(realtime_priority: int, rate: float, node_priorities: list[int | None]) -> int:
+    """SCHED_FIFO priority of a rate group's thread (0: normal scheduling): the highest priority a member node
+    asks for; without one, ``realtime_priority`` for groups at >= 200 Hz."""
+    asked = [p for p in node_priorities if p is not None]
+    if asked:
+        return max(asked)
+    return realtime_priority if rate >= 200 else 0
 
 
 def _exc_line(exc: BaseException) -> str:

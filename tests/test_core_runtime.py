@@ -264,3 +264,23 @@ def test_nan_passes_through_mocks_untouched(reg):
     # the runtime does not hide NaN: consumers (controllers) must guard; this documents the contract
     res, rt = run_yaml(CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, nan_at: 0.2}"), reg, duration=0.5)
     assert res.exit_code == 0 and math.isnan(rt.latest("gain", "y").value)
+
+
+def test_thread_priority_rules():
+    from teletouch.runtime import thread_priority
+
+    assert thread_priority(50, 1000, [None, None]) == 50
+    assert thread_priority(50, 60, [None]) == 0
+    assert thread_priority(50, 60, [None, 40]) == 40
+    assert thread_priority(0, 1000, [30]) == 30
+    assert thread_priority(50, 1000, [0]) == 0  # a node may opt out
+
+
+def test_node_priority_validated(reg):
+    from teletouch.errors import GraphValidationError
+    from teletouch.testing import load_text
+
+    spec = load_text(CHAIN.replace("rate: 1000,", "rate: 1000, priority: 40,"), reg)
+    assert spec.node("dev").priority == 40
+    with pytest.raises(GraphValidationError, match="priority: expected an integer 0-99"):
+        load_text(CHAIN.replace("rate: 1000,", "rate: 1000, priority: 120,"), reg)
