@@ -24,9 +24,8 @@ classic TDPA (damping alone, which drags the hand in free space and pulls openin
 
 **Two-port observer** (``position-force``'s default): :class:`FollowerPort` adds the follower port's energy, from the
 force samples and the follower's opening at their capture times, so that the object's stored energy is neither
-credited to the teleoperator nor forgotten (with the leader port alone, the leak below forgot the energy squeezed
-into the object, and its return on release read as a deficit: a damping dip of ~0.3 N in the hand when the grip
-opened).
+credited to the teleoperator nor forgotten by the leak below (with the leader port alone, the energy squeezed into
+the object and forgotten reads as a deficit when it returns on release).
 
 A positive energy reservoir lets an active loop run on energy the operator stored earlier (e.g. in a squeezed
 object); ``leak_time`` makes the positive part of ``E`` decay with that time constant, so stored energy from long
@@ -98,12 +97,13 @@ def passivity_force(state: PassivityState, force: float, velocity: float, dt: fl
 
 
 def reduce_force_to(force: float, energy_after: float, velocity: float, dt: float, margin: float = 0.0,
-                    v_min: float = 0.0) -> float:
+                    v_min: float = 0.0, pay_time: float = 0.0) -> float:
     """Cut ``force`` towards zero (never past it) by the deficit that remains beyond ``margin`` (J) when the
     network is pushing energy out (``force * v > 0``, ``|v| >= v_min``); less force is always safe and the operator
-    is never pulled."""
+    is never pulled. ``pay_time`` > ``dt`` spreads the payment of the deficit over that time (a smaller cut per
+    step, no one-step click); 0 pays it within the step (the exact one-step TDPA)."""
     if energy_after + margin < 0.0 and force * velocity > 0.0 and dt > 0.0 and abs(velocity) >= v_min:
-        cut = min(abs(force), -(energy_after + margin) / (abs(velocity) * dt))
+        cut = min(abs(force), -(energy_after + margin) / (abs(velocity) * max(dt, pay_time)))
         return force - math.copysign(cut, force)
     return force
 

@@ -246,6 +246,9 @@ class _CommonParams(Params):
     gain_min: float = Field(0.1, gt=0, le=1, description="passivity_gain_adaptation: floor of the force scale")
     reduction_margin: float = Field(0.0, ge=0, description="energy deficit left to the damping before the force "
                                     "is cut", json_schema_extra={"unit": "J"})
+    reduction_time: Seconds = Field(0.01, ge=0, description="the force cut pays a deficit over this time rather "
+                                    "than within one step (0: the exact one-step cut, which clicks)",
+                                    json_schema_extra={"unit": "s"})
     reduction_min_velocity: float = Field(3e-3, ge=0, description="the force is cut only while the leader moves "
                                           "faster than this (slower, the energy that leaks is tiny; cutting a "
                                           "standing deficit on every tremor would make the force chatter)",
@@ -373,6 +376,7 @@ class _Bilateral(Component):
             # capped damping, raised and released smoothly; then a cut of what is still missing
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time,
                                            reduce_force=False)
+            f_capped = f_des                       # with the capped damping at once (what the cut may count on)
             if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
             elif p.damping_release > 0.0 and alpha < self.pas.alpha:
@@ -387,8 +391,12 @@ class _Bilateral(Component):
                     f_des = 0.0                    # the damping may take the feedback force away, not reverse it
             if ((p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0
                     and f_des * v > 0.0 and abs(v) >= p.reduction_min_velocity):
-                e_after = observe(self.pas.energy, f_des, v, dt, p.energy_leak_time)
-                f_cut = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin, p.reduction_min_velocity)
+                # cut only what even the capped damping would leave: a deficit that the damping's smooth rise
+                # merely delays is paid by the damping a few steps later (no one-step click in the hand)
+                e_after = observe(self.pas.energy, min(f_des, f_capped) if v > 0 else max(f_des, f_capped), v, dt,
+                                  p.energy_leak_time)
+                f_cut = reduce_force_to(f_des, e_after, v, dt, p.reduction_margin, p.reduction_min_velocity,
+                                        p.reduction_time)
                 cut = f_cut != f_des
                 # the power the cut takes out, averaged (passivity_cut_time): how hard the controller is working
                 self.cut_power += (abs((f_des - f_cut) * v) - self.cut_power) * min(1.0, dt / p.passivity_cut_time)
@@ -457,7 +465,10 @@ class PositionForce(_Bilateral):
                                        "stiffness learnt from successive estimates (never past zero)")
         prediction_max_stiffness: NewtonsPerMeter = Field(2e4, ge=0, description="cap of the learnt contact "
                                                           "stiffness K", json_schema_extra={"unit": "N/m"})
-        prediction_min_motion: Meters = Field(5e-6, ge=0, description="K is learnt only from estimates this far "
+        prediction_max_change: Newtons = Field(1.0, ge=0, description="largest predicted change of the sensed "
+                                               "force (a misjudged stiffness cannot push the hand far)",
+                                               json_schema_extra={"unit": "N"})
+        prediction_min_motion: Meters = Field(2e-5, ge=0, description="K is learnt only from estimates this far "
                                               "apart in follower command", json_schema_extra={"unit": "m"})
         prediction_rate: float = Field(0.3, gt=0, le=1, description="weight of each new stiffness measurement")
 
@@ -509,7 +520,10 @@ class PositionForce(_Bilateral):
             self._fade(t)
         f = self.hold.value(t)
         if self.pred_on and self.state == "ok" and self.command is not None and f != 0.0:
-            f_pred = f + p.force_sign * p.force_scale * self.k_hat * (self.xref.value(t) - self.command)
+            d = self.k_hat * (self.xref.value(t) - self.command)        # sensed force change since the capture
+            lim = p.prediction_max_change
+            d = lim if d > lim else -lim if d < -lim else d
+            f_pred = f + p.force_sign * p.force_scale * d
             f = min(max(0.0, f_pred), p.max_force) if f > 0.0 else max(min(0.0, f_pred), -p.max_force)
         return f
 
