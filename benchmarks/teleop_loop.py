@@ -84,7 +84,7 @@ def machine_noise(before: list[int] | None, after: list[int] | None) -> dict:
 
 
 #: wall-clock configurations compared side by side: (realtime_priority, nodes run with isolate: process, SCHED_FIFO
-#: priority the benchmark gives the 60 Hz thread from inside it: what the runtime does not do yet, 0 = none)
+#: priority of the 60 Hz camera/estimator thread through the nodes' `priority:` key, 0 = none)
 WALL_CONFIGS = {"plain": (0, (), 0), "rt": (50, (), 0), "rt-isolate": (50, ("depth",), 0),
                 "rt-isolate2": (50, ("depth", "digit"), 0), "rt-est": (50, (), 40)}
 
@@ -100,6 +100,8 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
     for n in doc["nodes"]:
         if n["id"] in isolate:
             n["isolate"] = "process"
+        if estimator_priority and n.get("rate", 0) < 200:
+            n["priority"] = estimator_priority
     rt = build_runtime(doc)
     ctl = rt.component("controller")
     lock = threading.Lock()
@@ -109,15 +111,7 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
     last_seen = [None]
     sensor_node = "force" if sensor == "ideal" else "digit"
 
-    est_thread: list[int] = []
-
     def tap(node: str, t: float, out: dict) -> None:
-        if estimator_priority and node == "force" and not est_thread:  # in the 60 Hz thread
-            est_thread.append(threading.get_native_id())
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(estimator_priority))
-            except OSError as exc:
-                print(f"estimator thread: cannot use SCHED_FIFO ({exc})", file=sys.stderr)
         if node == sensor_node and ("image" in out or sensor == "ideal"):
             frame_ready[0] = rt.now()
         if node == "force" and "force" in out:
