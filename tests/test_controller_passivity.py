@@ -247,3 +247,28 @@ def test_stiff_contact_at_high_force_scale_in_the_simulated_loop(mode, oscillate
     assert np.all(np.isfinite(fr)) and np.abs(fr).max() <= 8.0
     if not oscillates:
         assert fr.min() >= 0.0 and f[t >= 2.5].mean() == pytest.approx(1.4 / 4, rel=0.3)   # full force scale
+
+
+def test_force_cut_can_spread_the_payment_of_a_deficit():
+    from teletouch.plugins.controllers.passivity import reduce_force_to
+
+    assert reduce_force_to(2.0, -1e-5, 0.01, 1e-3) == pytest.approx(1.0)                  # within one step
+    assert reduce_force_to(2.0, -1e-5, 0.01, 1e-3, pay_time=0.01) == pytest.approx(1.9)   # over 10 ms
+    assert reduce_force_to(2.0, -1e-5, 0.002, 1e-3, v_min=0.003) == 2.0                  # too slow to matter
+
+
+def test_a_misjudged_contact_stiffness_cannot_push_the_hand_far():
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e6,
+                                 "prediction_max_change": 0.5}) as h:
+        pending = None
+        for k in range(200):                       # learn on a closing contact
+            t = k * 1e-3
+            vals = {"leader_opening": 0.0155 - 0.005 * t}
+            if k % 17 == 0:
+                if pending is not None:
+                    vals["force"] = Sample(*pending)
+                pending = (max(0.0, 2000.0 * (0.015 - vals["leader_opening"])), t)
+            f0 = h.step(t, **vals)["gripper_force"]
+        h.comp.k_hat = 1e6                         # a wildly wrong stiffness
+        f1 = h.step(0.2, leader_opening=0.0155 - 0.005 * 0.2 - 0.002)["gripper_force"]
+    assert f0 > 0.5 and f1 - f0 <= 0.5 + 0.05
