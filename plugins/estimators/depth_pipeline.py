@@ -82,7 +82,7 @@ class DepthPipeline:
     """A calibrated model + settings -> depth maps. ``pipeline(frame_bgr_uint8) -> DepthResult``."""
 
     def __init__(self, model: NormalModel, device: str = "cpu", mode: str = "auto",
-                 change_threshold: float | None = None, dilate: int = 2, net_rim: int = 2, nz_min: float = 0.3,
+                 change_threshold: float | None = None, dilate: int = 2, net_rim: int = 0, nz_min: float = 0.3,
                  contact_depth: float = 3e-5, contact_fraction: float = 0.5, margin: int = 4, workers: int | None = None,
                  drift_correction: bool = True, background: np.ndarray | None = None,
                  clamp_negative: bool = True, threads: int | None = None, baseline: str = "none"):
@@ -181,7 +181,9 @@ class DepthPipeline:
             d = d - sub.sort(dim=2).values[:, :, k, None, None]
         return x, d
 
-    def _mask(self, d: Any) -> Any:
+    def _mask(self, d: Any) -> tuple[Any, Any]:
+        """(core, keep): the network's slopes count on core (change region + ``net_rim`` + 1 cells), the depth is
+        kept on keep (change region + ``dilate`` + 1 cells), as on the sparse path."""
         import kornia.filters as KF
         import torch.nn.functional as F
 
@@ -191,8 +193,10 @@ class DepthPipeline:
         # opening (drops specks of noise smaller than 3 x 3 cells), then dilation to take in the contact's rim
         m = -F.max_pool2d(-m, 3, stride=1, padding=1)
         k = 2 * (self.dilate + 1) + 1
-        m = F.max_pool2d(m, k, stride=1, padding=self.dilate + 1)
-        return m[:, 0] > 0.5
+        keep = F.max_pool2d(m, k, stride=1, padding=self.dilate + 1)
+        rim = min(self.net_rim, self.dilate) + 1
+        core = F.max_pool2d(m, 2 * rim + 1, stride=1, padding=rim)
+        return core[:, 0] > 0.5, keep[:, 0] > 0.5
 
     def _features(self, x: Any, d: Any) -> Any:
         """(B, 3, gr, gc) frame and diff -> standardised (B, gr, gc, F) features."""
@@ -269,8 +273,8 @@ class DepthPipeline:
         torch = self.torch
         with torch.inference_mode():
             x, d = self._grid(torch.from_numpy(frame)[None])
-            m = self._mask(d)
-            gx, gy = self._dense_gradients(x, d, m)
+            core, m = self._mask(d)
+            gx, gy = self._dense_gradients(x, d, core)
             if self.device.type != "cpu":
                 z = poisson.integrate_torch(gx, gy)[0]
             else:
@@ -412,8 +416,8 @@ class DepthPipeline:
         with torch.inference_mode():
             t = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(frames))
             x, d = self._grid(t)
-            m = self._mask(d)
-            gx, gy = self._dense_gradients(x, d, m)
+            core, m = self._mask(d)
+            gx, gy = self._dense_gradients(x, d, core)
             z = poisson.integrate_torch(gx, gy) * self.m_per_cell
             if self.baseline == "plane":
                 z = self._baseline_torch(z, m)
