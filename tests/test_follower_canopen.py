@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
+from fakes.realtime import configure_fails, wait_for  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
 
@@ -40,14 +41,6 @@ def harness(channel, **params):
     return h
 
 
-def configure_fails(h, match):
-    try:
-        with pytest.raises(HardwareError, match=match):
-            h.comp.configure()
-    finally:
-        h.comp.close()
-
-
 def drive_for(h, cmd, seconds, period=0.005):
     t_end = time.monotonic() + seconds
     out = {}
@@ -56,13 +49,6 @@ def drive_for(h, cmd, seconds, period=0.005):
         out = h.step(h.t, opening_command=cmd)
         time.sleep(period)
     return out
-
-
-def wait_for(cond, timeout=1.0):
-    t_end = time.monotonic() + timeout
-    while not cond() and time.monotonic() < t_end:
-        time.sleep(0.002)
-    return cond()
 
 
 def test_start_up_sequence(drive, channel):

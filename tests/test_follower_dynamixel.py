@@ -16,6 +16,7 @@ from fakes.dynamixel_emulator import (  # noqa: E402
 )
 
 from teletouch import HardwareError  # noqa: E402
+from fakes.realtime import configure_fails, wait_for  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 
@@ -38,14 +39,6 @@ def harness(emu, **params):
     return h
 
 
-def configure_fails(h, match):
-    try:
-        with pytest.raises(HardwareError, match=match):
-            h.comp.configure()
-    finally:
-        h.comp.close()
-
-
 def drive(h, cmd, seconds, period=0.005):
     t_end = time.monotonic() + seconds
     out = {}
@@ -54,13 +47,6 @@ def drive(h, cmd, seconds, period=0.005):
         out = h.step(h.t, opening_command=cmd)
         time.sleep(period)
     return out
-
-
-def wait_for(cond, timeout=1.0):
-    t_end = time.monotonic() + timeout
-    while not cond() and time.monotonic() < t_end:
-        time.sleep(0.002)
-    return cond()
 
 
 def test_crc_and_stuffing_helpers():

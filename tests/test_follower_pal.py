@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
+from fakes.realtime import configure_fails  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
 
@@ -52,14 +53,6 @@ def drive(h, cmd, seconds, period=0.01):
         out = h.step(h.t, opening_command=cmd)
         time.sleep(period)
     return out
-
-
-def configure_fails(h, match):
-    try:
-        with pytest.raises(HardwareError, match=match):
-            h.comp.configure()
-    finally:
-        h.comp.close()
 
 
 def test_follows_and_squeezes(robot):
