@@ -128,7 +128,6 @@ def sim(quick: bool, log) -> dict:
     rows = []
     for name, ind in indenters.items():
         s = DigitSimulator("qvga", indenter=ind, noise=2.0, seed=123)
-        m_per_px = s.m_per_px
         errs, rmses, rel, rel_plane = [], [], [], []
         for pos in positions:
             for d in depths:

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from teletouch import Component, Device, Kind, Port, hookimpl
+from teletouch import Component, Kind, Port, hookimpl
 from teletouch.runtime import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_STARTUP
 from teletouch.testing import Harness, make_registry, run_yaml
 

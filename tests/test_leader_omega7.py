@@ -137,7 +137,7 @@ def test_missing_device_says_device_and_what_to_check(sdk_dir, standin):
 
 
 def test_open_by_serial_and_wrong_serial(sdk_dir, standin):
-    with harness(sdk_dir, serial=12345) as h:
+    with harness(sdk_dir, serial=12345):
         assert standin.flags()["open"]
     with pytest.raises(dhd.DeviceNotFoundError, match="serial number 999"):
         harness(sdk_dir, serial=999).comp.configure()
