@@ -45,12 +45,14 @@ def harness(**params):
     return h
 
 
-def drive(h, cmd, seconds, period=0.01):
+def drive(h, cmd, seconds, period=0.01, trace=None):
     t_end = time.monotonic() + seconds
     out = {}
     while time.monotonic() < t_end:
         h.t = time.monotonic()
         out = h.step(h.t, opening_command=cmd)
+        if trace is not None:
+            trace.append(out)
         time.sleep(period)
     return out
 
@@ -81,9 +83,13 @@ def test_speed_limit_and_clamp(robot):
         t0 = time.monotonic()
         o = drive(h, 0.2, 0.1)  # beyond the range: clamped to 0.09 (already there)
         assert o["opening"] == pytest.approx(0.09, abs=1e-4)
-        o = drive(h, 0.05, 0.3)
+        trace = []
+        o = drive(h, 0.05, 0.3, trace=trace)
         assert o["opening"] > 0.09 - 0.05 * (time.monotonic() - t0) - 2e-3
-        assert o["velocity"] < -0.01  # closing (the finger speed itself is the robot's)
+        # closing (the finger speed itself is the robot's; judged over the whole move, not one late sample, so a
+        # loaded machine that delays the last joint state does not decide the test)
+        assert min(x["velocity"] for x in trace) < -0.01
+        assert o["opening"] < 0.09 - 1e-3
 
 
 def test_safe_state_open(robot):
