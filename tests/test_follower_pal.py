@@ -19,7 +19,7 @@ from fakes.realtime import configure_fails  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
 
-DOMAIN = 61  # this module's own ROS_DOMAIN_ID (other ROS 2 tests may run at the same time on this machine)
+DOMAIN = 20 + (os.getpid() * 7 + 3) % 90  # own ROS_DOMAIN_ID, differs per test run
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -7,6 +7,7 @@ wall clock because the emulated hardware moves in real time.
 from __future__ import annotations
 
 import math
+import os
 import sys
 import uuid
 from pathlib import Path
@@ -21,7 +22,7 @@ from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
 
 from teletouch.testing import make_registry, run_yaml  # noqa: E402
 
-DOMAIN = 62  # this module's own ROS_DOMAIN_ID
+DOMAIN = 20 + (os.getpid() * 7 + 4) % 90  # this module's own ROS_DOMAIN_ID, different per test run
 PLUGINS = ["sim-gripper", "dynamixel-gripper", "canopen-gripper", "pal-gripper"]
 MODULES = [f"teletouch.plugins.devices.{p.replace('-', '_')}" for p in PLUGINS]
 
