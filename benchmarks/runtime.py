@@ -22,6 +22,7 @@ import numpy as np
 from teletouch import Component, Kind, Port, hookimpl
 from teletouch.testing import load_text, make_registry
 from teletouch.runtime import Runtime
+from machine import cpu_times, machine_noise
 
 
 class Trivial(Component):
@@ -120,24 +121,6 @@ def sim_speed(duration: float) -> dict:
             "steps": sum(n.steps for n in res.nodes), "target_factor": 50.0, "pass": res.realtime_factor >= 50.0}
 
 
-def _cpu_times() -> list[int] | None:
-    try:
-        with open("/proc/stat") as fh:
-            return [int(x) for x in fh.readline().split()[1:]]
-    except OSError:
-        return None
-
-
-def machine_noise(before: list[int] | None, after: list[int] | None) -> dict:
-    """Share of CPU time stolen by the hypervisor and used by others while we measured: context for jitter."""
-    if not before or not after:
-        return {}
-    d = [b - a for a, b in zip(before, after)]
-    total = sum(d) or 1
-    return {"steal_fraction": d[7] / total if len(d) > 7 else None, "idle_fraction": d[3] / total,
-            "loadavg_1min": os.getloadavg()[0]}
-
-
 def jitter(duration: float, burn_ms: float, priority: int = 0, python_burn: bool = False,
            isolate: bool = False) -> dict:
     burn = (f"{{id: burn, plugin: mock-burn, rate: 60, params: {{burn: {burn_ms}ms}}"
@@ -152,9 +135,9 @@ nodes:
   - {burn}
 """
     rt = Runtime(load_text(text, REG), log=lambda m: None)
-    cpu0 = _cpu_times()
+    cpu0 = cpu_times()
     res = rt.run(duration)
-    noise = machine_noise(cpu0, _cpu_times())
+    noise = machine_noise(cpu0, cpu_times())
     starts = np.array(rt.component("fast").starts)
     periods = np.diff(starts[100:])  # skip warm-up
     err = np.abs(periods - 1e-3) * 1e3

@@ -40,6 +40,7 @@ import time
 import numpy as np
 
 from teletouch.plugins.controllers.experiments import build_runtime, sim_graph
+from machine import cpu_times, machine_noise
 
 
 def sim_speed(sensor: str, duration: float) -> dict:
@@ -63,24 +64,6 @@ def sim_speed(sensor: str, duration: float) -> dict:
             "controller_mean_step_us": ctl.mean_step_s * 1e6,
             "mean_step_us": {n.id: n.mean_step_s * 1e6 for n in res.nodes},
             "wall_share_per_sim_s": {n.id: n.mean_step_s * n.steps / res.sim_time for n in res.nodes}}
-
-
-def _cpu_times() -> list[int] | None:
-    try:
-        with open("/proc/stat") as fh:
-            return [int(x) for x in fh.readline().split()[1:]]
-    except OSError:
-        return None
-
-
-def machine_noise(before: list[int] | None, after: list[int] | None) -> dict:
-    """Share of the machine's CPU time stolen by the hypervisor, idle, and the load, over one measurement."""
-    if not before or not after:
-        return {}
-    d = [b - a for a, b in zip(before, after)]
-    total = sum(d) or 1
-    return {"steal_fraction": d[7] / total if len(d) > 7 else None, "idle_fraction": d[3] / total,
-            "loadavg_1min": os.getloadavg()[0]}
 
 
 #: wall-clock configurations compared side by side: (realtime_priority, nodes run with isolate: process, SCHED_FIFO
@@ -129,9 +112,9 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
                     first_use.append((fr[0], fr[1], rt.now()))
 
     rt.add_tap(tap)
-    before = _cpu_times()
+    before = cpu_times()
     res = rt.run()
-    noise = machine_noise(before, _cpu_times())
+    noise = machine_noise(before, cpu_times())
     ctl_stats = next(n for n in res.nodes if n.id == "controller")
     lat = np.array([c - a for a, b, c in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
     pick = np.array([c - b for a, b, c in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
@@ -174,12 +157,12 @@ def wall_controller_only(duration: float) -> dict:
     from teletouch.runtime import Runtime
 
     rt = Runtime(load_graph_text(CONTROLLER_ONLY, "<controller-only>"), log=lambda m: None)
-    before = _cpu_times()
+    before = cpu_times()
     res = rt.run(duration)
     c = next(n for n in res.nodes if n.id == "controller")
     return {"controller_jitter_p99_ms": (c.period_jitter_p99_s or float("nan")) * 1e3,
             "controller_mean_step_us": c.mean_step_s * 1e6, "controller_overruns": c.overruns,
-            "achieved_hz": c.achieved_rate, "machine": machine_noise(before, _cpu_times())}
+            "achieved_hz": c.achieved_rate, "machine": machine_noise(before, cpu_times())}
 
 
 def step_costs(n: int = 5000) -> dict:
