@@ -16,6 +16,7 @@ from fakes.canopen_drive import Cia402Drive  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from fakes.realtime import configure_fails, wait_for  # noqa: E402
+from fakes.realtime import drive as drive_for  # noqa: E402  ('drive' is the CiA 402 drive fixture here)
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
 
@@ -39,16 +40,6 @@ def harness(channel, **params):
     h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5}, **params))
     h.ctx.clock_kind = "wall"
     return h
-
-
-def drive_for(h, cmd, seconds, period=0.005):
-    t_end = time.monotonic() + seconds
-    out = {}
-    while time.monotonic() < t_end:
-        h.t = time.monotonic()
-        out = h.step(h.t, opening_command=cmd)
-        time.sleep(period)
-    return out
 
 
 def test_start_up_sequence(drive, channel):

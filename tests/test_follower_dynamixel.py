@@ -16,7 +16,7 @@ from fakes.dynamixel_emulator import (  # noqa: E402
 )
 
 from teletouch import HardwareError  # noqa: E402
-from fakes.realtime import configure_fails, wait_for  # noqa: E402
+from fakes.realtime import configure_fails, drive, wait_for  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 
@@ -37,16 +37,6 @@ def harness(emu, **params):
     h = Harness(DynamixelGripper, dict(FAST, port=emu.port, **params))
     h.ctx.clock_kind = "wall"
     return h
-
-
-def drive(h, cmd, seconds, period=0.005):
-    t_end = time.monotonic() + seconds
-    out = {}
-    while time.monotonic() < t_end:
-        h.t = time.monotonic()
-        out = h.step(h.t, opening_command=cmd)
-        time.sleep(period)
-    return out
 
 
 def test_crc_and_stuffing_helpers():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
@@ -15,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
+from fakes import realtime  # noqa: E402
 from fakes.realtime import configure_fails  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
@@ -39,22 +41,13 @@ def robot():
     r.stop()
 
 
+drive = functools.partial(realtime.drive, period=0.01)  # the ROS 2 driver at 100 Hz
+
+
 def harness(**params):
     h = Harness(PalGripper, dict({"namespace": "tiago", "domain_id": DOMAIN, "connect_timeout": 2.0}, **params))
     h.ctx.clock_kind = "wall"
     return h
-
-
-def drive(h, cmd, seconds, period=0.01, trace=None):
-    t_end = time.monotonic() + seconds
-    out = {}
-    while time.monotonic() < t_end:
-        h.t = time.monotonic()
-        out = h.step(h.t, opening_command=cmd)
-        if trace is not None:
-            trace.append(out)
-        time.sleep(period)
-    return out
 
 
 def test_follows_and_squeezes(robot):
