@@ -406,7 +406,6 @@ class Runtime:
         heapq.heapify(heap)
         stop = self._stop_evt
         perf = time.perf_counter
-        taps = self.taps
         write = self._write
         next_progress = perf() + interval
         counter = 0
@@ -425,15 +424,7 @@ class Runtime:
                 try:
                     out = node.step(t, node.inputs)
                     if out:
-                        if taps or out.__class__ is not dict:
-                            write(node, out, t)
-                        else:
-                            slots = node.out
-                            for name, v in out.items():
-                                slot = slots.get(name)
-                                if slot is None:
-                                    write(node, out, t)  # raises with a clear message
-                                slot.sample = v if v.__class__ is Sample else Sample(v, t)
+                        write(node, out, t)
                 except Exception as exc:
                     self._fault(node, "exception", _exc_line(exc), t)
                 dt = perf() - t1
@@ -453,10 +444,8 @@ class Runtime:
                 if now >= next_progress:
                     next_progress = now + interval
                     progress(self, t)
-        else:
-            pass
-        if not stop.is_set() and self._now < duration:
-            self._now = duration if not heap or heap[0][0] > end_ns else self._now
+        if not stop.is_set():  # ran out of ticks before the end (or every node degraded): the graph reached it
+            self._now = duration
 
     def _run_wall(self, duration: float | None, progress: Any, interval: float) -> None:
         groups: dict[float, list[_Node]] = {}
@@ -489,8 +478,8 @@ class Runtime:
             self._join()
             sys.setswitchinterval(old_switch)
             self._now = time.perf_counter() - self._t0
-            if duration is not None and self._stop_reason is None:
-                self._now = min(self._now, duration) if self._now < duration + 0.05 else self._now
+            if duration is not None and self._stop_reason is None and duration <= self._now < duration + 0.05:
+                self._now = duration  # ended by its duration (the main thread polls every 20 ms)
 
     def _wall_loop(self, members: list[_Node], rate: float) -> None:
         _set_timer_slack(1000)
