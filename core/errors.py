@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import traceback
+
 
 class TeletouchError(Exception):
     """Base class for all teletouch errors."""
@@ -69,3 +71,10 @@ class HardwareError(ComponentFault):
 
 class ModelFileError(TeletouchError):
     """A model or calibration file is missing, corrupt or of the wrong version."""
+
+
+def exception_line(exc: BaseException) -> str:
+    """One line for a person: ``Type: message (file.py:line)`` of the innermost frame that raised."""
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
+    return f"{type(exc).__name__}: {exc}{where}"

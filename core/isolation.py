@@ -16,20 +16,13 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import time
-import traceback
 from typing import Any
 
 from .component import Component, Context, Inputs, Sample, _Slot
-from .errors import ComponentFault
+from .errors import ComponentFault, exception_line
 
 #: seconds a child may take to answer a lifecycle call (configure may load a model)
 LIFECYCLE_TIMEOUT = 120.0
-
-
-def _exc_text(exc: BaseException) -> str:
-    tb = traceback.extract_tb(exc.__traceback__)
-    where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
-    return f"{type(exc).__name__}: {exc}{where}"
 
 
 def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float,
@@ -75,7 +68,7 @@ def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_
             conn.send(("ok", logs[:]))
             logs.clear()
         except BaseException as exc:  # noqa: BLE001 - everything goes back to the parent
-            conn.send(("exc", _exc_text(exc), logs[:]))
+            conn.send(("exc", exception_line(exc), logs[:]))
             logs.clear()
     conn.close()
 

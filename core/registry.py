@@ -16,7 +16,6 @@ from __future__ import annotations
 import difflib
 import importlib
 import os
-import traceback
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Iterable
@@ -26,7 +25,7 @@ from pydantic import BaseModel
 
 from . import hookspecs
 from .component import NAME_RE, Component, Device, Kind, Port
-from .errors import DuplicateComponentError, PluginError, UnknownComponentError
+from .errors import DuplicateComponentError, PluginError, UnknownComponentError, exception_line
 
 GROUP = "teletouch"
 ENV_DISABLE = "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD"
@@ -113,7 +112,7 @@ class Registry:
         try:
             obj = loader()
         except Exception as exc:  # a broken plugin is reported, not fatal
-            rec.error = _short_error(exc)
+            rec.error = exception_line(exc)
             return
         self.register(obj, name=name, _record=rec)
 
@@ -131,7 +130,7 @@ class Registry:
         try:
             self.pm.register(plugin, name=name)
         except Exception as exc:
-            rec.error = _short_error(exc)
+            rec.error = exception_line(exc)
             return rec
         impls = [i for i in self.pm.hook.teletouch_components.get_hookimpls() if i.plugin_name == name]
         found: list[type[Component]] = []
@@ -141,7 +140,7 @@ class Registry:
             for cls in found:
                 _check_component(cls)
         except Exception as exc:
-            rec.error = _short_error(exc)
+            rec.error = exception_line(exc)
             self.pm.unregister(name=name)
             return rec
         for cls in found:
@@ -201,7 +200,7 @@ class Registry:
             try:
                 found.extend(impl.function() or [])
             except Exception as exc:
-                found.append({"kind": impl.plugin_name, "id": "", "path": "", "error": _short_error(exc)})
+                found.append({"kind": impl.plugin_name, "id": "", "path": "", "error": exception_line(exc)})
         return found
 
 
@@ -220,12 +219,6 @@ def _check_component(cls: Any) -> None:
                 raise PluginError(f"{cls.__qualname__}.{side}['{pname}'] must be a teletouch.Port")
     if issubclass(cls, Device) and cls.safe_state is Device.safe_state:
         raise PluginError(f"device {cls.__qualname__} must define safe_state()")
-
-
-def _short_error(exc: BaseException) -> str:
-    tb = traceback.extract_tb(exc.__traceback__)
-    where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
-    return f"{type(exc).__name__}: {exc}{where}"
 
 
 _default: Registry | None = None

@@ -23,12 +23,11 @@ import os
 import sys
 import threading
 import time
-import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from .component import Component, Context, Device, Inputs, Sample, _Slot
-from .errors import ComponentFault
+from .errors import ComponentFault, exception_line
 from .graph import GraphSpec
 
 EXIT_OK = 0
@@ -257,7 +256,7 @@ class Runtime:
         try:
             node.comp.safe_state()
         except Exception as exc:
-            self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {_exc_line(exc)}", self._now,
+            self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now,
                                      "logged"))
 
     def _check_stale(self, node: _Node, t: float) -> bool:
@@ -292,13 +291,13 @@ class Runtime:
                 node.comp.configure()
                 node.state = "inactive"
             except Exception as exc:
-                return f"node '{node.id}' ({node.spec.plugin}) failed to configure: {_exc_line(exc)}"
+                return f"node '{node.id}' ({node.spec.plugin}) failed to configure: {exception_line(exc)}"
         for node in self.nodes:
             try:
                 node.comp.activate()
                 node.state = "active"
             except Exception as exc:
-                return f"node '{node.id}' ({node.spec.plugin}) failed to activate: {_exc_line(exc)}"
+                return f"node '{node.id}' ({node.spec.plugin}) failed to activate: {exception_line(exc)}"
         return None
 
     def _start_clock(self) -> str | None:
@@ -312,7 +311,7 @@ class Runtime:
                 try:
                     node.comp.set_origin(self._t0, self._t0_mono)
                 except Exception as exc:
-                    return f"node '{node.id}' ({node.spec.plugin}) failed to start: {_exc_line(exc)}"
+                    return f"node '{node.id}' ({node.spec.plugin}) failed to start: {exception_line(exc)}"
         return None
 
     def _shutdown(self) -> None:
@@ -324,14 +323,14 @@ class Runtime:
                 try:
                     node.comp.deactivate()
                 except Exception as exc:
-                    self.faults.append(Fault(node.id, "shutdown", f"deactivate() raised {_exc_line(exc)}",
+                    self.faults.append(Fault(node.id, "shutdown", f"deactivate() raised {exception_line(exc)}",
                                              self._now, "logged"))
                 node.state = "inactive"
         for node in reversed(self.nodes):
             try:
                 node.comp.close()
             except Exception as exc:
-                self.faults.append(Fault(node.id, "shutdown", f"close() raised {_exc_line(exc)}", self._now,
+                self.faults.append(Fault(node.id, "shutdown", f"close() raised {exception_line(exc)}", self._now,
                                          "logged"))
             node.state = "finalized"
 
@@ -369,9 +368,9 @@ class Runtime:
             else:
                 self._run_wall(duration, progress, progress_interval)
         except KeyboardInterrupt:
-            status = ("interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
+            status = ("interrupted", EXIT_INTERRUPTED,
+                      "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
             self._stop_evt.set()
-            self._join()
         finally:
             self._join()
             self._shutdown()
@@ -426,7 +425,7 @@ class Runtime:
                     if out:
                         write(node, out, t)
                 except Exception as exc:
-                    self._fault(node, "exception", _exc_line(exc), t)
+                    self._fault(node, "exception", exception_line(exc), t)
                 dt = perf() - t1
                 node.busy += dt
                 if dt > node.max_step:
@@ -522,7 +521,7 @@ class Runtime:
                     if out:
                         self._write(node, out, t)
                 except Exception as exc:
-                    self._fault(node, "exception", _exc_line(exc), t)
+                    self._fault(node, "exception", exception_line(exc), t)
                 node.steps += 1
                 dt = perf() - t1
                 node.busy += dt
@@ -559,15 +558,6 @@ def thread_priority(realtime_priority: int, rate: float, node_priorities: list[i
     if asked:
         return max(asked)
     return realtime_priority if rate >= 200 else 0
-
-
-def _exc_line(exc: BaseException) -> str:
-    tb = traceback.extract_tb(exc.__traceback__)
-    where = ""
-    if tb:
-        fr = tb[-1]
-        where = f" ({fr.filename.rsplit('/', 1)[-1]}:{fr.lineno})"
-    return f"{type(exc).__name__}: {exc}{where}"
 
 
 def run_graph(spec: GraphSpec, *, duration: float | None = None, clock: str | None = None,
