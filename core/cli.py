@@ -16,7 +16,7 @@ from typing import Any, Sequence
 from . import __version__
 from .errors import GraphValidationError, TeletouchError
 from .registry import default_registry
-from .runtime import EXIT_INVALID, EXIT_OK, Runtime
+from .runtime import EXIT_INVALID, EXIT_OK, EXIT_USAGE, Runtime
 
 
 def _add_graph_args(p: argparse.ArgumentParser) -> None:
@@ -202,9 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="image compression in the recording: png (lossless, ~17 ms/frame) or jpeg (~1 ms/frame)")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")
-    cal = p.add_subparsers(dest="calibrate_command", metavar="WHAT")
-    p.set_defaults(func=lambda a: (p.print_help(), EXIT_INVALID)[1], _calibrate=cal)
+    calp = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")
+    cal = calp.add_subparsers(dest="calibrate_command", metavar="WHAT")
+    calp.set_defaults(func=lambda a: (calp.print_help(sys.stderr), EXIT_USAGE)[1], _calibrate=cal)
 
     p = sub.add_parser("devices", help="list connected supported hardware")
     p.add_argument("--json", action="store_true")

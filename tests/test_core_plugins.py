@@ -190,3 +190,9 @@ def test_signal_stops_wall_clock_run_with_safe_devices(tmp_path, sig):
     assert p.returncode == 130, err
     assert err.strip().splitlines()[-1] == ("teletouch: interrupted: interrupted (Ctrl-C or SIGTERM): devices "
                                             "driven to their safe state")
+
+
+def test_cli_calibrate_without_what_shows_its_own_usage():
+    r = _cli("calibrate")
+    assert r.returncode == 2
+    assert r.stderr.startswith("usage: teletouch calibrate") and "depth" in r.stderr and "force" in r.stderr
