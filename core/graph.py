@@ -40,7 +40,7 @@ from typing import Any, Iterable
 
 from pydantic import ValidationError
 
-from .component import Component, Device, Port
+from .component import Component, Device
 from .errors import GraphError, GraphValidationError, Location
 from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
@@ -600,4 +600,4 @@ def dump_schema(registry: Any = None) -> str:
 
 
 __all__ = ["GraphSpec", "NodeSpec", "WireSpec", "FaultPolicy", "load_graph", "load_graph_text", "load_raw",
-           "apply_sets", "build_spec", "graph_json_schema", "dump_schema", "Port", "Device"]
+           "apply_sets", "build_spec", "graph_json_schema", "dump_schema"]
