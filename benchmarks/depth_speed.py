@@ -49,12 +49,13 @@ def reference_depth(net, model, frame, torch, scipy_fft):
     xs = (cc.astype(np.float32) + 0.5) * (2.0 / w) - 1.0
     ys = (rr.astype(np.float32) + 0.5) * (2.0 / h) - 1.0
     fs = model.feature_set
-    parts = []
-    if fs in ("rgbxy", "rgbxy+diff"):
-        parts.append(x.reshape(-1, 3) / 255.0)
-    if fs in ("diffxy", "rgbxy+diff", "diff"):
-        parts.append(d.reshape(-1, 3) / 255.0)
-    if fs != "diff":
+    from teletouch.plugins.estimators.normal_model import colour_maps, uses_xy
+
+    cm = colour_maps(fs, x, d, model.background.astype(np.float32))
+    if fs == "ratio+gradxy":
+        cm[..., 3:] *= model.stride   # Sobel per pixel here, per work-grid cell in training
+    parts = [cm.reshape(h * w, -1)]
+    if uses_xy(fs):
         parts += [xs.reshape(-1, 1), ys.reshape(-1, 1)]
     f = (np.concatenate(parts, axis=1) - model.feat_mean) / model.feat_std
     with torch.no_grad():

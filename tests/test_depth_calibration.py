@@ -119,6 +119,15 @@ def test_calibrated_model_reconstructs_held_out_presses(qvga):
     assert 8.0 < model.change_threshold < 40.0
     # the background itself: no depth
     assert DepthPipeline(model)(bg).max_depth == 0.0
+    # the default inputs read the neighbourhood (Sobel of the relative change): the CPU path computes them on a window
+    # around the changed cells, the dense (GPU) path on the whole grid with kornia; the same depth
+    assert model.feature_set == "ratio+gradxy"
+    frame = dict(ims)["0002.png"]
+    a = DepthPipeline(model, mode="sparse")(frame)
+    b = DepthPipeline(model, mode="dense")(frame)
+    assert a.max_depth > 0.2e-3
+    assert a.max_depth == pytest.approx(b.max_depth, rel=0.03)
+    assert np.abs(a.depth - b.depth).max() < 0.05 * b.max_depth
 
 
 def test_metrics_on_an_exact_cap():

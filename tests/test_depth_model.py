@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from teletouch import ModelFileError
-from teletouch.plugins.estimators.normal_model import (FORMAT, VERSION, NormalModel, load_model, make_net,
-                                                       resolve_model)
+from teletouch.plugins.estimators.normal_model import (FEATURE_SETS, FORMAT, VERSION, NormalModel, colour_maps,
+                                                       colour_maps_torch, feature_count, load_model, make_net,
+                                                       resolve_model, uses_xy)
 
 
 def _model(rows=32, cols=24, feature_set="diffxy"):
@@ -126,3 +127,27 @@ def test_packaged_model_by_name_and_unknown_names():
     assert p.stat().st_size < 2 * 1024 * 1024
     with pytest.raises(ModelFileError, match=r"no-such: no such model file.*packaged: .*sim-digit-qvga"):
         load_model("no-such")
+
+
+@pytest.mark.parametrize("feature_set", sorted(FEATURE_SETS))
+def test_colour_features_agree_between_numpy_and_torch_and_on_windows(feature_set):
+    """Training and the CPU path use colour_maps (NumPy/OpenCV), the dense path colour_maps_torch (kornia): the same
+    numbers. The CPU path computes them on a window around the changed cells: inside it they equal the whole grid's."""
+    import torch
+
+    rng = np.random.default_rng(1)
+    bg = rng.uniform(0, 255, (20, 16, 3)).astype(np.float32)
+    bg[0, 0] = 3.0                                             # below the ratio's floor
+    frame = np.clip(bg + rng.normal(0, 20, bg.shape), 0, 255).astype(np.float32)
+    diff = frame - bg
+    a = colour_maps(feature_set, frame, diff, bg)
+    k = feature_count(feature_set) - (2 if uses_xy(feature_set) else 0)
+    assert a.shape == (20, 16, k) and a.dtype == np.float32 and np.isfinite(a).all()
+    t = lambda v: torch.from_numpy(v).permute(2, 0, 1)[None]  # noqa: E731
+    b = colour_maps_torch(feature_set, t(frame), t(diff), t(bg))[0].permute(1, 2, 0).numpy()
+    assert np.allclose(a, b, atol=1e-5)
+    w = colour_maps(feature_set, frame[4:12, 3:10], diff[4:12, 3:10], bg[4:12, 3:10])
+    assert np.allclose(w[1:-1, 1:-1], a[5:11, 4:9], atol=1e-6)
+    if feature_set.startswith("ratio"):
+        assert a[0, 0, 0] == pytest.approx(diff[0, 0, 0] / 16.0)  # the floor, not a blow-up
+        assert a[3, 5, 2] == pytest.approx(diff[3, 5, 2] / bg[3, 5, 2])

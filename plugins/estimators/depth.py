@@ -27,6 +27,8 @@ from pydantic import Field
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
 from teletouch.units import Meters, parse_quantity
 
+from .normal_model import DEFAULT_FEATURES, FEATURE_SETS
+
 __all__ = ["DepthEstimator"]
 
 
@@ -324,8 +326,9 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--labels-only", action="store_true", help="only label the presses (write the CSV), no training")
     p.add_argument("--review", default=None, metavar="DIR", help="write an overlay image per press for checking")
     p.add_argument("--holdout", type=int, default=2, help="presses held out for validation (default 2)")
-    p.add_argument("--features", default="diffxy", choices=["diffxy", "rgbxy", "rgbxy+diff", "diff"],
-                   help="network inputs (default diffxy: difference from the background + position)")
+    p.add_argument("--features", default=DEFAULT_FEATURES, choices=sorted(FEATURE_SETS),
+                   help=f"network inputs (default {DEFAULT_FEATURES}: relative change from the background, its local "
+                   "gradients and the position; rgbxy is the paper's R, G, B, X, Y; see docs/depth.md)")
     p.add_argument("--hidden", type=int, nargs="+", default=[32, 32, 32], help="hidden layer sizes")
     p.add_argument("--epochs", type=int, default=40)
     p.add_argument("--seed", type=int, default=0)

@@ -22,11 +22,12 @@ import numpy as np
 
 from teletouch.errors import ModelFileError
 
-from .normal_model import NormalModel, feature_count, make_net
+from .normal_model import DEFAULT_FEATURES, NormalModel, feature_count, make_net
 
 __all__ = [
     "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",
-    "review_overlay", "grid_images", "press_samples", "train_model", "cap_height_error", "sphere_fit_radius",
+    "review_overlay", "pool_grid", "grid_images", "press_samples", "train_model", "cap_height_error",
+    "sphere_fit_radius",
     "far_false_depth", "evaluate_press", "px_per_mm_from_caliper", "default_stride", "calibrate",
 ]
 
@@ -239,23 +240,24 @@ def review_overlay(image: np.ndarray, background: np.ndarray, label: Label) -> n
 
 # --- training data ---------------------------------------------------------------------------------------------
 
+def pool_grid(a: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Block means of a (rows, cols, 3) image in ``stride x stride`` blocks starting at ``offset``, float32."""
+    oy, ox = offset
+    h, w = a.shape[:2]
+    gr, gc = (h - oy) // stride, (w - ox) // stride
+    a = a[oy: oy + gr * stride, ox: ox + gc * stride].astype(np.float32)
+    return a.reshape(gr, stride, gc, stride, 3).sum(axis=(1, 3)) * (1.0 / (stride * stride))
+
+
 def grid_images(image: np.ndarray, background: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0),
                 drift: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Block-averaged frame and diff on the work grid (float32 (gr, gc, 3)), exactly as the estimator computes
     them: block means of frame and background, their difference, minus its per-channel median over every 4th
     cell (global illumination drift, :func:`depth_pipeline.channel_offset`)."""
-    oy, ox = offset
-    h, w = image.shape[:2]
-    gr, gc = (h - oy) // stride, (w - ox) // stride
-
-    def pool(a: np.ndarray) -> np.ndarray:
-        a = a[oy: oy + gr * stride, ox: ox + gc * stride].astype(np.float32)
-        return a.reshape(gr, stride, gc, stride, 3).sum(axis=(1, 3)) * (1.0 / (stride * stride))
-
     from .depth_pipeline import channel_offset
 
-    x = pool(image)
-    d = x - pool(background)
+    x = pool_grid(image, stride, offset)
+    d = x - pool_grid(background, stride, offset)
     if drift:
         d -= channel_offset(d)
     return x, d
@@ -282,7 +284,7 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
     ring between 1 and 2.5 contact radii (where the gel is nearly flat but the colours change), half anywhere.
     Each grid phase (``offsets``; default 0 and stride/2 in each direction) gives another view of the same press.
     """
-    from .normal_model import features
+    from .normal_model import colour_maps, features
 
     h, w = image.shape[:2]
     if offsets is None:
@@ -291,6 +293,7 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
     xs_all, ys_all = [], []
     for off in offsets:
         gx_img, gd = grid_images(image, background, stride, off)
+        cmaps = colour_maps(feature_set, gx_img, gd, pool_grid(background, stride, off))
         gr, gc = gx_img.shape[:2]
         rr, cc = np.mgrid[0:gr, 0:gc]
         # full-resolution position of each cell's centre
@@ -309,9 +312,7 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
             pick_ring = rng.choice(ring, size=min(ring.size, nflat // 2), replace=False) if ring.size else ring
             pick_rest = rng.choice(rest, size=min(rest.size, nflat - pick_ring.size), replace=False)
             sel = np.concatenate([inside, pick_ring, pick_rest])
-        pix = gx_img.reshape(-1, 3)[sel]
-        dif = gd.reshape(-1, 3)[sel]
-        xs_all.append(features(feature_set, pix, dif, prow[sel], pcol[sel], (h, w)))
+        xs_all.append(features(feature_set, cmaps.reshape(gr * gc, -1)[sel], prow[sel], pcol[sel], (h, w)))
         if label is None or not label.usable:
             ys_all.append(np.tile(np.array([[0, 0, 1]], np.float32), (sel.size, 1)))
         else:
@@ -322,7 +323,7 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
 # --- training --------------------------------------------------------------------------------------------------
 
 def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
-                px_per_m: float, ball_radius_m: float = 0.003, feature_set: str = "diffxy",
+                px_per_m: float, ball_radius_m: float = 0.003, feature_set: str = DEFAULT_FEATURES,
                 hidden: Sequence[int] = (32, 32, 32), epochs: int = 40, lr: float = 1e-3, batch: int = 1024,
                 dropout: float = 0.05, seed: int = 0, stride: int | None = None, flat_ratio: float = 1.0,
                 validation: Sequence[str] = (), progress: bool = True, fit_gain: bool = True,

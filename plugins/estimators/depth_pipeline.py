@@ -36,7 +36,7 @@ import numpy as np
 from teletouch.errors import ModelFileError
 
 from . import poisson
-from .normal_model import NormalModel, feature_count
+from .normal_model import NormalModel, colour_maps, colour_maps_torch, feature_count, uses_xy
 
 __all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset"]
 
@@ -131,9 +131,8 @@ class DepthPipeline:
         self._gy_np = self.grid_y.cpu().numpy()
         self._mean_np = np.asarray(model.feat_mean, np.float32)
         self._inv_std_np = (1.0 / np.asarray(model.feat_std, np.float32)).astype(np.float32)
-        self._use_rgb = model.feature_set in ("rgbxy", "rgbxy+diff")
-        self._use_diff = model.feature_set in ("diffxy", "rgbxy+diff", "diff")
-        self._use_xy = model.feature_set != "diff"
+        self._use_xy = uses_xy(model.feature_set)
+        self._context = 1 if model.feature_set == "ratio+gradxy" else 0   # cells of neighbourhood a feature reads
         self._xy_np = np.ascontiguousarray(np.stack([self._gx_np, self._gy_np], axis=-1))
         self._fold_layers()
         self._k3 = np.ones((3, 3), np.uint8)
@@ -202,34 +201,20 @@ class DepthPipeline:
         """(B, 3, gr, gc) frame and diff -> standardised (B, gr, gc, F) features."""
         torch = self.torch
         b = x.shape[0]
-        parts = []
-        fs = self.model.feature_set
-        if fs in ("rgbxy", "rgbxy+diff"):
-            parts.append(x * (1.0 / 255.0))
-        if fs in ("diffxy", "rgbxy+diff", "diff"):
-            parts.append(d * (1.0 / 255.0))
-        if fs != "diff":
+        parts = [colour_maps_torch(self.model.feature_set, x, d, self.background_grid)]
+        if self._use_xy:
             parts.append(self.grid_x.expand(b, 1, -1, -1))
             parts.append(self.grid_y.expand(b, 1, -1, -1))
         f = torch.cat(parts, dim=1).permute(0, 2, 3, 1)
         return (f - self.mean) * self.inv_std
 
     def _fold_layers(self) -> None:
-        """The network's linear layers with the input scaling (1/255 for colours) and standardisation folded into
-        the first one, for the CPU path: W' = W diag(scale / std), b' = b - W (mean / std)."""
+        """The network's linear layers with the input standardisation folded into the first one, for the CPU path:
+        W' = W diag(1 / std), b' = b - W (mean / std)."""
         torch = self.torch
         lin = [m for m in self.net if isinstance(m, torch.nn.Linear)]
-        fs = self.model.feature_set
-        scale = []
-        if fs in ("rgbxy", "rgbxy+diff"):
-            scale += [1 / 255.0] * 3
-        if fs in ("diffxy", "rgbxy+diff", "diff"):
-            scale += [1 / 255.0] * 3
-        if fs != "diff":
-            scale += [1.0, 1.0]
-        sc = torch.tensor(scale, dtype=torch.float32, device=self.device)
         with torch.no_grad():
-            w0 = lin[0].weight * (sc * self.inv_std)[None, :]
+            w0 = lin[0].weight * self.inv_std[None, :]
             b0 = lin[0].bias - lin[0].weight @ (self.mean * self.inv_std)
             self._layers = [(w0.T.contiguous().cpu(), b0.contiguous().cpu())]
             self._layers += [(m.weight.T.contiguous().cpu(), m.bias.contiguous().cpu()) for m in lin[1:]]
@@ -243,21 +228,6 @@ class DepthPipeline:
                 if i < last:
                     x.relu_()
             return x
-
-    def _features_at(self, x: Any, d: Any, r: Any, c: Any) -> Any:
-        """Standardised features (N, F) of the cells (r, c) of one frame (x, d: (3, gr, gc))."""
-        torch = self.torch
-        fs = self.model.feature_set
-        parts = []
-        if fs in ("rgbxy", "rgbxy+diff"):
-            parts.append(x[:, r, c].T * (1.0 / 255.0))
-        if fs in ("diffxy", "rgbxy+diff", "diff"):
-            parts.append(d[:, r, c].T * (1.0 / 255.0))
-        if fs != "diff":
-            parts.append(self.grid_x[r, c, None])
-            parts.append(self.grid_y[r, c, None])
-        f = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
-        return (f - self.mean) * self.inv_std
 
     def _gradients(self, n: Any) -> tuple[Any, Any]:
         n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
@@ -323,14 +293,15 @@ class DepthPipeline:
         c = nz_pts[:, 0].astype(np.intp)
         r = nz_pts[:, 1].astype(np.intp)
         idx = r * gc + c
+        # colour features on the cells' bounding box (+ the neighbourhood a feature reads; at the grid's border the
+        # box ends where the grid does, so the replicated border is the same as on the whole grid)
+        q = self._context
+        w0, w1 = max(int(r.min()) - q, 0), min(int(r.max()) + 1 + q, gr)
+        v0, v1 = max(int(c.min()) - q, 0), min(int(c.max()) + 1 + q, gc)
+        cm = colour_maps(self.model.feature_set, x[w0:w1, v0:v1], d[w0:w1, v0:v1], self._bg_grid_np[w0:w1, v0:v1])
         feats = np.empty((idx.size, self.nfeat), np.float32)
-        k = 0
-        if self._use_rgb:
-            feats[:, 0:3] = x.reshape(-1, 3)[idx]
-            k = 3
-        if self._use_diff:
-            feats[:, k:k + 3] = d.reshape(-1, 3)[idx]
-            k += 3
+        k = cm.shape[2]
+        feats[:, :k] = cm[r - w0, c - v0]
         if self._use_xy:
             feats[:, k:k + 2] = self._xy_np.reshape(-1, 2)[idx]
         n = self._fast_mlp(torch.from_numpy(feats)).numpy()

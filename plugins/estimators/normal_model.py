@@ -1,14 +1,15 @@
 """The per-pixel normal network and its model file.
 
 Network: an MLP from per-pixel features to the surface normal (nx, ny, nz) of the gel, as in the paper (R, G, B,
-X, Y -> normal), optionally with the pixel's difference from the background frame as three more inputs (it helps
-most; see docs/depth.md). Layers: Linear(in, 32) -> ReLU -> Dropout(0.05) -> Linear(32, 32) -> ReLU ->
+X, Y -> normal), or with the pixel's change from the background frame instead of its colour (it helps most; see
+docs/depth.md). Layers: Linear(in, 32) -> ReLU -> Dropout(0.05) -> Linear(32, 32) -> ReLU ->
 Dropout(0.05) -> Linear(32, 32) -> ReLU -> Linear(32, 3).
 
 Features (same function in training and inference, so coordinates are normalised identically):
-  rgb:  the pixel's B, G, R / 255;  diff: (pixel - background) / 255;  xy: column and row mapped to [-1, 1] by the
-  image size (x = (col + 0.5) / cols * 2 - 1). Each feature is then standardised by a mean and std fitted on the
-  training pixels and stored in the model file.
+  rgb:  the pixel's B, G, R / 255;  diff: (pixel - background) / 255;  ratio: (pixel - background) / background
+  (relative change); grad: Sobel derivatives of the ratio (local context); xy: column and row mapped to [-1, 1] by
+  the image size (x = (col + 0.5) / cols * 2 - 1). See :func:`colour_maps`. Each feature is then standardised by a
+  mean and std fitted on the training pixels and stored in the model file.
 
 Model file (``*.model``): a NumPy .npz archive written without pickling (``np.load(..., allow_pickle=False)``
 reads it; no code can be executed by loading it):
@@ -35,13 +36,14 @@ import numpy as np
 from teletouch.errors import ModelFileError
 
 __all__ = [
-    "FORMAT", "VERSION", "FEATURE_SETS", "make_net", "features", "feature_count", "NormalModel", "load_model",
-    "packaged_model_path", "resolve_model",
+    "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
+    "features", "uses_xy", "feature_count", "NormalModel", "load_model", "packaged_model_path", "resolve_model",
 ]
 
 FORMAT = "teletouch-depth-model"
 VERSION = 1
-FEATURE_SETS = {"rgbxy": 5, "diffxy": 5, "rgbxy+diff": 8, "diff": 3}
+FEATURE_SETS = {"rgbxy": 5, "diffxy": 5, "rgbxy+diff": 8, "diff": 3, "ratioxy": 5, "ratio+gradxy": 11}
+DEFAULT_FEATURES = "ratio+gradxy"   # the most accurate on the shared real presses (docs/depth.md)
 DATA_DIR = Path(__file__).resolve().parent / "data"
 
 
@@ -75,23 +77,71 @@ def xy_features(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> t
     return x, y
 
 
-def features(feature_set: str, pix: np.ndarray, diff: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-             shape: tuple[int, int]) -> np.ndarray:
-    """Raw (unstandardised) features, float32 (N, F).
+RATIO_FLOOR = 16.0   # background level (0..255) below which the relative change is taken against this floor
 
-    pix: (N, 3) BGR 0..255 of the frame; diff: (N, 3) frame - background (0..255 scale); rows/cols: pixel indices.
+
+def colour_maps(feature_set: str, frame: np.ndarray, diff: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """The per-cell colour features of a work grid (all inputs but x, y), float32 (rows, cols, k).
+
+    frame, diff, background: float32 (rows, cols, 3) BGR on the work grid (0..255 scale; diff drift-corrected).
+    rgb = frame / 255; diff = diff / 255; ratio = diff / max(background, RATIO_FLOOR), the relative colour change
+    (the light of each LED falls off across the gel, and a slope changes a pixel's colour in proportion to the
+    light it gets, so the ratio depends less on where the press is); grad = the 3 x 3 Sobel derivatives / 8 of the
+    ratio along columns and rows (replicated border), the local context of each cell.
     """
-    x, y = xy_features(rows, cols, shape)
+    import cv2
+
     parts: list[np.ndarray] = []
     if feature_set in ("rgbxy", "rgbxy+diff"):
-        parts.append(np.asarray(pix, dtype=np.float32) * (1.0 / 255.0))
+        parts.append(frame * np.float32(1.0 / 255.0))
     if feature_set in ("diffxy", "rgbxy+diff", "diff"):
-        parts.append(np.asarray(diff, dtype=np.float32) * (1.0 / 255.0))
-    if feature_set not in FEATURE_SETS:
+        parts.append(diff * np.float32(1.0 / 255.0))
+    if feature_set in ("ratioxy", "ratio+gradxy"):
+        r = diff / np.maximum(background, np.float32(RATIO_FLOOR))
+        parts.append(r)
+        if feature_set == "ratio+gradxy":
+            parts.append(cv2.Sobel(r, cv2.CV_32F, 1, 0, ksize=3, scale=0.125, borderType=cv2.BORDER_REPLICATE))
+            parts.append(cv2.Sobel(r, cv2.CV_32F, 0, 1, ksize=3, scale=0.125, borderType=cv2.BORDER_REPLICATE))
+    if not parts:
         feature_count(feature_set)
-    if feature_set != "diff":
-        parts.append(x[:, None])
-        parts.append(y[:, None])
+    out = np.concatenate(parts, axis=2) if len(parts) > 1 else parts[0]
+    return out.astype(np.float32, copy=False)
+
+
+def colour_maps_torch(feature_set: str, frame: Any, diff: Any, background: Any) -> Any:
+    """:func:`colour_maps` on torch tensors (B, 3, rows, cols) -> (B, k, rows, cols), with kornia's Sobel."""
+    import torch
+
+    parts: list[Any] = []
+    if feature_set in ("rgbxy", "rgbxy+diff"):
+        parts.append(frame * (1.0 / 255.0))
+    if feature_set in ("diffxy", "rgbxy+diff", "diff"):
+        parts.append(diff * (1.0 / 255.0))
+    if feature_set in ("ratioxy", "ratio+gradxy"):
+        r = diff / background.clamp_min(RATIO_FLOOR)
+        parts.append(r)
+        if feature_set == "ratio+gradxy":
+            import kornia.filters as KF
+
+            g = KF.spatial_gradient(r, mode="sobel", normalized=False) * 0.125   # (B, 3, 2, rows, cols)
+            parts += [g[:, :, 0], g[:, :, 1]]
+    if not parts:
+        feature_count(feature_set)
+    return torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+
+
+def uses_xy(feature_set: str) -> bool:
+    return feature_set != "diff"
+
+
+def features(feature_set: str, colours: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]
+             ) -> np.ndarray:
+    """Raw (unstandardised) network inputs, float32 (N, F): the cells' colour features (N, k) from
+    :func:`colour_maps`, then x, y of their full-resolution positions (rows/cols, px) when the set uses them."""
+    parts = [np.asarray(colours, dtype=np.float32)]
+    if uses_xy(feature_set):
+        x, y = xy_features(rows, cols, shape)
+        parts += [x[:, None], y[:, None]]
     return np.concatenate(parts, axis=1).astype(np.float32, copy=False)
 
 
