@@ -1,9 +1,11 @@
 """Speed of frame -> depth map -> max depth, side by side with a straightforward reference pipeline.
 
-Reference (written here, the plain reading of the paper's method): features of EVERY pixel of the full frame, the
-torch MLP on all of them, normals -> gradients, and a scipy DST-I Poisson solve of the whole frame's interior
-(eigenvalues computed on each call), minus the depth map of the background frame (the zero reference). Fast: teletouch's `depth` pipeline (work grid, network only on changed cells,
-windowed solve with cached eigenvalues). Both use the same calibrated model (trained here on the shared QVGA/VGA
+Reference (written here, the plain reading of the paper's method): features of EVERY pixel of the full frame (the
+mean of the stride x stride block around each pixel, as the model was trained; the gradient inputs with taps one
+block apart), the torch MLP on all of them, normals -> gradients, and a scipy DST-I Poisson solve of the whole
+frame's interior (eigenvalues computed on each call), minus the depth map of the background frame (the zero
+reference). Fast: teletouch's `depth` pipeline (work grid, network only on changed cells, windowed solve with cached
+eigenvalues). Both use the same calibrated model (trained here on the shared QVGA/VGA
 presses) and one torch thread; they run interleaved frame by frame, so load from other processes hits both alike.
 
     python benchmarks/depth_speed.py [--quick] [--device cuda]
@@ -41,19 +43,32 @@ def reference_max_depth(net, model, frame, torch, scipy_fft, zero=None):
 
 
 def reference_depth(net, model, frame, torch, scipy_fft):
+    import cv2
+
+    from teletouch.plugins.estimators.normal_model import RATIO_FLOOR, colour_maps, uses_xy
+
     h, w = frame.shape[:2]
-    x = frame.astype(np.float32)
-    d = x - model.background.astype(np.float32)
+    s = model.stride
+    # the model was trained on stride x stride block means: at every pixel, the mean of the block around it
+    x = cv2.blur(frame.astype(np.float32), (s, s))
+    bg = cv2.blur(model.background.astype(np.float32), (s, s))
+    d = x - bg
     d -= np.median(d[::8, ::8].reshape(-1, 3), axis=0)
     rr, cc = np.mgrid[0:h, 0:w]
     xs = (cc.astype(np.float32) + 0.5) * (2.0 / w) - 1.0
     ys = (rr.astype(np.float32) + 0.5) * (2.0 / h) - 1.0
     fs = model.feature_set
-    from teletouch.plugins.estimators.normal_model import colour_maps, uses_xy
-
-    cm = colour_maps(fs, x, d, model.background.astype(np.float32))
     if fs == "ratio+gradxy":
-        cm[..., 3:] *= model.stride   # Sobel per pixel here, per work-grid cell in training
+        # the Sobel of the work grid, at every pixel: taps one block (s px) apart
+        r = d / np.maximum(bg, np.float32(RATIO_FLOOR))
+        k = np.zeros((2 * s + 1, 2 * s + 1), np.float32)
+        k[0, 0], k[s, 0], k[2 * s, 0] = -1, -2, -1
+        k[0, 2 * s], k[s, 2 * s], k[2 * s, 2 * s] = 1, 2, 1
+        gx = cv2.filter2D(r, cv2.CV_32F, k * 0.125, borderType=cv2.BORDER_REPLICATE)
+        gy = cv2.filter2D(r, cv2.CV_32F, np.ascontiguousarray(k.T) * 0.125, borderType=cv2.BORDER_REPLICATE)
+        cm = np.concatenate([r, gx, gy], axis=2)
+    else:
+        cm = colour_maps(fs, x, d, bg)
     parts = [cm.reshape(h * w, -1)]
     if uses_xy(fs):
         parts += [xs.reshape(-1, 1), ys.reshape(-1, 1)]
