@@ -187,6 +187,8 @@ def main() -> int:
         vga_features = [DEFAULT_FEATURES] if args.quick else [DEFAULT_FEATURES, "diffxy"]
         result["vga"] = {fs: real("vga", 3 if not args.quick else 4, fs, epochs, log,
                                   fold_limit=1 if args.quick else None) for fs in vga_features}
+    if not args.no_sim:
+        result["sim"] = sim(args.quick, log)
     q = result["qvga"][DEFAULT_FEATURES]
     summary = {"qvga_median_abs_cap_error": q["median_abs_cap_error"],
                "qvga_median_sphere_radius_mm": q["median_sphere_radius_mm"],
