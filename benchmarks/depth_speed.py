@@ -45,7 +45,7 @@ def reference_max_depth(net, model, frame, torch, scipy_fft, zero=None):
 def reference_depth(net, model, frame, torch, scipy_fft):
     import cv2
 
-    from teletouch.plugins.estimators.normal_model import RATIO_FLOOR, colour_maps, uses_xy
+    from teletouch.plugins.estimators.normal_model import colour_maps, uses_xy
 
     h, w = frame.shape[:2]
     s = model.stride
@@ -60,7 +60,7 @@ def reference_depth(net, model, frame, torch, scipy_fft):
     fs = model.feature_set
     if fs == "ratio+gradxy":
         # the Sobel of the work grid, at every pixel: taps one block (s px) apart
-        r = d / np.maximum(bg, np.float32(RATIO_FLOOR))
+        r = colour_maps("ratioxy", x, d, bg)     # the relative change, as the model defines it
         k = np.zeros((2 * s + 1, 2 * s + 1), np.float32)
         k[0, 0], k[s, 0], k[2 * s, 0] = -1, -2, -1
         k[0, 2 * s], k[s, 2 * s], k[2 * s, 2 * s] = 1, 2, 1

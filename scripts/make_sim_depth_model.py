@@ -83,8 +83,8 @@ def main() -> int:
         rc = teletouch(["calibrate", "depth", "--images", str(folder), "--ball-diameter", "6mm",
                         "--px-per-mm", "17.15", "--labels", str(folder / "labels.csv"),
                         "--background", str(folder / "background.png"), "--holdout", "4",
-                        "--epochs", str(args.epochs), "--seed", str(args.seed), "--quiet", "-o", args.output]
-                       + ["--features", args.features])
+                        "--epochs", str(args.epochs), "--seed", str(args.seed), "--features", args.features,
+                        "--quiet", "-o", args.output])
     if rc == 0:
         print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1024:.0f} KiB)", file=sys.stderr)
     return rc

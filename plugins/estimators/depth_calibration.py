@@ -250,17 +250,18 @@ def pool_grid(a: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0)) -> n
 
 
 def grid_images(image: np.ndarray, background: np.ndarray, stride: int, offset: tuple[int, int] = (0, 0),
-                drift: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Block-averaged frame and diff on the work grid (float32 (gr, gc, 3)), exactly as the estimator computes
-    them: block means of frame and background, their difference, minus its per-channel median over every 4th
-    cell (global illumination drift, :func:`depth_pipeline.channel_offset`)."""
+                drift: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block-averaged frame, diff and background on the work grid (float32 (gr, gc, 3)), exactly as the estimator
+    computes them: block means of frame and background, their difference minus its per-channel median over every
+    4th cell (global illumination drift, :func:`depth_pipeline.channel_offset`)."""
     from .depth_pipeline import channel_offset
 
     x = pool_grid(image, stride, offset)
-    d = x - pool_grid(background, stride, offset)
+    b = pool_grid(background, stride, offset)
+    d = x - b
     if drift:
         d -= channel_offset(d)
-    return x, d
+    return x, d, b
 
 
 def sphere_normals(rows: np.ndarray, cols: np.ndarray, label: Label, ball_radius_px: float) -> np.ndarray:
@@ -292,8 +293,8 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
         offsets = sorted({(0, 0), (0, hs), (hs, 0), (hs, hs)})
     xs_all, ys_all = [], []
     for off in offsets:
-        gx_img, gd = grid_images(image, background, stride, off)
-        cmaps = colour_maps(feature_set, gx_img, gd, pool_grid(background, stride, off))
+        gx_img, gd, gb = grid_images(image, background, stride, off)
+        cmaps = colour_maps(feature_set, gx_img, gd, gb)
         gr, gc = gx_img.shape[:2]
         rr, cc = np.mgrid[0:gr, 0:gc]
         # full-resolution position of each cell's centre
@@ -465,7 +466,7 @@ def change_threshold(images: Sequence[tuple[str, np.ndarray]], labels: dict[str,
         lb = labels.get(name)
         if name not in names or lb is None or not (lb.usable or lb.no_contact):
             continue
-        _, gd = grid_images(img, background, stride)
+        _, gd, _ = grid_images(img, background, stride)
         a = cv2.blur(np.abs(gd).sum(axis=2), (3, 3), borderType=cv2.BORDER_REPLICATE)
         if lb.usable:
             gr, gc = a.shape

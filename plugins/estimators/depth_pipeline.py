@@ -36,7 +36,7 @@ import numpy as np
 from teletouch.errors import ModelFileError
 
 from . import poisson
-from .normal_model import NormalModel, colour_maps, colour_maps_torch, feature_count, uses_xy
+from .normal_model import NormalModel, colour_maps, colour_maps_torch, context_cells, feature_count, uses_xy
 
 __all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset"]
 
@@ -127,13 +127,9 @@ class DepthPipeline:
         self.grid_y = gr[:, None].expand(self.grows, self.gcols).contiguous().to(self.device)
         self.grid_x = gc[None, :].expand(self.grows, self.gcols).contiguous().to(self.device)
         self.set_background(model.background if background is None else background)
-        self._gx_np = self.grid_x.cpu().numpy()
-        self._gy_np = self.grid_y.cpu().numpy()
-        self._mean_np = np.asarray(model.feat_mean, np.float32)
-        self._inv_std_np = (1.0 / np.asarray(model.feat_std, np.float32)).astype(np.float32)
         self._use_xy = uses_xy(model.feature_set)
-        self._context = 1 if model.feature_set == "ratio+gradxy" else 0   # cells of neighbourhood a feature reads
-        self._xy_np = np.ascontiguousarray(np.stack([self._gx_np, self._gy_np], axis=-1))
+        self._context = context_cells(model.feature_set)
+        self._xy_np = np.ascontiguousarray(torch.stack([self.grid_x, self.grid_y], dim=-1).cpu().numpy())
         self._fold_layers()
         self._k3 = np.ones((3, 3), np.uint8)
         self._ones13 = np.ones((1, 3), np.float32)

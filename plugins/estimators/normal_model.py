@@ -37,7 +37,8 @@ from teletouch.errors import ModelFileError
 
 __all__ = [
     "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
-    "features", "uses_xy", "feature_count", "NormalModel", "load_model", "packaged_model_path", "resolve_model",
+    "features", "uses_xy", "context_cells", "feature_count", "NormalModel", "load_model", "packaged_model_path",
+    "resolve_model",
 ]
 
 FORMAT = "teletouch-depth-model"
@@ -132,6 +133,11 @@ def colour_maps_torch(feature_set: str, frame: Any, diff: Any, background: Any) 
 
 def uses_xy(feature_set: str) -> bool:
     return feature_set != "diff"
+
+
+def context_cells(feature_set: str) -> int:
+    """How many cells on each side of a cell its colour features read (the Sobel of ratio+gradxy: 1)."""
+    return 1 if feature_set == "ratio+gradxy" else 0
 
 
 def features(feature_set: str, colours: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]
