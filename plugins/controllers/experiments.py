@@ -500,6 +500,18 @@ class Recorder:
         return t, v
 
 
+def save_outputs(out: str | Path, name: str, result: dict[str, Any], plot: Any = None) -> None:
+    """Write an experiment's metrics to ``out/<name>.json`` and, when ``plot`` is given, its figure by
+    ``plot(out/<name>.png)``; the paths go into ``result["files"]``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    result["files"] = [str(out / f"{name}.json")]
+    if plot is not None:
+        plot(out / f"{name}.png")
+        result["files"].append(str(out / f"{name}.png"))
+
+
 # ================================================================================================ contact
 
 
@@ -625,13 +637,7 @@ def experiment_contact(duration: float = 6.0, sensor: str = "image", out: str | 
         result["position_position"] = pp_m
         runs["position-position baseline"] = pp_r
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "contact.json").write_text(json.dumps(result, indent=2) + "\n")
-        result["files"] = [str(out / "contact.json")]
-        if plot:
-            contact_plot(out / "contact.png", runs)
-            result["files"].append(str(out / "contact.png"))
+        save_outputs(out, "contact", result, (lambda path: contact_plot(path, runs)) if plot else None)
     return result
 
 
@@ -760,13 +766,7 @@ def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float 
                     "visual_only": {"success_rate": 0.40, "median_completion_s": 15.37}}
     res["wall_time_s"] = time.perf_counter() - w0
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "pivot.json").write_text(json.dumps(res, indent=2) + "\n")
-        res["files"] = [str(out / "pivot.json")]
-        if plot:
-            pivot_plot(out / "pivot.png", res)
-            res["files"].append(str(out / "pivot.png"))
+        save_outputs(out, "pivot", res, (lambda path: pivot_plot(path, res)) if plot else None)
     return res
 
 
