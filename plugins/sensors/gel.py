@@ -361,13 +361,7 @@ def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, po
                 if not isfinite(d):
                     raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
                 return 0.0
-            if d <= d1:
-                F = c * d ** 1.5
-                if h is None:
-                    return F * 1.0
-                a_c = sqrt(Rt * d)
-                return F * layer(a_c if a_c < a else a)
-            F = f1 + c2 * (d - d1)
+            F = c * d ** 1.5 if d <= d1 else f1 + c2 * (d - d1)
             if h is None:
                 return F * 1.0
             a_c = sqrt(Rt * d)
