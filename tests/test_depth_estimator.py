@@ -122,6 +122,35 @@ def test_component_ports_stamps_and_errors(sim):
         Harness(DepthEstimator, {"device": "cuda"}).comp.configure()
 
 
+def test_an_identical_frame_reuses_the_result_and_a_changed_one_does_not(sim):
+    img, _ = sim.render(0.8e-3, (0.0, 0.0))
+    with Harness(DepthEstimator, {"model": "sim-digit-qvga"}) as h:
+        from teletouch import Sample
+
+        calls = []
+        real = h.comp.pipe.__call__
+        h.comp.pipe = type("Counting", (), {"__call__": lambda self, f: calls.append(1) or real(f),
+                                            "check_frame": h.comp.pipe.check_frame})()
+        h.set(image=Sample(img, 0.48))
+        a = h.comp.step(0.5, h.inputs)
+        h.set(image=Sample(img.copy(), 0.58))
+        b = h.comp.step(0.6, h.inputs)
+        assert len(calls) == 1 and h.comp.reused == 1
+        assert b["max_depth"].value == a["max_depth"].value > 0.3e-3
+        assert b["max_depth"].stamp == 0.58 and b["depth"].stamp == 0.58   # the new frame's time
+        changed = img.copy()
+        changed[-1, -1, 2] ^= 1          # one bit in the last byte: not the same frame
+        h.step(0.7, image=changed)
+        assert len(calls) == 2
+        img[...] = 0                     # the caller reusing its buffer does not alter what is remembered
+        h.step(0.8, image=changed)
+        assert len(calls) == 2 and h.comp.reused == 2
+    with Harness(DepthEstimator, {"model": "sim-digit-qvga", "reuse_unchanged": False}) as h:
+        h.step(0.5, image=changed)
+        h.step(0.6, image=changed)
+        assert h.comp.reused == 0
+
+
 def test_background_adaptation_follows_illumination_drift(model):
     bg = model.background.astype(np.int16)
     # a strong local illumination change (not global: the median drift correction would remove that)

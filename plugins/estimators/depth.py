@@ -72,6 +72,10 @@ class DepthEstimator(Component):
             "shallower; see docs/depth.md)")
         threads: int | None = Field(1, ge=1, le=64, description="torch intra-op threads on CPU (process-wide; 1 is "
                                     "fastest for one frame on a busy machine; None: leave torch's setting)")
+        reuse_unchanged: bool = Field(True, description="a frame identical to the previous one (bit for bit: a "
+                                      "simulated sensor at rest without noise; a camera's noise never repeats) "
+                                      "gives the previous result again, stamped with the new frame's time, "
+                                      "without recomputing it")
 
     def configure(self) -> None:
         from .depth_pipeline import DepthPipeline
@@ -97,6 +101,8 @@ class DepthEstimator(Component):
         self._bg = (bg if bg is not None else model.background).astype(np.float32)
         self._last: dict[str, float] = {}
         self._ms = math.nan
+        self._prev: tuple[np.ndarray, Any] | None = None  # (last frame, its result) for reuse_unchanged
+        self.reused = 0
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["image"]
@@ -108,12 +114,20 @@ class DepthEstimator(Component):
         except ValueError as exc:
             raise ComponentFault(str(exc), self.id) from None
         t0 = time.perf_counter()
-        res = self.pipe(frame)
+        prev = self._prev
+        if prev is not None and _same_frame(prev[0], frame):
+            res = prev[1]
+            self.reused += 1
+        else:
+            res = self.pipe(frame)
+            a = self.params.adapt_background
+            if a > 0 and res.contact_area == 0.0 and not res.contact_mask.any():
+                self._bg += a * (frame.astype(np.float32) - self._bg)
+                self.pipe.set_background(self._bg)
+                self._prev = None   # the background moved: the same frame would now read differently
+            elif self.params.reuse_unchanged:
+                self._prev = (frame.copy(), res)
         self._ms = (time.perf_counter() - t0) * 1e3
-        a = self.params.adapt_background
-        if a > 0 and res.contact_area == 0.0 and not res.contact_mask.any():
-            self._bg += a * (frame.astype(np.float32) - self._bg)
-            self.pipe.set_background(self._bg)
         self._last = {"max_depth_mm": res.max_depth * 1e3, "contact_area_mm2": res.contact_area * 1e6,
                       "ms": self._ms}
         st = s.stamp
@@ -123,6 +137,15 @@ class DepthEstimator(Component):
 
     def status(self) -> dict[str, Any]:
         return dict(self._last)
+
+
+def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
+    """Bit-identical frames; a sparse sample of the bytes first, so a new camera frame is told apart in ~2 us
+    (the full comparison of a QVGA frame is ~20 us, against ~1-5 ms for the estimate it saves)."""
+    if a.shape != b.shape:
+        return False
+    fa, fb = a.reshape(-1), b.reshape(-1)
+    return bool(np.array_equal(fa[::4099], fb[::4099]) and np.array_equal(fa, fb))
 
 
 def _check_device(device: str) -> str:
