@@ -140,13 +140,13 @@ def main() -> int:
                 t += dt
                 out = sensor.step(t, indentation=indentation, position=pos)
                 if depth is None:
-                    md, area = out["gt_max_depth"], None
+                    md, area, centroid = out["gt_max_depth"], None, out["gt_position"]
                 else:
                     t1 = time.perf_counter()
                     dout = depth.step(t, image=out["image"])
                     t_depth += time.perf_counter() - t1
-                    md, area = dout["max_depth"], dout.get("contact_area")
-                kw = {"max_depth": md}
+                    md, area, centroid = dout["max_depth"], dout.get("contact_area"), dout["centroid"]
+                kw = {"max_depth": md, "centroid": centroid}
                 if area is not None:
                     kw["contact_area"] = area
                 f = mapper.step(t, **kw)
@@ -194,6 +194,8 @@ def main() -> int:
         "calibration": str(cal_path if not args.recalibrate else "fresh press-routine run"),
         "calibration_depth_source": cal.depth_source,
         "calibration_sensor_model_id": cal.sensor_model_id,
+        "calibration_position_degree": cal.position.degree if cal.position is not None else 0,
+        "calibration_samples": sum(1 for smp in cal.samples if smp.get("used", True)),
         "fit_r2": round(cal.r2, 6),
         "fit_r2_target": 0.998,
         "fit_rmse_n": round(cal.rmse, 5),

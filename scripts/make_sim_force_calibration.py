@@ -6,12 +6,12 @@ It runs exactly the user's command on the example graph:
     teletouch calibrate force --graph examples/calibrate-force-sim.yaml \
         -o plugins/estimators/data/sim-digit-qvga.force.json --plot docs/force-calibration-sim.png
 
-i.e. sim-omega7 + sim-press-rig + sim-digit + the depth estimator (model sim-digit-qvga) + press-routine, 3 cycles of
-0.1 mm steps to 2 mm. ``--depth-source gt`` uses sim-digit's ground-truth max depth instead of the depth estimator
-(for development before a depth model exists; the file then records depth_source sensor.gt_max_depth).
-``--quick`` runs one cycle of 0.25 mm steps (a smoke test; do not ship its output). ``--multi-point`` presses once
-at each of 5 points across the sensor (centre and (+-1.5 mm, +-3 mm)) instead of 3 cycles at the centre (the
-paper's protocol): the fit then averages the depth estimator's position dependence.
+i.e. sim-omega7 + sim-press-rig + sim-digit + the depth estimator (model sim-digit-qvga) + press-routine, 0.1 mm
+steps to 2 mm, once at each point of a 5 x 5 grid over +-2 x +-4 mm (``--grid``), fitted with position terms of degree
+4 (``--position-degree``: the curve follows the contact centroid, which evens out the depth estimator's variation
+over the sensor). ``--single-point`` runs the paper's protocol instead: 3 cycles at the centre, one curve.
+``--depth-source gt`` uses sim-digit's ground-truth max depth instead of the depth estimator (for development before a depth model exists; the file then records depth_source sensor.gt_max_depth).
+``--quick`` runs 0.25 mm steps on a 3 x 3 grid with position degree 1 (a smoke test; do not ship its output).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ def gt_graph(text: str) -> str:
     """The example graph with the depth node removed and the routine reading sim-digit's ground truth."""
     text = re.sub(r"\n  - id: depth\n(?:    .*\n)+", "\n", text)
     text = text.replace("max_depth: depth.max_depth", "max_depth: sensor.gt_max_depth")
+    text = text.replace("centroid: depth.centroid", "centroid: sensor.gt_position")
     if "depth.max_depth" in text or "plugin: depth\n" in text:
         raise SystemExit("could not rewrite the example graph for --depth-source gt")
     return text
@@ -45,7 +46,10 @@ def main() -> int:
     ap.add_argument("-o", "--output", default=str(OUT))
     ap.add_argument("--plot", default=str(PLOT))
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--multi-point", action="store_true")
+    ap.add_argument("--single-point", action="store_true", help="the paper's protocol: 3 cycles at the centre, "
+                    "no position terms")
+    ap.add_argument("--grid", default="5x5", help="press points, columns x rows, over +-2 mm (x) by +-4 mm (y)")
+    ap.add_argument("--position-degree", type=int, default=4)
     ap.add_argument("--depth-model", default=None, help="depth model file (default: the packaged sim-digit-qvga)")
     args = ap.parse_args()
     graph = GRAPH
@@ -63,10 +67,15 @@ def main() -> int:
     if args.depth_model:
         cmd += ["--set", f"depth.model={Path(args.depth_model).resolve()}"]
     if args.quick:
-        cmd += ["--set", "routine.cycles=1", "--set", "routine.step=0.25mm"]
-    if args.multi_point:
-        pts = "[[0, 0], [1.5mm, 3mm], [-1.5mm, 3mm], [1.5mm, -3mm], [-1.5mm, -3mm]]"
-        cmd += ["--set", f"routine.positions={pts}", "--set", "routine.cycles=5"]
+        cmd += ["--set", "routine.step=0.25mm"]
+        args.grid, args.position_degree = "3x3", 1
+    if not args.single_point:
+        nx, ny = (int(v) for v in args.grid.lower().split("x"))
+        xs = [-2.0 + 4.0 * i / (nx - 1) if nx > 1 else 0.0 for i in range(nx)]
+        ys = [-4.0 + 8.0 * j / (ny - 1) if ny > 1 else 0.0 for j in range(ny)]
+        pts = "[" + ", ".join(f"[{x:g}mm, {y:g}mm]" for y in ys for x in xs) + "]"
+        cmd += ["--set", f"routine.positions={pts}", "--set", f"routine.cycles={nx * ny}",
+                "--position-degree", str(args.position_degree), "--duration", f"{120 + 40 * nx * ny}s"]
     print("$ " + " ".join(cmd), file=sys.stderr)
     import os
 

@@ -90,6 +90,11 @@ def test_estimate_json_depth_files_and_force(sim_presses, tmp_path, capsys):
     assert 0.1e-3 < pr["max_depth_m"] < 1.5e-3 and pr["contact_area_m2"] > 0 and pr["force_N"] > 0
     assert nc["max_depth_m"] == 0.0 and nc["contact_area_m2"] == 0.0 and nc["force_N"] == 0.0
     assert nc["centroid_m"] == [None, None]
+    # the packaged calibration has position terms: the force is the one at the press's centroid
+    from teletouch.plugins.estimators.poly_force import ForceCalibration
+
+    cal = ForceCalibration.load(FORCE_JSON)
+    assert pr["force_N"] == pytest.approx(cal.predict(pr["max_depth_m"], position=tuple(pr["centroid_m"])))
     d = np.load(tmp_path / "d" / f"{press.stem}.npy")
     assert d.dtype == np.float32 and d.shape == (320, 240) and d.max() == pytest.approx(pr["max_depth_m"],
                                                                                          rel=0.05)

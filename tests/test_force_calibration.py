@@ -24,7 +24,7 @@ FAST = {"cycles": 1, "step": "0.25mm", "max_displacement": "1.5mm", "settle_time
 
 
 def graph(routine: dict | None = None, leader: dict | None = None, rig: dict | None = None,
-          duration: float = 60.0) -> str:
+          duration: float = 60.0, centroid: str = "") -> str:
     r = dict(FAST, **(routine or {}))
     lead = dict({"intent": "none"}, **(leader or {}))
     return f"""
@@ -47,7 +47,7 @@ nodes:
     rate: 1000
     params: {json.dumps(r)}
     inputs: {{position: leader.position, max_depth: rig.indentation, reference_force: rig.contact_force,
-              abort: leader.button}}
+              abort: leader.button{centroid}}}
 """
 
 
@@ -95,12 +95,15 @@ def test_routine_records_the_steady_state_device_force(full_run):
 def test_press_points_across_the_sensor(reg):
     seen = []
     routine = {"cycles": 3, "positions": [[0, 0], ["1mm", "-2mm"]], "max_displacement": "0.5mm"}
-    result, rt = run_yaml(graph(routine=routine), reg,
+    result, rt = run_yaml(graph(routine=routine, centroid=", centroid: rig.indenter_position"), reg,
                           taps=[lambda n, t, o: seen.append((t, o["indenter_position"].copy(), o["indentation"]))
                                 if n == "rig" else None])
     assert result.status == "stopped", result.message
     r = rt.component("routine")
     pts = {s["cycle"]: s["press_point_m"] for s in r.samples}
+    # the contact centroid (here the rig's true one) is recorded with each step, for --position-degree
+    for s in r.samples:
+        np.testing.assert_allclose([s["x_m"], s["y_m"]], s["press_point_m"], atol=2e-5)
     assert pts[0] == [0.0, 0.0] and pts[2] == [0.0, 0.0]
     np.testing.assert_allclose(pts[1], [1e-3, -2e-3], atol=1e-12)
     # the probe reached the second point before touching the gel there, and never moved sideways while pressing

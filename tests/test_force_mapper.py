@@ -344,6 +344,167 @@ def test_packaged_sim_calibration_loads_and_meets_the_fit_target():
     assert lo < 0.2e-3 and hi > 1.0e-3
     f = cal.predict(np.linspace(0, 1.5 * hi, 100), "extrapolate")
     assert np.all(np.diff(f) >= 0) and f[0] == 0.0
+    # made by the press routine at 5 x 5 points across the sensor, with position terms (scripts/make_sim_force_...)
+    assert cal.position is not None and cal.position.degree == 4
+    assert cal.position.half_extent[0] > 1.8e-3 and cal.position.half_extent[1] > 3.8e-3
     with Harness(PolyForce) as h:  # the component's default calibration is the packaged one
-        assert h.step(0.0, max_depth=0.0)["force"] == 0.0
-        assert h.step(0.1, max_depth=1e-3)["force"] == pytest.approx(cal.predict(1e-3))
+        assert h.step(0.0, max_depth=0.0, centroid=np.full(2, np.nan))["force"] == 0.0
+        for xy in ((0.0, 0.0), (1.5e-3, -3e-3)):
+            out = h.step(h.t + 0.1, max_depth=1e-3, centroid=np.array(xy))
+            assert out["status"] == "ok" and out["force"] == pytest.approx(cal.predict(1e-3, position=xy))
+
+
+# ------------------------------------------------------------------------------------------------ position terms
+def _spread(u, v):
+    """A depth estimator that reads deeper towards +x and towards both y ends (degree 2 in the position)."""
+    return 1.0 + 0.2 * u + 0.1 * v * v - 0.05 * u * v
+
+
+def position_data(nx=5, ny=5, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    rows = []
+    for x in np.linspace(-2e-3, 2e-3, nx):
+        for y in np.linspace(-4e-3, 4e-3, ny):
+            for d in np.linspace(0.1e-3, 2.0e-3, 12):
+                f = float(truth(d)) * _spread(x / 2e-3, y / 4e-3)
+                rows.append((d, f + rng.normal(0, noise) if noise else f, x, y))
+    return np.array(rows)
+
+
+@pytest.fixture(scope="module")
+def pos_cal():
+    a = position_data()
+    return ForceCalibration.fit(a[:, 0], a[:, 1], 3, positions=a[:, 2:], position_degree=2)
+
+
+def test_position_terms_recover_a_position_dependent_law(pos_cal):
+    cal = pos_cal
+    assert cal.position.degree == 2 and cal.r2 == pytest.approx(1.0, abs=1e-10)
+    np.testing.assert_allclose(cal.position.center, [0, 0], atol=1e-15)
+    np.testing.assert_allclose(cal.position.half_extent, [2e-3, 4e-3], rtol=1e-12)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        x, y, d = rng.uniform(-2e-3, 2e-3), rng.uniform(-4e-3, 4e-3), rng.uniform(0.1e-3, 2e-3)
+        f, st = cal.predict_with_status(d, "clamp", (x, y))
+        assert st == "ok" and f == pytest.approx(float(truth(d)) * _spread(x / 2e-3, y / 4e-3), rel=1e-7)
+    # at the centre of the area it is the plain polynomial, which `coefficients` holds
+    np.testing.assert_allclose(cal.coefficients, TRUE, rtol=1e-6, atol=1e-9)
+    assert cal.predict(1e-3) == pytest.approx(cal.predict(1e-3, position=(0.0, 0.0)), rel=1e-12)
+    # the same data without position terms leaves the spread in the error
+    a = position_data()
+    plain = ForceCalibration.fit(a[:, 0], a[:, 1], 3)
+    assert plain.r2 < 0.99 and plain.rmse > 100 * cal.rmse
+
+
+def test_position_outside_the_area_is_held_at_its_edge(pos_cal):
+    f_edge, st = pos_cal.predict_with_status(1e-3, "clamp", (2e-3, -4e-3))
+    assert st == "ok"
+    f_out, st = pos_cal.predict_with_status(1e-3, "clamp", (9e-3, -20e-3))
+    assert st == "clamped" and f_out == pytest.approx(f_edge, rel=1e-12)
+    f, code = pos_cal.evaluate(np.array([1e-3, 1e-3]), "clamp", np.array([[0.0, 0.0], [5e-3, 0.0]]))
+    assert code.tolist() == [0, 2] and f[1] == pytest.approx(pos_cal.predict(1e-3, position=(2e-3, 0.0)))
+
+
+def test_position_terms_need_presses_across_the_sensor():
+    a = position_data()
+    one_point = a[(a[:, 2] == 0) & (a[:, 3] == 0)]
+    with pytest.raises(CalibrationError, match="presses across the sensor"):
+        ForceCalibration.fit(one_point[:, 0], one_point[:, 1], 3, positions=one_point[:, 2:], position_degree=1)
+    corners = a[(np.abs(a[:, 2]) == 2e-3) & (np.abs(a[:, 3]) == 4e-3)]   # 4 points cannot give 6 terms
+    with pytest.raises(CalibrationError, match="press at more points"):
+        ForceCalibration.fit(corners[:, 0], corners[:, 1], 3, positions=corners[:, 2:], position_degree=2)
+    with pytest.raises(CalibrationError, match="needs the contact centroid"):
+        ForceCalibration.fit(a[:, 0], a[:, 1], 3, position_degree=2)
+    pos = a[:, 2:].copy()
+    pos[3, 1] = np.nan
+    with pytest.raises(CalibrationError, match="sample 3: contact centroid"):
+        ForceCalibration.fit(a[:, 0], a[:, 1], 3, positions=pos, position_degree=2)
+
+
+def test_position_file_round_trip_and_bad_fields(tmp_path, pos_cal):
+    path = pos_cal.save(tmp_path / "pos.force.json")
+    back = ForceCalibration.load(path)
+    assert back.position.degree == 2 and back.position.P.tolist() == pos_cal.position.P.tolist()
+    for pt in ((1e-3, 2e-3), (-1.5e-3, -3e-3)):
+        assert back.predict(1.2e-3, position=pt) == pos_cal.predict(1.2e-3, position=pt)
+    doc = json.loads(path.read_text())
+    assert doc["model"]["position"]["terms"][:3] == ["u^0 v^0", "u^1 v^0", "u^0 v^1"]
+    for mutate, field in ((lambda m: m["position"]["coefficients"][1].pop(), "model.position.coefficients"),
+                          (lambda m: m["position"].update(half_extent_m=[0.0, 1e-3]), "model.position.half_extent_m"),
+                          (lambda m: m["position"].update(degree=9), "model.position.degree"),
+                          (lambda m: m["position"]["depth_high_m"][2].__setitem__(3, 5e-3),
+                           "model.position.depth_high_m"),
+                          (lambda m: m["coefficients"].__setitem__(1, 1.0), "model.coefficients")):
+        d2 = json.loads(path.read_text())
+        mutate(d2["model"])
+        bad = tmp_path / "bad.force.json"
+        bad.write_text(json.dumps(d2))
+        with pytest.raises(ModelFileError, match=f"bad.force.json: field '{field}'"):
+            ForceCalibration.load(bad)
+
+
+def test_component_with_position_terms_needs_and_uses_the_centroid(tmp_path, pos_cal):
+    from teletouch import ComponentFault
+
+    path = str(pos_cal.save(tmp_path / "pos.force.json"))
+    with Harness(PolyForce, {"calibration": path}) as h:
+        with pytest.raises(ComponentFault, match="wire the contact centroid into its 'centroid' input"):
+            h.step(0.0, max_depth=1e-3)
+    with Harness(PolyForce, {"calibration": path}) as h:
+        out = h.step(0.1, max_depth=1e-3, centroid=np.array([1.5e-3, -2e-3]))
+        assert out["status"] == "ok"
+        assert out["force"] == pytest.approx(pos_cal.predict(1e-3, position=(1.5e-3, -2e-3)), rel=1e-12)
+        out = h.step(0.2, max_depth=1e-3, centroid=np.array([np.nan, np.nan]))   # in contact, position unknown
+        assert out["force"] == 0.0 and out["status"] == "invalid-input"
+        out = h.step(0.3, max_depth=0.0, centroid=np.array([np.nan, np.nan]))    # no contact: no centroid either
+        assert out["force"] == 0.0 and out["status"] == "no-contact"
+
+
+def test_csv_with_centroid_columns(tmp_path):
+    from teletouch.plugins.estimators.force_calibration import fit_samples
+
+    a = position_data(3, 3)
+    rows = [{"depth_m": d, "force_n": f, "x_m": x, "y_m": y} for d, f, x, y in a]
+    path = write_pairs_csv(tmp_path / "p.csv", rows)
+    data = read_pairs_csv(path)
+    np.testing.assert_allclose(data["x_m"], a[:, 2], rtol=1e-8)
+    samples = [{"depth_m": d, "force_n": f, "x_m": x, "y_m": y}
+               for d, f, x, y in zip(data["depth_m"], data["force_n"], data["x_m"], data["y_m"])]
+    cal = fit_samples(samples, 3, position_degree=1)
+    assert cal.position.degree == 1 and cal.samples[0]["x_m"] == pytest.approx(-2e-3)
+    with pytest.raises(CalibrationError, match="needs the contact centroid of every sample"):
+        fit_samples([dict(s, x_m=None) for s in samples], 3, position_degree=1)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("depth_m,force_n,x_m\n0.001,1.0,0.0\n")
+    with pytest.raises(CalibrationError, match="bad.csv:1: header has x_m without y_m"):
+        read_pairs_csv(bad)
+    bad.write_text("depth_m,force_n,x_m,y_m\n0.001,1.0,0.0,here\n")
+    with pytest.raises(CalibrationError, match="bad.csv:2: column 'y_m'"):
+        read_pairs_csv(bad)
+
+
+def test_position_fit_that_falls_somewhere_in_the_area_is_refused():
+    a = position_data()
+    f = truth(a[:, 0]) * (1.0 + 1.5 * a[:, 2] / 2e-3)   # at x = -2 mm the force falls as the gel is pressed in
+    with pytest.raises(CalibrationError, match=r"not monotonic .* at the contact position \(-2.00, -4.00\) mm"):
+        ForceCalibration.fit(a[:, 0], f, 3, positions=a[:, 2:], position_degree=1)
+
+
+def test_the_calibrated_depth_range_follows_the_position():
+    # the estimator reads shallower towards -x: there the presses reach only about half the depth
+    a = position_data()
+    reach = 1.0e-3 + 0.5e-3 * (1.0 + a[:, 2] / 2e-3)          # 1.0 mm at x = -2 mm .. 2.0 mm at x = +2 mm
+    a = a[a[:, 0] <= reach + 1e-12]
+    cal = ForceCalibration.fit(a[:, 0], a[:, 1], 3, positions=a[:, 2:], position_degree=2)
+    pm = cal.position
+    assert pm.high(-1.0, 0.0) < 1.05e-3 and pm.high(1.0, 0.0) == pytest.approx(2.0e-3)
+    # deeper than reached at x = -2 mm: held at the force of the local limit (clamp), or its end slope
+    d_lim = pm.high(-1.0, 0.0)
+    f_lim = cal.predict(d_lim, position=(-2e-3, 0.0))
+    f, st = cal.predict_with_status(1.8e-3, "clamp", (-2e-3, 0.0))
+    assert st == "clamped" and f == pytest.approx(f_lim, rel=1e-12)
+    f, st = cal.predict_with_status(1.8e-3, "extrapolate", (-2e-3, 0.0))
+    assert st == "extrapolated" and f_lim < f < float(truth(1.8e-3)) * _spread(-1.0, 0.0) * 1.2
+    # the same depth at +x is inside that position's range
+    f, st = cal.predict_with_status(1.8e-3, "clamp", (2e-3, 0.0))
+    assert st == "ok" and f == pytest.approx(float(truth(1.8e-3)) * _spread(1.0, 0.0), rel=1e-6)

@@ -435,14 +435,16 @@ def sim_graph(controller: str = "position-force", sensor: str = "image", *, dura
              "inputs": {"indentation": "gripper.indentation"}},
             {"id": "depth", "plugin": "depth", "rate": 60, "inputs": {"image": "digit.image"}},
             {"id": "force", "plugin": "poly-force", "rate": 60,
-             "inputs": {"max_depth": "depth.max_depth", "contact_area": "depth.contact_area"}},
+             "inputs": {"max_depth": "depth.max_depth", "contact_area": "depth.contact_area",
+                        "centroid": "depth.centroid"}},
         ]
     elif sensor == "gt":
         nodes += [
             {"id": "digit", "plugin": "sim-digit", "rate": 60,
              "params": {"indenter": OBJECT_SURFACE["indenter"], "indenter_radius": OBJECT_SURFACE["indenter_radius"]},
              "inputs": {"indentation": "gripper.indentation"}},
-            {"id": "force", "plugin": "poly-force", "rate": 60, "inputs": {"max_depth": "digit.gt_max_depth"}},
+            {"id": "force", "plugin": "poly-force", "rate": 60,
+             "inputs": {"max_depth": "digit.gt_max_depth", "centroid": "digit.gt_position"}},
         ]
     elif sensor == "ideal":
         nodes += [{"id": "force", "plugin": "sim-force-sensor", "rate": 60, "params": {"seed": seed},

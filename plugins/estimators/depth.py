@@ -299,7 +299,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                                "centroid_m": [None if not math.isfinite(c) else float(c) for c in res.centroid],
                                "ms": round(ms, 3)}
         if force is not None:
-            row["force_N"] = float(force.predict(res.max_depth))
+            where = tuple(float(c) for c in res.centroid) if np.isfinite(res.centroid).all() else None
+            row["force_N"] = float(force.predict(res.max_depth, position=where))
         if save is not None:
             stem = Path(path).stem
             np.save(save / f"{stem}.npy", res.depth)

@@ -70,6 +70,8 @@ class PressRoutine(Component):
                                 required=False),
         "reference_force": Port("float64", (), "N", "ground-truth force to record beside (simulation)",
                                 required=False),
+        "centroid": Port("float64", (2,), "m", "contact centroid from the depth estimator, recorded for a "
+                         "calibration with position terms (--position-degree)", required=False),
     }
     outputs = {
         "force": Port("float64", (3,), "N", "translational force command to the leader"),
@@ -329,7 +331,7 @@ class PressRoutine(Component):
             settled = abs(self._s(self.target) - self._s(pos)) <= p.settle_tolerance
             if t - self.t_state >= p.settle_time and settled:
                 self.window = {"force": [], "depth": [], "pos": [], "ref_depth": [], "ref_force": [],
-                               "depth_stamps": []}
+                               "depth_stamps": [], "centroid": []}
                 self._go(t, "record")
             elif t - self.t_state > p.hold_timeout:
                 self._abort(t, f"step did not settle within {p.hold_timeout:g} s (error "
@@ -341,6 +343,9 @@ class PressRoutine(Component):
             if new_depth and ds.stamp >= self.t_state:
                 w["depth"].append(depth)
                 w["depth_stamps"].append(ds.stamp)
+                c = inputs.value("centroid")
+                if c is not None and np.all(np.isfinite(c)):
+                    w["centroid"].append(np.asarray(c, dtype=float).reshape(2))
             rd = inputs.value("reference_depth")
             rf = inputs.value("reference_force")
             if rd is not None:
@@ -451,6 +456,8 @@ class PressRoutine(Component):
             "press_point_m": [float(v) for i, v in enumerate(self.origin - self.home) if i != AXES[self.params.axis]],
             "gt_max_depth_m": float(np.mean(w["ref_depth"])) if w["ref_depth"] else None,
             "gt_force_n": float(np.mean(w["ref_force"])) if w["ref_force"] else None,
+            "x_m": float(np.mean([c[0] for c in w["centroid"]])) if w["centroid"] else None,
+            "y_m": float(np.mean([c[1] for c in w["centroid"]])) if w["centroid"] else None,
             "target_displacement_m": disp,
             "depth_std_m": float(np.std(w["depth"])),
             "force_std_n": float(np.std(w["force"])),
@@ -574,18 +581,28 @@ class SimPressRig(Device):
 # ================================================================================================ fitting + CLI
 def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: float = 3e-5, use: str = "all",
                 zero_intercept: bool = False, sensor_model_id: str = "", depth_source: str = "",
-                source: str = "") -> ForceCalibration:
-    """Fit a calibration from recorded samples, leaving out those without contact (depth < min_depth)."""
+                source: str = "", position_degree: int = 0) -> ForceCalibration:
+    """Fit a calibration from recorded samples, leaving out those without contact (depth < min_depth). With
+    ``position_degree`` > 0 every kept sample needs its contact centroid (x_m, y_m)."""
     keep = [s for s in samples if s["depth_m"] >= min_depth]
     if not keep:
         raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm: did the probe "
                                f"touch the gel?")
     extra = {"excluded_no_contact": len(samples) - len(keep), "min_depth_m": min_depth}
+    positions = None
+    if position_degree:
+        missing = [i for i, s in enumerate(keep) if s.get("x_m") is None or s.get("y_m") is None]
+        if missing:
+            raise CalibrationError(f"position_degree {position_degree} needs the contact centroid of every sample; "
+                                   f"{len(missing)} of {len(keep)} have none (wire depth.centroid into the "
+                                   f"press-routine's 'centroid' input, or give x_m, y_m columns in the CSV)")
+        positions = [(float(s["x_m"]), float(s["y_m"])) for s in keep]
     return ForceCalibration.fit([s["depth_m"] for s in keep], [s["force_n"] for s in keep], degree,
                                 phases=[s.get("phase") or "" for s in keep],
                                 cycles=[int(s.get("cycle") or 0) for s in keep], use=use,
                                 zero_intercept=zero_intercept, sensor_model_id=sensor_model_id,
-                                depth_source=depth_source, source=source, extra=extra)
+                                depth_source=depth_source, source=source, extra=extra, positions=positions,
+                                position_degree=position_degree)
 
 
 def _sensor_model_id(spec: Any) -> tuple[str, str]:
@@ -665,9 +682,12 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         data = read_pairs_csv(args.csv)
         samples = [{"depth_m": float(d), "force_n": float(f),
                     "phase": (data["phase"][i] if data["phase"] else ""),
-                    "cycle": (data["cycle"][i] if data["cycle"] else 0)}
+                    "cycle": (data["cycle"][i] if data["cycle"] else 0),
+                    "x_m": (data["x_m"][i] if data["x_m"] is not None else None),
+                    "y_m": (data["y_m"][i] if data["y_m"] is not None else None)}
                    for i, (d, f) in enumerate(zip(data["depth_m"], data["force_n"]))]
         cal = fit_samples(samples, args.degree, min_depth=min_depth, use=args.use,
+                          position_degree=args.position_degree,
                           zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or "",
                           depth_source="csv", source=f"csv:{Path(args.csv).name}")
     else:
@@ -685,6 +705,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             return result.exit_code or 3
         model_id, depth_src = _sensor_model_id(spec)
         cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
+                          position_degree=args.position_degree,
                           zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or model_id,
                           depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}")
     cal.save(out)
@@ -716,7 +737,8 @@ def teletouch_add_commands(calibrate: Any) -> None:
                                          "probe into the gel in steps) or fit an existing CSV.")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--graph", help="graph with a press-routine node (e.g. examples/calibrate-force-sim.yaml)")
-    src.add_argument("--csv", help="CSV with a header: depth_m (or depth_mm), force_n, optional phase, cycle")
+    src.add_argument("--csv", help="CSV with a header: depth_m (or depth_mm), force_n, optional phase, cycle, "
+                                   "x_m, y_m (contact centroid)")
     p.add_argument("-o", "--output", default="force-calibration.force.json", help="calibration file to write")
     p.add_argument("--plot", default=None, help="PNG to write (default: beside the output)")
     p.add_argument("--samples", default=None, help="CSV of the recorded samples (default: beside the output)")
@@ -724,6 +746,10 @@ def teletouch_add_commands(calibrate: Any) -> None:
     p.add_argument("--use", choices=("all", "loading", "unloading"), default="all",
                    help="which samples make the fit (the other phase still gives the hysteresis gap)")
     p.add_argument("--zero-intercept", action="store_true", help="force F(0) = 0")
+    p.add_argument("--position-degree", type=int, default=0, metavar="P",
+                   help="also fit how the curve varies with the contact centroid (2-D polynomial of degree P over "
+                        "the area the presses cover; needs presses across the sensor and the centroid: the "
+                        "routine's 'centroid' input or x_m, y_m CSV columns). Default 0: the paper's single curve")
     p.add_argument("--min-depth", default="0.03mm", help="samples shallower than this are no contact (left out)")
     p.add_argument("--sensor-model-id", default=None, help="recorded in the file (default: the depth model)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",

@@ -15,6 +15,13 @@ N/m^k). Outside it the cubic is never evaluated:
 - between 0 and ``d_lo``: a straight line from (0, 0) to (d_lo, F(d_lo)) (status ``extrapolated``).
 
 Forces are never negative. A fit that is not strictly increasing inside its range is refused.
+
+Optional position terms (``position_degree`` p > 0, beyond the paper): the coefficients vary over the sensor as 2-D
+polynomials of total degree p in the contact centroid, ``c_k(x, y) = sum_j P[k][j] u^a_j v^b_j`` with ``(u, v)`` the
+centroid scaled to the calibrated area (the box spanned by the press points) as [-1, 1]^2. A depth estimator whose
+max depth for the same press varies with where the press is (measured: 5-9 % on sim-digit) is then calibrated by
+pressing at points across the sensor. A centroid outside the calibrated area is held at its edge (status
+``clamped``): a polynomial is never extrapolated. At the centre of the area the model is ``coefficients``.
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ import math
 import os
 from collections import deque
 from pathlib import Path
-from typing import Any, Iterable, Literal, Sequence
+from typing import Any, Callable, Iterable, Literal, Sequence
 
 import numpy as np
 from pydantic import Field
@@ -96,6 +103,165 @@ def _monotonic_problem(coef: Sequence[float], lo: float, hi: float) -> str | Non
     return None
 
 
+# ------------------------------------------------------------------------------------------------ position terms
+def position_exponents(degree: int) -> list[tuple[int, int]]:
+    """Exponents (a, b) of the terms u^a v^b of a 2-D polynomial of total degree <= ``degree``, lowest first."""
+    return [(n - b, b) for n in range(degree + 1) for b in range(n + 1)]
+
+
+class PositionModel:
+    """The depth polynomial's coefficients as 2-D polynomials of the contact centroid (see the module doc).
+
+    ``coefficients[k][j]`` (SI: N/m^k) multiplies ``d^k u^a_j v^b_j`` with ``(a_j, b_j) = position_exponents(
+    degree)[j]``, ``u = (x - center[0]) / half_extent[0]`` and ``v = (y - center[1]) / half_extent[1]`` (x along
+    the image columns, y along its rows, m from the image centre: the depth estimator's ``centroid``).
+
+    The calibrated depth range depends on the position too (a press reads shallower where the estimator reads
+    shallow): ``depth_high[i][j]`` is the deepest sample near the grid node ``(u_i, v_j)`` (``GRID`` x ``GRID``
+    nodes over [-1, 1]^2, "near": within ``NEAR`` in scaled units); between nodes it is interpolated bilinearly. Above
+    it the out-of-range policy applies, as above the global range without position terms."""
+
+    GRID = 9     # nodes per axis of the depth-limit grid, where monotonicity is checked too
+    NEAR = 0.4   # scaled distance within which a sample counts for a node's depth limit
+
+    def __init__(self, degree: int, center: Sequence[float], half_extent: Sequence[float],
+                 coefficients: Sequence[Sequence[float]], depth_high: Any = None):
+        self.degree = int(degree)
+        self.center = (float(center[0]), float(center[1]))
+        self.half_extent = (float(half_extent[0]), float(half_extent[1]))
+        self.exponents = position_exponents(self.degree)
+        self.P = np.array(coefficients, dtype=float)
+        self._a = np.array([e[0] for e in self.exponents])
+        self._b = np.array([e[1] for e in self.exponents])
+        self.depth_high = None if depth_high is None else np.array(depth_high, dtype=float)
+
+    def high(self, u: float, v: float) -> float:
+        """The deepest calibrated depth (m) at a scaled position (bilinear between the grid's nodes)."""
+        g = self.GRID - 1
+        fu, fv = (u + 1.0) * 0.5 * g, (v + 1.0) * 0.5 * g
+        i, j = min(int(fu), g - 1), min(int(fv), g - 1)
+        a, b = fu - i, fv - j
+        h = self.depth_high
+        return float((1 - a) * ((1 - b) * h[i, j] + b * h[i, j + 1])
+                     + a * ((1 - b) * h[i + 1, j] + b * h[i + 1, j + 1]))
+
+    def set_depth_high(self, u: np.ndarray, v: np.ndarray, d: np.ndarray) -> None:
+        """Each node's limit: the deepest sample within NEAR of it; nodes without one take the smallest limit of
+        the others (the conservative choice)."""
+        g = np.linspace(-1.0, 1.0, self.GRID)
+        h = np.full((self.GRID, self.GRID), np.nan)
+        for i, gu in enumerate(g):
+            for j, gv in enumerate(g):
+                near = np.hypot(u - gu, v - gv) < self.NEAR
+                if near.any():
+                    h[i, j] = d[near].max()
+        h[np.isnan(h)] = np.nanmin(h)
+        self.depth_high = h
+
+    def scaled(self, x: float, y: float) -> tuple[float, float, bool]:
+        """(u, v) clipped to [-1, 1]^2 and whether the point was outside the calibrated area."""
+        u = (x - self.center[0]) / self.half_extent[0]
+        v = (y - self.center[1]) / self.half_extent[1]
+        outside = not (-1.0 <= u <= 1.0 and -1.0 <= v <= 1.0)
+        return min(max(u, -1.0), 1.0), min(max(v, -1.0), 1.0), outside
+
+    def basis(self, u: Any, v: Any) -> np.ndarray:
+        """(..., n_terms) values of the terms at scaled positions."""
+        u = np.asarray(u, dtype=float)[..., None]
+        v = np.asarray(v, dtype=float)[..., None]
+        return u ** self._a * v ** self._b
+
+    def local(self, u: float, v: float) -> list[float]:
+        """The depth polynomial (ascending SI coefficients) at a scaled position."""
+        return (self.P @ self.basis(u, v)).tolist()
+
+    def grid(self) -> list[tuple[float, float]]:
+        g = np.linspace(-1.0, 1.0, self.GRID)
+        return [(float(u), float(v)) for u in g for v in g]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"degree": self.degree, "center_m": list(self.center), "half_extent_m": list(self.half_extent),
+                "terms": [f"u^{a} v^{b}" for a, b in self.exponents],
+                "coefficients": self.P.tolist(),
+                "depth_high_m": self.depth_high.tolist(),
+                "note": "c_k(x, y) = sum_j coefficients[k][j] * u**a_j * v**b_j, u = (x - center_m[0]) / "
+                        "half_extent_m[0], v = (y - center_m[1]) / half_extent_m[1], clipped to [-1, 1]; "
+                        "depth_high_m[i][j]: the calibrated depth limit at u = -1 + 2 i / 8, v = -1 + 2 j / 8"}
+
+    @classmethod
+    def from_dict(cls, doc: Any, depth_degree: int, depth_range: Sequence[float],
+                  bad: Callable[..., Exception]) -> "PositionModel":
+        if not isinstance(doc, dict):
+            raise bad("model.position", "an object (or absent)", doc)
+        deg = doc.get("degree")
+        if not isinstance(deg, int) or isinstance(deg, bool) or not 1 <= deg <= 6:
+            raise bad("model.position.degree", "an integer from 1 to 6", deg)
+        for key in ("center_m", "half_extent_m"):
+            v = doc.get(key)
+            if not isinstance(v, list) or len(v) != 2 or not all(_finite(x) for x in v):
+                raise bad(f"model.position.{key}", "[x, y] in m, finite numbers", v)
+        if not all(h > 0 for h in doc["half_extent_m"]):
+            raise bad("model.position.half_extent_m", "two positive half widths in m", doc["half_extent_m"])
+        n = len(position_exponents(deg))
+        coef = doc.get("coefficients")
+        if (not isinstance(coef, list) or len(coef) != depth_degree + 1
+                or not all(isinstance(r, list) and len(r) == n and all(_finite(c) for c in r) for r in coef)):
+            raise bad("model.position.coefficients", f"{depth_degree + 1} lists (depth degree {depth_degree}) of {n} "
+                      f"finite numbers (position degree {deg})", coef)
+        hi = doc.get("depth_high_m")
+        g = cls.GRID
+        if (not isinstance(hi, list) or len(hi) != g
+                or not all(isinstance(r, list) and len(r) == g and all(_finite(x) for x in r) for r in hi)
+                or not all(depth_range[0] < x <= depth_range[1] for r in hi for x in r)):
+            raise bad("model.position.depth_high_m", f"{g} lists of {g} depths in m inside the depth range "
+                      f"({depth_range[0]:.6g}, {depth_range[1]:.6g}]", hi)
+        return cls(deg, doc["center_m"], doc["half_extent_m"], coef, hi)
+
+
+def _fit_position(d: np.ndarray, f: np.ndarray, pos: np.ndarray, degree: int, pdeg: int,
+                  zero_intercept: bool) -> PositionModel:
+    """Least squares of F on d^k u^a v^b (d scaled for conditioning) over the box the positions span."""
+    lo, hi = pos.min(axis=0), pos.max(axis=0)
+    half = (hi - lo) / 2.0
+    if (half < 1e-4).any():
+        axis = "x" if half[0] < 1e-4 else "y"
+        raise CalibrationError(f"position_degree {pdeg} needs presses across the sensor, but the contact centroids "
+                               f"span only {2 * half[0] * 1e3:.3f} x {2 * half[1] * 1e3:.3f} mm (too little along "
+                               f"{axis}): press at several points (press-routine positions) or use position_degree 0")
+    center = (hi + lo) / 2.0
+    model = PositionModel(pdeg, center, half, np.zeros((degree + 1, len(position_exponents(pdeg)))))
+    phi = model.basis((pos[:, 0] - center[0]) / half[0], (pos[:, 1] - center[1]) / half[1])
+    sv = np.linalg.svd(phi / np.linalg.norm(phi, axis=0), compute_uv=False)
+    if sv[-1] < 1e-3 * sv[0]:
+        raise CalibrationError(f"the press points do not determine a position model of degree {pdeg} "
+                               f"({phi.shape[1]} terms): press at more points spread over the area (at least "
+                               f"{phi.shape[1]}, e.g. a 5 x 5 grid for degree 3) or lower position_degree")
+    s = float(np.max(np.abs(d))) or 1.0
+    u = d / s
+    first = 1 if zero_intercept else 0
+    A = np.concatenate([u[:, None] ** k * phi for k in range(first, degree + 1)], axis=1)
+    a, *_ = np.linalg.lstsq(A, f, rcond=None)
+    n = phi.shape[1]
+    for i, k in enumerate(range(first, degree + 1)):
+        model.P[k] = a[i * n:(i + 1) * n] / s ** k
+    model.set_depth_high((pos[:, 0] - center[0]) / half[0], (pos[:, 1] - center[1]) / half[1], d)
+    return model
+
+
+def _monotonic_everywhere(coef: Sequence[float], lo: float, hi: float, pmodel: PositionModel | None) -> str | None:
+    """:func:`_monotonic_problem` of the polynomial, and with position terms at every node of the depth-limit grid over
+    the calibrated area, up to the node's own depth limit."""
+    if pmodel is None:
+        return _monotonic_problem(coef, lo, hi)
+    for u, v in pmodel.grid():
+        problem = _monotonic_problem(pmodel.local(u, v), lo, pmodel.high(u, v))
+        if problem is not None:
+            x = pmodel.center[0] + u * pmodel.half_extent[0]
+            y = pmodel.center[1] + v * pmodel.half_extent[1]
+            return f"at the contact position ({x * 1e3:.2f}, {y * 1e3:.2f}) mm: {problem}"
+    return None
+
+
 # ------------------------------------------------------------------------------------------------ the calibration
 class ForceCalibration:
     """A polynomial map from max depth (m) to normal force (N), with its range, quality and data.
@@ -107,7 +273,11 @@ class ForceCalibration:
                  force_range: tuple[float, float] | None = None, *, r2: float = math.nan, rmse: float = math.nan,
                  samples: list[dict[str, Any]] | None = None, hysteresis: dict[str, Any] | None = None,
                  sensor_model_id: str = "", depth_source: str = "", source: str = "", created: str | None = None,
-                 zero_intercept: bool = False, extra: dict[str, Any] | None = None):
+                 zero_intercept: bool = False, extra: dict[str, Any] | None = None,
+                 position: PositionModel | None = None):
+        self.position = position
+        if position is not None:  # at the centre of the calibrated area only the constant position terms remain
+            coefficients = position.P[:, 0]
         self.coefficients = [float(c) for c in coefficients]
         self.degree = len(self.coefficients) - 1
         lo, hi = float(depth_range[0]), float(depth_range[1])
@@ -138,12 +308,15 @@ class ForceCalibration:
     def fit(cls, depths_m: Iterable[float], forces_n: Iterable[float], degree: int = 3, *,
             phases: Iterable[str] | None = None, cycles: Iterable[int] | None = None, use: str = "all",
             zero_intercept: bool = False, sensor_model_id: str = "", depth_source: str = "", source: str = "",
-            extra: dict[str, Any] | None = None) -> "ForceCalibration":
+            extra: dict[str, Any] | None = None, positions: Any = None,
+            position_degree: int = 0) -> "ForceCalibration":
         """Least-squares polynomial fit of force (N) on max depth (m).
 
         phases: optional per-sample "loading"/"unloading" labels. Loading and unloading are fitted apart too and
         the gap between the two curves (the gel's hysteresis) is reported in ``hysteresis``.
         use: which samples make the calibration: "all" (default), "loading" or "unloading".
+        positions, position_degree: the contact centroid (x, y) in m of each sample and the degree of the position
+        terms (0: none, the paper's model; see the module doc).
         Raises :class:`CalibrationError` for too few/invalid samples or a fit that is not strictly increasing.
         """
         d = np.asarray(list(depths_m), dtype=float).ravel()
@@ -170,6 +343,20 @@ class ForceCalibration:
             raise CalibrationError(f"use must be 'all', 'loading' or 'unloading', got {use!r}")
         sel = np.ones(d.size, bool) if use == "all" else np.array([p == use for p in ph])
         dsel, fsel = d[sel], f[sel]
+        if not isinstance(position_degree, (int, np.integer)) or not 0 <= position_degree <= 6:
+            raise CalibrationError(f"position_degree must be an integer from 0 (none) to 6, got {position_degree!r}")
+        pos = None
+        if position_degree:
+            if positions is None:
+                raise CalibrationError(f"position_degree {position_degree} needs the contact centroid (x, y) of "
+                                       f"each sample")
+            pos = np.asarray(positions, dtype=float)
+            if pos.shape != (d.size, 2):
+                raise CalibrationError(f"positions must be {d.size} (x, y) pairs in m, got shape {pos.shape}")
+            badp = ~np.isfinite(pos).all(axis=1)
+            if badp.any():
+                i = int(np.argmax(badp))
+                raise CalibrationError(f"sample {i}: contact centroid {pos[i].tolist()} m is not finite")
         nfree = degree + (0 if zero_intercept else 1)
         if dsel.size < nfree + 1:
             raise CalibrationError(f"{dsel.size} samples ({use}) for a degree-{degree} fit: need at least "
@@ -179,13 +366,22 @@ class ForceCalibration:
             raise CalibrationError(f"only {np.unique(dsel).size} distinct depths for a degree-{degree} fit")
         if hi <= 0 or hi - lo < 1e-7:
             raise CalibrationError(f"the depth range {lo * 1e3:.4f}..{hi * 1e3:.4f} mm is too small to calibrate")
-        coef = _lstsq(dsel, fsel, degree, zero_intercept)
-        problem = _monotonic_problem(coef, lo, hi)
+        pmodel = None
+        if pos is not None:
+            pmodel = _fit_position(dsel, fsel, pos[sel], degree, int(position_degree), zero_intercept)
+            coef = list(pmodel.P[:, 0])
+        else:
+            coef = _lstsq(dsel, fsel, degree, zero_intercept)
+        problem = _monotonic_everywhere(coef, lo, hi, pmodel)
         if problem is not None:
             raise CalibrationError(f"the degree-{degree} fit is not monotonic inside the calibrated range: "
                                    f"{problem}; refusing it (use a lower degree, more samples or check the data)")
-        pred_all = _polyval(coef, d)
-        res = fsel - _polyval(coef, dsel)
+        if pmodel is None:
+            pred_all = _polyval(coef, d)
+        else:
+            local = [pmodel.local(*pmodel.scaled(float(x), float(y))[:2]) for x, y in pos]
+            pred_all = np.array([_polyval(c, np.array([di]))[0] for c, di in zip(local, d)])
+        res = fsel - pred_all[sel]
         ss_res = float(np.sum(res ** 2))
         ss_tot = float(np.sum((fsel - fsel.mean()) ** 2))
         r2 = 1.0 - ss_res / ss_tot if ss_tot > 0 else math.nan
@@ -193,24 +389,38 @@ class ForceCalibration:
         samples = [{"depth_m": float(d[i]), "force_n": float(f[i]), "predicted_n": float(pred_all[i]),
                     "residual_n": float(f[i] - pred_all[i]), "phase": ph[i], "cycle": cy[i], "used": bool(sel[i])}
                    for i in range(d.size)]
+        if pos is not None:
+            for smp, (x, y) in zip(samples, pos):
+                smp["x_m"], smp["y_m"] = float(x), float(y)
         hyst = _hysteresis(d, f, ph, degree, zero_intercept)
         frange = (float(fsel.min()), float(fsel.max()))
         cal = cls(coef, (lo, hi), frange, r2=r2, rmse=rmse, samples=samples, hysteresis=hyst,
                   sensor_model_id=sensor_model_id, depth_source=depth_source, source=source,
-                  zero_intercept=zero_intercept, extra=dict(extra or {}, use=use))
+                  zero_intercept=zero_intercept, extra=dict(extra or {}, use=use), position=pmodel)
         return cal
 
     # ---------------------------------------------------------------------------------------------------- predict
-    def evaluate(self, max_depth_m: Any, out_of_range: str = "clamp") -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(self, max_depth_m: Any, out_of_range: str = "clamp",
+                 position: Any = None) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised map with the range guard. Returns (force N, code) with code 0 ok, 1 extrapolated, 2 clamped.
 
-        Negative depths give 0 N (code 0); NaN raises ValueError.
+        Negative depths give 0 N (code 0); NaN raises ValueError. ``position``: the contact centroid (x, y) in m,
+        one pair or one per depth, for a calibration with position terms (None: the centre of its area).
         """
         d = np.asarray(max_depth_m, dtype=float)
         if np.isnan(d).any():
             raise ValueError("max depth is NaN; a force cannot be computed from it")
         if out_of_range not in ("extrapolate", "clamp"):
             raise ValueError(f"out_of_range must be 'extrapolate' or 'clamp', got {out_of_range!r}")
+        if self.position is not None:
+            pos = np.broadcast_to(np.asarray((np.nan, np.nan) if position is None else position, dtype=float),
+                                  d.shape + (2,))
+            codes = {"ok": 0, "extrapolated": 1, "clamped": 2}
+            out = [self._evaluate_scalar(float(di), out_of_range, None if np.isnan(p).any() else (float(p[0]),
+                                                                                             float(p[1])))
+                   for di, p in zip(d.ravel(), pos.reshape(-1, 2))]
+            return (np.array([o[0] for o in out]).reshape(d.shape),
+                    np.array([codes[o[1]] for o in out], dtype=np.int8).reshape(d.shape))
         lo, hi = self.depth_range
         code = np.zeros(d.shape, dtype=np.int8)
         inside = (d >= lo) & (d <= hi)
@@ -231,38 +441,52 @@ class ForceCalibration:
         f = np.maximum(f, 0.0)
         return f, code
 
-    def predict(self, max_depth_m: Any, out_of_range: str = "clamp") -> Any:
+    def predict(self, max_depth_m: Any, out_of_range: str = "clamp", position: Any = None) -> Any:
         """Force (N) for max depth (m): a float for a scalar, an array for an array. Never negative, never a cubic
         tail outside the calibrated range (see the module doc)."""
-        f, _ = self.evaluate(max_depth_m, out_of_range)
+        f, _ = self.evaluate(max_depth_m, out_of_range, position)
         return float(f) if f.ndim == 0 else f
 
-    def predict_with_status(self, max_depth_m: float, out_of_range: str = "clamp") -> tuple[float, str]:
+    def predict_with_status(self, max_depth_m: float, out_of_range: str = "clamp",
+                            position: tuple[float, float] | None = None) -> tuple[float, str]:
         if isinstance(max_depth_m, float):  # a Python or numpy scalar: the same arithmetic without arrays
-            return self._evaluate_scalar(float(max_depth_m), out_of_range)
-        f, code = self.evaluate(max_depth_m, out_of_range)
+            return self._evaluate_scalar(float(max_depth_m), out_of_range, position)
+        f, code = self.evaluate(max_depth_m, out_of_range, position)
         return float(f), ("ok", "extrapolated", "clamped")[int(code)]
 
-    def _evaluate_scalar(self, d: float, out_of_range: str) -> tuple[float, str]:
+    def _evaluate_scalar(self, d: float, out_of_range: str,
+                         position: tuple[float, float] | None = None) -> tuple[float, str]:
         """:meth:`evaluate` for one float, operation for operation (60 Hz x a few us of numpy saved)."""
         if d != d:
             raise ValueError("max depth is NaN; a force cannot be computed from it")
         if out_of_range not in ("extrapolate", "clamp"):
             raise ValueError(f"out_of_range must be 'extrapolate' or 'clamp', got {out_of_range!r}")
         lo, hi = self.depth_range
+        coef, f_lo, f_hi, slope_hi = self.coefficients, self._f_lo, self._f_hi, self._slope_hi
         status = "ok"
+        if self.position is not None:
+            u, v, outside = (0.0, 0.0, False) if position is None else self.position.scaled(position[0], position[1])
+            if outside:
+                status = "clamped"
+            coef = self.position.local(u, v)
+            hi = self.position.high(u, v)
+            if d < lo:
+                f_lo = _polyval(coef, np.array([lo]))[0]
+            elif d > hi:
+                f_hi = _polyval(coef, np.array([hi]))[0]
+                slope_hi = _polyval(_polyder(coef), np.array([hi]))[0]
         if lo <= d <= hi:
             f = 0.0
-            for c in reversed(self.coefficients):
+            for c in reversed(coef):
                 f = f * d + c
         elif 0 < d < lo:
-            f = max(self._f_lo, 0.0) * d / lo
+            f = max(f_lo, 0.0) * d / lo
             status = "extrapolated"
         elif d > hi:
             if out_of_range == "clamp":
-                f, status = self._f_hi, "clamped"
+                f, status = f_hi, "clamped"
             else:
-                f, status = self._f_hi + self._slope_hi * min(d - hi, 1e3), "extrapolated"
+                f, status = f_hi + slope_hi * min(d - hi, 1e3), "extrapolated"
         else:
             f = 0.0
         return float(max(f, 0.0)), status
@@ -289,6 +513,7 @@ class ForceCalibration:
                 "zero_intercept": self.zero_intercept,
                 "depth_range_m": list(self.depth_range),
                 "force_range_n": list(self.force_range),
+                **({"position": self.position.to_dict()} if self.position is not None else {}),
             },
             "quality": quality,
             "hysteresis": self.hysteresis,
@@ -360,7 +585,13 @@ class ForceCalibration:
         fr = model.get("force_range_n")
         if not isinstance(fr, list) or len(fr) != 2 or not all(_finite(x) for x in fr) or fr[1] < fr[0]:
             raise bad("model.force_range_n", "[low, high] in N with low <= high", fr)
-        problem = _monotonic_problem(coef, dr[0], dr[1])
+        pmodel = None
+        if model.get("position") is not None:
+            pmodel = PositionModel.from_dict(model["position"], deg, dr, bad)
+            if not np.allclose(pmodel.P[:, 0], coef, rtol=1e-9, atol=0.0):
+                raise bad("model.coefficients", "the constant position terms (model.position.coefficients[k][0]: "
+                          "the polynomial at the centre of the calibrated area)", coef)
+        problem = _monotonic_everywhere(coef, dr[0], dr[1], pmodel)
         if problem is not None:
             raise bad("model.coefficients", f"a strictly increasing polynomial on the depth range ({problem})")
         q = doc.get("quality", {})
@@ -382,7 +613,8 @@ class ForceCalibration:
                    rmse=_float_or_nan(q.get("rmse_n")), samples=samples, hysteresis=hyst,
                    sensor_model_id=doc.get("sensor_model_id") or "", depth_source=doc.get("depth_source") or "",
                    source=doc.get("source") or "", created=doc.get("created"),
-                   zero_intercept=bool(model.get("zero_intercept", False)), extra=doc.get("extra") or {})
+                   zero_intercept=bool(model.get("zero_intercept", False)), extra=doc.get("extra") or {},
+                   position=pmodel)
 
     # ---------------------------------------------------------------------------------------------------- report
     def summary(self) -> str:
@@ -394,7 +626,15 @@ class ForceCalibration:
                  + (f" ({100 * self.rmse / frange:.2f}% of the force range)" if frange > 0 else "")
                  + f", {sum(1 for s in self.samples if s.get('used', True))} samples"]
         coef = ", ".join(f"{c:.6g}" for c in self.coefficients)
-        lines.append(f"  F(d) = sum c_k d^k, c = [{coef}] (N, m)")
+        lines.append(f"  F(d) = sum c_k d^k, c = [{coef}] (N, m)"
+                     + (" at the centre of the calibrated area" if self.position is not None else ""))
+        pm = self.position
+        if pm is not None:
+            (x0, y0), (hx, hy) = pm.center, pm.half_extent
+            lines.append(f"  position terms: degree {pm.degree} ({len(pm.exponents)} per power of d) over x "
+                         f"{(x0 - hx) * 1e3:.2f}..{(x0 + hx) * 1e3:.2f} mm, y {(y0 - hy) * 1e3:.2f}.."
+                         f"{(y0 + hy) * 1e3:.2f} mm (contact centroid); depth limit "
+                         f"{pm.depth_high.min() * 1e3:.3f}..{pm.depth_high.max() * 1e3:.3f} mm over the area")
         h = self.hysteresis
         if h and h.get("max_gap_n") is not None:
             lines.append(f"  hysteresis (loading - unloading): max gap {h['max_gap_n']:.4f} N, mean "
@@ -423,12 +663,20 @@ class ForceCalibration:
                     continue
                 x = np.array([s["depth_m"] for s in pts]) * 1e3
                 y = np.array([s["force_n"] for s in pts])
-                r = np.array([s["force_n"] - self.predict(s["depth_m"]) for s in pts])
+                r = np.array([s["force_n"] - self.predict(s["depth_m"], position=(s["x_m"], s["y_m"])
+                                                          if "x_m" in s else None) for s in pts])
                 ax.scatter(x, y, s=14, c=color, marker=marker, alpha=0.7, label=label)
                 axr.scatter(x, r, s=10, c=color, marker=marker, alpha=0.7)
-            xs = np.linspace(lo, hi, 300)
+            pm = self.position
+            xs = np.linspace(lo, hi if pm is None else pm.high(0.0, 0.0), 300)
             ax.plot(xs * 1e3, _polyval(self.coefficients, xs), "k-", lw=1.6,
-                    label=f"degree-{self.degree} fit, $R^2$ = {self.r2:.5f}")
+                    label=f"degree-{self.degree} fit, $R^2$ = {self.r2:.5f}"
+                    + (f"\n(at the centre; position terms of degree {pm.degree})" if pm is not None else ""))
+            if pm is not None:
+                for i, (u, v) in enumerate(((-1, -1), (-1, 1), (1, -1), (1, 1))):
+                    xl = np.linspace(lo, pm.high(u, v), 200)
+                    ax.plot(xl * 1e3, _polyval(pm.local(u, v), xl), "-", color="0.6", lw=0.9,
+                            label="at the corners of the calibrated area" if i == 0 else None)
             h = self.hysteresis or {}
             for ph, color in (("loading", "tab:blue"), ("unloading", "tab:orange")):
                 sub = h.get(ph)
@@ -505,13 +753,15 @@ def _num(x: float) -> float | None:
 DEPTH_COLUMNS = {"depth_m": 1.0, "max_depth_m": 1.0, "depth": 1.0, "max_depth": 1.0, "depth_mm": 1e-3,
                  "max_depth_mm": 1e-3}
 FORCE_COLUMNS = {"force_n": 1.0, "force": 1.0, "device_force_n": 1.0}
-CSV_COLUMNS = ["depth_m", "force_n", "phase", "cycle", "displacement_m", "gt_max_depth_m", "gt_force_n"]
+CSV_COLUMNS = ["depth_m", "force_n", "phase", "cycle", "displacement_m", "gt_max_depth_m", "gt_force_n", "x_m", "y_m"]
 
 
 def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     """Read (depth, force) pairs. Header required: a depth column (depth_m, max_depth_m, depth or depth_mm) and a
-    force column (force_n or force, N); optional phase (loading/unloading) and cycle.
-    Returns {"depth_m": array, "force_n": array, "phase": list | None, "cycle": list | None}."""
+    force column (force_n or force, N); optional phase (loading/unloading), cycle, and x_m, y_m (the contact
+    centroid, m; both or neither).
+    Returns {"depth_m": array, "force_n": array, "phase": list | None, "cycle": list | None, "x_m": array | None,
+    "y_m": array | None}."""
     path = Path(path)
     try:
         fh = path.open(newline="", encoding="utf-8")
@@ -533,7 +783,12 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     dscale = DEPTH_COLUMNS[names[dcol]]
     pcol = names.index("phase") if "phase" in names else None
     ccol = names.index("cycle") if "cycle" in names else None
-    depth, force, phase, cycle = [], [], [], []
+    xcol = names.index("x_m") if "x_m" in names else None
+    ycol = names.index("y_m") if "y_m" in names else None
+    if (xcol is None) != (ycol is None):
+        raise CalibrationError(f"{path}:{hline}: header has {'x_m' if ycol is None else 'y_m'} without "
+                               f"{'y_m' if ycol is None else 'x_m'}: the contact centroid needs both columns")
+    depth, force, phase, cycle, xs, ys = [], [], [], [], [], []
     for ln, r in lines[1:]:
         def cell(i: int | None, what: str) -> str:
             if i is None:
@@ -542,8 +797,14 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
                 raise CalibrationError(f"{path}:{ln}: missing column '{names[i]}' ({what})")
             return r[i].strip()
 
-        for col, sink, scale, what in ((dcol, depth, dscale, "depth"), (fcol, force, 1.0, "force (N)")):
+        cols = [(dcol, depth, dscale, "depth"), (fcol, force, 1.0, "force (N)")]
+        if xcol is not None:
+            cols += [(xcol, xs, 1.0, "centroid x (m)"), (ycol, ys, 1.0, "centroid y (m)")]
+        for col, sink, scale, what in cols:
             txt = cell(col, what)
+            if col in (xcol, ycol) and not txt:   # an empty centroid (e.g. a no-contact sample)
+                sink.append(None)
+                continue
             try:
                 v = float(txt) * scale
             except ValueError:
@@ -564,7 +825,8 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     if not depth:
         raise CalibrationError(f"{path}: no data rows after the header")
     return {"depth_m": np.array(depth), "force_n": np.array(force),
-            "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None}
+            "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None,
+            "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None}
 
 
 def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]]) -> Path:
@@ -617,10 +879,13 @@ class PolyForce(Component):
                              required=False),
         "contact_mask": Port("bool", (None, None), "", "contact mask; all False means no contact",
                              required=False),
+        "centroid": Port("float64", (2,), "m", "contact centroid (x, y) from the image centre (depth.centroid); "
+                         "needed by a calibration with position terms", required=False),
     }
     outputs = {
         "force": Port("float64", (), "N", "normal force (>= 0, exactly 0 without contact); stamp of the depth"),
-        "status": Port("str", (), "", "ok | no-contact | clamped | extrapolated | invalid-input"),
+        "status": Port("str", (), "", "ok | no-contact | clamped (depth beyond the calibrated range, or the "
+                       "centroid outside the calibrated area) | extrapolated | invalid-input"),
     }
 
     class Params(Params):
@@ -668,7 +933,15 @@ class PolyForce(Component):
         if s is None or s.stamp == self._last_stamp:
             return None
         self._last_stamp = s.stamp
-        force, status = self.compute(s.value, inputs.value("contact_area"), inputs.value("contact_mask"), s.stamp)
+        centroid = None
+        if self.cal.position is not None:
+            centroid = inputs.value("centroid")
+            if centroid is None:
+                raise ComponentFault(f"the calibration {self.cal.path} has position terms (degree "
+                                     f"{self.cal.position.degree}): wire the contact centroid into its 'centroid' "
+                                     f"input (centroid: depth.centroid)", self.id)
+        force, status = self.compute(s.value, inputs.value("contact_area"), inputs.value("contact_mask"), s.stamp,
+                                     centroid)
         self.last_force, self.last_status = force, status
         self.counts[status] += 1
         if status == "invalid-input":
@@ -681,7 +954,8 @@ class PolyForce(Component):
             self.invalid_run = 0
         return {"force": Sample(force, s.stamp), "status": Sample(status, s.stamp)}
 
-    def compute(self, depth: Any, area: Any = None, mask: Any = None, stamp: float = 0.0) -> tuple[float, str]:
+    def compute(self, depth: Any, area: Any = None, mask: Any = None, stamp: float = 0.0,
+                centroid: Any = None) -> tuple[float, str]:
         p = self.params
         try:
             d = float(depth)
@@ -707,10 +981,19 @@ class PolyForce(Component):
         if not contact:
             self._reset_filters()
             return 0.0, "no-contact"
+        pos = None
+        if centroid is not None and self.cal.position is not None:
+            try:
+                pos = (float(centroid[0]), float(centroid[1]))
+            except (TypeError, ValueError, IndexError):
+                pos = (math.nan, math.nan)
+            if not (math.isfinite(pos[0]) and math.isfinite(pos[1])):   # in contact, but where is unknown
+                self._reset_filters()
+                return 0.0, "invalid-input"
         self._window.append(d)
         if len(self._window) > 1:
             d = float(np.median(self._window))
-        force, status = self.cal.predict_with_status(d, p.out_of_range)
+        force, status = self.cal.predict_with_status(d, p.out_of_range, pos)
         if p.lowpass_cutoff is not None:
             if self._filt is None:
                 self._filt = force

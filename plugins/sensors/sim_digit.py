@@ -254,6 +254,8 @@ class SimDigit(Component):
         "gt_max_depth": Port("float64", (), "m", "maximum of gt_depth"),
         "gt_force": Port("float64", (), "N", "normal force of the gel model"),
         "gt_contact_mask": Port("bool", (None, None), "", "pixels where the gel touches the indenter"),
+        "gt_position": Port("float64", (2,), "m", "indenter centre from the image centre (x along columns, y along "
+                            "rows), the true contact centre; NaN without contact"),
     }
 
     class Params(Params):
@@ -348,7 +350,7 @@ class SimDigit(Component):
         max_depth = self.sim.max_depth if d > 0 else 0.0
         self._last = {"indentation": max(d, 0.0), "force": force, "max_depth": max_depth}
         return {"image": img, "gt_depth": surf.depth, "gt_max_depth": max_depth, "gt_force": force,
-                "gt_contact_mask": surf.mask}
+                "gt_contact_mask": surf.mask, "gt_position": pos if d > 0 else np.full(2, np.nan)}
 
     def status(self) -> dict[str, Any]:
         return dict(self._last)
