@@ -392,7 +392,10 @@ class ForceCalibration:
         if pos is not None:
             for smp, (x, y) in zip(samples, pos):
                 smp["x_m"], smp["y_m"] = float(x), float(y)
-        hyst = _hysteresis(d, f, ph, degree, zero_intercept)
+        # with position terms the phases are compared at the same position: each sample's force is moved onto the
+        # centre's curve by the model's own position dependence (f - F(d, x, y) + F(d, centre))
+        f_h = f if pmodel is None else f - pred_all + _polyval(coef, d)
+        hyst = _hysteresis(d, f_h, ph, degree, zero_intercept)
         frange = (float(fsel.min()), float(fsel.max()))
         cal = cls(coef, (lo, hi), frange, r2=r2, rmse=rmse, samples=samples, hysteresis=hyst,
                   sensor_model_id=sensor_model_id, depth_source=depth_source, source=source,
@@ -682,9 +685,11 @@ class ForceCalibration:
                 sub = h.get(ph)
                 if isinstance(sub, dict) and sub.get("coefficients"):
                     a, b = sub["depth_range_m"]
+                    if pm is not None:   # the phases were compared as if at the centre: drawn over its range
+                        b = min(b, pm.high(0.0, 0.0))
                     xx = np.linspace(a, b, 200)
                     ax.plot(xx * 1e3, _polyval(sub["coefficients"], xx), "--", color=color, lw=1,
-                            label=f"{ph} fit")
+                            label=f"{ph} fit" + (" (at the centre)" if pm is not None else ""))
             ax.set_ylabel("force (N)")
             ax.set_title(title or f"Force calibration ({self.sensor_model_id or 'sensor'})")
             ax.grid(True, alpha=0.3)
