@@ -16,10 +16,11 @@ A graph file::
       - id: mapper
         plugin: poly-force
         rate: 60                  # Hz (or "1kHz")
-        params: {degree: 3}
+        params: {out_of_range: clamp}
         inputs:
           max_depth: depth.max_depth                          # node.port
           contact_area: {from: depth.contact_area, max_age: 0.1}   # with a staleness limit (s)
+          centroid: depth.centroid
         on_fault: degrade         # optional, per node
         isolate: process          # optional: run in a process of its own under the wall clock (see isolation.py)
         priority: 40              # optional: SCHED_FIFO priority of this node's thread (wall clock; default:
