@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -154,6 +155,18 @@ def sim(quick: bool, log) -> dict:
                      "plane_max_depth_rel_error_median": round(float(np.median(rel_plane)), 4),
                      "plane_max_depth_rel_error_std": round(float(np.std(rel_plane)), 4)}
         log(f"sim {name}: {out[name]}")
+    # how deep the simulated gel itself is beyond two contact radii (the far false depth criterion assumes a flat
+    # gel there): the gel model's true depth, 6 mm ball at the centre, a from the true contact area
+    s = DigitSimulator("qvga", indenter=indenters["ball-6mm"], noise=0.0, seed=0)
+    tail = {}
+    for d in (0.2e-3, 0.35e-3, 0.5e-3):
+        _, surf = s.render(d, (0.0, 0.0), 0.0, t=0.0)
+        rr, cc = np.mgrid[0:surf.depth.shape[0], 0:surf.depth.shape[1]]
+        r = np.hypot(rr - (surf.depth.shape[0] - 1) / 2, cc - (surf.depth.shape[1] - 1) / 2)
+        a = math.sqrt(surf.mask.sum() / math.pi)
+        tail[f"{d * 1e3:g}mm"] = round(float(surf.depth[r > 2 * a].max()) * 1e3, 4)
+    out["gel_model_true_depth_beyond_2a_mm"] = tail
+    log(f"sim gel model, true depth beyond 2 contact radii (6 mm ball): {tail}")
     s = DigitSimulator("qvga", noise=2.0, drift=4.0, drift_period=4.0, seed=7)
     nc = [pipe(s.render(0.0, (0, 0), 0.0, t=t)[0]).max_depth for t in np.linspace(0, 4, 9)]
     out["no_contact_max_depth_mm"] = round(float(max(nc)) * 1e3, 4)
