@@ -278,6 +278,8 @@ class ForceCalibration:
         self.position = position
         if position is not None:  # at the centre of the calibrated area only the constant position terms remain
             coefficients = position.P[:, 0]
+            if position.depth_high is None:   # built by hand without per-position limits: the global one
+                position.depth_high = np.full((position.GRID, position.GRID), float(depth_range[1]))
         self.coefficients = [float(c) for c in coefficients]
         self.degree = len(self.coefficients) - 1
         lo, hi = float(depth_range[0]), float(depth_range[1])
