@@ -217,8 +217,8 @@ class DepthPipeline:
 
     def _fast_mlp(self, x: Any) -> Any:
         """The folded network on (n, features) rows, into preallocated layer outputs (the result is a view that the
-        next call overwrites): a fresh megabyte-sized tensor per layer and frame costs page faults, measured as
-        1.9 -> 2.8 ms per QVGA frame right after another large torch computation had run."""
+        next call overwrites): fresh megabyte-sized tensors per layer and frame cost page faults (on sim-digit's
+        probe frames, 8600 cells: 4.1 ms per frame with them, 3.3 ms without)."""
         torch = self.torch
         n = x.shape[0]
         with torch.inference_mode():
