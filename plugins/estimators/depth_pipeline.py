@@ -302,12 +302,20 @@ class DepthPipeline:
         # colour features on the cells' bounding box (+ the neighbourhood a feature reads; at the grid's border the
         # box ends where the grid does, so the replicated border is the same as on the whole grid)
         q = self._context
-        w0, w1 = max(int(r.min()) - q, 0), min(int(r.max()) + 1 + q, gr)
-        v0, v1 = max(int(c.min()) - q, 0), min(int(c.max()) + 1 + q, gc)
-        cm = colour_maps(self.model.feature_set, x[w0:w1, v0:v1], d[w0:w1, v0:v1], self._bg_grid_np[w0:w1, v0:v1])
         feats = b["feats"][: idx.size]
-        k = cm.shape[2]
-        feats[:, :k] = cm[r - w0, c - v0]
+        if q == 0:
+            # cell-wise inputs: gather the changed cells first, compute the inputs on them alone
+            cm = colour_maps(self.model.feature_set, x.reshape(-1, 3)[idx][:, None], d.reshape(-1, 3)[idx][:, None],
+                             self._bg_grid_np.reshape(-1, 3)[idx][:, None])
+            k = cm.shape[2]
+            feats[:, :k] = cm[:, 0]
+        else:
+            w0, w1 = max(int(r.min()) - q, 0), min(int(r.max()) + 1 + q, gr)
+            v0, v1 = max(int(c.min()) - q, 0), min(int(c.max()) + 1 + q, gc)
+            cm = colour_maps(self.model.feature_set, x[w0:w1, v0:v1], d[w0:w1, v0:v1],
+                             self._bg_grid_np[w0:w1, v0:v1])
+            k = cm.shape[2]
+            feats[:, :k] = cm[r - w0, c - v0]
         if self._use_xy:
             feats[:, k:k + 2] = self._xy_np.reshape(-1, 2)[idx]
         n = self._fast_mlp(torch.from_numpy(feats)).numpy()
