@@ -282,7 +282,10 @@ class DepthPipeline:
             x[...] = frame
         np.subtract(x, self._bg_grid_np, out=d)
         if self.drift_correction:
-            d -= channel_offset(d)
+            # subtract per channel as one row of gc x 3 values: numpy's broadcast over a last axis of 3 runs its
+            # inner loop 3 elements at a time (0.19 ms here against 0.03 ms, the same numbers)
+            d2 = d.reshape(gr, gc * 3)
+            np.subtract(d2, np.tile(channel_offset(d), gc), out=d2)
         np.abs(d, out=b["absd"])
         cv2.transform(b["absd"], self._ones13, dst=b["a"])
         cv2.blur(b["a"], (3, 3), dst=b["a2"], borderType=cv2.BORDER_REPLICATE)
