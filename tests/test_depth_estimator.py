@@ -192,3 +192,21 @@ nodes:
     md = [v.value if hasattr(v, "value") else v for v in md]
     assert len(md) >= 5
     assert all(0.5e-3 < v < 1.1e-3 for v in md)
+
+
+def test_contact_summary_is_the_depth_weighted_centre_of_the_contact():
+    from teletouch.plugins.estimators.depth_pipeline import contact_summary
+
+    rng = np.random.default_rng(0)
+    rr, cc = np.mgrid[0:320, 0:240]
+    z = (np.maximum(0.0, 1e-3 - ((rr - 100.3) ** 2 + (cc - 170.7) ** 2) * 1e-6)
+         + rng.random((320, 240)) * 1e-6).astype(np.float32)
+    mask, area, centroid = contact_summary(z, 5.8e-5, 3e-5, 0.5)
+    assert np.array_equal(mask, z > 0.5 * z.max())
+    rows, cols = np.nonzero(mask)
+    w = z[rows, cols].astype(np.float64)
+    expected = np.array([(cols * w).sum() / w.sum() - 119.5, (rows * w).sum() / w.sum() - 159.5]) * 5.8e-5
+    np.testing.assert_allclose(centroid, expected, rtol=1e-9)
+    assert area == pytest.approx(mask.sum() * 5.8e-5 ** 2)
+    m0, a0, c0 = contact_summary(np.zeros((10, 10), np.float32), 1e-4, 3e-5)
+    assert not m0.any() and a0 == 0.0 and np.isnan(c0).all()
