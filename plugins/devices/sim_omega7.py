@@ -239,40 +239,25 @@ class SimOmega7(Device):
         if hand:
             k_h, b_h, f_max = self.hand.stiffness, self.hand.damping, self.hand.max_force
             x_d, v_d = des
-            for _ in range(n):
-                # gripper: m x'' = F_render + F_hand - b x' - Coulomb
+        for _ in range(n):
+            # gripper: m x'' = F_render + F_hand - b x' - Coulomb
+            if hand:
                 fh = k_h * (x_d - x) + b_h * (v_d - v)
                 fh = f_max if fh > f_max else (-f_max if fh < -f_max else fh)
-                drive = g + fh - b * v
-                if abs(v) < 1e-9 and abs(drive) <= fc:
-                    v = 0.0  # static friction holds
-                else:
-                    sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
-                    v_new = v + h * (drive - fc * sgn) / m
-                    if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
-                        v_new = 0.0  # friction stops it, it does not reverse it
-                    v = v_new
-                x += h * v
-                if x <= 0.0:
-                    x, v = 0.0, max(v, 0.0)
-                elif x >= x_max:
-                    x, v = x_max, min(v, 0.0)
-        else:
-            for _ in range(n):
-                drive = g + fh - b * v
-                if abs(v) < 1e-9 and abs(drive) <= fc:
-                    v = 0.0
-                else:
-                    sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
-                    v_new = v + h * (drive - fc * sgn) / m
-                    if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
-                        v_new = 0.0
-                    v = v_new
-                x += h * v
-                if x <= 0.0:
-                    x, v = 0.0, max(v, 0.0)
-                elif x >= x_max:
-                    x, v = x_max, min(v, 0.0)
+            drive = g + fh - b * v
+            if abs(v) < 1e-9 and abs(drive) <= fc:
+                v = 0.0  # static friction holds
+            else:
+                sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
+                v_new = v + h * (drive - fc * sgn) / m
+                if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
+                    v_new = 0.0  # friction stops it, it does not reverse it
+                v = v_new
+            x += h * v
+            if x <= 0.0:
+                x, v = 0.0, max(v, 0.0)
+            elif x >= x_max:
+                x, v = x_max, min(v, 0.0)
         self.x, self.v, self.f_hand = x, v, fh
         # handle: M p'' = F_cmd + F_ext + F_arm - b p'
         px, py, pz = self._p
