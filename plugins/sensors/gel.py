@@ -305,6 +305,13 @@ def gel_force(indentation_m: float, indenter: Indenter, modulus: float | GelMate
     return float(F * _thin_layer(contact_radius(d, indenter, tilt_rad), mat.thickness))
 
 
+def _no_indentation(d: float) -> float:
+    """force_law's off-the-hot-path branch: 0 N for d <= 0, an error for NaN or infinity."""
+    if not math.isfinite(d):
+        raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
+    return 0.0
+
+
 def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, poisson: float | None = None,
               thickness: float | None = None, tilt_rad: float = 0.0):
     """``gel_force`` for one indenter and gel as a function of the indentation alone, ``F(d)`` (N, d in m).
@@ -317,7 +324,7 @@ def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, po
     Es = mat.reduced_modulus
     h = mat.thickness
     k = indenter.kind
-    isfinite, sqrt = math.isfinite, math.sqrt
+    sqrt = math.sqrt
 
     def layer(a_c: float) -> float:  # _thin_layer's polynomial
         x = a_c / h
@@ -330,9 +337,7 @@ def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, po
         def law(d: float) -> float:
             d = float(d)
             if d <= 0.0 or not d < math.inf:
-                if not isfinite(d):
-                    raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
-                return 0.0
+                return _no_indentation(d)
             F = c * d ** 1.5
             if h is None:
                 return F * 1.0
@@ -344,9 +349,7 @@ def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, po
         def law(d: float) -> float:
             d = float(d)
             if d <= 0.0 or not d < math.inf:
-                if not isfinite(d):
-                    raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
-                return 0.0
+                return _no_indentation(d)
             return c * d * fac
     elif k == "probe" and tilt_rad == 0.0:
         Rt, a = indenter.tip_radius, indenter.radius
@@ -358,9 +361,7 @@ def force_law(indenter: Indenter, modulus: float | GelMaterial | None = None, po
         def law(d: float) -> float:
             d = float(d)
             if d <= 0.0 or not d < math.inf:
-                if not isfinite(d):
-                    raise ValueError(f"indentation must be a finite number of metres, got {d!r}")
-                return 0.0
+                return _no_indentation(d)
             F = c * d ** 1.5 if d <= d1 else f1 + c2 * (d - d1)
             if h is None:
                 return F * 1.0
