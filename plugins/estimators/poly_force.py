@@ -230,7 +230,8 @@ def _fit_position(d: np.ndarray, f: np.ndarray, pos: np.ndarray, degree: int, pd
                                f"{axis}): press at several points (press-routine positions) or use position_degree 0")
     center = (hi + lo) / 2.0
     model = PositionModel(pdeg, center, half, np.zeros((degree + 1, len(position_exponents(pdeg)))))
-    phi = model.basis((pos[:, 0] - center[0]) / half[0], (pos[:, 1] - center[1]) / half[1])
+    u_pos, v_pos = (pos[:, 0] - center[0]) / half[0], (pos[:, 1] - center[1]) / half[1]
+    phi = model.basis(u_pos, v_pos)
     sv = np.linalg.svd(phi / np.linalg.norm(phi, axis=0), compute_uv=False)
     if sv[-1] < 1e-3 * sv[0]:
         raise CalibrationError(f"the press points do not determine a position model of degree {pdeg} "
@@ -244,7 +245,7 @@ def _fit_position(d: np.ndarray, f: np.ndarray, pos: np.ndarray, degree: int, pd
     n = phi.shape[1]
     for i, k in enumerate(range(first, degree + 1)):
         model.P[k] = a[i * n:(i + 1) * n] / s ** k
-    model.set_depth_high((pos[:, 0] - center[0]) / half[0], (pos[:, 1] - center[1]) / half[1], d)
+    model.set_depth_high(u_pos, v_pos, d)
     return model
 
 
