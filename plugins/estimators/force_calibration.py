@@ -446,6 +446,7 @@ class PressRoutine(Component):
     def _store(self, t: float) -> None:
         w = self.window
         disp, phase = self.plan[self.index]
+        xy = np.mean(w["centroid"], axis=0) if w["centroid"] else (None, None)
         rec = {
             "depth_m": float(np.mean(w["depth"])),
             "force_n": float(np.mean(w["force"])) - self.tare,
@@ -456,8 +457,8 @@ class PressRoutine(Component):
             "press_point_m": [float(v) for i, v in enumerate(self.origin - self.home) if i != AXES[self.params.axis]],
             "gt_max_depth_m": float(np.mean(w["ref_depth"])) if w["ref_depth"] else None,
             "gt_force_n": float(np.mean(w["ref_force"])) if w["ref_force"] else None,
-            "x_m": float(np.mean([c[0] for c in w["centroid"]])) if w["centroid"] else None,
-            "y_m": float(np.mean([c[1] for c in w["centroid"]])) if w["centroid"] else None,
+            "x_m": None if xy[0] is None else float(xy[0]),
+            "y_m": None if xy[1] is None else float(xy[1]),
             "target_displacement_m": disp,
             "depth_std_m": float(np.std(w["depth"])),
             "force_std_n": float(np.std(w["force"])),
