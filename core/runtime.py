@@ -452,9 +452,9 @@ class Runtime:
             groups.setdefault(n.rate, []).append(n)
         fast = max(groups) if groups else 1.0
         old_switch = sys.getswitchinterval()
-        if fast >= 200:
-            # a fast loop must get the GIL back within a fraction of its period
-            sys.setswitchinterval(min(old_switch, 0.1 / fast))
+        # the fastest loop must get the GIL back within a fraction of its period (the default interval, 5 ms, is
+        # half the period of a 100 Hz loop)
+        sys.setswitchinterval(min(old_switch, 0.1 / fast))
         self._threads = []
         for rate, members in sorted(groups.items(), reverse=True):
             th = threading.Thread(target=self._wall_loop, args=(members, rate), name=f"teletouch-{rate:g}Hz",
