@@ -52,8 +52,10 @@ class PalGripper(FollowerBase):
                                            json_schema_extra={"unit": "m/s"})
         max_effort: Newtons = Field(16.0, gt=0, description="grip force above which the fingers close no further",
                                     json_schema_extra={"unit": "N"})
-        time_from_start: Seconds = Field(0.03, gt=0, description="time given to reach each setpoint",
-                                         json_schema_extra={"unit": "s"})
+        time_from_start: Seconds = Field(0.01, gt=0, description="time given to reach each setpoint: one period of "
+                                         "the node's stream (100 Hz: 10 ms), so each setpoint is reached as the "
+                                         "next arrives; longer makes every setpoint a partial step and the "
+                                         "follower lags", json_schema_extra={"unit": "s"})
         republish_period: Seconds = Field(0.1, gt=0, description="resend an unchanged setpoint this often",
                                           json_schema_extra={"unit": "s"})
         connect_timeout: Seconds = Field(3.0, gt=0, description="wait this long for the controller and "
@@ -95,7 +97,7 @@ class PalGripper(FollowerBase):
         self.pub = self.ros_node.create_publisher(JointTrajectory, self.command_topic,
                                                   QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
         self.ros_node.create_subscription(JointState, p.joint_states_topic, self._on_joint_states,
-                                          QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
+                                          QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.executor = SingleThreadedExecutor(context=self.ros_ctx)
         self.executor.add_node(self.ros_node)
         self._spin = threading.Thread(target=self._spin_loop, name=f"{self.id}-rclpy", daemon=True)
