@@ -63,7 +63,7 @@ class PalGripperNode:
         self.node = rclpy.create_node("gripper_controller", namespace=self.ns or "/", context=self.ctx)
         self._JointState = JointState
         self.node.create_subscription(JointTrajectory, f"{self.ns}/gripper_controller/joint_trajectory",
-                                      self._on_trajectory, QoSProfile(depth=1,
+                                      self._on_trajectory, QoSProfile(depth=10,
                                                                       reliability=ReliabilityPolicy.RELIABLE))
         self.pub = self.node.create_publisher(JointState, "/joint_states", 10)
         self.executor = SingleThreadedExecutor(context=self.ctx)
