@@ -188,9 +188,35 @@ def bench_gpu(model, frames, device: str, torch):
             sync()
             ts.append(time.perf_counter() - t0)
         out[f"batch{b}_frames_per_s"] = round(b / float(np.median(ts)), 1)
-    cpu_pipe = DepthPipeline(model, mode="dense")
-    diffs = [abs(pipe.max_depth(fr) - cpu_pipe.max_depth(fr)) for fr in frames]
-    out["gpu_vs_cpu_dense_max_depth_abs_diff_m"] = float(max(diffs))
+    full = []
+    for _ in range(5):
+        for fr in frames:
+            sync()
+            t0 = time.perf_counter()
+            pipe(fr)
+            sync()
+            full.append(time.perf_counter() - t0)
+    out["single_frame_full_outputs_ms"] = round(float(np.median(full) * 1e3), 3)
+    # same results within tolerance: the GPU against the same (dense) path on CPU, every output, and against the
+    # CPU's default (sparse) path on max depth
+    cpu_dense = DepthPipeline(model, mode="dense")
+    cpu_sparse = DepthPipeline(model)
+    dmap, dmax, dcen, darea, dsparse = [], [], [], [], []
+    for fr in frames:
+        g, c, s = pipe(fr), cpu_dense(fr), cpu_sparse(fr)
+        dmap.append(float(np.abs(g.depth - c.depth).max()))
+        dmax.append(abs(g.max_depth - c.max_depth))
+        if c.contact_area > 0:
+            dcen.append(float(np.abs(np.asarray(g.centroid) - np.asarray(c.centroid)).max()))
+            darea.append(abs(g.contact_area / c.contact_area - 1.0))
+        if s.max_depth > 1e-4:
+            dsparse.append(abs(g.max_depth / s.max_depth - 1.0))
+    out["gpu_vs_cpu_dense_max_depth_abs_diff_m"] = float(max(dmax))
+    out["gpu_vs_cpu_dense_depth_map_abs_diff_max_m"] = float(max(dmap))
+    out["gpu_vs_cpu_dense_centroid_abs_diff_max_m"] = float(max(dcen)) if dcen else None
+    out["gpu_vs_cpu_dense_contact_area_rel_diff_max"] = float(max(darea)) if darea else None
+    out["gpu_dense_vs_cpu_sparse_max_depth_rel_diff_median"] = float(np.median(dsparse)) if dsparse else None
+    out["gpu_dense_vs_cpu_sparse_max_depth_rel_diff_max"] = float(max(dsparse)) if dsparse else None
     out["device_name"] = torch.cuda.get_device_name(0) if torch.device(device).type == "cuda" else device
     return out
 
