@@ -3,12 +3,18 @@
 Like the robot's joint_trajectory_controller ``gripper_controller`` with the joint_state_broadcaster: it subscribes
 trajectory_msgs/JointTrajectory on ``<ns>/gripper_controller/joint_trajectory`` and publishes sensor_msgs/JointState
 on ``/joint_states`` (both finger joints, 0-0.045 m each, velocity limit 0.05 m/s, effort limit 16). A trajectory
-with other joint names, a wrong number of positions or non-finite values is rejected (counted in ``rejected``); a
-new trajectory replaces the current one, starting from the present state (interpolated linearly to each point's
-``time_from_start``, never faster than the velocity limit). An object of ``object_width`` between the fingers blocks
-them: each finger then pushes with ``min(16, stiffness * (contact - goal))`` (negative effort: closing). When a
-goal stays farther than ``goal_tolerance`` from the position ``goal_time`` after the trajectory's end, the goal is
-aborted as the real controller does: the gripper holds where it is (counted in ``aborted``).
+with other joint names, a wrong number of positions or non-finite values is rejected (counted in ``rejected``).
+Timing follows ros2_control's read -> update -> write cycle at ``rate``: the subscription only stores the newest
+valid trajectory (the controller's realtime buffer; the latest wins); the next control cycle takes it up and starts
+it at that cycle's time from the present state (a zero ``header.stamp``, which is what the driver sends; the stamp
+is not read), interpolated linearly to each point's ``time_from_start``; each cycle commands the trajectory's point
+one period ahead, which the fingers reach by the next cycle, never faster than the velocity limit. (Starting a
+trajectory at its arrival instead makes the progress per cycle depend on the phase between the sender's loop and
+this one: 10 ms setpoints arriving just before each cycle lag by over 100 ms, which the real controller does not.)
+An object of ``object_width`` between the fingers blocks them: each finger then pushes with ``min(16, stiffness *
+(contact - goal))`` (negative effort: closing). When a goal stays farther than ``goal_tolerance`` from the position
+``goal_time`` after the trajectory's end, the goal is aborted as the real controller does: the gripper holds where
+it is (counted in ``aborted``).
 
 Runs in its own thread with its own rclpy Context (its own DDS participant); ``silent()`` stops it publishing.
 """
@@ -45,7 +51,9 @@ class PalGripperNode:
         self.published = 0
         self.publishing = True
         self.report_effort = True  # False: JointState without efforts (as some robots publish)
-        self._traj: list[tuple[float, list[float]]] = []  # (monotonic time, positions)
+        self._traj: list[tuple[float, list[float]]] = []  # active trajectory: (monotonic time, positions)
+        self._pending: list[tuple[float, list[float]]] | None = None  # newest received: (time_from_start, positions)
+        self._command = list(self.pos)  # the setpoint written in the last control cycle
         self._goal: list[float] | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -103,19 +111,25 @@ class PalGripperNode:
             self.rejected += 1
             return
         order = [names.index(j) for j in JOINTS]
-        now = time.monotonic()
-        traj = []
+        points = []
         for pt in msg.points:
             if len(pt.positions) != len(names) or not all(math.isfinite(x) for x in pt.positions):
                 self.rejected += 1
                 return
             tfs = pt.time_from_start.sec + pt.time_from_start.nanosec * 1e-9
             q = [min(self.upper, max(self.lower, pt.positions[i])) for i in order]
-            traj.append((now + tfs, q))
+            points.append((tfs, q))
         with self._lock:
-            self._traj = [(now, list(self.pos))] + traj
-            self._goal = traj[-1][1]
-            self._goal_deadline = traj[-1][0] + self.goal_time
+            self._pending = points  # started by the next control cycle, not at its arrival
+
+    def _start_pending(self, now: float) -> None:
+        """Control cycle at ``now``: the newest received trajectory starts now, from the present state."""
+        points, self._pending = self._pending, None
+        if points is None:
+            return
+        self._traj = [(now, list(self.pos))] + [(now + tfs, q) for tfs, q in points]
+        self._goal = self._traj[-1][1]
+        self._goal_deadline = self._traj[-1][0] + self.goal_time
 
     def _reference(self, now: float) -> list[float]:
         tr = self._traj
@@ -142,7 +156,8 @@ class PalGripperNode:
             dt = now - last
             last = now
             with self._lock:
-                ref = self._reference(now)
+                # read: the fingers moved towards the setpoint written in the previous cycle
+                ref = self._command
                 contact = self.object_width / 2.0 if self.object_width is not None else None
                 goal = self._traj[-1][1] if self._traj else ref
                 for i in range(2):
@@ -156,11 +171,14 @@ class PalGripperNode:
                     self.vel[i] = (new - self.pos[i]) / dt if dt > 0 else 0.0
                     self.pos[i] = new
                     self.effort[i] = eff
+                # update: take up a new trajectory, check the goal, command the point one period ahead (write)
+                self._start_pending(now)
                 if self._goal is not None and now > self._goal_deadline:
                     if max(abs(g - x) for g, x in zip(self._goal, self.pos)) > self.goal_tolerance:
                         self.aborted += 1
                         self._traj = [(now, list(self.pos))]  # hold position
                     self._goal = None
+                self._command = self._reference(now + period)
                 if self.publishing:
                     msg = self._JointState()
                     msg.header.stamp = self.node.get_clock().now().to_msg()
