@@ -89,16 +89,10 @@ def _create(size: int) -> shared_memory.SharedMemory:
 
 
 def _attach(name: str) -> shared_memory.SharedMemory:
-    blk = shared_memory.SharedMemory(name=name)
-    # Python < 3.13 registers an attached block with the resource tracker as if this side had made it, and would
-    # unlink it (with a warning) when this process ends: the side that made it owns it
-    try:
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(blk._name, "shared_memory")  # type: ignore[attr-defined]
-    except Exception:  # pragma: no cover - best effort
-        pass
-    return blk
+    # Python < 3.13 registers an attached block with the resource tracker as if this side had made it. The child is
+    # spawned by this module and shares the parent's tracker, so that is the same entry again (a set), removed when
+    # the maker unlinks the block; the tracker unlinks what is left if both processes die.
+    return shared_memory.SharedMemory(name=name)
 
 
 def _release(blk: shared_memory.SharedMemory, unlink: bool) -> None:

@@ -171,3 +171,29 @@ nodes:
             checked += 1
     assert checked >= 10 and max(float(o["max_depth"].value) for o in outs) > 2e-4
     assert shared[-1] == (1, 2)   # image out; depth and contact mask back (max depth, area, centroid: the pipe)
+
+
+def test_blocks_of_a_child_that_died_are_removed(reg):
+    from teletouch.runtime import Runtime
+
+    registry = make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
+    text = """
+clock: wall
+nodes:
+  - {id: digit, plugin: sim-digit, rate: 30, params: {indentation: 0.0005}}
+  - {id: depth, plugin: depth, rate: 30, inputs: {image: digit.image}, isolate: process}
+"""
+    before = _shm_blocks()
+    rt = Runtime(load_text(text, registry), log=lambda m: None)
+    proxy = rt.component("depth")
+    seen: list = []
+
+    def kill_when_shared(node, t, out):
+        if node == "depth" and not seen and len(proxy._lanes._peer) == 2:
+            seen.append(set(proxy._lanes._peer) & _shm_blocks())   # the child's blocks exist
+            proxy._proc.kill()
+
+    rt.add_tap(kill_when_shared)
+    res = rt.run(3.0)
+    assert res.exit_code == EXIT_FAULT and "isolated process died" in res.message
+    assert len(seen[0]) == 2 and not (seen[0] & _shm_blocks()) and _shm_blocks() <= before
