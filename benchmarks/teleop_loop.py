@@ -16,9 +16,10 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   the estimate being out of poly-force to that controller step (the controller's pick-up). The smoothing ramp
   (smoothing_time, 1/60 s) comes on top of that by design and is reported separately. Compared side by side in one
   run (``--wall-configs``): ``plain`` (normal scheduling), ``rt`` (``realtime_priority: 50``: SCHED_FIFO for the
-  1 kHz thread), ``rt-isolate`` (also ``isolate: process`` on depth), ``rt-isolate2`` (on depth and sim-digit)
-  and ``rt-est`` (``rt``, and the benchmark puts the 60 Hz estimator thread under SCHED_FIFO 40 from inside it: what
-  the runtime could offer for the image chain's latency, it does not yet), each with the machine's noise over its
+  1 kHz thread), ``rt-isolate`` (also ``isolate: process`` on depth), ``rt-isolate2`` (on depth and sim-digit),
+  ``rt-est`` (``rt``, and ``priority: 40`` on the 60 Hz nodes: their thread under SCHED_FIFO 40) and
+  ``rt-isolate2-est`` (``rt-isolate2`` with ``priority: 40``: the isolated processes under SCHED_FIFO 40), each with
+  the machine's noise over its
   run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``; and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
   Overruns do not fault these runs (``max_overruns: 0``): they are counted.
 
@@ -71,7 +72,8 @@ def sim_speed(sensor: str, duration: float) -> dict:
 #: wall-clock configurations compared side by side: (realtime_priority, nodes run with isolate: process, SCHED_FIFO
 #: priority of the 60 Hz camera/estimator thread through the nodes' `priority:` key, 0 = none)
 WALL_CONFIGS = {"plain": (0, (), 0), "rt": (50, (), 0), "rt-isolate": (50, ("depth",), 0),
-                "rt-isolate2": (50, ("depth", "digit"), 0), "rt-est": (50, (), 40)}
+                "rt-isolate2": (50, ("depth", "digit"), 0), "rt-est": (50, (), 40),
+                "rt-isolate2-est": (50, ("depth", "digit"), 40)}
 
 
 def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolate: tuple[str, ...] = (),
@@ -242,7 +244,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="3 s runs instead of 10 s")
     ap.add_argument("--realtime", action="store_true", help="(kept for old command lines: the realtime "
                     "configurations are in --wall-configs by default)")
-    ap.add_argument("--wall-configs", default="plain,rt,rt-isolate,rt-isolate2,rt-est",
+    ap.add_argument("--wall-configs", default="plain,rt,rt-isolate,rt-isolate2,rt-est,rt-isolate2-est",
                     help=f"comma-separated, of {', '.join(WALL_CONFIGS)} (empty: no wall-clock runs)")
     ap.add_argument("--repeat", type=int, default=1, help="run the wall-clock configurations this many times, "
                     "interleaved; each configuration reports the median over its runs")

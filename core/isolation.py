@@ -20,6 +20,7 @@ ignored: the node runs inline, so runs stay deterministic.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import time
 from multiprocessing import shared_memory
 from typing import Any, NamedTuple
@@ -108,9 +109,16 @@ def _release(blk: shared_memory.SharedMemory, unlink: bool) -> None:
 
 
 def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float,
-                t0_mono: float) -> None:
+                t0_mono: float, priority: int = 0) -> None:
     stop_reason: list[str] = []
     logs: list[str] = []
+    if priority:
+        # the node's own priority (its thread's, had it run in the parent), for the whole child process
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as exc:
+            logs.append(f"priority {priority}: cannot use SCHED_FIFO in the isolated process ({exc}); running "
+                        f"with normal scheduling")
     origin = [t0_perf, t0_mono]
     ctx = Context(now=lambda: time.perf_counter() - origin[0], clock_kind="wall",
                   request_stop=lambda r: stop_reason.append(r), log=logs.append,
@@ -169,7 +177,7 @@ class ProcessProxy(Component):
     """Stands in for a component that runs in a child process; the runtime treats it like the component."""
 
     def __init__(self, cls: type[Component], params: Any, *, node_id: str, ctx: Context, t0_perf: float,
-                 t0_mono: float, step_timeout: float):
+                 t0_mono: float, step_timeout: float, priority: int = 0):
         super().__init__(params, node_id=node_id, ctx=ctx)
         self.target = cls
         self.inputs = cls.inputs
@@ -178,6 +186,7 @@ class ProcessProxy(Component):
         self.kind = cls.kind
         self._t0 = (t0_perf, t0_mono)
         self._step_timeout = step_timeout
+        self._priority = int(priority)
         self._status: dict[str, Any] = {}
         self._conn: Any = None
         self._proc: Any = None
@@ -205,7 +214,8 @@ class ProcessProxy(Component):
         mpctx = mp.get_context("spawn")
         parent, child = mpctx.Pipe()
         self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
-                                   args=(child, self.target, self.params.model_dump(), self.id, *self._t0))
+                                   args=(child, self.target, self.params.model_dump(), self.id, *self._t0,
+                                         self._priority))
         self._proc.start()
         child.close()
         self._conn = parent

@@ -188,7 +188,8 @@ class Runtime:
                 from .isolation import ProcessProxy
 
                 comp = ProcessProxy(n.cls, params, node_id=n.id, ctx=ctx, t0_perf=0.0, t0_mono=0.0,
-                                    step_timeout=max(1.0, 20.0 / float(n.rate)))
+                                    step_timeout=max(1.0, 20.0 / float(n.rate)),
+                                    priority=thread_priority(self.spec.realtime_priority, n.rate, [n.priority]))
             else:
                 comp = n.cls(params, node_id=n.id, ctx=ctx)
             in_slots: dict[str, _Slot] = {}

@@ -197,3 +197,39 @@ nodes:
     res = rt.run(3.0)
     assert res.exit_code == EXIT_FAULT and "isolated process died" in res.message
     assert len(seen[0]) == 2 and not (seen[0] & _shm_blocks()) and _shm_blocks() <= before
+
+
+def test_isolated_node_runs_at_its_priority(reg):
+    """`priority:` on an isolated node applies to its process (it would have applied to its thread inline)."""
+    if not hasattr(os, "sched_getscheduler"):  # pragma: no cover - Linux has it
+        pytest.fail("needs Linux scheduling calls")
+    logs: list[str] = []
+    from teletouch.runtime import Runtime
+
+    text = GRAPH.replace("isolate: process}", "isolate: process, priority: 7}")
+    rt = Runtime(load_text(text, reg), log=logs.append)
+    policies = []
+
+    def tap(node, t, out):
+        if node == "est" and not policies:
+            pid = out["pid"]
+            policies.append((os.sched_getscheduler(pid), os.sched_getparam(pid).sched_priority))
+
+    rt.add_tap(tap)
+    res = rt.run(0.5)
+    assert res.exit_code == EXIT_OK, res.message
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))   # may this user use SCHED_FIFO at all?
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        allowed = True
+    except PermissionError:
+        allowed = False
+    if allowed:
+        assert policies[0] == (os.SCHED_FIFO, 7)
+    else:
+        assert policies[0][0] == os.SCHED_OTHER
+        assert any("priority 7: cannot use SCHED_FIFO in the isolated process" in m for m in logs)
+    # without a priority the child runs with normal scheduling
+    policies.clear()
+    res, _ = run_yaml(GRAPH, reg, duration=0.3, taps=[tap])
+    assert policies[0] == (os.SCHED_OTHER, 0)
