@@ -19,8 +19,8 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   1 kHz thread), ``rt-isolate`` (also ``isolate: process`` on depth), ``rt-isolate2`` (on depth and sim-digit),
   ``rt-est`` (``rt``, and ``priority: 40`` on the 60 Hz nodes: their thread under SCHED_FIFO 40) and
   ``rt-isolate2-est`` (``rt-isolate2`` with ``priority: 40``: the isolated processes under SCHED_FIFO 40), each with
-  the machine's noise over its
-  run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``; and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
+  the machine's noise over its run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``;
+  and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
   Overruns do not fault these runs (``max_overruns: 0``): they are counted.
 
     python benchmarks/teleop_loop.py [--quick] [--steps] [--sensor image|gt|ideal] [--wall-configs plain,rt,...]
