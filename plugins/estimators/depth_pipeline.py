@@ -36,7 +36,7 @@ import numpy as np
 from teletouch.errors import ModelFileError
 
 from . import poisson
-from .normal_model import NormalModel, colour_maps, colour_maps_torch, context_cells, feature_count, uses_xy
+from .normal_model import NormalModel, colour_maps_torch, colour_parts, context_cells, feature_count, uses_xy
 
 __all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset"]
 
@@ -312,20 +312,22 @@ class DepthPipeline:
         q = self._context
         ncell = idx.size
         feats = b["feats"][: self.nfeat * ncell].reshape(self.nfeat, ncell)   # one row per input, cells as columns
+        k = 0
         if q == 0:
             # cell-wise inputs: gather the changed cells first, compute the inputs on them alone (np.take: ~3x
             # faster than fancy indexing for rows of 3)
-            cm = colour_maps(self.model.feature_set, *(np.take(a.reshape(-1, 3), idx, axis=0)[:, None]
-                                                       for a in (x, d, self._bg_grid_np)))
-            k = cm.shape[2]
-            feats[:k] = cm[:, 0].T
+            for part in colour_parts(self.model.feature_set, *(np.take(a.reshape(-1, 3), idx, axis=0)[:, None]
+                                                              for a in (x, d, self._bg_grid_np))):
+                feats[k:k + 3] = part[:, 0].T
+                k += 3
         else:
             w0, w1 = max(int(r.min()) - q, 0), min(int(r.max()) + 1 + q, gr)
             v0, v1 = max(int(c.min()) - q, 0), min(int(c.max()) + 1 + q, gc)
-            cm = colour_maps(self.model.feature_set, x[w0:w1, v0:v1], d[w0:w1, v0:v1],
-                             self._bg_grid_np[w0:w1, v0:v1])
-            k = cm.shape[2]
-            feats[:k] = np.take(cm.reshape(-1, k), (r - w0) * (v1 - v0) + (c - v0), axis=0).T
+            at = (r - w0) * (v1 - v0) + (c - v0)
+            for part in colour_parts(self.model.feature_set, x[w0:w1, v0:v1], d[w0:w1, v0:v1],
+                                     self._bg_grid_np[w0:w1, v0:v1]):
+                feats[k:k + 3] = np.take(part.reshape(-1, 3), at, axis=0).T
+                k += 3
         if self._use_xy:
             np.take(self._xy_np, idx, axis=1, out=feats[k:k + 2])
         nx, ny, nz = self._fast_mlp(torch.from_numpy(feats)).numpy()
