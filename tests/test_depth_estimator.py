@@ -76,6 +76,24 @@ def test_sparse_and_dense_paths_agree(model, sim):
     assert np.abs(z[0] - b.depth).max() < 1e-6 + 0.02 * b.max_depth
 
 
+def test_net_rim_runs_the_network_on_a_wider_rim_on_both_paths(model, sim):
+    img, _ = sim.render(0.7e-3, (0.0, 0.001))
+    cells = {}
+    for rim in (0, 1):
+        p = DepthPipeline(model, net_rim=rim)
+        seen = []
+        real = p._fast_mlp
+        p._fast_mlp = lambda x, real=real, seen=seen: seen.append(x.shape[1]) or real(x)
+        cells[rim] = (p(img), seen[0])
+        dense = DepthPipeline(model, mode="dense", net_rim=rim)(img)
+        assert cells[rim][0].max_depth == pytest.approx(dense.max_depth, rel=0.03)
+    (a, na), (b, nb) = cells[0], cells[1]
+    assert nb > na * 1.02                                    # one more ring of cells through the network
+    assert b.max_depth == pytest.approx(a.max_depth, rel=0.05) and not np.array_equal(a.depth, b.depth)
+    with Harness(DepthEstimator, {"net_rim": 1}) as h:
+        assert h.comp.pipe.net_rim == 1
+
+
 def test_plane_baseline_zero_reference(model, sim):
     """baseline="plane": the solved depth just outside the kept region is fitted by a plane and subtracted; both
     paths agree, no contact stays exactly zero, it reads about as deep or shallower and still orders presses."""
