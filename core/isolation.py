@@ -64,7 +64,7 @@ class ArrayLanes:
         if blk is None or blk.size < value.nbytes:
             if blk is not None:
                 _release(blk, unlink=True)
-            blk = self._own[key] = _create(max(value.nbytes, SHARED_MIN_BYTES))
+            blk = self._own[key] = _create(value.nbytes)
         np.copyto(np.ndarray(value.shape, value.dtype, buffer=blk.buf), value, casting="no")
         return SharedRef(blk.name, value.shape, value.dtype.str)
 
