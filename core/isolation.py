@@ -86,7 +86,11 @@ class ArrayLanes:
 
 
 def _create(size: int) -> shared_memory.SharedMemory:
-    return shared_memory.SharedMemory(create=True, size=size)
+    try:
+        return shared_memory.SharedMemory(create=True, size=size)
+    except OSError as exc:
+        raise ComponentFault(f"isolated node: cannot make a {size} B shared-memory block for its arrays ({exc}); "
+                             f"is /dev/shm mounted and large enough (containers: --shm-size)?") from None
 
 
 def _attach(name: str) -> shared_memory.SharedMemory:

@@ -116,6 +116,20 @@ def test_array_lanes_round_trip_large_arrays_through_shared_memory():
     b.close(unlink_peer=True)                    # (and the reader may unlink what it read: already gone, no error)
 
 
+def test_no_shared_memory_is_a_clear_fault(monkeypatch):
+    import numpy as np
+
+    from teletouch import isolation
+    from teletouch.errors import ComponentFault
+
+    def full(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(isolation.shared_memory, "SharedMemory", full)
+    with pytest.raises(ComponentFault, match=r"cannot make a 230400 B shared-memory block .*No space left.*--shm-size"):
+        isolation.ArrayLanes().pack("image", np.zeros((320, 240, 3), np.uint8))
+
+
 def test_isolated_depth_estimator_gets_images_and_returns_depth_maps_exactly(reg):
     """The real image chain, split over two processes: sim-digit's frames go to an isolated `depth` through shared
     memory and its depth maps come back; they equal the maps the same estimator computes inline."""
