@@ -280,6 +280,23 @@ def test_to_portrait_matches_transpose_then_flip():
     assert to_portrait(p) is p  # portrait frames pass unchanged
 
 
+def test_frames_captured_before_graph_time_zero_are_not_passed_on(video):
+    """The capture thread starts at activate, during start-up; a frame it read before the clock's origin is older
+    than the run and is skipped (counted), the next one is passed on with a stamp >= 0."""
+    with Harness(Digit, {"source": str(video), "source_rate": 60.0}) as h:
+        time.sleep(0.1)                      # a frame is waiting, captured "during start-up"
+        t0 = time.monotonic()                # graph time 0 starts now
+        h.comp.ctx = Context(clock_kind="wall", from_monotonic=lambda m: m - t0)
+        assert h.comp.step(0.0, h.inputs) is None and h.comp.status()["before_start"] == 1
+        got = None
+        deadline = time.monotonic() + 3
+        while got is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+            got = h.comp.step(time.monotonic() - t0, h.inputs)
+        assert got is not None and got["image"].stamp >= 0.0
+        assert h.comp.status()["before_start"] == 1 and h.comp.status()["frames"] == 1
+
+
 def test_digit_in_a_wall_clock_graph(video):
     reg = make_registry("teletouch.plugins.sensors.digit")
     text = f"""

@@ -11,7 +11,7 @@
   passed through unchanged.
 - A capture thread reads continuously and keeps only the newest frame, stamped with its capture time
   (time.monotonic() right after the read, mapped to the graph clock); frames the graph never took are counted as
-  dropped.
+  dropped, and a frame captured during start-up, before graph time 0, is not passed on (``before_start``).
 - Errors say what to do: no DIGIT, wrong serial (lists what is connected), permission denied (the udev rule),
   unplugged mid-run or no frame for ``frame_timeout`` (the node faults; the runtime applies its fault policy).
 """
@@ -287,6 +287,7 @@ class Digit(Component):
 
     def activate(self) -> None:
         self._last_frame_mono = time.monotonic()
+        self.before_start = 0   # frames captured before graph time 0, not passed on
         self.grabber.start()
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
@@ -307,6 +308,12 @@ class Digit(Component):
                                     f"(frame_timeout {self.params.frame_timeout} s); check the cable and `dmesg`")
             return None
         frame, stamp, _ = got
+        t_cap = self.ctx.from_monotonic(stamp)
+        if t_cap < 0.0 and self.ctx.clock_kind == "wall":
+            # captured during start-up, before graph time 0 (the capture thread starts at activate): older than the
+            # run, so not its first sample; the next frame follows within a frame period
+            self.before_start += 1
+            return None
         if self.expected_shape is not None and self.params.check_resolution:
             w, h = self.expected_shape
             if frame.shape[:2] != (w, h):
@@ -316,7 +323,7 @@ class Digit(Component):
         self._last_frame_mono = stamp
         if self._t_first is None:
             self._t_first = stamp
-        return {"image": Sample(frame, self.ctx.from_monotonic(stamp))}
+        return {"image": Sample(frame, t_cap)}
 
     def deactivate(self) -> None:
         if hasattr(self, "grabber"):
@@ -336,6 +343,7 @@ class Digit(Component):
             return {}
         span = (self._last_frame_mono - self._t_first) if self._t_first is not None else 0.0
         return {"frames": self.frames, "captured": g.seq, "dropped": g.dropped,
+                "before_start": getattr(self, "before_start", 0),
                 "fps": (self.frames - 1) / span if span > 0 else 0.0}
 
 
