@@ -114,6 +114,16 @@ def _release(blk: shared_memory.SharedMemory, unlink: bool) -> None:
 
 def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float,
                 t0_mono: float, priority: int = 0) -> None:
+    lanes = ArrayLanes()
+    try:
+        _serve(conn, cls, params, node_id, t0_perf, t0_mono, priority, lanes)
+    finally:
+        lanes.close()
+        conn.close()
+
+
+def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float, t0_mono: float,
+           priority: int, lanes: ArrayLanes) -> None:
     stop_reason: list[str] = []
     logs: list[str] = []
     if priority:
@@ -129,16 +139,6 @@ def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_
                   from_monotonic=lambda m: m - origin[1])
     slots = {name: _Slot() for name in cls.inputs}
     inputs = Inputs(slots)
-    lanes = ArrayLanes()
-    try:
-        _serve(conn, cls, params, node_id, ctx, slots, inputs, lanes, origin, stop_reason, logs)
-    finally:
-        lanes.close()
-        conn.close()
-
-
-def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, ctx: Context, slots: dict,
-           inputs: Inputs, lanes: ArrayLanes, origin: list, stop_reason: list, logs: list) -> None:
     comp: Component | None = None
     while True:
         try:
