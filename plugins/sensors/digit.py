@@ -253,6 +253,7 @@ class Digit(Component):
         self.grabber = FrameGrabber(cap, self.info.serial if self.info else os.path.basename(path),
                                     is_file=self.is_file, pace=pace, on_eof=p.on_eof, lost=self._lost)
         self.frames = 0
+        self.before_start = 0   # frames captured before graph time 0, not passed on
         self._last_frame_mono = 0.0
         self._t_first: float | None = None
 
@@ -287,7 +288,6 @@ class Digit(Component):
 
     def activate(self) -> None:
         self._last_frame_mono = time.monotonic()
-        self.before_start = 0   # frames captured before graph time 0, not passed on
         self.grabber.start()
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
@@ -309,7 +309,7 @@ class Digit(Component):
             return None
         frame, stamp, _ = got
         t_cap = self.ctx.from_monotonic(stamp)
-        if t_cap < 0.0 and self.ctx.clock_kind == "wall":
+        if t_cap < 0.0:
             # captured during start-up, before graph time 0 (the capture thread starts at activate): older than the
             # run, so not its first sample; the next frame follows within a frame period
             self.before_start += 1
@@ -343,7 +343,7 @@ class Digit(Component):
             return {}
         span = (self._last_frame_mono - self._t_first) if self._t_first is not None else 0.0
         return {"frames": self.frames, "captured": g.seq, "dropped": g.dropped,
-                "before_start": getattr(self, "before_start", 0),
+                "before_start": self.before_start,
                 "fps": (self.frames - 1) / span if span > 0 else 0.0}
 
 
