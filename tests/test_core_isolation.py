@@ -24,6 +24,12 @@ def reg():
     return make_registry()
 
 
+@pytest.fixture(scope="module")
+def image_reg():
+    """The mocks and the real image chain: sim-digit and depth."""
+    return make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
+
+
 def test_isolated_node_runs_in_its_own_process_on_the_same_clock(reg):
     seen = []
     res, rt = run_yaml(GRAPH, reg, duration=1.0, taps=[lambda n, t, o: n == "est" and seen.append((t, o))])
@@ -130,16 +136,15 @@ def test_no_shared_memory_is_a_clear_fault(monkeypatch):
         isolation.ArrayLanes().pack("image", np.zeros((320, 240, 3), np.uint8))
 
 
-def test_isolated_depth_estimator_gets_images_and_returns_depth_maps_exactly(reg):
+def test_isolated_depth_estimator_gets_images_and_returns_depth_maps_exactly(image_reg):
     """The real image chain, split over two processes: sim-digit's frames go to an isolated `depth` through shared
     memory and its depth maps come back; they equal the maps the same estimator computes inline."""
     import numpy as np
 
     from teletouch.component import Sample
     from teletouch.plugins.estimators.depth import DepthEstimator
-    from teletouch.testing import Harness, make_registry
+    from teletouch.testing import Harness
 
-    registry = make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
     text = """
 clock: wall
 nodes:
@@ -164,7 +169,7 @@ nodes:
     shared: list = []
     from teletouch.runtime import Runtime
 
-    rt = Runtime(load_text(text, registry), log=lambda m: None)
+    rt = Runtime(load_text(text, image_reg), log=lambda m: None)
     rt_ref.append(rt)
     rt.add_tap(tap)
     res = rt.run(1.0)
@@ -187,10 +192,9 @@ nodes:
     assert shared[-1] == (1, 2)   # image out; depth and contact mask back (max depth, area, centroid: the pipe)
 
 
-def test_blocks_of_a_child_that_died_are_removed(reg):
+def test_blocks_of_a_child_that_died_are_removed(image_reg):
     from teletouch.runtime import Runtime
 
-    registry = make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
     text = """
 clock: wall
 nodes:
@@ -198,7 +202,7 @@ nodes:
   - {id: depth, plugin: depth, rate: 30, inputs: {image: digit.image}, isolate: process}
 """
     before = _shm_blocks()
-    rt = Runtime(load_text(text, registry), log=lambda m: None)
+    rt = Runtime(load_text(text, image_reg), log=lambda m: None)
     proxy = rt.component("depth")
     seen: list = []
 
