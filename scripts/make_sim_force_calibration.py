@@ -10,7 +10,8 @@ i.e. sim-omega7 + sim-press-rig + sim-digit + the depth estimator (model sim-dig
 steps to 2 mm, once at each point of a 5 x 5 grid over +-2 x +-4 mm (``--grid``), fitted with position terms of degree
 4 (``--position-degree``: the curve follows the contact centroid, which evens out the depth estimator's variation
 over the sensor). ``--single-point`` runs the paper's protocol instead: 3 cycles at the centre, one curve.
-``--depth-source gt`` uses sim-digit's ground-truth max depth instead of the depth estimator (for development before a depth model exists; the file then records depth_source sensor.gt_max_depth).
+``--depth-source gt`` uses sim-digit's ground-truth max depth instead of the depth estimator (for development before
+a depth model exists; the file then records depth_source sensor.gt_max_depth).
 ``--quick`` runs 0.25 mm steps on a 3 x 3 grid with position degree 1 (a smoke test; do not ship its output).
 """
 

@@ -129,8 +129,8 @@ class PressRoutine(Component):
 
     SATURATION_TIME = 0.1  # s of a saturated press before aborting
 
-    STATES = ("wait", "move", "approach", "backoff", "tare", "step", "hold", "record", "retract", "done", "abort-retract",
-              "aborted")
+    STATES = ("wait", "move", "approach", "backoff", "tare", "step", "hold", "record", "retract", "done",
+              "abort-retract", "aborted")
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
