@@ -72,6 +72,8 @@ def main() -> int:
     # paper's probe (not the calibration ball) 83% shallow instead of 53%, which doubled the held-out force error
     # (9.5% instead of 5.3% of the range; docs/depth.md)
     ap.add_argument("--features", default="diffxy", help="network inputs (default diffxy, see above)")
+    ap.add_argument("--hidden", type=int, nargs="+", default=None,
+                    help="hidden layer sizes (default: the calibration's default)")
     ap.add_argument("--keep", default=None, help="write the rendered presses here (default: a temporary folder)")
     ap.add_argument("-o", "--output", default=str(OUT))
     args = ap.parse_args()
@@ -84,6 +86,7 @@ def main() -> int:
                         "--px-per-mm", "17.15", "--labels", str(folder / "labels.csv"),
                         "--background", str(folder / "background.png"), "--holdout", "4",
                         "--epochs", str(args.epochs), "--seed", str(args.seed), "--features", args.features,
+                        *(["--hidden", *map(str, args.hidden)] if args.hidden else []),
                         "--quiet", "-o", args.output])
     if rc == 0:
         print(f"wrote {args.output} ({Path(args.output).stat().st_size / 1024:.0f} KiB)", file=sys.stderr)

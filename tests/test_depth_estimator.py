@@ -35,13 +35,14 @@ def test_ball_press_depth_against_ground_truth(model, sim, pos, d):
     gt = surf.depth
     assert res.depth.dtype == np.float32 and res.depth.shape == (320, 240)
     assert res.max_depth == pytest.approx(float(gt.max()), rel=0.3)
-    # the deepest point is where the ball is
+    # the deepest point is where the ball is (within a third of the contact radius: the cap's top is nearly flat,
+    # so its argmax moves with the pixel noise)
     r, c = np.unravel_index(np.argmax(res.depth), res.depth.shape)
     m = model.m_per_px
-    assert math.hypot((c - 119.5) * m - pos[0], (r - 159.5) * m - pos[1]) < 0.4e-3
+    a = gel.contact_radius(d, gel.Indenter.sphere(0.003))
+    assert math.hypot((c - 119.5) * m - pos[0], (r - 159.5) * m - pos[1]) < max(0.4e-3, a / 3)
     assert np.allclose(res.centroid, pos, atol=0.3e-3)
     # contact area of the same order as the true one (Hertz contact radius sqrt(R d))
-    a = gel.contact_radius(d, gel.Indenter.sphere(0.003))
     assert 0.3 * math.pi * a * a < res.contact_area < 3.0 * math.pi * a * a
     # no depth far from the contact
     rr, cc = np.mgrid[0:320, 0:240]

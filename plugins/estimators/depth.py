@@ -27,7 +27,7 @@ from pydantic import Field
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
 from teletouch.units import Meters, parse_quantity
 
-from .normal_model import DEFAULT_FEATURES, FEATURE_SETS
+from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS
 
 __all__ = ["DepthEstimator"]
 
@@ -357,7 +357,8 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--features", default=DEFAULT_FEATURES, choices=sorted(FEATURE_SETS),
                    help=f"network inputs (default {DEFAULT_FEATURES}: relative change from the background, its local "
                    "gradients and the position; rgbxy is the paper's R, G, B, X, Y; see docs/depth.md)")
-    p.add_argument("--hidden", type=int, nargs="+", default=[32, 32, 32], help="hidden layer sizes")
+    p.add_argument("--hidden", type=int, nargs="+", default=list(DEFAULT_HIDDEN),
+                   help=f"hidden layer sizes (default {' '.join(map(str, DEFAULT_HIDDEN))})")
     p.add_argument("--epochs", type=int, default=40)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--stride", type=int, default=None, help="work-grid stride in px (default: rows / 160)")

@@ -22,7 +22,7 @@ import numpy as np
 
 from teletouch.errors import ModelFileError
 
-from .normal_model import DEFAULT_FEATURES, NormalModel, feature_count, make_net
+from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, feature_count, make_net
 
 __all__ = [
     "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",
@@ -218,9 +218,12 @@ def write_labels(path: str | os.PathLike[str], labels: Iterable[Label]) -> Path:
     with open(path, "w", newline="", encoding="utf-8") as fh:
         wr = csv.writer(fh)
         wr.writerow(["image", "center_x", "center_y", "radius_px", "note"])
+
+        def num(v: float | None) -> str:
+            return "" if v is None else f"{v:g}"
+
         for lb in labels:
-            f = (lambda v: "" if v is None else f"{v:g}")
-            wr.writerow([lb.image, f(lb.cx), f(lb.cy), f(lb.r), lb.note])
+            wr.writerow([lb.image, num(lb.cx), num(lb.cy), num(lb.r), lb.note])
     return path
 
 
@@ -325,7 +328,7 @@ def press_samples(image: np.ndarray, background: np.ndarray, label: Label | None
 
 def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
                 px_per_m: float, ball_radius_m: float = 0.003, feature_set: str = DEFAULT_FEATURES,
-                hidden: Sequence[int] = (32, 32, 32), epochs: int = 40, lr: float = 1e-3, batch: int = 1024,
+                hidden: Sequence[int] = DEFAULT_HIDDEN, epochs: int = 40, lr: float = 1e-3, batch: int = 1024,
                 dropout: float = 0.05, seed: int = 0, stride: int | None = None, flat_ratio: float = 1.0,
                 validation: Sequence[str] = (), progress: bool = True, fit_gain: bool = True,
                 log: Callable[[str], None] | None = None) -> NormalModel:
