@@ -6,8 +6,9 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
 - sim clock: graph seconds per wall second (target >= 5x real time): over the whole run (start-up included: loading
   the depth model), after start-up (``steady``), and per CPU second of the process (``steady_cpu``: what it would be
   on a core of its own; this machine is shared), with each node's share of the wall time per simulated second; side
-  by side with the same loop on the ``ideal`` camera-rate sensor (no image pipeline), so the ratio shows what the
-  image chain costs;
+  by side with the same loop with pixel noise on sim-digit (2 levels, ``sim_noise``: no frame repeats, so the image
+  chain runs on every frame) and on the ``ideal`` camera-rate sensor (no image pipeline), so the ratios show what
+  the image chain costs;
 - wall clock: the controller's period jitter p99 (target <= 0.25 ms, RunResult.nodes[i].period_jitter_p99_s) and the
   sensor-to-leader-force latency: from the moment a frame is out of sim-digit to the end of the first controller
   step that uses the force estimated from it (target p99 <= 5 ms; it includes the estimators' own time), over all
@@ -46,9 +47,15 @@ from teletouch.plugins.controllers.experiments import build_runtime, sim_graph
 from machine import cpu_times, machine_noise
 
 
-def sim_speed(sensor: str, duration: float) -> dict:
-    """Graph seconds per wall second; ``steady`` excludes start-up (model loading, caches, the first 0.5 s)."""
-    rt = build_runtime(sim_graph(sensor=sensor, duration=duration))
+def sim_speed(sensor: str, duration: float, noise: float = 0.0) -> dict:
+    """Graph seconds per wall second; ``steady`` excludes start-up (model loading, caches, the first 0.5 s).
+    ``noise``: sim-digit's pixel noise (levels): every frame then differs, so depth computes every frame."""
+    graph = sim_graph(sensor=sensor, duration=duration)
+    if noise:
+        for node in graph["nodes"]:
+            if node["plugin"] == "sim-digit":
+                node["params"]["noise"] = noise
+    rt = build_runtime(graph)
     mark: list[tuple[float, float, float]] = []
 
     def progress(_rt, t: float) -> None:
@@ -61,7 +68,7 @@ def sim_speed(sensor: str, duration: float) -> dict:
     steady = (res.sim_time - mark[0][2]) / (end - mark[0][0]) if mark else float("nan")
     steady_cpu = (res.sim_time - mark[0][2]) / (cend - mark[0][1]) if mark else float("nan")
     ctl = next(n for n in res.nodes if n.id == "controller")
-    return {"sensor": sensor, "sim_time_s": res.sim_time, "wall_time_s": res.wall_time,
+    return {"sensor": sensor, "noise": noise, "sim_time_s": res.sim_time, "wall_time_s": res.wall_time,
             "realtime_factor": res.realtime_factor, "realtime_factor_steady": steady,
             "realtime_factor_steady_cpu": steady_cpu, "cpu_time_s": cend - c0, "status": res.status,
             "controller_mean_step_us": ctl.mean_step_s * 1e6,
@@ -268,6 +275,10 @@ def main() -> int:
     print(f"sim clock, {args.sensor}: {sim['realtime_factor']:.2f}x real time "
           f"({sim['realtime_factor_steady']:.2f}x after start-up, {sim['realtime_factor_steady_cpu']:.2f}x per CPU "
           f"second)", file=sys.stderr)
+    sim_noisy = sim_speed(args.sensor, dur, noise=2.0) if args.sensor != "ideal" else None
+    if sim_noisy:
+        print(f"sim clock, {args.sensor}, pixel noise 2 levels: {sim_noisy['realtime_factor_steady']:.2f}x after "
+              f"start-up", file=sys.stderr)
     sim_ref = sim_speed("ideal", dur) if args.sensor != "ideal" else None
     if sim_ref:
         print(f"sim clock, ideal: {sim_ref['realtime_factor']:.2f}x real time "
@@ -307,6 +318,7 @@ def main() -> int:
         "sim_realtime_factor": sim["realtime_factor"],
         "sim_realtime_factor_steady": sim["realtime_factor_steady"],
         "sim_realtime_factor_steady_cpu": sim["realtime_factor_steady_cpu"],
+        "sim_realtime_factor_steady_noise": sim_noisy["realtime_factor_steady"] if sim_noisy else None,
         "sim_realtime_factor_ideal_sensor": sim_ref["realtime_factor_steady"] if sim_ref else None,
         "image_chain_cost_ratio": (sim_ref["realtime_factor_steady"] / sim["realtime_factor_steady"])
         if sim_ref else None,
@@ -322,7 +334,7 @@ def main() -> int:
                     "frame_to_leader_force_p99_ms": "<= 5"},
         "controller_alone_jitter_p99_ms": solo["controller_jitter_p99_ms"] if solo else None,
         "load_average": load, "cpus": os.cpu_count(),
-        "sim": sim, "sim_ideal": sim_ref, "wall_runs": runs, "wall_controller_only": solo,
+        "sim": sim, "sim_noise": sim_noisy, "sim_ideal": sim_ref, "wall_runs": runs, "wall_controller_only": solo,
         "wall_time_s": time.perf_counter() - w0,
     }
     print(json.dumps(out))
