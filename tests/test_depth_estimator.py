@@ -58,6 +58,10 @@ def test_no_contact_gives_no_depth_under_noise_and_drift(model):
         assert res.max_depth < 0.02e-3
         assert res.contact_area == 0.0 and not res.contact_mask.any()
         assert np.isnan(res.centroid).all()
+        # a zero grid takes a short cut: the same types and shapes as a frame with depth
+        assert res.depth.dtype == np.float32 and res.depth.shape == (320, 240) and not res.depth.any()
+        assert res.contact_mask.dtype == bool and res.contact_mask.shape == (320, 240)
+        assert res.centroid.shape == (2,)
 
 
 def test_deeper_press_reads_deeper(model, sim):

@@ -457,6 +457,12 @@ class DepthPipeline:
 
     def __call__(self, frame: np.ndarray) -> DepthResult:
         zg = self.grid_depth(frame)
+        if not zg.any():
+            # no depth anywhere (the gel at rest): the same outputs without upsampling and summing a zero map
+            # (0.25 ms of the 0.5 ms such a frame costs)
+            return DepthResult(depth=np.zeros((self.rows, self.cols), np.float32), max_depth=0.0,
+                               contact_mask=np.zeros((self.rows, self.cols), bool), contact_area=0.0,
+                               centroid=np.array([math.nan, math.nan]))
         depth = self.upsample(zg)
         mask, area, centroid = contact_summary(depth, 1.0 / self.model.px_per_m, self.contact_depth,
                                                self.contact_fraction)
