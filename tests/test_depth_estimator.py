@@ -95,8 +95,10 @@ def test_net_rim_runs_the_network_on_a_wider_rim_on_both_paths(model, sim):
     (a, na), (b, nb) = cells[0], cells[1]
     assert nb > na * 1.02                                    # one more ring of cells through the network
     assert b.max_depth == pytest.approx(a.max_depth, rel=0.05) and not np.array_equal(a.depth, b.depth)
-    with Harness(DepthEstimator, {"net_rim": 1}) as h:
-        assert h.comp.pipe.net_rim == 1
+    with Harness(DepthEstimator, {}) as h:
+        assert h.comp.pipe.net_rim == 1                     # the default
+    with Harness(DepthEstimator, {"net_rim": 0}) as h:
+        assert h.comp.pipe.net_rim == 0
 
 
 def test_plane_baseline_zero_reference(model, sim):

@@ -84,7 +84,7 @@ class DepthPipeline:
     """A calibrated model + settings -> depth maps. ``pipeline(frame_bgr_uint8) -> DepthResult``."""
 
     def __init__(self, model: NormalModel, device: str = "cpu", mode: str = "auto",
-                 change_threshold: float | None = None, dilate: int = 2, net_rim: int = 0, nz_min: float = 0.3,
+                 change_threshold: float | None = None, dilate: int = 2, net_rim: int = 1, nz_min: float = 0.3,
                  contact_depth: float = 3e-5, contact_fraction: float = 0.5, margin: int = 4,
                  workers: int | None = None, drift_correction: bool = True, background: np.ndarray | None = None,
                  clamp_negative: bool = True, threads: int | None = None, baseline: str = "none"):
