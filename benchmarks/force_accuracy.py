@@ -4,10 +4,11 @@
 - Calibration quality: R^2 (target >= 0.998) and RMSE of the fit, from the calibration file (default: the packaged
   `sim-digit-qvga`, made by scripts/make_sim_force_calibration.py with the press routine), or a fresh one made by
   the press routine in this run (``--recalibrate``).
-- Held-out presses: sim-digit renders the probe at other positions than the calibration's (random over WIDE, with
-  the NEAR subset reported apart) and at random indentations inside the calibrated range, with pixel noise and illumination drift on and another seed; each frame
-  goes through the depth estimator (the real `depth` component) and `poly-force`; the error against the gel model's
-  force is reported as RMSE in % of the calibrated force range (target <= 3%), with bias and max error.
+- Held-out presses: sim-digit renders the probe at other positions than the calibration's (random over WIDE, with the
+  NEAR subset reported apart) and at random indentations inside the calibrated range, with pixel noise and illumination
+  drift on and another seed; each frame goes through the depth estimator (the real `depth` component) and `poly-force`;
+  the error against the gel model's force is reported as RMSE in % of the calibrated force range (target <= 3%), with
+  bias and max error.
 - No contact: frames without contact (noise, drift) must give exactly 0 N.
 
 ``--depth-source gt`` feeds sim-digit's ground-truth max depth instead of the estimator (development only; the

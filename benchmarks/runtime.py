@@ -148,7 +148,8 @@ nodes:
         "p50": float(np.percentile(err, 50)), "p99": float(np.percentile(err, 99)), "max": float(err.max())},
         "mean_period_ms": float(periods.mean() * 1e3), "burn_ms_median": statistics.median(burn) * 1e3,
         "burn_steps": len(burn), "overruns": {n.id: n.overruns for n in res.nodes},
-        "realtime_priority": priority, "machine_noise": noise, "target_p99_ms": 0.25, "pass": float(np.percentile(err, 99)) <= 0.25}
+        "realtime_priority": priority, "machine_noise": noise, "target_p99_ms": 0.25,
+        "pass": float(np.percentile(err, 99)) <= 0.25}
 
 
 def main() -> None:

@@ -1,8 +1,8 @@
 """Speed of the sensor plugins (issue 3).
 
-1. sim-digit: simulated frames per second of CPU time (target >= 300 QVGA frames/s on one core, so a simulated
-   DIGIT at 60 Hz costs < 20 % of a core). Each frame has a new pose (indentation ramp and a moving centre, the worst case: nothing
-   cached); also a resting indenter (cached render + noise), the generic 2-D renderer, full-resolution shading
+1. sim-digit: simulated frames per second of CPU time (target >= 300 QVGA frames/s on one core, so a simulated DIGIT at
+   60 Hz costs < 20 % of a core). Each frame has a new pose (indentation ramp and a moving centre, the worst case:
+   nothing cached); also a resting indenter (cached render + noise), the generic 2-D renderer, full-resolution shading
    (stride 1) and VGA, side by side in one run. The component's step() is timed, ground truth included.
 2. digit driver: capture overhead per frame against a video source: the driver's capture thread (read + rotation
    to portrait + newest-frame hand-over) and step() against a bare cv2.VideoCapture.read() loop on the same file.

@@ -5,9 +5,9 @@ Modes: ``off`` (no passivity control), ``tdpa`` (the controller's default: obser
 
 For each (force_scale k_f, gel modulus E) the simulated operator closes on a rigid object and holds; the loop
 "oscillates" when the peak-to-peak contact force (ground truth, sim-gripper) in steady contact exceeds 0.2 N. The
-peak-to-peak force rendered to the operator is reported too (it also carries k_f times the estimate's noise). The contact
-stiffness is set by the fingertip gel's Young's modulus (sim-gripper's gel law: stiffness ~ E). The sensed force is
-sim-force-sensor (ground truth at 60 Hz, one frame late, 0.02 N noise: the timing of the DIGIT + estimator chain), so
+peak-to-peak force rendered to the operator is reported too (it also carries k_f times the estimate's noise). The
+contact stiffness is set by the fingertip gel's Young's modulus (sim-gripper's gel law: stiffness ~ E). The sensed force
+is sim-force-sensor (ground truth at 60 Hz, one frame late, 0.02 N noise: the timing of the DIGIT + estimator chain), so
 the sweep runs in seconds; ``--sensor image`` uses the real estimators instead.
 
     python benchmarks/stability_sweep.py [--quick] [--sensor ideal|image]

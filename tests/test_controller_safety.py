@@ -118,7 +118,8 @@ def test_saturation_and_rate_limit_of_the_leader_force():
 @pytest.mark.parametrize("fail_in", ["est", "ctl-input"])
 def test_devices_reach_safe_states_on_fault(fail_in):
     # a fault anywhere stops the graph; the leader ends with zero force, the follower holds its position
-    est = "{signal: constant, amplitude: 2.0, fail_at: 0.4}" if fail_in == "est" else "{signal: constant, amplitude: 2.0}"
+    est = ("{signal: constant, amplitude: 2.0, fail_at: 0.4}" if fail_in == "est"
+           else "{signal: constant, amplitude: 2.0}")
     hand = "{signal: ramp, amplitude: -0.01, offset: 0.02}" if fail_in == "est" else \
         "{signal: ramp, amplitude: -0.01, offset: 0.02, fail_at: 0.4}"
     text = f"""

@@ -10,8 +10,8 @@ operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's Base
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"), transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
 triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat or missing TPDOs end in a
-HardwareError naming the cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS file is optional (without
-one, the standard CiA 301/402 objects above are assumed).
+HardwareError naming the cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an
+EDS file is optional (without one, the standard CiA 301/402 objects above are assumed).
 """
 
 from __future__ import annotations
