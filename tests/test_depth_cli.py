@@ -78,12 +78,19 @@ def test_calibrate_depth_input_errors(sim_presses, tmp_path, capsys):
     assert rc == 2 and "expected a quantity in m" in capsys.readouterr().err
 
 
-def test_estimate_json_depth_files_and_force(sim_presses, tmp_path, capsys):
+def test_estimate_json_depth_files_and_force(sim_presses, tmp_path, capsys, monkeypatch):
     press = sorted(sim_presses.glob("press_*.png"))[0]
     bg = sim_presses / "background.png"
+    from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
+
+    calls = []   # the pipeline is warmed up before the first image, so its "ms" is that image's own computation
+    for name in ("warm_up", "__call__"):
+        real = getattr(DepthPipeline, name)
+        monkeypatch.setattr(DepthPipeline, name, lambda self, *a, _r=real, _n=name: calls.append(_n) or _r(self, *a))
     rc = main(["estimate", "--model", "sim-digit-qvga", str(press), str(bg), "--json", "--save-depth",
                str(tmp_path / "d"), "--force-calibration", str(FORCE_JSON)])
     assert rc == 0
+    assert calls[0] == "warm_up" and calls.count("warm_up") == 1
     rows = _json_lines(capsys.readouterr().out)
     assert [Path(r["image"]).name for r in rows] == [press.name, "background.png"]
     pr, nc = rows

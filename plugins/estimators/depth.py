@@ -276,6 +276,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     bg = _read_image(args.background) if args.background else None
     pipe = DepthPipeline(model, device=_check_device(args.device), background=bg)
+    pipe.warm_up()   # lazy imports and FFT set-up here, so that each image's "ms" is its own computation
     force = None
     if args.force_calibration:
         try:
