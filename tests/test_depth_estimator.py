@@ -235,3 +235,31 @@ def test_contact_summary_is_the_depth_weighted_centre_of_the_contact():
     assert area == pytest.approx(mask.sum() * 5.8e-5 ** 2)
     m0, a0, c0 = contact_summary(np.zeros((10, 10), np.float32), 1e-4, 3e-5)
     assert not m0.any() and a0 == 0.0 and np.isnan(c0).all()
+    # a window of the image: the same mask (inside it), area and centroid as the whole image
+    zw = np.zeros_like(z)
+    zw[60:150, 120:220] = z[60:150, 120:220]
+    mw, aw, cw = contact_summary(zw[60:150, 120:220], 5.8e-5, 3e-5, 0.5, origin=(60, 120), shape=(320, 240))
+    mf, af, cf = contact_summary(zw, 5.8e-5, 3e-5, 0.5)
+    assert np.array_equal(mw, mf[60:150, 120:220]) and not mf[:60].any() and aw == af
+    np.testing.assert_allclose(cw, cf, rtol=1e-9)
+
+
+@pytest.mark.parametrize("pos", [(0.0, 0.0), (-3.2e-3, -7.5e-3), (3.0e-3, 7.4e-3), (-3.4e-3, 0.0)])
+@pytest.mark.parametrize("indenter", ["sphere", "probe"])
+def test_outputs_from_the_solve_window_equal_the_whole_frame(model, pos, indenter):
+    """The sparse path computes the full-size outputs on its solve window only; they must equal upsampling and
+    summing the whole grid (presses at the centre and near the edges, where the window meets the grid border)."""
+    from teletouch.plugins.estimators.depth_pipeline import contact_summary
+
+    ind = gel.Indenter.sphere(0.003) if indenter == "sphere" else gel.Indenter.probe(0.005, 0.010)
+    img, _ = DigitSimulator("qvga", indenter=ind, noise=2.0, seed=11).render(0.8e-3, pos, 0.0)
+    pipe = DepthPipeline(model)
+    res = pipe(img)
+    zg = pipe.grid_depth(img)
+    full = pipe.upsample(zg)
+    mask, area, centroid = contact_summary(full, 1.0 / model.px_per_m, pipe.contact_depth, pipe.contact_fraction)
+    assert res.max_depth > 0.1e-3
+    assert np.array_equal(res.depth, full)
+    assert np.array_equal(res.contact_mask, mask) and res.contact_area == area
+    np.testing.assert_allclose(res.centroid, centroid, rtol=0, atol=1e-12)
+    assert pipe._inner_window() is not None            # the window path was taken
