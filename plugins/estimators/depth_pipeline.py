@@ -75,8 +75,8 @@ def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float, co
     return mask, n * m_per_px * m_per_px, np.array([cx * m_per_px, cy * m_per_px])
 
 
-def cv2_resize_linear(z: np.ndarray, s: int) -> np.ndarray:
-    """Bilinear upsampling by an integer factor (OpenCV; pixel centres aligned as in ``DepthPipeline.upsample``)."""
+def _resize_linear(z: np.ndarray, s: int) -> np.ndarray:
+    """Bilinear upsampling by an integer factor s (OpenCV; pixel centres aligned)."""
     import cv2
 
     return cv2.resize(z, (z.shape[1] * s, z.shape[0] * s), interpolation=cv2.INTER_LINEAR)
@@ -149,6 +149,12 @@ class DepthPipeline:
         self._kd = np.ones((2 * (self.dilate + 1) + 1,) * 2, np.uint8)
         self._kn = np.ones((2 * (min(self.net_rim, self.dilate) + 1) + 1,) * 2, np.uint8)
         self.m_per_cell = s / model.px_per_m * self.depth_gain
+        # the sparse path's outputs can be computed on its solve window alone (see __call__): where the window ends
+        # inside the grid its outer cells are zero (``margin`` >= ``dilate`` + 2), so bilinear upsampling reads the
+        # same zeros beyond them as the window's replicated edge; where it ends at the grid's border, both replicate
+        # the same edge; and the frame must be a whole number of work cells (no edge padding)
+        self._window_outputs = (s > 1 and self.margin >= self.dilate + 2
+                                and (self.grows * s, self.gcols * s) == (self.rows, self.cols))
 
     # ---------------------------------------------------------------------------------------------------------
     def set_background(self, background: np.ndarray) -> None:
@@ -258,8 +264,12 @@ class DepthPipeline:
     # ---------------------------------------------------------------------------------------------------------
     def grid_depth(self, frame: np.ndarray) -> np.ndarray:
         """Depth on the work grid (grows, gcols), metres, numpy float32."""
+        return self._grid_depth(frame)[0]
+
+    def _grid_depth(self, frame: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
+        """Depth on the work grid, and the sparse path's solve window (r0, r1, c0, c1) outside which it is zero
+        (None: the dense path, or no change)."""
         self.check_frame(frame)
-        self._window: tuple[int, int, int, int] | None = None
         if self.mode == "sparse":
             return self._sparse_depth(frame)
         torch = self.torch
@@ -277,9 +287,9 @@ class DepthPipeline:
             z = z * m[0]
             if self.clamp_negative:
                 z = z.clamp_min(0.0)
-            return z.float().cpu().numpy()
+            return z.float().cpu().numpy(), None
 
-    def _sparse_depth(self, frame: np.ndarray) -> np.ndarray:
+    def _sparse_depth(self, frame: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
         """CPU fast path: OpenCV block means and morphology (measured several times faster than the same torch ops
         on small CPU images), the torch MLP on the changed cells only, the scipy DST solve on their window."""
         import cv2
@@ -313,7 +323,7 @@ class DepthPipeline:
         keep = cv2.dilate(b["m2"], self._kd)   # depth is kept here (change region + `dilate` + 1 cells)
         nz_pts = cv2.findNonZero(core)
         if nz_pts is None:
-            return np.zeros((gr, gc), np.float32)
+            return np.zeros((gr, gc), np.float32), None
         nz_pts = nz_pts.reshape(-1, 2)
         c = nz_pts[:, 0].astype(np.intp)
         r = nz_pts[:, 1].astype(np.intp)
@@ -354,14 +364,13 @@ class DepthPipeline:
         c1 = min(int(c.max()) + 1 + self.margin, gc)
         z = poisson.integrate_window(gx.reshape(gr, gc), gy.reshape(gr, gc), (r0, r1, c0, c1),
                                      workers=self.workers)
-        self._window = (r0, r1, c0, c1)   # depth is zero outside it (see __call__)
         z *= self.m_per_cell
         if self.baseline != "none":
             self._subtract_baseline(z, keep, (r0, r1, c0, c1))
         z[keep == 0] = 0.0
         if self.clamp_negative:
             np.maximum(z, 0.0, out=z)
-        return z
+        return z, (r0, r1, c0, c1)
 
     def _subtract_baseline(self, z: np.ndarray, keep: np.ndarray, box: tuple[int, int, int, int]) -> None:
         """``baseline="plane"``: the zero reference is the gel's rest plane around the contact. The solve's depth
@@ -444,10 +453,7 @@ class DepthPipeline:
     def upsample(self, zg: np.ndarray) -> np.ndarray:
         if self.stride == 1:
             return zg.astype(np.float32, copy=False)
-        import cv2
-
-        s = self.stride
-        z = cv2.resize(zg, (self.gcols * s, self.grows * s), interpolation=cv2.INTER_LINEAR)
+        z = _resize_linear(zg, self.stride)
         if z.shape != (self.rows, self.cols):
             z = np.pad(z, ((0, self.rows - z.shape[0]), (0, self.cols - z.shape[1])), mode="edge")
         return z.astype(np.float32, copy=False)
@@ -468,15 +474,14 @@ class DepthPipeline:
         return max(0.0, float(self.grid_depth(frame).max()))
 
     def __call__(self, frame: np.ndarray) -> DepthResult:
-        zg = self.grid_depth(frame)
+        zg, w = self._grid_depth(frame)
         if not zg.any():
             # no depth anywhere (the gel at rest): the same outputs without upsampling and summing a zero map
             # (0.25 ms of the 0.5 ms such a frame costs)
             return DepthResult(depth=np.zeros((self.rows, self.cols), np.float32), max_depth=0.0,
                                contact_mask=np.zeros((self.rows, self.cols), bool), contact_area=0.0,
                                centroid=np.array([math.nan, math.nan]))
-        w = self._inner_window()
-        if w is None:
+        if w is None or not self._window_outputs:
             depth = self.upsample(zg)
             mask, area, centroid = contact_summary(depth, 1.0 / self.model.px_per_m, self.contact_depth,
                                                    self.contact_fraction)
@@ -486,7 +491,7 @@ class DepthPipeline:
             # same outputs as the whole frame (tested) for a fraction of the pixels (a ball press: ~1/10)
             r0, r1, c0, c1 = w
             s = self.stride
-            sub = cv2_resize_linear(zg[r0:r1, c0:c1], s)
+            sub = _resize_linear(zg[r0:r1, c0:c1], s)
             depth = np.zeros((self.rows, self.cols), np.float32)
             depth[r0 * s:r1 * s, c0 * s:c1 * s] = sub
             msub, area, centroid = contact_summary(sub, 1.0 / self.model.px_per_m, self.contact_depth,
@@ -496,15 +501,3 @@ class DepthPipeline:
             mask[r0 * s:r1 * s, c0 * s:c1 * s] = msub
         return DepthResult(depth=depth, max_depth=max(0.0, float(zg.max())), contact_mask=mask,
                            contact_area=area, centroid=centroid)
-
-    def _inner_window(self) -> tuple[int, int, int, int] | None:
-        """The last sparse solve window if the outputs can be computed on it alone. Where the window ends inside
-        the grid, its outer cells are zero (``margin`` >= ``dilate`` + 2), so bilinear upsampling reads the same
-        zeros beyond them as the window's replicated edge; where it ends at the grid's border, both replicate the
-        same edge. And the frame must be a whole number of work cells (no edge padding)."""
-        w = getattr(self, "_window", None)
-        if w is None or self.stride == 1 or self.margin < self.dilate + 2:
-            return None
-        if (self.grows * self.stride, self.gcols * self.stride) != (self.rows, self.cols):
-            return None
-        return w
