@@ -97,6 +97,12 @@ class Sample:
     def age(self, now: float) -> float:
         return now - self.stamp
 
+    def is_fresh(self, now: float, max_age: float) -> bool:
+        """Whether the sample may be used at ``now``: at most ``max_age`` old and at most ``max_age`` ahead of
+        ``now`` (a stamp from the future beyond that is a clock fault, not a fresh sample). False for a NaN stamp,
+        so a bad stamp counts as stale rather than as fresh forever."""
+        return -max_age <= now - self.stamp <= max_age
+
     def __repr__(self) -> str:
         return f"Sample({self.value!r}, stamp={self.stamp:.6f})"
 
@@ -148,19 +154,20 @@ class Inputs:
     def fresh(self, name: str, now: float, max_age: float) -> Any:
         """The latest value if it is at most ``max_age`` seconds old, else None."""
         slot = self._slots.get(name)
-        if slot is None or slot.sample is None or now - slot.sample.stamp > max_age:
+        if slot is None or slot.sample is None or not slot.sample.is_fresh(now, max_age):
             return None
         return slot.sample.value
 
 
 class Params(BaseModel):
-    """Base class of component parameters: unknown fields are refused, values are validated on assignment.
+    """Base class of component parameters: unknown fields are refused, values are validated on assignment, and
+    numbers must be finite (``.inf`` would switch a limit off, NaN would pass every comparison).
 
     A field whose schema names a unit (``json_schema_extra={"unit": "Hz"}``, or ``teletouch.units.quantity``)
     also accepts a string with units, converted to SI: ``cutoff: 2kHz`` -> 2000.0, ``radius: 5mm`` -> 0.005.
     """
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False, allow_inf_nan=False)
 
     @model_validator(mode="before")
     @classmethod
@@ -187,12 +194,12 @@ class Params(BaseModel):
 
 
 class Context:
-    """What the runtime gives a component: the clock, a logger and a way to end the run."""
+    """What the runtime gives a component: the clock, a logger, a way to end the run, and its step rate."""
 
     def __init__(self, now: Callable[[], float] | None = None, clock_kind: str = "sim",
                  request_stop: Callable[[str], None] | None = None,
                  log: Callable[[str], None] | None = None,
-                 from_monotonic: Callable[[float], float] | None = None):
+                 from_monotonic: Callable[[float], float] | None = None, rate: float | None = None):
         import time
 
         t0 = time.monotonic()
@@ -201,6 +208,7 @@ class Context:
         self._request_stop = request_stop
         self._log = log
         self.from_monotonic = from_monotonic or (lambda m: m - t0)
+        self.rate = rate   # the node's step rate (Hz) in the graph; None outside a graph
 
     def request_stop(self, reason: str = "done") -> None:
         """End the run normally (e.g. a calibration routine that has finished)."""

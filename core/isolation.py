@@ -113,17 +113,17 @@ def _release(blk: shared_memory.SharedMemory, unlink: bool) -> None:
 
 
 def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float,
-                t0_mono: float, priority: int = 0) -> None:
+                t0_mono: float, priority: int = 0, rate: float | None = None) -> None:
     lanes = ArrayLanes()
     try:
-        _serve(conn, cls, params, node_id, t0_perf, t0_mono, priority, lanes)
+        _serve(conn, cls, params, node_id, t0_perf, t0_mono, priority, lanes, rate)
     finally:
         lanes.close()
         conn.close()
 
 
 def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float, t0_mono: float,
-           priority: int, lanes: ArrayLanes) -> None:
+           priority: int, lanes: ArrayLanes, rate: float | None = None) -> None:
     stop_reason: list[str] = []
     logs: list[str] = []
     if priority:
@@ -136,7 +136,7 @@ def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf:
     origin = [t0_perf, t0_mono]
     ctx = Context(now=lambda: time.perf_counter() - origin[0], clock_kind="wall",
                   request_stop=lambda r: stop_reason.append(r), log=logs.append,
-                  from_monotonic=lambda m: m - origin[1])
+                  from_monotonic=lambda m: m - origin[1], rate=rate)
     slots = {name: _Slot() for name in cls.inputs}
     inputs = Inputs(slots)
     comp: Component | None = None
@@ -219,7 +219,7 @@ class ProcessProxy(Component):
         parent, child = mpctx.Pipe()
         self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
                                    args=(child, self.target, self.params.model_dump(), self.id, *self._t0,
-                                         self._priority))
+                                         self._priority, self.ctx.rate))
         self._proc.start()
         child.close()
         self._conn = parent

@@ -48,7 +48,7 @@ class Harness:
     def __init__(self, cls: type[Component], params: Any = None, **kw: Any):
         self.t = 0.0
         self.ctx = Context(now=lambda: self.t, clock_kind="sim", request_stop=self._stop,
-                           log=lambda m: None, from_monotonic=lambda m: self.t)
+                           log=lambda m: None, from_monotonic=lambda m: self.t, rate=cls.default_rate)
         self.comp = cls(params, node_id=cls.name, ctx=self.ctx, **kw)
         self.slots = {name: _Slot() for name in cls.inputs}
         self.inputs = Inputs(self.slots)

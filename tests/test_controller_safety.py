@@ -142,3 +142,102 @@ nodes:
     assert leader.safe_calls >= 1 and leader.command == 0.0
     assert follower.safe_calls >= 1 and follower.command == pytest.approx(follower.state)
     assert leader.lifecycle[-2:] == ["deactivate", "close"]
+
+
+@pytest.mark.parametrize("stamp", [3600.0, math.nan], ids=["future", "nan"])
+def test_badly_stamped_force_or_leader_is_stale_not_fresh_forever(stamp):
+    # a last sample stamped an hour ahead, or NaN, must not be rendered forever: it counts as stale
+    p = {"deadband": 0.0, "passivity": False, "stale_after": 0.1, "fade_time": 0.2}
+    with Harness(PositionForce, p) as h:
+        for k in range(100):
+            h.step(k * 1e-3, leader_opening=0.02, force=Sample(3.0, k * 1e-3))
+        h.step(0.1, leader_opening=0.02, force=Sample(3.0, stamp))
+        f = [h.step(0.1 + k * 1e-3, leader_opening=0.02)["gripper_force"] for k in range(1, 1000)]
+        assert h.comp.state == "stale-force" and f[-1] == 0.0
+        assert max(abs(b - a) for a, b in zip(f, f[1:])) <= 3.0 / 200 + 1e-9     # faded, no jump
+    with Harness(PositionForce, p) as h:
+        for k in range(100):
+            h.step(k * 1e-3, leader_opening=0.02, force=Sample(3.0, k * 1e-3))
+        h.step(0.1, leader_opening=Sample(0.02, stamp), force=Sample(3.0, 0.1))
+        out = [h.step(0.1 + k * 1e-3, force=Sample(3.0, 0.1 + k * 1e-3)) for k in range(1, 1000)]
+        assert not h.comp.leader_ok and h.comp.state == "stale-leader" and out[-1]["gripper_force"] == 0.0
+
+
+def test_force_rate_limit_holds_after_a_late_step():
+    # one late step (the thread stalled 60 ms) moves the force by at most two periods' worth of the rate limit
+    p = {"deadband": 0.0, "passivity": False, "max_force_rate": 200.0, "smoothing_time": 0.0,
+         "force_prediction": False}
+    with Harness(PositionForce, p) as h:
+        assert h.comp.ctx.rate == 1000.0
+        h.step(0.0, leader_opening=0.02, force=Sample(0.0, 0.0))
+        f0 = h.step(0.001, leader_opening=0.02)["gripper_force"]
+        f1 = h.step(0.061, leader_opening=0.02, force=Sample(6.0, 0.061))["gripper_force"]
+        assert f1 - f0 == pytest.approx(200.0 * 0.002)
+
+
+@pytest.mark.parametrize("override", [{"max_force": math.inf}, {"max_force_rate": math.inf},
+                                      {"max_damping": math.inf}, {"stale_after": math.inf},
+                                      {"fade_time": math.inf}, {"leader_stale_after": math.inf},
+                                      {"offset": math.nan}, {"scale": math.inf}, {"reduction_min_velocity": 0.0}],
+                         ids=lambda d: next(iter(d)))
+def test_params_that_would_switch_a_limit_off_are_refused(override):
+    text = f"""
+clock: sim
+nodes:
+  - {{id: hand, plugin: mock-sensor, rate: 1kHz, params: {{signal: constant, amplitude: 0.02}}}}
+  - {{id: est, plugin: mock-sensor, rate: 60}}
+  - id: ctl
+    plugin: position-force
+    rate: 1kHz
+    params: {{{next(iter(override))}: {next(iter(override.values()))!r}}}
+    inputs: {{leader_opening: hand.value, force: est.value}}
+"""
+    text = text.replace("inf", ".inf").replace("nan", ".nan")
+    from teletouch.errors import GraphValidationError
+
+    with pytest.raises(GraphValidationError) as e:
+        run_yaml(text, make_registry(PLUGIN), duration=0.01)
+    name = next(iter(override))
+    assert "'ctl'" in str(e.value) and name in str(e.value)
+    assert ("finite" in str(e.value)) or ("greater than" in str(e.value))
+
+
+@pytest.mark.parametrize("leader", ["sim-omega7", "omega7"])
+def test_leader_command_timeout_cannot_be_switched_off(leader):
+    from teletouch.plugins.devices.omega7 import Omega7
+    from teletouch.plugins.devices.sim_omega7 import SimOmega7
+
+    cls = {"omega7": Omega7, "sim-omega7": SimOmega7}[leader]
+    for bad in (None, math.inf, 5.0):
+        with pytest.raises(Exception, match="command_timeout"):
+            cls.Params.model_validate({"command_timeout": bad})
+    assert cls.Params.model_validate({"command_timeout": "50ms"}).command_timeout == pytest.approx(0.05)
+
+
+def test_passivity_never_divides_by_an_underflowing_velocity():
+    from teletouch.plugins.controllers.passivity import damping_for, reduce_force_to
+
+    # |v| * dt underflows to 0: the whole force is cut (never past zero), no ZeroDivisionError
+    assert reduce_force_to(2.0, -1e-3, 1e-320, 1e-3) == 0.0
+    assert reduce_force_to(-2.0, -1e-3, -1e-320, 1e-3) == 0.0
+    assert damping_for(-1e-3, 1e-3, 1e-320, 40.0) == 40.0
+    # a subnormal leader velocity through the whole controller, with the deficit the auditor's run built up
+    p = {"deadband": 0.0, "reduction_min_velocity": 1e-3}
+    with Harness(PositionForce, p) as h:
+        for k in range(3000):
+            t = k * 1e-3
+            out = h.step(t, leader_opening=0.02 - 2e-3 * min(t, 0.3), leader_velocity=-1e-309 if t > 0.3 else -2e-3,
+                         force=Sample(2.0, t))
+            assert all(math.isfinite(v) for v in out.values()), (t, out)
+
+
+def test_differentiator_skips_bad_samples():
+    from teletouch.plugins.controllers.position_force import Differentiator
+
+    d = Differentiator(50.0)
+    for k in range(50):
+        d.update(k * 1e-3, 0.01 * k * 1e-3)
+    v = d.update(math.inf, 0.5)
+    assert v == pytest.approx(d.v) and math.isfinite(v)
+    assert math.isfinite(d.update(0.050, math.nan)) and math.isfinite(d.update(0.051, 0.01 * 0.051))
+    assert d.v == pytest.approx(0.01, rel=0.1)

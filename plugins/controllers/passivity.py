@@ -70,7 +70,10 @@ def damping_for(energy_pred: float, velocity: float, dt: float, max_damping: flo
     """The damping (N*s/m) that dissipates a negative predicted energy within one step, within [0, max_damping]."""
     if energy_pred >= 0.0 or dt <= 0.0 or abs(velocity) < v_min:
         return 0.0
-    alpha = -energy_pred / (velocity * velocity * dt)
+    den = velocity * velocity * dt
+    if den <= 0.0:                 # underflow: the damping would be unbounded
+        return max_damping
+    alpha = -energy_pred / den
     if not math.isfinite(alpha):
         return max_damping
     return min(alpha, max_damping)
@@ -103,7 +106,9 @@ def reduce_force_to(force: float, energy_after: float, velocity: float, dt: floa
     is never pulled. ``pay_time`` > ``dt`` spreads the payment of the deficit over that time (a smaller cut per
     step, no one-step click); 0 pays it within the step (the exact one-step TDPA)."""
     if energy_after + margin < 0.0 and force * velocity > 0.0 and dt > 0.0 and abs(velocity) >= v_min:
-        cut = min(abs(force), -(energy_after + margin) / (abs(velocity) * max(dt, pay_time)))
+        span = abs(velocity) * max(dt, pay_time)
+        # (a velocity so small that the product underflows to 0: the whole force goes, never a division by zero)
+        cut = min(abs(force), -(energy_after + margin) / span) if span > 0.0 else abs(force)
         return force - math.copysign(cut, force)
     return force
 

@@ -149,6 +149,8 @@ class Differentiator:
         self.v = 0.0
 
     def update(self, t: float, x: float) -> float:
+        if not (math.isfinite(t) and math.isfinite(x)):
+            return self.v                      # a bad sample is skipped, never taken into the state
         if self.x is None or self.t is None:
             self.x, self.t = x, t
             return self.v
@@ -157,7 +159,8 @@ class Differentiator:
             return self.v
         raw = (x - self.x) / dt
         a = dt / (self.tau + dt)
-        self.v += a * (raw - self.v)
+        v = self.v + a * (raw - self.v)
+        self.v = v if math.isfinite(v) else 0.0
         self.x, self.t = x, t
         return self.v
 
@@ -249,7 +252,7 @@ class _CommonParams(Params):
     reduction_time: Seconds = Field(0.01, ge=0, description="the force cut pays a deficit over this time rather "
                                     "than within one step (0: the exact one-step cut, which clicks)",
                                     json_schema_extra={"unit": "s"})
-    reduction_min_velocity: float = Field(3e-3, ge=0, description="the force is cut only while the leader moves "
+    reduction_min_velocity: float = Field(3e-3, gt=0, description="the force is cut only while the leader moves "
                                           "faster than this (slower, the energy that leaks is tiny; cutting a "
                                           "standing deficit on every tremor would make the force chatter)",
                                           json_schema_extra={"unit": "m/s"})
@@ -307,12 +310,14 @@ class _Bilateral(Component):
         self.cmd_hist = FollowerPort()           # follower commands by time (force prediction)
         self._record_commands = bool(getattr(p, "force_prediction", False))
         self._two_port = p.passivity_observer == "two-port"
+        rate = self.ctx.rate or self.default_rate or 1000.0
+        self._max_dt = 2.0 / float(rate)        # longest step the force rate limit counts (see step)
 
     # -- helpers
     def _leader(self, t: float, inputs: Any) -> bool:
         p = self.params
         s = inputs["leader_opening"]
-        if s is None or t - s.stamp > p.leader_stale_after:
+        if s is None or not s.is_fresh(t, p.leader_stale_after):
             return False
         x = finite_or(s.value, math.nan)
         if not math.isfinite(x):
@@ -321,7 +326,7 @@ class _Bilateral(Component):
         self.x_l = x
         v_raw = inputs.get("leader_velocity")
         v = math.nan
-        if v_raw is not None and t - v_raw.stamp <= p.leader_stale_after:
+        if v_raw is not None and v_raw.is_fresh(t, p.leader_stale_after):
             v = finite_or(v_raw.value, math.nan)
         vd = self.vel_l.update(s.stamp, x)
         self.v_l = v if math.isfinite(v) else vd
@@ -329,7 +334,7 @@ class _Bilateral(Component):
 
     def _follower(self, t: float, inputs: Any) -> bool:
         s = inputs.get("follower_opening")
-        if s is None or t - s.stamp > self.params.leader_stale_after:
+        if s is None or not s.is_fresh(t, self.params.leader_stale_after):
             return False
         x = finite_or(s.value, math.nan)
         if not math.isfinite(x):
@@ -353,7 +358,9 @@ class _Bilateral(Component):
         self.leader_ok = self._leader(t, inputs)
         follower_ok = self._follower(t, inputs)
         if self.leader_ok:
-            self.command = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
+            cmd = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
+            if math.isfinite(cmd):               # (finite params and opening: always; else the last one holds)
+                self.command = cmd
             if self._record_commands:
                 self.cmd_hist.record(t, self.command)
         f_fb = self.feedback(t, inputs, follower_ok)
@@ -409,7 +416,9 @@ class _Bilateral(Component):
             if self.leader_fade_rate is None:
                 self.leader_fade_rate = max(abs(self.out_force) / p.fade_time, 1e-6)
             max_rate = self.leader_fade_rate
-        f = rate_limit(self.out_force, f_des, max_rate, dt)
+        # the rate limit's step is at most two nominal periods long: after a stalled or late step the force still
+        # moves by no more than max_force_rate x 2 periods (not by the rate x the whole gap)
+        f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt))
         f = saturate(f, p.max_force)
         if not math.isfinite(f):
             f = 0.0
@@ -427,6 +436,8 @@ class _Bilateral(Component):
         self.out_force = f
         if cut and v != 0.0:
             alpha = (f_fb - f_des) / v               # the equivalent damping of damping + cut, for the output
+        if not math.isfinite(alpha):
+            alpha = 0.0
         out: dict[str, float] = {"gripper_force": f, "energy": self.pas.energy, "damping": alpha}
         if self.command is not None:
             out["opening_command"] = self.command
@@ -493,7 +504,7 @@ class PositionForce(_Bilateral):
                 if len(self.latencies) < 100_000:
                     self.latencies.append(t - s.stamp)
                 self.force_held = f_s
-                if t - s.stamp <= p.stale_after:
+                if s.is_fresh(t, p.stale_after):
                     f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
                     self.hold.set(t, f_l, p.smoothing_time)
                     self.fading = False
@@ -515,7 +526,7 @@ class PositionForce(_Bilateral):
                 self._fade(t)
         if s is None:
             self.state = "waiting" if self.state == "waiting" else self.state
-        elif t - s.stamp > p.stale_after and self.state != "bad-force":
+        elif not s.is_fresh(t, p.stale_after) and self.state != "bad-force":
             self.state = "stale-force"
             self._fade(t)
         f = self.hold.value(t)

@@ -40,8 +40,9 @@ class ForceGuard:
 
     ``apply(t, inputs)`` returns (gripper force N, force (3,) N, problem) where ``problem`` is None, or a message when
     a command was NaN/inf or malformed (then both forces are zero and the caller must fault). A command older than
-    ``timeout`` seconds gives zero force (no fault: the runtime's ``max_age`` turns staleness into a fault where the
-    graph asks for it). Counts clamped and stale cycles for status().
+    ``timeout`` seconds (or stamped more than that ahead, or with a NaN stamp) gives zero force (no fault: the
+    runtime's ``max_age`` turns staleness into a fault where the graph asks for it). Counts clamped and stale cycles
+    for status().
     """
 
     def __init__(self, max_gripper_force: float, max_force: float, timeout: float | None):
@@ -58,7 +59,7 @@ class ForceGuard:
         f = self.zero3
         s = inputs.get("gripper_force")
         if s is not None:
-            if self.timeout is not None and t - s.stamp > self.timeout:
+            if self.timeout is not None and not s.is_fresh(t, self.timeout):
                 self.stale += 1
             else:
                 try:
@@ -77,7 +78,7 @@ class ForceGuard:
                     self.clamped += 1
         s = inputs.get("force") if "force" in inputs else None
         if s is not None:
-            if self.timeout is not None and t - s.stamp > self.timeout:
+            if self.timeout is not None and not s.is_fresh(t, self.timeout):
                 self.stale += 1
             else:
                 try:
@@ -119,8 +120,9 @@ class Omega7(Device):
         max_force: Newtons = Field(OMEGA7_MAX_FORCE, ge=0, le=OMEGA7_MAX_FORCE,
                                    description="translational force limit, norm (also set in the SDK)",
                                    json_schema_extra={"unit": "N"})
-        command_timeout: Seconds | None = Field(0.1, gt=0, description="a command older than this gives zero "
-                                                                        "force", json_schema_extra={"unit": "s"})
+        command_timeout: Seconds = Field(0.1, gt=0, le=1.0, description="a command older than this gives zero "
+                                         "force (at most 1 s: a hand is never left with the force of a dead "
+                                         "controller)", json_schema_extra={"unit": "s"})
         gravity_compensation: bool = Field(True, description="let the SDK hold the handle against gravity")
         brakes_on_stop: bool = Field(True, description="engage the brakes in the safe state and when inactive")
         handedness: Literal["auto", "right", "left"] = Field(
@@ -195,11 +197,11 @@ class Omega7(Device):
             self.faults += 1
             self.safe_state()
             raise ComponentFault(problem, self.id)
-        if not self.active:
-            g, f = 0.0, self.guard.zero3
         d = self.dhd
         try:
             with self._lock:
+                if not self.active:            # (checked under the lock: a safe_state() from another thread
+                    g, f = 0.0, self.guard.zero3   # between the guard and the write is never undone)
                 x, y, z = d.position()
                 gap = d.gripper_gap()
                 gvel = d.gripper_velocity()

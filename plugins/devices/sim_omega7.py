@@ -65,8 +65,8 @@ class SimOmega7(Device):
                                            description="gripper force limit", json_schema_extra=_u("N"))
         max_force: Newtons = Field(OMEGA7_MAX_FORCE, ge=0, le=OMEGA7_MAX_FORCE,
                                    description="translational force limit (norm)", json_schema_extra=_u("N"))
-        command_timeout: Seconds | None = Field(0.1, gt=0, description="a command older than this gives zero force",
-                                                json_schema_extra=_u("s"))
+        command_timeout: Seconds = Field(0.1, gt=0, le=1.0, description="a command older than this gives zero force "
+                                         "(at most 1 s, as on omega7)", json_schema_extra=_u("s"))
         # gripper mechanics
         max_opening: Meters = Field(OMEGA7_GRIPPER_RANGE, gt=0, description="gripper end stop",
                                     json_schema_extra=_u("m"))
@@ -174,7 +174,7 @@ class SimOmega7(Device):
     def _desired(self, t: float, inputs: Any) -> tuple[float, float] | None:
         s = inputs.get("intent_opening")
         to = self.params.command_timeout
-        if s is not None and (to is None or t - s.stamp <= to):
+        if s is not None and (to is None or s.is_fresh(t, to)):
             x = float(s.value)
             if not math.isfinite(x):
                 self.faults += 1
