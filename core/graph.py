@@ -10,8 +10,10 @@ A graph file::
                                   # CAP_SYS_NICE / rtprio limits, as for ros2_control's control thread)
     faults:
       on_fault: stop              # default reaction to a node's fault: stop | degrade
-      max_overruns: 10            # consecutive missed periods before a node faults (wall clock; 0 = never)
+      max_overruns: 10            # consecutive late steps before a node faults (wall clock; 0 = never)
       startup_grace: 1.0          # s before stale-input checks start
+      watchdog: 0.1               # s: a device not stepped for this long is made safe and faults (wall clock;
+                                  # at least 3 of its periods; 0 = off)
     nodes:
       - id: mapper
         plugin: poly-force
@@ -34,6 +36,7 @@ from __future__ import annotations
 import copy
 import difflib
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,7 +52,7 @@ from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
 NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
              "description")
-FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace")
+FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog")
 FAULT_ACTIONS = ("stop", "degrade")
 CLOCKS = ("sim", "wall")
 ID_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
@@ -86,6 +89,7 @@ class FaultPolicy:
     on_fault: str = "stop"
     max_overruns: int = 10
     startup_grace: float = 1.0
+    watchdog: float = 0.1
 
 
 @dataclass
@@ -228,7 +232,7 @@ def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
         lhs, rhs = item.split("=", 1)
         parts = lhs.strip().split(".")
         if len(parts) < 2:
-            raise GraphError(f"'{item}': expected NODE.FIELD=VALUE, e.g. mapper.degree=3", where)
+            raise GraphError(f"'{item}': expected NODE.FIELD=VALUE, e.g. force.out_of_range=extrapolate", where)
         value = load_yaml_text(rhs, "--set") if rhs.strip() else ""
         if isinstance(value, (LDict, LList)):
             value = _plain(value)
@@ -349,13 +353,14 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 err(f"faults.max_overruns: expected an integer >= 0, got {v!r}", w)
             else:
                 faults.max_overruns = v
-        elif k == "startup_grace":
+        elif k in ("startup_grace", "watchdog"):
             try:
-                faults.startup_grace = parse_quantity(v, "s")
-                if faults.startup_grace < 0:
-                    raise ValueError("must be >= 0")
+                q = parse_quantity(v, "s")
+                if not 0 <= q < math.inf:
+                    raise ValueError(f"expected a time >= 0 s, got {v!r}")
+                setattr(faults, k, q)
             except ValueError as exc:
-                err(f"faults.startup_grace: {exc}", w)
+                err(f"faults.{k}: {exc}", w)
 
     nodes_doc = doc.get("nodes")
     nodes: list[NodeSpec] = []
@@ -585,7 +590,7 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
             "faults": {"type": "object", "properties": {
                 "on_fault": {"enum": list(FAULT_ACTIONS)},
                 "max_overruns": {"type": "integer", "minimum": 0},
-                "startup_grace": number_or_qty}, "additionalProperties": False},
+                "startup_grace": number_or_qty, "watchdog": number_or_qty}, "additionalProperties": False},
             "nodes": {"type": "array", "items": node},
         },
         "required": ["nodes"],

@@ -40,6 +40,8 @@ class MockSensor(Component):
                                        json_schema_extra={"unit": "s"})
         stop_at: Seconds | None = Field(None, description="request a normal stop at this time",
                                         json_schema_extra={"unit": "s"})
+        silent_at: Seconds | None = Field(None, description="output nothing from this time on (a source that goes "
+                                          "quiet without an error)", json_schema_extra={"unit": "s"})
 
     def value_at(self, t: float) -> float:
         p = self.params
@@ -59,6 +61,8 @@ class MockSensor(Component):
             raise RuntimeError(f"mock-sensor failure at t={t:.3f}")
         if p.stop_at is not None and t >= p.stop_at:
             self.ctx.request_stop(f"mock-sensor stop at t={t:.3f}")
+        if p.silent_at is not None and t >= p.silent_at:
+            return {}
         if p.nan_at is not None and t >= p.nan_at:
             return {"value": math.nan}
         return {"value": self.value_at(t)}
@@ -103,6 +107,7 @@ class MockDevice(Device):
         self.command = self.state
         self.safe = False
         self.safe_calls = 0
+        self.safe_at: float | None = None     # time.perf_counter() of the first safe_state() call
         self.last_t = None
         self.lifecycle: list[str] = ["configure"]
 
@@ -126,7 +131,11 @@ class MockDevice(Device):
         return {"state": self.state, "command_applied": self.command}
 
     def safe_state(self):
+        import time
+
         self.safe_calls += 1
+        if self.safe_at is None:
+            self.safe_at = time.perf_counter()
         self.safe = True
         self.command = self.params.safe_value if self.params.safe_value is not None else self.state
 

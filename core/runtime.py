@@ -15,6 +15,7 @@ configured. Every device is driven to its safe state on every stop path: fault, 
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import gc
 import heapq
@@ -24,7 +25,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 from .component import Component, Context, Device, Inputs, Sample, _Slot
 from .errors import ComponentFault, exception_line
@@ -71,7 +72,8 @@ class NodeStats:
 
 @dataclass
 class RunResult:
-    status: str  # ok | stopped | fault | interrupted | startup-failed
+    status: str  # ok | stopped | degraded (ran to the end with nodes disabled by faults) | fault | interrupted |
+    #              startup-failed
     exit_code: int
     message: str
     sim_time: float
@@ -182,7 +184,8 @@ class Runtime:
                 slots[(n.id, port)] = _Slot()
         for i, n in enumerate(order):
             ctx = Context(now=self.now, clock_kind=self.clock, request_stop=self.request_stop,
-                          log=lambda m, nid=n.id: self.log(f"[{nid}] {m}"), from_monotonic=self.from_monotonic)
+                          log=lambda m, nid=n.id: self.log(f"[{nid}] {m}"), from_monotonic=self.from_monotonic,
+                          rate=float(n.rate))
             params = n.params_obj if n.params_obj is not None else n.cls.Params.model_validate(n.params)
             if n.isolate == "process" and self.clock == "wall":
                 from .isolation import ProcessProxy
@@ -252,6 +255,15 @@ class Runtime:
             self._stop_evt.set()
         else:
             self.log(f"[{node.id}] {kind}: {message} -> node disabled (degrade)")
+            # a device commanded by the disabled node would keep its last command: it goes to its safe state and
+            # is disabled too (nodes further down, e.g. a controller behind a dead estimator, handle their own
+            # stale inputs)
+            for other in self.nodes:
+                if other.is_device and not other.faulted:
+                    ports = [p for p, w in other.spec.inputs.items() if w.node == node.id]
+                    if ports:
+                        self._fault(other, "upstream", f"input '{ports[0]}' comes from node '{node.id}', which "
+                                                       f"was disabled by a fault", t)
 
     def _safe(self, node: _Node) -> None:
         try:
@@ -269,9 +281,11 @@ class Runtime:
                 self._fault(node, "stale", f"input '{port}' from {src}: nothing received after "
                                            f"{t:.3f} s (limit {max_age:g} s)", t)
                 return False
-            if t - s.stamp > max_age:
-                self._fault(node, "stale", f"input '{port}' from {src} is {t - s.stamp:.3f} s old "
-                                           f"(limit {max_age:g} s)", t)
+            if not s.is_fresh(t, max_age):
+                age = t - s.stamp
+                what = f"{age:.3f} s old" if age > 0 else (f"stamped {-age:.3f} s ahead of the graph clock"
+                                                           if age < 0 else f"stamped {s.stamp!r}")
+                self._fault(node, "stale", f"input '{port}' from {src} is {what} (limit {max_age:g} s)", t)
                 return False
         return True
 
@@ -281,7 +295,13 @@ class Runtime:
             slot = slots.get(name)
             if slot is None:
                 raise ComponentFault(f"step() returned unknown output '{name}'; outputs: {', '.join(slots)}")
-            slot.sample = v if v.__class__ is Sample else Sample(v, t)
+            if v.__class__ is Sample:
+                if not _finite_stamp(v.stamp):
+                    raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
+                                         f"finite graph time in seconds")
+                slot.sample = v
+            else:
+                slot.sample = Sample(v, t)
         for tap in self.taps:
             tap(node.id, t, out)
 
@@ -373,13 +393,21 @@ class Runtime:
                       "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
             self._stop_evt.set()
         finally:
-            self._join()
-            self._shutdown()
+            with _signals_deferred() as late:
+                self._join()
+                self._shutdown()
+            if late and status is None:
+                status = ("interrupted", EXIT_INTERRUPTED,
+                          "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
             if gc_frozen:
                 gc.unfreeze()
         wall = time.perf_counter() - wall0
         if status is None:
             status = self._stop_reason or ("ok", EXIT_OK, f"ran {self._now:.3f} s")
+            degraded = [f for f in self.faults if f.action == "degrade"]
+            if degraded and status[0] in ("ok", "stopped"):
+                status = ("degraded", EXIT_FAULT, status[2] + "; nodes disabled by faults: " + ", ".join(
+                    f"'{f.node}' ({f.kind} at t={f.time:.3f} s)" for f in degraded))
         if status[0] == "fault":
             status = (status[0], status[1], status[2] + "; devices driven to their safe state")
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
@@ -463,13 +491,23 @@ class Runtime:
             self._threads.append(th)
         for th in self._threads:
             th.start()
+        # the watchdog: a device whose thread has not started a step for `faults.watchdog` (at least 3 of its
+        # periods) is driven to its safe state from here and faults (a step that hangs, a stalled thread)
+        wd = self.spec.faults.watchdog
+        watched = [(n, max(wd, 3.0 * n.period)) for n in self.nodes if n.is_device] if wd > 0 else []
+        poll = min(0.02, wd / 4.0) if watched else 0.02
         try:
             next_progress = time.perf_counter() + interval
-            while not self._stop_evt.wait(0.02):
+            while not self._stop_evt.wait(poll):
                 self._now = time.perf_counter() - self._t0
                 if duration is not None and self._now >= duration:
                     self._stop_evt.set()
                     break
+                for n, limit in watched:
+                    last = n.starts[(n.nstarts - 1) % self.JITTER_RING] if n.nstarts else 0.0
+                    if not n.faulted and self._now - last > limit:
+                        self._fault(n, "stall", f"not stepped for {self._now - last:.3f} s (watchdog "
+                                                f"{limit:g} s): made safe", self._now)
                 if progress is not None and time.perf_counter() >= next_progress:
                     next_progress += interval
                     progress(self, self._now)
@@ -500,6 +538,17 @@ class Runtime:
         ring = self.JITTER_RING
         for n in members:
             n.starts = [0.0] * ring
+        try:
+            self._wall_steps(members, period, spin, perf, sleep, t0, stop, max_over, ring)
+        finally:
+            # leaving (stop, fault elsewhere): this group's devices are made safe at once by their own thread,
+            # not after the other threads are joined (the runtime's shutdown makes them safe once more)
+            for node in members:
+                if node.is_device and node.state == "active":
+                    self._safe(node)
+
+    def _wall_steps(self, members: list[_Node], period: float, spin: float, perf: Any, sleep: Any, t0: float,
+                    stop: threading.Event, max_over: int, ring: int) -> None:
         k = 0
         while not stop.is_set():
             deadline = t0 + k * period
@@ -550,6 +599,38 @@ class Runtime:
         for th in getattr(self, "_threads", []):
             if th is not threading.current_thread():
                 th.join(timeout=1.0)
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[list[int]]:
+    """SIGINT and SIGTERM that arrive inside the block are recorded in the yielded list instead of raising (a second
+    Ctrl-C must not cut the safe-state sequence short). Only the main thread can set signal handlers: elsewhere the
+    block runs as it is."""
+    import signal
+
+    late: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield late
+        return
+    old: dict[int, Any] = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        prev = signal.getsignal(sig)
+        if prev is None:            # installed from outside Python: left alone
+            continue
+        old[sig] = prev
+        signal.signal(sig, lambda s, _frame: late.append(s))
+    try:
+        yield late
+    finally:
+        for sig, prev in old.items():
+            signal.signal(sig, prev)
+
+
+def _finite_stamp(stamp: Any) -> bool:
+    try:
+        return math.isfinite(stamp)
+    except TypeError:
+        return False
 
 
 def thread_priority(realtime_priority: int, rate: float, node_priorities: list[int | None]) -> int:

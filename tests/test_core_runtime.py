@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from teletouch import Component, Kind, Port, hookimpl
+from teletouch import Component, Device, Kind, Port, hookimpl
 from teletouch.runtime import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_STARTUP
 from teletouch.testing import Harness, make_registry, run_yaml
 
@@ -95,11 +95,43 @@ def test_exception_stops_graph_and_devices_go_safe(reg):
 def test_degrade_keeps_running(reg):
     text = CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, fail_at: 0.3}, on_fault: degrade")
     res, rt = run_yaml(text, reg, duration=1.0)
-    assert res.status == "ok"
+    # ran to the end, and says that it did so with a node disabled (a non-zero exit for scripts)
+    assert res.status == "degraded" and res.exit_code == EXIT_FAULT
+    assert "nodes disabled by faults: 'src' (exception at t=0.300 s)" in res.message
     stats = {n.id: n for n in res.nodes}
-    assert stats["src"].faulted and not stats["dev"].faulted
+    assert stats["src"].faulted and not stats["dev"].faulted   # dev is fed through gain, which goes on
     assert stats["dev"].steps == 1001
     assert res.faults[0].action == "degrade"
+
+
+def test_degrade_disables_the_devices_the_faulted_node_commands(reg):
+    # the node that commands the device dies under `degrade`: the device must not keep its last command
+    text = """
+clock: sim
+faults: {on_fault: degrade}
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100, params: {fail_at: 0.3}}
+  - {id: other, plugin: mock-sensor, rate: 100}
+  - {id: dev, plugin: mock-device, rate: 1000, inputs: {command: src.value}}
+  - {id: dev2, plugin: mock-device, rate: 1000, inputs: {command: other.value}}
+"""
+    res, rt = run_yaml(text, reg, duration=1.0)
+    assert res.status == "degraded"
+    by_node = {f.node: f for f in res.faults}
+    assert by_node["src"].kind == "exception"
+    assert by_node["dev"].kind == "upstream" and "input 'command' comes from node 'src'" in by_node["dev"].message
+    assert by_node["dev"].time == pytest.approx(0.3)
+    dev = rt.component("dev")
+    stats = {n.id: n for n in res.nodes}
+    assert dev.safe and stats["dev"].faulted and stats["dev"].steps < 400
+    # dev: made safe at the fault and again at the end of the run; dev2 only at the end
+    assert dev.safe_calls >= 2 and rt.component("dev2").safe_calls == 1
+    assert not stats["dev2"].faulted and stats["dev2"].steps == 1001
+    # the device's own policy decides what its fault does: `stop` (the default) ends the run
+    res, rt = run_yaml(text.replace("faults: {on_fault: degrade}", "").replace(
+        "params: {fail_at: 0.3}}", "params: {fail_at: 0.3}, on_fault: degrade}"), reg, duration=1.0)
+    assert res.status == "fault" and "node 'dev' upstream" in res.message and res.sim_time == pytest.approx(0.3)
+    assert rt.component("dev").safe and rt.component("dev2").safe
 
 
 def test_device_fault_drives_it_safe(reg):
@@ -110,12 +142,12 @@ def test_device_fault_drives_it_safe(reg):
 
 
 def test_stale_input_faults(reg):
-    # the source stops producing (degraded at 0.2 s); the device's 50 ms staleness limit trips after the grace time
+    # the source stops producing at 0.2 s; the device's 50 ms staleness limit trips after the grace time
     text = """
 clock: sim
 faults: {startup_grace: 0.1}
 nodes:
-  - {id: src, plugin: mock-sensor, rate: 100, params: {fail_at: 0.2}, on_fault: degrade}
+  - {id: src, plugin: mock-sensor, rate: 100, params: {silent_at: 0.2}}
   - {id: dev, plugin: mock-device, rate: 1000, inputs: {command: {from: src.value, max_age: 0.05}}}
 """
     res, rt = run_yaml(text, reg, duration=1.0)
@@ -131,7 +163,7 @@ def test_never_received_input_is_stale(reg):
 clock: sim
 faults: {startup_grace: 0.1}
 nodes:
-  - {id: src, plugin: mock-sensor, rate: 100, params: {fail_at: 0.0}, on_fault: degrade}
+  - {id: src, plugin: mock-sensor, rate: 100, params: {silent_at: 0.0}}
   - {id: dev, plugin: mock-device, rate: 100, inputs: {command: {from: src.value, max_age: 0.05}}}
 """
     res, _ = run_yaml(text, reg, duration=1.0)
@@ -284,3 +316,165 @@ def test_node_priority_validated(reg):
     assert spec.node("dev").priority == 40
     with pytest.raises(GraphValidationError, match="priority: expected an integer 0-99"):
         load_text(CHAIN.replace("rate: 1000,", "rate: 1000, priority: 120,"), reg)
+
+
+# ------------------------------------------------------------------------------------------------ fault paths
+class _Stamper(Component):
+    """Returns its value as a Sample with a given stamp (a plugin with a clock bug)."""
+    name = "stamper"
+    kind = Kind.SENSOR
+    outputs = {"y": Port("float64", (), "")}
+
+    class Params(Component.Params):
+        stamp: str = "nan"
+
+    def step(self, t, inputs):
+        from teletouch import Sample
+
+        return {"y": Sample(1.0, {"nan": math.nan, "inf": math.inf, "text": "soon"}[self.params.stamp])}
+
+
+class _Hang(Device):
+    """A device whose step hangs for ``hang_for`` seconds once, at ``hang_at``."""
+    name = "hang-device"
+    kind = Kind.DEVICE
+
+    class Params(Component.Params):
+        hang_at: float = 0.2
+        hang_for: float = 0.6
+
+    outputs = {"y": Port("float64", (), "")}
+
+    def configure(self):
+        self.hung_at = self.safe_at = None
+
+    def step(self, t, inputs):
+        if t >= self.params.hang_at and self.hung_at is None:
+            self.hung_at = time.perf_counter()
+            time.sleep(self.params.hang_for)
+        return {"y": t}
+
+    def safe_state(self):
+        if self.safe_at is None:
+            self.safe_at = time.perf_counter()
+
+
+class _FaultPlugins:
+    @hookimpl
+    def teletouch_components(self):
+        return [_Stamper, _Hang]
+
+
+@pytest.mark.parametrize("stamp", ["nan", "inf", "text"])
+def test_a_non_finite_output_stamp_is_a_fault_naming_the_port(stamp):
+    text = f"""
+clock: sim
+nodes:
+  - {{id: s, plugin: stamper, rate: 100, params: {{stamp: {stamp}}}}}
+  - {{id: dev, plugin: mock-device, rate: 100, inputs: {{command: s.y}}}}
+"""
+    res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=0.1)
+    assert res.status == "fault" and "node 's' exception" in res.message
+    assert "output 'y' stamped" in res.message and "finite graph time" in res.message
+    assert rt.component("dev").safe
+
+
+def test_max_age_counts_a_stamp_from_the_future_as_stale():
+    text = """
+clock: sim
+faults: {startup_grace: 0.0}
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100}
+  - {id: dev, plugin: mock-device, rate: 100, inputs: {command: {from: src.value, max_age: 0.05}}}
+"""
+    from teletouch import Sample
+
+    class Ahead(Component):
+        name = "ahead"
+        kind = Kind.SENSOR
+        outputs = {"value": Port("float64", (), "")}
+
+        def step(self, t, inputs):
+            return {"value": Sample(1.0, t + 3600.0)}
+
+    class P:
+        @hookimpl
+        def teletouch_components(self):
+            return [Ahead]
+
+    res, rt = run_yaml(text.replace("mock-sensor", "ahead"), make_registry(P()), duration=0.5)
+    assert res.status == "fault" and "node 'dev' stale" in res.message and "ahead of the graph clock" in res.message
+    assert res.sim_time == 0.0
+
+
+def test_watchdog_makes_a_hung_device_safe_while_it_hangs():
+    # wall clock: the device's step hangs 0.6 s at t = 0.2 s; the watchdog (0.1 s) makes it safe long before the
+    # step returns, and the run stops with a `stall` fault
+    text = """
+clock: wall
+nodes:
+  - {id: dev, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 0.6}}
+"""
+    res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=2.0)
+    dev = rt.component("dev")
+    assert res.status == "fault" and "node 'dev' stall" in res.message and "watchdog 0.1 s" in res.message
+    assert dev.safe_at is not None and 0.09 <= dev.safe_at - dev.hung_at <= 0.35
+    # the watchdog is a graph setting (0: off): without it the hang goes unnoticed until the step returns
+    res, rt = run_yaml(text.replace("clock: wall", "clock: wall\nfaults: {watchdog: 0}"),
+                       make_registry(_FaultPlugins()), duration=1.2)
+    dev = rt.component("dev")
+    assert res.status == "ok" and dev.safe_at - dev.hung_at >= 0.59
+
+
+def test_on_stop_a_device_is_made_safe_by_its_own_thread_not_after_the_slow_ones():
+    # the 1 kHz source faults at 0.3 s while a 2 Hz node is inside a 0.6 s step: the device (1 kHz thread) must be
+    # safe within a few periods, not after that step ends and the threads are joined
+    text = """
+clock: wall
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 1kHz, params: {fail_at: 0.3}}
+  - {id: dev, plugin: mock-device, rate: 1kHz, inputs: {command: src.value}}
+  - {id: slow, plugin: mock-burn, rate: 2, params: {burn: 0.6}}
+"""
+    res, rt = run_yaml(text, make_registry(), duration=3.0)
+    assert res.status == "fault" and "node 'src' exception" in res.message
+    fault_at = rt._t0 + res.faults[0].time
+    assert rt.component("dev").safe_at - fault_at < 0.1
+
+
+def test_a_second_interrupt_during_shutdown_does_not_skip_safe_states():
+    import os
+    import signal
+
+    class Kicker(Device):
+        """A device whose safe_state() gets a SIGINT while it runs (the operator presses Ctrl-C again)."""
+        name = "kicker"
+        kind = Kind.DEVICE
+        outputs = {"y": Port("float64", (), "")}
+
+        def configure(self):
+            self.calls = 0
+
+        def step(self, t, inputs):
+            return {"y": 0.0}
+
+        def safe_state(self):
+            self.calls += 1
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)
+
+    class P:
+        @hookimpl
+        def teletouch_components(self):
+            return [Kicker]
+
+    text = """
+clock: sim
+nodes:
+  - {id: k, plugin: kicker, rate: 100}
+  - {id: dev, plugin: mock-device, rate: 100}
+"""
+    res, rt = run_yaml(text, make_registry(P()), duration=0.1)
+    assert res.status == "interrupted" and res.exit_code == EXIT_INTERRUPTED
+    assert rt.component("k").calls >= 1 and rt.component("dev").safe
+    assert rt.component("dev").lifecycle[-2:] == ["deactivate", "close"]
