@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import sys
 import time
 
@@ -60,14 +59,12 @@ class Burn(Component):
 
     def configure(self):
         self.a = np.random.default_rng(0).random(100_000)  # ~1 ms per sort: the burn lands close to 8 ms
-        self.costs = []
 
     def step(self, t, inputs):
         t0 = time.perf_counter()
         end = t0 + self.params.ms * 1e-3
         while time.perf_counter() < end:
             np.sort(self.a)
-        self.costs.append(time.perf_counter() - t0)
         return None
 
 
@@ -141,13 +138,13 @@ nodes:
     starts = np.array(rt.component("fast").starts)
     periods = np.diff(starts[100:])  # skip warm-up
     err = np.abs(periods - 1e-3) * 1e3
-    comp = rt.component("burn")
-    burn = getattr(comp, "costs", None) or [burn_ms * 1e-3]
+    # the burn node's step times as the runtime measured them (the same for the numpy and the Python burn)
+    burn_node = next(n for n in res.nodes if n.id == "burn")
     return {"burn": ("python (holds the GIL)" if python_burn else "numpy") + (", isolated process" if isolate else ""),
             "duration_s": duration, "steps": int(len(starts)), "period_error_ms": {
         "p50": float(np.percentile(err, 50)), "p99": float(np.percentile(err, 99)), "max": float(err.max())},
-        "mean_period_ms": float(periods.mean() * 1e3), "burn_ms_median": statistics.median(burn) * 1e3,
-        "burn_steps": len(burn), "overruns": {n.id: n.overruns for n in res.nodes},
+        "mean_period_ms": float(periods.mean() * 1e3), "burn_ms_mean": burn_node.mean_step_s * 1e3,
+        "burn_steps": burn_node.steps, "overruns": {n.id: n.overruns for n in res.nodes},
         "realtime_priority": priority, "machine_noise": noise, "target_p99_ms": 0.25,
         "pass": float(np.percentile(err, 99)) <= 0.25}
 

@@ -468,8 +468,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                             msg = msg[len("Value error, "):]
                         err(f"node '{nid}': param '{fname}' = {e.get('input')!r}: {msg}", w)
             if clock_v == "sim" and cls.requires_wall_clock:
-                err(f"node '{nid}': {plugin} drives real hardware and cannot run on the simulated clock; "
-                    f"use --clock wall or a simulated plugin", ld.loc("plugin"))
+                err(f"node '{nid}': {plugin} needs the wall clock (real hardware or other processes in real time) "
+                    f"and cannot run on the simulated clock; use --clock wall or a simulated plugin",
+                    ld.loc("plugin"))
         # inputs
         ins = ld.get("inputs", {}) or {}
         if not isinstance(ins, dict):

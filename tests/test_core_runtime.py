@@ -478,3 +478,28 @@ nodes:
     assert res.status == "interrupted" and res.exit_code == EXIT_INTERRUPTED
     assert rt.component("k").calls >= 1 and rt.component("dev").safe
     assert rt.component("dev").lifecycle[-2:] == ["deactivate", "close"]
+
+
+def test_start_up_time_is_reported_apart_from_the_run():
+    class Slow(Component):
+        name = "slow-start"
+        kind = Kind.ESTIMATOR
+
+        def configure(self):
+            time.sleep(0.3)
+
+        def step(self, t, inputs):
+            return None
+
+    class P:
+        @hookimpl
+        def teletouch_components(self):
+            return [Slow]
+
+    res, _ = run_yaml("clock: wall\nnodes:\n  - {id: s, plugin: slow-start, rate: 100}\n", make_registry(P()),
+                      duration=0.3)
+    assert 0.3 <= res.startup_time < res.wall_time
+    # real time is real time once running; the whole call (start-up included) is slower
+    assert res.run_realtime_factor == pytest.approx(1.0, abs=0.15) and res.realtime_factor < 0.6
+    assert "s start-up (1.0x real time)" in res.summary() or "s start-up (0.9x real time)" in res.summary()
+    assert res.as_dict()["startup_time_s"] == res.startup_time

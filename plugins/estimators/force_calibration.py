@@ -701,7 +701,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             print(f"wrote {len(routine.samples)} samples to {samples_path}", file=sys.stderr)
         if routine.state != "done":
             why = routine.abort_reason or result.message
-            print(f"teletouch: press routine did not finish ({result.status}: {why}); no calibration written",
+            print(f"teletouch: press routine did not finish (routine state {routine.state!r}, run {result.status}: "
+                  f"{why}); no calibration written",
                   file=sys.stderr)
             return result.exit_code or 3
         model_id, depth_src = _sensor_model_id(spec)
