@@ -195,13 +195,23 @@ class ProcessProxy(Component):
         self._conn: Any = None
         self._proc: Any = None
         self._lanes = ArrayLanes()
+        self._owed = 0   # replies still owed by the child for calls that timed out (read and dropped first)
 
     # -------------------------------------------------------------------------------------------------- plumbing
     def _call(self, *msg: Any, timeout: float) -> Any:
         conn = self._conn
         try:
+            # a call that timed out still gets its reply later: read and drop it first, so that this call reads
+            # its own reply (not, say, deactivate() the late answer of a step)
+            while self._owed:
+                if not conn.poll(timeout):
+                    raise ComponentFault(f"isolated process is still busy with an earlier call; '{msg[0]}' not sent "
+                                         f"after {timeout:.3g} s")
+                conn.recv()
+                self._owed -= 1
             conn.send(msg)
             if not conn.poll(timeout):
+                self._owed += 1
                 raise ComponentFault(f"isolated process did not answer '{msg[0]}' within {timeout:.3g} s")
             reply = conn.recv()
         except (EOFError, BrokenPipeError, ConnectionResetError, OSError) as exc:

@@ -162,6 +162,14 @@ class MockBurn(Component):
         fail_at: Seconds | None = Field(None, description="raise from this time on", json_schema_extra={"unit": "s"})
         stop_at: Seconds | None = Field(None, description="request a normal stop at this time",
                                         json_schema_extra={"unit": "s"})
+        hang_at: Seconds | None = Field(None, description="once, at this time, sleep hang_for inside the step (a "
+                                        "step that hangs)", json_schema_extra={"unit": "s"})
+        hang_for: Seconds = Field(1.5, ge=0, description="how long the hang lasts", json_schema_extra={"unit": "s"})
+        deactivate_error: bool = Field(False, description="deactivate() raises (to test how shutdown reports it)")
+
+    def deactivate(self):
+        if self.params.deactivate_error:
+            raise RuntimeError("mock-burn deactivate failure")
 
     def step(self, t, inputs):
         import os
@@ -170,6 +178,9 @@ class MockBurn(Component):
         p = self.params
         if p.fail_at is not None and t >= p.fail_at:
             raise ValueError(f"mock-burn failure at t={t:.3f}")
+        if p.hang_at is not None and t >= p.hang_at and not getattr(self, "_hung", False):
+            self._hung = True
+            time.sleep(p.hang_for)
         if p.stop_at is not None and t >= p.stop_at:
             self.ctx.request_stop(f"mock-burn stop at t={t:.3f}")
         end = time.perf_counter() + p.burn

@@ -251,3 +251,21 @@ def test_isolated_node_runs_at_its_priority(reg):
     policies.clear()
     res, _ = run_yaml(GRAPH, reg, duration=0.3, taps=[tap])
     assert policies[0] == (os.SCHED_OTHER, 0)
+
+
+def test_a_step_that_times_out_does_not_shift_the_replies_of_later_calls():
+    # the isolated step hangs past its timeout (1 s): a fault; then deactivate() raises in the child. That error must
+    # be reported as deactivate's (the late step reply is read and dropped first), not as close()'s
+    text = """
+clock: wall
+nodes:
+  - {id: est, plugin: mock-burn, rate: 30, params: {burn: 1ms, hang_at: 0.1, hang_for: 1.4, deactivate_error: true},
+     isolate: process}
+  - {id: dev, plugin: mock-device, rate: 100, inputs: {command: est.y}}
+"""
+    res, rt = run_yaml(text, make_registry(), duration=5.0)
+    assert res.status == "fault" and "did not answer 'step'" in res.message
+    shutdown = [f.message for f in res.faults if f.kind == "shutdown"]
+    assert any(m.startswith("deactivate() raised") and "mock-burn deactivate failure" in m for m in shutdown), shutdown
+    assert not any(m.startswith("close() raised") for m in shutdown), shutdown
+    assert rt.component("dev").safe
