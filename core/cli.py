@@ -244,6 +244,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("teletouch: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:   # a file that cannot be read or written: the user's path, not a bug
+        names = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+        print(f"teletouch: error: {exc.strerror or exc}{': ' + names if names else ''}", file=sys.stderr)
+        return EXIT_INVALID
+    except UnicodeDecodeError as exc:
+        print(f"teletouch: error: a file is not UTF-8 text ({exc.reason} at byte {exc.start})", file=sys.stderr)
+        return EXIT_INVALID
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -177,6 +177,7 @@ class Params(BaseModel):
         from .units import parse_quantity
 
         out = None
+        problems = []
         for fname, f in cls.model_fields.items():
             extra = f.json_schema_extra
             unit = extra.get("unit") if isinstance(extra, dict) else None
@@ -186,10 +187,13 @@ class Params(BaseModel):
                 try:
                     parsed = parse_quantity(value, unit)
                 except ValueError as exc:
-                    raise ValueError(f"{key}: {exc}") from None
+                    problems.append(f"{key}: {exc}")
+                    continue
                 if out is None:
                     out = dict(data)
                 out[key] = parsed
+        if problems:   # every bad quantity at once, one per line, each led by its field name
+            raise ValueError("\n".join(problems))
         return data if out is None else out
 
 

@@ -160,9 +160,17 @@ def _merge_nodes(base: list, over: list) -> LList:
     for j, node in enumerate(over):
         nid = node.get("id") if isinstance(node, dict) else None
         where = over.loc(j) if isinstance(over, LList) else Location(None, None)
+        remove = node.get("remove", False) if isinstance(node, dict) else False
+        if not isinstance(remove, bool):
+            raise GraphError(f"node '{nid}': remove: expected true or false, got {remove!r}",
+                             node.loc("remove") if isinstance(node, LDict) else where)
+        if remove and (nid is None or nid not in index):
+            ids = [k for k in index if isinstance(k, str)]
+            raise GraphError(f"node '{nid}': remove: true, but no included graph has a node '{nid}'"
+                             f"{_suggest(str(nid), ids)}", where)
         if nid is not None and nid in index:
             i = index[nid]
-            if node.get("remove"):
+            if remove:
                 out[i] = None
                 continue
             merged = _merge(out[i], node)
@@ -224,7 +232,8 @@ def _overlay(base: LDict, over: LDict) -> LDict:
 
 
 def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
-    """Apply ``--set NODE.FIELD=VALUE`` overrides (FIELD: plugin, rate, on_fault or a parameter; nested with dots)."""
+    """Apply ``--set NODE.FIELD=VALUE`` overrides (FIELD: plugin, rate, on_fault, priority, isolate or a parameter;
+    nested with dots)."""
     where = Location("--set", None)
     for item in sets:
         if "=" not in item:
@@ -244,7 +253,9 @@ def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
             ids = [n.get("id") for n in nodes if isinstance(n, dict)]
             raise GraphError(f"'{item}': no node '{parts[0]}'{_suggest(parts[0], ids)}", where)
         setw = Location("--set " + item, None)
-        if parts[1] in ("plugin", "rate", "on_fault") and len(parts) == 2:
+        if parts[1] == "params" and len(parts) == 2:
+            raise GraphError(f"'{item}': expected NODE.params.NAME=VALUE (or NODE.NAME=VALUE) for a parameter", where)
+        if parts[1] in ("plugin", "rate", "on_fault", "priority", "isolate") and len(parts) == 2:
             if parts[1] == "plugin" and value != node.get("plugin"):
                 node["params"] = LDict(where=setw)
             node[parts[1]] = value
@@ -262,6 +273,8 @@ def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
             if not isinstance(nxt, dict):
                 nxt = LDict(where=setw)
                 target[p] = nxt
+                if isinstance(target, LDict):
+                    target.key_where[p] = setw
             target = nxt
         target[parts[-1]] = value
         if isinstance(target, LDict):
@@ -325,7 +338,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             if not dur > 0:
                 raise ValueError(f"must be positive, got {dur}")
         except ValueError as exc:
-            err(f"duration: {exc}", doc.loc("duration"))
+            err(f"duration: {exc}", Location("--duration", None) if duration is not None else doc.loc("duration"))
             dur = None
 
     rt_prio = doc.get("realtime_priority", 0)
@@ -370,6 +383,11 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
     elif not isinstance(nodes_doc, list):
         err("'nodes' must be a list of nodes (each with id, plugin, rate)", doc.loc("nodes"))
         nodes_doc = []
+    elif not nodes_doc:
+        err("'nodes' is empty: a graph needs at least one node", doc.loc("nodes"))
+    for key in ("name", "description"):
+        if key in doc and not isinstance(doc[key], str):
+            err(f"{key}: expected text, got {doc[key]!r}", doc.loc(key))
 
     seen_ids: dict[str, Location] = {}
     for i, nd in enumerate(nodes_doc):
@@ -381,6 +399,13 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         for k in ld:
             if k not in NODE_KEYS:
                 err(f"node '{ld.get('id', '?')}': unknown key '{k}'{_suggest(str(k), NODE_KEYS)}", ld.loc(k))
+        if "remove" in ld:   # (overrides of included nodes are merged before this: here nothing is left to remove)
+            if not isinstance(ld["remove"], bool):
+                err(f"node '{ld.get('id', '?')}': remove: expected true or false, got {ld['remove']!r}",
+                    ld.loc("remove"))
+            elif ld["remove"]:
+                err(f"node '{ld.get('id', '?')}': remove: true only removes a node of an included graph, and "
+                    f"this file includes none", ld.loc("remove"))
         nid = ld.get("id")
         if nid is None:
             err("node without 'id'", ld.where)
@@ -447,13 +472,25 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             try:
                 spec.params_obj = cls.Params.model_validate(spec.params)
             except ValidationError as exc:
+                fields = list(cls.Params.model_fields)
+                expanded = []
                 for e in exc.errors():
+                    if e["loc"] or e["type"] != "value_error":
+                        expanded.append(e)
+                        continue
+                    # a model-level check: one problem per line, each led by its field name where it has one
+                    for part in str(e.get("ctx", {}).get("error", e["msg"])).split("\n"):
+                        head = part.split(":", 1)[0]
+                        if head in fields and ": " in part:
+                            expanded.append(dict(e, loc=(head,), msg=part.split(": ", 1)[1],
+                                                 input=spec.params.get(head)))
+                        else:
+                            word = re.match(r"[A-Za-z_]\w*", part)
+                            named = word.group(0) if word and word.group(0) in fields else None
+                            err(f"node '{nid}': params of {plugin}: {part}",
+                                pwhere.get(named, pwhere_default) if named else pwhere_default)
+                for e in expanded:
                     loc = [str(x) for x in e["loc"]]
-                    if not loc and e["type"] == "value_error":  # a model-level check that names its field first
-                        head = str(e.get("ctx", {}).get("error", "")).split(":", 1)[0]
-                        if head in cls.Params.model_fields:
-                            loc = [head]
-                            e = dict(e, msg=str(e["ctx"]["error"]).split(": ", 1)[1], input=spec.params.get(head))
                     fname = ".".join(loc) or "?"
                     w = pwhere.get(loc[0], pwhere_default) if loc else pwhere_default
                     if e["type"] == "extra_forbidden":

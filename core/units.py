@@ -25,9 +25,14 @@ _UNITS: dict[str, tuple[str, float]] = {
     "kg": ("kg", 1.0), "g": ("kg", 1e-3),
     "Pa": ("Pa", 1.0), "kPa": ("Pa", 1e3), "MPa": ("Pa", 1e6),
     "px/mm": ("px/m", 1e3), "px/m": ("px/m", 1.0),
+    "m^2": ("m^2", 1.0), "mm^2": ("m^2", 1e-6), "cm^2": ("m^2", 1e-4),
+    "N/s": ("N/s", 1.0), "J": ("J", 1.0), "mJ": ("J", 1e-3), "W": ("W", 1.0), "mW": ("W", 1e-3),
+    "1/s": ("1/s", 1.0), "N/A": ("N/A", 1.0), "bit/s": ("bit/s", 1.0), "kbit/s": ("bit/s", 1e3),
+    "Mbit/s": ("bit/s", 1e6),
+    "N*m*s/rad": ("N*m*s/rad", 1.0), "m/(N*s)": ("m/(N*s)", 1.0), "N/(m*s)": ("N/(m*s)", 1.0),
 }
 
-_QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*)?\s*$")
+_QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*|1/\S.*)?\s*$")
 
 
 def parse_quantity(text: Any, unit: str | None = None) -> float:
@@ -38,13 +43,22 @@ def parse_quantity(text: Any, unit: str | None = None) -> float:
     if isinstance(text, bool):
         raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
     if isinstance(text, (int, float)):
-        return float(text)
+        try:
+            value = float(text)
+        except OverflowError:
+            raise ValueError(f"{str(text)[:12]}... ({len(str(text))} digits) is too large for a number{_in(unit)}"
+                             ) from None
+        if not math.isfinite(value):
+            raise ValueError(f"expected a finite number{_in(unit)}, got {text!r}")
+        return value
     if not isinstance(text, str):
         raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
     m = _QTY.match(text)
     if not m:
         raise ValueError(f"expected a number{_in(unit)} such as '6mm' or '0.006', got {text!r}")
     value = float(m.group(1))
+    if not math.isfinite(value):
+        raise ValueError(f"{text!r} is too large for a number{_in(unit)}")
     sym = (m.group(2) or "").strip()
     if not sym:
         return value

@@ -38,28 +38,42 @@ class LList(list):
         return self.item_where[i] if i < len(self.item_where) else self.where
 
 
-def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor") -> Any:
+def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor",
+             active: set[int] | None = None) -> Any:
     where = Location(file, node.start_mark.line + 1)
+    if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)):
+        # an alias may point at a collection that holds it (``a: &x [*x]``): that would never end
+        active = set() if active is None else active
+        if id(node) in active:
+            raise GraphError("a YAML alias refers to a collection that contains it (a recursive anchor)", where)
+        active.add(id(node))
+        try:
+            return _convert_collection(node, file, constructor, active, where)
+        finally:
+            active.discard(id(node))
+    return constructor.construct_object(node, deep=True)
+
+
+def _convert_collection(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor",
+                        active: set[int], where: Location) -> Any:
     if isinstance(node, yaml.MappingNode):
         constructor.flatten_mapping(node)
         out = LDict(where=where)
         for knode, vnode in node.value:
-            key = _convert(knode, file, constructor)
+            key = _convert(knode, file, constructor, active)
             if isinstance(key, (dict, list)):
                 raise GraphError("a mapping key must be a plain value", Location(file, knode.start_mark.line + 1))
             if key in out:
                 raise GraphError(f"duplicate key '{key}' (first at line {out.loc(key).line})",
                                  Location(file, knode.start_mark.line + 1))
-            out[key] = _convert(vnode, file, constructor)
+            out[key] = _convert(vnode, file, constructor, active)
             out.key_where[key] = Location(file, knode.start_mark.line + 1)
         return out
-    if isinstance(node, yaml.SequenceNode):
-        out_l = LList(where=where)
-        for item in node.value:
-            out_l.append(_convert(item, file, constructor))
-            out_l.item_where.append(Location(file, item.start_mark.line + 1))
-        return out_l
-    return constructor.construct_object(node, deep=True)
+    out_l = LList(where=where)
+    for item in node.value:
+        out_l.append(_convert(item, file, constructor, active))
+        out_l.item_where.append(Location(file, item.start_mark.line + 1))
+    return out_l
 
 
 def load_yaml_text(text: str, file: str) -> Any:
@@ -89,6 +103,9 @@ def load_yaml_file(path: str | Path) -> Any:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise GraphError("file not found", Location(str(path), None)) from None
+    except UnicodeDecodeError as exc:
+        raise GraphError(f"not UTF-8 text (byte {exc.start}): a graph file is YAML text", Location(str(path), None)
+                         ) from None
     except OSError as exc:
         raise GraphError(f"cannot read file: {exc.strerror}", Location(str(path), None)) from None
     return load_yaml_text(text, str(path))

@@ -251,3 +251,103 @@ def test_params_with_units_accept_quantities(reg):
     errs = errors_of(GOOD.replace("{signal: step, amplitude: 2.0}", "{signal: step, frequency: 3 kg}"), reg)
     assert any("g.yaml:8:" in e and "param 'frequency' = '3 kg'" in e and "expected a quantity in Hz" in e
                for e in errs), errs
+
+
+# ------------------------------------------------------------------------------------------------ bad input (audit)
+def test_graph_file_that_is_not_text_or_recursive(tmp_path, reg):
+    p = tmp_path / "bin.yaml"
+    p.write_bytes(b"\xff\xfe\x00nodes")
+    with pytest.raises(GraphValidationError, match="not UTF-8 text"):
+        load_graph(p, registry=reg)
+    errs = errors_of("a: &x [*x]\nnodes: []\n", reg)
+    assert errs == ["g.yaml:1: a YAML alias refers to a collection that contains it (a recursive anchor)"]
+
+
+def test_numbers_too_large_or_infinite_are_refused(reg):
+    big = "1" + "0" * 400
+    errs = errors_of(GOOD.replace("rate: 100 Hz", f"rate: {big}"), reg)
+    assert any("g.yaml:11" in e and "too large" in e for e in errs), errs
+    for dur in (".inf", "1e400"):
+        errs = errors_of(GOOD.replace("duration: 1", f"duration: {dur}"), reg)
+        assert any(e.startswith("g.yaml:3: duration:") for e in errs), errs
+    # a bad --duration is the command line's, not the file's
+    assert errors_of(GOOD, reg, duration=-1.0) == ["--duration: duration: must be positive, got -1.0"]
+
+
+def test_model_level_param_checks_name_their_field_and_every_bad_unit_is_reported():
+    text = textwrap.dedent("""\
+        clock: sim
+        nodes:
+          - id: hand
+            plugin: mock-sensor
+            rate: 1kHz
+          - id: ctl
+            plugin: position-force
+            rate: 1kHz
+            params:
+              opening_min: 50mm
+              opening_max: 10mm
+          - id: ctl2
+            plugin: position-force
+            rate: 1kHz
+            params:
+              max_force_rate: 1 parsec
+              reduction_margin: 5 N
+              gain_adaptation_power: 2 mW
+            inputs: {leader_opening: hand.value, force: hand.value}
+        """)
+    errs = errors_of(text, make_registry("teletouch.plugins.controllers.position_force"))
+    assert "g.yaml:10: node 'ctl': params of position-force: opening_min (0.05 m) must be below opening_max " \
+           "(0.01 m)" in errs
+    assert not any("'?'" in e for e in errs)
+    assert any(e.startswith("g.yaml:16: node 'ctl2': param 'max_force_rate'") and "unknown unit 'parsec'" in e
+               for e in errs), errs
+    assert any(e.startswith("g.yaml:17: node 'ctl2': param 'reduction_margin'") and "expected a quantity in J" in e
+               for e in errs), errs
+    assert not any("gain_adaptation_power" in e for e in errs)   # 2 mW is a power: accepted
+
+
+def test_units_of_every_declared_parameter_are_known():
+    from teletouch.registry import default_registry
+    from teletouch.units import parse_quantity
+
+    for row in default_registry().describe():
+        for prm in row.get("params", []):
+            unit = prm.get("unit")
+            if unit and unit not in ("", "1"):
+                assert parse_quantity(f"1 {unit}", unit) == 1.0, (row["name"], prm["name"], unit)
+
+
+def test_set_and_remove_errors_say_what_is_supported(tmp_path, reg):
+    g = tmp_path / "g.yaml"
+    g.write_text(GOOD)
+    with pytest.raises(GraphValidationError, match=r"expected NODE.params.NAME=VALUE"):
+        load_graph(g, registry=reg, sets=["source.params=5"])
+    spec = load_graph(g, registry=reg, sets=["source.priority=5", "source.params.amplitude=4"])
+    assert next(n for n in spec.nodes if n.id == "source").priority == 5
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(g, registry=reg, sets=["source.frequency.x=5"])
+    assert all(str(e).startswith("--set source.frequency.x=5") for e in ei.value.errors), ei.value.errors
+    over = tmp_path / "over.yaml"
+    over.write_text("include: g.yaml\nnodes:\n  - {id: gian, remove: true}\n")
+    with pytest.raises(GraphValidationError, match=r"no included graph has a node 'gian' \(did you mean 'gain'\?\)"):
+        load_graph(over, registry=reg)
+    over.write_text("include: g.yaml\nnodes:\n  - {id: gain, remove: 'no'}\n")
+    with pytest.raises(GraphValidationError, match="remove: expected true or false, got 'no'"):
+        load_graph(over, registry=reg)
+    errs = errors_of(GOOD.replace("  - id: dev\n", "  - id: dev\n    remove: true\n"), reg)
+    assert any("remove: true only removes a node of an included graph" in e for e in errs), errs
+    assert errors_of("nodes: []\n", reg) == ["g.yaml:1: 'nodes' is empty: a graph needs at least one node"]
+    assert any(e.startswith("g.yaml:1: name: expected text") for e in errors_of(GOOD.replace("name: demo",
+                                                                                            "name: [1, 2]"), reg))
+
+
+def test_cli_reports_file_errors_without_a_traceback(tmp_path, capsys):
+    from teletouch.cli import main
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    assert main(["schema", "-o", str(blocker / "schema.json")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("teletouch: error: Not a directory:") and "afile/schema.json" in err
+    assert "Traceback" not in err

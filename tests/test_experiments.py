@@ -129,13 +129,23 @@ def test_pivot_experiment_cli_reduced(tmp_path):
     assert (tmp_path / "pivot.png").stat().st_size > 10_000
 
 
-def test_experiment_cli_rejects_bad_arguments(capsys):
+def test_experiment_cli_rejects_bad_arguments(capsys, tmp_path):
     from teletouch.cli import main
 
     assert main(["experiment", "contact", "--duration", "5 kg"]) == 2
     assert "--duration" in capsys.readouterr().err
+    assert main(["experiment", "contact", "--duration", "1e400"]) == 2
+    assert "too large" in capsys.readouterr().err
     assert main(["experiment", "pivot", "--trials", "0"]) == 2
     assert "--trials" in capsys.readouterr().err
+    assert main(["experiment", "pivot", "--time-limit", "1e400"]) == 2
+    assert "--time-limit" in capsys.readouterr().err
+    # an --out that cannot be a folder is refused before the trials run, not after
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    for exp in ("contact", "pivot"):
+        assert main(["experiment", exp, "--out", str(blocker)]) == 2
+        assert f"--out {blocker}: cannot make a folder there" in capsys.readouterr().err
 
 
 def test_main_job_runs_with_the_real_estimators():

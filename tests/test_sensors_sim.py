@@ -199,6 +199,9 @@ def test_sim_digit_inputs_override_static_params_and_validate():
 def test_sim_digit_param_errors(tmp_path):
     with pytest.raises(ValueError, match="position"):
         SimDigit.Params(position=[0.0, 0.0, 0.0])
+    # units with or without a space, comma-separated; plain numbers may be space-separated
+    for text in ("2 mm, -1 mm", "2mm,-1mm", "0.002 -0.001"):
+        assert SimDigit.Params(position=text).position == pytest.approx((0.002, -0.001))
     with pytest.raises(ValueError, match="indenter_map"):
         with Harness(SimDigit, {"indenter": "map"}):
             pass

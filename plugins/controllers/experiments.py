@@ -773,6 +773,14 @@ def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float 
 
 
 # ================================================================================================ CLI
+def _out_dir_problem(out: str) -> str | None:
+    """None if ``out`` is (or could be made) a folder for the results; else what is wrong, before anything runs."""
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"--out {out}: cannot make a folder there ({exc.strerror or exc})"
+    return None
+
 
 
 def _cmd_contact(args: argparse.Namespace) -> int:
@@ -784,6 +792,10 @@ def _cmd_contact(args: argparse.Namespace) -> int:
             raise ValueError(f"must be at least 1 s (the operator starts closing at 0.5 s), got {args.duration!r}")
     except ValueError as exc:
         print(f"teletouch experiment contact: --duration: {exc}", file=sys.stderr)
+        return 2
+    problem = _out_dir_problem(args.out)
+    if problem:
+        print(f"teletouch experiment contact: {problem}", file=sys.stderr)
         return 2
     res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out, baselines=args.baselines)
     if args.json:
@@ -809,6 +821,10 @@ def _cmd_pivot(args: argparse.Namespace) -> int:
         return 2
     if args.trials < 1:
         print(f"teletouch experiment pivot: --trials: expected at least 1, got {args.trials}", file=sys.stderr)
+        return 2
+    problem = _out_dir_problem(args.out)
+    if problem:
+        print(f"teletouch experiment pivot: {problem}", file=sys.stderr)
         return 2
     res = experiment_pivot(trials=args.trials, sensor=args.sensor, time_limit=time_limit,
                            seed=args.seed, out=args.out, progress=not args.json)

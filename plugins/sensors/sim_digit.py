@@ -301,8 +301,9 @@ class SimDigit(Component):
         @classmethod
         def _pos(cls, v: Any) -> Any:
             if isinstance(v, str):
-                parts = [p for p in v.replace(",", " ").split() if p]
-                v = [parse_quantity(p, "m") for p in parts]
+                # "2mm, -1mm" or "2 mm, -1 mm" (comma-separated); "0.002 -0.001" (plain numbers, spaces)
+                parts = [p.strip() for p in v.split(",")] if "," in v else v.split()
+                v = [parse_quantity(p, "m") for p in parts if p]
             if isinstance(v, (list, tuple)) and len(v) != 2:
                 raise ValueError(f"position needs two values (x, y) in m, got {v!r}")
             return v
