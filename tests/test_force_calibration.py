@@ -244,6 +244,21 @@ def test_params_checked():
         Harness(PressRoutine, {"step": "3mm", "max_displacement": "2mm"}).comp.configure()
 
 
+def test_samples_csv_checked_at_configure(tmp_path):
+    (tmp_path / "afile").write_text("")
+    for bad, why in ((tmp_path / "afile" / "s.csv", "afile is not a directory"), (tmp_path, "is a directory")):
+        comp = Harness(PressRoutine, dict(FAST, samples_csv=str(bad))).comp
+        with pytest.raises(ValueError, match=f"samples_csv: cannot write .*{why}"):
+            comp.configure()
+        assert comp.state == "wait" and comp.samples == []  # what the command line reports after a failed start
+    Harness(PressRoutine, dict(FAST, samples_csv=str(tmp_path / "new" / "s.csv"))).comp.configure()  # made later
+
+
+def test_total_points_known_before_configure():
+    # the command line's progress bar (on a terminal) asks before the run configures the routine
+    assert Harness(PressRoutine, FAST).comp.total_points == 13
+
+
 # ------------------------------------------------------------------------------------------------ the rig
 def test_rig_uses_the_gel_model():
     with Harness(SimPressRig, {"surface": -0.005, "gel_thickness": 0.004}) as h:
@@ -276,6 +291,65 @@ def test_cli_csv(tmp_path, capsys):
     csv.write_text("depth_m,force_n\n0.001,oops\n")
     assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out)]) != 0
     assert "pairs.csv:2: column 'force_n'" in capsys.readouterr().err
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("the command should have refused its arguments before any work")
+
+
+BOTH, GRAPH = ("csv", "graph"), ("graph",)
+
+
+@pytest.mark.parametrize("mode,extra,message", [(m, e, msg) for modes, e, msg in [
+    (BOTH, ["--min-depth", "5parsecs"], "--min-depth: unknown unit 'parsecs'"),
+    (BOTH, ["--min-depth", "5N"], "--min-depth: '5N' is in N, expected a quantity in m"),
+    (GRAPH, ["--duration", "5parsecs"], "--duration: unknown unit 'parsecs'"),
+    (GRAPH, ["--duration", "0s"], "--duration: expected a positive duration"),
+    (BOTH, ["-o", "{tmp}/afile/x.json"], "-o: cannot write '{tmp}/afile/x.json': {tmp}/afile is not a directory"),
+    (BOTH, ["-o", "{tmp}/outdir"], "-o: cannot write '{tmp}/outdir': is a directory"),
+    (BOTH, ["--plot", "{tmp}/afile/p.png"], "--plot: cannot write"),
+    (GRAPH, ["--samples", "{tmp}/outdir"], "--samples: cannot write '{tmp}/outdir': is a directory"),
+] for m in modes])
+def test_cli_arguments_and_outputs_checked_before_the_work(tmp_path, capsys, monkeypatch, mode, extra, message):
+    from teletouch.cli import main
+    from teletouch.plugins.estimators import force_calibration
+
+    monkeypatch.setattr(force_calibration, "run_press_calibration", _no_work)
+    monkeypatch.setattr(force_calibration, "fit_samples", _no_work)
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "outdir").mkdir()
+    src = tmp_path / ("pairs.csv" if mode == "csv" else "press.yaml")
+    src.write_text("depth_m,force_n\n0.0001,0.1\n" if mode == "csv" else graph())
+    args = [a.format(tmp=tmp_path) for a in extra]
+    if "-o" not in args:
+        args += ["-o", str(tmp_path / "cal.force.json")]
+    assert main(["calibrate", "force", f"--{mode}", str(src), "--quiet", *args]) == 2
+    err = capsys.readouterr().err
+    assert f"teletouch: error: {message.format(tmp=tmp_path)}" in err and "Traceback" not in err
+
+
+def test_cli_graph_only_options_refused_with_csv(tmp_path, capsys):
+    from teletouch.cli import main
+
+    csv = tmp_path / "pairs.csv"
+    csv.write_text("depth_m,force_n\n0.0001,0.1\n")
+    out = tmp_path / "cal.force.json"
+    for extra, names in ((["--duration", "5s"], "--duration"), (["--set", "a.b=1", "--clock", "sim"], "--set, --clock"),
+                         (["--samples", str(tmp_path / "s.csv")], "--samples")):
+        assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out), *extra]) == 2
+        assert f"teletouch: error: {names}: only with --graph" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_cli_creates_missing_output_directories(tmp_path):
+    from teletouch.cli import main
+
+    csv = tmp_path / "pairs.csv"
+    d = np.linspace(0.1e-3, 2e-3, 10)
+    csv.write_text("depth_m,force_n\n" + "".join(f"{a},{gel_force(a, Indenter.probe())}\n" for a in d))
+    out = tmp_path / "new" / "dir" / "cal.force.json"
+    assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out), "--plot", str(tmp_path / "p" / "c.png")]) == 0
+    assert out.is_file() and (tmp_path / "p" / "c.png").is_file()
 
 
 def test_cli_graph(tmp_path, capsys):

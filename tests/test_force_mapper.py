@@ -174,6 +174,10 @@ def _edit(path, fn):
     (lambda d: d["model"].update(force_range_n="0..5"), "model.force_range_n"),
     (lambda d: d["model"].update(coefficients=[0.0, 1000.0, -1e6, 0.0]), "model.coefficients"),  # turns over
     (lambda d: d.pop("model"), "model"),
+    (lambda d: d.update(extra="abc"), "extra"),
+    (lambda d: d.update(extra=[1]), "extra"),
+    (lambda d: d["model"]["coefficients"].__setitem__(1, 10 ** 400), "model.coefficients"),  # too large for a float
+    (lambda d: d["model"].update(zero_intercept="no"), "model.zero_intercept"),
 ])
 def test_bad_files_name_file_and_field(cal_file, mutate, field):
     _edit(cal_file, mutate)
@@ -192,6 +196,13 @@ def test_corrupt_and_missing_files(tmp_path):
         ForceCalibration.load(tmp_path / "nothing.json")
     with pytest.raises(ModelFileError, match="packaged"):
         resolve_calibration("no-such-calibration")
+
+
+def test_save_to_a_directory_is_refused_and_leaves_no_temporary_file(tmp_path, cal):
+    (tmp_path / "out").mkdir()
+    with pytest.raises(IsADirectoryError, match="is a directory"):
+        cal.save(tmp_path / "out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
 def test_plot_written(tmp_path):
@@ -227,6 +238,40 @@ def test_csv_in_mm_and_errors_name_line(tmp_path):
     p.write_text("x,y\n1,2\n")
     with pytest.raises(CalibrationError, match=r"mm\.csv:1: header"):
         read_pairs_csv(p)
+
+
+def test_csv_not_utf8_names_the_file(tmp_path):
+    p = tmp_path / "binary.csv"
+    p.write_bytes(b"\xff\xfe\x00d\x00e\x00p")
+    with pytest.raises(CalibrationError, match=r"binary\.csv: not UTF-8 text"):
+        read_pairs_csv(p)
+    p.write_bytes("\ufeffdepth_m,force_n\n0.001,1.0\n".encode())  # a spreadsheet's byte order mark is fine
+    assert read_pairs_csv(p)["force_n"].tolist() == [1.0]
+
+
+@pytest.mark.parametrize("text,match", [
+    ("depth_m,force_n\n0.0001,0.1\n0.1,0.2\n", r"u\.csv:3: column 'depth_m': '0\.1' is a depth of 100 mm, "
+     r"implausible .*is the column in mm\? then name it depth_mm"),
+    ("depth_mm,force\n0.5,0.1\n15,0.2\n", r"u\.csv:3: column 'depth_mm': '15' is a depth of 15 mm"),
+    ("depth_m,force_n\n0.0001,100\n0.0002,900\n", r"u\.csv:3: column 'force_n': '900' is a force of 900 N, "
+     r"implausible .*in mN\?"),
+    ("depth_m,force_n,x_m,y_m\n0.0001,0.1,2.5,0.0\n", r"u\.csv:2: column 'x_m': '2\.5' is a contact centroid "
+     r"2500 mm"),
+])
+def test_csv_implausible_values_name_row_column_and_unit(tmp_path, text, match):
+    p = tmp_path / "u.csv"
+    p.write_text(text)
+    with pytest.raises(CalibrationError, match=match):
+        read_pairs_csv(p)
+
+
+def test_csv_row_with_more_cells_than_the_header(tmp_path):
+    p = tmp_path / "extra.csv"
+    p.write_text("depth_m,force_n\n0.0001,0.1\n0.0002,0.2,extra\n")
+    with pytest.raises(CalibrationError, match=r"extra\.csv:3: 3 cells but the header \(line 1\) names 2 columns"):
+        read_pairs_csv(p)
+    p.write_text("depth_m,force_n\n0.0001,0.1,\n0.0002,0.2, \n")  # empty trailing cells lose nothing
+    assert read_pairs_csv(p)["depth_m"].tolist() == [0.0001, 0.0002]
 
 
 # ------------------------------------------------------------------------------------------------------ component

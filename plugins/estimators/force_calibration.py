@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any, Literal
@@ -53,6 +54,25 @@ def _u(unit: str) -> dict[str, str]:
 
 
 AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _output_problem(path: str | os.PathLike) -> str | None:
+    """Why a file cannot be written at ``path`` (None: it can), checked before long work without creating anything:
+    the target must not be a directory and its nearest existing ancestor must be a writable directory (missing
+    directories below it are created when the file is written)."""
+    path = Path(path)
+    if path.is_dir():
+        return "is a directory, expected a file name"
+    if path.exists() and not os.access(path, os.W_OK):
+        return "the file exists and is not writable"
+    anc = path.parent
+    while not os.path.lexists(anc) and anc.parent != anc:
+        anc = anc.parent
+    if not anc.is_dir():
+        return f"{anc} is not a directory"
+    if not os.access(anc, os.W_OK | os.X_OK):
+        return f"the directory {anc} is not writable"
+    return None
 
 
 # ================================================================================================ the press routine
@@ -135,9 +155,15 @@ class PressRoutine(Component):
     # ------------------------------------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
         p = self.params
+        self.samples: list[dict[str, Any]] = []
+        self.reset()  # first: a routine that fails to configure still reports its state and (no) samples
         if p.step > p.max_displacement:
             raise ValueError(f"step ({p.step * 1e3:.3f} mm) is larger than max_displacement "
                              f"({p.max_displacement * 1e3:.3f} mm)")
+        if p.samples_csv:
+            problem = _output_problem(p.samples_csv)
+            if problem:
+                raise ValueError(f"samples_csv: cannot write {p.samples_csv!r}: {problem}")
         self.u = np.zeros(3)
         self.u[AXES[p.axis]] = float(p.direction)
         lateral = [i for i in range(3) if i != AXES[p.axis]]
@@ -146,11 +172,14 @@ class PressRoutine(Component):
             o = np.zeros(3)
             o[lateral[0]], o[lateral[1]] = ox, oy
             self.offsets.append(o)
+        self.plan = self._plan()
+
+    def _plan(self) -> list[tuple[float, str]]:
+        """(displacement, phase) of each step of a cycle."""
+        p = self.params
         n = int(math.floor(p.max_displacement / p.step + 1e-9))
         load = [k * p.step for k in range(0, n + 1)]
-        self.plan = [(d, "loading") for d in load] + [(d, "unloading") for d in reversed(load[:-1])]
-        self.samples: list[dict[str, Any]] = []
-        self.reset()
+        return [(d, "loading") for d in load] + [(d, "unloading") for d in reversed(load[:-1])]
 
     def reset(self) -> None:
         self.state = "wait"
@@ -184,7 +213,7 @@ class PressRoutine(Component):
     # ------------------------------------------------------------------------------------------------ helpers
     @property
     def total_points(self) -> int:
-        return len(self.plan) * self.params.cycles
+        return len(self._plan()) * self.params.cycles  # from the params: known before configure (progress bar)
 
     def _s(self, pos: np.ndarray) -> float:
         """Press coordinate: how far pos is along the press direction."""
@@ -676,9 +705,40 @@ def run_press_calibration(graph: str, *, sets: list[str] | None = None, clock: s
 def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     from teletouch.units import parse_quantity
 
+    def usage(msg: str) -> int:
+        print(f"teletouch: error: {msg}", file=sys.stderr)
+        return 2
+
+    try:
+        min_depth = parse_quantity(args.min_depth, "m")
+        if not min_depth >= 0:
+            raise ValueError(f"expected a depth of at least 0, got {args.min_depth!r}")
+    except ValueError as exc:
+        return usage(f"--min-depth: {exc}")
+    duration = None
+    if args.csv:
+        graph_only = [opt for opt, given in (("--duration", args.duration is not None), ("--set", args.sets),
+                                             ("--clock", args.clock is not None),
+                                             ("--samples", args.samples is not None)) if given]
+        if graph_only:
+            return usage(f"{', '.join(graph_only)}: only with --graph (a press run); --csv fits the pairs of the "
+                         f"file as they are")
+    elif args.duration is not None:
+        try:
+            duration = parse_quantity(args.duration, "s")
+            if not duration > 0:
+                raise ValueError(f"expected a positive duration, got {args.duration!r}")
+        except ValueError as exc:
+            return usage(f"--duration: {exc}")
+    # the outputs are checked before the fit and the press run, which are lost if they cannot be written after
     out = Path(args.output)
     plot = Path(args.plot) if args.plot else out.with_name(_stem(out) + ".png")
-    min_depth = parse_quantity(args.min_depth, "m")
+    samples_path = Path(args.samples) if args.samples else out.with_name(_stem(out) + ".samples.csv")
+    outputs = [("-o", out), ("--plot", plot)] + ([] if args.csv else [("--samples", samples_path)])
+    for opt, path in outputs:
+        problem = _output_problem(path)
+        if problem:
+            return usage(f"{opt}: cannot write {str(path)!r}: {problem}")
     if args.csv:
         data = read_pairs_csv(args.csv)
         samples = [{"depth_m": float(d), "force_n": float(f),
@@ -692,10 +752,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
                           zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or "",
                           depth_source="csv", source=f"csv:{Path(args.csv).name}")
     else:
-        duration = parse_quantity(args.duration, "s") if args.duration else None
         result, routine, spec = run_press_calibration(args.graph, sets=args.sets, clock=args.clock,
                                                       duration=duration, progress=not args.quiet)
-        samples_path = Path(args.samples) if args.samples else out.with_name(_stem(out) + ".samples.csv")
         if routine.samples:
             write_pairs_csv(samples_path, routine.samples)
             print(f"wrote {len(routine.samples)} samples to {samples_path}", file=sys.stderr)

@@ -26,8 +26,10 @@ pressing at points across the sensor. A centroid outside the calibrated area is 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime as _dt
+import errno
 import json
 import math
 import os
@@ -534,10 +536,17 @@ class ForceCalibration:
     def save(self, path: str | os.PathLike) -> Path:
         """Write the calibration as JSON (atomically)."""
         path = Path(path)
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, "is a directory, expected the calibration file to write", str(path))
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n", encoding="utf-8")
-        os.replace(tmp, path)
+        try:
+            tmp.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise
         self.path = str(path)
         return path
 
@@ -615,11 +624,17 @@ class ForceCalibration:
         hyst = doc.get("hysteresis")
         if hyst is not None and not isinstance(hyst, dict):
             raise bad("hysteresis", "an object or null", hyst)
+        extra = doc.get("extra")
+        if extra is not None and not isinstance(extra, dict):
+            raise bad("extra", "an object or null", extra)
+        zi = model.get("zero_intercept", False)
+        if not isinstance(zi, bool):
+            raise bad("model.zero_intercept", "true or false", zi)
         return cls(coef, (dr[0], dr[1]), (fr[0], fr[1]), r2=_float_or_nan(q.get("r2")),
                    rmse=_float_or_nan(q.get("rmse_n")), samples=samples, hysteresis=hyst,
                    sensor_model_id=doc.get("sensor_model_id") or "", depth_source=doc.get("depth_source") or "",
                    source=doc.get("source") or "", created=doc.get("created"),
-                   zero_intercept=bool(model.get("zero_intercept", False)), extra=doc.get("extra") or {},
+                   zero_intercept=zi, extra=extra or {},
                    position=pmodel)
 
     # ---------------------------------------------------------------------------------------------------- report
@@ -746,7 +761,10 @@ def _hysteresis(d: np.ndarray, f: np.ndarray, ph: list[str], degree: int, zero_i
 
 
 def _finite(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    try:
+        return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    except OverflowError:   # an integer too large for a float (e.g. 400 digits in a JSON file)
+        return False
 
 
 def _float_or_nan(x: Any) -> float:
@@ -761,6 +779,10 @@ def _num(x: float) -> float | None:
 DEPTH_COLUMNS = {"depth_m": 1.0, "max_depth_m": 1.0, "depth": 1.0, "max_depth": 1.0, "depth_mm": 1e-3,
                  "max_depth_mm": 1e-3}
 FORCE_COLUMNS = {"force_n": 1.0, "force": 1.0, "device_force_n": 1.0}
+# plausibility limits of a tactile gel's pairs: beyond them a column is almost surely in the wrong unit
+MAX_DEPTH_M = 0.01        # 10 mm of indentation
+MAX_FORCE_N = 200.0       # N
+MAX_CENTROID_M = 0.1      # 100 mm from the image centre
 CSV_COLUMNS = ["depth_m", "force_n", "phase", "cycle", "displacement_m", "gt_max_depth_m", "gt_force_n", "x_m", "y_m"]
 
 
@@ -772,11 +794,17 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     "y_m": array | None}."""
     path = Path(path)
     try:
-        fh = path.open(newline="", encoding="utf-8")
+        fh = path.open(newline="", encoding="utf-8-sig")   # -sig: a spreadsheet's byte order mark is no header
     except OSError as exc:
         raise CalibrationError(f"{path}: cannot open the CSV file: {exc}") from None
     with fh:
-        rows = [r for r in csv.reader(fh)]
+        try:
+            rows = [r for r in csv.reader(fh)]
+        except UnicodeDecodeError as exc:
+            raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x}: {exc.reason}): "
+                                   f"expected a CSV file of depth, force pairs (save it as UTF-8 CSV)") from None
+        except csv.Error as exc:
+            raise CalibrationError(f"{path}: not a readable CSV file ({exc})") from None
     lines = [(i + 1, r) for i, r in enumerate(rows) if r and not r[0].lstrip().startswith("#")
              and any(c.strip() for c in r)]
     if not lines:
@@ -798,6 +826,10 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
                                f"{'y_m' if ycol is None else 'x_m'}: the contact centroid needs both columns")
     depth, force, phase, cycle, xs, ys = [], [], [], [], [], []
     for ln, r in lines[1:]:
+        if len(r) > len(header) and any(c.strip() for c in r[len(header):]):
+            raise CalibrationError(f"{path}:{ln}: {len(r)} cells but the header (line {hline}) names "
+                                   f"{len(header)} columns: a missing header name or a stray separator?")
+
         def cell(i: int | None, what: str) -> str:
             if i is None:
                 return ""
@@ -820,6 +852,9 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
                                        f"got {txt!r}") from None
             if not math.isfinite(v):
                 raise CalibrationError(f"{path}:{ln}: column '{names[col]}': {txt!r} is not finite")
+            problem = _implausible(names[col], v, col == dcol, col == fcol)
+            if problem:
+                raise CalibrationError(f"{path}:{ln}: column '{names[col]}': {txt!r} {problem}")
             sink.append(v)
         p = cell(pcol, "phase").lower()
         if p not in PHASES:
@@ -835,6 +870,22 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     return {"depth_m": np.array(depth), "force_n": np.array(force),
             "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None,
             "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None}
+
+
+def _implausible(name: str, v: float, is_depth: bool, is_force: bool) -> str | None:
+    """Why a value (SI) of a CSV column is implausible for a tactile gel (a unit mistake), or None."""
+    if is_depth and abs(v) >= MAX_DEPTH_M:
+        hint = ("check the unit" if name.endswith("_mm")
+                else f"is the column in mm? then name it {name.removesuffix('_m')}_mm")
+        return (f"is a depth of {v * 1e3:g} mm, implausible for a gel (expected below {MAX_DEPTH_M * 1e3:g} mm): "
+                f"{hint}")
+    if is_force and abs(v) >= MAX_FORCE_N:
+        return (f"is a force of {v:g} N, implausible for a tactile sensor (expected below {MAX_FORCE_N:g} N): is "
+                f"the column in mN? convert it to N")
+    if not (is_depth or is_force) and abs(v) >= MAX_CENTROID_M:
+        return (f"is a contact centroid {v * 1e3:g} mm from the image centre, implausible (expected within "
+                f"{MAX_CENTROID_M * 1e3:g} mm): is the column in mm? convert it to m")
+    return None
 
 
 def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]]) -> Path:
