@@ -840,11 +840,17 @@ class Recording:
     path: str
     channels: dict[int, ChannelInfo] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    truncated: bool = False
+    truncated: bool = False  # the reader stopped before the footer (a crashed run, or a corrupt record)
     epoch_ns: int | None = None
+    problem: str = ""  # why, when truncated: where the file is cut short or corrupt
+    messages: int = 0  # messages read
 
     def graph_time(self, ns: int) -> float:
         return (ns - (self.epoch_ns or 0)) * 1e-9
+
+    def note(self) -> str:
+        """When truncated: where the reader stopped and how much it read, for a warning or an error."""
+        return f"{self.problem}; {self.messages} messages read before it" if self.truncated else ""
 
 
 def _codec_for(ch: ChannelInfo) -> _Codec:
@@ -859,9 +865,35 @@ def _codec_for(ch: ChannelInfo) -> _Codec:
     raise RecordingError(f"{ch.topic}: no decoder for schema '{ch.schema_name}' ({ch.message_encoding})")
 
 
+_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _why(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+def _unreadable(path: str, fh: Any, size: int, exc: BaseException, cut: bool) -> str:
+    """Why a file in which not one MCAP record can be read is no recording."""
+    if size == 0:
+        return f"{path} is empty (0 bytes), not an MCAP recording"
+    fh.seek(0)
+    head = fh.read(9)
+    if head[:8] != _MAGIC:
+        return f"{path} is not an MCAP file (it does not start with the MCAP magic bytes)"
+    if size == 8:
+        return f"{path} is an empty MCAP file: only the 8 magic bytes, no record (nothing was recorded)"
+    if head[8] != 0x01:
+        return (f"{path} is a corrupt MCAP file: byte 8 should start the Header record (opcode 0x01), "
+                f"found 0x{head[8]:02x}")
+    if cut:
+        return f"{path} is an empty MCAP file: it ends ({size} bytes) inside its first record, the Header"
+    return f"{path} is a corrupt MCAP file: its first record (byte 8) cannot be read ({_why(exc)})"
+
+
 def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
-    """Yield (channel, mcap Message) in file order; stop quietly (rec.truncated) where a crash cut the file."""
-    from mcap.exceptions import McapError
+    """Yield (channel, mcap Message) in file order. Where a crash cut the file (or a record is corrupt) stop with
+    rec.truncated and rec.problem saying where; a file in which no record can be read raises RecordingError."""
+    from mcap.exceptions import EndOfFile
     from mcap.records import Channel, Footer, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -869,20 +901,30 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
     try:
         fh = open(path, "rb")
     except OSError as exc:
-        raise RecordingError(f"cannot read the recording {path}: {exc}") from exc
+        raise RecordingError(f"cannot read the recording {path}: {exc.strerror or exc}") from exc
     with fh:
+        size = os.fstat(fh.fileno()).st_size
         reader = StreamReader(fh, skip_magic=False)
         it = reader.records
+        records = 0
         while True:
+            pos = fh.tell()  # where the next top-level record starts (a chunk is read whole)
             try:
                 r = next(it)
             except StopIteration:
                 return
-            except (McapError, struct.error, EOFError, ValueError, RuntimeError) as exc:
-                if isinstance(exc, McapError) and type(exc).__name__ == "InvalidMagic" and fh.tell() <= 8:
-                    raise RecordingError(f"{path} is not an MCAP file") from exc
-                rec.truncated = True  # the end of a file whose writer was killed
+            except Exception as exc:  # whatever the decoders raise on a cut or corrupt record (zstd: ZstdError)
+                cut = isinstance(exc, EndOfFile) or fh.tell() >= size  # the reader ran into the end of the file
+                if records == 0:
+                    raise RecordingError(_unreadable(path, fh, size, exc, cut)) from None
+                rec.truncated = True
+                if cut:  # the end of a file whose writer was killed
+                    rec.problem = (f"the recording is truncated at byte {pos} (the file, {size} bytes, ends inside "
+                                   f"that record: a run that crashed or is still recording)")
+                else:
+                    rec.problem = f"the recording is corrupt at byte {pos} ({_why(exc)})"
                 return
+            records += 1
             if isinstance(r, Schema):
                 schemas[r.id] = r
             elif isinstance(r, Channel):
@@ -899,6 +941,7 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                 if r.name == "teletouch.time" and "graph_epoch_ns" in r.metadata:
                     rec.epoch_ns = int(r.metadata["graph_epoch_ns"])
             elif isinstance(r, Message):
+                rec.messages += 1
                 ch = rec.channels.get(r.channel_id)
                 if ch is not None:
                     ch.count += 1
@@ -981,14 +1024,17 @@ def _stack(vs: list[Any]) -> Any:
     return vs
 
 
-def iter_images(path: str | os.PathLike, port: str | None = None) -> Iterator[tuple[float, np.ndarray]]:
+def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[[str], None] | None = None,
+                ) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (stamp_s, BGR uint8 image) for the colour images of a recording, in recorded order; stamps are the
     capture times on the recording's graph clock. ``port``: "node.port", a port name or a topic; None: the only
-    colour-image channel (an error names the choices if there are several)."""
+    colour-image channel (an error names the choices if there are several). A recording cut short (a crashed run)
+    gives the images it holds, after a warning to ``log`` (if given)."""
     path = str(path)
     rec = Recording(path)
     for _ in _iter_raw(path, rec):
         pass
+    note = f"; {rec.note()}" if rec.truncated else ""
     colour = [ch for ch in rec.channels.values() if _is_colour(ch)]
     if port is None:
         chosen = colour
@@ -1000,12 +1046,14 @@ def iter_images(path: str | os.PathLike, port: str | None = None) -> Iterator[tu
             c.key, c.topic, c.metadata.get("port"))]
         if not chosen:
             raise RecordingError(f"{path}: no image channel '{port}'; image channels: "
-                                 f"{', '.join(sorted(c.key for c in colour)) or '(none)'}")
+                                 f"{', '.join(sorted(c.key for c in colour)) or '(none)'}{note}")
         if len({c.key for c in chosen}) > 1:
             raise RecordingError(f"{path}: '{port}' matches several image channels "
                                  f"({', '.join(sorted(c.key for c in chosen))}); give node.port")
     if not chosen:
-        raise RecordingError(f"{path}: the recording has no images")
+        raise RecordingError(f"{path}: the recording has no images{note}")
+    if rec.truncated and log is not None:
+        log(f"warning: {path}: {rec.note()}")
     ids = {c.id for c in chosen}
     rec2 = Recording(path)
     codecs: dict[int, _Codec] = {}
@@ -1023,29 +1071,43 @@ def iter_images(path: str | os.PathLike, port: str | None = None) -> Iterator[tu
 
 # --------------------------------------------------------------------------------------------- plotting
 def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = None,
-                   select: str | None = None) -> list[Path]:
-    """One PNG per node (a subplot per signal) of every numeric signal; returns the files written."""
+                   select: str | None = None, log: Callable[[str], None] | None = None) -> list[Path]:
+    """One PNG per node (a subplot per signal) of every numeric signal; returns the files written. A recording cut
+    short (a crashed run) is plotted as far as it can be read, with a warning to ``log`` (default: stderr)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    log = log or (lambda m: print(m, file=sys.stderr))
+    try:
+        pattern = re.compile(select) if select else None
+    except re.error as exc:
+        raise RecordingError(f"--select: invalid regular expression {select!r}: {exc}") from None
     path = Path(path)
     outdir = Path(outdir) if outdir is not None else path.with_name(path.stem + "_plots")
-    sig = read_signals(path)
     rec = Recording(str(path))
     for _ in _iter_raw(str(path), rec):
         pass
+    sig = read_signals(path)
     units = {ch.key: ch.metadata.get("unit", "") for ch in rec.channels.values()}
     groups: dict[str, list[str]] = {}
     for key, (ts, vs) in sorted(sig.items()):
-        if select and not re.search(select, key):
+        if pattern is not None and not pattern.search(key):
             continue
         if isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and vs.ndim in (1, 2) and len(ts):
             groups.setdefault(key.split(".")[0], []).append(key)
     if not groups:
-        raise RecordingError(f"{path}: no numeric signals to plot" + (f" matching '{select}'" if select else ""))
-    outdir.mkdir(parents=True, exist_ok=True)
+        raise RecordingError(f"{path}: no numeric signals to plot" + (f" matching '{select}'" if select else "")
+                             + (f": {rec.note()}" if rec.truncated else ""))
+    if rec.truncated:
+        log(f"warning: {path}: {rec.note()}; plotting those")
+    if outdir.exists() and not outdir.is_dir():
+        raise RecordingError(f"output folder {outdir} is a file, not a folder")
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecordingError(f"cannot create the output folder {outdir}: {exc.strerror or exc}") from None
     written = []
     for node, keys in groups.items():
         fig, axes = plt.subplots(len(keys), 1, figsize=(9, 2.2 * len(keys) + 0.6), sharex=True, squeeze=False)
@@ -1065,15 +1127,20 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
         fig.suptitle(f"{path.name}: {node}", fontsize=10)
         fig.tight_layout()
         out = outdir / f"{re.sub(r'[^A-Za-z0-9_.-]', '_', node)}.png"
-        fig.savefig(out, dpi=90)
-        plt.close(fig)
+        try:
+            fig.savefig(out, dpi=90)
+        except OSError as exc:
+            raise RecordingError(f"cannot write the plot {out}: {exc.strerror or exc}") from None
+        finally:
+            plt.close(fig)
         written.append(out)
     return written
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
     try:
-        files = plot_recording(args.file, args.output, args.select)
+        files = plot_recording(args.file, args.output, args.select,
+                               log=lambda m: print(f"teletouch plot: {m}", file=sys.stderr))
     except RecordingError as exc:
         print(f"teletouch plot: {exc}", file=sys.stderr)
         return 1

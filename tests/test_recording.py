@@ -341,14 +341,20 @@ def test_hand_written_cdr_equals_rclpy_serialization():
 
 
 def test_a_file_cut_anywhere_reads_up_to_the_cut(recorded, tmp_path):
-    """A crash can stop the writer at any byte: the reader returns a prefix of the messages, never raises."""
+    """A crash can stop the writer at any byte: the reader returns a prefix of the messages. Only a file cut before
+    the end of its first record (the Header, written when the recorder starts) is no recording: an error says so."""
     path, rec = recorded
     data = path.read_bytes()
     _, full = open_recording(path, decode=False)
+    header_end = 17 + int.from_bytes(data[9:17], "little")  # magic, opcode, length, the Header record
     cut_file = tmp_path / "cut.mcap"
     previous = 0
-    for cut in sorted({int(len(data) * f) for f in np.linspace(0.0, 1.0, 41)} | {9, 30, 100}):
+    for cut in sorted({int(len(data) * f) for f in np.linspace(0.0, 1.0, 41)} | {8, 9, 30, header_end, 100}):
         cut_file.write_bytes(data[:cut])
+        if cut < header_end:
+            with pytest.raises(RecordingError, match=r"cut\.mcap is (empty|an empty MCAP file)"):
+                open_recording(cut_file, decode=False)
+            continue
         r, items = open_recording(cut_file, decode=False)
         assert r.truncated == (cut < len(data))
         assert len(items) >= previous  # more file, never fewer messages
@@ -373,3 +379,140 @@ nodes:
     imgs = [s.value if isinstance(s, Sample) else s for s in got]
     assert len(imgs) == 31
     assert all(np.array_equal(img, frames[k % len(frames)]) for k, img in enumerate(imgs))
+
+
+# ------------------------------------------------------------------------------------- bad input (audit #29, #30)
+def _tiny_recording(path: Path, n: int = 5) -> Path:
+    with Recorder(path, None, log=lambda m: None) as rec:
+        for k in range(n):
+            rec.tap("src", k * 0.01, {"value": 0.5 * k})
+    return path
+
+
+def _plot(capsys, *argv: str) -> tuple[int, str]:
+    code = cli_main(["plot", *map(str, argv)])
+    out = capsys.readouterr()
+    return code, out.err
+
+
+def test_plot_bad_select_or_output_folder_is_an_error_not_a_traceback(tmp_path, capsys):
+    path = _tiny_recording(tmp_path / "tiny.mcap")
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    code, err = _plot(capsys, path, "-o", afile)
+    assert code == 1 and f"output folder {afile} is a file, not a folder" in err
+    code, err = _plot(capsys, path, "-o", afile / "sub")
+    assert code == 1 and f"cannot create the output folder {afile / 'sub'}: Not a directory" in err
+    code, err = _plot(capsys, path, "-o", tmp_path / "out", "--select", "[")
+    assert code == 1 and "--select: invalid regular expression '['" in err
+    assert not (tmp_path / "out").exists()
+    code, err = _plot(capsys, path, "-o", tmp_path / "out", "--select", "^src\\.")
+    assert code == 0 and err == "" and (tmp_path / "out" / "src.png").is_file()
+
+
+def test_files_without_one_readable_record_say_what_is_wrong(tmp_path, capsys):
+    data = _tiny_recording(tmp_path / "tiny.mcap").read_bytes()
+    cases = {"empty.mcap": (b"", "is empty (0 bytes), not an MCAP recording"),
+             "text.mcap": (b"hello", "is not an MCAP file"),
+             "magic.mcap": (data[:8], "is an empty MCAP file: only the 8 magic bytes"),
+             "garbage.mcap": (data[:8] + b"\x00" * 100, "is a corrupt MCAP file: byte 8 should start the Header"),
+             "header_cut.mcap": (data[:20], "is an empty MCAP file: it ends (20 bytes) inside its first record")}
+    for name, (content, why) in cases.items():
+        f = tmp_path / name
+        f.write_bytes(content)
+        for read in (open_recording, read_signals, lambda p: next(iter_images(p))):
+            with pytest.raises(RecordingError) as info:
+                read(f)
+            assert str(info.value) == f"{f} {why}" or str(info.value).startswith(f"{f} {why}"), info.value
+        code, err = _plot(capsys, f, "-o", tmp_path / "out")
+        assert code == 1 and why in err and "no numeric signals" not in err
+
+
+def _two_chunk_recording(path: Path, frames: list[np.ndarray] | None = None) -> tuple[Path, tuple[int, int]]:
+    """A recording written in two goes, as the flushes of a run leave it: 5 values (and an image each if
+    ``frames``), flushed, then 5 more. Returns it and the byte offsets of the first chunk and of the first chunk
+    of the second go."""
+    import time
+
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader
+
+    def messages_on_disk() -> int:
+        n = 0
+        try:
+            with open(path, "rb") as fh:
+                for r in StreamReader(fh).records:
+                    n += isinstance(r, Message)
+        except Exception:
+            pass
+        return n
+
+    with Recorder(path, None, flush_interval=0.01, log=lambda m: None) as rec:
+        for k in range(10):
+            out = {"value": 0.5 * k}
+            if frames:
+                out["image"] = frames[k % len(frames)]
+            rec.tap("src", k * 0.01, out)
+            if k == 4:  # wait for the writer to flush the first go
+                deadline = time.monotonic() + 20
+                while messages_on_disk() < 5 * len(out) and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                first_go = path.stat().st_size
+    chunks = []
+    with open(path, "rb") as fh:
+        reader = StreamReader(fh, emit_chunks=True).records
+        while True:
+            pos = fh.tell()
+            r = next(reader, None)
+            if r is None:
+                break
+            if isinstance(r, Chunk):
+                chunks.append(pos)
+    later = [c for c in chunks if c >= first_go]
+    assert chunks[0] < first_go and later, (chunks, first_go)
+    return path, (chunks[0], later[0])
+
+
+def test_a_recording_cut_or_corrupt_midway_plots_what_it_has_with_a_warning(tmp_path, capsys):
+    path, (first, second) = _two_chunk_recording(tmp_path / "full.mcap")
+    data = path.read_bytes()
+    cut = tmp_path / "crashed.mcap"  # as a crashed run leaves it: the second chunk half written
+    cut.write_bytes(data[:second + 30])
+    rec, items = open_recording(cut)
+    assert rec.truncated and rec.messages == 5 and [v for _, _, _, v in items] == [0.0, 0.5, 1.0, 1.5, 2.0]
+    assert rec.problem.startswith(f"the recording is truncated at byte {second}")
+    code, err = _plot(capsys, cut, "-o", tmp_path / "out")
+    assert code == 0 and (tmp_path / "out" / "src.png").is_file()
+    assert err.startswith(f"teletouch plot: warning: {cut}: the recording is truncated at byte {second}")
+    assert "5 messages read before it" in err
+    # a corrupt record midway (not the end of the file): the same, saying where
+    bad = bytearray(data)
+    at = second + 52  # the Chunk record's LZ4 frame (after opcode, length, times, sizes, crc, "lz4")
+    assert bad[at - 3 - 8:at - 8] == b"lz4" and bad[at:at + 4] == b"\x04\x22\x4d\x18"
+    bad[at:at + 4] = b"\x00" * 4
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(bytes(bad))
+    code, err = _plot(capsys, corrupt, "-o", tmp_path / "out2")
+    assert code == 0 and (tmp_path / "out2" / "src.png").is_file()
+    assert f"warning: {corrupt}: the recording is corrupt at byte {second} (RuntimeError: LZ4F_" in err
+    assert "5 messages read before it" in err
+    # cut inside the first chunk: records (header, metadata) but no message: an error that says why
+    cut.write_bytes(data[:first + 30])
+    code, err = _plot(capsys, cut, "-o", tmp_path / "out3")
+    assert code == 1 and "no numeric signals to plot: the recording is truncated at byte" in err
+    assert "0 messages read before it" in err
+    # the complete file: no warning
+    code, err = _plot(capsys, path, "-o", tmp_path / "out4")
+    assert code == 0 and err == ""
+
+
+def test_iter_images_warns_about_a_truncated_recording(tmp_path):
+    frames = [np.full((24, 32, 3), k * 20, np.uint8) for k in range(10)]
+    path, (_, second) = _two_chunk_recording(tmp_path / "full.mcap", frames)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:second + 30])
+    logs: list[str] = []
+    got = list(iter_images(cut, log=logs.append))
+    assert [int(img[0, 0, 0]) for _, img in got] == [0, 20, 40, 60, 80]
+    assert len(logs) == 1 and logs[0].startswith(f"warning: {cut}: the recording is truncated at byte {second}")
+    assert list(iter_images(path, log=logs.append)) and len(logs) == 1  # complete: no warning

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from teletouch import ComponentFault, Sample
-from teletouch.errors import ModelFileError
+from teletouch.errors import GraphValidationError, ModelFileError
 from teletouch.plugins.sensors.replay import Replay, list_images
 from teletouch.testing import Harness, make_registry, run_yaml
 
@@ -159,3 +159,98 @@ def test_replay_path_errors(tmp_path, shared_data):
             pass
     with pytest.raises(ValueError):
         Replay.Params()  # path is required
+
+
+# ------------------------------------------------------------------------------------- bad input (audit #30, #31)
+def test_replay_port_only_applies_to_a_recording(tmp_path, shared_data):
+    folder = shared_data / "digit-presses-qvga"
+    with pytest.raises(ValueError, match=r"port 'cam.image' applies only to a \.mcap recording.*"
+                                         r"is not a \.mcap file: remove port"):
+        Replay.Params(path=str(folder), port="cam.image")
+    with pytest.raises(GraphValidationError, match=r":8: node 'cam': params of replay: port 'cam.image' applies"):
+        _run(_graph(folder, port="cam.image"))  # in a graph: an error at the params' line, before anything runs
+    odd = tmp_path / "frames.mcap"  # a folder that looks like a recording
+    shutil.copytree(folder, odd)
+    with pytest.raises(ModelFileError, match=r"port 'cam.image' applies only.*frames.mcap is a folder"):
+        with Harness(Replay, {"path": str(odd), "port": "cam.image"}):
+            pass
+
+
+def test_replay_folder_without_one_readable_frame_fails_at_configure(tmp_path):
+    for name in ("0000.png", "0001.png"):
+        (tmp_path / name).write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(ModelFileError, match=rf"no readable image in {tmp_path}: 2 files could not be read"):
+        with Harness(Replay, {"path": str(tmp_path)}):
+            pass
+
+
+def test_replay_unreadable_or_truncated_recording(tmp_path):
+    import time
+
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader
+
+    from teletouch.recording import Recorder
+
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    with pytest.raises(ModelFileError, match=r"empty.mcap is empty \(0 bytes\), not an MCAP recording$") as info:
+        with Harness(Replay, {"path": str(empty)}):
+            pass
+    assert str(info.value).count(str(empty)) == 1  # named once
+    text = tmp_path / "text.mcap"
+    text.write_text("hello")
+    with pytest.raises(ModelFileError, match="text.mcap is not an MCAP file"):
+        with Harness(Replay, {"path": str(text)}):
+            pass
+
+    # a run that crashed: the frames flushed before the crash replay, with a warning
+    frames = [np.full((24, 32, 3), 20 * k, np.uint8) for k in range(6)]
+    path = tmp_path / "run.mcap"
+
+    def on_disk() -> int:
+        n = 0
+        try:
+            with open(path, "rb") as fh:
+                for r in StreamReader(fh).records:
+                    n += isinstance(r, Message)
+        except Exception:
+            pass
+        return n
+
+    with Recorder(path, None, flush_interval=0.01, log=lambda m: None) as rec:
+        for k, f in enumerate(frames):
+            rec.tap("cam", k * 0.1, {"image": Sample(f, k * 0.1)})
+            if k == 2:  # the first three are flushed before the "crash"
+                deadline = time.monotonic() + 20
+                while on_disk() < 3 and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                first_go = path.stat().st_size
+    chunks = []
+    with open(path, "rb") as fh:
+        it = StreamReader(fh, emit_chunks=True).records
+        while True:
+            pos = fh.tell()
+            r = next(it, None)
+            if r is None:
+                break
+            if isinstance(r, Chunk):
+                chunks.append(pos)
+    later = [c for c in chunks if c >= first_go]  # the chunks written after the first three frames
+    cut = tmp_path / "crashed.mcap"
+    cut.write_bytes(path.read_bytes()[:later[0] + 30])
+    logs = []
+    h = Harness(Replay, {"path": str(cut)})
+    h.ctx._log = logs.append
+    with h:
+        got = [h.step(k / 30).get("image") for k in range(20)]
+    assert [int(f[0, 0, 0]) for f in got if f is not None] == [0, 20, 40]
+    assert h.stopped and "3 frames" in h.stopped
+    assert len(logs) == 1 and logs[0].startswith(f"replay: warning: {cut}: the recording is truncated at byte")
+    assert "3 messages read before it" in logs[0]
+    # cut before its first frame (inside the first chunk): an error that says why there are no images
+    cut.write_bytes(path.read_bytes()[:chunks[0] + 30])
+    with pytest.raises(ModelFileError, match=r"crashed.mcap: the recording has no images; the recording is "
+                                             r"truncated at byte \d+ .*; 0 messages read before it"):
+        with Harness(Replay, {"path": str(cut)}):
+            pass

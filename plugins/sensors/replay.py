@@ -14,10 +14,10 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Any, Iterator, Literal
+from typing import Any, Callable, Iterator, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.errors import ModelFileError
@@ -65,16 +65,23 @@ class _Folder(_Source):
         self.files = list_images(path)
         if not self.files:
             raise ModelFileError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+        # fail at configure time if not one frame can be read (reads up to the first good one)
+        if all(self._read(f) is None for f in self.files):
+            raise ModelFileError(f"no readable image in {path}: {len(self.files)} files could not be read "
+                                 f"(corrupt or not images), e.g. {self.files[0].name}")
 
-    def frames(self):
+    @staticmethod
+    def _read(f: Path) -> np.ndarray | None:
         import cv2
 
+        try:
+            return cv2.imread(str(f), cv2.IMREAD_COLOR)
+        except cv2.error:
+            return None
+
+    def frames(self):
         for f in self.files:
-            img = None
-            try:
-                img = cv2.imread(str(f), cv2.IMREAD_COLOR)
-            except cv2.error:
-                pass
+            img = self._read(f)
             if img is None:
                 yield f.name, CorruptFrame(str(f), "cannot decode the image (corrupt or not an image)"), None
             else:
@@ -119,7 +126,7 @@ class _Video(_Source):
 class _Recording(_Source):
     kind = "recording"
 
-    def __init__(self, path: Path, port: str | None):
+    def __init__(self, path: Path, port: str | None, log: Callable[[str], None] | None = None):
         try:
             from teletouch.recording import iter_images
         except ImportError as e:  # pragma: no cover - the core ships it
@@ -127,13 +134,20 @@ class _Recording(_Source):
         self.iter_images = iter_images
         self.path = path
         self.port = port
-        # fail at configure time on a wrong port or an empty recording
+        # fail at configure time on a wrong port or an empty recording; warn about one cut short (a crashed run)
+        warnings: list[str] = []
         try:
-            next(iter(iter_images(path, port=port)))
+            next(iter(iter_images(path, port=port, log=warnings.append)))
         except StopIteration:
-            raise ModelFileError(f"{path}: the recording has no images") from None
+            raise ModelFileError(f"{path}: the recording has no images"
+                                 + (f" on channel '{port}'" if port else "")
+                                 + "".join(f"; {w.removeprefix(f'warning: {path}: ')}" for w in warnings)
+                                 ) from None
         except Exception as e:
-            raise ModelFileError(f"{path}: {e}") from None
+            raise ModelFileError(str(e) if str(path) in str(e) else f"{path}: {e}") from None
+        if log is not None:
+            for w in warnings:
+                log(f"replay: {w}")
 
     def frames(self):
         it = iter(self.iter_images(self.path, port=self.port))
@@ -148,6 +162,11 @@ class _Recording(_Source):
                 return
             yield f"{self.path.name}#{k}", img, float(stamp)
             k += 1
+
+
+def _port_only_for_mcap(port: str, why: str) -> str:
+    return (f"port {port!r} applies only to a .mcap recording (it picks the image channel to replay); {why}: "
+            f"remove port")
 
 
 class Replay(Component):
@@ -170,6 +189,12 @@ class Replay(Component):
         on_corrupt: Literal["report", "fault"] = Field("report", description="a corrupt frame: log its file "
                                                        "name and skip it, or fault")
 
+        @model_validator(mode="after")
+        def _port(self) -> "Replay.Params":
+            if self.port is not None and not self.path.lower().endswith(".mcap"):
+                raise ValueError(_port_only_for_mcap(self.port, f"path {self.path!r} is not a .mcap file"))
+            return self
+
     def configure(self) -> None:
         p = self.params
         path = Path(p.path).expanduser()
@@ -177,9 +202,11 @@ class Replay(Component):
             raise ModelFileError(f"replay path {str(path)!r} does not exist (expected a folder of images, a video "
                                  f"or a .mcap recording)")
         if path.is_dir():
+            if p.port is not None:  # a folder named *.mcap: the Params check passed
+                raise ModelFileError(_port_only_for_mcap(p.port, str(path) + " is a folder"))
             self.source: _Source = _Folder(path)
         elif path.suffix.lower() == ".mcap":
-            self.source = _Recording(path, p.port)
+            self.source = _Recording(path, p.port, self.ctx.log)
         elif path.suffix.lower() in IMAGE_SUFFIXES:
             raise ModelFileError(f"{path}: a single image; give the folder that holds the frames")
         else:
