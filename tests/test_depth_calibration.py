@@ -164,3 +164,49 @@ def test_px_per_mm_from_a_caliper_image(qvga):
     assert got == pytest.approx(dist_px / 4.0, rel=0.05)
     with pytest.raises(ValueError, match="two separate contacts"):
         C.px_per_mm_from_caliper(by["0000.png"], bg, gap)
+
+
+def test_labels_file_read_errors(tmp_path):
+    """An unreadable or non-UTF-8 labels file is a ModelFileError naming it (and the line), not an OSError."""
+    with pytest.raises(ModelFileError, match=r"nope\.csv: cannot read the labels file: No such file"):
+        C.read_labels(tmp_path / "nope.csv")
+    with pytest.raises(ModelFileError, match=r": cannot read the labels file: Is a directory"):
+        C.read_labels(tmp_path)
+    bad = tmp_path / "latin1.csv"
+    bad.write_bytes("image,center_x,center_y,radius_px,note\na.png,1,2,3,ok\nb.png,1,2,3,caf\u00e9\n".encode("latin-1"))
+    with pytest.raises(ModelFileError, match=r"latin1\.csv:3: not UTF-8 text .*saved as UTF-8"):
+        C.read_labels(bad)
+    good = tmp_path / "good.csv"
+    good.write_text("image,center_x,center_y,radius_px\r\na.png,1,2,3\r\n\r\nb.png,4,5,6\r\n")
+    labs = C.read_labels(good)
+    assert labs["a.png"].line == 2 and labs["b.png"].line == 4 and labs["b.png"].r == 6
+
+
+def test_labels_must_fit_the_images(qvga, tmp_path):
+    """A centre outside the image or a contact wider than the ball is refused before training, naming the file,
+    line and field (it gave a NaN validation error, or an IndexError deep in numpy)."""
+    ims, labs, bg = qvga
+    ball_px = 3 * 17.15
+    C.check_labels(labs, ims, ball_px, "labels.csv")       # the shared labels fit
+    for change, msg in (({"cx": 240.0}, r"bad\.csv:2: field center_x = 240 lies outside the image 0000\.png "
+                                        r"\(320x240 rows x cols\); expected 0 <= center_x < 240 px"),
+                        ({"cy": -1.0}, r"bad\.csv:2: field center_y = -1 lies outside the image"),
+                        ({"r": 60.0}, r"bad\.csv:2: field radius_px = 60 is not smaller than the ball radius "
+                                      r"\(51\.\d px at this scale\)")):
+        first = C.Label(**{**dict(image="0000.png", cx=145.0, cy=130.0, r=25.0), **change})
+        p = C.write_labels(tmp_path / "bad.csv", [first] + [lb for n, lb in labs.items() if n != "0000.png"])
+        bad = C.read_labels(p)
+        with pytest.raises(ValueError, match=msg):
+            C.check_labels(bad, ims, ball_px, str(p))
+        with pytest.raises(ValueError, match=msg.replace(r"bad\.csv", "labels")):
+            C.calibrate(ims, 0.003, 17150.0, labels=bad, background=bg, epochs=1, progress=False)
+    # uncertain rows are not used, so they are not checked
+    unc = dict(labs, **{"0000.png": C.Label("0000.png", -5.0, 130.0, 25.0, "uncertain: off the edge")})
+    C.check_labels(unc, ims, ball_px)
+
+
+def test_training_stride_must_fit_the_image(qvga):
+    ims, labs, bg = qvga
+    for stride in (0, -3, 31):
+        with pytest.raises(ValueError, match=rf"stride {stride}: expected an integer from 1 to 30 px for 320x240"):
+            C.train_model(ims, labs, bg, 17150.0, epochs=1, progress=False, hidden=(8,), stride=stride)

@@ -116,3 +116,129 @@ def test_estimate_errors(tmp_path, capsys):
     cv2.imwrite(str(big), np.zeros((640, 480, 3), np.uint8))
     rc = main(["estimate", "--model", "sim-digit-qvga", str(big), "--json"])
     assert rc == 2 and "expected a uint8 BGR image of 320x240x3" in capsys.readouterr().err
+
+
+def test_estimate_background_and_output_errors(tmp_path, capsys):
+    press = tmp_path / "press.png"
+    cv2.imwrite(str(press), np.zeros((320, 240, 3), np.uint8))
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(press), "--background", str(tmp_path / "nope.png")])
+    assert rc == 2 and "teletouch estimate: error: " in (err := capsys.readouterr().err)
+    assert "nope.png: not a readable image file" in err
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((100, 100, 3), np.uint8))
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(press), "--background", str(small)])
+    assert rc == 2 and "small.png: background frame is 100x100, the model" in capsys.readouterr().err
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(press), "--save-depth", str(afile)])
+    assert rc == 2 and "--save-depth" in (err := capsys.readouterr().err) and "exists and is not a folder" in err
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(press), "--save-depth", str(afile / "d")])
+    assert rc == 2 and "afile is a file, not a folder" in capsys.readouterr().err
+
+
+def _cal(folder, *extra):
+    return main(["calibrate", "depth", "--images", str(folder), "--quiet", *extra])
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--ball-diameter", "6mm", "--px-per-mm", "0"], "--px-per-mm 0: a scale of 0 px/mm; expected a finite number > 0"),
+    (["--ball-diameter", "6mm", "--px-per-mm=-17"], "a scale of -17 px/mm; expected a finite number > 0"),
+    (["--ball-diameter", "6mm", "--px-per-mm", "nan"], "a scale of nan px/mm; expected a finite number > 0"),
+    (["--ball-diameter", "6mm", "--px-per-mm", "inf"], "a scale of inf px/mm; expected a finite number > 0"),
+    (["--ball-diameter", "6mm", "--px-per-mm", "1715"], "the ball radius of 3 mm is 5.14e+03 px, the images are "
+                                                          "320x240 px; expected 3 to 240 px"),
+    (["--ball-diameter", "6mm", "--px-per-mm", "0.01"], "the ball radius of 3 mm is 0.03 px"),
+    (["--ball-diameter", "6mm", "--ball-radius", "10mm", "--px-per-mm", "17.15"],
+     "--ball-diameter 6mm and --ball-radius 10mm disagree (a radius of 3 mm against 10 mm)"),
+])
+def test_calibrate_depth_checks_scale_and_ball_size(sim_presses, tmp_path, capsys, args, msg):
+    rc = _cal(sim_presses, *args, "--labels-only", "--write-labels", str(tmp_path / "l.csv"))
+    assert rc == 2 and msg in capsys.readouterr().err
+    assert not (tmp_path / "l.csv").exists()
+
+
+def test_calibrate_depth_agreeing_ball_sizes_are_accepted(sim_presses, tmp_path):
+    rc = _cal(sim_presses, "--ball-diameter", "6mm", "--ball-radius", "3mm", "--px-per-mm", "17.15",
+              "--background", str(sim_presses / "background.png"), "--labels-only", "--write-labels",
+              str(tmp_path / "l.csv"))
+    assert rc == 0 and (tmp_path / "l.csv").is_file()
+
+
+def test_calibrate_depth_file_errors_come_before_any_work(sim_presses, tmp_path, capsys, monkeypatch):
+    from teletouch.plugins.estimators import depth_calibration
+
+    def no_training(*a, **k):
+        raise AssertionError("calibrate() must not run")
+
+    monkeypatch.setattr(depth_calibration, "calibrate", no_training)
+    base = ["--ball-diameter", "6mm", "--px-per-mm", "17.15"]
+    bg = str(sim_presses / "background.png")
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    few = tmp_path / "few"
+    few.mkdir()
+    for p in sorted(sim_presses.glob("press_*.png"))[:2]:
+        shutil.copy(p, few)
+    rc = _cal(few, *base, "--labels-only", "--write-labels", str(tmp_path / "l.csv"))
+    assert rc == 2 and "3 or more presses (give --background otherwise)" in capsys.readouterr().err
+    rc = _cal(sim_presses, *base, "--labels", str(tmp_path / "nope.csv"), "--labels-only")
+    assert rc == 2 and "nope.csv: cannot read the labels file: No such file" in capsys.readouterr().err
+    utf16 = tmp_path / "utf16.csv"
+    utf16.write_text("image,center_x,center_y,radius_px\n", encoding="utf-16")
+    rc = _cal(sim_presses, *base, "--labels", str(utf16), "--labels-only")
+    assert rc == 2 and "utf16.csv:1: not UTF-8 text" in capsys.readouterr().err
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((100, 100, 3), np.uint8))
+    rc = _cal(sim_presses, *base, "--background", str(small), "--labels-only")
+    assert rc == 2 and "small.png: the background frame is 100x100, the presses in" in capsys.readouterr().err
+    rc = _cal(sim_presses, *base, "--background", bg, "--labels-only", "--write-labels", str(afile / "x.csv"))
+    assert rc == 2 and "--write-labels" in (err := capsys.readouterr().err) and "is a file, not a folder" in err
+    rc = _cal(sim_presses, *base, "--background", bg, "--labels-only", "--write-labels", str(tmp_path / "l.csv"),
+              "--review", str(afile))
+    assert rc == 2 and "--review" in (err := capsys.readouterr().err) and "exists and is not a folder" in err
+    assert not (tmp_path / "l.csv").exists()
+    labels = str(sim_presses / "labels.csv")
+    rc = _cal(sim_presses, *base, "--background", bg, "--labels", labels, "-o", str(afile / "t.model"))
+    assert rc == 2 and "-o " in (err := capsys.readouterr().err) and "afile is a file, not a folder" in err
+    rc = _cal(sim_presses, *base, "--background", bg, "--labels", labels, "-o", str(tmp_path))
+    assert rc == 2 and "is a folder, expected a file name" in capsys.readouterr().err
+    rc = _cal(sim_presses, *base, "--background", bg, "-o", str(tmp_path / "t.model"), "--stride", "100")
+    assert rc == 2 and "--stride 100: expected at most 30 px for 320x240 images" in capsys.readouterr().err
+
+
+def test_calibrate_depth_checks_labels_against_the_images(sim_presses, tmp_path, capsys):
+    text = (sim_presses / "labels.csv").read_text().splitlines()
+    head, first = text[0], text[1].split(",")
+    base = ["--ball-diameter", "6mm", "--px-per-mm", "17.15", "--background", str(sim_presses / "background.png"),
+            "--epochs", "1", "--hidden", "8", "--holdout", "0"]
+    for field, value, msg in (("center_x", "-500", "field center_x = -500 lies outside the image"),
+                              ("center_y", "9999", "field center_y = 9999 lies outside the image"),
+                              ("radius_px", "500", "field radius_px = 500 is not smaller than the ball radius "
+                                                   "(51.5 px")):
+        row = dict(zip(head.split(","), first))
+        row[field] = value
+        bad = tmp_path / f"{field}.csv"
+        bad.write_text("\n".join([head, ",".join(row[k] for k in head.split(","))] + text[2:]) + "\n")
+        out = tmp_path / f"{field}.model"
+        rc = _cal(sim_presses, *base, "--labels", str(bad), "-o", str(out))
+        err = capsys.readouterr().err
+        assert rc == 2 and f"{field}.csv:2: {msg}" in err, err
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("opt, value, msg", [
+    ("--epochs", "0", "argument --epochs: expected an integer >= 1, got 0"),
+    ("--hidden", "0", "argument --hidden: expected an integer >= 1, got 0"),
+    ("--stride", "-3", "argument --stride: expected an integer >= 1, got -3"),
+    ("--stride", "0", "argument --stride: expected an integer >= 1, got 0"),
+    ("--holdout", "-1", "argument --holdout: expected an integer >= 0, got -1"),
+    ("--epochs", "two", "argument --epochs: expected an integer >= 1, got 'two'"),
+])
+def test_calibrate_depth_training_options_are_range_checked(sim_presses, tmp_path, capsys, opt, value, msg):
+    out = tmp_path / "t.model"
+    with pytest.raises(SystemExit) as exc:
+        _cal(sim_presses, "--ball-diameter", "6mm", "--px-per-mm", "17.15", "--background",
+             str(sim_presses / "background.png"), "--labels", str(sim_presses / "labels.csv"), "--epochs", "1",
+             "--hidden", "8", opt, value, "-o", str(out))
+    assert exc.value.code == 2 and msg in capsys.readouterr().err
+    assert not out.exists()

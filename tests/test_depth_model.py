@@ -151,3 +151,59 @@ def test_colour_features_agree_between_numpy_and_torch_and_on_windows(feature_se
     if feature_set.startswith("ratio"):
         assert a[0, 0, 0] == pytest.approx(diff[0, 0, 0] / 16.0)  # the floor, not a blow-up
         assert a[3, 5, 2] == pytest.approx(diff[3, 5, 2] / bg[3, 5, 2])
+
+
+def test_foreign_or_mistyped_entries_are_model_file_errors(tmp_path):
+    """Wrong types in a model file are refused with the file and the field named, never a TypeError/ValueError."""
+    p = _model().save(tmp_path / "a.model")
+    npy = tmp_path / "array.model"                 # a .npy file renamed: np.load gives an array, not an archive
+    with open(npy, "wb") as fh:
+        np.save(fh, np.zeros(3))
+    with pytest.raises(ModelFileError, match=r"array\.model: a single NumPy array, not a teletouch depth model"):
+        load_model(npy)
+    cases = [
+        ({"meta": {"rows": "abc"}}, r"meta field rows is 'abc', expected an integer >= 1"),
+        ({"meta": {"cols": 2.5}}, r"meta field cols is 2\.5, expected an integer >= 1"),
+        ({"meta": {"hidden": 5}}, r"meta field hidden is 5, expected a list of layer sizes"),
+        ({"meta": {"hidden": [8, "8"]}}, r"meta field hidden is \[8, '8'\], expected a list of layer sizes"),
+        ({"meta": {"training": "abc"}}, r"meta field training is 'abc', expected a JSON object"),
+        ({"meta": {"validation": [1]}}, r"meta field validation is \[1\], expected a JSON object"),
+        ({"meta": {"feature_set": ["diffxy"]}}, r"feature set \['diffxy'\], expected one of"),
+        ({"meta": {"px_per_m": "17150"}}, r"meta field px_per_m is '17150', expected a finite number > 0"),
+        ({"feat_std": np.array(list("abcde"))}, r"input normalisation feat_std is <U1 \(5,\), expected 5 numbers"),
+        ({"w.0.weight": np.full((8, 5), "x")}, r"weight 0\.weight is <U1, expected float32 numbers"),
+    ]
+    for i, (changes, msg) in enumerate(cases):
+        bad = _rewrite(p, tmp_path / f"bad{i}.npz", **changes)
+        with pytest.raises(ModelFileError, match=rf"bad{i}\.npz: {msg}"):
+            load_model(bad)
+
+
+@pytest.mark.parametrize("changes, msg", [
+    ({"meta": {"px_per_m": 0}}, r"meta field px_per_m is 0, expected a finite number > 0"),
+    ({"meta": {"px_per_m": -17150.0}}, r"meta field px_per_m is -17150\.0, expected a finite number > 0"),
+    ({"meta": {"px_per_m": float("nan")}}, r"meta field px_per_m is nan, expected a finite number > 0"),
+    ({"meta": {"depth_gain": -1.0}}, r"meta field depth_gain is -1\.0, expected a finite number > 0"),
+    ({"meta": {"depth_gain": float("inf")}}, r"meta field depth_gain is inf, expected a finite number > 0"),
+    ({"meta": {"ball_radius_m": 0.0}}, r"meta field ball_radius_m is 0\.0, expected a finite number > 0"),
+    ({"meta": {"stride": 0}}, r"meta field stride is 0, expected an integer from 1 to 3"),
+    ({"meta": {"stride": -2}}, r"meta field stride is -2, expected an integer from 1 to 3"),
+    ({"meta": {"stride": 100}}, r"meta field stride is 100, expected an integer from 1 to 3"),
+    ({"meta": {"change_threshold": -5}}, r"meta field change_threshold is -5, expected a finite number >= 0"),
+    ({"feat_mean": np.full(5, np.nan, np.float32)}, r"input normalisation feat_mean holds NaN or inf"),
+    ({"feat_std": np.array([1, 1, np.inf, 1, 1], np.float32)}, r"input normalisation feat_std holds NaN or inf"),
+    ({"feat_std": np.array([1, 1, -1, 1, 1], np.float32)}, r"input normalisation feat_std holds a std <= 0"),
+])
+def test_implausible_meta_values_are_refused(tmp_path, changes, msg):
+    """Values that would divide by zero later (px_per_m 0) or silently give no depth (NaN) are refused on load."""
+    p = _model().save(tmp_path / "a.model")
+    bad = _rewrite(p, tmp_path / "bad.npz", **changes)
+    with pytest.raises(ModelFileError, match=rf"bad\.npz: {msg}"):
+        load_model(bad)
+
+
+def test_change_threshold_zero_is_a_valid_model(tmp_path):
+    """0 is meaningful: every cell that changes at all runs the network (the pipeline tests 'change > threshold')."""
+    p = _model().save(tmp_path / "a.model")
+    m = load_model(_rewrite(p, tmp_path / "t0.npz", meta={"change_threshold": 0}))
+    assert m.change_threshold == 0.0

@@ -16,10 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
 from pydantic import Field
@@ -27,7 +28,7 @@ from pydantic import Field
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
 from teletouch.units import Meters, parse_quantity
 
-from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS
+from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS, max_stride
 
 __all__ = ["DepthEstimator"]
 
@@ -90,12 +91,9 @@ class DepthEstimator(Component):
         bg = None
         if p.background:
             try:
-                bg = _read_image(p.background)
-            except FileNotFoundError as exc:
+                bg = _read_background(p.background, model)
+            except (FileNotFoundError, ValueError) as exc:
                 raise ModelFileError(str(exc)) from None
-            if bg.shape != (*model.shape, 3):
-                raise ModelFileError(f"{p.background}: background frame is {bg.shape[0]}x{bg.shape[1]}, the model "
-                                     f"{model.source} is for {model.shape[0]}x{model.shape[1]} images")
         device = _check_device(p.device)
         self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
                                   contact_depth=p.contact_depth, contact_fraction=p.contact_fraction,
@@ -176,6 +174,32 @@ def _read_image(path: str | Path) -> np.ndarray:
     return img
 
 
+def _read_background(path: str | Path, model: Any) -> np.ndarray:
+    """A no-contact frame replacing the model's; FileNotFoundError / ValueError naming the file."""
+    bg = _read_image(path)
+    if bg.shape != (*model.shape, 3):
+        raise ValueError(f"{path}: background frame is {bg.shape[0]}x{bg.shape[1]}, the model {model.source} is for "
+                         f"{model.shape[0]}x{model.shape[1]} images (rows x cols)")
+    return bg
+
+
+def _check_output(path: str | Path, what: str, folder: bool = False) -> None:
+    """Refuse an output path that cannot be written (a file where a folder is needed, or the other way round, or a
+    folder without write permission) with a ValueError naming it; checked before any long work, creates nothing."""
+    p = Path(path)
+    if folder and p.exists() and not p.is_dir():
+        raise ValueError(f"{what} {path}: exists and is not a folder")
+    if not folder and p.is_dir():
+        raise ValueError(f"{what} {path}: is a folder, expected a file name")
+    d = p if folder else p.parent
+    while not d.exists() and d != d.parent:
+        d = d.parent
+    if d.exists() and not d.is_dir():
+        raise ValueError(f"{what} {path}: {d} is a file, not a folder")
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} {path}: the folder {d} is not writable")
+
+
 # ------------------------------------------------------------------------------------------------------------ CLI
 
 def _px_per_m(text: str) -> float:
@@ -188,51 +212,117 @@ def _px_per_m(text: str) -> float:
     return parse_quantity(t, "px/m")
 
 
+def _int_at_least(low: int) -> Callable[[str], int]:
+    """An argparse ``type``: an integer >= low, else a usage error saying so."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
+        if v < low:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {v}")
+        return v
+
+    return parse
+
+
+def _ball_radius(args: argparse.Namespace) -> float:
+    """The ball radius (m) from --ball-diameter or --ball-radius (both only when they agree)."""
+    if args.ball_diameter is None and args.ball_radius is None:
+        raise ValueError("give the ball size: --ball-diameter 6mm (or --ball-radius 3mm)")
+    from_d = parse_quantity(args.ball_diameter, "m") / 2.0 if args.ball_diameter is not None else None
+    from_r = parse_quantity(args.ball_radius, "m") if args.ball_radius is not None else None
+    if from_d is not None and from_r is not None and not math.isclose(from_d, from_r, rel_tol=1e-6):
+        raise ValueError(f"--ball-diameter {args.ball_diameter} and --ball-radius {args.ball_radius} disagree (a "
+                         f"radius of {from_d * 1e3:g} mm against {from_r * 1e3:g} mm); give one of them")
+    radius = from_r if from_r is not None else from_d
+    assert radius is not None
+    if not 0 < radius < 0.05:
+        raise ValueError(f"ball radius {radius * 1e3:g} mm is implausible (expected e.g. --ball-diameter 6mm)")
+    return radius
+
+
+def _check_scale(px_per_m: float, radius: float, shape: tuple[int, ...], source: str) -> None:
+    """The image scale must be finite and > 0, and make the ball 3 px (below that no contact can be labelled) to the
+    image's shorter side in radius."""
+    if not (math.isfinite(px_per_m) and px_per_m > 0):
+        raise ValueError(f"{source}: a scale of {px_per_m / 1e3:g} px/mm; expected a finite number > 0 (the DIGIT "
+                         f"at QVGA: about 17 px/mm)")
+    r_px = radius * px_per_m
+    h, w = shape[:2]
+    if not 3.0 <= r_px < min(h, w):
+        raise ValueError(f"{source}: at {px_per_m / 1e3:g} px/mm the ball radius of {radius * 1e3:g} mm is "
+                         f"{r_px:.3g} px, the images are {h}x{w} px; expected 3 to {min(h, w)} px: check the scale "
+                         f"(the DIGIT at QVGA: about 17 px/mm) and the ball size")
+
+
 def cmd_calibrate_depth(args: argparse.Namespace) -> int:
-    from .depth_calibration import (calibrate, load_images, median_background, px_per_mm_from_caliper,
-                                    read_labels, review_overlay, write_labels, auto_label)
+    from .depth_calibration import (auto_label, calibrate, check_labels, load_images, median_background,
+                                    px_per_mm_from_caliper, read_labels, review_overlay, write_labels)
 
     def log(msg: str) -> None:
         if not args.quiet:
             print(msg, file=sys.stderr)
 
     try:
-        if args.ball_diameter is None and args.ball_radius is None:
-            raise ValueError("give the ball size: --ball-diameter 6mm (or --ball-radius 3mm)")
-        radius = (parse_quantity(args.ball_radius, "m") if args.ball_radius is not None
-                  else parse_quantity(args.ball_diameter, "m") / 2.0)
-        if not 0 < radius < 0.05:
-            raise ValueError(f"ball radius {radius * 1e3:g} mm is implausible (expected e.g. --ball-diameter 6mm)")
+        radius = _ball_radius(args)
         images = load_images(args.images)
-        background = _read_image(args.background) if args.background else None
-        if background is not None:
+        background = None
+        if args.background:
+            background = _read_image(args.background)
             images = [(n, im) for n, im in images if Path(n).name != Path(args.background).name]
+            if not images:
+                raise ValueError(f"{args.images}: no press images besides the background {args.background}")
+            if background.shape != images[0][1].shape:
+                raise ValueError(f"{args.background}: the background frame is {background.shape[0]}x"
+                                 f"{background.shape[1]}, the presses in {args.images} are {images[0][1].shape[0]}x"
+                                 f"{images[0][1].shape[1]} (rows x cols); expected a no-contact frame of the same "
+                                 f"sensor and resolution")
+        shape = images[0][1].shape[:2]
         if args.px_per_mm is not None:
             px_per_m = _px_per_m(args.px_per_mm)
+            scale_from = f"--px-per-mm {args.px_per_mm}"
         elif args.caliper is not None:
             if args.caliper_gap is None:
                 raise ValueError("--caliper needs --caliper-gap (the distance between the tips, e.g. 5mm)")
             bgc = background if background is not None else median_background([im for _, im in images])
             px_per_m = px_per_mm_from_caliper(_read_image(args.caliper), bgc,
                                               parse_quantity(args.caliper_gap, "m")) * 1e3
+            scale_from = f"the caliper image {args.caliper}"
             log(f"scale from the caliper image: {px_per_m / 1e3:.3f} px/mm")
         else:
             raise ValueError("give the scale: --px-per-mm 17.15, or --caliper IMAGE --caliper-gap 5mm")
-    except (ValueError, FileNotFoundError) as exc:
+        _check_scale(px_per_m, radius, shape, scale_from)
+        if args.stride is not None and args.stride > max_stride(shape):
+            raise ValueError(f"--stride {args.stride}: expected at most {max_stride(shape)} px for {shape[0]}x"
+                             f"{shape[1]} images (a work grid of at least 8 cells across)")
+        labels = read_labels(args.labels) if args.labels else None
+        if labels is not None:
+            check_labels(labels, images, radius * px_per_m, args.labels)
+        # every output is checked before the work (training takes minutes)
+        if args.labels_only:
+            bg = background if background is not None else median_background([im for _, im in images])
+            labels_out: str | Path | None = args.write_labels or Path(args.images) / "labels.auto.csv"
+        else:
+            if args.output is None:
+                raise ValueError("give the model file to write with -o FILE")
+            _check_output(args.output, "-o")
+            labels_out = ((args.write_labels or Path(args.output).with_suffix(".labels.csv"))
+                          if labels is None or args.write_labels else None)
+        if labels_out is not None:
+            _check_output(labels_out, "--write-labels" if args.write_labels else "labels file")
+        if args.review:
+            _check_output(args.review, "--review", folder=True)
+    except (ValueError, FileNotFoundError, ModelFileError) as exc:
         print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
         return 2
-    labels = read_labels(args.labels) if args.labels else None
     if args.labels_only:
-        bg = background if background is not None else median_background([im for _, im in images])
         labs = [auto_label(n, im, bg, radius * px_per_m) for n, im in images]
-        out = write_labels(args.write_labels or Path(args.images) / "labels.auto.csv", labs)
+        out = write_labels(labels_out, labs)
         _write_review(args.review, images, bg, labs, review_overlay)
         n_unc = sum(1 for lb in labs if lb.uncertain and not lb.no_contact)
         log(f"wrote {out} ({len(labs)} presses, {n_unc} uncertain): check it, fix rows, pass it with --labels")
         return 0
-    if args.output is None:
-        print("teletouch calibrate depth: error: give the model file to write with -o FILE", file=sys.stderr)
-        return 2
     try:
         res = calibrate(images, radius, px_per_m, labels=labels, background=background, holdout=args.holdout,
                         log=log, feature_set=args.features, epochs=args.epochs, seed=args.seed,
@@ -240,8 +330,8 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
         return 2
-    if labels is None or args.write_labels:
-        out = write_labels(args.write_labels or Path(args.output).with_suffix(".labels.csv"), res.labels)
+    if labels_out is not None:
+        out = write_labels(labels_out, res.labels)
         log(f"labels written to {out} (correct them and pass back with --labels)")
     _write_review(args.review, images, res.background, res.labels, review_overlay)
     res.model.training["total_seconds"] = round(res.seconds, 2)
@@ -274,7 +364,18 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from .normal_model import load_model
 
     model = load_model(args.model)
-    bg = _read_image(args.background) if args.background else None
+    save = Path(args.save_depth) if args.save_depth else None
+    try:
+        bg = _read_background(args.background, model) if args.background else None
+        if save is not None:
+            _check_output(save, "--save-depth", folder=True)
+            try:
+                save.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise ValueError(f"--save-depth {save}: cannot create the folder: {exc.strerror or exc}") from None
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"teletouch estimate: error: {exc}", file=sys.stderr)
+        return 2
     pipe = DepthPipeline(model, device=_check_device(args.device), background=bg)
     pipe.warm_up()   # lazy imports and FFT set-up here, so that each image's "ms" is its own computation
     force = None
@@ -285,9 +386,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             print(f"teletouch estimate: error: force calibration support is missing: {exc}", file=sys.stderr)
             return 2
         force = ForceCalibration.load(args.force_calibration)
-    save = Path(args.save_depth) if args.save_depth else None
-    if save is not None:
-        save.mkdir(parents=True, exist_ok=True)
     rc = 0
     for path in args.images:
         try:
@@ -355,15 +453,15 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--write-labels", default=None, help="where to write the labels used (default: beside -o)")
     p.add_argument("--labels-only", action="store_true", help="only label the presses (write the CSV), no training")
     p.add_argument("--review", default=None, metavar="DIR", help="write an overlay image per press for checking")
-    p.add_argument("--holdout", type=int, default=2, help="presses held out for validation (default 2)")
+    p.add_argument("--holdout", type=_int_at_least(0), default=2, help="presses held out for validation (default 2)")
     p.add_argument("--features", default=DEFAULT_FEATURES, choices=sorted(FEATURE_SETS),
                    help=f"network inputs (default {DEFAULT_FEATURES}: relative change from the background, its local "
                    "gradients and the position; rgbxy is the paper's R, G, B, X, Y; see docs/depth.md)")
-    p.add_argument("--hidden", type=int, nargs="+", default=list(DEFAULT_HIDDEN),
+    p.add_argument("--hidden", type=_int_at_least(1), nargs="+", default=list(DEFAULT_HIDDEN),
                    help=f"hidden layer sizes (default {' '.join(map(str, DEFAULT_HIDDEN))})")
-    p.add_argument("--epochs", type=int, default=40)
+    p.add_argument("--epochs", type=_int_at_least(1), default=40, help="training epochs (default 40)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--stride", type=int, default=None, help="work-grid stride in px (default: rows / 160)")
+    p.add_argument("--stride", type=_int_at_least(1), default=None, help="work-grid stride in px (default: rows / 160)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("-o", "--output", default=None, help="model file to write (e.g. sensor.model)")
     p.set_defaults(func=cmd_calibrate_depth)

@@ -11,6 +11,7 @@ with x = column and y = row in pixels of the full-resolution image; an empty rad
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import time
@@ -22,11 +23,11 @@ import numpy as np
 
 from teletouch.errors import ModelFileError
 
-from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, feature_count, make_net
+from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, feature_count, make_net, max_stride
 
 __all__ = [
     "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",
-    "review_overlay", "pool_grid", "grid_images", "press_samples", "train_model", "cap_height_error",
+    "check_labels", "review_overlay", "pool_grid", "grid_images", "press_samples", "train_model", "cap_height_error",
     "sphere_fit_radius",
     "far_false_depth", "evaluate_press", "px_per_mm_from_caliper", "default_stride", "calibrate",
 ]
@@ -41,6 +42,7 @@ class Label:
     cy: float | None            # row, px
     r: float | None             # contact radius, px
     note: str = ""
+    line: int | None = field(default=None, compare=False, repr=False)   # line in the labels CSV it was read from
 
     @property
     def uncertain(self) -> bool:
@@ -185,7 +187,17 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
     """Read a labels CSV; errors name the file, the line and the field."""
     path = Path(path)
     out: dict[str, Label] = {}
-    with open(path, newline="", encoding="utf-8") as fh:
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the labels file: {exc.strerror or exc}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise ModelFileError(f"{path}:{line}: not UTF-8 text ({exc.reason} at byte {exc.start}); expected a labels "
+                             f"CSV (image,center_x,center_y,radius_px[,note]) saved as UTF-8") from None
+    with io.StringIO(text, newline="") as fh:
         reader = csv.DictReader(fh)
         need = {"image", "center_x", "center_y", "radius_px"}
         if reader.fieldnames is None or not need <= set(reader.fieldnames):
@@ -208,8 +220,30 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
             name = (row.get("image") or "").strip()
             if not name:
                 raise ModelFileError(f"{path}:{i}: field image is empty")
-            out[name] = Label(name, vals[0], vals[1], vals[2], (row.get("note") or "").strip())
+            out[name] = Label(name, vals[0], vals[1], vals[2], (row.get("note") or "").strip(),
+                              line=reader.line_num)
     return out
+
+
+def check_labels(labels: dict[str, Label], images: Sequence[tuple[str, np.ndarray]], ball_radius_px: float,
+                 source: str = "labels") -> None:
+    """The usable labels of the given images must fit them: centre inside the image, contact radius smaller than
+    the ball's (a cap of a sphere is narrower than the sphere); ValueError naming ``source`` (the labels file), the
+    line or image and the field."""
+    for name, img in images:
+        lb = labels.get(name)
+        if lb is None or not lb.usable:
+            continue
+        h, w = img.shape[:2]
+        where = f"{source}:{lb.line}" if lb.line else f"{source}: {name}"
+        for k, v, n in (("center_x", lb.cx, w), ("center_y", lb.cy, h)):
+            if not 0 <= v < n:
+                raise ValueError(f"{where}: field {k} = {v:g} lies outside the image {name} ({h}x{w} rows x cols); "
+                                 f"expected 0 <= {k} < {n} px")
+        if not lb.r < ball_radius_px:
+            raise ValueError(f"{where}: field radius_px = {lb.r:g} is not smaller than the ball radius "
+                             f"({ball_radius_px:.1f} px at this scale); expected the contact circle's radius in px "
+                             f"(or check the scale, --px-per-mm, and the ball size)")
 
 
 def write_labels(path: str | os.PathLike[str], labels: Iterable[Label]) -> Path:
@@ -342,7 +376,10 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
 
     t_start = time.perf_counter()
     h, w = images[0][1].shape[:2]
-    stride = stride or default_stride(h)
+    stride = default_stride(h) if stride is None else stride
+    if not 1 <= stride <= max_stride((h, w)):
+        raise ValueError(f"stride {stride}: expected an integer from 1 to {max_stride((h, w))} px for {h}x{w} images "
+                         f"(a work grid of at least 8 cells across)")
     ball_radius_px = ball_radius_m * px_per_m
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
@@ -597,6 +634,8 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
     elif background.shape != images[0][1].shape:
         raise ValueError(f"background is {background.shape}, the presses are {images[0][1].shape}")
     ball_px = ball_radius_m * px_per_m
+    if labels is not None:
+        check_labels(labels, images, ball_px)
     if labels is None:
         labels = {name: auto_label(name, img, background, ball_px) for name, img in images}
         n_unc = sum(1 for lb in labels.values() if lb.uncertain and not lb.no_contact)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -258,16 +259,55 @@ def resolve_model(spec: str | os.PathLike[str]) -> Path:
                          f"{', '.join(shipped) or 'none'})")
 
 
+def _meta_number(name: str, meta: dict[str, Any], key: str, default: float | None = None, *,
+                 integer: bool = False, low: float | None = None, above: bool = False,
+                 high: int | None = None) -> Any:
+    """meta[key] (``default`` when absent): a JSON number (an integer when ``integer``), finite, >= ``low``
+    (> ``low`` when ``above``) and <= ``high``; else ModelFileError naming the file, the field and what was
+    expected."""
+    v = meta.get(key, default)
+    ok = isinstance(v, int if integer else (int, float)) and not isinstance(v, bool)
+    if ok and not integer:
+        ok = math.isfinite(v)
+    if ok and low is not None:
+        ok = v > low if above else v >= low
+    if ok and high is not None:
+        ok = v <= high
+    if not ok:
+        what = "an integer" if integer else "a finite number"
+        if low is not None and high is not None:
+            what += f" from {low:g} to {high:g}"
+        elif low is not None:
+            what += f" {'>' if above else '>='} {low:g}"
+        raise ModelFileError(f"{name}: meta field {key} is {v!r}, expected {what}")
+    return int(v) if integer else float(v)
+
+
+def _meta_dict(name: str, meta: dict[str, Any], key: str) -> dict[str, Any]:
+    v = meta.get(key, {})
+    if not isinstance(v, dict):
+        raise ModelFileError(f"{name}: meta field {key} is {v!r}, expected a JSON object")
+    return dict(v)
+
+
+def max_stride(shape: tuple[int, int]) -> int:
+    """The largest work-grid stride for images of ``shape`` (rows, cols): at least 8 cells across."""
+    return max(1, min(shape) // 8)
+
+
 def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | None = None) -> NormalModel:
     """Read a model file; ModelFileError naming the file and what was expected on any problem."""
     p = resolve_model(path)
     name = str(p)
+    expected = "expected a .npz archive written by `teletouch calibrate depth`"
     try:
-        with np.load(p, allow_pickle=False) as z:
+        z = np.load(p, allow_pickle=False)
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ModelFileError(f"{name}: a single NumPy array, not a teletouch depth model ({expected})")
+        with z:
             files = {k: z[k] for k in z.files}
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
-        raise ModelFileError(f"{name}: not a readable teletouch depth model (expected a .npz archive written by "
-                             f"`teletouch calibrate depth`): {exc}") from None
+        raise ModelFileError(f"{name}: not a readable teletouch depth model ({expected}): {exc}") from None
     if "meta" not in files:
         raise ModelFileError(f"{name}: no 'meta' entry; expected a {FORMAT} file written by `teletouch calibrate "
                              f"depth`")
@@ -287,19 +327,30 @@ def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | Non
         raise ModelFileError(f"{name}: meta lacks {', '.join(missing)}")
     if meta["orientation"] != "portrait-bgr":
         raise ModelFileError(f"{name}: orientation {meta['orientation']!r}, expected 'portrait-bgr'")
-    if meta["feature_set"] not in FEATURE_SETS:
+    if not isinstance(meta["feature_set"], str) or meta["feature_set"] not in FEATURE_SETS:
         raise ModelFileError(f"{name}: feature set {meta['feature_set']!r}, expected one of {sorted(FEATURE_SETS)}")
+    hidden = meta["hidden"]
+    if (not isinstance(hidden, list) or not hidden
+            or not all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in hidden)):
+        raise ModelFileError(f"{name}: meta field hidden is {hidden!r}, expected a list of layer sizes (integers "
+                             f">= 1)")
     for k in ("feat_mean", "feat_std", "background"):
         if k not in files:
             raise ModelFileError(f"{name}: the entry {k!r} is missing")
-    rows, cols = int(meta["rows"]), int(meta["cols"])
+    rows = _meta_number(name, meta, "rows", integer=True, low=1)
+    cols = _meta_number(name, meta, "cols", integer=True, low=1)
     bg = files["background"]
     if bg.dtype != np.uint8 or bg.shape != (rows, cols, 3):
         raise ModelFileError(f"{name}: background is {bg.dtype} {bg.shape}, expected uint8 {(rows, cols, 3)}")
     nf = feature_count(meta["feature_set"])
-    if files["feat_mean"].shape != (nf,) or files["feat_std"].shape != (nf,) or not np.all(files["feat_std"] > 0):
-        raise ModelFileError(f"{name}: input normalisation has shape {files['feat_mean'].shape}, expected ({nf},) "
-                             f"with positive std")
+    for k in ("feat_mean", "feat_std"):
+        a = files[k]
+        if a.dtype.kind not in "fiu" or a.shape != (nf,):
+            raise ModelFileError(f"{name}: input normalisation {k} is {a.dtype} {a.shape}, expected {nf} numbers")
+        if not np.all(np.isfinite(a)) or (k == "feat_std" and not np.all(a > 0)):
+            raise ModelFileError(f"{name}: input normalisation {k} holds "
+                                 f"{'NaN or inf' if not np.all(np.isfinite(a)) else 'a std <= 0'}, expected finite "
+                                 f"numbers{' > 0' if k == 'feat_std' else ''}")
     if expect_shape is not None and tuple(expect_shape) != (rows, cols):
         raise ModelFileError(f"{name}: the model is for {rows}x{cols} (rows x cols) images, expected "
                              f"{expect_shape[0]}x{expect_shape[1]}; calibrate a model at this resolution")
@@ -307,14 +358,19 @@ def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | Non
     if not sd:
         raise ModelFileError(f"{name}: no network weights (entries 'w.*')")
     for k, v in sd.items():
+        if v.dtype.kind not in "fiu":
+            raise ModelFileError(f"{name}: weight {k} is {v.dtype}, expected float32 numbers")
         if not np.all(np.isfinite(v)):
             raise ModelFileError(f"{name}: weight {k} holds NaN or inf")
-    model = NormalModel(feature_set=meta["feature_set"], hidden=tuple(int(h) for h in meta["hidden"]),
-                        state_dict=sd, feat_mean=files["feat_mean"], feat_std=files["feat_std"], background=bg,
-                        px_per_m=float(meta["px_per_m"]), ball_radius_m=float(meta.get("ball_radius_m", 0.003)),
-                        stride=int(meta.get("stride", 1)),
-                        change_threshold=float(meta.get("change_threshold", 16.0)),
-                        depth_gain=float(meta.get("depth_gain", 1.0)), training=dict(meta.get("training", {})),
-                        validation=dict(meta.get("validation", {})), source=name)
+    model = NormalModel(feature_set=meta["feature_set"], hidden=tuple(hidden), state_dict=sd,
+                        feat_mean=files["feat_mean"], feat_std=files["feat_std"], background=bg,
+                        px_per_m=_meta_number(name, meta, "px_per_m", low=0, above=True),
+                        ball_radius_m=_meta_number(name, meta, "ball_radius_m", 0.003, low=0, above=True),
+                        stride=_meta_number(name, meta, "stride", 1, integer=True, low=1,
+                                            high=max_stride((rows, cols))),
+                        change_threshold=_meta_number(name, meta, "change_threshold", 16.0, low=0),
+                        depth_gain=_meta_number(name, meta, "depth_gain", 1.0, low=0, above=True),
+                        training=_meta_dict(name, meta, "training"),
+                        validation=_meta_dict(name, meta, "validation"), source=name)
     model.net()  # the weights must fit the declared architecture
     return model
