@@ -432,42 +432,11 @@ def _two_chunk_recording(path: Path, frames: list[np.ndarray] | None = None) -> 
     """A recording written in two goes, as the flushes of a run leave it: 5 values (and an image each if
     ``frames``), flushed, then 5 more. Returns it and the byte offsets of the first chunk and of the first chunk
     of the second go."""
-    import time
+    from fakes.mcap_files import record_in_two_flushes
 
-    from mcap.records import Chunk, Message
-    from mcap.stream_reader import StreamReader
-
-    def messages_on_disk() -> int:
-        n = 0
-        try:
-            with open(path, "rb") as fh:
-                for r in StreamReader(fh).records:
-                    n += isinstance(r, Message)
-        except Exception:
-            pass
-        return n
-
-    with Recorder(path, None, flush_interval=0.01, log=lambda m: None) as rec:
-        for k in range(10):
-            out = {"value": 0.5 * k}
-            if frames:
-                out["image"] = frames[k % len(frames)]
-            rec.tap("src", k * 0.01, out)
-            if k == 4:  # wait for the writer to flush the first go
-                deadline = time.monotonic() + 20
-                while messages_on_disk() < 5 * len(out) and time.monotonic() < deadline:
-                    time.sleep(0.01)
-                first_go = path.stat().st_size
-    chunks = []
-    with open(path, "rb") as fh:
-        reader = StreamReader(fh, emit_chunks=True).records
-        while True:
-            pos = fh.tell()
-            r = next(reader, None)
-            if r is None:
-                break
-            if isinstance(r, Chunk):
-                chunks.append(pos)
+    taps = [("src", k * 0.01, {"value": 0.5 * k} | ({"image": frames[k % len(frames)]} if frames else {}))
+            for k in range(10)]
+    chunks, first_go = record_in_two_flushes(path, taps, first=5, messages_first=5 * len(taps[0][2]))
     later = [c for c in chunks if c >= first_go]
     assert chunks[0] < first_go and later, (chunks, first_go)
     return path, (chunks[0], later[0])

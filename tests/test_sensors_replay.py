@@ -185,12 +185,7 @@ def test_replay_folder_without_one_readable_frame_fails_at_configure(tmp_path):
 
 
 def test_replay_unreadable_or_truncated_recording(tmp_path):
-    import time
-
-    from mcap.records import Chunk, Message
-    from mcap.stream_reader import StreamReader
-
-    from teletouch.recording import Recorder
+    from fakes.mcap_files import record_in_two_flushes
 
     empty = tmp_path / "empty.mcap"
     empty.write_bytes(b"")
@@ -208,34 +203,9 @@ def test_replay_unreadable_or_truncated_recording(tmp_path):
     frames = [np.full((24, 32, 3), 20 * k, np.uint8) for k in range(6)]
     path = tmp_path / "run.mcap"
 
-    def on_disk() -> int:
-        n = 0
-        try:
-            with open(path, "rb") as fh:
-                for r in StreamReader(fh).records:
-                    n += isinstance(r, Message)
-        except Exception:
-            pass
-        return n
-
-    with Recorder(path, None, flush_interval=0.01, log=lambda m: None) as rec:
-        for k, f in enumerate(frames):
-            rec.tap("cam", k * 0.1, {"image": Sample(f, k * 0.1)})
-            if k == 2:  # the first three are flushed before the "crash"
-                deadline = time.monotonic() + 20
-                while on_disk() < 3 and time.monotonic() < deadline:
-                    time.sleep(0.01)
-                first_go = path.stat().st_size
-    chunks = []
-    with open(path, "rb") as fh:
-        it = StreamReader(fh, emit_chunks=True).records
-        while True:
-            pos = fh.tell()
-            r = next(it, None)
-            if r is None:
-                break
-            if isinstance(r, Chunk):
-                chunks.append(pos)
+    # the first three are flushed before the "crash"
+    chunks, first_go = record_in_two_flushes(path, [("cam", k * 0.1, {"image": Sample(f, k * 0.1)})
+                                                    for k, f in enumerate(frames)], first=3, messages_first=3)
     later = [c for c in chunks if c >= first_go]  # the chunks written after the first three frames
     cut = tmp_path / "crashed.mcap"
     cut.write_bytes(path.read_bytes()[:later[0] + 30])
