@@ -178,6 +178,8 @@ def _edit(path, fn):
     (lambda d: d.update(extra=[1]), "extra"),
     (lambda d: d["model"]["coefficients"].__setitem__(1, 10 ** 400), "model.coefficients"),  # too large for a float
     (lambda d: d["model"].update(zero_intercept="no"), "model.zero_intercept"),
+    (lambda d: d["model"].update(force_range_n=[0.0, 1e9]), "model.force_range_n"),
+    (lambda d: d.update(hysteresis={"max_gap_n": "x", "mean_gap_n": 0.0}), "hysteresis.max_gap_n"),
 ])
 def test_bad_files_name_file_and_field(cal_file, mutate, field):
     _edit(cal_file, mutate)

@@ -598,8 +598,9 @@ class ForceCalibration:
                 or dr[1] <= dr[0]):
             raise bad("model.depth_range_m", "[low, high] in m with 0 <= low < high", dr)
         fr = model.get("force_range_n")
-        if not isinstance(fr, list) or len(fr) != 2 or not all(_finite(x) for x in fr) or fr[1] < fr[0]:
-            raise bad("model.force_range_n", "[low, high] in N with low <= high", fr)
+        if (not isinstance(fr, list) or len(fr) != 2 or not all(_finite(x) for x in fr) or fr[1] < fr[0]
+                or abs(fr[0]) >= MAX_FORCE_N or abs(fr[1]) >= MAX_FORCE_N):
+            raise bad("model.force_range_n", f"[low, high] in N with low <= high, below {MAX_FORCE_N:g} N", fr)
         pmodel = None
         if model.get("position") is not None:
             pmodel = PositionModel.from_dict(model["position"], deg, dr, bad)
@@ -624,6 +625,9 @@ class ForceCalibration:
         hyst = doc.get("hysteresis")
         if hyst is not None and not isinstance(hyst, dict):
             raise bad("hysteresis", "an object or null", hyst)
+        for key in ("max_gap_n", "mean_gap_n", "max_gap_pct_of_force_range", "max_gap_at_depth_m"):
+            if hyst and hyst.get(key) is not None and not _finite(hyst[key]):
+                raise bad(f"hysteresis.{key}", "a finite number or null", hyst[key])
         extra = doc.get("extra")
         if extra is not None and not isinstance(extra, dict):
             raise bad("extra", "an object or null", extra)
