@@ -210,3 +210,14 @@ def test_training_stride_must_fit_the_image(qvga):
     for stride in (0, -3, 31):
         with pytest.raises(ValueError, match=rf"stride {stride}: expected an integer from 1 to 30 px for 320x240"):
             C.train_model(ims, labs, bg, 17150.0, epochs=1, progress=False, hidden=(8,), stride=stride)
+
+
+def test_labels_for_images_not_in_the_folder_are_reported(qvga):
+    ims, labs, bg = qvga
+    stray = C.Label("elsewhere.png", 100, 100, 20)
+    logs = []
+    one = {"0000.png": labs["0000.png"], "elsewhere.png": stray}
+    with pytest.raises(ValueError, match="only 1 usable press"):
+        C.calibrate(ims, 0.003, 17150.0, labels=one, background=bg, log=logs.append)
+    assert "1 label(s) name no image in the folder, ignored: elsewhere.png" in logs
+    assert any(m.startswith("no label for 9 image(s)") for m in logs)

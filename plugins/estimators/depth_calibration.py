@@ -644,6 +644,10 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
         missing = [n for n, _ in images if n not in labels]
         if missing:
             log(f"no label for {len(missing)} image(s), not used: {', '.join(missing[:5])}")
+        names = {n for n, _ in images}
+        stray = [n for n in labels if n not in names]
+        if stray:   # (a labels file for another folder?)
+            log(f"{len(stray)} label(s) name no image in the folder, ignored: {', '.join(stray[:5])}")
     usable = [n for n, _ in images if n in labels and labels[n].usable]
     if len(usable) < 2:
         raise ValueError(f"only {len(usable)} usable press(es); record more (the paper used ~40) or fix the labels")
