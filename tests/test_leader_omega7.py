@@ -349,3 +349,21 @@ def test_fault_elsewhere_drives_the_omega7_to_zero_force_and_brakes(sdk_dir, sta
     assert applied == [0.0] * 4 and commanded == [0.0] * 4
     fl = standin.flags()
     assert fl["brakes"] and not fl["force_enabled"] and not fl["open"]
+
+
+def test_safe_state_zero_force_is_not_lost_to_the_time_guard(sdk_dir, standin):
+    # the SDK skips a write that comes too soon after the previous one (DHD_TIMEGUARD): safe_state()'s zero-force
+    # write right after a step's must be written again, never leaving the step's force on the hand
+    with harness(sdk_dir, brakes_on_stop=False) as h:
+        h.step(0.0, gripper_force=3.0)
+        assert standin.forces()[0][3] == pytest.approx(3.0)
+        standin.set_timeguard_every(standin.get_writes() + 1)     # the very next write is skipped
+        h.comp.safe_state()
+        assert standin.forces()[0] == [0.0, 0.0, 0.0, 0.0]
+        assert standin.flags()["force_enabled"]
+        # a time guard that never lets a write through: forces are disabled instead
+        h.comp.activate()
+        h.step(0.01, gripper_force=3.0)
+        standin.set_timeguard_every(1)
+        h.comp.safe_state()
+        assert not standin.flags()["force_enabled"] and standin.forces()[0] == [0.0, 0.0, 0.0, 0.0]

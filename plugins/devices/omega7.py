@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from typing import Any, Literal
 
 import numpy as np
@@ -230,7 +231,7 @@ class Omega7(Device):
         if d is None:
             return
         with self._lock:
-            for call in (lambda: d.set_forces(0.0, 0.0, 0.0, 0.0),
+            for call in (self._zero_forces,
                          (lambda: d.set_brakes(True)) if self.params.brakes_on_stop else None):
                 if call is None:
                     continue
@@ -238,6 +239,19 @@ class Omega7(Device):
                     call()
                 except Exception:
                     self.safe_errors += 1
+
+    def _zero_forces(self) -> None:
+        """Zero force, written until the SDK takes it: a write the time guard skips (DHD_TIMEGUARD: too soon after
+        the step's write) is tried again; if it never goes through, forces are disabled altogether."""
+        from .dhd import DHD_TIMEGUARD
+
+        d = self.dhd
+        for _ in range(20):
+            if d.set_forces(0.0, 0.0, 0.0, 0.0) != DHD_TIMEGUARD:
+                return
+            time.sleep(2e-4)
+        self.safe_errors += 1
+        d.enable_force(False)
 
     def deactivate(self) -> None:
         self.safe_state()

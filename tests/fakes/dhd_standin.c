@@ -287,13 +287,14 @@ int dhdGetGripperLinearVelocity(double *vg, char ID) {
 int dhdSetForceAndGripperForce(double fx, double fy, double fz, double fg, char ID) {
     if (check(ID)) return -1;
     advance();
+    S.writes++;
+    ok();
+    /* the time guard: the call came too soon after the previous one, and the command is not sent (skipped) */
+    if (S.force_enabled && S.timeguard_every > 0 && S.writes % S.timeguard_every == 0) return DHD_TIMEGUARD;
     S.f[0] = fx; S.f[1] = fy; S.f[2] = fz;
     S.fg = fg; /* in the SDK's gripper axis, which follows the (mirrored) angle on a left unit */
     apply_forces();
-    S.writes++;
-    ok();
     if (!S.force_enabled) return 0;
-    if (S.timeguard_every > 0 && S.writes % S.timeguard_every == 0) return DHD_TIMEGUARD;
     double n = sqrt(fx * fx + fy * fy + fz * fz);
     if (n > S.max_force || fabs(fg) > S.max_gripper_force) return DHD_MOTOR_SATURATED;
     return 0;
