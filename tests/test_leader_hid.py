@@ -270,3 +270,122 @@ def test_hid_leader_runs_in_a_graph_wired_like_omega7(fake_hid):
     assert result.status == "ok", result.summary()
     assert seen == {"gripper_opening", "gripper_velocity", "position", "button"}
     assert rt.latest("leader", "gripper_opening").value == pytest.approx(0.025 * (1 - 0xC0 / 255))
+    assert rt.latest("leader", "gripper_opening").stamp < 0.1  # the reports were read at the start: not the last step
+
+
+# ------------------------------------------------------------------------------------------------ lost device, stamps
+# A DualShock 4 / DualSense sends an input report every ~4 ms over USB (~100+ Hz over Bluetooth) while connected; a
+# pad whose Bluetooth link drops gives no read error until the kernel removes the device, so silence is the only sign.
+def _raw_step(h, t):
+    """Step without the Harness unwrapping the Samples (to see the stamps)."""
+    h.t = t
+    return h.comp.step(t, h.inputs)
+
+
+def test_silent_gamepad_faults_within_report_timeout(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+    with Harness(hl.HidLeader, {}) as h:
+        t, period = 0.0, 0.004
+        for _ in range(50):  # 0.2 s of streaming
+            fake_hid.reports.append(DS4_USB)
+            h.step(t)
+            t += period
+        last_report = t - period
+        with pytest.raises(HardwareError) as ei:
+            while t < 5.0:  # silence: no report, no read error
+                h.step(t)
+                t += period
+        assert 0.5 < t - last_report <= 0.5 + period + 1e-9  # within report_timeout + one step period
+        msg = str(ei.value)
+        assert "DualShock 4 (054c:05c4) sent no report for 0.50" in msg and "report_timeout 0.5 s" in msg
+        assert h.comp.report_timeout == 0.5  # the default for a pad that reports periodically
+
+
+def test_report_timeout_param_and_silence_from_the_start(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x0CE6))
+    with Harness(hl.HidLeader, {"report_timeout": "100ms"}) as h:
+        assert h.step(0.0) == {}  # no report yet: no sample (the initial opening was never measured)
+        assert h.step(0.1) == {}
+        with pytest.raises(HardwareError, match=r"DualSense .*sent no report for 0\.10[0-9] s since the run started"):
+            h.step(0.104)
+
+
+def test_outputs_carry_the_time_of_the_last_report(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+    with Harness(hl.HidLeader, {"min_opening": "2mm", "max_opening": "22mm"}) as h:
+        fake_hid.reports += [DS4_USB]
+        out = _raw_step(h, 0.0)
+        assert out["gripper_opening"].stamp == 0.0 and out["gripper_velocity"].value == 0.0
+        for t in (0.004, 0.1, 0.3):  # silent (under report_timeout): the same samples, still stamped 0.0
+            out = _raw_step(h, t)
+            assert {k: s.stamp for k, s in out.items()} == dict.fromkeys(out, 0.0)
+        assert out["gripper_opening"].value == pytest.approx(0.022 - (0xC0 / 255) * 0.020) and out["button"].value
+        assert not out["gripper_opening"].is_fresh(0.3, 0.05)  # a consumer's max_age sees the data as old
+        fake_hid.reports += [DS4_USB_RELEASED]
+        out = _raw_step(h, 0.4)
+        assert all(s.stamp == 0.4 for s in out.values())
+        # velocity over the time between the two reports (0.4 s), not over the last step period
+        assert out["gripper_velocity"].value == pytest.approx((0xC0 / 255) * 0.020 / 0.4)
+
+
+def test_stamp_is_the_read_time_on_the_wall_clock(fake_hid):
+    import time
+
+    from teletouch import Context
+
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+    with Harness(hl.HidLeader, {}) as h:
+        t0 = time.monotonic()
+        h.comp.ctx = Context(clock_kind="wall", from_monotonic=lambda m: m - t0)
+        fake_hid.reports += [DS4_USB]
+        before = time.monotonic() - t0
+        out = h.comp.step(123.0, h.inputs)  # a step time far from the read time: the stamp is the read time
+        after = time.monotonic() - t0
+        assert before <= out["gripper_opening"].stamp <= after
+
+
+def test_spacemouse_silence_is_not_a_fault(fake_hid):
+    # a SpaceMouse reports only when the cap moves: silent at rest, so no report_timeout and step-time stamps
+    fake_hid.devices.append(info(0x046D, 0xC626))
+    with Harness(hl.HidLeader, {"mode": "position"}) as h:
+        assert h.comp.report_timeout is None
+        fake_hid.reports += [bytes.fromhex("01 0000 0000") + struct.pack("<h", 175)]
+        x = h.step(0.0)["gripper_opening"]
+        for i in range(1, 2501):  # 10 s without a report
+            out = _raw_step(h, i * 0.004)
+        assert out["gripper_opening"] == x and not isinstance(out["gripper_opening"], hl.Sample)  # stamped t
+    with pytest.raises(ValueError, match="not available for a SpaceMouse"):
+        Harness(hl.HidLeader, {"report_timeout": 0.5}).comp.configure()  # auto -> spacemouse
+
+
+def test_report_timeout_must_fit_the_profile(fake_hid):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="cannot be turned off for a dualsense"):
+        hl.HidLeader.Params(device="dualsense", report_timeout=0)
+    with pytest.raises(ValidationError, match="not available for a SpaceMouse"):
+        hl.HidLeader.Params(device="spacemouse", report_timeout="0.5 s")
+    assert hl.resolve_report_timeout("generic", None) is None and hl.resolve_report_timeout("generic", 0.3) == 0.3
+    # a generic pad known to stream reports opts in
+    fake_hid.devices.append(info(0x1234, 0x5678))
+    params = {"device": "generic", "vendor_id": 0x1234, "trigger_offset": 1, "report_timeout": 0.2}
+    with Harness(hl.HidLeader, params) as h:
+        fake_hid.reports += [bytes([0, 0x80])]
+        assert h.step(0.0)["gripper_opening"] == pytest.approx(0.025 * (1 - 0x80 / 255))
+        h.step(0.2)
+        with pytest.raises(HardwareError, match="sent no report for 0.204 s"):
+            h.step(0.204)
+    with Harness(hl.HidLeader, dict(params, report_timeout=None)) as h:  # off by default for generic
+        h.step(0.0)
+        assert h.step(10.0)["gripper_opening"] == 0.025
+
+
+def test_hid_leader_graph_faults_when_the_pad_goes_silent(fake_hid):
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+    fake_hid.reports += [DS4_USB] * 5  # read in the first step, then nothing
+    reg = make_registry("teletouch.plugins.devices.hid_leader")
+    result, rt = run_yaml(GRAPH.replace("duration: 0.3", "duration: 2.0").replace(
+        "{device: dualshock4}", "{device: dualshock4, report_timeout: 0.2}"), reg)
+    assert result.status in ("fault", "degraded"), result.summary()
+    assert any(f.node == "leader" and "sent no report" in f.message for f in result.faults), result.summary()
+    assert result.sim_time < 1.0  # detected after ~0.2 s, not at the end of the run

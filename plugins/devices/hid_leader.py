@@ -10,6 +10,14 @@ The report parsers are pure functions of the report bytes (tested on reports in 
 - DualShock 4 / DualSense (USB and Bluetooth reports): the analog trigger (R2 by default) maps to the opening,
   released = ``max_opening``, fully pressed = ``min_opening``; the cross button is the button.
 - ``generic``: any HID pad with an 8-bit trigger at a known byte (``report_id``, ``trigger_offset``, ``button_*``).
+
+Lost device: a DualShock 4 / DualSense sends an input report every few ms for as long as it is connected (~250 Hz
+over USB, 100 Hz and more over Bluetooth), so silence means the link is lost (a Bluetooth pad out of range gives no
+read error until the kernel removes the device): after ``report_timeout`` (0.5 s by default) without a report, step()
+raises HardwareError, and the outputs carry the time of the last report (not the step time), so consumers' staleness
+checks (``max_age``) see a silent pad's data age. A SpaceMouse reports only when the cap moves (silence is normal at
+rest): no timeout and step-time stamps there; a ``generic`` pad has a timeout (and report-time stamps) only when
+``report_timeout`` is set, for a pad known to stream its reports.
 """
 
 from __future__ import annotations
@@ -17,14 +25,15 @@ from __future__ import annotations
 import math
 import os
 import struct
+import time
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
-from teletouch import Device, HardwareError, Kind, Params, hookimpl
-from teletouch.units import Meters, MetersPerSecond
+from teletouch import Device, HardwareError, Kind, Params, Sample, hookimpl
+from teletouch.units import Meters, MetersPerSecond, Seconds
 
 from .omega7 import LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE
 
@@ -54,6 +63,11 @@ KNOWN_DEVICES: dict[tuple[int, int], tuple[str, str]] = {
     (0x054C, 0x0CE6): ("dualsense", "DualSense"),
     (0x054C, 0x0DF2): ("dualsense", "DualSense Edge"),
 }
+
+# profiles whose devices send input reports periodically while connected (silence = link lost), and the default
+# report_timeout for them; a SpaceMouse reports on change only, a generic pad is unknown (opt in with report_timeout)
+PERIODIC_PROFILES = ("dualshock4", "dualsense")
+DEFAULT_REPORT_TIMEOUT = 0.5
 
 SPACEMOUSE_AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 SPACEMOUSE_FULL_SCALE = 350.0  # counts at full deflection (typical; some models reach ~500)
@@ -249,6 +263,26 @@ def open_device(info: dict[str, Any], hid: Any = None) -> Any:
     return dev
 
 
+def resolve_report_timeout(profile: str, report_timeout: float | None) -> float | None:
+    """The silence (s) after which the device faults for this profile, or None (no timeout). ValueError where the
+    setting contradicts how the profile's devices report."""
+    if profile in PERIODIC_PROFILES:
+        if report_timeout is None:
+            return DEFAULT_REPORT_TIMEOUT
+        if report_timeout <= 0:
+            raise ValueError(f"report_timeout cannot be turned off for a {profile}: it reports every few ms while "
+                             f"connected, so silence is the only sign of a lost Bluetooth link; raise it instead "
+                             f"(default {DEFAULT_REPORT_TIMEOUT} s)")
+        return float(report_timeout)
+    if profile == "spacemouse":
+        if report_timeout:
+            raise ValueError("report_timeout is not available for a SpaceMouse: it reports only when the cap moves, "
+                             "so it is silent whenever it rests and a timeout would fault it; a lost SpaceMouse is "
+                             "detected by the read error when it is unplugged")
+        return None
+    return float(report_timeout) if report_timeout else None  # generic: only for a pad known to stream reports
+
+
 def _parse_id(v: Any) -> Any:
     if isinstance(v, str):
         try:
@@ -298,6 +332,12 @@ class HidLeader(Device):
         button_offset: int | None = Field(None, ge=0, description="generic: byte index of the button")
         button_mask: int = Field(1, ge=1, le=255, description="generic: bit mask of the button")
         max_reports: int = Field(64, ge=1, description="reports drained per step at most")
+        report_timeout: Seconds | None = Field(
+            None, ge=0, description="silence after which the device faults (HardwareError), and its outputs carry "
+                                    "the time of the last report; None: 0.5 s for dualshock4/dualsense (they report "
+                                    "every few ms; cannot be turned off), off for spacemouse (reports only on "
+                                    "change; cannot be set) and generic (set it for a pad that streams reports)",
+            json_schema_extra={"unit": "s"})
 
         @field_validator("vendor_id", "product_id", "report_id", mode="before")
         @classmethod
@@ -311,6 +351,12 @@ class HidLeader(Device):
             if v <= lo:
                 raise ValueError(f"max_opening ({v}) must be above min_opening ({lo})")
             return v
+
+        @model_validator(mode="after")
+        def _timeout_fits_profile(self) -> "HidLeader.Params":
+            if self.device != "auto":
+                resolve_report_timeout(self.device, self.report_timeout)
+            return self
 
     def configure(self) -> None:
         p = self.params
@@ -335,6 +381,7 @@ class HidLeader(Device):
             raise HardwareError(f"{info['name']} ({info.get('vendor_id', 0):04x}:{info.get('product_id', 0):04x}) "
                                 f"is not a known SpaceMouse/gamepad: set device: generic with trigger_offset "
                                 f"(and report_id, button_offset) for its report layout")
+        self.report_timeout = resolve_report_timeout(self.profile, p.report_timeout)
         self.dev = open_device(info, hid=hid)
         self.sm = SpaceMouseState()
         self.pad = GamepadState()
@@ -342,9 +389,15 @@ class HidLeader(Device):
         self.velocity = 0.0
         self.last_t: float | None = None
         self.reports = 0
+        self.last_report_t: float | None = None  # graph time of the last report read (report_timeout on)
+        self._watch_from: float | None = None
+        self._out: dict[str, Sample] | None = None
 
     def activate(self) -> None:
         self.last_t = None
+        self.last_report_t = None  # a sample from before a deactivate is not re-emitted
+        self._watch_from = None
+        self._out = None
 
     def _parse(self, report: Any) -> None:
         p = self.params
@@ -358,17 +411,21 @@ class HidLeader(Device):
             self.pad = parse_generic_trigger(report, self.pad, p.report_id, p.trigger_offset, p.button_offset,
                                              p.button_mask)
 
-    def step(self, t: float, inputs: Any) -> dict[str, Any]:
+    def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         p = self.params
+        mono: float | None = None
         try:
             for _ in range(p.max_reports):
                 r = self.dev.read(64)
                 if not r:
                     break
+                mono = time.monotonic()
                 self.reports += 1
                 self._parse(r)
         except (OSError, IOError, ValueError) as exc:
             raise HardwareError(f"{self.info['name']} stopped answering ({exc}): check the USB cable") from None
+        if self.report_timeout is not None:
+            return self._step_periodic(mono)
         dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
         self.last_t = t
         position = np.zeros(3)
@@ -393,6 +450,35 @@ class HidLeader(Device):
         return {"gripper_opening": self.opening, "gripper_velocity": self.velocity, "position": position,
                 "button": button}
 
+    def _step_periodic(self, mono: float | None) -> dict[str, Any] | None:
+        """A device that reports periodically: fault on silence, stamp the outputs with the last report's time."""
+        p = self.params
+        now = self.ctx.from_monotonic(time.monotonic())
+        if self._watch_from is None:
+            self._watch_from = now
+        if mono is None:
+            since = self.last_report_t if self.last_report_t is not None else self._watch_from
+            silent = now - since
+            if silent > self.report_timeout:  # type: ignore[operator]
+                what = "since its last report" if self.last_report_t is not None else "since the run started"
+                raise HardwareError(f"{self.info['name']} ({self.info.get('vendor_id', 0):04x}:"
+                                    f"{self.info.get('product_id', 0):04x}) sent no report for {silent:.3f} s "
+                                    f"{what} (report_timeout {self.report_timeout:g} s; it reports every few ms "
+                                    f"while connected): link lost; check the cable, the Bluetooth range and the "
+                                    f"battery")
+            return None if self._out is None else dict(self._out)  # the last report's samples, with their stamp
+        stamp = self.ctx.from_monotonic(mono)
+        x = trigger_to_opening(self.pad.trigger(p.trigger), p.min_opening, p.max_opening)
+        if self.last_report_t is not None and stamp > self.last_report_t:
+            self.velocity = (x - self.opening) / (stamp - self.last_report_t)
+        elif self.last_report_t is None:
+            self.velocity = 0.0
+        self.opening = x
+        self.last_report_t = stamp
+        self._out = {"gripper_opening": Sample(self.opening, stamp), "gripper_velocity": Sample(self.velocity, stamp),
+                     "position": Sample(np.zeros(3), stamp), "button": Sample(self.pad.cross, stamp)}
+        return dict(self._out)
+
     def safe_state(self) -> None:
         """No actuator: nothing to make safe (force commands are never sent)."""
 
@@ -409,7 +495,7 @@ class HidLeader(Device):
         if not hasattr(self, "dev"):
             return {}
         return {"device": self.info.get("name", ""), "profile": self.profile, "gripper_opening": self.opening,
-                "reports": self.reports}
+                "reports": self.reports, "report_timeout": self.report_timeout, "last_report_t": self.last_report_t}
 
 
 @hookimpl
