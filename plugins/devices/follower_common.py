@@ -7,8 +7,13 @@ A follower driver subclasses :class:`FollowerBase` and implements four hardware 
     _hw_write(opening)         send one opening setpoint (m), already clamped and rate limited
     _hw_close()                release everything (must not raise)
 
-Everything else (limits, NaN commands, the speed limit, safe state, velocity by finite differences where the hardware
-does not report it, watchdog on reads) lives here once.
+Everything else (limits, NaN and stale commands, the speed limit, safe state, velocity by finite differences where the
+hardware does not report it, watchdog on reads) lives here once.
+
+Holding: whenever there is no usable command (none yet, stale, NaN) and in the ``hold`` safe state, the setpoint goes
+to the measured opening (taken once, when the hold starts). The setpoint itself starts at the measured opening, at
+configure and at every activate, and only ever moves at ``max_speed`` (over at most two nominal periods per step), so
+a gripper resting outside [min_opening, max_opening] is walked into the range rather than jumped there.
 """
 
 from __future__ import annotations
@@ -86,6 +91,9 @@ class FollowerParams(Params):
                                                                    "to max_opening")
     read_timeout: Seconds = Field(0.5, gt=0, description="fault when no valid state arrives for this long",
                                   json_schema_extra={"unit": "s"})
+    command_timeout: Seconds = Field(0.2, gt=0, le=2.0, description="an opening_command older than this (or stamped "
+                                     "more than this ahead, or with a NaN stamp) is stale: the gripper holds its "
+                                     "measured opening", json_schema_extra={"unit": "s"})
 
     @model_validator(mode="after")
     def _range(self) -> "FollowerParams":
@@ -133,6 +141,12 @@ class FollowerBase(Device):
         self._last_good = time.monotonic()
         self._prev: tuple[float, float] | None = None  # (graph time, opening) for finite differences
         self._bad_commands = 0
+        self._stale_commands = 0
+        self._holding: str | None = None  # why the setpoint holds (None: following the command)
+        self._resync = False  # take the setpoint from the next reading (activate() could not read the state)
+        self._hold_at = math.nan  # the measured opening the setpoint holds (walked into the range at max_speed)
+        rate = getattr(self.ctx, "rate", None) or self.default_rate
+        self._max_dt = 2.0 / float(rate)  # longest step the speed limit counts: a late step does not jump
         self._ready = False
         self._opened = True  # close() releases whatever _hw_open() got before it failed
         self._hw_open()
@@ -141,13 +155,23 @@ class FollowerBase(Device):
             raise HardwareError(f"{self.name}: no valid state from the gripper after connecting; check power, "
                                 f"cabling and configuration")
         self._last_reading = first
-        self._setpoint = clamp(first.opening, self.params.min_opening, self.params.max_opening)
+        self._setpoint = first.opening  # not clamped: the speed limit walks it into the range (no jump)
         self._ready = True
 
     def activate(self) -> None:
+        """Start from where the gripper is now: it may have been moved while the node was inactive."""
         self._safe = False
-        self._last_good = time.monotonic()
         self._last_t = None
+        self._holding = None
+        self._prev = None
+        r = self._hw_read()
+        self._last_good = time.monotonic()
+        if r is not None and math.isfinite(r.opening):
+            self._last_reading = r
+            self._setpoint = r.opening
+            self._resync = False
+        else:  # no state right now: the first step takes the setpoint from its reading
+            self._resync = True
 
     def close(self) -> None:
         if getattr(self, "_opened", False):
@@ -155,24 +179,65 @@ class FollowerBase(Device):
             self._hw_close()
 
     # step ------------------------------------------------------------------------------------------------------
+    def _measured(self) -> float:
+        r = self._last_reading
+        return r.opening if r is not None and math.isfinite(r.opening) else self._setpoint
+
+    def _start_hold(self, why: str) -> bool:
+        """Hold the measured opening (taken when the hold starts) until a usable command arrives again; whether
+        ``why`` is a new reason to hold."""
+        if self._holding is None:
+            self._hold_at = self._measured()
+        new = self._holding != why
+        self._holding = why
+        return new
+
     def command_target(self, t: float, inputs: Any) -> float:
-        """The setpoint for this step: the command (clamped, rate limited) or the safe target."""
+        """The setpoint for this step: the command (clamped, rate limited) or the hold / safe target."""
         p = self.params
-        dt = 0.0 if self._last_t is None else t - self._last_t
+        # the speed limit counts at most two nominal periods: after a late step the setpoint does not jump
+        dt = 0.0 if self._last_t is None else min(t - self._last_t, self._max_dt)
         self._last_t = t
+        if getattr(self, "_resync", False) or not math.isfinite(self._setpoint):
+            self._resync = False
+            self._setpoint = self._measured()
         if self._safe:
-            return self._setpoint
-        cmd = inputs.value("opening_command")
-        if cmd is None:
-            return self._setpoint
-        cmd = float(cmd)
+            target = self._hold_at
+        else:
+            target = self._command(t, inputs)
+            if target is None:
+                target = self._hold_at
+            else:
+                self._holding = None
+        if math.isfinite(target):
+            self._setpoint = shape_setpoint(self._setpoint, target, p.min_opening, p.max_opening, p.max_speed, dt)
+        return self._setpoint
+
+    def _command(self, t: float, inputs: Any) -> float | None:
+        """The opening command if it is usable now (fresh and finite); None after starting a hold otherwise."""
+        p = self.params
+        s = inputs.get("opening_command")
+        if s is None:
+            self._start_hold("no command yet")
+            return None
+        if not s.is_fresh(t, p.command_timeout):
+            self._stale_commands += 1
+            if self._start_hold("stale command"):
+                self.ctx.log(f"opening_command stamped {s.stamp} at t={t} (command_timeout {p.command_timeout} s) "
+                             f"is stale; holding the measured opening {self._hold_at * 1e3:.2f} mm")
+            return None
+        try:
+            cmd = float(s.value)
+        except (TypeError, ValueError):
+            cmd = math.nan
         if not math.isfinite(cmd):
             self._bad_commands += 1
+            self._start_hold("bad command")
             if self._bad_commands == 1:
-                self.ctx.log(f"non-finite opening_command ({cmd}); holding {self._setpoint * 1e3:.2f} mm")
-            return self._setpoint
-        self._setpoint = shape_setpoint(self._setpoint, cmd, p.min_opening, p.max_opening, p.max_speed, dt)
-        return self._setpoint
+                self.ctx.log(f"non-finite opening_command ({s.value!r}); holding the measured opening "
+                             f"{self._hold_at * 1e3:.2f} mm")
+            return None
+        return cmd
 
     def read_state(self, t: float) -> Reading:
         r = self._hw_read()
@@ -207,20 +272,21 @@ class FollowerBase(Device):
 
     # safe state ------------------------------------------------------------------------------------------------
     def safe_target(self) -> float:
+        """``open``: max_opening; ``hold``: the measured opening, not clamped (later steps walk a gripper resting
+        outside the range into it at max_speed instead of jumping)."""
         p = self.params
         if p.safe_mode == "open":
             return p.max_opening
-        r = self._last_reading
-        if r is not None and math.isfinite(r.opening):
-            return clamp(r.opening, p.min_opening, p.max_opening)
-        return self._setpoint
+        return self._measured()
 
     def safe_state(self) -> None:
         if not getattr(self, "_ready", False):
             return
         try:
             self._safe = True
-            self._setpoint = self.safe_target()
+            self._hold_at = self.safe_target()
+            if math.isfinite(self._hold_at):
+                self._setpoint = self._hold_at
             self._hw_write(self._setpoint)
         except Exception as exc:  # never raise from the safe state; the hardware's own limits take over
             try:
@@ -231,4 +297,6 @@ class FollowerBase(Device):
     def status(self) -> dict[str, Any]:
         r = getattr(self, "_last_reading", None)
         return {"opening": None if r is None else r.opening, "setpoint": getattr(self, "_setpoint", None),
-                "effort": None if r is None else r.effort, "safe": getattr(self, "_safe", False)}
+                "effort": None if r is None else r.effort, "safe": getattr(self, "_safe", False),
+                "holding": getattr(self, "_holding", None), "stale_commands": getattr(self, "_stale_commands", 0),
+                "bad_commands": getattr(self, "_bad_commands", 0)}
