@@ -86,14 +86,16 @@ def test_configures_current_based_position_and_squeezes(emu):
     with harness(emu, max_effort=5.0, newtons_per_amp=10.0) as h:
         assert emu.get(emu.table.operating_mode) == 5
         assert emu.get(emu.table.torque_enable) == 1
-        assert emu.get(emu.table.goal_current) == 186  # ceil(5 N / 10 N/A / 2.69 mA)
+        # floor(5 N / 10 N/A / 2.69 mA) = floor(185.87): rounded down so the cap (4.977 N) never exceeds max_effort
+        # (ceil gave 186 = 5.003 N)
+        assert emu.get(emu.table.goal_current) == 185
         o = drive(h, 0.04, 0.8)
         assert o["opening"] == pytest.approx(0.04, abs=1e-3)
         assert o["effort"] == pytest.approx(0.0, abs=0.1)
         o = drive(h, 0.0, 1.5)
         # the object (at 1800 ticks) stops the fingers; the grip force is capped by Goal_Current
         assert o["opening"] == pytest.approx(h.comp.opening_for(1800), abs=2e-4)
-        assert o["effort"] == pytest.approx(186 * 2.69e-3 * 10.0, rel=1e-6)
+        assert o["effort"] == pytest.approx(185 * 2.69e-3 * 10.0, rel=1e-6)
         assert emu.get(emu.table.goal_position) == 2048  # commanded closed (0 m)
         # speed limit of the setpoint: Goal_Position never moved faster than max_speed
         gp = [(t, int.from_bytes(p[5:9], "little")) for (t, _i, inst, p) in emu.rx_packets if inst == 0x83]
@@ -137,7 +139,9 @@ def test_servo_stops_answering_then_fault_or_recovery(emu):
         emu.silent = True  # a short dropout: recovers
         drive(h, 0.05, 0.1)
         emu.silent = False
-        o = drive(h, 0.05, 0.2)
+        # settle: the setpoint counts at most two periods per (slow, timed-out) step, and the servo's own
+        # Profile_Velocity is at or just below max_speed, so it reaches 0.05 m a little after the setpoint
+        o = drive(h, 0.05, 0.6)
         assert o["opening"] == pytest.approx(0.05, abs=1e-3)
         emu.silent = True  # gone for good: a fault within the timeout
         t0 = time.monotonic()
@@ -149,7 +153,9 @@ def test_servo_stops_answering_then_fault_or_recovery(emu):
 
 def test_late_answer_is_not_taken_for_state(emu):
     with harness(emu) as h:
-        drive(h, 0.05, 0.3)
+        # a 25 mm move at max_speed (0.05 m/s; the servo's Profile_Velocity just below it) takes ~0.51 s: 0.7 s
+        # leaves a margin for a slow machine
+        drive(h, 0.05, 0.5)
         emu.late_answers = 1
         o = drive(h, 0.05, 0.2)
         assert h.comp.comm_failures == 1 and "stale or short" in h.comp.last_comm_error
@@ -173,23 +179,105 @@ def test_hardware_error_alert(emu):
             drive(h, 0.05, 1.0)
 
 
+RH_P12 = {"model": "rh-p12-rn", "dxl_id": 1, "ticks_open": 0, "ticks_closed": 740, "opening_at_ticks_open": 0.106,
+          "opening_at_ticks_closed": 0.0, "max_opening": 0.106, "newtons_per_amp": 100.0, "max_effort": 30.0,
+          "max_speed": 0.2}
+
+
+def test_hardware_error_alert_without_error_status_item():
+    # rh-p12-rn's table has no Hardware_Error_Status: the shutdown shows as the alert bit (0x80) in the status packet
+    # of the state read itself (GroupSyncRead used to drop it), so it faults at the next step, not after a poll
+    with DynamixelEmulator(1, "rh-p12-rn", position=0) as emu:
+        with harness(emu, **dict(RH_P12, error_check_period=30.0)) as h:
+            drive(h, 0.08, 0.2)
+            emu.inject_hardware_error(HW_OVERLOAD)  # firmware: torque off, alert bit in every status packet
+            t0 = time.monotonic()
+            with pytest.raises(HardwareError, match=r"Dynamixel ID 1 .*alert \(0x80\)"):
+                drive(h, 0.02, 2.0)
+            assert time.monotonic() - t0 < 0.2
+
+
+@pytest.mark.parametrize("model", ["xm430-w350", "rh-p12-rn"])
+def test_torque_dropped_without_alert_is_a_fault(model):
+    # a servo reset (power dip) clears Torque_Enable and sets no alert: the Torque_Enable poll catches it
+    dxl_id, params = (1, RH_P12) if model == "rh-p12-rn" else (15, {})
+    with DynamixelEmulator(dxl_id, model, position=0 if dxl_id == 1 else 1024) as emu:
+        with harness(emu, **dict(params, error_check_period=0.05)) as h:
+            drive(h, 0.06, 0.1)
+            with emu._lock:
+                emu._put(emu.table.torque_enable, 0)
+            t0 = time.monotonic()
+            with pytest.raises(HardwareError, match=rf"Dynamixel ID {dxl_id} .*Torque_Enable dropped to 0"):
+                drive(h, 0.06, 2.0)
+            assert time.monotonic() - t0 < 0.05 + 0.1
+
+
+def test_servo_speed_limit_from_max_speed():
+    # the safe state "open" sends max_opening at once; the servo's Profile_Velocity keeps it at or below max_speed
+    emu = DynamixelEmulator(15, position=2048)  # closed
+    emu.start()
+    try:
+        with harness(emu, safe_mode="open", max_speed=0.05) as h:
+            # 0.05 m/s / (0.075 m / 1024 ticks) = 682.7 ticks/s = 10.0 rev/min = 43.67 units of 0.229 rev/min:
+            # rounded down to 43 (9.85 rev/min, 0.0492 m/s), so the servo's own limit is at or below max_speed
+            assert emu.get(emu.table.profile_velocity) == 43
+            h.comp.safe_state()
+            assert wait_for(lambda: emu.get(emu.table.goal_position) == 1024)  # the jump is sent in one packet ...
+            n0 = len(emu.trace)
+            t_end = time.monotonic() + 0.4
+            while time.monotonic() < t_end:
+                emu.poll()
+                time.sleep(0.01)
+            tr = emu.trace[n0:]
+            speeds = [abs(b[1] - a[1]) / (b[0] - a[0]) * 0.075 / 1024 for a, b in zip(tr, tr[1:]) if b[0] > a[0]]
+            assert max(speeds) <= 0.05  # ... but the servo moves no faster than max_speed (it ran at 0.22 m/s)
+            assert max(speeds) > 0.045
+    finally:
+        emu.stop()
+
+
+@pytest.mark.parametrize("max_speed", [0.2, 0.05, 0.0123])
+def test_profile_velocity_rounds_down(emu, max_speed):
+    with harness(emu, max_speed=max_speed):
+        raw = emu.get(emu.table.profile_velocity)
+    servo_speed = raw * 0.229 / 60.0 * 4096 * 0.075 / 1024  # m/s of opening
+    assert servo_speed <= max_speed < (raw + 1) * servo_speed / raw
+
+
+def test_limits_below_one_servo_unit_refused(emu):
+    configure_fails(harness(emu, max_speed=0.001), r"max_speed 0.001 m/s is below the slowest Profile_Velocity")
+    configure_fails(harness(emu, max_effort=0.01), r"max_effort 0.01 N is below one Goal_Current unit")
+
+
+@pytest.mark.parametrize("max_effort", [5.0, 1.0, 0.0269, 3.1416])
+def test_goal_current_never_above_max_effort(emu, max_effort):
+    with harness(emu, max_effort=max_effort, newtons_per_amp=10.0):
+        gc = emu.get(emu.table.goal_current)
+    assert gc * 2.69e-3 * 10.0 <= max_effort < (gc + 1) * 2.69e-3 * 10.0
+
+
 def test_other_control_table_by_config():
     with DynamixelEmulator(1, "rh-p12-rn", position=0, block_at=500, closing=1) as emu:
-        p = {"model": "rh-p12-rn", "dxl_id": 1, "ticks_open": 0, "ticks_closed": 740,
-             "opening_at_ticks_open": 0.106, "opening_at_ticks_closed": 0.0, "max_opening": 0.106,
-             "newtons_per_amp": 100.0, "max_effort": 30.0, "max_speed": 0.2}
+        p = RH_P12
         with harness(emu, **p) as h:
-            assert emu.get(emu.table.goal_current) == 75  # ceil(30 / 100 / 4.02 mA)
+            # floor(30 N / 100 N/A / 4.02 mA) = floor(74.63): rounded down so the cap (29.75 N) stays at or below
+            # max_effort (ceil gave 75 = 30.15 N)
+            assert emu.get(emu.table.goal_current) == 74
             o = drive(h, 0.0, 1.0)
             assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
-            assert o["effort"] == pytest.approx(75 * 4.02e-3 * 100.0, rel=1e-6)
+            assert o["effort"] == pytest.approx(74 * 4.02e-3 * 100.0, rel=1e-6)
+            # this preset has no Profile_Velocity: nothing is written at the X-series address 112
+            assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][:2] == bytes([112, 0])]
         # the same servo, described by a user's table instead of the preset
-        table = {"torque_enable": [512, 1], "hardware_error_status": None, "goal_current": [550, 2],
-                 "goal_position": [564, 4], "present_current": [574, 2], "present_velocity": [576, 4],
-                 "present_position": [580, 4], "current_unit": 4.02e-3, "velocity_unit_rpm": 0.01}
+        # (items left out take the X-series addresses: a non-X table must name profile_velocity, None here)
+        table = {"torque_enable": [512, 1], "hardware_error_status": None, "profile_velocity": None,
+                 "goal_current": [550, 2], "goal_position": [564, 4], "present_current": [574, 2],
+                 "present_velocity": [576, 4], "present_position": [580, 4], "current_unit": 4.02e-3,
+                 "velocity_unit_rpm": 0.01}
         with harness(emu, **dict(p, model="x-series", control_table=table)) as h:
             o = drive(h, 0.0, 0.2)
             assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
+        assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][:2] == bytes([112, 0])]
 
 
 def test_params_validation():

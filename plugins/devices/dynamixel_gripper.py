@@ -3,7 +3,13 @@
 The servo runs in current-based position mode (Operating_Mode 5): it goes to Goal_Position but never pushes with
 more than Goal_Current, which is how the grip force is capped (``max_effort`` / ``newtons_per_amp``). Each step
 reads Present_Current, Present_Velocity and Present_Position with one GroupSyncRead and sends Goal_Position with a
-GroupSyncWrite. Hardware_Error_Status is polled every ``error_check_period``.
+GroupSyncWrite. The status packet of that read is checked for the alert bit (0x80, set by the firmware while the
+servo is in hardware-error shutdown), and Torque_Enable (with Hardware_Error_Status where the table has it) is polled
+every ``error_check_period``: the torque dropping to 0 (a shutdown, or a servo reset by a brown-out) is a fault.
+
+The servo's own speed limit: Profile_Velocity is set from ``max_speed`` at start-up (rounded down), so a setpoint
+jump (the ``open`` safe state) is not run at the servo's full speed. A table without Profile_Velocity relies on the
+driver's setpoint shaping only.
 
 The opening maps linearly to ticks (``ticks_open`` <-> ``opening_at_ticks_open``, ``ticks_closed`` <->
 ``opening_at_ticks_closed``). Control tables are data: ``model`` picks a preset from :data:`CONTROL_TABLES`
@@ -36,6 +42,8 @@ class ControlTable(BaseModel):
     current_limit: Item = (38, 2)
     torque_enable: Item = (64, 1)
     hardware_error_status: Item | None = (70, 1)
+    profile_velocity: Item | None = Field((112, 4), description="Profile_Velocity (same unit as velocity_unit_rpm, "
+                                          "0 = unlimited); None: the servo has no speed limit the driver can set")
     goal_current: Item = (102, 2)
     goal_position: Item = (116, 4)
     present_current: Item = (126, 2)
@@ -51,8 +59,12 @@ CONTROL_TABLES: dict[str, dict[str, Any]] = {
     # X-series (XM430-W350: OpenManipulator-X gripper, ID 15)
     "xm430-w350": {"model_number": 1020},
     "x-series": {},
-    # ROBOTIS RH-P12-RN gripper: its own table; position 0 (open) .. 740 (closed)
+    # ROBOTIS RH-P12-RN gripper: its own table; position 0 (open) .. 740 (closed). No Hardware_Error_Status and no
+    # Profile_Velocity in this preset: a shutdown is detected by the alert bit and by polling Torque_Enable, and the
+    # speed is limited only by the driver's setpoint shaping (a setpoint jump, e.g. safe_mode "open", runs at the
+    # servo's own speed). Give "profile_velocity" in control_table once checked against your firmware's e-Manual.
     "rh-p12-rn": {"model_number": 35073, "torque_enable": (512, 1), "hardware_error_status": None,
+                  "profile_velocity": None,
                   "goal_current": (550, 2), "goal_position": (564, 4), "present_current": (574, 2),
                   "present_velocity": (576, 4), "present_position": (580, 4), "current_unit": 4.02e-3,
                   "velocity_unit_rpm": 0.01},
@@ -91,7 +103,8 @@ class DynamixelGripper(FollowerBase):
                                                 json_schema_extra={"unit": "m"})
         newtons_per_amp: float = Field(10.0, gt=0, description="grip force per ampere of motor current "
                                        "(calibrate for your gripper)", json_schema_extra={"unit": "N/A"})
-        error_check_period: Seconds = Field(0.1, gt=0, description="poll Hardware_Error_Status this often",
+        error_check_period: Seconds = Field(0.1, gt=0, description="poll Torque_Enable and Hardware_Error_Status "
+                                            "this often",
                                             json_schema_extra={"unit": "s"})
         serial_poll: Seconds = Field(0.0005, gt=0, le=0.01, description="serial read blocking granularity",
                                      json_schema_extra={"unit": "s"})
@@ -203,12 +216,20 @@ class DynamixelGripper(FollowerBase):
         self._write(t.torque_enable, 0, "Torque_Enable=0")
         self._write(t.operating_mode, CURRENT_BASED_POSITION, "Operating_Mode=5 (current-based position)")
         limit = self._read(t.current_limit, "Current_Limit")
-        want = int(math.ceil(p.max_effort / p.newtons_per_amp / t.current_unit))
+        # rounded down: the grip cap is at or below max_effort (ceil gave e.g. 186 units = 5.003 N for 5 N)
+        want = int(math.floor(p.max_effort / p.newtons_per_amp / t.current_unit))
+        if want < 1:  # 0 would not move at all, 1 unit would exceed max_effort
+            raise HardwareError(f"max_effort {p.max_effort} N is below one Goal_Current unit of {self._where()} "
+                                f"({t.current_unit * p.newtons_per_amp:.4f} N with newtons_per_amp "
+                                f"{p.newtons_per_amp})")
         self.goal_current = min(want, limit)
         if want > limit:
             self.ctx.log(f"max_effort {p.max_effort} N needs Goal_Current {want} > Current_Limit {limit}; "
                          f"capped at {limit * t.current_unit * p.newtons_per_amp:.2f} N")
         self._write(t.goal_current, self.goal_current, "Goal_Current")
+        self.profile_velocity = self._profile_velocity()
+        if self.profile_velocity is not None:
+            self._write(t.profile_velocity, self.profile_velocity, "Profile_Velocity")
         present = self._read(t.present_position, "Present_Position")
         self._write(t.goal_position, present, "Goal_Position")
         self._write(t.torque_enable, 1, "Torque_Enable=1")
@@ -224,32 +245,90 @@ class DynamixelGripper(FollowerBase):
         self.comm_failures = 0
         self.last_comm_error = ""
 
+    def _profile_velocity(self) -> int | None:
+        """Profile_Velocity (raw) for ``max_speed``: rounded down so the servo's limit is at or below it."""
+        p, t = self.params, self.table
+        if t.profile_velocity is None:
+            return None
+        ticks_per_s = p.max_speed / abs(self.map.scale)
+        # floor, with a hair of margin so that float error never rounds a just-above value back to the limit
+        raw = int(math.floor(ticks_per_s / t.ticks_per_rev * 60.0 / t.velocity_unit_rpm * (1 - 1e-12)))
+        if raw < 1:  # 0 would mean "no limit" to the servo
+            slowest = t.velocity_unit_rpm / 60.0 * t.ticks_per_rev * abs(self.map.scale)
+            raise HardwareError(f"max_speed {p.max_speed} m/s is below the slowest Profile_Velocity of "
+                                f"{self._where()} ({slowest:.5f} m/s with this calibration)")
+        return raw
+
+    def _poll_shutdown(self) -> None:
+        """Every error_check_period: Torque_Enable (0 while active: shutdown or reset) and Hardware_Error_Status."""
+        p, t, sdk = self.params, self.table, self._sdk
+        items = [t.torque_enable] + ([t.hardware_error_status] if t.hardware_error_status is not None else [])
+        start = min(a for a, _ in items)
+        length = max(a + s for a, s in items) - start
+        if length > 16:  # far apart: one read each
+            spans = [(a, s) for a, s in items]
+        else:
+            spans = [(start, length)]
+        mem: dict[int, int] = {}
+        for addr, n in spans:
+            data, result, error = self.ph.readTxRx(self.port, p.dxl_id, addr, n)
+            if result != sdk.COMM_SUCCESS or len(data) != n:
+                return  # a lost answer is the state read's business (read_timeout)
+            if error & 0x80:
+                self._alert("hardware-error alert (0x80) in the status packet")
+            mem.update({addr + i: b for i, b in enumerate(data)})
+
+        def value(item: Item) -> int:
+            return int.from_bytes(bytes(mem[item[0] + i] for i in range(item[1])), "little")
+
+        if t.hardware_error_status is not None and value(t.hardware_error_status):
+            self._alert(f"Hardware_Error_Status {hw_error_text(value(t.hardware_error_status))}")
+        if value(t.torque_enable) == 0:
+            raise HardwareError(f"{self._where()}: Torque_Enable dropped to 0 while active (hardware-error shutdown "
+                                f"or the servo was reset, e.g. by a power dip); the gripper no longer holds. Check "
+                                f"the supply and the servo, then restart")
+
+    def _alert(self, what: str) -> None:
+        detail = self._hw_error() if self.table.hardware_error_status is not None else \
+            "no Hardware_Error_Status in this control table"
+        raise HardwareError(f"{self._where()} reports a hardware error: {what} ({detail}); torque is off. Remove "
+                            f"the cause, then reboot or power-cycle the servo")
+
     def _hw_read(self) -> Reading | None:
         p, t, sdk = self.params, self.table, self._sdk
         now = time.monotonic()
-        if t.hardware_error_status is not None and now - self._last_check >= p.error_check_period:
+        if now - self._last_check >= p.error_check_period:
             self._last_check = now
-            bits, result, error = self.ph.read1ByteTxRx(self.port, p.dxl_id, t.hardware_error_status[0])
-            if result == sdk.COMM_SUCCESS and (bits or error & 0x80):
-                raise HardwareError(f"{self._where()} reports a hardware error ({hw_error_text(bits)}); torque is "
-                                    f"off. Remove the cause, then reboot or power-cycle the servo")
+            self._poll_shutdown()
+        # GroupSyncRead.txRxPacket() drops the status packet's error byte (its rxPacket discards it): send the
+        # SYNC_READ with the group, then take the answer with readRx, which returns the error byte too
         t0 = time.monotonic()
-        result = self.gsr.txRxPacket()
+        result = self.gsr.txPacket()
+        data: list[int] = []
+        error = 0
+        if result == sdk.COMM_SUCCESS:
+            data, result, error = self.ph.readRx(self.port, p.dxl_id, self._rd_len)
         t1 = time.monotonic()
-        if result != sdk.COMM_SUCCESS or not self.gsr.isAvailable(p.dxl_id, self._rd_start, self._rd_len):
+        if result != sdk.COMM_SUCCESS:
             self.comm_failures += 1
             self.last_comm_error = self.ph.getTxRxResult(result)
             return None
-        if len(self.gsr.data_dict.get(p.dxl_id) or ()) != self._rd_len:
+        if error & 0x80:
+            self._alert("hardware-error alert (0x80) in the status packet of the state read")
+        if len(data) != self._rd_len:
             # a late status packet of an earlier, timed-out request was taken as this one's answer
             self.comm_failures += 1
-            self.last_comm_error = f"stale or short status packet ({len(self.gsr.data_dict.get(p.dxl_id) or ())} " \
-                                   f"of {self._rd_len} bytes)"
+            self.last_comm_error = f"stale or short status packet ({len(data)} of {self._rd_len} bytes)"
             self.port.clearPort()
+            return None
+        if error:
+            self.comm_failures += 1
+            self.last_comm_error = f"status packet error: {self.ph.getRxPacketError(error)}"
             return None
 
         def get(item: Item) -> int:
-            return _signed(self.gsr.getData(p.dxl_id, item[0], item[1]), item[1])
+            off = item[0] - self._rd_start
+            return _signed(int.from_bytes(bytes(data[off:off + item[1]]), "little"), item[1])
 
         ticks = get(t.present_position)
         vel_ticks = get(t.present_velocity) * t.velocity_unit_rpm / 60.0 * t.ticks_per_rev

@@ -10,9 +10,13 @@ Timing: the emulator reads the baud rate the driver set on the pty (termios) and
 take on a real wire (10 bits per byte, instruction and status) plus the servo's Return_Delay_Time, so a run at
 57600 baud is as slow as the real bus.
 
-The servo model: current-based position mode; the horn moves towards Goal_Position at ``speed`` ticks/s; an object
+The servo model: current-based position mode; the horn moves towards Goal_Position at ``speed`` ticks/s (the
+servo's top speed), or at Profile_Velocity where that is set (non-zero; 0 means no limit, as on the servo); an object
 (``block_at`` ticks, approached in the ``closing`` direction) stops it there, and the current rises to
-``min(Goal_Current, current_gain * |goal - block_at|)``.
+``min(Goal_Current, current_gain * |goal - block_at|)``. ``trace`` records (monotonic, position in ticks) at every
+physics update, so a test can measure the speed the horn actually moved at; ``poll()`` advances the physics without a
+packet. In hardware-error shutdown (``inject_hardware_error``) the torque is off and every status packet carries the
+alert bit (0x80) in its error byte, as on the firmware.
 """
 
 from __future__ import annotations
@@ -115,11 +119,13 @@ class Table:
     min_position_default: int
     velocity_unit_rpm: float
     size: int = 1024
+    profile_velocity: tuple[int, int] | None = None  # unit velocity_unit_rpm, 0 = unlimited
 
 
 XM430_W350 = Table(1020, 48, 64, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (64, 1), (70, 1), (102, 2), (116, 4),
-                   (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229)
-# ROBOTIS RH-P12-RN: its own control table (e-Manual); Hardware_Error_Status not modelled here.
+                   (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229, profile_velocity=(112, 4))
+# ROBOTIS RH-P12-RN: its own control table (e-Manual); Hardware_Error_Status and Profile_Velocity not modelled here
+# (as in the driver's preset), the alert bit in status packets is.
 RH_P12_RN = Table(35073, 1, 512, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (512, 1), None, (550, 2), (564, 4),
                   (574, 2), (576, 4), (580, 4), 820, 1150, 0, 0.01)
 
@@ -160,6 +166,7 @@ class DynamixelEmulator:
         self.late_answers = 0        # answer this many SYNC_READs with a late 1-byte status first (as after a timeout)
         # observation
         self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
+        self.trace: list[tuple[float, float]] = []  # (monotonic, position in ticks) at every physics update
         self.raw_rx = bytearray()
         self.raw_tx = bytearray()
         self.crc_errors = 0
@@ -189,6 +196,20 @@ class DynamixelEmulator:
             self._alert = True
 
     _alert = False
+
+    def poll(self) -> None:
+        """Advance the physics now (the servo moves between packets too; tests sample ``trace``)."""
+        with self._lock:
+            self._update()
+
+    def max_speed_ticks(self) -> float:
+        """Ticks/s the horn may move at: Profile_Velocity where set (non-zero), else the servo's top speed."""
+        t = self.table
+        if t.profile_velocity is not None:
+            raw = self.get(t.profile_velocity)
+            if raw > 0:
+                return min(self.speed, raw * t.velocity_unit_rpm / 60.0 * 4096.0)
+        return self.speed
 
     # --- life cycle ------------------------------------------------------------------------------------------
     def start(self) -> "DynamixelEmulator":
@@ -230,7 +251,8 @@ class DynamixelEmulator:
         current = 0.0
         if torque:
             err = goal - self.pos
-            step = max(-self.speed * dt, min(self.speed * dt, err))
+            v = self.max_speed_ticks()
+            step = max(-v * dt, min(v * dt, err))
             new = self.pos + step
             if self.block_at is not None:
                 c = self.closing
@@ -247,6 +269,7 @@ class DynamixelEmulator:
         self._put(t.present_velocity, int(round(rpm / t.velocity_unit_rpm)))
         self._put(t.present_position, int(round(self.pos)))
         self._put(t.present_current, int(round(current)))
+        self.trace.append((now, self.pos))
 
     # --- protocol --------------------------------------------------------------------------------------------
     def _serve(self) -> None:
