@@ -18,7 +18,7 @@ from teletouch import HardwareError  # noqa: E402
 from fakes.realtime import configure_fails, wait_for  # noqa: E402
 from fakes.realtime import drive as drive_for  # noqa: E402  ('drive' is the CiA 402 drive fixture here)
 from teletouch.testing import Harness  # noqa: E402
-from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
+from teletouch.plugins.devices.canopen_gripper import CW_NEW_SETPOINT, CanopenGripper  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -54,7 +54,7 @@ def test_start_up_sequence(drive, channel):
         assert drive.get(0x1800, 2) == 1  # TPDO on every SYNC
         assert drive.get(0x1017) == 100  # heartbeat 100 ms
         assert drive.get(0x6081) == round(0.04 / (0.08 / 100000))  # profile velocity, counts/s
-        assert drive.get(0x6073) == 250  # 10 N / 20 N/A = 0.5 A = 250 per mille of 2 A
+        assert drive.get(0x6073) == 250  # 10 N / 20 N/A = 0.5 A = 250 per mille of 2 A (exact: not rounded)
         assert h.comp.node.nmt.timestamp is not None  # heartbeats arrive
 
 
@@ -72,6 +72,130 @@ def test_closes_on_object_with_capped_current(drive, channel):
         assert wait_for(lambda: drive.latched == 60000)
         drive_for(h, 0.08, 0.1)
         assert drive.latched == 60000  # commands are ignored after the safe state
+
+
+def test_max_current_rounds_down(drive, channel):
+    """The current cap never exceeds max_effort, not even by rounding: 0x6073 is rounded down (it was rounded up:
+    167 per mille = 10.02 N here)."""
+    with harness(channel, max_effort=10.0, newtons_per_amp=30.0) as h:
+        # 10 N / 30 N/A = 0.3333 A = 166.67 per mille of 2 A -> 166 (9.96 N)
+        assert drive.get(0x6073) == 166 == h.comp.max_current
+        assert 166 / 1000 * 2.0 * 30.0 <= 10.0
+        o = drive_for(h, 0.0, 1.6)  # squeeze the object at 60000 counts: the drive limits the current
+        assert o["effort"] <= 10.0
+        assert o["effort"] == pytest.approx(0.166 * 2.0 * 30.0, rel=1e-6)
+    with harness(channel, max_effort=0.3, newtons_per_amp=0.5) as h:  # exactly 300 per mille: no binary loss
+        assert drive.get(0x6073) == 300
+    # below one per mille of the rated current no cap at or below max_effort exists: refused, not rounded up
+    configure_fails(harness(channel, max_effort=0.01, newtons_per_amp=20.0),
+                    r"max_effort 0.01 N is below the smallest current limit .* 0.04 N")
+
+
+class _FlakyRpdo:
+    """Makes the next ``n`` RPDO1 frames of node 5 fail as socketcan does when its tx queue is full."""
+
+    def __init__(self, bus, cob_id=0x205):
+        self.bus, self.cob_id, self.n, self.failed = bus, cob_id, 0, 0
+        self.real = bus.send
+        bus.send = self.send
+
+    def send(self, msg, timeout=None):
+        import can
+
+        if self.n > 0 and msg.arbitration_id == self.cob_id:
+            self.n -= 1
+            self.failed += 1
+            raise can.CanOperationError("Failed to transmit: [Errno 105] No buffer space available")
+        return self.real(msg, timeout)
+
+
+def test_failed_setpoint_is_sent_again(drive, channel):
+    """A set-point whose frame failed to go out is not taken as sent: the next write with the same target sends it
+    (it was skipped forever: the target was recorded before the transmit)."""
+    with harness(channel) as h:
+        drive_for(h, 0.06, 0.6)
+        assert drive.latched == h.comp.map.counts(0.06)
+        flaky = _FlakyRpdo(h.comp.network.bus)
+        flaky.n = 1
+        with pytest.raises(Exception, match="No buffer space"):
+            h.comp._hw_write(0.05)
+        assert flaky.failed == 1 and drive.latched == h.comp.map.counts(0.06)
+        h.comp._hw_write(0.05)  # the same target again: sent this time
+        assert wait_for(lambda: drive.latched == h.comp.map.counts(0.05))
+
+
+def test_safe_state_hold_sent_after_failed_transmit(drive, channel):
+    """The safe state always sends its hold set-point: a hold whose frames failed is sent by the next safe_state()
+    (it was never sent again, and the drive kept squeezing towards the old set-point)."""
+    with harness(channel) as h:
+        drive_for(h, 0.06, 0.6)
+        o = drive_for(h, 0.0, 1.6)  # closing on the object at 60000 counts; latched set-point 0 m (100000)
+        assert drive.latched == 100000 and o["effort"] > 0
+        logs = []
+        h.ctx._log = logs.append
+        flaky = _FlakyRpdo(h.comp.network.bus)
+        flaky.n = 1  # the hold's set-point handshake fails (its first frame)
+        h.comp.safe_state()  # logs the failure, never raises
+        assert flaky.failed == 1 and drive.latched == 100000
+        assert any("safe_state could not command" in m for m in logs)
+        h.comp.safe_state()  # the bus works again: the hold goes out
+        assert wait_for(lambda: drive.latched == 60000)
+        drive_for(h, 0.07, 0.1)  # later commands are ignored
+        assert drive.latched == 60000
+
+
+def test_failed_hold_is_retried_by_the_next_step(drive, channel):
+    with harness(channel) as h:
+        drive_for(h, 0.06, 0.6)
+        drive_for(h, 0.0, 1.6)
+        flaky = _FlakyRpdo(h.comp.network.bus)
+        flaky.n = 1
+        h.comp.safe_state()
+        assert flaky.failed == 1 and drive.latched == 100000
+        drive_for(h, 0.0, 0.05)  # the runtime keeps stepping: each write retries the hold until it went out
+        assert wait_for(lambda: drive.latched == 60000)
+
+
+def test_safe_state_waits_for_a_send_in_progress(drive, channel):
+    """safe_state() from another thread does not interleave with a step's command and send: it waits for them,
+    then sends the hold last (so the step's set-point cannot replace the hold)."""
+    import threading
+
+    with harness(channel) as h:
+        drive_for(h, 0.06, 0.6)
+        frames = []
+        real = h.comp.rp1.transmit
+        in_send, release = threading.Event(), threading.Event()
+
+        def slow_transmit():
+            frames.append((threading.current_thread().name, h.comp.rp1[0x607A].raw,
+                           h.comp.rp1[0x6040].raw & CW_NEW_SETPOINT))
+            if threading.current_thread().name == "stepper" and not release.is_set():
+                in_send.set()
+                release.wait(1.0)
+            real()
+
+        h.comp.rp1.transmit = slow_transmit
+        h.t = time.monotonic()
+        h.set(opening_command=0.05)
+        stepper = threading.Thread(target=h.comp.step, args=(h.t, h.inputs), name="stepper")
+        stepper.start()
+        assert in_send.wait(1.0)
+        safe = threading.Thread(target=h.comp.safe_state, name="safe")
+        safe.start()
+        time.sleep(0.1)
+        assert [f[0] for f in frames] == ["stepper"]  # safe_state waits for the step's handshake
+        release.set()
+        stepper.join(2.0)
+        safe.join(2.0)
+        assert [f[0] for f in frames] == ["stepper", "stepper", "safe", "safe"]
+        stepped, hold = frames[0][1], frames[2][1]
+        assert stepped > h.comp.map.counts(0.06) and frames[1][1] == stepped  # the step moved towards 0.05 m
+        assert hold == h.comp.map.counts(h.comp._setpoint) and frames[3][1] == hold
+        assert [f[2] for f in frames] == [0, CW_NEW_SETPOINT] * 2  # two whole handshakes, one after the other
+        assert wait_for(lambda: drive.latched == hold)
+        drive_for(h, 0.05, 0.1)
+        assert drive.latched == hold  # the hold stays
 
 
 def test_setpoint_speed_limited(drive, channel):

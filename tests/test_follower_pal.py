@@ -144,11 +144,55 @@ def test_controller_limits_and_rejections(robot):
         ctx.try_shutdown()
 
 
-def test_effort_nan_when_not_reported(robot):
+def test_no_effort_reported_is_refused(robot):
+    """Without efforts in /joint_states max_effort cannot be enforced: start-up refuses (it used to run silently
+    without the force limit, closing on the object with the controller's full effort)."""
     robot.report_effort = False
+    configure_fails(harness(max_effort=5.0), r"/joint_states carries no efforts .*max_effort \(5.0 N\) cannot be "
+                                             r"enforced.*enforce_effort: false")
+
+
+def test_effort_lost_while_running_is_a_fault(robot):
     with harness() as h:
+        drive(h, 0.08, 0.2)
+        robot.report_effort = False
+        with pytest.raises(HardwareError, match=r"/joint_states carries no efforts"):
+            drive(h, 0.08, 1.0)
+
+
+def test_effort_nan_when_not_reported(robot):
+    """enforce_effort: false runs without the force limit, as asked: effort output NaN."""
+    robot.report_effort = False
+    with harness(enforce_effort=False) as h:
         o = drive(h, 0.08, 0.2)
         assert math.isnan(o["effort"]) and o["opening"] == pytest.approx(0.08, abs=2e-3)
+
+
+def test_controller_goes_away(robot):
+    """The controller unloads (or crashes) while /joint_states goes on: a fault within controller_timeout (it was
+    never noticed: the subscriber was checked at connect only)."""
+    with harness() as h:  # controller_timeout 0.5 s
+        drive(h, 0.07, 0.2)
+        robot.drop_controller()
+        t0 = time.monotonic()
+        with pytest.raises(HardwareError, match=r"no controller is subscribed to /tiago/gripper_controller/"
+                                                r"joint_trajectory for 0\.\d+ s"):
+            drive(h, 0.05, 3.0)
+        assert 0.5 <= time.monotonic() - t0 < 2.0
+        assert robot.published > 0 and robot.publishing  # /joint_states kept coming all along
+
+
+def test_controller_back_within_timeout(robot):
+    with harness(controller_timeout=2.0) as h:
+        drive(h, 0.07, 0.2)
+        robot.drop_controller()
+        assert realtime.wait_for(lambda: h.comp.pub.get_subscription_count() == 0, 1.0)
+        drive(h, 0.07, 0.2)  # a gap shorter than controller_timeout is no fault
+        robot.restore_controller()
+        assert realtime.wait_for(lambda: h.comp.pub.get_subscription_count() > 0, 1.0)
+        o = drive(h, 0.06, 0.6)
+        assert o["opening"] == pytest.approx(0.06, abs=1e-3)
+        assert h.comp._no_controller_since is None
 
 
 def test_no_controller():

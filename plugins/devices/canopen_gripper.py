@@ -8,16 +8,22 @@ asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0
 operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402).
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
-set-point" edge, bit 5 "change set immediately"), transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
-triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat or missing TPDOs end in a
-HardwareError naming the cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an
-EDS file is optional (without one, the standard CiA 301/402 objects above are assumed).
+set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
+transmit is retried by the next write), and the safe state always sends its hold set-point; a lock makes a step's
+command and send one unit, so a safe_state() from another thread waits for it and its hold goes out last. Max
+current 0x6073 is rounded down, so the current cap never exceeds ``max_effort``. Each step then transmits SYNC and
+waits (``pdo_timeout``) for the TPDOs it triggers. A drive in FAULT (statusword; reported with its EMCY), a lost
+heartbeat or missing TPDOs end in a HardwareError naming the cause. Scaling (counts <-> opening, per-mille current
+<-> newtons) is configuration; an EDS file is optional (without one, the standard CiA 301/402 objects above are
+assumed).
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
+from fractions import Fraction
 from typing import Any
 
 from pydantic import Field, model_validator
@@ -142,6 +148,8 @@ class CanopenGripper(FollowerBase):
         import canopen
 
         p = self.params
+        self._io_lock = threading.RLock()  # one set-point handshake at a time (step vs. safe_state)
+        self._target: int | None = None  # counts of the last set-point whose frames all went out
         self.network = canopen.Network()
         try:
             self.network.connect(interface=p.interface, channel=p.channel, bitrate=p.bitrate)
@@ -179,13 +187,12 @@ class CanopenGripper(FollowerBase):
         self.rated_ma = self._sdo("reading rated current 0x6075", lambda: node.sdo[0x6075].raw)
         if not self.rated_ma:
             raise HardwareError(f"{self._where()} reports a rated current (0x6075) of 0 mA")
-        permille = int(math.ceil(p.max_effort / p.newtons_per_amp / (self.rated_ma / 1000.0) * 1000.0))
-        self.max_current = min(permille, 0xFFFF)
+        self.max_current = self._max_current_permille(self.rated_ma)
         self._sdo("writing max current 0x6073", lambda: setattr(node.sdo[0x6073], "raw", self.max_current))
         actual = self._sdo("reading position 0x6064", lambda: node.sdo[0x6064].raw)
-        self._target = actual
         self._cw = CW_ENABLE | CW_CHANGE_IMMEDIATELY
         self._send_setpoint(actual, toggle=False)
+        self._target = actual
         node.nmt.state = "OPERATIONAL"
         node.setup_402_state_machine(read_pdos=False)
         # SYNC drives the TPDOs that carry the statusword while the state machine is walked
@@ -198,6 +205,20 @@ class CanopenGripper(FollowerBase):
         finally:
             self.network.sync.stop()
         self._hb_seen = time.monotonic()
+
+    def _max_current_permille(self, rated_ma: int) -> int:
+        """Max current 0x6073 (per mille of the rated current) for ``max_effort``, rounded down: the cap the drive
+        applies never exceeds max_effort. Computed in exact decimal arithmetic (the parameters as written), so a
+        value that is exactly representable (10 N at 20 N/A of 2 A: 250) is not lost to binary rounding."""
+        p = self.params
+        exact = Fraction(repr(p.max_effort)) * 1_000_000 / (Fraction(repr(p.newtons_per_amp)) * rated_ma)
+        permille = min(math.floor(exact), 0xFFFF)
+        if permille < 1:
+            least = Fraction(rated_ma, 1_000_000) * Fraction(repr(p.newtons_per_amp))
+            raise HardwareError(f"max_effort {p.max_effort} N is below the smallest current limit {self._where()} "
+                                f"accepts (0x6073 = 1 per mille of the rated {rated_ma} mA = {float(least):.4g} N "
+                                f"at newtons_per_amp {p.newtons_per_amp}); raise max_effort")
+        return permille
 
     def _map_pdos(self) -> None:
         n = self.node
@@ -303,11 +324,27 @@ class CanopenGripper(FollowerBase):
                     from None
             raise
 
+    def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
+        r = self.read_state(t)  # outside the lock: it waits up to pdo_timeout for the TPDOs
+        with self._io_lock:  # the step's set-point and its send are one unit against a safe_state() from elsewhere
+            self._hw_write(self.command_target(t, inputs))
+        return self.outputs_from(r, t)
+
     def _hw_write(self, opening: float) -> None:
-        counts = self.map.counts(opening)
-        if counts != self._target:
-            self._target = counts
-            self._send_setpoint(counts)
+        with self._io_lock:
+            counts = self.map.counts(opening)
+            if counts != self._target:
+                self._target = None  # unknown until both frames went out: a failed transmit is retried next time
+                self._send_setpoint(counts)
+                self._target = counts
+
+    def safe_state(self) -> None:
+        lock = getattr(self, "_io_lock", None)
+        if lock is None:  # never opened
+            return super().safe_state()
+        with lock:  # waits for a step's command and send in progress; none can interleave with the hold's
+            self._target = None  # always (re)send the hold set-point, whatever was sent before
+            super().safe_state()
 
     def _hw_close(self) -> None:
         net = getattr(self, "network", None)

@@ -9,7 +9,15 @@ each); the opening is their sum. Each step publishes, when the setpoint changed 
 NaN when the message carries none).
 
 The position controller has no force limit of its own, so ``max_effort`` is enforced here: while the reported effort
-exceeds it, the setpoint backs off towards the measured opening (at ``max_speed``) instead of closing further.
+exceeds it, the setpoint backs off towards the measured opening (at ``max_speed``) instead of closing further. That
+needs efforts in ``/joint_states``: without them (or with non-finite ones) the driver refuses to run (a HardwareError
+at start-up or at the message that lacks them) unless ``enforce_effort: false`` says to run without the force limit
+(the effort output is then NaN).
+
+A controller that goes away while ``/joint_states`` keeps arriving (unloaded, crashed) is noticed too: every read
+checks that something still subscribes to the command topic, and ``controller_timeout`` without a subscriber is a
+HardwareError (how soon DDS reports a crashed process's subscription gone is its liveliness lease; a controller
+that is unloaded or shut down cleanly is gone at once).
 
 rclpy is imported lazily (``pip install teletouch[ros2]``). The driver owns its rclpy Context, node and executor thread
 (never rclpy's global context), so it coexists with other ROS 2 users (e.g. the ROS 2 bridge) in the same process.
@@ -60,6 +68,11 @@ class PalGripper(FollowerBase):
                                           json_schema_extra={"unit": "s"})
         connect_timeout: Seconds = Field(3.0, gt=0, description="wait this long for the controller and "
                                          "/joint_states at start", json_schema_extra={"unit": "s"})
+        controller_timeout: Seconds = Field(0.5, gt=0, description="fault when nothing has subscribed to the "
+                                            "command topic for this long (the controller is gone)",
+                                            json_schema_extra={"unit": "s"})
+        enforce_effort: bool = Field(True, description="max_effort needs efforts in /joint_states: refuse to run "
+                                     "without them (false: run without the force limit, effort output NaN)")
 
         @field_validator("namespace")
         @classmethod
@@ -119,6 +132,7 @@ class PalGripper(FollowerBase):
             time.sleep(0.005)
         self._sent: float | None = None
         self._sent_at = 0.0
+        self._no_controller_since: float | None = None
 
     def _spin_loop(self) -> None:
         try:
@@ -142,16 +156,41 @@ class PalGripper(FollowerBase):
         with self._lock:
             self._state = state
 
+    def _check_controller(self, now: float) -> None:
+        """Fault when nothing has subscribed to the command topic for controller_timeout (one graph lookup)."""
+        if self.pub.get_subscription_count() > 0:
+            self._no_controller_since = None
+            return
+        if self._no_controller_since is None:
+            self._no_controller_since = now
+        gone = now - self._no_controller_since
+        if gone > self.params.controller_timeout:
+            raise HardwareError(f"no controller is subscribed to {self.command_topic} for {gone:.3f} s "
+                                f"(controller_timeout {self.params.controller_timeout} s) while "
+                                f"{self.params.joint_states_topic} goes on: the controller was unloaded or crashed; "
+                                f"the commands reach nobody")
+
     def _hw_read(self) -> Reading | None:
+        p = self.params
+        now = time.monotonic()
+        self._check_controller(now)
         with self._lock:
             s = self._state
         if s is None:
             return None
-        age = time.monotonic() - s[3]
-        if age > self.params.read_timeout:
-            raise HardwareError(f"{self.params.joint_states_topic} silent for {age:.3f} s (read_timeout "
-                                f"{self.params.read_timeout} s); the robot or the network is gone")
+        age = now - s[3]
+        if age > p.read_timeout:
+            raise HardwareError(f"{p.joint_states_topic} silent for {age:.3f} s (read_timeout "
+                                f"{p.read_timeout} s); the robot or the network is gone")
+        if p.enforce_effort and not math.isfinite(s[2]):
+            raise HardwareError(f"{p.joint_states_topic} carries no efforts for {list(p.joint_names)} (missing or "
+                                f"not finite): max_effort ({p.max_effort} N) cannot be enforced without them; set "
+                                f"enforce_effort: false to run without the force limit (effort output NaN)")
         return Reading(s[0], s[1], s[2], s[3])
+
+    def activate(self) -> None:
+        self._no_controller_since = None  # counted afresh: the node was not looking while inactive
+        super().activate()
 
     def command_target(self, t: float, inputs: Any) -> float:
         before, t_before = self._setpoint, self._last_t

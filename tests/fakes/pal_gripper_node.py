@@ -16,7 +16,10 @@ An object of ``object_width`` between the fingers blocks them: each finger then 
 ``goal_time`` after the trajectory's end, the goal is aborted as the real controller does: the gripper holds where
 it is (counted in ``aborted``).
 
-Runs in its own thread with its own rclpy Context (its own DDS participant); ``silent()`` stops it publishing.
+Runs in its own thread with its own rclpy Context (its own DDS participant); ``publishing = False`` stops it
+publishing; ``drop_controller()`` destroys the trajectory subscription (the controller unloaded or crashed) while
+``/joint_states`` goes on, ``restore_controller()`` subscribes again; ``report_effort = False`` publishes JointState
+without efforts (as some robots do).
 """
 
 from __future__ import annotations
@@ -70,9 +73,10 @@ class PalGripperNode:
         rclpy.init(context=self.ctx, domain_id=self.domain_id)
         self.node = rclpy.create_node("gripper_controller", namespace=self.ns or "/", context=self.ctx)
         self._JointState = JointState
-        self.node.create_subscription(JointTrajectory, f"{self.ns}/gripper_controller/joint_trajectory",
-                                      self._on_trajectory, QoSProfile(depth=10,
-                                                                      reliability=ReliabilityPolicy.RELIABLE))
+        self._JointTrajectory, self._qos = JointTrajectory, QoSProfile(depth=10,
+                                                                       reliability=ReliabilityPolicy.RELIABLE)
+        self._sub = None
+        self.restore_controller()
         self.pub = self.node.create_publisher(JointState, "/joint_states", 10)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
@@ -92,6 +96,24 @@ class PalGripperNode:
         self.node.destroy_node()
         self.ctx.try_shutdown()
         self._spin.join(timeout=2.0)
+
+    def drop_controller(self) -> None:
+        """The controller goes away (unloaded, crashed): nothing subscribes to the command topic any more, while
+        the joint_state_broadcaster keeps publishing /joint_states."""
+        if self._sub is not None:
+            self.node.destroy_subscription(self._sub)
+            self._sub = None
+
+    def restore_controller(self) -> None:
+        """The controller subscribes to its command topic (again)."""
+        if self._sub is None:
+            self._sub = self.node.create_subscription(self._JointTrajectory,
+                                                      f"{self.ns}/gripper_controller/joint_trajectory",
+                                                      self._on_trajectory, self._qos)
+
+    @property
+    def controller_loaded(self) -> bool:
+        return self._sub is not None
 
     def __enter__(self) -> "PalGripperNode":
         return self.start()
