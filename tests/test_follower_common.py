@@ -7,6 +7,7 @@ matters, through dynamixel-gripper against its emulated servo (tests/fakes/dynam
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import time
@@ -25,6 +26,25 @@ from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 from teletouch.plugins.devices.follower_common import FollowerParams  # noqa: E402
 from teletouch.plugins.devices.sim_gripper import SimGripper  # noqa: E402
+
+
+@contextlib.contextmanager
+def dynamixel(**params):
+    """A Dynamixel gripper (wall clock) on the emulator, the servo resting fully open (1024 ticks)."""
+    emu = DynamixelEmulator(15, position=1024).start()
+    try:
+        h = Harness(DynamixelGripper, {"port": emu.port, "baudrate": 1000000, **params})
+        h.ctx.clock_kind = "wall"
+        with h:
+            yield emu, h
+    finally:
+        emu.stop()
+
+
+def goal_positions(emu, since: float) -> list[int]:
+    """The Goal_Position ticks the driver sent (SYNC_WRITE packets) since ``since`` (time.monotonic())."""
+    return [int.from_bytes(p[5:9], "little", signed=True) for (t, _i, inst, p) in emu.rx_packets
+            if inst == 0x83 and t >= since]
 
 FREE = {"object_width": None, "max_speed": 0.05}
 DT = 1e-3  # sim-gripper's default rate: 1 kHz
@@ -92,25 +112,17 @@ def test_hold_outside_the_range_walks_in_at_max_speed():
 def test_startup_outside_the_range_dynamixel_first_packet_is_the_present_position():
     """The audit's case: the servo rests fully open (0.075 m), max_opening 0.04: the first Goal_Position is the
     present position and the goal then moves at most max_speed over two nominal periods per packet."""
-    emu = DynamixelEmulator(15, position=1024).start()
-    try:
-        h = Harness(DynamixelGripper, {"port": emu.port, "baudrate": 1000000, "max_opening": 0.04,
-                                       "max_speed": 0.05})
-        h.ctx.clock_kind = "wall"
-        with h:
-            t0 = time.monotonic()
-            o = drive(h, 0.04, 0.3, period=0.01)
-            m = h.comp.map
-            gp = [(t, int.from_bytes(p[5:9], "little", signed=True)) for (t, _i, inst, p) in emu.rx_packets
-                  if inst == 0x83 and t >= t0]
-        assert len(gp) > 10
-        assert abs(gp[0][1] - 1024) <= 1  # no jump to the clamped 0.04 m (1502 ticks)
-        step_max = 0.05 * 2.0 / DynamixelGripper.default_rate  # two nominal periods at max_speed
-        for (_, a), (_, b) in zip(gp, gp[1:]):
-            assert abs(m.opening(b) - m.opening(a)) <= step_max + abs(m.scale) + 1e-12
-        assert o["opening"] < 0.075 - 0.005  # and it does walk in
-    finally:
-        emu.stop()
+    with dynamixel(max_opening=0.04, max_speed=0.05) as (emu, h):
+        t0 = time.monotonic()
+        o = drive(h, 0.04, 0.3, period=0.01)
+        m = h.comp.map
+        gp = goal_positions(emu, t0)
+    assert len(gp) > 10
+    assert abs(gp[0] - 1024) <= 1  # no jump to the clamped 0.04 m (1502 ticks)
+    step_max = 0.05 * 2.0 / DynamixelGripper.default_rate  # two nominal periods at max_speed
+    for a, b in zip(gp, gp[1:]):
+        assert abs(m.opening(b) - m.opening(a)) <= step_max + abs(m.scale) + 1e-12
+    assert o["opening"] < 0.075 - 0.005  # and it does walk in
 
 
 # ------------------------------------------------------------------------------------------- 2. re-activation
@@ -143,32 +155,25 @@ def test_reactivation_after_safe_state_also_starts_from_the_measured_opening():
 
 
 def test_reactivation_dynamixel_does_not_drive_back():
-    emu = DynamixelEmulator(15, position=1024).start()
-    try:
-        h = Harness(DynamixelGripper, {"port": emu.port, "baudrate": 1000000})
-        h.ctx.clock_kind = "wall"
-        with h:
-            m = h.comp.map
-            drive(h, 0.07, 0.5)
-            h.comp.deactivate()
-            emu._put(emu.table.goal_position, 1400)  # another program moves the servo while the node is inactive
+    with dynamixel() as (emu, h):
+        m = h.comp.map
+        drive(h, 0.07, 0.5)
+        h.comp.deactivate()
+        emu._put(emu.table.goal_position, 1400)  # another program moves the servo while the node is inactive
 
-            def moved():
-                with emu._lock:
-                    emu._update()
-                return abs(emu.get(emu.table.present_position) - 1400) <= 2
+        def moved():
+            with emu._lock:
+                emu._update()
+            return abs(emu.get(emu.table.present_position) - 1400) <= 2
 
-            assert wait_for(moved, timeout=3.0)
-            present = emu.get(emu.table.present_position)
-            h.comp.activate()
-            assert h.comp._setpoint == pytest.approx(m.opening(present), abs=3 * abs(m.scale))
-            t0 = time.monotonic()
-            drive(h, m.opening(present), 0.05)
-            gp = [int.from_bytes(p[5:9], "little", signed=True) for (t, _i, inst, p) in emu.rx_packets
-                  if inst == 0x83 and t >= t0]
-        assert gp and all(abs(g - present) <= 3 for g in gp)  # not back towards 0.07 m (1092 ticks)
-    finally:
-        emu.stop()
+        assert wait_for(moved, timeout=3.0)
+        present = emu.get(emu.table.present_position)
+        h.comp.activate()
+        assert h.comp._setpoint == pytest.approx(m.opening(present), abs=3 * abs(m.scale))
+        t0 = time.monotonic()
+        drive(h, m.opening(present), 0.05)
+        gp = goal_positions(emu, t0)
+    assert gp and all(abs(g - present) <= 3 for g in gp)  # not back towards 0.07 m (1092 ticks)
 
 
 # -------------------------------------------------------------------------------------------- 3. stale commands
@@ -252,24 +257,13 @@ def test_late_step_moves_the_setpoint_by_at_most_two_periods():
 
 def test_late_step_dynamixel_sends_no_jump():
     """The audit's case: a step 0.4 s late sent a goal 20 mm away in one packet."""
-    emu = DynamixelEmulator(15, position=1024).start()
-    try:
-        h = Harness(DynamixelGripper, {"port": emu.port, "baudrate": 1000000})
-        h.ctx.clock_kind = "wall"
-        with h:
-            m = h.comp.map
-            drive(h, 0.075, 0.2)
-            time.sleep(0.4)
-            t0 = time.monotonic()
-            h.t = t0
-            h.step(t0, opening_command=0.0)
-
-            def sent():
-                return [int.from_bytes(p[5:9], "little", signed=True) for (t, _i, inst, p) in emu.rx_packets
-                        if inst == 0x83 and t >= t0]
-
-            assert wait_for(lambda: len(sent()) > 0)
-            gp = sent()
-        assert 0.075 - m.opening(gp[-1]) <= 0.05 * 0.02 + abs(m.scale)
-    finally:
-        emu.stop()
+    with dynamixel() as (emu, h):
+        m = h.comp.map
+        drive(h, 0.075, 0.2)
+        time.sleep(0.4)
+        t0 = time.monotonic()
+        h.t = t0
+        h.step(t0, opening_command=0.0)
+        assert wait_for(lambda: len(goal_positions(emu, t0)) > 0)
+        gp = goal_positions(emu, t0)
+    assert 0.075 - m.opening(gp[-1]) <= 0.05 * 0.02 + abs(m.scale)
