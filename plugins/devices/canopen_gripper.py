@@ -324,11 +324,10 @@ class CanopenGripper(FollowerBase):
                     from None
             raise
 
-    def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
-        r = self.read_state(t)  # outside the lock: it waits up to pdo_timeout for the TPDOs
-        with self._io_lock:  # the step's set-point and its send are one unit against a safe_state() from elsewhere
-            self._hw_write(self.command_target(t, inputs))
-        return self.outputs_from(r, t)
+    def _command_guard(self) -> Any:
+        # the step's set-point and its send are one unit against a safe_state() from elsewhere (the state read, which
+        # waits up to pdo_timeout for the TPDOs, stays outside)
+        return self._io_lock
 
     def _hw_write(self, opening: float) -> None:
         with self._io_lock:

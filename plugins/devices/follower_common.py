@@ -18,6 +18,7 @@ a gripper resting outside [min_opening, max_opening] is walked into the range ra
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -253,8 +254,14 @@ class FollowerBase(Device):
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         r = self.read_state(t)
-        self._hw_write(self.command_target(t, inputs))
+        with self._command_guard():
+            self._hw_write(self.command_target(t, inputs))
         return self.outputs_from(r, t)
+
+    def _command_guard(self) -> Any:
+        """Held while a step works out and sends its set-point: a driver whose safe_state() may come from another
+        thread returns its lock here, so that the hold is never overtaken by a step's send (default: nothing)."""
+        return contextlib.nullcontext()
 
     def outputs_from(self, r: Reading, t: float) -> dict[str, Any]:
         stamp = t if r.mono is None or self.ctx.clock_kind == "sim" else self.ctx.from_monotonic(r.mono)
