@@ -82,7 +82,9 @@ def test_killed_publisher_makes_the_controller_fade_the_force(tmp_path):
             if rec.exists():
                 _, items = open_recording(rec, keys={"ctrl.gripper_force"})
                 _, _, f = _series(items, "ctrl.gripper_force")
-                ok = len(f) > 500 and np.all(np.abs(f[-200:] - 1.98) < 0.2)
+                # settled: the hand's first reaction to the force (a passivity transient of a few seconds on a
+                # loaded machine) is over
+                ok = len(f) > 700 and np.all(np.abs(f[-400:] - 1.98) < 0.2)
         assert ok, "the control process never rendered the remote force"
         os.kill(pub.pid, signal.SIGKILL)
         killed_at = time.time_ns()
@@ -111,7 +113,7 @@ def test_killed_publisher_makes_the_controller_fade_the_force(tmp_path):
     assert len(before) > 50 and np.all(np.abs(before - 1.98) < 0.2)  # force 2 N minus the 0.02 N deadband
     after = cf[ct > kill_t + 0.1 + 0.2 + 0.3]  # stale_after + fade_time + slack (2 cores shared by a team)
     assert len(after) > 200 and np.all(np.abs(after) < 0.05)
-    fading = ct[(np.abs(cf) < 1.9) & (ct > kill_t - 0.5)]
+    fading = ct[(np.abs(cf) < 1.78) & (ct > kill_t - 0.5)]   # below the band `before` holds (1.98 +- 0.2)
     assert fading.min() > kill_t - 0.05  # it faded because of the kill, not before
     # the operator's fingers, no longer pushed apart, close by F / hand_stiffness (sim-omega7 at rest:
     # opening = intent + F / k_hand, k_hand = 300 N/m), and the follower command follows them
