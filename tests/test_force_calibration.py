@@ -246,7 +246,8 @@ def test_params_checked():
 
 def test_samples_csv_checked_at_configure(tmp_path):
     (tmp_path / "afile").write_text("")
-    for bad, why in ((tmp_path / "afile" / "s.csv", "afile is not a directory"), (tmp_path, "is a directory")):
+    for bad, why in ((tmp_path / "afile" / "s.csv", "afile is a file, not a folder"),
+                     (tmp_path, "is a folder, expected a file name")):
         comp = Harness(PressRoutine, dict(FAST, samples_csv=str(bad))).comp
         with pytest.raises(ValueError, match=f"samples_csv: cannot write .*{why}"):
             comp.configure()
@@ -305,10 +306,10 @@ BOTH, GRAPH = ("csv", "graph"), ("graph",)
     (BOTH, ["--min-depth", "5N"], "--min-depth: '5N' is in N, expected a quantity in m"),
     (GRAPH, ["--duration", "5parsecs"], "--duration: unknown unit 'parsecs'"),
     (GRAPH, ["--duration", "0s"], "--duration: expected a positive duration"),
-    (BOTH, ["-o", "{tmp}/afile/x.json"], "-o: cannot write '{tmp}/afile/x.json': {tmp}/afile is not a directory"),
-    (BOTH, ["-o", "{tmp}/outdir"], "-o: cannot write '{tmp}/outdir': is a directory"),
+    (BOTH, ["-o", "{tmp}/afile/x.json"], "-o: cannot write '{tmp}/afile/x.json': {tmp}/afile is a file, not a folder"),
+    (BOTH, ["-o", "{tmp}/outdir"], "-o: cannot write '{tmp}/outdir': is a folder, expected a file name"),
     (BOTH, ["--plot", "{tmp}/afile/p.png"], "--plot: cannot write"),
-    (GRAPH, ["--samples", "{tmp}/outdir"], "--samples: cannot write '{tmp}/outdir': is a directory"),
+    (GRAPH, ["--samples", "{tmp}/outdir"], "--samples: cannot write '{tmp}/outdir': is a folder, expected a file name"),
 ] for m in modes])
 def test_cli_arguments_and_outputs_checked_before_the_work(tmp_path, capsys, monkeypatch, mode, extra, message):
     from teletouch.cli import main

@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
+from teletouch.paths import output_problem
 from teletouch.units import Meters, parse_quantity
 
 from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS, max_stride
@@ -184,20 +184,10 @@ def _read_background(path: str | Path, model: Any) -> np.ndarray:
 
 
 def _check_output(path: str | Path, what: str, folder: bool = False) -> None:
-    """Refuse an output path that cannot be written (a file where a folder is needed, or the other way round, or a
-    folder without write permission) with a ValueError naming it; checked before any long work, creates nothing."""
-    p = Path(path)
-    if folder and p.exists() and not p.is_dir():
-        raise ValueError(f"{what} {path}: exists and is not a folder")
-    if not folder and p.is_dir():
-        raise ValueError(f"{what} {path}: is a folder, expected a file name")
-    d = p if folder else p.parent
-    while not d.exists() and d != d.parent:
-        d = d.parent
-    if d.exists() and not d.is_dir():
-        raise ValueError(f"{what} {path}: {d} is a file, not a folder")
-    if not os.access(d, os.W_OK | os.X_OK):
-        raise ValueError(f"{what} {path}: the folder {d} is not writable")
+    """Refuse an output path that cannot be written with a ValueError naming the option (before any long work)."""
+    problem = output_problem(path, folder)
+    if problem:
+        raise ValueError(f"{what} {path}: {problem}")
 
 
 # ------------------------------------------------------------------------------------------------------------ CLI

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Any, Literal
@@ -40,6 +39,7 @@ import numpy as np
 from pydantic import Field
 
 from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
+from teletouch.paths import output_problem
 from teletouch.units import (
     Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals, Seconds,
 )
@@ -54,25 +54,6 @@ def _u(unit: str) -> dict[str, str]:
 
 
 AXES = {"x": 0, "y": 1, "z": 2}
-
-
-def _output_problem(path: str | os.PathLike) -> str | None:
-    """Why a file cannot be written at ``path`` (None: it can), checked before long work without creating anything:
-    the target must not be a directory and its nearest existing ancestor must be a writable directory (missing
-    directories below it are created when the file is written)."""
-    path = Path(path)
-    if path.is_dir():
-        return "is a directory, expected a file name"
-    if path.exists() and not os.access(path, os.W_OK):
-        return "the file exists and is not writable"
-    anc = path.parent
-    while not os.path.lexists(anc) and anc.parent != anc:
-        anc = anc.parent
-    if not anc.is_dir():
-        return f"{anc} is not a directory"
-    if not os.access(anc, os.W_OK | os.X_OK):
-        return f"the directory {anc} is not writable"
-    return None
 
 
 # ================================================================================================ the press routine
@@ -161,7 +142,7 @@ class PressRoutine(Component):
             raise ValueError(f"step ({p.step * 1e3:.3f} mm) is larger than max_displacement "
                              f"({p.max_displacement * 1e3:.3f} mm)")
         if p.samples_csv:
-            problem = _output_problem(p.samples_csv)
+            problem = output_problem(p.samples_csv)
             if problem:
                 raise ValueError(f"samples_csv: cannot write {p.samples_csv!r}: {problem}")
         self.u = np.zeros(3)
@@ -736,7 +717,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     samples_path = Path(args.samples) if args.samples else out.with_name(_stem(out) + ".samples.csv")
     outputs = [("-o", out), ("--plot", plot)] + ([] if args.csv else [("--samples", samples_path)])
     for opt, path in outputs:
-        problem = _output_problem(path)
+        problem = output_problem(path)
         if problem:
             return usage(f"{opt}: cannot write {str(path)!r}: {problem}")
     if args.csv:
