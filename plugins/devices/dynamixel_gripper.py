@@ -265,10 +265,7 @@ class DynamixelGripper(FollowerBase):
         items = [t.torque_enable] + ([t.hardware_error_status] if t.hardware_error_status is not None else [])
         start = min(a for a, _ in items)
         length = max(a + s for a, s in items) - start
-        if length > 16:  # far apart: one read each
-            spans = [(a, s) for a, s in items]
-        else:
-            spans = [(start, length)]
+        spans = list(items) if length > 16 else [(start, length)]  # far apart: one read each
         mem: dict[int, int] = {}
         for addr, n in spans:
             data, result, error = self.ph.readTxRx(self.port, p.dxl_id, addr, n)
