@@ -199,7 +199,7 @@ class FollowerBase(Device):
         # the speed limit counts at most two nominal periods: after a late step the setpoint does not jump
         dt = 0.0 if self._last_t is None else min(t - self._last_t, self._max_dt)
         self._last_t = t
-        if getattr(self, "_resync", False) or not math.isfinite(self._setpoint):
+        if self._resync or not math.isfinite(self._setpoint):
             self._resync = False
             self._setpoint = self._measured()
         if self._safe:
