@@ -273,3 +273,16 @@ def test_params_validation():
         CanopenGripper.Params(counts_open=5, counts_closed=5)
     with pytest.raises(ValidationError, match="node_id"):
         CanopenGripper.Params(node_id=200)
+
+
+def test_opening_limits_must_lie_within_the_calibration():
+    # a gripper calibrated to open 50 mm, with the default max_opening of 80 mm: commands above 50 mm would be
+    # extrapolated to counts past the open end
+    with pytest.raises(ValidationError, match=r"max_opening \(80 mm\) is outside the calibrated range 0-50 mm "
+                                              r"\(opening_at_counts_open, opening_at_counts_closed\)"):
+        CanopenGripper.Params(opening_at_counts_open=0.05)
+    with pytest.raises(ValidationError, match=r"min_opening \(5 mm\) is outside the calibrated range 10-80 mm"):
+        CanopenGripper.Params(opening_at_counts_closed=0.01, min_opening=0.005)
+    p = CanopenGripper.Params(opening_at_counts_open=0.05, max_opening=0.05, opening_at_counts_closed=0.01,
+                              min_opening=0.01)
+    assert (p.min_opening, p.max_opening) == (0.01, 0.05)

@@ -119,7 +119,8 @@ class CanopenGripper(FollowerBase):
         @model_validator(mode="after")
         def _map(self) -> "CanopenGripper.Params":
             OpeningMap(self.counts_open, self.opening_at_counts_open, self.counts_closed,
-                       self.opening_at_counts_closed)
+                       self.opening_at_counts_closed).check_limits(self, "opening_at_counts_open",
+                                                                   "opening_at_counts_closed")
             return self
 
     # ------------------------------------------------------------------------------------------------------------

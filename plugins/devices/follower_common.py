@@ -68,6 +68,17 @@ class OpeningMap:
         if self.counts_open == self.counts_closed or self.opening_open == self.opening_closed:
             raise ValueError("the open and closed calibration points must differ in counts and in opening")
 
+    def check_limits(self, params: "FollowerParams", open_field: str, closed_field: str) -> None:
+        """Refuse ``min_opening``/``max_opening`` outside the two calibration points: a command there would be
+        extrapolated past the points to counts the fingers may not reach (driving into the mechanical end)."""
+        lo, hi = sorted((self.opening_open, self.opening_closed))
+        for name, value in (("min_opening", params.min_opening), ("max_opening", params.max_opening)):
+            if not lo - 1e-9 <= value <= hi + 1e-9:
+                raise ValueError(
+                    f"{name} ({value * 1e3:g} mm) is outside the calibrated range {lo * 1e3:g}-{hi * 1e3:g} mm "
+                    f"({open_field}, {closed_field}); commands there would be extrapolated past the calibration "
+                    f"points: set {name} within the range or recalibrate")
+
     @property
     def scale(self) -> float:
         """Metres of opening per count (negative when the counts grow while closing)."""
