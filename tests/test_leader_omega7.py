@@ -17,19 +17,20 @@ import pytest
 from teletouch import ComponentFault, HardwareError
 from teletouch.errors import GraphValidationError
 from teletouch.plugins.devices import dhd
+from teletouch.plugins.devices import omega7 as omega7_mod
 from teletouch.plugins.devices.omega7 import Omega7, teletouch_discover_devices
 from teletouch.testing import Harness, load_text, make_registry, run_yaml
 
 SRC = Path(__file__).parent / "fakes" / "dhd_standin.c"
 
 
-def build_standin(folder: Path) -> Path:
-    """Compile the stand-in into folder/libdhd.so (the SDK's library name)."""
+def build_standin(folder: Path, *defines: str) -> Path:
+    """Compile the stand-in into folder/libdhd.so (the SDK's library name); defines: e.g. STANDIN_NO_WATCHDOG."""
     gcc = shutil.which("gcc") or shutil.which("cc")
     assert gcc, "a C compiler (gcc) is needed to build the libdhd stand-in"
     out = folder / "libdhd.so"
-    subprocess.run([gcc, "-shared", "-fPIC", "-O2", "-Wall", "-o", str(out), str(SRC), "-lm"], check=True,
-                   capture_output=True, text=True)
+    subprocess.run([gcc, "-shared", "-fPIC", "-O2", "-Wall", *(f"-D{d}" for d in defines), "-o", str(out), str(SRC),
+                    "-lm"], check=True, capture_output=True, text=True)
     return out
 
 
@@ -49,6 +50,9 @@ class StandIn:
         self.lib.standin_set_rest.argtypes = [ctypes.c_double] * 4
         self.lib.standin_set_com_freq.argtypes = [ctypes.c_double]
         self.lib.standin_get_writes.restype = ctypes.c_long
+        self.lib.standin_get_watchdog_trips.restype = ctypes.c_long
+        self.lib.standin_get_peak.restype = ctypes.c_double
+        self.lib.standin_hang.argtypes = [ctypes.c_char_p]
         self.lib.standin_reset()
 
     def forces(self) -> tuple[list[float], list[float]]:
@@ -83,8 +87,34 @@ def harness(sdk_dir, **params) -> Harness:
 
 
 def wait_and_step(h: Harness, seconds: float = 0.03, **inputs):
-    time.sleep(seconds)
-    return h.step(h.t + seconds, **inputs)
+    """Step for `seconds` of wall time every ~2 ms, as a haptic loop does (a pause longer than the firmware watchdog,
+    20 ms by default, would let the device cut its forces), and return the last outputs."""
+    start, t0 = time.monotonic(), h.t
+    while True:
+        time.sleep(0.002)
+        elapsed = time.monotonic() - start
+        out = h.step(t0 + elapsed, **inputs)
+        if elapsed >= seconds:
+            return out
+
+
+def wait_for(cond, timeout: float = 2.0) -> bool:
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            return False
+        time.sleep(2e-4)
+    return True
+
+
+def start_hanging_step(h: Harness, standin: "StandIn", t: float, **inputs) -> threading.Thread:
+    """A step in its own thread that hangs inside libdhd (dhdGetPosition, the step's first call) until
+    standin.release(); returns once it hangs."""
+    standin.hang(b"dhdGetPosition")
+    th = threading.Thread(target=h.step, args=(t,), kwargs=inputs, daemon=True)
+    th.start()
+    assert wait_for(lambda: standin.hanging() == 1), "the step never reached dhdGetPosition"
+    return th
 
 
 # ------------------------------------------------------------------------------------------------ loading
@@ -367,3 +397,225 @@ def test_safe_state_zero_force_is_not_lost_to_the_time_guard(sdk_dir, standin):
         standin.set_timeguard_every(1)
         h.comp.safe_state()
         assert not standin.flags()["force_enabled"] and standin.forces()[0] == [0.0, 0.0, 0.0, 0.0]
+
+
+# ----------------------------------------------------------------------------------------- hangs, firmware watchdog
+def test_firmware_watchdog_cuts_the_force_while_a_libdhd_call_hangs(sdk_dir, standin):
+    # a step hangs inside libdhd holding the driver's lock, and safe_state() (what the runtime's watchdog calls)
+    # waits for that lock: the device's own watchdog must take the force off the hand, within its duration
+    with harness(sdk_dir, firmware_watchdog="20 ms") as h:
+        h.step(0.0, gripper_force=3.0)
+        before = time.monotonic()
+        h.step(0.001, gripper_force=3.0)  # the last force command the device gets
+        after = time.monotonic()
+        assert standin.forces()[0][3] == pytest.approx(3.0)
+        trips = standin.get_watchdog_trips()
+        stepper = start_hanging_step(h, standin, 0.002, gripper_force=3.0)
+        guard = threading.Thread(target=h.comp.safe_state, daemon=True)
+        guard.start()
+        readings = []  # (time before the query, time after it, applied gripper force, forces enabled)
+        while time.monotonic() < after + 0.07 or not any(r[0] > after + 0.02 for r in readings):
+            t1 = time.monotonic()
+            applied = standin.forces()[0]
+            enabled = standin.flags()["force_enabled"]
+            readings.append((t1, time.monotonic(), applied, enabled))
+            time.sleep(2e-4)
+        assert guard.is_alive() and stepper.is_alive()  # the driver could not act: both wait on the hanging call
+        # on before the watchdog's 20 ms since the last command, off after it (and stays off)
+        assert all(a == pytest.approx([0.0, 0.0, 0.0, 3.0]) and on for t1, t2, a, on in readings if t2 < before + 0.02)
+        late = [(a, on) for t1, t2, a, on in readings if t1 > after + 0.02]
+        assert late and all(a == [0.0] * 4 and not on for a, on in late)
+        assert standin.get_watchdog_trips() == trips + 1
+        standin.release()
+        stepper.join(2.0)
+        guard.join(2.0)
+        assert not guard.is_alive()
+        assert standin.forces()[0] == [0.0] * 4 and standin.flags()["brakes"]
+
+
+def test_without_the_firmware_watchdog_a_hang_leaves_the_force_on(sdk_dir, standin):
+    # firmware_watchdog: 0 runs without it: nothing takes the force off while a libdhd call hangs
+    with harness(sdk_dir, firmware_watchdog=0) as h:
+        assert standin.get_watchdog() == 0 and h.comp.status()["firmware_watchdog_s"] == 0.0
+        h.step(0.0, gripper_force=3.0)
+        stepper = start_hanging_step(h, standin, 0.001, gripper_force=3.0)
+        time.sleep(0.1)
+        assert standin.forces()[0][3] == pytest.approx(3.0) and standin.flags()["force_enabled"]
+        standin.release()
+        stepper.join(2.0)
+
+
+def test_safe_state_during_a_hanging_step_is_never_undone(sdk_dir, standin):
+    # the runtime calls safe_state() from another thread while a step hangs inside libdhd: once the call returns,
+    # that step must not send its force (decided before safe_state) to the device
+    with harness(sdk_dir) as h:
+        h.step(0.0, gripper_force=3.0)
+        assert h.comp.status()["gripper_force"] == pytest.approx(3.0)
+        stepper = start_hanging_step(h, standin, 0.001, gripper_force=3.0)
+        guard = threading.Thread(target=h.comp.safe_state, daemon=True)
+        guard.start()
+        assert wait_for(lambda: h.comp.status()["gripper_force"] == 0.0)  # safe_state() has begun
+        standin.mark()
+        standin.release()
+        stepper.join(2.0)
+        guard.join(2.0)
+        assert not stepper.is_alive() and not guard.is_alive()
+        assert standin.get_peak() == 0.0  # no force but zero reached the device after safe_state() was called
+        applied, commanded = standin.forces()
+        assert applied == [0.0] * 4 and commanded == [0.0] * 4
+        assert standin.flags()["brakes"]
+        h.step(0.01, gripper_force=3.0)  # and it stays safe until activated again
+        assert standin.forces()[1] == [0.0] * 4 and standin.flags()["brakes"]
+
+
+@pytest.mark.parametrize("value, rate, units", [
+    ("20 ms", 1000, 160), (0.02, 1000, 160), ("20.1 ms", 1000, 160), (0.0201, 1000, 160), ("31.875 ms", 1000, 255),
+    ("2.0625 ms", 1000, 16), ("1.99 ms", 2000, 15), ("875 us", 4000, 7), ("0.125 ms", 16000, 1),
+    (0.00013, 16000, 1)])
+def test_firmware_watchdog_reaches_the_device_in_125_us_units_rounded_down(sdk_dir, standin, value, rate, units):
+    h = harness(sdk_dir, firmware_watchdog=value)
+    h.ctx.rate = rate  # the node's rate in a graph
+    with h:
+        assert standin.get_watchdog() == units  # never longer than asked
+        assert h.comp.status()["firmware_watchdog_s"] == pytest.approx(units * 125e-6)
+
+
+@pytest.mark.parametrize("bad", ["32 ms", "1 s", "100 us", -0.02, "-1 ms"])
+def test_firmware_watchdog_out_of_range_is_refused(bad):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=r"firmware_watchdog must be 0 \(off\) or from 125 us to 31.875 ms"):
+        Omega7.Params(firmware_watchdog=bad)
+
+
+def test_firmware_watchdog_shorter_than_two_periods_is_refused(sdk_dir, standin):
+    h = harness(sdk_dir, firmware_watchdog="1.5 ms")  # the node runs at 1 kHz
+    with pytest.raises(ValueError, match=r"firmware_watchdog \(1.5 ms\) must be at least 2 periods of the node's "
+                                         r"rate \(1000 Hz: 2 ms\)"):
+        h.comp.configure()
+    h.comp.close()
+    assert not standin.flags()["open"]
+
+
+def test_firmware_watchdog_is_refused_in_a_graph_with_the_field_named(sdk_dir, standin):
+    reg = make_registry("teletouch.plugins.devices.omega7")
+    with pytest.raises(GraphValidationError, match=r"firmware_watchdog must be 0 \(off\) or from 125 us to 31.875 ms"):
+        load_text(graph("omega7", f"sdk_path: {sdk_dir}, firmware_watchdog: 40ms"), reg)
+
+
+def test_an_sdk_without_the_watchdog_is_refused_unless_it_is_off(tmp_path, standin, monkeypatch):
+    monkeypatch.delenv("FORCEDIM_SDK", raising=False)
+    old = tmp_path / "sdk-3.3.1"
+    (old / "lib").mkdir(parents=True)
+    build_standin(old / "lib", "STANDIN_NO_WATCHDOG")  # as an SDK older than 3.3.2
+    h = harness(old)
+    with pytest.raises(dhd.DhdError) as ei:
+        h.comp.configure()
+    msg = str(ei.value)
+    assert msg.startswith("firmware_watchdog:") and "SDK 3.3.1" in msg and "dhdSetWatchdog" in msg
+    assert "3.3.2" in msg and "firmware_watchdog: 0" in msg
+    h.comp.close()
+    s = StandIn(old / "lib" / "libdhd.so")
+    assert not s.flags()["open"]  # refused before the device was opened
+    with harness(old, firmware_watchdog=0) as h:  # explicitly without it: runs
+        h.step(0.0, gripper_force=1.0)
+        assert s.forces()[0][3] == pytest.approx(1.0)
+        assert h.comp.status()["firmware_watchdog_s"] == 0.0
+    s.lib.standin_reset()
+
+
+def test_a_device_that_refuses_the_watchdog_never_gets_forces_on(sdk_dir, standin):
+    standin.set_watchdog_fails(1)
+    h = harness(sdk_dir)
+    h.comp.configure()
+    with pytest.raises(dhd.DhdError) as ei:
+        h.comp.activate()
+    msg = str(ei.value)
+    assert msg.startswith("firmware_watchdog: could not set the device's watchdog to 160 x 125 us (20 ms)")
+    assert "feature not available on this device" in msg and "forces stay off" in msg and "firmware_watchdog: 0" in msg
+    assert not standin.flags()["force_enabled"] and standin.flags()["brakes"]
+    h.comp.close()
+
+
+def test_a_graph_with_a_device_that_refuses_the_watchdog_fails_to_start(sdk_dir, standin):
+    standin.set_watchdog_fails(1)
+    reg = make_registry("teletouch.plugins.devices.omega7")
+    result, rt = run_yaml(graph("omega7", f"sdk_path: {sdk_dir}"), reg)
+    assert result.status == "startup-failed" and result.exit_code == 4
+    assert "firmware_watchdog" in result.message and "could not set the device's watchdog" in result.message
+    assert standin.get_peak() == 0.0 and not standin.flags()["force_enabled"]  # only the safe state's zero
+
+
+def test_firmware_watchdog_is_switched_off_at_shutdown(sdk_dir, standin):
+    with harness(sdk_dir) as h:
+        assert standin.get_watchdog() == 160
+        h.step(0.0, gripper_force=1.0)
+        h.comp.deactivate()
+        assert standin.get_watchdog() == 0 and not standin.flags()["force_enabled"]
+        h.comp.activate()  # on again for the next activation
+        assert standin.get_watchdog() == 160
+    assert standin.get_watchdog() == 0  # deactivate + close
+    h = harness(sdk_dir)
+    h.comp.configure()
+    h.comp.activate()
+    h.comp.close()  # close without deactivate
+    assert standin.get_watchdog() == 0 and not standin.flags()["open"]
+    # through the runtime: a run that ends leaves the device without the watchdog
+    reg = make_registry("teletouch.plugins.devices.omega7")
+    result, rt = run_yaml(graph("omega7", f"sdk_path: {sdk_dir}"), reg)
+    assert result.status == "ok", result.summary()
+    assert standin.get_watchdog() == 0 and not standin.flags()["open"]
+
+
+def test_forces_come_back_after_the_loop_was_late(sdk_dir, standin):
+    # start-up after activate() and a stalled loop both leave the device without a command for longer than the
+    # watchdog: it cut its forces; the next step's command is rendered again (a stall is counted, start-up is not)
+    with harness(sdk_dir) as h:
+        time.sleep(0.05)  # e.g. other nodes still activating
+        h.step(0.05, gripper_force=2.0)
+        assert standin.forces()[0][3] == pytest.approx(2.0) and standin.flags()["force_enabled"]
+        assert h.comp.status()["watchdog_trips"] == 0
+        time.sleep(0.05)  # a stall
+        assert standin.forces()[0] == [0.0] * 4 and not standin.flags()["force_enabled"]
+        # forces come back on, the command faded in from zero (WATCHDOG_FADE_IN), not stepped onto the hand
+        rendered = []
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 3 * omega7_mod.WATCHDOG_FADE_IN:
+            h.step(0.1 + time.monotonic() - t0, gripper_force=2.0)
+            rendered.append((time.monotonic() - t0, standin.forces()[0][3]))
+            time.sleep(0.002)
+        assert standin.flags()["force_enabled"] and h.comp.status()["watchdog_trips"] == 1
+        assert rendered[0][1] == pytest.approx(0.0, abs=1e-9)
+        assert rendered[-1][1] == pytest.approx(2.0)
+        for (ta, fa), (tb, fb) in zip(rendered, rendered[1:]):
+            assert fb - fa <= 2.0 * (tb - ta) / omega7_mod.WATCHDOG_FADE_IN + 0.1, rendered   # a ramp, no step
+        assert any(0.2 < f < 1.8 for _, f in rendered), rendered
+        h.comp.safe_state()  # but never after a safe state
+        time.sleep(0.05)
+        h.step(0.3, gripper_force=2.0)
+        assert standin.forces()[0] == [0.0] * 4 and not standin.flags()["force_enabled"]
+
+
+def test_forces_switched_off_by_the_force_button_stay_off_after_a_late_step(sdk_dir, standin):
+    # the operator switched the forces off with the device's force button; a later stall of the loop must not switch
+    # them on again (only a trip of the firmware watchdog does: dhdGetStatus tells the cause)
+    with harness(sdk_dir) as h:
+        h.step(0.0, gripper_force=2.0)
+        assert standin.forces()[0][3] == pytest.approx(2.0)
+        standin.press_force_button()
+        assert standin.forces()[0] == [0.0] * 4
+        time.sleep(0.05)  # a stall longer than the watchdog
+        for k in range(5):
+            h.step(0.1 + 0.002 * k, gripper_force=2.0)
+            time.sleep(0.002)
+        assert not standin.flags()["force_enabled"] and standin.forces()[0] == [0.0] * 4
+        assert h.comp.status()["watchdog_trips"] == 0
+
+
+def test_the_watchdog_is_set_in_expert_mode_and_expert_mode_is_left_again(sdk_dir, standin):
+    # dhdSetWatchdog/dhdGetWatchdog are declared among the SDK's expert calls (the stand-in refuses them outside
+    # expert mode): the driver enables expert mode around them and disables it afterwards
+    with harness(sdk_dir):
+        assert standin.get_watchdog() == 160
+        assert standin.get_expert() == 0
+    assert standin.get_watchdog() == 0 and standin.get_expert() == 0

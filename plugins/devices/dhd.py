@@ -12,22 +12,28 @@ Where the library is looked for, in order:
 3. the system's library path (``ctypes.util.find_library("dhd")``, e.g. after copying libdhd.so to /usr/local/lib).
 
 Errors say whether the *SDK* (library) or the *device* is missing, and how to fix it.
+
+The device firmware's watchdog (``dhdSetWatchdog``/``dhdGetWatchdog``, SDK 3.3.2 and newer) is bound when the library
+has it (:meth:`Dhd.has_watchdog`): a duration in units of 125 us (:data:`WATCHDOG_UNIT`, 1..255; 0 = off) after which
+the device disables forces by itself if no new force command arrived.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import os
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from teletouch import HardwareError
 
 __all__ = [
-    "DHD_TIMEGUARD", "DHD_MOTOR_SATURATED", "OMEGA7_RIGHT", "OMEGA7_LEFT", "SYSTEM_NAMES",
+    "DHD_TIMEGUARD", "DHD_MOTOR_SATURATED", "OMEGA7_RIGHT", "OMEGA7_LEFT", "SYSTEM_NAMES", "WATCHDOG_UNIT",
+    "WATCHDOG_MAX_UNITS",
     "DhdError", "SdkNotFoundError", "DeviceNotFoundError", "DeviceLostError", "Dhd", "load", "candidates",
 ]
 
@@ -39,6 +45,9 @@ DHD_ERROR_COM = 2
 DHD_ERROR_NO_DRIVER_FOUND = 4
 DHD_ERROR_NO_DEVICE_FOUND = 5
 DHD_ERROR_TIMEOUT = 7
+# the firmware watchdog (dhdSetWatchdog): its duration counts in units of 125 us, in an unsigned char
+WATCHDOG_UNIT = 125e-6  # s
+WATCHDOG_MAX_UNITS = 255
 # system types (dhdc.h)
 OMEGA3 = 33
 OMEGA6_RIGHT = 34
@@ -177,8 +186,21 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "dhdSetForceAndGripperForce": (_c.c_int, [_D, _D, _D, _D, _ID]),
     "dhdGetButton": (_c.c_int, [_c.c_int, _ID]),
     "dhdGetComFreq": (_D, [_ID]),
+    "dhdGetStatus": (_c.c_int, [_c.POINTER(_c.c_int), _ID]),  # int status[DHD_MAX_STATUS]
+    "dhdEnableExpertMode": (_c.c_int, []),
+    "dhdDisableExpertMode": (_c.c_int, []),
+    "dhdSetWatchdog": (_c.c_int, [_c.c_ubyte, _ID]),  # added in release 3.3.2 (an expert SDK call)
+    "dhdGetWatchdog": (_c.c_int, [_c.POINTER(_c.c_ubyte), _ID]),  # added in release 3.3.2 (an expert SDK call)
 }
-_OPTIONAL = {"dhdGetSDKVersion", "dhdErrorGetLast", "dhdGetDeviceCount", "dhdGetGripperAngleRad"}
+_OPTIONAL = {"dhdGetSDKVersion", "dhdErrorGetLast", "dhdGetDeviceCount", "dhdGetGripperAngleRad", "dhdSetWatchdog",
+             "dhdGetWatchdog", "dhdGetStatus", "dhdEnableExpertMode", "dhdDisableExpertMode"}
+# dhdGetStatus: DHD_MAX_STATUS entries; the ones read here, and the causes of the FORCE OFF state (dhdc.h)
+DHD_MAX_STATUS = 16
+DHD_STATUS_FORCE = 5
+DHD_STATUS_FORCEOFFCAUSE = 14
+FORCEOFF_CAUSES = {0: "none", 1: "the force button", 2: "the velocity threshold", 3: "the firmware watchdog",
+                   4: "software", 5: "USB disconnection", 6: "the dead-man switch"}
+DHD_FORCEOFF_WATCHDOG = 3
 
 
 class Dhd:
@@ -290,6 +312,57 @@ class Dhd:
 
     def set_max_gripper_force(self, newtons: float) -> None:
         self._check(self.lib.dhdSetMaxGripperForce(float(newtons), self.id), "dhdSetMaxGripperForce")
+
+    def has_watchdog(self) -> bool:
+        """Whether this libdhd has the firmware watchdog calls (SDK 3.3.2 and newer)."""
+        return getattr(self.lib, "dhdSetWatchdog", None) is not None
+
+    def set_watchdog(self, units: int) -> None:
+        """Set the device firmware's watchdog to ``units`` x 125 us (0 switches it off). Raises DhdError on -1, and
+        when this SDK has no dhdSetWatchdog."""
+        if not 0 <= units <= WATCHDOG_MAX_UNITS:
+            raise ValueError(f"watchdog units must be 0..{WATCHDOG_MAX_UNITS} (x 125 us), got {units}")
+        f = getattr(self.lib, "dhdSetWatchdog", None)
+        if f is None:
+            raise DhdError(f"dhdSetWatchdog is not in this SDK ({self.path}, SDK {self.sdk_version()}; added in "
+                           f"release 3.3.2)")
+        with self._expert():
+            self._check(f(units, self.id), "dhdSetWatchdog")
+
+    def watchdog(self) -> int | None:
+        """The device firmware's watchdog in units of 125 us (0: off), or None when this SDK has no dhdGetWatchdog."""
+        f = getattr(self.lib, "dhdGetWatchdog", None)
+        if f is None:
+            return None
+        v = _c.c_ubyte()
+        with self._expert():
+            self._check(f(_c.byref(v), self.id), "dhdGetWatchdog")
+        return v.value
+
+    @contextlib.contextmanager
+    def _expert(self) -> Iterator[None]:
+        """Expert mode around an expert SDK call (the watchdog's are declared among them), off again after it; a
+        no-op with an SDK that has no dhdEnableExpertMode."""
+        on = getattr(self.lib, "dhdEnableExpertMode", None)
+        off = getattr(self.lib, "dhdDisableExpertMode", None)
+        if on is None or off is None:
+            yield
+            return
+        self._check(on(), "dhdEnableExpertMode")
+        try:
+            yield
+        finally:
+            off()
+
+    def force_status(self) -> tuple[bool, int] | None:
+        """(forces on, cause of the FORCE OFF state: one of FORCEOFF_CAUSES) from dhdGetStatus; None when this SDK
+        has no dhdGetStatus."""
+        f = getattr(self.lib, "dhdGetStatus", None)
+        if f is None:
+            return None
+        st = (_c.c_int * DHD_MAX_STATUS)()
+        self._check(f(st, self.id), "dhdGetStatus")
+        return bool(st[DHD_STATUS_FORCE]), int(st[DHD_STATUS_FORCEOFFCAUSE])
 
     def com_freq(self) -> float:
         """The SDK's measured communication rate, in Hz (the SDK reports kHz)."""

@@ -9,10 +9,11 @@ from __future__ import annotations
 import math
 import threading
 import time
+from fractions import Fraction
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import Newtons, Seconds
@@ -22,6 +23,27 @@ OMEGA7_MAX_FORCE = 12.0  # N, translation
 OMEGA7_MAX_GRIPPER_FORCE = 8.0  # N
 OMEGA7_WORKSPACE_RADIUS = 0.075  # m
 OMEGA7_GRIPPER_RANGE = 0.025  # m, about 25 mm of grasping range
+#: The device firmware's watchdog (dhdSetWatchdog, SDK 3.3.2+) counts in units of 125 us, at most 255 of them.
+WATCHDOG_UNITS_PER_S = 8000
+WATCHDOG_MAX_UNITS = 255  # 31.875 ms
+#: after a watchdog trip, forces come back faded in over this time (s): no step on the operator's hand
+WATCHDOG_FADE_IN = 0.05
+WATCHDOG_RANGE = "0 (off) or from 125 us to 31.875 ms (the device counts it in units of 125 us, at most 255)"
+
+
+def _decimal(seconds: float) -> Fraction:
+    """The value as the decimal it was written as: 12 significant digits, so the binary rounding of e.g. "875 us"
+    (0.0008749999999999999) does not drop a whole unit."""
+    return Fraction(f"{float(seconds):.12g}")
+
+
+def watchdog_units(seconds: float) -> int:
+    """``firmware_watchdog`` (s) -> the device's units of 125 us, rounded down so the watchdog is never longer than
+    asked (20 ms is exactly 160 units, 20.1 ms is 160 too); 0 stays 0 (off), otherwise at least 1."""
+    if seconds == 0:
+        return 0
+    return max(1, math.floor(_decimal(seconds) * WATCHDOG_UNITS_PER_S))
+
 
 LEADER_INPUTS: dict[str, Port] = {
     "gripper_force": Port("float64", (), "N", "commanded gripper force; positive pushes the operator's fingers "
@@ -134,6 +156,20 @@ class Omega7(Device):
                                                              "omega.7")
         com_freq_interval: Seconds = Field(0.5, gt=0, description="how often to read dhdGetComFreq",
                                            json_schema_extra={"unit": "s"})
+        firmware_watchdog: Seconds = Field(
+            0.02, description="the device firmware's own watchdog (dhdSetWatchdog, SDK 3.3.2 or newer): with no new "
+                              "force command for this long the device switches its forces off by itself, also while "
+                              "a libdhd call hangs; 0 (off) or 125 us to 31.875 ms, rounded down to units of 125 us; "
+                              "at least 2 periods of the node's rate",
+            json_schema_extra={"unit": "s"})
+
+        @field_validator("firmware_watchdog")
+        @classmethod
+        def _watchdog_range(cls, v: float) -> float:
+            if v != 0 and not (v > 0 and Fraction(1, WATCHDOG_UNITS_PER_S) <= _decimal(v)
+                               <= Fraction(WATCHDOG_MAX_UNITS, WATCHDOG_UNITS_PER_S)):
+                raise ValueError(f"firmware_watchdog must be {WATCHDOG_RANGE}; got {v:g} s")
+            return v
 
         @model_validator(mode="after")
         def _one_selector(self) -> "Omega7.Params":
@@ -160,7 +196,28 @@ class Omega7(Device):
         self.g_sent = 0.0
         self.f_sent = np.zeros(3)
         self._lock = threading.Lock()
+        # the firmware watchdog: its duration in the device's units, whether it is set on the device now, when the
+        # device last got a force command (monotonic, taken before the call), how often the loop came too late
+        self.watchdog_units = watchdog_units(p.firmware_watchdog)
+        self._wd_s = self.watchdog_units / WATCHDOG_UNITS_PER_S
+        self._wd_set = False
+        self._last_cmd = 0.0
+        self._first_write = True
+        self.watchdog_trips = 0
+        self._fade_until = 0.0    # monotonic time until which forces fade back in after a watchdog trip
+        self._off_cause: int | None = None
+        rate = self.ctx.rate
+        if self.watchdog_units and rate and self._wd_s < 2.0 / rate:
+            raise ValueError(f"firmware_watchdog ({self._wd_s * 1e3:g} ms) must be at least 2 periods of the node's "
+                             f"rate ({rate:g} Hz: {2e3 / rate:g} ms), or the device would cut the forces at every "
+                             f"late step; raise it, or set firmware_watchdog: 0 (off)")
         lib = dhdmod.load(p.sdk_path)
+        if self.watchdog_units and not lib.has_watchdog():
+            raise dhdmod.DhdError(
+                f"firmware_watchdog: {lib.path} (SDK {lib.sdk_version()}) has no dhdSetWatchdog (added in Force "
+                f"Dimension SDK 3.3.2): install SDK 3.3.2 or newer, or set firmware_watchdog: 0 to run without the "
+                f"device's own watchdog (then a libdhd call that hangs leaves the last force on the operator's hand "
+                f"until it returns)")
         lib.open(serial=p.serial, index=p.index)
         self.dhd = lib
         stype = lib.system_type()
@@ -180,17 +237,62 @@ class Omega7(Device):
         lib.set_max_gripper_force(p.max_gripper_force)
         lib.set_gravity_compensation(p.gravity_compensation)
         lib.set_brakes(p.brakes_on_stop)
+        wd = f"firmware watchdog {self._wd_s * 1e3:g} ms" if self.watchdog_units else "firmware watchdog off"
         self.ctx.log(f"opened {dhdmod.SYSTEM_NAMES.get(stype, stype)} through {lib.path} "
-                     f"(SDK {lib.sdk_version()}); limits {p.max_force:g} N, gripper {p.max_gripper_force:g} N")
+                     f"(SDK {lib.sdk_version()}); limits {p.max_force:g} N, gripper {p.max_gripper_force:g} N; {wd}")
 
     def activate(self) -> None:
         d = self.dhd
         with self._lock:
+            if self.watchdog_units:
+                self._set_watchdog(d)
+            self._last_cmd = time.monotonic()
             d.set_forces(0.0, 0.0, 0.0, 0.0)
+            self._first_write = True
+            self._fade_until, self._off_cause = 0.0, None
             d.enable_force(True)
             d.set_gravity_compensation(self.params.gravity_compensation)
             d.set_brakes(False)
             self.active = True
+
+    def _after_late_gap(self, d: Any, sent: float) -> bool:
+        """Before a write that comes later than the firmware watchdog (under the lock). If the watchdog switched the
+        forces off: zero force, forces on, and the command faded in over WATCHDOG_FADE_IN from now (after a stall;
+        not after start-up, where forces were zero). If something else switched them off (the force button, the
+        velocity threshold, the dead-man switch: the operator's or the device's decision), they stay off. Returns
+        whether this counts as a trip (not the first write after activate)."""
+        from .dhd import DHD_FORCEOFF_WATCHDOG, FORCEOFF_CAUSES
+
+        st = d.force_status()
+        if st is not None and (st[0] or st[1] != DHD_FORCEOFF_WATCHDOG):
+            if not st[0] and st[1] != self._off_cause:
+                self.ctx.log(f"forces are off by {FORCEOFF_CAUSES.get(st[1], st[1])}: left off")
+            self._off_cause = None if st[0] else st[1]
+            return False
+        d.set_forces(0.0, 0.0, 0.0, 0.0)   # the device may still hold the command from before the stall
+        d.enable_force(True)
+        if self._first_write:
+            return False
+        self._fade_until = sent + WATCHDOG_FADE_IN
+        return True
+
+    def _set_watchdog(self, d: Any) -> None:
+        """The firmware watchdog on, before forces are enabled; refuses to go on when the device does not take it."""
+        from .dhd import DhdError
+
+        units = self.watchdog_units
+        hint = ("set firmware_watchdog: 0 to run without the device's own watchdog (then a libdhd call that hangs "
+                "leaves the last force on the operator's hand until it returns)")
+        try:
+            d.set_watchdog(units)
+            self._wd_set = True
+            got = d.watchdog()
+        except DhdError as exc:
+            raise DhdError(f"firmware_watchdog: could not set the device's watchdog to {units} x 125 us "
+                           f"({self._wd_s * 1e3:g} ms): {exc}; forces stay off; {hint}", exc.code) from None
+        if got is not None and got != units:
+            raise DhdError(f"firmware_watchdog: the device reports a watchdog of {got} x 125 us after {units} was "
+                           f"set; forces stay off; {hint}")
 
     def step(self, t: float, inputs: Any) -> dict[str, Any]:
         g, f, problem = self.guard.apply(t, inputs)
@@ -199,15 +301,30 @@ class Omega7(Device):
             self.safe_state()
             raise ComponentFault(problem, self.id)
         d = self.dhd
+        late = False
         try:
             with self._lock:
-                if not self.active:            # (checked under the lock: a safe_state() from another thread
-                    g, f = 0.0, self.guard.zero3   # between the guard and the write is never undone)
                 x, y, z = d.position()
                 gap = d.gripper_gap()
                 gvel = d.gripper_velocity()
                 button = d.button(self.params.button_index)
+                # checked under the lock, right before the write: a safe_state() called from another thread since
+                # the guard, or while a read above hung, is never undone by this step's force
+                if not self.active:
+                    g, f = 0.0, self.guard.zero3
+                sent = time.monotonic()
+                if self._wd_set and self.active and sent - self._last_cmd > self._wd_s:
+                    # no force command for longer than the firmware watchdog: the device has (or may have)
+                    # switched its forces off (the first write after activate is late whenever start-up goes on
+                    # after activate(): not counted)
+                    late = self._after_late_gap(d, sent)
+                if sent < self._fade_until:   # forces back on after a watchdog trip: faded in, not stepped
+                    k = max(0.0, 1.0 - (self._fade_until - sent) / WATCHDOG_FADE_IN)
+                    g, f = g * k, f * k
                 rc = d.set_forces(float(f[0]), float(f[1]), float(f[2]), self.sign * g)
+                if self._wd_set and rc != 1:   # (a write the time guard skipped never reached the device)
+                    self._last_cmd = sent
+                    self._first_write = False
                 if t >= self._next_freq:
                     self._next_freq = t + self.params.com_freq_interval
                     self.com_freq_hz = d.com_freq()
@@ -219,6 +336,10 @@ class Omega7(Device):
             self.timeguards += 1
         elif rc == 2:
             self.saturated += 1
+        if late:
+            self.watchdog_trips += 1
+            self.ctx.log(f"no force command for more than firmware_watchdog ({self._wd_s * 1e3:g} ms): the device "
+                         f"may have cut its forces; switched on again ({self.watchdog_trips} times so far)")
         self.g_sent, self.f_sent = g, f
         return {"gripper_opening": gap, "gripper_velocity": self.sign * gvel,
                 "position": np.array((x, y, z)), "button": button}
@@ -257,9 +378,19 @@ class Omega7(Device):
         self.safe_state()
         d = getattr(self, "dhd", None)
         if d is not None:
-            try:
-                with self._lock:
+            with self._lock:
+                try:
                     d.enable_force(False)
+                except Exception:
+                    self.safe_errors += 1
+                self._watchdog_off(d)
+
+    def _watchdog_off(self, d: Any) -> None:
+        """The firmware watchdog off (forces are off first), so the device does not keep it for the next program."""
+        if getattr(self, "_wd_set", False):
+            try:
+                d.set_watchdog(0)
+                self._wd_set = False
             except Exception:
                 self.safe_errors += 1
 
@@ -267,6 +398,11 @@ class Omega7(Device):
         d = getattr(self, "dhd", None)
         if d is not None:
             self.dhd = None
+            try:
+                d.enable_force(False)   # (already off after deactivate; close may come without it)
+            except Exception:
+                pass
+            self._watchdog_off(d)
             try:
                 d.close()
             except Exception:
@@ -278,7 +414,8 @@ class Omega7(Device):
         return {"com_freq_hz": self.com_freq_hz, "gripper_force": self.g_sent,
                 "force_norm": float(np.linalg.norm(self.f_sent)), "timeguards": self.timeguards,
                 "saturated": self.saturated, "clamped": self.guard.clamped, "stale_commands": self.guard.stale,
-                "left_handed": self.sign < 0, "lost": self.lost or ""}
+                "left_handed": self.sign < 0, "lost": self.lost or "",
+                "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0, "watchdog_trips": self.watchdog_trips}
 
 
 @hookimpl

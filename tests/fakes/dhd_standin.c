@@ -13,9 +13,16 @@
  *  - handle: quasi-static spring towards a rest position, p = rest + F / HANDLE_K, first-order lag.
  *  - force is produced only while enabled (dhdEnableForce) and the brakes are off; the SDK-side limits
  *    (dhdSetMaxForce, dhdSetMaxGripperForce) clamp what is applied.
+ *  - the firmware watchdog (dhdSetWatchdog, SDK 3.3.2 and newer): a duration in units of 125 us, 0 = off. While
+ *    forces are enabled, a force command (dhdSetForceAndGripperForce that reached the device, i.e. not skipped by
+ *    the time guard) must arrive within that duration, else the "firmware" disables forces (as dhdEnableForce(0),
+ *    force-off cause DHD_FORCEOFF_WATCHDOG). Evaluated lazily on the monotonic clock, at every vendor call and
+ *    every test query, so it also acts while a call hangs.
  *
  * Test controls (not part of the vendor API) start with standin_.
  * Build: gcc -shared -fPIC -O2 -o libdhd.so dhd_standin.c -lm
+ * Build with -DSTANDIN_NO_WATCHDOG for a library as an SDK older than 3.3.2 (no dhdSetWatchdog/dhdGetWatchdog; it
+ * reports SDK 3.3.1).
  */
 #include <math.h>
 #include <stdbool.h>
@@ -32,8 +39,17 @@
 #define DHD_ERROR_COM 2
 #define DHD_ERROR_NO_DEVICE_FOUND 5
 #define DHD_ERROR_NOT_AVAILABLE 6
+#define DHD_ERROR_EXPERT_MODE_DISABLED 9
 #define DHD_ERROR_DEVICE_NOT_READY 12
 #define DHD_ERROR_INVALID_INDEX 15
+
+/* causes for the device's FORCE OFF state (dhdc.h) */
+#define DHD_FORCEOFF_NONE 0
+#define DHD_FORCEOFF_BUTTON 1
+#define DHD_FORCEOFF_WATCHDOG 3
+#define DHD_FORCEOFF_SOFTWARE 4
+
+#define WATCHDOG_UNIT 125e-6 /* s */
 
 #define GRIP_K 400.0 /* N/m */
 #define GRIP_TAU 0.005 /* s */
@@ -62,7 +78,19 @@ static struct {
     double t_last;
     int last_error;
     char last_str[128];
+    unsigned char watchdog; /* firmware watchdog, units of 125 us (0: off) */
+    int watchdog_fails;     /* test switch: dhdSetWatchdog answers -1 */
+    double t_cmd;           /* when the device last received a force command (or the watchdog was set) */
+    long watchdog_trips;
+    int force_off_cause;
+    int expert;             /* dhdEnableExpertMode: the expert SDK calls (dhdSetWatchdog, ...) need it */
+    double peak;            /* largest |component| of a force command received since standin_mark() */
 } S;
+
+/* test control: vendor calls that block ("hang") until released; outside S (read by other threads) */
+static char hang_name[64];
+static int hang_armed;
+static int hanging;
 
 static double now_s(void) {
     struct timespec ts;
@@ -83,12 +111,35 @@ static int ok(void) {
 
 static double hand_sign(void) { return S.system_type == 37 ? -1.0 : 1.0; }
 
+static void apply_forces(void);
+
+/* the device firmware's watchdog: forces off when no force command came within the duration */
+static void firmware(void) {
+    if (S.watchdog && S.force_enabled && S.connected && now_s() - S.t_cmd > S.watchdog * WATCHDOG_UNIT) {
+        S.force_enabled = 0;
+        S.force_off_cause = DHD_FORCEOFF_WATCHDOG;
+        S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
+        S.watchdog_trips++;
+        apply_forces();
+    }
+}
+
+/* blocks while a hang is armed for this call (test control) */
+static void hang_point(const char *name) {
+    if (!__atomic_load_n(&hang_armed, __ATOMIC_ACQUIRE) || strcmp(name, hang_name) != 0) return;
+    __atomic_add_fetch(&hanging, 1, __ATOMIC_ACQ_REL);
+    struct timespec ts = {0, 100000}; /* 100 us */
+    while (__atomic_load_n(&hang_armed, __ATOMIC_ACQUIRE)) nanosleep(&ts, NULL);
+    __atomic_sub_fetch(&hanging, 1, __ATOMIC_ACQ_REL);
+}
+
 /* checks done by every device call */
 static int check(char ID) {
     S.calls++;
     if (!S.connected) return fail(DHD_ERROR_COM, "communication error between the host and the haptic device");
     if (!S.open) return fail(DHD_ERROR_DEVICE_NOT_READY, "device not open");
     if (ID != -1 && ID != 0) return fail(DHD_ERROR_INVALID_INDEX, "invalid device ID");
+    firmware();
     return 0;
 }
 
@@ -122,6 +173,7 @@ static void advance(void) {
 
 /* ------------------------------------------------------------------------------------------- test controls */
 void standin_reset(void) {
+    __atomic_store_n(&hang_armed, 0, __ATOMIC_RELEASE);
     memset(&S, 0, sizeof S);
     S.present = 1;
     S.connected = 1;
@@ -148,15 +200,41 @@ void standin_set_rest(double gap, double x, double y, double z) {
 }
 void standin_set_button(int index, int value) { if (index >= 0 && index < 4) S.buttons[index] = value; }
 void standin_set_com_freq(double khz) { S.com_freq = khz; }
-/* out: fx fy fz fg as applied, then as commanded */
+/* out: fx fy fz fg as applied, then as commanded (the firmware watchdog evaluated first) */
 void standin_get_forces(double *applied4, double *commanded4) {
+    firmware();
     for (int i = 0; i < 3; i++) { applied4[i] = S.fa[i]; commanded4[i] = S.f[i]; }
     applied4[3] = S.fga; commanded4[3] = S.fg;
 }
-/* out: open, force_enabled, brakes, gravity */
+/* out: open, force_enabled, brakes, gravity (the firmware watchdog evaluated first) */
 void standin_get_flags(int *flags4) {
+    firmware();
     flags4[0] = S.open; flags4[1] = S.force_enabled; flags4[2] = S.brakes; flags4[3] = S.gravity;
 }
+/* the firmware watchdog as set (units of 125 us, 0 off; kept after dhdClose), and how often it cut forces */
+int standin_get_watchdog(void) { return S.watchdog; }
+long standin_get_watchdog_trips(void) { firmware(); return S.watchdog_trips; }
+int standin_get_force_off_cause(void) { firmware(); return S.force_off_cause; }
+void standin_set_watchdog_fails(int v) { S.watchdog_fails = v; }
+/* the largest |component| of the force commands received since this call */
+void standin_mark(void) { S.peak = 0.0; }
+/* the operator presses the device's force button: forces off, cause BUTTON (as the real device does) */
+void standin_press_force_button(void) {
+    S.force_enabled = 0;
+    S.force_off_cause = DHD_FORCEOFF_BUTTON;
+    S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
+    apply_forces();
+}
+int standin_get_expert(void) { return S.expert; }
+double standin_get_peak(void) { return S.peak; }
+/* every later call of the named vendor function (dhdGetPosition) blocks until standin_release(); standin_hanging()
+   counts the calls blocked now */
+void standin_hang(const char *name) {
+    snprintf(hang_name, sizeof hang_name, "%s", name);
+    __atomic_store_n(&hang_armed, 1, __ATOMIC_RELEASE);
+}
+void standin_release(void) { __atomic_store_n(&hang_armed, 0, __ATOMIC_RELEASE); }
+int standin_hanging(void) { return __atomic_load_n(&hanging, __ATOMIC_ACQUIRE); }
 void standin_get_limits(double *lim2) { lim2[0] = S.max_force; lim2[1] = S.max_gripper_force; }
 long standin_get_writes(void) { return S.writes; }
 long standin_get_calls(void) { return S.calls; }
@@ -165,7 +243,11 @@ __attribute__((constructor)) static void init(void) { standin_reset(); }
 
 /* ------------------------------------------------------------------------------------------- vendor API */
 void dhdGetSDKVersion(int *major, int *minor, int *release, int *revision) {
+#ifdef STANDIN_NO_WATCHDOG
+    *major = 3; *minor = 3; *release = 1; *revision = 0;    /* before dhdSetWatchdog (3.3.2) */
+#else
     *major = 3; *minor = 17; *release = 0; *revision = 0;   /* "3.17.0-standin" */
+#endif
 }
 int dhdErrorGetLast(void) { return S.last_error; }
 const char *dhdErrorGetLastStr(void) { return S.last_str; }
@@ -225,6 +307,7 @@ bool dhdIsLeftHanded(char ID) {
 int dhdEnableForce(unsigned char val, char ID) {
     if (check(ID)) return -1;
     S.force_enabled = val ? 1 : 0;
+    S.force_off_cause = val ? DHD_FORCEOFF_NONE : DHD_FORCEOFF_SOFTWARE;
     if (!val) { S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0; }
     apply_forces();
     return ok();
@@ -257,6 +340,7 @@ int dhdSetMaxGripperForce(double f, char ID) {
 }
 int dhdGetPosition(double *px, double *py, double *pz, char ID) {
     if (check(ID)) return -1;
+    hang_point("dhdGetPosition");
     advance();
     *px = S.pos[0]; *py = S.pos[1]; *pz = S.pos[2];
     return ok();
@@ -291,6 +375,12 @@ int dhdSetForceAndGripperForce(double fx, double fy, double fz, double fg, char 
     ok();
     /* the time guard: the call came too soon after the previous one, and the command is not sent (skipped) */
     if (S.force_enabled && S.timeguard_every > 0 && S.writes % S.timeguard_every == 0) return DHD_TIMEGUARD;
+    S.t_cmd = now_s(); /* received: feeds the firmware watchdog */
+    double m = fabs(fg);
+    if (fabs(fx) > m) m = fabs(fx);
+    if (fabs(fy) > m) m = fabs(fy);
+    if (fabs(fz) > m) m = fabs(fz);
+    if (m > S.peak) S.peak = m;
     S.f[0] = fx; S.f[1] = fy; S.f[2] = fz;
     S.fg = fg; /* in the SDK's gripper axis, which follows the (mirrored) angle on a left unit */
     apply_forces();
@@ -318,3 +408,35 @@ int dhdStop(char ID) {
     apply_forces();
     return ok();
 }
+
+/* status[16]: DHD_STATUS_POWER 0, CONNECTED 1, FORCE 5, BRAKE 6, FORCEOFFCAUSE 14 (the others read 0 here) */
+int dhdGetStatus(int status[16], char ID) {
+    if (check(ID)) return -1;
+    for (int i = 0; i < 16; i++) status[i] = 0;
+    status[0] = 1;
+    status[1] = S.connected;
+    status[5] = S.force_enabled;
+    status[6] = S.brakes;
+    status[14] = S.force_off_cause;
+    return ok();
+}
+int dhdEnableExpertMode(void) { S.expert = 1; return ok(); }
+int dhdDisableExpertMode(void) { S.expert = 0; return ok(); }
+
+#ifndef STANDIN_NO_WATCHDOG
+/* added in release 3.3.2, declared among the expert SDK's calls: the stand-in asks for expert mode */
+int dhdSetWatchdog(unsigned char val, char ID) {
+    if (check(ID)) return -1;
+    if (!S.expert) return fail(DHD_ERROR_EXPERT_MODE_DISABLED, "expert mode disabled");
+    if (S.watchdog_fails) return fail(DHD_ERROR_NOT_AVAILABLE, "feature not available on this device");
+    S.watchdog = val;
+    S.t_cmd = now_s();
+    return ok();
+}
+int dhdGetWatchdog(unsigned char *val, char ID) {
+    if (check(ID)) return -1;
+    if (!S.expert) return fail(DHD_ERROR_EXPERT_MODE_DISABLED, "expert mode disabled");
+    *val = S.watchdog;
+    return ok();
+}
+#endif
