@@ -189,8 +189,9 @@ def test_spacemouse_rate_control_and_button(fake_hid):
         out = h.step(0.004)
         assert out["gripper_velocity"] == pytest.approx(-0.020)
         for i in range(2, 102):
+            fake_hid.reports.append(pull)  # a deflected cap reports every few ms
             out = h.step(i * 0.004)
-        assert out["gripper_opening"] == pytest.approx(0.025 - 0.020 * 0.404, abs=1e-9)  # 101 steps of 4 ms
+        assert out["gripper_opening"] == pytest.approx(0.025 - 0.020 * 0.400, abs=1e-9)  # from 4 ms to 404 ms
         assert out["button"] is False  # right button is bit 1; button_bit 0 (left)
         np.testing.assert_allclose(out["position"], [0.0, 0.0, -0.01])
         fake_hid.reports += [bytes.fromhex("01 0000 0000 1000")]  # inside the dead band: stops
@@ -354,8 +355,17 @@ def test_spacemouse_silence_is_not_a_fault(fake_hid):
         for i in range(1, 2501):  # 10 s without a report
             out = _raw_step(h, i * 0.004)
         assert out["gripper_opening"] == x and not isinstance(out["gripper_opening"], hl.Sample)  # stamped t
-    with pytest.raises(ValueError, match="not available for a SpaceMouse"):
-        Harness(hl.HidLeader, {"report_timeout": 0.5}).comp.configure()  # auto -> spacemouse
+    with Harness(hl.HidLeader, {}) as h:  # rate mode: silent at rest once the cap is released
+        fake_hid.reports.append(bytes.fromhex("01 0000 0000") + struct.pack("<h", 350))
+        h.step(0.0)
+        fake_hid.reports.append(bytes.fromhex("01 0000 0000 0000"))
+        x = h.step(0.008)["gripper_opening"]
+        for i in range(1, 2501):  # 10 s without a report
+            out = _raw_step(h, 0.008 + i * 0.004)
+        assert out["gripper_opening"] == x and out["gripper_velocity"] == 0.0
+        assert not isinstance(out["gripper_opening"], hl.Sample)  # stamped t
+    with pytest.raises(ValueError, match="not available for a SpaceMouse in position mode"):
+        Harness(hl.HidLeader, {"report_timeout": 0.5, "mode": "position"}).comp.configure()  # auto -> spacemouse
 
 
 def test_report_timeout_must_fit_the_profile(fake_hid):
@@ -363,8 +373,8 @@ def test_report_timeout_must_fit_the_profile(fake_hid):
 
     with pytest.raises(ValidationError, match="cannot be turned off for a dualsense"):
         hl.HidLeader.Params(device="dualsense", report_timeout=0)
-    with pytest.raises(ValidationError, match="not available for a SpaceMouse"):
-        hl.HidLeader.Params(device="spacemouse", report_timeout="0.5 s")
+    with pytest.raises(ValidationError, match="not available for a SpaceMouse in position mode"):
+        hl.HidLeader.Params(device="spacemouse", mode="position", report_timeout="0.5 s")
     assert hl.resolve_report_timeout("generic", None) is None and hl.resolve_report_timeout("generic", 0.3) == 0.3
     # a generic pad known to stream reports opts in
     fake_hid.devices.append(info(0x1234, 0x5678))
@@ -389,3 +399,58 @@ def test_hid_leader_graph_faults_when_the_pad_goes_silent(fake_hid):
     assert result.status in ("fault", "degraded"), result.summary()
     assert any(f.node == "leader" and "sent no report" in f.message for f in result.faults), result.summary()
     assert result.sim_time < 1.0  # detected after ~0.2 s, not at the end of the run
+
+
+# A SpaceMouse sends a report every few ms (~8 ms) while its cap is deflected and stops a few reports after the cap is
+# back at rest; a wireless one whose link drops (or a receiver pulled out) sends nothing, often with no read error.
+PULL = bytes.fromhex("01 0000 0000") + struct.pack("<h", -350)  # tz full scale: close at max_speed
+
+
+def _value(v):
+    return v.value if isinstance(v, hl.Sample) else v
+
+
+def test_spacemouse_that_goes_silent_while_deflected_stops_the_opening_and_faults(fake_hid):
+    fake_hid.devices.append(info(0x256F, 0xC62F))
+    with Harness(hl.HidLeader, {"max_speed": "20mm/s", "dead_band": 0.1}) as h:
+        t, period = 0.0, 0.004
+        for k in range(50):  # 0.2 s closing, a report every other step
+            if k % 2 == 0:
+                fake_hid.reports.append(PULL)
+            out = _raw_step(h, t)
+            if k % 2 == 0:
+                last_report, x = t, _value(out["gripper_opening"])
+            t += period
+        with pytest.raises(HardwareError) as ei:
+            while t < 5.0:  # the link is gone: no report, no read error
+                out = _raw_step(h, t)
+                # the opening stays where it was at the last report, and says when that was
+                assert _value(out["gripper_opening"]) == x
+                assert out["gripper_opening"].stamp == last_report
+                t += period
+        assert 0.5 < t - last_report <= 0.5 + period + 1e-9  # within report_timeout + one step period
+        msg = str(ei.value)
+        assert "SpaceMouse Wireless (receiver) (256f:c62f) sent no report for 0.50" in msg
+        assert "while its cap was deflected" in msg and "report_timeout 0.5 s" in msg
+        assert h.comp.status()["gripper_opening"] == x
+        # it had moved at max_speed from the first report to the last
+        assert last_report == pytest.approx(0.192) and x == pytest.approx(0.025 - 0.020 * 0.192)
+        fake_hid.reports.append(PULL)  # back after the long silence: nothing was integrated over it
+        out = _raw_step(h, t + 0.1)
+        assert out["gripper_opening"].value == x and out["gripper_opening"].stamp == pytest.approx(t + 0.1)
+
+
+def test_spacemouse_report_timeout_in_rate_mode(fake_hid):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="cannot be turned off for a SpaceMouse in rate mode"):
+        hl.HidLeader.Params(device="spacemouse", report_timeout=0)
+    fake_hid.devices.append(info(0x046D, 0xC626))
+    with Harness(hl.HidLeader, {"report_timeout": "100 ms"}) as h:  # can be changed (raised)
+        assert h.comp.report_timeout == pytest.approx(0.1)
+        fake_hid.reports.append(PULL)
+        h.step(0.0)
+        h.step(0.1)
+        with pytest.raises(HardwareError, match=r"SpaceNavigator .*sent no report for 0\.104 s while its cap was "
+                                                r"deflected \(report_timeout 0\.1 s"):
+            h.step(0.104)

@@ -15,9 +15,13 @@ Lost device: a DualShock 4 / DualSense sends an input report every few ms for as
 over USB, 100 Hz and more over Bluetooth), so silence means the link is lost (a Bluetooth pad out of range gives no
 read error until the kernel removes the device): after ``report_timeout`` (0.5 s by default) without a report, step()
 raises HardwareError, and the outputs carry the time of the last report (not the step time), so consumers' staleness
-checks (``max_age``) see a silent pad's data age. A SpaceMouse reports only when the cap moves (silence is normal at
-rest): no timeout and step-time stamps there; a ``generic`` pad has a timeout (and report-time stamps) only when
-``report_timeout`` is set, for a pad known to stream its reports.
+checks (``max_age``) see a silent pad's data age. A SpaceMouse sends reports every few ms while its cap is deflected
+and stops a few reports after the cap is back at rest (silence is normal at rest). In rate mode, the rate of a report
+holds until the next report, for at most ``report_timeout`` (0.5 s by default); silence for longer while the last
+report commanded a rate is a lost link: the opening stays where it was at the last report (the rate counts as zero
+from then on) and step() raises HardwareError; while the cap moves, the outputs carry the time of the last report.
+At rest, and in position mode, a SpaceMouse has no timeout and step-time stamps. A ``generic`` pad has a timeout (and
+report-time stamps) only when ``report_timeout`` is set, for a pad known to stream its reports.
 """
 
 from __future__ import annotations
@@ -65,7 +69,8 @@ KNOWN_DEVICES: dict[tuple[int, int], tuple[str, str]] = {
 }
 
 # profiles whose devices send input reports periodically while connected (silence = link lost), and the default
-# report_timeout for them; a SpaceMouse reports on change only, a generic pad is unknown (opt in with report_timeout)
+# report_timeout for them (also a SpaceMouse's in rate mode, while its cap is deflected); a generic pad is unknown (opt
+# in with report_timeout)
 PERIODIC_PROFILES = ("dualshock4", "dualsense")
 DEFAULT_REPORT_TIMEOUT = 0.5
 
@@ -263,9 +268,9 @@ def open_device(info: dict[str, Any], hid: Any = None) -> Any:
     return dev
 
 
-def resolve_report_timeout(profile: str, report_timeout: float | None) -> float | None:
-    """The silence (s) after which the device faults for this profile, or None (no timeout). ValueError where the
-    setting contradicts how the profile's devices report."""
+def resolve_report_timeout(profile: str, report_timeout: float | None, mode: str = "rate") -> float | None:
+    """The silence (s) after which the device faults for this profile (a SpaceMouse in rate mode: while its cap is
+    deflected), or None (no timeout). ValueError where the setting contradicts how the profile's devices report."""
     if profile in PERIODIC_PROFILES:
         if report_timeout is None:
             return DEFAULT_REPORT_TIMEOUT
@@ -275,10 +280,20 @@ def resolve_report_timeout(profile: str, report_timeout: float | None) -> float 
                              f"(default {DEFAULT_REPORT_TIMEOUT} s)")
         return float(report_timeout)
     if profile == "spacemouse":
+        if mode == "rate":
+            if report_timeout is None:
+                return DEFAULT_REPORT_TIMEOUT
+            if report_timeout <= 0:
+                raise ValueError(f"report_timeout cannot be turned off for a SpaceMouse in rate mode: it reports "
+                                 f"every few ms while its cap is deflected, so silence then means a lost link, and "
+                                 f"the last rate would move the opening on; raise it instead (default "
+                                 f"{DEFAULT_REPORT_TIMEOUT} s)")
+            return float(report_timeout)
         if report_timeout:
-            raise ValueError("report_timeout is not available for a SpaceMouse: it reports only when the cap moves, "
-                             "so it is silent whenever it rests and a timeout would fault it; a lost SpaceMouse is "
-                             "detected by the read error when it is unplugged")
+            raise ValueError("report_timeout is not available for a SpaceMouse in position mode: it reports only "
+                             "while the cap moves or is deflected, and a lost link leaves the opening where it was; "
+                             "a lost SpaceMouse is detected by the read error when it is unplugged (in rate mode, "
+                             "by report_timeout)")
         return None
     return float(report_timeout) if report_timeout else None  # generic: only for a pad known to stream reports
 
@@ -335,8 +350,9 @@ class HidLeader(Device):
         report_timeout: Seconds | None = Field(
             None, ge=0, description="silence after which the device faults (HardwareError), and its outputs carry "
                                     "the time of the last report; None: 0.5 s for dualshock4/dualsense (they report "
-                                    "every few ms; cannot be turned off), off for spacemouse (reports only on "
-                                    "change; cannot be set) and generic (set it for a pad that streams reports)",
+                                    "every few ms; cannot be turned off) and for a spacemouse in rate mode (while "
+                                    "its cap is deflected; cannot be turned off), off for a spacemouse in position "
+                                    "mode (cannot be set) and generic (set it for a pad that streams reports)",
             json_schema_extra={"unit": "s"})
 
         @field_validator("vendor_id", "product_id", "report_id", mode="before")
@@ -355,7 +371,7 @@ class HidLeader(Device):
         @model_validator(mode="after")
         def _timeout_fits_profile(self) -> "HidLeader.Params":
             if self.device != "auto":
-                resolve_report_timeout(self.device, self.report_timeout)
+                resolve_report_timeout(self.device, self.report_timeout, self.mode)
             return self
 
     def configure(self) -> None:
@@ -381,7 +397,7 @@ class HidLeader(Device):
             raise HardwareError(f"{info['name']} ({info.get('vendor_id', 0):04x}:{info.get('product_id', 0):04x}) "
                                 f"is not a known SpaceMouse/gamepad: set device: generic with trigger_offset "
                                 f"(and report_id, button_offset) for its report layout")
-        self.report_timeout = resolve_report_timeout(self.profile, p.report_timeout)
+        self.report_timeout = resolve_report_timeout(self.profile, p.report_timeout, p.mode)
         self.dev = open_device(info, hid=hid)
         self.sm = SpaceMouseState()
         self.pad = GamepadState()
@@ -392,12 +408,14 @@ class HidLeader(Device):
         self.last_report_t: float | None = None  # graph time of the last report read (report_timeout on)
         self._watch_from: float | None = None
         self._out: dict[str, Sample] | None = None
+        self._deflection = 0.0  # SpaceMouse rate mode: the axis as last reported, -1..1 (0: at rest)
 
     def activate(self) -> None:
         self.last_t = None
         self.last_report_t = None  # a sample from before a deactivate is not re-emitted
         self._watch_from = None
         self._out = None
+        self._deflection = 0.0  # a rate from before a deactivate is not integrated on
 
     def _parse(self, report: Any) -> None:
         p = self.params
@@ -425,6 +443,8 @@ class HidLeader(Device):
         except (OSError, IOError, ValueError) as exc:
             raise HardwareError(f"{self.info['name']} stopped answering ({exc}): check the USB cable") from None
         if self.report_timeout is not None:
+            if self.profile == "spacemouse":
+                return self._step_spacemouse_rate(mono)
             return self._step_periodic(mono)
         dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
         self.last_t = t
@@ -477,6 +497,45 @@ class HidLeader(Device):
         self.last_report_t = stamp
         self._out = {"gripper_opening": Sample(self.opening, stamp), "gripper_velocity": Sample(self.velocity, stamp),
                      "position": Sample(np.zeros(3), stamp), "button": Sample(self.pad.cross, stamp)}
+        return dict(self._out)
+
+    def _step_spacemouse_rate(self, mono: float | None) -> dict[str, Any]:
+        """SpaceMouse in rate mode: the opening moves with the rate of the last report, from that report to the next
+        (for at most report_timeout); while the cap is deflected the device reports every few ms, so silence for
+        longer than report_timeout is a lost link: the opening stays where it was at the last report and step()
+        raises. At rest silence is normal (no report until the cap moves again)."""
+        p = self.params
+        timeout = self.report_timeout
+        if mono is None:
+            if self._deflection == 0.0 or self.last_report_t is None:  # at rest: step-time stamps
+                return {"gripper_opening": self.opening, "gripper_velocity": 0.0,
+                        "position": self._out["position"].value if self._out else np.zeros(3),
+                        "button": self._out["button"].value if self._out else False}
+            silent = self.ctx.from_monotonic(time.monotonic()) - self.last_report_t
+            if silent > timeout:  # type: ignore[operator]
+                raise HardwareError(f"{self.info['name']} ({self.info.get('vendor_id', 0):04x}:"
+                                    f"{self.info.get('product_id', 0):04x}) sent no report for {silent:.3f} s while "
+                                    f"its cap was deflected (report_timeout {timeout:g} s; it reports every few ms "
+                                    f"while deflected): link lost; the opening stays where it was at the last report; "
+                                    f"check the cable or the wireless receiver and its battery")
+            return dict(self._out)  # type: ignore[arg-type]  # moving: the last report's samples, with their stamp
+        stamp = self.ctx.from_monotonic(mono)
+        if self.last_report_t is not None and self._deflection != 0.0:
+            dt = stamp - self.last_report_t
+            if 0.0 < dt <= timeout:  # type: ignore[operator]  # (longer: the rate counts as zero after the report)
+                self.opening, _ = integrate_rate(self.opening, self._deflection, dt, p.max_speed, p.dead_band,
+                                                 p.min_opening, p.max_opening)
+        self.last_report_t = stamp
+        sm = self.sm
+        u = axis_to_unit(sm.axis(p.axis), p.full_scale, p.invert)
+        self._deflection = u if deadband(u, p.dead_band) != 0.0 else 0.0
+        v = deadband(u, p.dead_band) * p.max_speed
+        if (v > 0 and self.opening >= p.max_opening) or (v < 0 and self.opening <= p.min_opening):
+            v = 0.0  # against an end stop
+        self.velocity = v
+        position = np.array([axis_to_unit(c, p.full_scale, False) for c in (sm.tx, sm.ty, sm.tz)]) * p.position_scale
+        self._out = {"gripper_opening": Sample(self.opening, stamp), "gripper_velocity": Sample(v, stamp),
+                     "position": Sample(position, stamp), "button": Sample(bool(sm.buttons >> p.button_bit & 1), stamp)}
         return dict(self._out)
 
     def safe_state(self) -> None:
