@@ -125,7 +125,7 @@ def test_no_servo_is_a_clear_error(emu):
 
 
 def test_wrong_model_and_refused_write(emu):
-    configure_fails(harness(emu, model="rh-p12-rn"), "model number 1020, expected 35073")
+    configure_fails(harness(emu, model="rh-p12-rn"), r"model number 1020 \(XM430-W350.*expected 35073")
     emu.write_error = ERR_ACCESS
     configure_fails(harness(emu), "Torque_Enable=0.*refused it.*not available")
     emu.write_error = 0
@@ -153,13 +153,70 @@ def test_servo_stops_answering_then_fault_or_recovery(emu):
 
 def test_late_answer_is_not_taken_for_state(emu):
     with harness(emu) as h:
-        # a 25 mm move at max_speed (0.05 m/s; the servo's Profile_Velocity just below it) takes ~0.51 s: 0.7 s
-        # leaves a margin for a slow machine
+        # a 25 mm move at max_speed (0.05 m/s; the servo's Profile_Velocity just below it) takes ~0.51 s
         drive(h, 0.05, 0.5)
         emu.late_answers = 1
         o = drive(h, 0.05, 0.2)
-        assert h.comp.comm_failures == 1 and "stale or short" in h.comp.last_comm_error
+        # the short late packet before the answer is dropped and the answer behind it taken: no failed read
+        assert h.comp.stale_answers == 1 and "1-byte status packet" in h.comp.last_stale
+        assert h.comp.comm_failures == 0
         assert o["opening"] == pytest.approx(0.05, abs=1e-3)
+
+
+def _record_readings(h):
+    """Every valid reading the driver takes (with its measurement time), in order."""
+    seen = []
+    read = h.comp._hw_read
+
+    def recording():
+        r = read()
+        if r is not None:
+            seen.append(r)
+        return r
+
+    h.comp._hw_read = recording
+    return seen
+
+
+@pytest.mark.parametrize("delay", [None, 0.05])
+def test_full_length_late_answer_is_not_taken_for_the_next_read(emu, delay):
+    # one state read's answer comes late (after the driver's ~34 ms packet timeout; None: just before the answer
+    # to the next request), with its full length; meanwhile the fingers were pushed to 1200 ticks. No reading the
+    # driver takes after the push may show the old position (the late answer was taken as the next read's answer)
+    with harness(emu, error_check_period=30.0) as h:
+        drive(h, 0.04, 0.5)
+        assert h.comp.comm_failures == 0
+        before = emu.get(emu.table.present_position)
+        pushed = []
+
+        def push():  # an outside push the servo cannot undo (speed 0): the position changes at once
+            emu.speed = 0.0
+            emu.pos = 1200.0
+            pushed.append(time.monotonic())
+
+        emu.on_delayed, emu.answer_delay, emu.delay_answers = push, delay, 1
+        seen = _record_readings(h)
+        drive(h, 0.04, 0.3)
+        assert pushed and emu.delayed and abs(before - 1200) > 100
+        late = [r for r in seen if r.mono > pushed[0]]
+        assert late, "no reading after the push"
+        assert [round(h.comp.ticks_for(r.opening)) for r in late] == [1200] * len(late)
+        assert h.comp.comm_failures == 1 and h.comp.resyncs == 1  # the read whose answer came late; one PING
+        if delay is None:  # held back until the PING: dropped there (after a fixed delay it may also be flushed)
+            assert h.comp.stale_answers == 1 and "10-byte status packet" in h.comp.last_stale
+
+
+def test_full_length_late_answer_is_not_taken_by_the_shutdown_poll(emu):
+    # the late state answer (10 bytes) arrives while the Torque_Enable..Hardware_Error_Status poll (7 bytes) waits:
+    # taken, its bytes were read as Torque_Enable and Hardware_Error_Status (a false hardware-error fault)
+    with harness(emu, error_check_period=0.001) as h:
+        drive(h, 0.06, 0.4)  # 15 mm at 0.05 m/s
+        emu.answer_delay, emu.delay_answers = None, 1
+        drive(h, 0.06, 0.2)
+        assert emu.delayed and emu.delay_answers == 0
+        assert h.comp.comm_failures == 1 and h.comp.resyncs == 1
+        o = drive(h, 0.06, 0.1)
+        assert o["opening"] == pytest.approx(0.06, abs=1e-3)
 
 
 def test_corrupt_answers_fault(emu):
@@ -179,28 +236,32 @@ def test_hardware_error_alert(emu):
             drive(h, 0.05, 1.0)
 
 
-RH_P12 = {"model": "rh-p12-rn", "dxl_id": 1, "ticks_open": 0, "ticks_closed": 740, "opening_at_ticks_open": 0.106,
+RH_P12 = {"dxl_id": 1, "ticks_open": 0, "ticks_closed": 740, "opening_at_ticks_open": 0.106,
           "opening_at_ticks_closed": 0.0, "max_opening": 0.106, "newtons_per_amp": 100.0, "max_effort": 30.0,
-          "max_speed": 0.2}
+          "max_speed": 0.1}
+RH_P12_A = dict(RH_P12, model="rh-p12-rn-a")  # the RH-P12-RN(A) firmware
+RH_P12_OLD = dict(RH_P12, model="rh-p12-rn")  # the old RH-P12-RN firmware
+# 0.1 m/s / (0.106 m / 740 ticks) = 698.1 ticks/s = 10.226 rev/min
+RH_PV = {"rh-p12-rn-a": 1022, "rh-p12-rn": 89}  # floor(10.226 / 0.01), floor(10.226 / 0.114)
 
 
 def test_hardware_error_alert_without_error_status_item():
-    # rh-p12-rn's table has no Hardware_Error_Status: the shutdown shows as the alert bit (0x80) in the status packet
-    # of the state read itself (GroupSyncRead used to drop it), so it faults at the next step, not after a poll
-    with DynamixelEmulator(1, "rh-p12-rn", position=0) as emu:
-        with harness(emu, **dict(RH_P12, error_check_period=30.0)) as h:
-            drive(h, 0.08, 0.2)
+    # a table without Hardware_Error_Status: the shutdown shows as the alert bit (0x80) in the status packet of the
+    # state read itself (GroupSyncRead used to drop it), so it faults at the next step, not after a poll
+    with DynamixelEmulator(15, position=1024) as emu:
+        with harness(emu, error_check_period=30.0, control_table={"hardware_error_status": None}) as h:
+            drive(h, 0.04, 0.2)
             emu.inject_hardware_error(HW_OVERLOAD)  # firmware: torque off, alert bit in every status packet
             t0 = time.monotonic()
-            with pytest.raises(HardwareError, match=r"Dynamixel ID 1 .*alert \(0x80\)"):
+            with pytest.raises(HardwareError, match=r"Dynamixel ID 15 .*alert \(0x80\).*no Hardware_Error_Status"):
                 drive(h, 0.02, 2.0)
             assert time.monotonic() - t0 < 0.2
 
 
-@pytest.mark.parametrize("model", ["xm430-w350", "rh-p12-rn"])
+@pytest.mark.parametrize("model", ["xm430-w350", "rh-p12-rn-a", "rh-p12-rn"])
 def test_torque_dropped_without_alert_is_a_fault(model):
     # a servo reset (power dip) clears Torque_Enable and sets no alert: the Torque_Enable poll catches it
-    dxl_id, params = (1, RH_P12) if model == "rh-p12-rn" else (15, {})
+    dxl_id, params = (15, {}) if model == "xm430-w350" else (1, dict(RH_P12, model=model))
     with DynamixelEmulator(dxl_id, model, position=0 if dxl_id == 1 else 1024) as emu:
         with harness(emu, **dict(params, error_check_period=0.05)) as h:
             drive(h, 0.06, 0.1)
@@ -210,6 +271,82 @@ def test_torque_dropped_without_alert_is_a_fault(model):
             with pytest.raises(HardwareError, match=rf"Dynamixel ID {dxl_id} .*Torque_Enable dropped to 0"):
                 drive(h, 0.06, 2.0)
             assert time.monotonic() - t0 < 0.05 + 0.1
+
+
+@pytest.mark.parametrize("model", ["rh-p12-rn-a", "rh-p12-rn"])
+def test_rh_p12_rn_presets_end_to_end(model):
+    # each firmware's table from the e-Manual: the driver finds every item at its address (the emulator refuses
+    # writes to read-only items and EEPROM with the torque on, and answers only what its table holds)
+    unit = {"rh-p12-rn-a": 1e-3, "rh-p12-rn": 4.02e-3}[model]
+    with DynamixelEmulator(1, model, position=300, block_at=500, closing=1) as emu:
+        with harness(emu, **dict(RH_P12, model=model, safe_mode="open")) as h:
+            t = emu.table
+            assert emu.get(t.operating_mode) == 5 and emu.get(t.torque_enable) == 1
+            # floor(30 N / 100 N/A / unit): 300 x 1 mA (A), 74 x 4.02 mA (old); the cap stays at or below 30 N
+            gc = int(30.0 / 100.0 / unit + 1e-9)
+            assert emu.get(t.goal_current) == gc
+            # the servo's own speed limit from max_speed (Profile_Velocity; Goal_Velocity on the old firmware)
+            assert emu.get(t.profile_velocity) == RH_PV[model]
+            o = drive(h, 0.0, 0.6)  # closes on the object at 500 ticks (0.29 s away) and squeezes with Goal_Current
+            assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
+            assert o["effort"] == pytest.approx(gc * unit * 100.0, rel=1e-6)
+            # the "open" safe state jumps the goal to max_opening; the servo runs it at most at max_speed
+            n0 = len(emu.trace)
+            h.comp.safe_state()
+            assert wait_for(lambda: emu.get(t.goal_position) == 0)
+            t_end = time.monotonic() + 0.3
+            while time.monotonic() < t_end:
+                emu.poll()
+                time.sleep(0.01)
+            tr = emu.trace[n0:]
+            speeds = [abs(b[1] - a[1]) / (b[0] - a[0]) * 0.106 / 740 for a, b in zip(tr, tr[1:]) if b[0] > a[0]]
+            assert 0.095 < max(speeds) <= 0.1  # 0.0999 (A), 0.0992 m/s (old)
+
+
+def test_rh_p12_rn_a_hardware_error_status_register():
+    # the RH-P12-RN(A) table has Hardware_Error_Status (518): the poll reads it (with Torque_Enable, 512) and names
+    # the error; the old preset had no such item and reported only "Torque_Enable dropped to 0"
+    with DynamixelEmulator(1, "rh-p12-rn-a", position=0) as emu:
+        with harness(emu, **dict(RH_P12_A, error_check_period=0.05)) as h:
+            drive(h, 0.08, 0.1)
+            emu.inject_hardware_error(HW_OVERLOAD, alert=False)  # the register (and the torque off) only
+            with pytest.raises(HardwareError, match=r"Dynamixel ID 1 .*Hardware_Error_Status overload"):
+                drive(h, 0.08, 1.0)
+    # with the alert bit too, as the firmware sets it: caught by the state read, the detail read from the register
+    with DynamixelEmulator(1, "rh-p12-rn-a", position=0) as emu:
+        with harness(emu, **dict(RH_P12_A, error_check_period=30.0)) as h:
+            drive(h, 0.08, 0.1)
+            emu.inject_hardware_error(0x0A)  # motor hall sensor + motor encoder (DYNAMIXEL-P bits)
+            with pytest.raises(HardwareError, match=r"alert \(0x80\).*\(motor hall sensor, motor encoder\)"):
+                drive(h, 0.08, 1.0)
+
+
+@pytest.mark.parametrize("model,limit", [("rh-p12-rn-a", 1984), ("rh-p12-rn", 820)])
+def test_rh_p12_rn_caps_at_current_and_velocity_limit(model, limit):
+    # more than Current_Limit / Velocity_Limit allow: capped there (the firmware refuses larger values), with a log
+    logs = []
+    with DynamixelEmulator(1, model, position=0) as emu:
+        h = harness(emu, **dict(RH_P12, model=model, max_effort=400.0, max_speed=0.5))
+        h.ctx._log = logs.append
+        with h:
+            assert emu.get(emu.table.goal_current) == limit
+            vlim = emu.get(emu.table.velocity_limit)
+            assert emu.get(emu.table.profile_velocity) == vlim > 0
+    assert any(f"capped at {limit * (1e-3 if limit == 1984 else 4.02e-3) * 100:.2f} N" in m for m in logs)
+    assert any("Velocity_Limit" in m and "capped" in m for m in logs)
+
+
+@pytest.mark.parametrize("servo,model,match", [
+    ("rh-p12-rn-a", "rh-p12-rn", r"model number 35074 \(RH-P12-RN with the RH-P12-RN\(A\) firmware: model "
+                                 r"'rh-p12-rn-a'\), expected 35073 .*set model: rh-p12-rn-a"),
+    ("rh-p12-rn", "rh-p12-rn-a", r"model number 35073 .*old RH-P12-RN firmware.*expected 35074 .*set model: "
+                                 r"rh-p12-rn .*flash the RH-P12-RN\(A\) firmware"),
+])
+def test_rh_p12_rn_firmware_mismatch_names_both(servo, model, match):
+    with DynamixelEmulator(1, servo, position=0) as emu:
+        configure_fails(harness(emu, **dict(RH_P12, model=model)), match)
+        # refused at the PING: nothing was written to the servo with the wrong table
+        assert not [pk for pk in emu.rx_packets if pk[2] == 0x03]
 
 
 def test_servo_speed_limit_from_max_speed():
@@ -257,27 +394,21 @@ def test_goal_current_never_above_max_effort(emu, max_effort):
 
 
 def test_other_control_table_by_config():
-    with DynamixelEmulator(1, "rh-p12-rn", position=0, block_at=500, closing=1) as emu:
-        p = RH_P12
-        with harness(emu, **p) as h:
-            # floor(30 N / 100 N/A / 4.02 mA) = floor(74.63): rounded down so the cap (29.75 N) stays at or below
-            # max_effort (ceil gave 75 = 30.15 N)
+    # the old-firmware RH-P12-RN described by a user's table instead of the preset (items left out take the
+    # X-series addresses: a non-X table must name them all)
+    table = {"model_number": 35073, "current_limit": [30, 2], "velocity_limit": [32, 4], "torque_enable": [562, 1],
+             "hardware_error_status": [892, 1], "goal_position": [596, 4], "profile_velocity": [600, 4],
+             "goal_current": [604, 2], "present_position": [611, 4], "present_velocity": [615, 4],
+             "present_current": [621, 2], "current_unit": 4.02e-3, "velocity_unit_rpm": 0.114}
+    with DynamixelEmulator(1, "rh-p12-rn", position=300, block_at=500, closing=1) as emu:
+        with harness(emu, **dict(RH_P12, model="x-series", control_table=table)) as h:
             assert emu.get(emu.table.goal_current) == 74
-            o = drive(h, 0.0, 1.0)
+            assert emu.get(emu.table.profile_velocity) == RH_PV["rh-p12-rn"]
+            o = drive(h, 0.0, 0.6)
             assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
-            assert o["effort"] == pytest.approx(74 * 4.02e-3 * 100.0, rel=1e-6)
-            # this preset has no Profile_Velocity: nothing is written at the X-series address 112
-            assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][:2] == bytes([112, 0])]
-        # the same servo, described by a user's table instead of the preset
-        # (items left out take the X-series addresses: a non-X table must name profile_velocity, None here)
-        table = {"torque_enable": [512, 1], "hardware_error_status": None, "profile_velocity": None,
-                 "goal_current": [550, 2], "goal_position": [564, 4], "present_current": [574, 2],
-                 "present_velocity": [576, 4], "present_position": [580, 4], "current_unit": 4.02e-3,
-                 "velocity_unit_rpm": 0.01}
-        with harness(emu, **dict(p, model="x-series", control_table=table)) as h:
-            o = drive(h, 0.0, 0.2)
-            assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
-        assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][:2] == bytes([112, 0])]
+        # nothing was written at the X-series addresses
+        assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][0] | pk[3][1] << 8 < 11]
+        assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][:2] in (bytes([64, 0]), bytes([112, 0]))]
 
 
 def test_params_validation():
@@ -289,3 +420,16 @@ def test_params_validation():
         DynamixelGripper.Params(control_table={"goal_curent": [102, 2]})
     with pytest.raises(ValidationError, match="ticks_open and ticks_closed"):
         DynamixelGripper.Params(ticks_open=5, ticks_closed=5)
+    # the other firmware's model number on a preset's table: the addresses would be wrong; name the right preset
+    with pytest.raises(ValidationError, match=r"control_table.model_number 35074 belongs to model 'rh-p12-rn-a'.*"
+                                              r"set model: rh-p12-rn-a"):
+        DynamixelGripper.Params(model="rh-p12-rn", control_table={"model_number": 35074})
+
+
+def test_opening_limits_must_lie_within_the_calibration():
+    # calibrated to open 40 mm (opening_at_ticks_open) with the default max_opening of 75 mm: commands above 40 mm
+    # would be extrapolated to ticks past the open end
+    with pytest.raises(ValidationError, match=r"max_opening \(75 mm\) is outside the calibrated range 0-40 mm "
+                                              r"\(opening_at_ticks_open, opening_at_ticks_closed\)"):
+        DynamixelGripper.Params(opening_at_ticks_open=0.04)
+    assert DynamixelGripper.Params(opening_at_ticks_open=0.04, max_opening=0.04).max_opening == 0.04

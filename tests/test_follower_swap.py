@@ -38,7 +38,7 @@ nodes:
   - id: follower
     plugin: {plugin}
     rate: 100
-    params: {{max_opening: 0.08, max_speed: 0.1, max_effort: 10, safe_mode: hold{hardware}}}
+    params: {{max_opening: 0.075, max_speed: 0.1, max_effort: 10, safe_mode: hold{hardware}}}
     inputs: {{opening_command: {{from: cmd.value, max_age: 0.1}}}}
   - id: opening_mm
     plugin: mock-gain

@@ -2,26 +2,34 @@
 
 The servo runs in current-based position mode (Operating_Mode 5): it goes to Goal_Position but never pushes with
 more than Goal_Current, which is how the grip force is capped (``max_effort`` / ``newtons_per_amp``). Each step
-reads Present_Current, Present_Velocity and Present_Position with one GroupSyncRead and sends Goal_Position with a
+reads Present_Current, Present_Velocity and Present_Position with one SYNC_READ and sends Goal_Position with a
 GroupSyncWrite. The status packet of that read is checked for the alert bit (0x80, set by the firmware while the
 servo is in hardware-error shutdown), and Torque_Enable (with Hardware_Error_Status where the table has it) is polled
 every ``error_check_period``: the torque dropping to 0 (a shutdown, or a servo reset by a brown-out) is a fault.
 
-The servo's own speed limit: Profile_Velocity is set from ``max_speed`` at start-up (rounded down), so a setpoint
-jump (the ``open`` safe state) is not run at the servo's full speed. A table without Profile_Velocity relies on the
-driver's setpoint shaping only.
+The servo's own speed limit: Profile_Velocity is set from ``max_speed`` at start-up (rounded down, and capped at
+Velocity_Limit where the table names it), so a setpoint jump (the ``open`` safe state) is not run at the servo's full
+speed. A table without Profile_Velocity relies on the driver's setpoint shaping only.
+
+Answers: Protocol 2.0 status packets carry no sequence number, so a status packet that arrives after its request
+timed out (a late answer) looks like the answer to the next request. Every answer is checked (the servo's ID, and the
+number of data bytes the request asked for; other packets are dropped and counted in ``stale_answers``), and after a
+request without a valid answer the next one is preceded by a PING whose answer is waited for: the servo answers in
+order, so whatever arrives before that PING's answer is a late answer to an earlier request and is dropped. A late
+answer of the right length can therefore never be taken for a newer request's.
 
 The opening maps linearly to ticks (``ticks_open`` <-> ``opening_at_ticks_open``, ``ticks_closed`` <->
 ``opening_at_ticks_closed``). Control tables are data: ``model`` picks a preset from :data:`CONTROL_TABLES`
-(X-series such as the OpenManipulator-X's XM430-W350, or ROBOTIS RH-P12-RN) and ``control_table`` overrides it, so
-a servo with another table needs configuration, not code.
+(X-series such as the OpenManipulator-X's XM430-W350; ROBOTIS RH-P12-RN with either firmware) and ``control_table``
+overrides it, so a servo with another table needs configuration, not code. At start-up the model number the servo
+answers the PING with must be the preset's (a firmware mismatch names the preset that fits).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, Callable
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -42,6 +50,8 @@ class ControlTable(BaseModel):
     current_limit: Item = (38, 2)
     torque_enable: Item = (64, 1)
     hardware_error_status: Item | None = (70, 1)
+    velocity_limit: Item | None = Field(None, description="Velocity_Limit, where the firmware refuses a larger "
+                                        "Profile_Velocity: Profile_Velocity is capped at it; None: not checked")
     profile_velocity: Item | None = Field((112, 4), description="Profile_Velocity (same unit as velocity_unit_rpm, "
                                           "0 = unlimited); None: the servo has no speed limit the driver can set")
     goal_current: Item = (102, 2)
@@ -59,22 +69,58 @@ CONTROL_TABLES: dict[str, dict[str, Any]] = {
     # X-series (XM430-W350: OpenManipulator-X gripper, ID 15)
     "xm430-w350": {"model_number": 1020},
     "x-series": {},
-    # ROBOTIS RH-P12-RN gripper: its own table; position 0 (open) .. 740 (closed). No Hardware_Error_Status and no
-    # Profile_Velocity in this preset: a shutdown is detected by the alert bit and by polling Torque_Enable, and the
-    # speed is limited only by the driver's setpoint shaping (a setpoint jump, e.g. safe_mode "open", runs at the
-    # servo's own speed). Give "profile_velocity" in control_table once checked against your firmware's e-Manual.
-    "rh-p12-rn": {"model_number": 35073, "torque_enable": (512, 1), "hardware_error_status": None,
-                  "profile_velocity": None,
-                  "goal_current": (550, 2), "goal_position": (564, 4), "present_current": (574, 2),
-                  "present_velocity": (576, 4), "present_position": (580, 4), "current_unit": 4.02e-3,
-                  "velocity_unit_rpm": 0.01},
+    # ROBOTIS RH-P12-RN gripper, "RH-P12-RN(A)" firmware (model number 35074; the table of DYNAMIXEL-P / PRO(A)):
+    # e-Manual platform/rh_p12_rna. Position 0 (open) .. 740 (closed) within the 0..1150 position limits; current
+    # in 1 mA, velocity in 0.01 rev/min; Profile_Velocity (0 = none) at most Velocity_Limit.
+    "rh-p12-rn-a": {"model_number": 35074, "operating_mode": (11, 1), "current_limit": (38, 2),
+                    "velocity_limit": (44, 4), "torque_enable": (512, 1), "hardware_error_status": (518, 1),
+                    "goal_current": (550, 2), "profile_velocity": (560, 4), "goal_position": (564, 4),
+                    "present_current": (574, 2), "present_velocity": (576, 4), "present_position": (580, 4),
+                    "current_unit": 1e-3, "velocity_unit_rpm": 0.01},
+    # the same gripper with its old "RH-P12-RN" firmware (model number 35073; a DYNAMIXEL-PRO-like table): e-Manual
+    # platform/rh_p12_rn. Current in about 4.02 mA, velocity in 0.114 rev/min; its Goal_Velocity (600) is the
+    # profile's top speed in current-based position mode (0 = none), so it takes the place of Profile_Velocity.
+    # ROBOTIS recommends flashing the RH-P12-RN(A) firmware (DYNAMIXEL Wizard 2.0 / R+ Manager 2.0, Firmware
+    # Recovery) and using "rh-p12-rn-a".
+    "rh-p12-rn": {"model_number": 35073, "operating_mode": (11, 1), "current_limit": (30, 2),
+                  "velocity_limit": (32, 4), "torque_enable": (562, 1), "hardware_error_status": (892, 1),
+                  "goal_position": (596, 4), "profile_velocity": (600, 4), "goal_current": (604, 2),
+                  "present_position": (611, 4), "present_velocity": (615, 4), "present_current": (621, 2),
+                  "current_unit": 4.02e-3, "velocity_unit_rpm": 0.114},
 }
+
+#: What a model number answered to PING is (for messages), and the preset for it.
+MODEL_NAMES: dict[int, tuple[str, str]] = {
+    1020: ("XM430-W350", "xm430-w350"),
+    35073: ("RH-P12-RN with its old RH-P12-RN firmware", "rh-p12-rn"),
+    35074: ("RH-P12-RN with the RH-P12-RN(A) firmware", "rh-p12-rn-a"),
+}
+
+
+def model_text(number: int) -> str:
+    name = MODEL_NAMES.get(number)
+    return f"{number} ({name[0]}: model {name[1]!r})" if name else f"{number}"
+
+
+def firmware_hint(found: int, model: str) -> str:
+    """What to do when the servo answered ``found`` but ``model`` was configured."""
+    name = MODEL_NAMES.get(found)
+    if found == 35073 and model == "rh-p12-rn-a":
+        return ("set model: rh-p12-rn (the old firmware's table), or flash the RH-P12-RN(A) firmware as ROBOTIS "
+                "recommends (DYNAMIXEL Wizard 2.0 or R+ Manager 2.0, Firmware Recovery) and keep rh-p12-rn-a")
+    if name:
+        return f"set model: {name[1]}, or check the ID"
+    return "check the ID and the 'model' parameter"
+
 
 BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1152000, 2000000,
              2500000, 3000000, 3500000, 4000000)
-HW_ERROR_BITS = {0x01: "input voltage", 0x04: "overheating", 0x08: "motor encoder", 0x10: "electrical shock",
-                 0x20: "overload"}
+HW_ERROR_BITS = {0x01: "input voltage", 0x02: "motor hall sensor", 0x04: "overheating", 0x08: "motor encoder",
+                 0x10: "electrical shock", 0x20: "overload"}
 CURRENT_BASED_POSITION = 5
+# Protocol 2.0 status packet: FF FF FD 00 | ID | LEN_L LEN_H | 0x55 | ERR | data | CRC_L CRC_H (LEN counts from 0x55)
+_PKT_ID, _PKT_LEN, _PKT_INST, _PKT_ERR, _PKT_DATA = 4, 5, 7, 8, 9
+_INST_PING = 0x01
 
 
 def hw_error_text(bits: int) -> str:
@@ -132,8 +178,17 @@ class DynamixelGripper(FollowerBase):
         def _table(self) -> "DynamixelGripper.Params":
             if self.ticks_open == self.ticks_closed:
                 raise ValueError("ticks_open and ticks_closed must differ")
-            OpeningMap(self.ticks_open, self.opening_at_ticks_open, self.ticks_closed, self.opening_at_ticks_closed)
-            self.table()  # validates control_table
+            OpeningMap(self.ticks_open, self.opening_at_ticks_open, self.ticks_closed,
+                       self.opening_at_ticks_closed).check_limits(self, "opening_at_ticks_open",
+                                                                  "opening_at_ticks_closed")
+            table = self.table()  # validates control_table
+            preset = CONTROL_TABLES[self.model].get("model_number")
+            if preset is not None and table.model_number != preset and table.model_number in MODEL_NAMES:
+                # e.g. an RH-P12-RN(A) number on the old firmware's table: the addresses would be the wrong ones
+                other = MODEL_NAMES[table.model_number][1]
+                raise ValueError(f"control_table.model_number {table.model_number} belongs to model {other!r}, "
+                                 f"whose control table differs from {self.model!r}'s (model number {preset}); "
+                                 f"set model: {other} instead")
             return self
 
         def table(self) -> ControlTable:
@@ -168,25 +223,82 @@ class DynamixelGripper(FollowerBase):
         if error:
             raise HardwareError(f"{what}: {self._where()} refused it ({self.ph.getRxPacketError(error)})")
 
+    # requests and their answers: every answer is checked, a lost one makes the next request resynchronise first
+    def _transact(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
+        """Send a request (``send(*args)``, which sets the SDK's packet timeout) and take its answer: ``n`` data
+        bytes. After a lost answer the bus is resynchronised by a PING first (see :meth:`_resync_bus`)."""
+        if self._desync:
+            result = self._resync_bus()
+            if result != self._sdk.COMM_SUCCESS:
+                return [], result, 0
+        return self._request(n, send, *args)
+
+    def _request(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
+        result = send(*args)
+        if result != self._sdk.COMM_SUCCESS:
+            self._desync = True  # what went out is unknown: an answer may still come
+            return [], result, 0
+        return self._answer(n)
+
+    def _answer(self, n: int) -> tuple[list[int], int, int]:
+        """The status packet answering the request just sent: from this servo's ID, with ``n`` data bytes (or none,
+        with an error other than the alert bit: a refused request). Any other status packet is a late answer to an
+        earlier request (or another servo's): dropped, and the wait goes on until the request's packet timeout."""
+        sdk, p = self._sdk, self.params
+        while True:
+            pkt, result = self.ph.rxPacket(self.port, False)
+            if result != sdk.COMM_SUCCESS:
+                self._desync = True  # the answer may still arrive, late
+                return [], result, 0
+            count = (pkt[_PKT_LEN] | pkt[_PKT_LEN + 1] << 8) - 4  # LEN = instruction + error + data + CRC
+            error = pkt[_PKT_ERR]
+            if pkt[_PKT_ID] == p.dxl_id and (count == n or (count == 0 and error & 0x7F)):
+                return list(pkt[_PKT_DATA:_PKT_DATA + count]), result, error
+            self.stale_answers += 1
+            self.last_stale = f"{count}-byte status packet from ID {pkt[_PKT_ID]} while waiting for {n} bytes"
+
+    def _send_ping(self) -> int:
+        pkt = [0] * 10
+        pkt[_PKT_ID], pkt[_PKT_LEN], pkt[_PKT_INST] = self.params.dxl_id, 3, _INST_PING
+        result = self.ph.txPacket(self.port, pkt)
+        if result == self._sdk.COMM_SUCCESS:
+            self.port.setPacketTimeout(14)  # the status packet of a PING: 11 bytes + 3 data bytes
+        return result
+
+    def _send_write(self, addr: int, size: int, value: int) -> int:
+        data = list(int(value & ((1 << (8 * size)) - 1)).to_bytes(size, "little"))
+        result = self.ph.writeTxOnly(self.port, self.params.dxl_id, addr, size, data)
+        if result == self._sdk.COMM_SUCCESS:
+            self.port.setPacketTimeout(11)  # the status packet of a WRITE: no data
+        return result
+
+    def _resync_bus(self) -> int:
+        """After a request without a valid answer: PING, and take nothing before the PING's answer. The servo
+        answers in order, so a late answer to an earlier request arrives before it and is dropped there; only then is
+        another request sent (a full-length late answer is never taken for a newer request's)."""
+        _data, result, _error = self._request(3, self._send_ping)
+        if result == self._sdk.COMM_SUCCESS:
+            self._desync = False
+            self.resyncs += 1
+        return result
+
     def _hw_error(self) -> str:
         item = self.table.hardware_error_status
         if item is None:
             return "details not in this control table"
-        value, result, _ = self.ph.read1ByteTxRx(self.port, self.params.dxl_id, item[0])
-        return hw_error_text(value) if result == self._sdk.COMM_SUCCESS else "status unreadable"
+        data, result, _ = self._transact(1, self.ph.readTx, self.port, self.params.dxl_id, item[0], 1)
+        return hw_error_text(data[0]) if result == self._sdk.COMM_SUCCESS and data else "status unreadable"
 
     def _write(self, item: Item, value: int, what: str) -> None:
         addr, size = item
-        fn = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx, 4: self.ph.write4ByteTxRx}[size]
-        result, error = fn(self.port, self.params.dxl_id, addr, value & ((1 << (8 * size)) - 1))
+        _data, result, error = self._transact(0, self._send_write, addr, size, value)
         self._check(f"writing {what}", result, error)
 
     def _read(self, item: Item, what: str) -> int:
         addr, size = item
-        fn = {1: self.ph.read1ByteTxRx, 2: self.ph.read2ByteTxRx, 4: self.ph.read4ByteTxRx}[size]
-        value, result, error = fn(self.port, self.params.dxl_id, addr)
+        data, result, error = self._transact(size, self.ph.readTx, self.port, self.params.dxl_id, addr, size)
         self._check(f"reading {what}", result, error)
-        return _signed(value, size)
+        return _signed(int.from_bytes(bytes(data), "little"), size)
 
     def _hw_open(self) -> None:
         import dynamixel_sdk as sdk
@@ -194,6 +306,12 @@ class DynamixelGripper(FollowerBase):
         p = self.params
         self._sdk = sdk
         self.table = p.table()
+        self._desync = False
+        self.stale_answers = 0
+        self.last_stale = ""
+        self.resyncs = 0
+        self.comm_failures = 0
+        self.last_comm_error = ""
         self.port = sdk.PortHandler(p.port)
         self.ph = sdk.PacketHandler(2.0)
         self.port.baudrate = p.baudrate
@@ -207,12 +325,14 @@ class DynamixelGripper(FollowerBase):
         self._port_open = True
         # pyserial blocks for at most serial_poll per read instead of spinning (the SDK polls with timeout 0)
         self.port.ser.timeout = p.serial_poll
-        model, result, error = self.ph.ping(self.port, p.dxl_id)
+        data, result, error = self._transact(3, self._send_ping)
         self._check("ping", result, error)
+        model = data[0] | data[1] << 8
         t = self.table
         if t.model_number is not None and model != t.model_number:
-            raise HardwareError(f"{self._where()} answered with model number {model}, expected {t.model_number} "
-                                f"({p.model}); check the ID and the 'model' parameter")
+            raise HardwareError(f"{self._where()} answered with model number {model_text(model)}, expected "
+                                f"{model_text(t.model_number)} for model {p.model!r}: the control tables differ; "
+                                f"{firmware_hint(model, p.model)}")
         self._write(t.torque_enable, 0, "Torque_Enable=0")
         self._write(t.operating_mode, CURRENT_BASED_POSITION, "Operating_Mode=5 (current-based position)")
         limit = self._read(t.current_limit, "Current_Limit")
@@ -242,21 +362,30 @@ class DynamixelGripper(FollowerBase):
             raise HardwareError(f"GroupSyncRead refused ID {p.dxl_id}")
         self.gsw = sdk.GroupSyncWrite(self.port, self.ph, t.goal_position[0], 4)
         self._last_check = time.monotonic()
-        self.comm_failures = 0
-        self.last_comm_error = ""
 
     def _profile_velocity(self) -> int | None:
-        """Profile_Velocity (raw) for ``max_speed``: rounded down so the servo's limit is at or below it."""
+        """Profile_Velocity (raw) for ``max_speed``: rounded down so the servo's limit is at or below it, and capped
+        at Velocity_Limit where the table names it (the firmware refuses a larger value)."""
         p, t = self.params, self.table
         if t.profile_velocity is None:
             return None
         ticks_per_s = p.max_speed / abs(self.map.scale)
         # floor, with a hair of margin so that float error never rounds a just-above value back to the limit
         raw = int(math.floor(ticks_per_s / t.ticks_per_rev * 60.0 / t.velocity_unit_rpm * (1 - 1e-12)))
+        unit = t.velocity_unit_rpm / 60.0 * t.ticks_per_rev * abs(self.map.scale)  # m/s of opening per unit
         if raw < 1:  # 0 would mean "no limit" to the servo
-            slowest = t.velocity_unit_rpm / 60.0 * t.ticks_per_rev * abs(self.map.scale)
             raise HardwareError(f"max_speed {p.max_speed} m/s is below the slowest Profile_Velocity of "
-                                f"{self._where()} ({slowest:.5f} m/s with this calibration)")
+                                f"{self._where()} ({unit:.5f} m/s with this calibration)")
+        if t.velocity_limit is not None:
+            vmax = self._read(t.velocity_limit, "Velocity_Limit")
+            if vmax < 1:
+                raise HardwareError(f"Velocity_Limit of {self._where()} is {vmax}: no Profile_Velocity can be set "
+                                    f"(0 would mean no speed limit); set Velocity_Limit (address "
+                                    f"{t.velocity_limit[0]}) to at least {raw}")
+            if raw > vmax:
+                self.ctx.log(f"max_speed {p.max_speed} m/s needs Profile_Velocity {raw} > Velocity_Limit {vmax}; "
+                             f"the servo's own limit is capped at {vmax * unit:.4f} m/s")
+                raw = vmax
         return raw
 
     def _poll_shutdown(self) -> None:
@@ -268,7 +397,7 @@ class DynamixelGripper(FollowerBase):
         spans = list(items) if length > 16 else [(start, length)]  # far apart: one read each
         mem: dict[int, int] = {}
         for addr, n in spans:
-            data, result, error = self.ph.readTxRx(self.port, p.dxl_id, addr, n)
+            data, result, error = self._transact(n, self.ph.readTx, self.port, p.dxl_id, addr, n)
             if result != sdk.COMM_SUCCESS or len(data) != n:
                 return  # a lost answer is the state read's business (read_timeout)
             if error & 0x80:
@@ -297,14 +426,10 @@ class DynamixelGripper(FollowerBase):
         if now - self._last_check >= p.error_check_period:
             self._last_check = now
             self._poll_shutdown()
-        # GroupSyncRead.txRxPacket() drops the status packet's error byte (its rxPacket discards it): send the
-        # SYNC_READ with the group, then take the answer with readRx, which returns the error byte too
+        # the SYNC_READ goes out with the group; its answer is taken (and checked) here, with its error byte
+        # (GroupSyncRead.txRxPacket() would drop it)
         t0 = time.monotonic()
-        result = self.gsr.txPacket()
-        data: list[int] = []
-        error = 0
-        if result == sdk.COMM_SUCCESS:
-            data, result, error = self.ph.readRx(self.port, p.dxl_id, self._rd_len)
+        data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
         t1 = time.monotonic()
         if result != sdk.COMM_SUCCESS:
             self.comm_failures += 1
@@ -312,13 +437,7 @@ class DynamixelGripper(FollowerBase):
             return None
         if error & 0x80:
             self._alert("hardware-error alert (0x80) in the status packet of the state read")
-        if len(data) != self._rd_len:
-            # a late status packet of an earlier, timed-out request was taken as this one's answer
-            self.comm_failures += 1
-            self.last_comm_error = f"stale or short status packet ({len(data)} of {self._rd_len} bytes)"
-            self.port.clearPort()
-            return None
-        if error:
+        if error or len(data) != self._rd_len:
             self.comm_failures += 1
             self.last_comm_error = f"status packet error: {self.ph.getRxPacketError(error)}"
             return None
@@ -361,7 +480,8 @@ class DynamixelGripper(FollowerBase):
 
     def status(self) -> dict[str, Any]:
         d = super().status()
-        d.update(comm_failures=getattr(self, "comm_failures", 0))
+        d.update(comm_failures=getattr(self, "comm_failures", 0), stale_answers=getattr(self, "stale_answers", 0),
+                 resyncs=getattr(self, "resyncs", 0))
         return d
 
 

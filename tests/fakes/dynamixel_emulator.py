@@ -4,7 +4,18 @@ The driver opens the pty's slave path with dynamixel-sdk's ``PortHandler`` exact
 this emulator sits on the master side, decodes the instruction packets byte by byte (header, CRC-16, byte
 stuffing) and answers with status packets like the servo's firmware: PING, READ, WRITE, SYNC_READ, SYNC_WRITE,
 REBOOT; CRC, access, range and instruction errors in the status packet's error byte; a hardware-error alert bit;
-and it can be told to stop answering or to corrupt its answers.
+and it can be told to stop answering, to corrupt its answers, or to answer late.
+
+Models (``MODELS``): an XM430-W350 (X-series table) and the ROBOTIS RH-P12-RN gripper with either firmware: the
+RH-P12-RN(A) firmware (model number 35074, DYNAMIXEL-P-like table) and the old RH-P12-RN firmware (35073,
+DYNAMIXEL-PRO-like table, whose Goal_Velocity is the profile's top speed), with the addresses of the ROBOTIS
+e-Manual.
+
+Late answers: ``late_answers`` puts a short (1-byte) late status packet before SYNC_READ answers;
+``delay_answers`` holds back whole SYNC_READ answers (taken when the request arrives, so they carry the servo's
+state of that moment), either for ``answer_delay`` seconds (the servo is busy, requests queue) or, with
+``answer_delay`` None, until the next instruction that is answered arrives, whose answer then follows it: what a
+master sees when an answer comes after its timeout. ``on_delayed`` runs once a held-back answer's data is taken.
 
 Timing: the emulator reads the baud rate the driver set on the pty (termios) and waits for the time the bytes would
 take on a real wire (10 bits per byte, instruction and status) plus the servo's Return_Delay_Time, so a run at
@@ -29,6 +40,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass
+from typing import Callable
 
 # --- Protocol 2.0 constants (ROBOTIS e-Manual) ------------------------------------------------------------------
 HEADER = b"\xff\xff\xfd\x00"
@@ -120,16 +132,24 @@ class Table:
     velocity_unit_rpm: float
     size: int = 1024
     profile_velocity: tuple[int, int] | None = None  # unit velocity_unit_rpm, 0 = unlimited
+    velocity_limit: tuple[int, int] | None = None  # where set: Profile_Velocity above it is refused (limit error)
+    velocity_limit_default: int = 0
 
 
 XM430_W350 = Table(1020, 48, 64, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (64, 1), (70, 1), (102, 2), (116, 4),
                    (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229, profile_velocity=(112, 4))
-# ROBOTIS RH-P12-RN: its own control table (e-Manual); Hardware_Error_Status and Profile_Velocity not modelled here
-# (as in the driver's preset), the alert bit in status packets is.
-RH_P12_RN = Table(35073, 1, 512, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (512, 1), None, (550, 2), (564, 4),
-                  (574, 2), (576, 4), (580, 4), 820, 1150, 0, 0.01)
+# ROBOTIS RH-P12-RN(A) firmware (e-Manual platform/rh_p12_rna): RAM from 512; Current_Limit 1984 mA, Velocity_Limit
+# 2970 x 0.01 rev/min, position limits 0 .. 1150
+RH_P12_RN_A = Table(35074, 1, 512, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (512, 1), (518, 1), (550, 2),
+                    (564, 4), (574, 2), (576, 4), (580, 4), 1984, 1150, 0, 0.01, profile_velocity=(560, 4),
+                    velocity_limit=(44, 4), velocity_limit_default=2970)
+# the old RH-P12-RN firmware (e-Manual platform/rh_p12_rn): RAM from 562; Current_Limit 820 x ~4.02 mA,
+# Velocity_Limit 100 x 0.114 rev/min; Goal_Velocity (600) caps the profile's speed in current-based position mode
+RH_P12_RN = Table(35073, 1, 562, (9, 1), (11, 1), (30, 2), (36, 4), (40, 4), (562, 1), (892, 1), (604, 2), (596, 4),
+                  (621, 2), (615, 4), (611, 4), 820, 1150, 0, 0.114, profile_velocity=(600, 4),
+                  velocity_limit=(32, 4), velocity_limit_default=100)
 
-MODELS = {"xm430-w350": XM430_W350, "rh-p12-rn": RH_P12_RN}
+MODELS = {"xm430-w350": XM430_W350, "rh-p12-rn-a": RH_P12_RN_A, "rh-p12-rn": RH_P12_RN}
 
 
 class DynamixelEmulator:
@@ -150,6 +170,8 @@ class DynamixelEmulator:
         self._put(t.current_limit, t.current_limit_default)
         self._put(t.max_position, t.max_position_default)
         self._put(t.min_position, t.min_position_default)
+        if t.velocity_limit is not None:
+            self._put(t.velocity_limit, t.velocity_limit_default)
         self._put(t.goal_position, position)
         self._put(t.present_position, position)
         self.pos = float(position)
@@ -164,6 +186,11 @@ class DynamixelEmulator:
         self.status_error = 0        # error byte added to every status packet
         self.write_error = 0         # error byte answered to every WRITE (the write is not applied)
         self.late_answers = 0        # answer this many SYNC_READs with a late 1-byte status first (as after a timeout)
+        self.delay_answers = 0       # hold back this many SYNC_READ answers (full length, the state when asked) ...
+        self.answer_delay: float | None = None  # ... for this long (s), or None: until the next answered request
+        self.on_delayed: Callable[[], None] | None = None  # called (lock held) once a held-back answer is taken
+        self.delayed: list[tuple[float, bytes]] = []  # (monotonic, data) of every held-back answer
+        self._held: tuple[int, int, bytes] | None = None
         # observation
         self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
         self.trace: list[tuple[float, float]] = []  # (monotonic, position in ticks) at every physics update
@@ -187,13 +214,14 @@ class DynamixelEmulator:
         addr, size = item[-2], item[-1]
         return struct.unpack_from({1: "<B", 2: "<h", 4: "<i"}[size], self.mem, addr)[0]
 
-    def inject_hardware_error(self, bits: int = HW_OVERLOAD) -> None:
-        """What the firmware does on overload etc.: set Hardware_Error_Status, torque off, alert bit in statuses."""
+    def inject_hardware_error(self, bits: int = HW_OVERLOAD, alert: bool = True) -> None:
+        """What the firmware does on overload etc.: set Hardware_Error_Status, torque off, alert bit in statuses
+        (``alert`` False: the register and the torque only, so that a test sees what the register alone shows)."""
         with self._lock:
             if self.table.hardware_error is not None:
                 self._put(self.table.hardware_error, bits)
             self._put(self.table.torque_enable, 0)
-            self._alert = True
+            self._alert = alert
 
     _alert = False
 
@@ -207,6 +235,7 @@ class DynamixelEmulator:
         t = self.table
         if t.profile_velocity is not None:
             raw = self.get(t.profile_velocity)
+            raw = abs(raw)  # the old RH-P12-RN firmware's Goal_Velocity may be negative
             if raw > 0:
                 return min(self.speed, raw * t.velocity_unit_rpm / 60.0 * 4096.0)
         return self.speed
@@ -317,6 +346,11 @@ class DynamixelEmulator:
         with self._lock:
             self.rx_packets.append((time.monotonic(), dxl_id, inst, params))
             self._update()
+            answered = inst in (INST_PING, INST_READ, INST_REBOOT) or (inst == INST_WRITE and dxl_id == self.id) \
+                or (inst == INST_SYNC_READ and self.id in params[4:])
+            if answered and self._held is not None:  # the held-back answer goes out now, late, before this one's
+                held, self._held = self._held, None
+                self._reply(*held)
             if inst == INST_PING:
                 self._reply(len(pkt), 0, struct.pack("<HB", self.table.model_number, self.table.firmware))
             elif inst == INST_READ:
@@ -344,8 +378,19 @@ class DynamixelEmulator:
                 if self.id in params[4:]:
                     if self.late_answers > 0:
                         self.late_answers -= 1
-                        self._reply(0, 0, bytes(self.mem[70:71]))  # a late answer to an earlier 1-byte READ
-                    self._reply(len(pkt), 0, bytes(self.mem[addr:addr + n]))
+                        a = (self.table.hardware_error or self.table.torque_enable)[0]
+                        self._reply(0, 0, bytes(self.mem[a:a + 1]))  # a late answer to an earlier 1-byte READ
+                    data = bytes(self.mem[addr:addr + n])
+                    if self.delay_answers > 0:
+                        self.delay_answers -= 1
+                        self.delayed.append((time.monotonic(), data))
+                        if self.on_delayed is not None:
+                            self.on_delayed()
+                        if self.answer_delay is None:
+                            self._held = (len(pkt), 0, data)
+                            return
+                        time.sleep(self.answer_delay)  # busy: the requests that follow queue up
+                    self._reply(len(pkt), 0, data)
             elif inst == INST_REBOOT:
                 self._reply(len(pkt), 0, b"")
                 if self.table.hardware_error is not None:
@@ -373,6 +418,10 @@ class DynamixelEmulator:
             return ERR_DATA_LIMIT
         g = self.get(t.goal_position)
         if self.get(t.operating_mode) in (3, 5) and not (self.get(t.min_position) <= g <= self.get(t.max_position)):
+            self.mem[addr:addr + len(data)] = backup
+            return ERR_DATA_LIMIT
+        if t.profile_velocity is not None and t.velocity_limit is not None \
+                and abs(self.get(t.profile_velocity)) > self.get(t.velocity_limit):
             self.mem[addr:addr + len(data)] = backup
             return ERR_DATA_LIMIT
         if self._alert and self.get(t.torque_enable) == 1:
