@@ -14,6 +14,8 @@ A graph file::
       startup_grace: 1.0          # s before stale-input checks start
       watchdog: 0.1               # s: a device not stepped for this long is made safe and faults (wall clock;
                                   # at least 3 of its periods; 0 = off)
+      safe_timeout: 0.5           # s: a device's safe_state() that has not returned by then is left behind
+                                  # (its hardware call hangs) and the others go on
     nodes:
       - id: mapper
         plugin: poly-force
@@ -52,7 +54,7 @@ from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
 NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
              "description")
-FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog")
+FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog", "safe_timeout")
 FAULT_ACTIONS = ("stop", "degrade")
 CLOCKS = ("sim", "wall")
 ID_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
@@ -90,6 +92,7 @@ class FaultPolicy:
     max_overruns: int = 10
     startup_grace: float = 1.0
     watchdog: float = 0.1
+    safe_timeout: float = 0.5
 
 
 @dataclass
@@ -374,6 +377,14 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 setattr(faults, k, q)
             except ValueError as exc:
                 err(f"faults.{k}: {exc}", w)
+        elif k == "safe_timeout":
+            try:
+                q = parse_quantity(v, "s")
+                if not 0 < q <= 60:
+                    raise ValueError(f"expected a time > 0 s and at most 60 s, got {v!r}")
+                faults.safe_timeout = q
+            except ValueError as exc:
+                err(f"faults.safe_timeout: {exc}", w)
 
     nodes_doc = doc.get("nodes")
     nodes: list[NodeSpec] = []
@@ -628,7 +639,8 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
             "faults": {"type": "object", "properties": {
                 "on_fault": {"enum": list(FAULT_ACTIONS)},
                 "max_overruns": {"type": "integer", "minimum": 0},
-                "startup_grace": number_or_qty, "watchdog": number_or_qty}, "additionalProperties": False},
+                "startup_grace": number_or_qty, "watchdog": number_or_qty, "safe_timeout": number_or_qty},
+                "additionalProperties": False},
             "nodes": {"type": "array", "items": node},
         },
         "required": ["nodes"],

@@ -119,7 +119,7 @@ class RunResult:
 class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
-                 "nstarts", "last_dt", "state")
+                 "nstarts", "last_dt", "state", "hung")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -145,6 +145,7 @@ class _Node:
         self.nstarts = 0
         self.last_dt = 0.0
         self.state = "unconfigured"
+        self.hung = False   # its safe_state() did not return within faults.safe_timeout: left behind
 
 
 _libc = None
@@ -275,11 +276,35 @@ class Runtime:
                                                        f"was disabled by a fault", t)
 
     def _safe(self, node: _Node) -> None:
-        try:
-            node.comp.safe_state()
-        except Exception as exc:
-            self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now,
-                                     "logged"))
+        """``safe_state()``, bounded: it runs in a helper thread and is waited for at most ``faults.safe_timeout``.
+        A driver whose step hangs inside a hardware call usually holds the lock its safe_state() needs; unbounded,
+        that one call would block the caller (the watchdog's main thread, a rate group's exit, the shutdown) and
+        with it every other device's safe state and the end of the run. Such a node is left behind (``hung``: no
+        further lifecycle calls) and reported."""
+        if node.hung:
+            return
+        error: list[BaseException] = []
+
+        def call() -> None:
+            try:
+                node.comp.safe_state()
+            except Exception as exc:
+                error.append(exc)
+
+        th = threading.Thread(target=call, name=f"teletouch-safe-{node.id}", daemon=True)
+        th.start()
+        th.join(self.spec.faults.safe_timeout)
+        if th.is_alive():
+            node.hung = True
+            msg = (f"safe_state() did not return within {self.spec.faults.safe_timeout:g} s (faults.safe_timeout; "
+                   f"a call into its hardware hangs?): left behind, the other devices were made safe")
+            with self._lock:
+                self.faults.append(Fault(node.id, "hung", msg, self._now, "logged"))
+            self.log(f"[{node.id}] {msg}")
+        elif error:
+            with self._lock:
+                self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(error[0])}",
+                                         self._now, "logged"))
 
     def _check_stale(self, node: _Node, t: float) -> bool:
         if t < self.spec.faults.startup_grace:
@@ -349,6 +374,11 @@ class Runtime:
             if node.is_device and node.state != "unconfigured":
                 self._safe(node)
         for node in reversed(self.nodes):
+            if node.hung:   # its safe_state() hung (holding the driver's lock): deactivate/close would hang too
+                self.faults.append(Fault(node.id, "shutdown", "deactivate() and close() skipped: its safe_state() "
+                                                              "hung", self._now, "logged"))
+                node.state = "finalized"
+                continue
             if node.state == "active":
                 try:
                     node.comp.deactivate()
@@ -357,6 +387,8 @@ class Runtime:
                                              self._now, "logged"))
                 node.state = "inactive"
         for node in reversed(self.nodes):
+            if node.hung:
+                continue
             try:
                 node.comp.close()
             except Exception as exc:

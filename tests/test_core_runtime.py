@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 import pytest
 
 from teletouch import Component, Device, Kind, Port, hookimpl
+from teletouch.errors import GraphValidationError
+from teletouch.graph import load_graph_text
 from teletouch.runtime import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_STARTUP
 from teletouch.testing import Harness, make_registry, run_yaml
 
@@ -342,21 +345,33 @@ class _Hang(Device):
     class Params(Component.Params):
         hang_at: float = 0.2
         hang_for: float = 0.6
+        locked: bool = False   # the hang holds the driver's lock, which safe_state() and deactivate() take too
 
     outputs = {"y": Port("float64", (), "")}
 
     def configure(self):
         self.hung_at = self.safe_at = None
+        self.lock = threading.Lock()
+        self.calls: list[str] = []
 
     def step(self, t, inputs):
         if t >= self.params.hang_at and self.hung_at is None:
             self.hung_at = time.perf_counter()
-            time.sleep(self.params.hang_for)
+            if self.params.locked:
+                with self.lock:
+                    time.sleep(self.params.hang_for)
+            else:
+                time.sleep(self.params.hang_for)
         return {"y": t}
 
     def safe_state(self):
-        if self.safe_at is None:
-            self.safe_at = time.perf_counter()
+        with self.lock:
+            if self.safe_at is None:
+                self.safe_at = time.perf_counter()
+
+    def deactivate(self):
+        with self.lock:
+            self.calls.append("deactivate")
 
 
 class _FaultPlugins:
@@ -424,6 +439,39 @@ nodes:
                        make_registry(_FaultPlugins()), duration=1.2)
     dev = rt.component("dev")
     assert res.status == "ok" and dev.safe_at - dev.hung_at >= 0.59
+
+
+def test_a_device_whose_safe_state_hangs_does_not_block_the_others_or_the_end_of_the_run():
+    # the leader's step hangs inside a "hardware call" holding its driver's lock for 4 s; its safe_state() waits for
+    # that lock. The watchdog must still make the other device safe at once, and the run must end (after
+    # faults.safe_timeout), leaving the hung node behind, instead of blocking on its safe_state() for 4 s
+    text = """
+clock: wall
+faults: {safe_timeout: 0.3}
+nodes:
+  - {id: leader, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 4.0, locked: true}}
+  - {id: follower, plugin: mock-device, rate: 100}
+"""
+    t0 = time.perf_counter()
+    res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=10.0)
+    took = time.perf_counter() - t0
+    leader, follower = rt.component("leader"), rt.component("follower")
+    assert res.status == "fault" and "node 'leader' stall" in res.message
+    assert took < 3.0, took                        # not the 4 s hang (nor the 10 s duration)
+    assert follower.safe_at is not None and follower.safe_at - leader.hung_at < 1.5
+    assert leader.safe_at is None                  # it could not be made safe: reported, left behind
+    kinds = {(f.node, f.kind) for f in res.faults}
+    assert ("leader", "hung") in kinds
+    hung = next(f for f in res.faults if f.kind == "hung")
+    assert "did not return within 0.3 s (faults.safe_timeout" in hung.message
+    assert "deactivate" not in leader.calls and "deactivate" in follower.lifecycle
+
+
+def test_safe_timeout_is_validated():
+    for bad in ("0", "-1", "120", "soon"):
+        with pytest.raises(GraphValidationError, match=r"faults.safe_timeout"):
+            load_graph_text(f"faults: {{safe_timeout: {bad}}}\nnodes:\n  - {{id: d, plugin: mock-device}}\n",
+                            "<t>")
 
 
 def test_on_stop_a_device_is_made_safe_by_its_own_thread_not_after_the_slow_ones():
