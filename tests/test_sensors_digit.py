@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -284,7 +285,9 @@ def test_frames_captured_before_graph_time_zero_are_not_passed_on(video):
     """The capture thread starts at activate, during start-up; a frame it read before the clock's origin is older
     than the run and is skipped (counted), the next one is passed on with a stamp >= 0."""
     with Harness(Digit, {"source": str(video), "source_rate": 60.0}) as h:
-        time.sleep(0.1)                      # a frame is waiting, captured "during start-up"
+        deadline = time.monotonic() + 3      # a frame is waiting, captured "during start-up" (waited for: on a
+        while h.comp.status()["captured"] < 1 and time.monotonic() < deadline:   # loaded machine the first read
+            time.sleep(0.005)                                                   # can take longer than 0.1 s)
         t0 = time.monotonic()                # graph time 0 starts now
         h.comp.ctx = Context(clock_kind="wall", from_monotonic=lambda m: m - t0)
         assert h.comp.step(0.0, h.inputs) is None and h.comp.status()["before_start"] == 1
@@ -335,3 +338,397 @@ def test_teletouch_devices_lists_fake_digits(fake_sys, monkeypatch, capsys):
     digits = [d for d in found if d.get("kind") == "digit"]
     assert {d["id"] for d in digits} >= {"D20001", "D20002"}
     assert any(d["path"].endswith("video2") and d["details"]["firmware"] == "0203" for d in digits)
+
+
+# ------------------------------------------------------------------ faults at the hardware boundary (a fake capture)
+class FakeCamera:
+    """Stands in for cv2.VideoCapture on a DIGIT's V4L2 node, the hardware boundary. ``script(cam, k)`` gives the
+    k-th read's (ok, frame): it may block (a camera that stopped sending: V4L2 waits in select()) or raise.
+    ``pos_msec`` is what CAP_PROP_POS_MSEC reports (V4L2: the buffer's CLOCK_MONOTONIC time, in ms; 0 before the
+    first frame). It records a release() that comes while a read is in progress: OpenCV then frees the buffers the
+    read is using, a crash on real hardware."""
+
+    def __init__(self, script):
+        self.script = script
+        self.props: dict[int, float] = {}
+        self.opened = True
+        self.reads = 0
+        self.in_read = 0
+        self.released_during_read = False
+        self.released = threading.Event()
+        self.unblock = threading.Event()
+        self.go = threading.Event()        # set by _wall_clock: scripts that wait on it stream from graph time 0
+        self.stalled = threading.Event()
+        self.pos_msec = 0.0
+
+    def isOpened(self):
+        return self.opened
+
+    def set(self, prop, value):
+        self.props[prop] = value
+        return True
+
+    def get(self, prop):
+        import cv2
+
+        if prop == cv2.CAP_PROP_POS_MSEC:
+            return self.pos_msec
+        return float(self.props.get(prop, 0.0))
+
+    def read(self):
+        self.in_read += 1
+        try:
+            k = self.reads
+            self.reads += 1
+            return self.script(self, k)
+        finally:
+            self.in_read -= 1
+
+    def release(self):
+        if self.in_read:
+            self.released_during_read = True
+        self.opened = False
+        self.released.set()
+
+
+def _landscape(k: int, size=(320, 240), channels: int | None = 3) -> np.ndarray:
+    """A camera frame as the DIGIT sends it (landscape), numbered like _write_video's (see _frame_index)."""
+    w, h = size
+    f = np.full((h, w, 3), 40, np.uint8)
+    f[:30, :30] = 255
+    f[:, w // 2:] = 8 * k
+    if channels is None:
+        return f[:, :, 0].copy()
+    if channels == 4:
+        return np.dstack([f, np.full((h, w), 255, np.uint8)])
+    return f
+
+
+def _stall(cam):
+    cam.stalled.set()
+    cam.unblock.wait(30)
+    return False, None
+
+
+@pytest.fixture()
+def fake_camera(fake_sys, monkeypatch):
+    """open_digit(script, **params) -> (Harness, FakeCamera): the real driver, discovery on the fake sysfs tree
+    (DIGIT D20001 at <dev>/video2), with FakeCamera in place of OpenCV's capture."""
+    import cv2
+
+    root, dev = fake_sys
+    made = []
+
+    def open_digit(script, **params):
+        cam = FakeCamera(script)
+        made.append(cam)
+        monkeypatch.setattr(cv2, "VideoCapture", lambda path, api=None: cam)
+        return Harness(Digit, {"serial": "D20001", "sysfs_root": str(root), "dev_root": str(dev), **params}), cam
+
+    yield open_digit
+    for cam in made:   # no capture thread stays blocked after the test
+        cam.unblock.set()
+
+
+def _wall_clock(h: Harness, cam: FakeCamera | None = None) -> float:
+    """Graph time 0 is now (monotonic), as the runtime's wall clock maps capture times; then ``cam.go``."""
+    t0 = time.monotonic()
+    h.comp.ctx = Context(clock_kind="wall", from_monotonic=lambda m: m - t0, request_stop=h._stop)
+    if cam is not None:
+        cam.go.set()
+    return t0
+
+
+def _step_until_fault(h: Harness, t0: float, limit: float = 10.0) -> tuple[list, float, BaseException | None]:
+    """Step at about 200 Hz until the node raises (or ``limit`` s): the samples it published, the time it took,
+    the exception."""
+    got = []
+    start = time.monotonic()
+    while time.monotonic() - start < limit:
+        try:
+            out = h.comp.step(time.monotonic() - t0, h.inputs)
+        except Exception as exc:
+            return got, time.monotonic() - start, exc
+        if out:
+            got.append(out["image"])
+        time.sleep(0.005)
+    return got, time.monotonic() - start, None
+
+
+def test_stalled_camera_faults_in_bounded_time_naming_it_and_never_republishes(fake_camera):
+    """Two frames, then the camera stops sending (the read blocks, as V4L2 does): each frame is published once with
+    its capture stamp, the step never blocks, and the node faults after frame_timeout naming the DIGIT, its node
+    and the stream it expected."""
+    def script(cam, k):
+        if k < 2 and cam.go.wait(5):
+            time.sleep(0.01)
+            return True, _landscape(k)
+        return _stall(cam)
+
+    h, cam = fake_camera(script, frame_timeout=0.3)
+    with h:
+        t0 = _wall_clock(h, cam)
+        got, took, exc = _step_until_fault(h, t0)
+        cam.unblock.set()
+    assert isinstance(exc, HardwareError), exc
+    msg = str(exc)
+    assert "DIGIT D20001" in msg and "video2" in msg and "no frame" in msg, msg
+    assert "qvga60" in msg and "60 fps" in msg, msg       # what it expected
+    assert took < 5.0                                     # frame_timeout 0.3 s; generous bound for a loaded machine
+    # each frame once (the newest; a slow poll may skip one): an old frame never gets a new stamp
+    idx = [_frame_index(s.value) for s in got]
+    assert idx in ([0, 1], [1]), idx
+    assert all(a.stamp < b.stamp for a, b in zip(got, got[1:]))
+
+
+def test_shutdown_never_releases_the_camera_inside_a_blocked_read(fake_camera, monkeypatch):
+    """A camera that stopped sending leaves the capture thread inside read(). deactivate/close must come back in
+    bounded time and must not release the capture under that read (OpenCV would free its buffers: a segfault);
+    the thread releases it when its read returns. OpenCV's V4L2 wait for a frame is bounded too (it is 10 s per
+    read by default)."""
+    monkeypatch.setenv("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", "x")
+    monkeypatch.delenv("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT")   # (restored to unset after the test)
+    h, cam = fake_camera(lambda cam, k: _stall(cam))
+    h.__enter__()
+    assert os.environ.get("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT") == "1"   # frame_timeout 1 s, whole seconds
+    deadline = time.monotonic() + 5
+    while cam.in_read == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert cam.in_read == 1
+    start = time.monotonic()
+    h.__exit__(None, None, None)
+    assert time.monotonic() - start < 5.0
+    assert not cam.released_during_read
+    assert not cam.released.is_set()        # not yet: the read has not returned
+    cam.unblock.set()
+    assert cam.released.wait(5)             # released by the capture thread as its read returned
+    assert not cam.released_during_read
+
+
+def test_capture_error_in_the_reader_thread_faults_at_once_with_its_reason(fake_camera):
+    """A read that raises (an OpenCV error on a vanished device) must not kill the capture thread silently (the node
+    would wait for frame_timeout and then blame the cable): the node faults with the error."""
+    def script(cam, k):
+        if k < 2 and cam.go.wait(5):
+            time.sleep(0.01)
+            return True, _landscape(k)
+        raise RuntimeError("VIDIOC_DQBUF: No such device")
+
+    h, cam = fake_camera(script, frame_timeout=30.0)
+    with h:
+        t0 = _wall_clock(h, cam)
+        got, took, exc = _step_until_fault(h, t0, limit=5.0)
+    assert isinstance(exc, HardwareError), exc
+    assert "DIGIT D20001" in str(exc) and "No such device" in str(exc), str(exc)
+    assert took < 5.0
+
+
+@pytest.mark.parametrize("bad,check_resolution", [("grey", True), ("bgra", True), ("vga", True), ("vga", False),
+                                                  ("grey", False)])
+def test_frame_of_another_size_or_format_mid_run_faults(fake_camera, bad, check_resolution):
+    """After a USB re-enumeration or a V4L2 format change the capture may deliver frames of another size or format:
+    the node faults naming the DIGIT and what it expected, and never publishes such a frame (with check_resolution
+    false the size is free, but it must not change mid-run)."""
+    frames = {"grey": _landscape(9, channels=None), "bgra": _landscape(9, channels=4),
+              "vga": _landscape(9, size=(640, 480))}
+
+    def script(cam, k):
+        cam.go.wait(5)
+        time.sleep(0.01)
+        return True, (_landscape(k) if k < 3 else frames[bad])
+
+    h, cam = fake_camera(script, check_resolution=check_resolution)
+    with h:
+        t0 = _wall_clock(h, cam)
+        got, took, exc = _step_until_fault(h, t0, limit=5.0)
+    assert isinstance(exc, HardwareError), exc
+    msg = str(exc)
+    assert "DIGIT D20001" in msg and "video2" in msg and "320 rows x 240 cols x 3" in msg, msg
+    assert got and all(s.value.shape == (320, 240, 3) and s.value.dtype == np.uint8 for s in got)
+
+
+def test_frames_during_a_long_start_up_keep_the_camera_alive(fake_camera):
+    """The capture starts at activate; the rest of the graph may take seconds more to start (models, other devices).
+    The camera streamed all along: the first step drops the frame captured before graph time 0 and the next step,
+    with no newer frame yet, must not call the camera dead."""
+    streaming = threading.Event()
+    streaming.set()
+
+    def script(cam, k):
+        if not streaming.is_set():
+            return _stall(cam)
+        time.sleep(0.02)   # 50 fps
+        return True, _landscape(k % 20)
+
+    h, cam = fake_camera(script, frame_timeout=0.5)
+    with h:
+        time.sleep(2.6)                  # the rest of the graph starts up (longer than frame_timeout + 2 s)
+        streaming.clear()
+        assert cam.stalled.wait(5)       # the last frame of the stream has arrived
+        t0 = _wall_clock(h)              # graph time 0
+        assert h.comp.step(0.0, h.inputs) is None and h.comp.status()["before_start"] == 1
+        assert h.comp.step(time.monotonic() - t0, h.inputs) is None   # no new frame yet: not a fault
+        streaming.set()
+        cam.unblock.set()
+        got, _, exc = _step_until_fault(h, t0, limit=0.5)
+        assert exc is None and got and got[0].stamp >= 0.0
+
+
+def test_capture_stamp_is_the_buffer_time_when_the_driver_gives_it(fake_camera):
+    """V4L2 (uvcvideo) stamps each buffer with CLOCK_MONOTONIC at the start of its exposure, and OpenCV reports it as
+    CAP_PROP_POS_MSEC. A frame that waited in the driver's queue (the capture thread was late) keeps that time; an
+    implausible value (another clock; 0 before the first frame) falls back to the time the read returned."""
+    clocks = ["monotonic"] * 3 + ["realtime"] * 2 + ["none"] * 2
+    captured: dict[int, float] = {}
+    go = threading.Event()
+
+    def script(cam, k):
+        if k >= len(clocks) or not go.wait(5):
+            return _stall(cam)
+        go.clear()                        # one frame per frame the test took: deterministic on a loaded machine
+        t = time.monotonic() - 0.040      # exposed 40 ms before the read returns (queued in the driver)
+        captured[k] = t
+        cam.pos_msec = {"monotonic": t * 1e3, "realtime": time.time() * 1e3, "none": 0.0}[clocks[k]]
+        return True, _landscape(k)
+
+    h, cam = fake_camera(script)
+    with h:
+        t0 = _wall_clock(h)
+        time.sleep(0.06)     # so that the first exposure (40 ms before its read) comes after graph time 0
+        go.set()
+        got = []
+        deadline = time.monotonic() + 10
+        while len(got) < len(clocks) and time.monotonic() < deadline:
+            t = time.monotonic() - t0
+            out = h.comp.step(t, h.inputs)
+            if out:
+                got.append((t, out["image"]))
+                go.set()
+            time.sleep(0.002)
+        cam.unblock.set()
+    assert [_frame_index(s.value) for _, s in got] == list(range(len(clocks)))
+    for k, (t, s) in enumerate(got):
+        if clocks[k] == "monotonic":
+            assert s.stamp == pytest.approx(captured[k] - t0, abs=1e-6)
+        else:   # the receive time: after the exposure, not after the step
+            assert captured[k] - t0 + 0.040 <= s.stamp <= t
+    stamps = [s.stamp for _, s in got]
+    assert stamps == sorted(stamps)
+
+
+def test_two_digits_need_a_serial(fake_camera, fake_sys):
+    """With two DIGITs connected, serial None would take whichever enumerated first (a finger swap between boots)."""
+    root, dev = fake_sys
+    h, cam = fake_camera(lambda cam, k: _stall(cam), serial=None)
+    with pytest.raises(HardwareError, match=r"serial: 2 DIGITs are connected: D20001 \(.*video2.*\), D20002 \(.*"
+                                            r"video12.*\); set serial"):
+        with h:
+            pass
+    (root / "class" / "video4linux" / "video12").unlink()   # one DIGIT: serial None takes it
+    (root / "class" / "video4linux" / "video11").unlink()
+    h, cam = fake_camera(lambda cam, k: _stall(cam), serial=None)
+    with h:
+        assert h.comp.path == str(dev / "video2")
+        cam.unblock.set()
+
+
+def test_reenumerated_digit_is_reported_with_its_new_node(fake_camera, fake_sys):
+    """A USB reset re-enumerates the DIGIT under another /dev/videoN while the old node number lives on (here: taken
+    by another device). Reads fail; the fault says where the DIGIT went."""
+    root, dev = fake_sys
+    fail = threading.Event()
+
+    def script(cam, k):
+        cam.go.wait(5)
+        time.sleep(0.01)
+        if fail.is_set():
+            return False, None
+        return True, _landscape(k % 20)
+
+    h, cam = fake_camera(script)
+    with h:
+        t0 = _wall_clock(h, cam)
+        deadline = time.monotonic() + 5
+        while not h.comp.step(time.monotonic() - t0, h.inputs) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        cls = root / "class" / "video4linux"
+        (cls / "video2").unlink()
+        (cls / "video3").unlink()
+        usb = next(root.glob("devices/*/*/usb1/1-1"))
+        _video_node(root, dev, usb, 4, 0)
+        fail.set()
+        got, took, exc = _step_until_fault(h, t0, limit=5.0)
+    assert isinstance(exc, HardwareError), exc
+    assert "DIGIT D20001" in str(exc) and "re-enumerated" in str(exc) and "video4" in str(exc), str(exc)
+
+
+def test_digit_bad_params_name_the_field():
+    reg = make_registry("teletouch.plugins.sensors.digit")
+
+    def errors(params):
+        text = f"name: t\nclock: wall\nnodes:\n  - id: digit\n    plugin: digit\n    rate: 60\n    params: {params}\n"
+        with pytest.raises(GraphValidationError) as info:
+            run_yaml(text, reg, duration=0.1)
+        return info.value.errors
+
+    # [r, g, b] with a channel missing: one error on the field, not two about pydantic's union members
+    errs = errors("{led_intensity: [1, 2]}")
+    assert len(errs) == 1 and "led_intensity" in str(errs[0]) and "[r, g, b]" in str(errs[0]), errs
+    errs = errors("{led_intensity: true}")
+    assert len(errs) == 1 and "led_intensity" in str(errs[0]) and "0..15" in str(errs[0]), errs
+    # a timeout shorter than two frame periods would fault on the first late frame
+    errs = errors("{stream: vga15, frame_timeout: 50ms}")
+    assert len(errs) == 1 and "frame_timeout" in str(errs[0]) and "vga15" in str(errs[0]) \
+        and "0.133" in str(errs[0]), errs
+
+
+def test_two_digits_with_the_same_serial_are_both_listed_and_refused(fake_sys):
+    """Discovery kept one DIGIT per serial: a second unit reporting the same serial (a cloned or unflashed firmware)
+    was invisible, and serial: D20001 opened whichever enumerated first."""
+    root, dev = fake_sys
+    twin = _usb_device(root, "1-4", "2833", "0209", "D20001", bcd="0203")
+    _video_node(root, dev, twin, 20, 0)
+    _video_node(root, dev, twin, 21, 1)
+    found = discovery.find_digits(root, dev, usb_find=None)
+    assert [(d.serial, Path(d.path).name) for d in found] == [("D20001", "video2"), ("D20002", "video12"),
+                                                              ("D20001", "video20")]
+    with pytest.raises(HardwareError, match=r"serial: 2 DIGITs report serial D20001: D20001 \(.*video2.*\), "
+                                            r"D20001 \(.*video20.*\)"):
+        with Harness(Digit, {"serial": "D20001", "sysfs_root": str(root), "dev_root": str(dev)}):
+            pass
+
+
+def test_stalled_digit_in_a_wall_clock_graph_faults_and_shuts_down_cleanly(fake_camera, fake_sys):
+    """End to end under the runtime: the camera sends a few frames and stops. The run ends with a fault naming the
+    DIGIT soon after frame_timeout (the rate group's thread is never held by the camera), each frame was published
+    once with its capture stamp, and the shutdown did not release the capture under the blocked read."""
+    root, dev = fake_sys
+
+    def script(cam, k):
+        if k < 3:
+            time.sleep(0.02)
+            return True, _landscape(k)
+        return _stall(cam)
+
+    _, cam = fake_camera(script)   # installs the fake capture; the graph builds its own node
+    text = f"""
+name: digit-stall
+clock: wall
+nodes:
+  - id: digit
+    plugin: digit
+    rate: 60
+    params: {{serial: D20001, sysfs_root: {str(root)!r}, dev_root: {str(dev)!r}, frame_timeout: 0.2}}
+"""
+    frames = []
+    result, rt = run_yaml(text, make_registry("teletouch.plugins.sensors.digit"), duration=20.0,
+                          taps=[lambda n, t, o: frames.append((t, o["image"]))])
+    assert result.status == "fault", result.message
+    assert "DIGIT D20001" in result.message and "no frame" in result.message, result.message
+    assert result.wall_time < 10.0          # frame_timeout 0.2 s + start-up + a 1 s bounded shutdown
+    stamps = [s.stamp for _, s in frames]
+    assert len(frames) <= 3 and all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(0.0 <= s.stamp <= t for t, s in frames)
+    assert not cam.released_during_read
+    cam.unblock.set()
+    assert cam.released.wait(5) and not cam.released_during_read

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+import threading
 
 import numpy as np
 import pytest
@@ -224,3 +225,84 @@ def test_replay_unreadable_or_truncated_recording(tmp_path):
                                              r"truncated at byte \d+ .*; 0 messages read before it"):
         with Harness(Replay, {"path": str(cut)}):
             pass
+
+
+# ------------------------------------------------------------------------------------------------ audit: faults
+def _in_thread(fn, limit=10.0):
+    """Run ``fn`` in a daemon thread: (finished, {"value" or "error"}). A replay that hangs must not hang the suite."""
+    box = {}
+
+    def go():
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # handed to the test
+            box["error"] = e
+
+    th = threading.Thread(target=go, daemon=True)
+    th.start()
+    th.join(limit)
+    return not th.is_alive(), box
+
+
+@pytest.mark.parametrize("stamps", [[0.1], [0.2, 0.2, 0.2], [0.3, 0.2, 0.1]], ids=["one-frame", "same", "backwards"])
+def test_replay_loop_of_a_recording_whose_stamps_do_not_advance(tmp_path, stamps):
+    """Looping a recording of one frame (or whose stamps never advance) made every pass due at the same time: the
+    step looped over the recording forever and the graph hung. Each pass now comes at least one node period after
+    the last, and a stamp that goes backwards is taken as the previous one: stamps never go backwards."""
+    from teletouch.recording import Recorder
+
+    path = tmp_path / "still.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        for k, s in enumerate(stamps):
+            rec.tap("digit", 0.1 * k, {"image": Sample(np.full((24, 32, 3), 40 * k, np.uint8), s)})
+    done, box = _in_thread(lambda: _run(_graph(path, node_rate=30, loop=True), duration=0.5))
+    assert done, "replay hung in step()"
+    assert "error" not in box, box.get("error")
+    result, rt, got = box["value"]
+    assert result.status == "ok" and len(got) >= 10
+    out = [s.stamp for _, s in got]
+    assert out[0] == 0.0 and all(b > a for a, b in zip(out, out[1:])), out
+    assert int(got[-1][1].value[0, 0, 0]) == 40 * (len(stamps) - 1)   # the newest of each pass
+
+
+def test_replay_empty_path_is_refused_naming_the_field():
+    """path: '' is Path('.'): it replayed whatever images the working directory held."""
+    with pytest.raises(ValueError, match=r"path: empty; expected a folder of images, a video file or a \.mcap"):
+        Replay.Params(path="")
+    with pytest.raises(GraphValidationError, match=r"node 'cam': param 'path' = '': empty; expected a folder"):
+        _run(_graph(""))
+
+
+def test_replay_frame_removed_during_the_run_is_reported_as_missing(shared_data, tmp_path):
+    src = shared_data / "digit-presses-qvga"
+    for k in range(3):
+        shutil.copy(src / f"{k:04d}.png", tmp_path / f"{k:04d}.png")
+    with Harness(Replay, {"path": str(tmp_path)}) as h:
+        (tmp_path / "0001.png").unlink()   # e.g. a sync tool cleaning the folder while the replay runs
+        frames = [h.step(k / 30).get("image") for k in range(4)]
+    assert sum(f is not None for f in frames) == 2
+    assert len(h.comp.corrupt) == 1 and "0001.png" in h.comp.corrupt[0], h.comp.corrupt
+    assert "no longer exists" in h.comp.corrupt[0], h.comp.corrupt
+
+
+def test_replay_folder_of_mixed_sizes_names_the_odd_frame(shared_data, tmp_path):
+    """A VGA frame in a QVGA folder is reported with its name and both sizes; a landscape copy of a QVGA frame is
+    turned portrait and fits."""
+    import cv2
+
+    qvga, vga = shared_data / "digit-presses-qvga", shared_data / "digit-presses-vga"
+    shutil.copy(qvga / "0000.png", tmp_path / "0000.png")
+    shutil.copy(sorted(vga.glob("*.jpg"))[0], tmp_path / "0001.jpg")
+    shutil.copy(qvga / "0002.png", tmp_path / "0002.png")
+    cv2.imwrite(str(tmp_path / "0003.png"), cv2.rotate(cv2.imread(str(qvga / "0003.png")), cv2.ROTATE_90_CLOCKWISE))
+    with Harness(Replay, {"path": str(tmp_path)}) as h:
+        frames = [h.step(k / 30).get("image") for k in range(5)]
+    good = [f for f in frames if f is not None]
+    assert len(good) == 3 and all(f.shape == (320, 240, 3) for f in good)
+    assert np.array_equal(good[2], cv2.imread(str(qvga / "0003.png")))
+    assert len(h.comp.corrupt) == 1
+    assert "0001.jpg" in h.comp.corrupt[0] and "640x480 differs from the first frame's 320x240" in h.comp.corrupt[0]
+    with Harness(Replay, {"path": str(tmp_path), "on_corrupt": "fault"}) as h:
+        h.step(0.0)
+        with pytest.raises(ComponentFault, match=r"0001.jpg: size 640x480 differs"):
+            h.step(1 / 30)

@@ -1,6 +1,6 @@
 """``digit``: the real DIGIT tactile sensor through OpenCV (V4L2 on Linux).
 
-- Finds the sensor by serial number (or takes the first one) from the USB ids 2833:0209 in sysfs and pyusb
+- Finds the sensor by serial number (or takes the only one connected) from the USB ids 2833:0209 in sysfs and pyusb
   (:mod:`.discovery`); ``source`` opens a /dev node, a video file or a URL instead, through the same capture code.
 - Stream modes qvga60, qvga30 (320 x 240), vga30, vga15 (640 x 480); LED intensity 0-15 per channel, packed
   (r << 8) | (g << 4) | b and sent through CAP_PROP_ZOOM as the DIGIT firmware expects (firmware revision < 200:
@@ -9,15 +9,23 @@
   90 degrees counter-clockwise (transpose, then flip the rows: what digit-interface's get_frame returns), so images
   are **portrait**, QVGA 320 rows x 240 cols. Frames that are already portrait (a recorded teletouch video) are
   passed through unchanged.
-- A capture thread reads continuously and keeps only the newest frame, stamped with its capture time
-  (time.monotonic() right after the read, mapped to the graph clock); frames the graph never took are counted as
-  dropped, and a frame captured during start-up, before graph time 0, is not passed on (``before_start``).
-- Errors say what to do: no DIGIT, wrong serial (lists what is connected), permission denied (the udev rule),
-  unplugged mid-run or no frame for ``frame_timeout`` (the node faults; the runtime applies its fault policy).
+- A capture thread reads continuously and keeps only the newest frame, stamped with its capture time: the V4L2
+  buffer's time (CLOCK_MONOTONIC, start of exposure, via CAP_PROP_POS_MSEC) when it is plausible, else
+  time.monotonic() right after the read; mapped to the graph clock. Frames the graph never took are counted as
+  dropped, a frame captured during start-up, before graph time 0, is not passed on (``before_start``), and a frame
+  is published once: a step without a new frame publishes nothing, so the port's sample ages.
+- Errors say what to do and name the DIGIT (serial and node): no DIGIT, two DIGITs and no serial, wrong serial
+  (lists what is connected), permission denied (the udev rule), unplugged or re-enumerated mid-run, a failed read,
+  no frame for ``frame_timeout``, a frame of another size or format than expected (the node faults; the runtime
+  applies its fault policy).
+- The capture is never released while the thread is inside a read (OpenCV would free the buffers under it): a read
+  that outlives deactivate() releases it when it returns. OpenCV's V4L2 wait for a frame (10 s by default) is
+  shortened to ``frame_timeout`` (whole seconds) through OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT unless it is set.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import stat
 import sys
@@ -26,7 +34,7 @@ import time
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, HardwareError, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import Hertz, Seconds
@@ -79,18 +87,25 @@ class FrameGrabber:
     ``pace`` (Hz): for files, deliver frames at this rate (a camera paces itself). ``on_eof``: what the end of a
     file means: "stop" (eof flag), "loop" (start again) or "fault" (treated like a lost device).
     ``lost`` is called after read failures and returns why the device is gone, or None.
+    ``device_clock``: take the capture time from the driver's buffer stamp (V4L2: CAP_PROP_POS_MSEC, CLOCK_MONOTONIC
+    in ms) when it is plausible (at most ``MAX_QUEUED`` s before the read returned, not after it); else, and always
+    for files, the time.monotonic() right after the read.
+    The thread owns the capture from :meth:`start` on: :meth:`release` releases it at once if the thread has ended,
+    else the thread does as its current read returns (releasing under a read crashes OpenCV).
     """
 
     MAX_FAILURES = 10
+    MAX_QUEUED = 10.0
 
     def __init__(self, cap: Any, name: str, *, is_file: bool = False, pace: float | None = None,
-                 on_eof: str = "stop", lost: Any = None):
+                 on_eof: str = "stop", lost: Any = None, device_clock: bool = False):
         self.cap = cap
         self.name = name
         self.is_file = is_file
         self.pace = pace
         self.on_eof = on_eof
         self.lost = lost or (lambda: None)
+        self.device_clock = device_clock
         self._lock = threading.Lock()
         self._latest: tuple[np.ndarray, float, int] | None = None
         self._taken_seq = 0
@@ -98,20 +113,55 @@ class FrameGrabber:
         self.dropped = 0
         self.error: str | None = None
         self.eof = False
+        self.last_received: float | None = None  # time.monotonic() when the newest frame arrived (taken or not)
         self.read_time = 0.0  # total seconds spent in read + rotate (benchmark)
+        self._last_stamp = -math.inf
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._cap_lock = threading.Lock()
+        self._running = False          # the thread is in its loop (under _cap_lock with the next two)
+        self._release_on_exit = False
+        self._released = False
 
     def start(self) -> None:
+        if self._thread is not None and self._thread.is_alive():
+            raise HardwareError(f"{self.name}: the capture thread of the previous activation is still blocked in a "
+                                f"read; unplug and replug the DIGIT")
         self._stop.clear()
+        with self._cap_lock:
+            if self._released:
+                raise HardwareError(f"{self.name}: the capture was released (closed)")
+            self._running = True
         self._thread = threading.Thread(target=self._run, name=f"digit-capture-{self.name}", daemon=True)
         self._thread.start()
 
-    def stop(self, timeout: float = 2.0) -> None:
+    def stop(self, timeout: float = 1.0) -> bool:
+        """Ask the thread to end and wait up to ``timeout`` s; whether it ended (False: it is inside a read)."""
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
+        th = self._thread
+        if th is not None:
+            th.join(timeout)
+            if th.is_alive():
+                return False
             self._thread = None
+        return True
+
+    def release(self) -> None:
+        """Release the capture: now if the thread is not reading, else by the thread when its read returns."""
+        with self._cap_lock:
+            if self._released:
+                return
+            if self._running:
+                self._release_on_exit = True
+                return
+            self._release_now()
+
+    def _release_now(self) -> None:   # with _cap_lock held
+        self._released = True
+        try:
+            self.cap.release()
+        except Exception:
+            pass
 
     @property
     def alive(self) -> bool:
@@ -127,6 +177,33 @@ class FrameGrabber:
             return latest
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as exc:   # a read that raises (an OpenCV error on a vanished device), a frame it cannot turn
+            self.error = f"{self.name}: capture failed: {type(exc).__name__}: {exc}; check the USB cable and `dmesg`"
+        finally:
+            with self._cap_lock:
+                self._running = False
+                if self._release_on_exit:
+                    self._release_now()
+
+    def _stamp(self, received: float) -> float:
+        stamp = received
+        if self.device_clock:
+            import cv2
+
+            try:
+                ms = float(self.cap.get(cv2.CAP_PROP_POS_MSEC))
+            except Exception:
+                ms = math.nan
+            t = ms * 1e-3
+            if math.isfinite(t) and received - self.MAX_QUEUED <= t <= received:
+                stamp = t
+        stamp = max(stamp, self._last_stamp)   # never backwards
+        self._last_stamp = stamp
+        return stamp
+
+    def _loop(self) -> None:
         import cv2
 
         failures = 0
@@ -134,7 +211,7 @@ class FrameGrabber:
         while not self._stop.is_set():
             t0 = time.perf_counter()
             ok, frame = self.cap.read()
-            stamp = time.monotonic()
+            received = time.monotonic()
             if not ok or frame is None:
                 if self.is_file and self.on_eof != "fault":
                     if self.on_eof == "loop" and self.seq > 0:
@@ -144,27 +221,58 @@ class FrameGrabber:
                             continue
                     self.eof = True
                     return
+                if self._stop.is_set():
+                    return
                 failures += 1
                 reason = self.lost()
                 if reason or failures >= self.MAX_FAILURES or self.is_file:
-                    self.error = reason or f"{self.name}: the camera stopped delivering frames " \
-                        f"({failures} failed reads); check the USB cable and `dmesg`"
+                    self.error = reason or (
+                        f"{self.name}: end of the file (on_eof: fault)" if self.is_file else
+                        f"{self.name}: the camera stopped delivering frames ({failures} failed reads); "
+                        f"check the USB cable and `dmesg`")
                     return
                 time.sleep(0.01)
                 continue
             failures = 0
-            frame = to_portrait(frame)
+            stamp = self._stamp(received)
+            if isinstance(frame, np.ndarray) and frame.ndim >= 2:
+                frame = to_portrait(frame)
             self.read_time += time.perf_counter() - t0
             with self._lock:
                 self.seq += 1
                 if self._latest is not None and self._latest[2] != self._taken_seq:
                     self.dropped += 1
                 self._latest = (frame, stamp, self.seq)
+                self.last_received = received
             if self.pace:
                 next_t = max(next_t + 1.0 / self.pace, time.monotonic() - 1.0 / self.pace)
                 delay = next_t - time.monotonic()
                 if delay > 0:
                     self._stop.wait(delay)
+
+
+#: seconds a camera may take to send its first frame after activate, on top of frame_timeout
+FIRST_FRAME_GRACE = 2.0
+
+
+def _led_param(v: Any) -> Any:
+    def is_int(c: Any) -> bool:
+        return isinstance(c, (int, np.integer)) and not isinstance(c, (bool, np.bool_))
+
+    if not (is_int(v) or (isinstance(v, (list, tuple)) and len(v) == 3 and all(is_int(c) for c in v))):
+        raise ValueError(f"LED intensity: expected 0..15 or [r, g, b] with each channel 0..15, got {v!r}")
+    led_value(v if is_int(v) else tuple(v))
+    return v
+
+
+def _describe_frame(frame: Any) -> str:
+    if not isinstance(frame, np.ndarray):
+        return f"a {type(frame).__name__}"
+    if frame.ndim == 2:
+        return f"{frame.shape[0]} rows x {frame.shape[1]} cols x 1 {frame.dtype}"
+    if frame.ndim == 3:
+        return f"{frame.shape[0]} rows x {frame.shape[1]} cols x {frame.shape[2]} {frame.dtype}"
+    return f"an array of shape {frame.shape} {frame.dtype}"
 
 
 class Digit(Component):
@@ -179,32 +287,47 @@ class Digit(Component):
 
     class Params(Params):
         serial: str | None = Field(None, description="DIGIT serial number (on its back, e.g. D20001); "
-                                   "None: the first one found")
+                                   "None: the only one connected")
         source: str | None = Field(None, description="open this instead of discovering: /dev/videoN, a video "
                                    "file or a URL")
         stream: Literal["qvga60", "qvga30", "vga30", "vga15"] = Field("qvga60", description="resolution and fps")
         led_intensity: int | tuple[int, int, int] = Field(15, description="LED intensity 0..15 (or [r, g, b])")
-        frame_timeout: Seconds = Field(1.0, gt=0, description="fault if no frame arrives for this long",
-                                       json_schema_extra={"unit": "s"})
+        frame_timeout: Seconds = Field(1.0, gt=0, description="fault if no frame arrives for this long (at least "
+                                       "two frame periods)", json_schema_extra={"unit": "s"})
         source_rate: Hertz | None = Field(None, gt=0, description="for file sources: play at this rate "
                                           "(default: the file's fps)", json_schema_extra={"unit": "Hz"})
         on_eof: Literal["stop", "loop", "fault"] = Field("stop", description="end of a file source: stop the run, "
                                                          "loop, or fault like an unplugged sensor")
-        check_resolution: bool = Field(True, description="fault if the camera does not deliver the stream's size")
+        check_resolution: bool = Field(True, description="fault if the camera does not deliver the stream's size "
+                                       "(false: any size, but it must not change mid-run)")
         sysfs_root: str = Field("/sys", description="sysfs root for discovery (tests use a fake tree)")
         dev_root: str = Field("/dev", description="device root for discovery")
 
-        @field_validator("led_intensity")
+        @field_validator("led_intensity", mode="before")
         @classmethod
         def _led(cls, v: Any) -> Any:
-            led_value(v)
-            return v
+            return _led_param(v)
+
+        @model_validator(mode="after")
+        def _timeout(self) -> "Digit.Params":
+            # the camera's frame period (a /dev node or a discovered DIGIT), and a file source's pace if given
+            rates = []
+            if self.source is None or self.source.startswith("/dev/"):
+                rates.append((STREAMS[self.stream][2], f"stream {self.stream}"))
+            if self.source_rate is not None:
+                rates.append((self.source_rate, f"source_rate {self.source_rate:g} Hz"))
+            for fps, what in rates:
+                if self.frame_timeout < 2.0 / fps:
+                    raise ValueError(f"frame_timeout: {self.frame_timeout:g} s is shorter than two frame periods of "
+                                     f"{what} ({fps:g} fps): expected at least {2.0 / fps:.3f} s")
+            return self
 
     def configure(self) -> None:
         import cv2
 
         p = self.params
         self.info: discovery.DigitInfo | None = None
+        self.cap = None
         width, height, fps = STREAMS[p.stream]
         self.is_file = False
         if p.source is not None:
@@ -219,10 +342,20 @@ class Digit(Component):
             self.info = self._choose(digits)
             path = self.info.path or ""
             is_device = True
+        self.path = path
+        if self.info is not None:
+            self.who = f"DIGIT {self.info.serial} ({path})"
+        else:
+            self.who = f"camera {path}" if is_device else f"source {path}"
         if is_device:
             _check_access(path)
-        self.path = path
-        api = cv2.CAP_V4L2 if is_device and sys.platform.startswith("linux") else cv2.CAP_ANY
+        v4l2 = is_device and sys.platform.startswith("linux")
+        if v4l2:
+            # OpenCV's V4L2 capture waits up to OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT s (10 by default, read once per
+            # process) for each frame; a shorter wait lets the capture thread see a stop soon after the camera
+            # stops sending
+            os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(max(1, math.ceil(p.frame_timeout))))
+        api = cv2.CAP_V4L2 if v4l2 else cv2.CAP_ANY
         cap = cv2.VideoCapture(path, api)
         if not cap.isOpened():
             cap.release()
@@ -244,18 +377,24 @@ class Digit(Component):
             got = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
             if p.check_resolution and got != (width, height):
                 cap.release()
-                raise HardwareError(f"{path}: asked for {width}x{height} ({p.stream}) but the camera gives "
+                self.cap = None
+                raise HardwareError(f"{self.who}: asked for {width}x{height} ({p.stream}) but the camera gives "
                                     f"{got[0]}x{got[1]}; is this a DIGIT?")
-        self.expected_shape = (width, height) if is_device else None
         pace = None
         if self.is_file:
             pace = p.source_rate or (cap.get(cv2.CAP_PROP_FPS) or fps)
-        self.grabber = FrameGrabber(cap, self.info.serial if self.info else os.path.basename(path),
-                                    is_file=self.is_file, pace=pace, on_eof=p.on_eof, lost=self._lost)
+        # what every frame must be (portrait rows x cols); None: the first frame's size, kept for the run
+        self._expect: tuple[int, int] | None = (width, height) if is_device and p.check_resolution else None
+        self._expect_why = f"BGR portrait of stream {p.stream}" if self._expect else ""
+        self._pace_text = (f"{fps} fps, stream {p.stream}" if is_device else
+                           f"{pace:g} fps" if pace else "a continuous stream")
+        self.grabber = FrameGrabber(cap, self.who, is_file=self.is_file, pace=pace, on_eof=p.on_eof,
+                                    lost=self._lost, device_clock=v4l2)
         self.frames = 0
         self.before_start = 0   # frames captured before graph time 0, not passed on
         self._last_frame_mono = 0.0
         self._t_first: float | None = None
+        self._activated = time.monotonic()
 
     def _choose(self, digits: list[discovery.DigitInfo]) -> discovery.DigitInfo:
         p = self.params
@@ -264,6 +403,10 @@ class Digit(Component):
             match = [d for d in digits if d.serial == p.serial]
             if not match:
                 raise HardwareError(f"DIGIT {p.serial} not found; connected: {discovery.describe(digits)}")
+            if len(match) > 1:
+                raise HardwareError(f"serial: {len(match)} DIGITs report serial {p.serial}: "
+                                    f"{discovery.describe(match)}; connect only the one this node reads, or open it "
+                                    f"by its node with source: /dev/videoN")
             d = match[0]
             if not d.path:
                 raise HardwareError(f"DIGIT {p.serial} is on USB but has no video node "
@@ -277,48 +420,88 @@ class Digit(Component):
                     extra += f"; USB access is denied: {discovery.UDEV_HINT}"
             raise HardwareError("no DIGIT found (USB 2833:0209 with a video4linux node): plug it in with a USB 2.0 "
                                 "data cable; `teletouch devices` lists what is seen" + extra)
+        if len(with_node) > 1:
+            # which one enumerates first can change from one boot (or replug) to the next: never guess
+            raise HardwareError(f"serial: {len(with_node)} DIGITs are connected: {discovery.describe(with_node)}; "
+                                f"set serial to the one this node reads (None takes a DIGIT only when it is the "
+                                f"only one)")
         return with_node[0]
 
     def _lost(self) -> str | None:
-        if self.info is not None or _is_char_device(self.path) or self.is_file:
-            if not os.path.exists(self.path):
-                who = f"DIGIT {self.info.serial}" if self.info else "the source"
-                return f"{who} ({self.path}) was unplugged or removed mid-run"
+        """Why reads fail, if the DIGIT (or file) is gone or moved; None if it looks present."""
+        gone = not os.path.exists(self.path)
+        if self.info is not None:
+            try:
+                paths = [d.path for d in discovery.scan_sysfs(self.params.sysfs_root, self.params.dev_root)
+                         if d.serial == self.info.serial]
+            except Exception:
+                paths = None
+            if paths is not None:
+                if paths and self.path not in paths:
+                    return (f"{self.who} re-enumerated on USB mid-run (a USB reset or a loose cable) and is now "
+                            f"{paths[0]}; the run cannot follow it: restart the run, and check the cable and `dmesg`")
+                gone = gone or not paths
+            return f"{self.who} was unplugged or removed mid-run" if gone else None
+        if gone and (self.is_file or _is_char_device(self.path)):
+            return f"the {self.who} was unplugged or removed mid-run"
         return None
 
     def activate(self) -> None:
-        self._last_frame_mono = time.monotonic()
+        self._activated = time.monotonic()
         self.grabber.start()
+
+    def _check_frame(self, frame: Any) -> None:
+        exp = self._expect
+        if isinstance(frame, np.ndarray) and frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3 \
+                and (exp is None or frame.shape[:2] == exp):
+            if exp is None:
+                self._expect = (frame.shape[0], frame.shape[1])
+                self._expect_why = "the size of the first frame"
+            return
+        if exp is None:
+            want = "an 8-bit BGR image (rows x cols x 3 uint8)"
+        else:
+            want = f"{exp[0]} rows x {exp[1]} cols x 3 uint8 ({self._expect_why})"
+        colour = isinstance(frame, np.ndarray) and frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+        if self.frames or self.before_start:
+            hint = ("the stream changed mid-run (a USB re-enumeration, another program changing the V4L2 format, or "
+                    "a glitch of the camera); check `dmesg` and restart the run")
+        elif colour:
+            hint = "is this a DIGIT? (check_resolution: false accepts another size)"
+        else:
+            hint = "is this a DIGIT, in a colour format OpenCV converts to BGR?"
+        raise HardwareError(f"{self.who}: a frame of {_describe_frame(frame)} instead of {want}: {hint}")
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         g = self.grabber
         got = g.take()
-        now = time.monotonic()
         if got is None:
             if g.error:
                 raise HardwareError(g.error)
             if g.eof:
                 self.ctx.request_stop(f"end of video source {self.path}")
                 return None
-            # the first frame may take a moment after opening
-            limit = self.params.frame_timeout + (2.0 if self.frames == 0 else 0.0)
-            if now - self._last_frame_mono > limit:
+            # liveness counts every frame the camera delivered, also the ones never taken (start-up)
+            now = time.monotonic()
+            last = g.last_received
+            if last is None or last < self._activated:
+                since, limit = self._activated, self.params.frame_timeout + FIRST_FRAME_GRACE  # the first frame
+            else:
+                since, limit = last, self.params.frame_timeout
+            if now - since > limit:
                 reason = self._lost()
-                raise HardwareError(reason or f"no frame from {self.path} for {now - self._last_frame_mono:.2f} s "
-                                    f"(frame_timeout {self.params.frame_timeout} s); check the cable and `dmesg`")
+                raise HardwareError(reason or f"{self.who}: no frame for {now - since:.2f} s (frame_timeout "
+                                    f"{self.params.frame_timeout:g} s; expected {self._pace_text}); check the "
+                                    f"USB cable and `dmesg`")
             return None
         frame, stamp, _ = got
+        self._check_frame(frame)
         t_cap = self.ctx.from_monotonic(stamp)
         if t_cap < 0.0:
             # captured during start-up, before graph time 0 (the capture thread starts at activate): older than the
             # run, so not its first sample; the next frame follows within a frame period
             self.before_start += 1
             return None
-        if self.expected_shape is not None and self.params.check_resolution:
-            w, h = self.expected_shape
-            if frame.shape[:2] != (w, h):
-                raise HardwareError(f"{self.path}: frame of {frame.shape[1]}x{frame.shape[0]} (cols x rows) "
-                                    f"instead of {h}x{w}: stream glitch")
         self.frames += 1
         self._last_frame_mono = stamp
         if self._t_first is None:
@@ -326,16 +509,21 @@ class Digit(Component):
         return {"image": Sample(frame, t_cap)}
 
     def deactivate(self) -> None:
-        if hasattr(self, "grabber"):
-            self.grabber.stop()
+        g = getattr(self, "grabber", None)
+        if g is not None and not g.stop(timeout=1.0):
+            self.ctx.log(f"{self.who}: the capture thread is still inside a read; the camera is released when the "
+                         f"read returns")
 
     def close(self) -> None:
-        if hasattr(self, "grabber"):
-            self.grabber.stop()
-        cap = getattr(self, "cap", None)
-        if cap is not None:
-            cap.release()
-            self.cap = None
+        g = getattr(self, "grabber", None)
+        if g is not None:
+            g.stop(timeout=0.2)
+            g.release()     # now, or by the capture thread when its read returns: never under a read
+        else:
+            cap = getattr(self, "cap", None)
+            if cap is not None:
+                cap.release()
+        self.cap = None
 
     def status(self) -> dict[str, Any]:
         g = getattr(self, "grabber", None)

@@ -86,11 +86,12 @@ def _video_index(name: str) -> int:
 
 
 def scan_sysfs(sysfs_root: str | os.PathLike = "/sys", dev_root: str | os.PathLike = "/dev") -> list[DigitInfo]:
-    """DIGITs with a video4linux capture node, in /dev/videoN order."""
+    """DIGITs with a video4linux capture node, in /dev/videoN order: one per USB device (two units that report the
+    same serial are both listed)."""
     base = Path(sysfs_root) / "class" / "video4linux"
     if not base.is_dir():
         return []
-    found: dict[str, DigitInfo] = {}
+    found: dict[Path, DigitInfo] = {}
     for vd in sorted(base.iterdir(), key=lambda p: _video_index(p.name)):
         if not vd.name.startswith("video"):
             continue
@@ -106,11 +107,11 @@ def scan_sysfs(sysfs_root: str | os.PathLike = "/sys", dev_root: str | os.PathLi
         index = _read(vd / "index")
         if index not in ("", "0"):
             continue  # the metadata node of the same camera
+        if usb in found:
+            continue  # a second capture node of the same camera (sysfs without ``index``)
         serial = _read(usb / "serial") or f"unknown@{usb.name}"
-        if serial in found:
-            continue
         node = Path(dev_root) / vd.name
-        found[serial] = DigitInfo(
+        found[usb] = DigitInfo(
             serial=serial, path=str(node), firmware=_read(usb / "bcdDevice"), product=_read(usb / "product"),
             manufacturer=_read(usb / "manufacturer"), usb_path=usb.name,
             readable=os.access(node, os.R_OK | os.W_OK) if node.exists() else None,

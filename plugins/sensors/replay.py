@@ -4,8 +4,11 @@ Same output port as the real driver (``image``: uint8 BGR, portrait). Frame k is
 first step (``rate`` None: the video's own fps, the recording's own stamps, one image per step for a folder); each
 step publishes the newest due frame, stamped with the graph time it became due, so replays are deterministic under
 the simulated clock. Landscape frames are turned portrait the way the ``digit`` driver does (``orientation``).
-At the end the run stops normally (or starts again with ``loop``). A corrupt or unreadable frame is reported with its
-file name (and frame number): logged and skipped (``on_corrupt: report``) or a fault (``on_corrupt: fault``).
+At the end the run stops normally (or starts again with ``loop``: each pass starts at least one frame period after
+the last frame of the one before; a recording of one frame, or whose stamps never advance, loops at the node's rate;
+a recorded stamp that goes backwards counts as the one before it, so stamps never go backwards). A corrupt,
+unreadable or vanished frame is reported with its file name (and frame number): logged and skipped
+(``on_corrupt: report``) or a fault (``on_corrupt: fault``).
 """
 
 from __future__ import annotations
@@ -83,7 +86,9 @@ class _Folder(_Source):
         for f in self.files:
             img = self._read(f)
             if img is None:
-                yield f.name, CorruptFrame(str(f), "cannot decode the image (corrupt or not an image)"), None
+                why = ("cannot decode the image (corrupt or not an image)" if f.exists() else
+                       "no longer exists (removed since the replay was configured)")
+                yield f.name, CorruptFrame(str(f), why), None
             else:
                 yield f.name, img, None
 
@@ -191,6 +196,8 @@ class Replay(Component):
 
         @model_validator(mode="after")
         def _port(self) -> "Replay.Params":
+            if not self.path.strip():   # Path("") is the working directory
+                raise ValueError("path: empty; expected a folder of images, a video file or a .mcap recording")
             if self.port is not None and not self.path.lower().endswith(".mcap"):
                 raise ValueError(_port_only_for_mcap(self.port, f"path {self.path!r} is not a .mcap file"))
             return self
@@ -238,7 +245,7 @@ class Replay(Component):
                     due = k / p.rate
                 elif stamp is not None:
                     first_stamp = stamp if first_stamp is None else first_stamp
-                    due = stamp - first_stamp
+                    due = max(stamp - first_stamp, last_due)   # a stamp that goes backwards: the one before it
                 elif self.source.native_rate:
                     due = k / self.source.native_rate
                 else:
@@ -261,6 +268,10 @@ class Replay(Component):
                 period = 1.0 / self.source.native_rate
             else:  # recorded stamps: the mean interval
                 period = last_due / k if k > 0 else 0.0
+            if not period > 0.0:
+                # one frame, or stamps that never advance: without a period every pass would be due at once and the
+                # step would loop over the recording forever; the node's own period
+                period = 1.0 / (self.ctx.rate or self.default_rate)
             offset += last_due + period
 
     def _orient(self, name: str, img: np.ndarray) -> np.ndarray | None:
