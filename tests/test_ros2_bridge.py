@@ -180,7 +180,7 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
         m = image_msg(rgb, time.time(), "cam")
         m.encoding = "rgb8"
         pubs["image"].publish(m)
-        mm = np.full((4, 5), 1500, np.uint16)  # 16UC1: millimetres by ROS convention
+        mm = np.full((4, 5), 3, np.uint16)  # 16UC1: millimetres by ROS convention
         pubs["depth"].publish(image_msg(mm, time.time()))
         js = JointState()
         js.header.stamp = ros_time(time.time())
@@ -191,7 +191,7 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
         img = got["image"][-1].value
         assert img.shape == (4, 5, 3) and img[0, 0].tolist() == [0, 0, 200]  # BGR
         d = got["depth"][-1].value
-        assert d.dtype == np.float32 and np.allclose(d, 1.5)
+        assert d.dtype == np.float32 and np.allclose(d, 0.003)
         assert got["opening"][-1].value == 0.03 and got["velocity"][-1].value == 0.01
         assert got["effort"][-1].value == 2.5
 

@@ -15,32 +15,59 @@ digit -> depth -> poly-force -> ros2-publish, machine B runs ros2-subscribe -> p
 Clocks. Every stamped message carries the sample's own stamp (a camera's capture time, not the publish time) in
 ``header.stamp``, as ROS time = Unix time (the system clock, what ROS uses without ``use_sim_time``):
 ``ros = graph + (time.time() - graph_now())``, measured at each conversion on a wall-clock graph, and fixed when
-the node activates on a simulated clock. The subscriber maps back to its own graph clock with its own offset, so a
+the node activates on a simulated clock. The subscriber keeps a message's stamp as Unix time and maps it to its own
+graph clock when a step outputs it (so a message that arrived while the graph was starting keeps its age), so a
 sample keeps its age across the bridge, and a consumer's ``max_age`` sees the force go stale when the publisher
 dies. Across machines this needs synchronised system clocks (chrony/PTP); where they are not,
 ``stamps: arrival`` stamps each message with its arrival time (transport latency is then hidden). A stamp more
-than ``max_clock_skew`` in the future is clamped to the arrival time and counted (``status()['skewed']``).
+than ``max_clock_skew`` in the future is clamped to the arrival time and counted (``status()['skewed']``); one more
+than 1 s old on arrival is kept and reported (``late``, ``lag_s``); a zero stamp (the sender does not stamp) or an
+invalid one is refused. A message with the stamp of the last one taken on its topic is a repeat, not a new
+measurement (``duplicates``): it is not output again, so a sender re-sending its last message cannot keep a force
+fresh; the publisher sends each measurement once (by stamp, also under ``isolate: process``).
 
-Each node has its own rclpy Context (its own DDS participant; ``domain_id`` param, default ``ROS_DOMAIN_ID``), never
-the global default context, and spins its executor in a background thread. Ports are latest-value: the subscriber
-outputs a message once, at its next step after it arrived; older messages that arrived in between are dropped.
+Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it;
+the subscriber also refuses a JointState opening above ``max_opening`` and a depth above ``max_depth``
+(millimetres in a metre field), and malformed images. Refused messages are counted (``bad``) and each kind of
+problem is logged once.
+
+Each node has its own rclpy Context (its own DDS participant; ``domain_id`` param, default ``ROS_DOMAIN_ID``, both
+checked to be 0..232), never the global default context nor rclpy's signal handlers, and spins its executor in a
+background thread. It reports endpoints of another message type on its topics (``wrong_type``) and peers with
+incompatible QoS (``incompatible_qos``): DDS connects neither, silently. The subscriber's durability is volatile
+only (a late joiner must not receive a latched old force). Ports are latest-value: the subscriber outputs a
+message once, at its next step after it arrived; older messages that arrived in between are dropped.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import re
 import threading
 import time
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
-from teletouch.units import Seconds
+from teletouch.units import Meters, Seconds
 
 TOPICS = ("force", "image", "depth", "joint_states", "value")
+TOPIC_FIELDS = tuple(f"{k}_topic" for k in TOPICS)
 _AXES = {"x": 0, "y": 1, "z": 2}
+MAX_DOMAIN_ID = 232          # DDS's port formula (7400 + 250 * domain + ...) leaves no room above 232
+GRAPH_CHECK_PERIOD = 1.0     # s between checks of the other endpoints' message types on our topics
+LATE_AFTER = 1.0             # s: a stamp this much older than its arrival is reported (clocks, replays)
+
+# ROS 2 names (design.ros2.org "Topic and Service name mapping"), checked when a graph is validated rather than
+# when rclpy refuses them at start-up: tokens of letters, digits and '_' that do not start with a digit.
+_TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
+_TOPIC_RE = re.compile(rf"(?:/|~/)?{_TOKEN}(?:/{_TOKEN})*")
+_NAMESPACE_RE = re.compile(rf"/?(?:{_TOKEN}(?:/{_TOKEN})*)?")
+_NODE_RE = re.compile(_TOKEN)
+_TOKEN_RULE = "tokens of letters, digits and '_' separated by '/', none starting with a digit"
 
 
 class QosParams(Params):
@@ -52,7 +79,8 @@ class QosParams(Params):
 class _BridgeParams(QosParams):
     namespace: str = Field("/teletouch", description="ROS namespace of the topics (relative topic names)")
     node_name: str | None = Field(None, description="ROS node name (default: the graph node id)")
-    domain_id: int | None = Field(None, ge=0, le=232, description="ROS domain id (default: ROS_DOMAIN_ID or 0)")
+    domain_id: int | None = Field(None, ge=0, le=MAX_DOMAIN_ID,
+                                  description="ROS domain id, 0 to 232 (default: ROS_DOMAIN_ID or 0)")
     force_topic: str = Field("force", description="geometry_msgs/WrenchStamped topic of 'force'")
     image_topic: str = Field("image", description="sensor_msgs/Image (bgr8) topic of 'image'")
     depth_topic: str = Field("depth", description="sensor_msgs/Image (32FC1, m) topic of 'depth'")
@@ -60,43 +88,178 @@ class _BridgeParams(QosParams):
                                     "effort")
     value_topic: str = Field("value", description="std_msgs/Float64 topic of 'value'")
     force_axis: Literal["x", "y", "z"] = Field("z", description="wrench force component that carries 'force'")
-    joint_name: str = Field("gripper", description="JointState joint carrying opening/velocity/effort")
+    joint_name: str = Field("gripper", min_length=1, description="JointState joint carrying opening/velocity/"
+                            "effort")
+
+    @field_validator(*TOPIC_FIELDS)
+    @classmethod
+    def _topic_name(cls, v: str) -> str:
+        if not _TOPIC_RE.fullmatch(v):
+            raise ValueError(f"expected a ROS 2 topic name ({_TOKEN_RULE}; '/' first for an absolute name, "
+                             f"'~/' for a private one; no '/' at the end), got {v!r}")
+        return v
+
+    @field_validator("namespace")
+    @classmethod
+    def _namespace(cls, v: str) -> str:
+        if not _NAMESPACE_RE.fullmatch(v):
+            raise ValueError(f"expected a ROS 2 namespace such as '/teletouch' or '/lab/arm' ({_TOKEN_RULE}; "
+                             f"no '/' at the end), got {v!r}")
+        return v
+
+    @field_validator("node_name")
+    @classmethod
+    def _node_name(cls, v: str | None) -> str | None:
+        if v is not None and not _NODE_RE.fullmatch(v):
+            raise ValueError(f"expected a ROS 2 node name (letters, digits and '_', not starting with a digit), "
+                             f"got {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _distinct_topics(self) -> "_BridgeParams":
+        seen: dict[str, str] = {}
+        problems = []
+        for f in TOPIC_FIELDS:
+            full = _resolve(self.namespace, getattr(self, f))
+            if full in seen:
+                problems.append(f"{f}: '{full}' is also {seen[full]}'s topic: each port needs a topic of its own")
+            else:
+                seen[full] = f
+        if problems:
+            raise ValueError("\n".join(problems))
+        return self
+
+
+def _resolve(namespace: str, topic: str) -> str:
+    """The full name of a topic (private '~' names are left as they are: they cannot collide with the others)."""
+    if topic.startswith(("/", "~")):
+        return topic
+    return "/" + "/".join(x for x in (namespace.strip("/"), topic) if x)
+
+
+def _domain_id(param: int | None) -> int | None:
+    """The domain to join: the param, else ROS_DOMAIN_ID checked here (rcl refuses a word with an obscure error,
+    and Fast DDS ends the whole process, without a message or a safe state, for a number above 232)."""
+    if param is not None:
+        return param
+    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not env:
+        return None
+    try:
+        value = int(env)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_DOMAIN_ID:
+        raise ComponentFault(f"ROS_DOMAIN_ID={env!r}: expected an integer from 0 to {MAX_DOMAIN_ID} (or set the "
+                             f"node's domain_id param)")
+    return value
+
+
+def _type_name(mtype: Any) -> str:
+    """'geometry_msgs/msg/WrenchStamped' of a message class."""
+    return f"{mtype.__module__.split('.')[0]}/msg/{mtype.__name__}"
 
 
 class _Ros:
-    """One rclpy Context + node + executor thread (never the global default context)."""
+    """One rclpy Context + node + executor thread (never the global default context, never signal handlers).
 
-    def __init__(self, name: str, namespace: str, domain_id: int | None):
+    It also watches its topics: an endpoint of another message type on one of them (DDS does not connect the two,
+    silently) and a peer with incompatible QoS (nothing flows) are counted and logged once each."""
+
+    def __init__(self, name: str, namespace: str, domain_id: int | None,
+                 log_once: Callable[[Any, str], None]):
         try:
             import rclpy
             from rclpy.context import Context
             from rclpy.executors import SingleThreadedExecutor
+            from rclpy.signals import SignalHandlerOptions
         except ImportError as exc:  # pragma: no cover - CI installs the extra
             raise ComponentFault(f"the ROS 2 bridge needs rclpy: pip install 'teletouch[ros2]' ({exc})") from exc
+        domain = _domain_id(domain_id)
         self.rclpy = rclpy
+        self._log_once = log_once
+        self.wrong_type = 0           # endpoints of another message type on our topics (now)
+        self.incompatible_qos = 0     # peers found with QoS that cannot connect to ours (events)
+        self.errors = 0               # exceptions the executor raised while spinning
+        self._watch: list[tuple[str, str]] = []   # (full topic name, our message type)
         self.ctx = Context()
-        kw = {} if domain_id is None else {"domain_id": domain_id}
-        rclpy.init(context=self.ctx, **kw)
+        rclpy.init(context=self.ctx, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = None
         try:
             self.node = rclpy.create_node(_ros_name(name), namespace=namespace or "/", context=self.ctx,
                                           start_parameter_services=False)
             self.executor = SingleThreadedExecutor(context=self.ctx)
             self.executor.add_node(self.node)
+            self.node.create_timer(GRAPH_CHECK_PERIOD, self._check_graph)
         except Exception:
+            if self.node is not None:
+                self.node.destroy_node()
             rclpy.shutdown(context=self.ctx)
             raise
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._spin, name=f"ros2-{name}", daemon=True)
         self.thread.start()
 
+    def subscription(self, mtype: Any, topic: str, callback: Any, qos: Any) -> Any:
+        from rclpy.event_handler import SubscriptionEventCallbacks
+
+        events = SubscriptionEventCallbacks(incompatible_qos=lambda info: self._on_qos(sub.topic_name, "publisher",
+                                                                                       info))
+        sub = self.node.create_subscription(mtype, topic, callback, qos, event_callbacks=events)
+        self._watch.append((sub.topic_name, _type_name(mtype)))
+        return sub
+
+    def publisher(self, mtype: Any, topic: str, qos: Any) -> Any:
+        from rclpy.event_handler import PublisherEventCallbacks
+
+        events = PublisherEventCallbacks(incompatible_qos=lambda info: self._on_qos(pub.topic_name, "subscription",
+                                                                                    info))
+        pub = self.node.create_publisher(mtype, topic, qos, event_callbacks=events)
+        self._watch.append((pub.topic_name, _type_name(mtype)))
+        return pub
+
+    def _on_qos(self, topic: str, other: str, info: Any) -> None:
+        from rclpy.qos import qos_policy_name_from_kind
+
+        self.incompatible_qos += max(1, int(getattr(info, "total_count_change", 1)))
+        policy = qos_policy_name_from_kind(info.last_policy_kind)
+        hint = {"RELIABILITY": "set reliability: best_effort on this node to hear a best-effort publisher (a "
+                               "reliable publisher serves both)" if other == "publisher" else
+                               "a reliable subscription needs reliability: reliable here",
+                "DURABILITY": "a transient_local subscription needs durability: transient_local on the publisher"
+                }.get(policy, "make the two QoS settings compatible")
+        self._log_once(("qos", topic, policy), f"topic {topic}: a {other} with incompatible QoS ({policy}) was "
+                                               f"found: nothing flows between the two; {hint}")
+
+    def _check_graph(self) -> None:
+        try:
+            n = 0
+            for topic, tname in list(self._watch):
+                ends = [("publisher", i) for i in self.node.get_publishers_info_by_topic(topic)]
+                ends += [("subscription", i) for i in self.node.get_subscriptions_info_by_topic(topic)]
+                for role, info in ends:
+                    if info.topic_type != tname:
+                        n += 1
+                        who = f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                        self._log_once(("type", topic, info.topic_type),
+                                       f"topic {topic}: a {role} of node {who} uses {info.topic_type}, this node "
+                                       f"{tname}: DDS does not connect them, nothing flows between the two")
+            self.wrong_type = n
+        except Exception as exc:  # the context is going down: the next check (if any) tries again
+            if self.ctx.ok():
+                self._log_once(("graph", type(exc).__name__), f"ROS 2 graph check failed: {exc}")
+
     def _spin(self) -> None:
         while not self._stop.is_set() and self.ctx.ok():
             try:
                 self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # context shut down under us while stopping
-                if self._stop.is_set() or not self.ctx.ok():
+            except Exception as exc:
+                if self._stop.is_set() or not self.ctx.ok():   # context shut down under us while stopping
                     return
-                raise
+                # a dead spin thread would silently starve every subscription: report it and go on
+                self.errors += 1
+                self._log_once(("spin", type(exc).__name__), f"ROS 2 executor: {type(exc).__name__}: {exc}")
+                time.sleep(0.05)
 
     def close(self) -> None:
         self._stop.set()
@@ -107,6 +270,7 @@ class _Ros:
         finally:
             if self.ctx.ok():
                 self.rclpy.shutdown(context=self.ctx)
+            self.thread.join(timeout=1.0)   # a callback that held it past the first join ends with the context
 
 
 def _ros_name(name: str) -> str:
@@ -132,14 +296,54 @@ class _Clock:
         self.fixed = ctx.clock_kind != "wall"
         self.offset = time.time() - ctx.now()
 
-    def _off(self) -> float:
+    def offset_now(self) -> float:
+        """ROS time - graph time, now."""
         return self.offset if self.fixed else time.time() - self.ctx.now()
 
     def to_ros(self, graph_t: float) -> float:
-        return graph_t + self._off()
+        return graph_t + self.offset_now()
 
     def to_graph(self, ros_t: float) -> float:
-        return ros_t - self._off()
+        return ros_t - self.offset_now()
+
+
+class _LogOnce:
+    """Log each kind of problem once (a bad message at 1 kHz must not flood the log)."""
+
+    LIMIT = 50
+
+    def __init__(self, ctx: Any):
+        self.ctx = ctx
+        self.seen: set[Any] = set()
+
+    def __call__(self, key: Any, message: str) -> None:
+        if key in self.seen or len(self.seen) >= self.LIMIT:
+            return
+        self.seen.add(key)
+        self.ctx.log(message)
+
+
+def _ros_status(comp: Any) -> dict[str, int]:
+    ros = getattr(comp, "_ros", None) or getattr(comp, "_ros_closed", None)
+    if ros is None:
+        return {"wrong_type": 0, "incompatible_qos": 0, "executor_errors": 0}
+    return {"wrong_type": ros.wrong_type, "incompatible_qos": ros.incompatible_qos, "executor_errors": ros.errors}
+
+
+def _close_ros(comp: Any) -> None:
+    ros = getattr(comp, "_ros", None)
+    if ros is not None:
+        comp._ros = None
+        comp._ros_closed = ros   # its counters stay readable for the run's summary
+        ros.close()
+
+
+class _Bad(ValueError):
+    """A message the subscriber refuses; ``kind`` names the problem (logged once per topic and kind)."""
+
+    def __init__(self, kind: str, detail: str = ""):
+        super().__init__(kind + detail)
+        self.kind = kind
 
 
 class Ros2Publish(Component):
@@ -172,12 +376,14 @@ class Ros2Publish(Component):
                        "value": Float64}
         self._topics = {"force": p.force_topic, "image": p.image_topic, "depth": p.depth_topic,
                         "joint_states": p.joint_states_topic, "value": p.value_topic}
-        self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id)
-        self._qos = qos_profile(p)
         self._pubs: dict[str, Any] = {}
-        self._last: dict[str, Any] = {}
+        self._last: dict[str, Sample] = {}
         self.published = 0
+        self.bad = 0
+        self._log_once = _LogOnce(self.ctx)
         self._clock = _Clock(self.ctx)
+        self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id, self._log_once)
+        self._qos = qos_profile(p)
 
     def activate(self) -> None:
         self._clock = _Clock(self.ctx)
@@ -185,15 +391,29 @@ class Ros2Publish(Component):
     def _pub(self, key: str) -> Any:
         pub = self._pubs.get(key)
         if pub is None:  # created on first use: only wired ports get a topic
-            pub = self._pubs[key] = self._ros.node.create_publisher(self._types[key], self._topics[key], self._qos)
+            pub = self._pubs[key] = self._ros.publisher(self._types[key], self._topics[key], self._qos)
         return pub
 
     def _new(self, inputs: Any, name: str) -> Sample | None:
+        """The input's sample if it is a measurement not sent yet. Compared by stamp, not only by identity: under
+        ``isolate: process`` a node gets a new Sample object for the same measurement at every step, and a
+        re-sent message would look like a new measurement to a subscriber that stamps on arrival."""
         s = inputs[name]
-        if s is None or s is self._last.get(name):
+        if s is None:
+            return None
+        last = self._last.get(name)
+        if last is not None and (s is last or s.stamp == last.stamp):
             return None
         self._last[name] = s
         return s
+
+    def _finite(self, name: str, v: float) -> bool:
+        if math.isfinite(v):
+            return True
+        self.bad += 1
+        self._log_once(("nonfinite", name), f"input '{name}' is not finite ({v!r}): not published (a non-finite "
+                                            f"value never goes on the wire; the subscriber's output goes stale)")
+        return False
 
     def step(self, t, inputs):
         from geometry_msgs.msg import WrenchStamped
@@ -204,50 +424,57 @@ class Ros2Publish(Component):
 
         p = self.params
         s = self._new(inputs, "force")
-        if s is not None:
+        if s is not None and self._finite("force", v := float(s.value)):
             m = WrenchStamped()
             m.header.stamp = ros_time(self._clock.to_ros(s.stamp))
             m.header.frame_id = p.frame_id
-            setattr(m.wrench.force, p.force_axis, float(s.value))
+            setattr(m.wrench.force, p.force_axis, v)
             self._pub("force").publish(m)
             self.published += 1
         for name in ("image", "depth"):
             s = self._new(inputs, name)
             if s is not None:
                 a = np.asarray(s.value)
-                if name == "depth" and a.dtype != np.float32:
-                    a = a.astype(np.float32)
+                if name == "depth":
+                    if a.dtype != np.float32:
+                        a = a.astype(np.float32)
+                    if not np.isfinite(a).all():
+                        self._finite("depth", float(a[~np.isfinite(a)].flat[0]))
+                        continue
                 self._pub(name).publish(image_msg(a, self._clock.to_ros(s.stamp), p.frame_id))
                 self.published += 1
-        js = [self._new(inputs, n) for n in ("opening", "velocity", "effort")]
-        if any(x is not None for x in js):
+        # one JointState per measurement time: a field goes out only with its own stamp, so the last velocity of a
+        # source that stopped is not re-sent under the opening's newer stamps (it would look fresh on the far side)
+        groups: dict[float, dict[str, float]] = {}
+        for n in ("opening", "velocity", "effort"):
+            s = self._new(inputs, n)
+            if s is not None and self._finite(n, v := float(s.value)):
+                groups.setdefault(s.stamp, {})[n] = v
+        for stamp in sorted(groups):
+            fields = groups[stamp]
             m = JointState()
-            m.header.stamp = ros_time(self._clock.to_ros(max(x.stamp for x in js if x is not None)))
+            m.header.stamp = ros_time(self._clock.to_ros(stamp))
             m.header.frame_id = p.frame_id
             m.name = [p.joint_name]
-            cur = [inputs[n] for n in ("opening", "velocity", "effort")]
-            if cur[0] is not None:
-                m.position = [float(cur[0].value)]
-            if cur[1] is not None:
-                m.velocity = [float(cur[1].value)]
-            if cur[2] is not None:
-                m.effort = [float(cur[2].value)]
+            if "opening" in fields:
+                m.position = [fields["opening"]]
+            if "velocity" in fields:
+                m.velocity = [fields["velocity"]]
+            if "effort" in fields:
+                m.effort = [fields["effort"]]
             self._pub("joint_states").publish(m)
             self.published += 1
         s = self._new(inputs, "value")
-        if s is not None:
-            self._pub("value").publish(Float64(data=float(s.value)))
+        if s is not None and self._finite("value", v := float(s.value)):
+            self._pub("value").publish(Float64(data=v))
             self.published += 1
         return None
 
     def status(self):
-        return {"published": getattr(self, "published", 0)}
+        return {"published": getattr(self, "published", 0), "bad": getattr(self, "bad", 0), **_ros_status(self)}
 
     def close(self) -> None:
-        ros = getattr(self, "_ros", None)
-        if ros is not None:
-            self._ros = None
-            ros.close()
+        _close_ros(self)
 
 
 class Ros2Subscribe(Component):
@@ -270,12 +497,29 @@ class Ros2Subscribe(Component):
 
     class Params(_BridgeParams):
         topics: list[Literal["force", "image", "depth", "joint_states", "value"]] = Field(
-            ["force"], description="which topics to subscribe to (force, image, depth, joint_states, value)")
+            ["force"], min_length=1,
+            description="which topics to subscribe to (force, image, depth, joint_states, value)")
+        durability: Literal["volatile"] = Field(
+            "volatile", description="QoS durability: volatile only (a late joiner must not get latched old samples)")
         stamps: Literal["message", "arrival"] = Field(
             "message", description="sample stamps: the message's header.stamp (needs synchronised clocks) or the "
             "arrival time")
         max_clock_skew: Seconds = Field(0.05, ge=0, description="a stamp further in the future is clamped to the "
                                         "arrival time", json_schema_extra={"unit": "s"})
+        max_opening: Meters = Field(1.0, gt=0, description="a JointState position (opening) larger than this is "
+                                    "refused: millimetres in the metre field", json_schema_extra={"unit": "m"})
+        max_depth: Meters = Field(0.05, gt=0, description="a depth map with a value larger than this is refused: "
+                                  "millimetres in the metre field", json_schema_extra={"unit": "m"})
+
+        @field_validator("durability", mode="before")
+        @classmethod
+        def _volatile_only(cls, v: Any) -> Any:
+            if v == "transient_local":
+                raise ValueError("ros2-subscribe takes 'volatile' only: with 'transient_local' a subscriber that "
+                                 "joins late receives the publisher's latched old samples and outputs them (with "
+                                 "stamps: arrival, or a clamped stamp, as fresh ones); a volatile subscription "
+                                 "still connects to a transient_local publisher")
+            return v
 
     def configure(self) -> None:
         from geometry_msgs.msg import WrenchStamped
@@ -284,14 +528,22 @@ class Ros2Subscribe(Component):
 
         p = self.params
         self._lock = threading.Lock()
-        self._pending: dict[str, Sample] = {}
+        # port -> (value, Unix time of the stamp): converted to graph time when a step outputs it, so a message
+        # that arrived before the graph clock started (while other nodes were starting) keeps its age
+        self._pending: dict[str, tuple[Any, float]] = {}
+        self._last_raw: dict[str, int] = {}   # topic -> header.stamp (ns) of the last message taken
         self.received = 0
         self.skewed = 0
         self.bad = 0
-        self._bad_logged = False
-        self._last_rx: float | None = None
+        self.unstamped = 0
+        self.duplicates = 0
+        self.late = 0
+        self.off_axis = 0
+        self.lag: float | None = None   # arrival - header.stamp of the last message taken (s)
+        self._last_rx: float | None = None   # time.monotonic() of the last message taken
+        self._log_once = _LogOnce(self.ctx)
         self._clock = _Clock(self.ctx)
-        self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id)
+        self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id, self._log_once)
         qos = qos_profile(p)
         handlers = {"force": (WrenchStamped, p.force_topic, self._on_force),
                     "image": (Image, p.image_topic, self._on_image),
@@ -301,99 +553,187 @@ class Ros2Subscribe(Component):
         self._subs = []
         for key in dict.fromkeys(p.topics):
             mtype, topic, cb = handlers[key]
-            self._subs.append(self._ros.node.create_subscription(mtype, topic, self._guard(cb), qos))
+            self._subs.append(self._ros.subscription(mtype, topic, self._guard(key, cb), qos))
 
     def activate(self) -> None:
         self._clock = _Clock(self.ctx)
 
     # callbacks run in the executor thread -----------------------------------------------------------------------
-    def _guard(self, cb: Any) -> Any:
+    def _guard(self, key: str, cb: Any) -> Any:
         def run(msg: Any) -> None:
             try:
                 cb(msg)
+            except _Bad as exc:
+                self.bad += 1
+                self._log_once(("bad", key, exc.kind), f"{key} topic: refused a message: {exc}")
             except Exception as exc:  # a malformed message must not kill the executor
                 self.bad += 1
-                if not self._bad_logged:
-                    self._bad_logged = True
-                    self.ctx.log(f"dropped a bad message: {type(exc).__name__}: {exc}")
+                self._log_once(("bad", key, type(exc).__name__),
+                               f"{key} topic: dropped a bad message: {type(exc).__name__}: {exc}")
         return run
 
-    def _stamp(self, header: Any | None) -> float:
-        now = self.ctx.now()
-        if header is None or self.params.stamps == "arrival":
-            return now
-        st = header.stamp
-        t = self._clock.to_graph(st.sec + st.nanosec * 1e-9)
-        if t > now + self.params.max_clock_skew:
-            self.skewed += 1
-            return now
-        return t
-
-    def _put(self, **samples: Sample) -> None:
+    def _take(self, key: str, header: Any | None, values: dict[str, Any]) -> None:
+        """Stamp a message's values (Unix time) and hand them to the next step, or refuse the message."""
+        p = self.params
+        arrival = time.time()
+        stamp = arrival
+        if header is not None:
+            sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
+            raw = sec * 1_000_000_000 + nsec
+            if p.stamps == "message":
+                if sec < 0 or not 0 <= nsec < 1_000_000_000:
+                    raise _Bad("invalid header.stamp", f" (sec {sec}, nanosec {nsec}): expected sec >= 0 and "
+                                                       f"nanosec < 1e9")
+                if raw == 0:
+                    self.unstamped += 1
+                    self._log_once(("unstamped", key), f"{key} topic: header.stamp is zero (the sender does not "
+                                                       f"stamp its messages): refused, its age is unknown; set "
+                                                       f"stamps: arrival to stamp such messages on arrival")
+                    return
+            if raw != 0 and self._last_raw.get(key) == raw:
+                # the same measurement again (a sender re-sending its last message): not a new sample, and
+                # never one stamped afresh on arrival
+                self.duplicates += 1
+                return
+            if p.stamps == "message":
+                stamp = sec + nsec * 1e-9
+                lag = arrival - stamp
+                if lag < -p.max_clock_skew:
+                    self.skewed += 1
+                    self._log_once(("skewed", key), f"{key} topic: header.stamp {-lag:.3f} s ahead of this "
+                                                    f"machine's clock: clamped to the arrival time (synchronise "
+                                                    f"the clocks, or set stamps: arrival)")
+                    stamp = arrival
+                elif lag > LATE_AFTER:
+                    self.late += 1
+                    self._log_once(("late", key), f"{key} topic: header.stamp {lag:.3f} s old on arrival: the "
+                                                  f"publisher's clock is behind this one (synchronise the clocks, "
+                                                  f"or set stamps: arrival) or it sends old data; the samples "
+                                                  f"keep their stamps and look stale")
+                self.lag = lag
+            self._last_raw[key] = raw
         with self._lock:
-            self._pending.update(samples)
+            for port, v in values.items():
+                self._pending[port] = (v, stamp)
+            self._last_rx = time.monotonic()
             self.received += 1
-            self._last_rx = self.ctx.now()
+
+    @staticmethod
+    def _finite(what: str, v: float) -> float:
+        if not math.isfinite(v):
+            raise _Bad(f"{what} is not finite", f" ({v!r})")
+        return v
 
     def _on_force(self, msg: Any) -> None:
-        v = float(getattr(msg.wrench.force, self.params.force_axis))
-        self._put(force=Sample(v, self._stamp(msg.header)))
+        axis = self.params.force_axis
+        f = msg.wrench.force
+        v = self._finite("force", float(getattr(f, axis)))
+        if v == 0.0:
+            other = {a: float(getattr(f, a)) for a in _AXES if a != axis and float(getattr(f, a)) != 0.0}
+            if other:
+                self.off_axis += 1
+                a, fa = next(iter(other.items()))
+                self._log_once(("axis", a), f"force topic: force.{axis} (force_axis) is 0 while force.{a} is "
+                                            f"{fa:g} N: does the sender put the force on another axis?")
+        self._take("force", msg.header, {"force": v})
+
+    def _image(self, msg: Any, what: str) -> np.ndarray:
+        from teletouch.recording import image_from_msg
+
+        h, w, step = int(msg.height), int(msg.width), int(msg.step)
+        if h == 0 or w == 0:
+            raise _Bad(f"{what}: empty image", f" ({h} x {w})")
+        bpp = _BYTES_PER_PIXEL.get(msg.encoding.lower())
+        if bpp is not None and step < w * bpp:
+            raise _Bad(f"{what}: step too small", f" ({step} bytes a row for {w} {msg.encoding} pixels)")
+        if len(msg.data) < h * step:
+            raise _Bad(f"{what}: data too short", f" ({len(msg.data)} bytes for {h} rows of {step})")
+        return image_from_msg(msg)
 
     def _on_image(self, msg: Any) -> None:
-        from teletouch.recording import image_from_msg
-
-        a = image_from_msg(msg)
+        a = self._image(msg, "image")
         if a.dtype != np.uint8 or a.ndim != 3:
-            raise ValueError(f"image topic: expected a colour image (bgr8/rgb8), got encoding '{msg.encoding}'")
-        self._put(image=Sample(a, self._stamp(msg.header)))
+            raise _Bad("image: not a colour image", f": expected bgr8/rgb8/bgra8/rgba8, got encoding "
+                                                    f"'{msg.encoding}'")
+        self._take("image", msg.header, {"image": a})
 
     def _on_depth(self, msg: Any) -> None:
-        from teletouch.recording import image_from_msg
-
-        a = image_from_msg(msg)
+        a = self._image(msg, "depth")
         if a.ndim != 2 or a.dtype.kind != "f":
-            raise ValueError(f"depth topic: expected 32FC1/64FC1/16UC1, got encoding '{msg.encoding}'")
-        self._put(depth=Sample(a.astype(np.float32, copy=False), self._stamp(msg.header)))
+            raise _Bad("depth: not a depth map", f": expected 32FC1/64FC1/16UC1, got encoding '{msg.encoding}'")
+        a = a.astype(np.float32, copy=False)
+        if not np.isfinite(a).all():
+            raise _Bad("depth is not finite", f" ({int(np.count_nonzero(~np.isfinite(a)))} NaN/inf pixels)")
+        top = float(np.abs(a).max())
+        if top > self.params.max_depth:
+            raise _Bad("depth larger than max_depth", f" ({top:g} m > {self.params.max_depth:g} m): millimetres "
+                                                      f"in a metre field? (32FC1 is in metres, 16UC1 in mm)")
+        self._take("depth", msg.header, {"depth": a})
 
     def _on_joints(self, msg: Any) -> None:
-        name = self.params.joint_name
+        p = self.params
         names = list(msg.name)
         if names:
-            if name not in names:
+            if p.joint_name not in names:
                 return  # another joint's state
-            i = names.index(name)
+            i = names.index(p.joint_name)
         else:
             i = 0
-        t = self._stamp(msg.header)
         out = {}
-        for port, arr in (("opening", msg.position), ("velocity", msg.velocity), ("effort", msg.effort)):
-            if len(arr) > i:
-                out[port] = Sample(float(arr[i]), t)
-        if out:
-            self._put(**out)
+        for port, field, arr in (("opening", "position", msg.position), ("velocity", "velocity", msg.velocity),
+                                 ("effort", "effort", msg.effort)):
+            if len(arr) == 0:
+                continue   # not sent (JointState allows empty fields)
+            if names and len(arr) != len(names):
+                raise _Bad(f"JointState.{field} length", f": {len(arr)} values for {len(names)} names")
+            if len(arr) <= i:
+                raise _Bad(f"JointState.{field} length", f": no value for joint {i}")
+            out[port] = float(arr[i])
+        if "opening" in out and abs(out["opening"]) > p.max_opening:
+            raise _Bad("opening larger than max_opening", f" ({out['opening']:g} m > {p.max_opening:g} m): "
+                                                          f"millimetres in the metre field? (the whole message is "
+                                                          f"refused: its velocity would be in mm/s too)")
+        # NaN often means "not measured": such a field is left out, the others go on
+        bad = {k: v for k, v in out.items() if not math.isfinite(v)}
+        ok = {k: v for k, v in out.items() if k not in bad}
+        if ok:
+            self._take("joint_states", msg.header, ok)
+        for k, v in bad.items():
+            self.bad += 1
+            self._log_once(("bad", "joint_states", "nonfinite", k),
+                           f"joint_states topic: {k} is not finite ({v!r}): left out")
 
     def _on_value(self, msg: Any) -> None:
-        self._put(value=Sample(float(msg.data), self._stamp(None)))
+        self._take("value", None, {"value": self._finite("value", float(msg.data))})
 
     # graph side --------------------------------------------------------------------------------------------------
     def step(self, t, inputs):
         with self._lock:
             if not self._pending:
                 return None
-            out, self._pending = self._pending, {}
-        return out
+            pending, self._pending = self._pending, {}
+        off = self._clock.offset_now()
+        return {port: Sample(v, stamp - off) for port, (v, stamp) in pending.items()}
 
     def status(self):
         rx = getattr(self, "_last_rx", None)
+        problems = {"bad": getattr(self, "bad", 0), "unstamped": getattr(self, "unstamped", 0),
+                    "skewed": getattr(self, "skewed", 0), "late": getattr(self, "late", 0),
+                    "off_axis": getattr(self, "off_axis", 0), "duplicates": getattr(self, "duplicates", 0),
+                    **_ros_status(self)}
+        lag = getattr(self, "lag", None)
         return {"received": getattr(self, "received", 0),
-                "since_last_s": (self.ctx.now() - rx) if rx is not None else math.inf,
-                "skewed": getattr(self, "skewed", 0), "bad": getattr(self, "bad", 0)}
+                "since_last_s": (time.monotonic() - rx) if rx is not None else math.inf,
+                "lag_s": lag if lag is not None else math.nan,
+                "problems": sum(v for k, v in problems.items() if k != "duplicates"),
+                **problems}
 
     def close(self) -> None:
-        ros = getattr(self, "_ros", None)
-        if ros is not None:
-            self._ros = None
-            ros.close()
+        _close_ros(self)
+
+
+_BYTES_PER_PIXEL = {"bgr8": 3, "rgb8": 3, "8uc3": 3, "bgra8": 4, "rgba8": 4, "8uc4": 4, "mono8": 1, "8uc1": 1,
+                    "32fc1": 4, "64fc1": 8, "16uc1": 2, "mono16": 2}
 
 
 @hookimpl
