@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import os
-import threading
 import time
 
 import numpy as np
 import pytest
 import rclpy
-from rclpy.context import Context as RosContext
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 
 from geometry_msgs.msg import WrenchStamped
@@ -22,6 +19,8 @@ from teletouch.component import _Slot
 from teletouch.plugins.bridges.ros2 import Ros2Publish, Ros2Subscribe
 from teletouch.recording import image_msg, ros_time
 from teletouch.testing import load_text, make_registry
+
+from fakes.ros2_peer import Peer as _Peer
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -38,35 +37,14 @@ def ros_env():
         yield
 
 
-class Peer:
-    """An independent ROS 2 participant (its own context), like a node of another ROS 2 program."""
+class Peer(_Peer):
+    """A peer on this module's domain."""
 
     def __init__(self, name: str):
-        self.ctx = RosContext()
-        rclpy.init(context=self.ctx, domain_id=DOMAIN)
-        self.node = rclpy.create_node(name, namespace="/peer", context=self.ctx)
-        self.ex = SingleThreadedExecutor(context=self.ctx)
-        self.ex.add_node(self.node)
-        self.got: dict[str, list] = {}
-        self._stop = threading.Event()
-        self.th = threading.Thread(target=self._spin, daemon=True)
-        self.th.start()
-
-    def _spin(self):
-        while not self._stop.is_set():
-            self.ex.spin_once(timeout_sec=0.02)
+        super().__init__(name, DOMAIN)
 
     def listen(self, mtype, topic, key, qos=None):
-        self.got[key] = []
-        self.node.create_subscription(mtype, topic, lambda m: self.got[key].append((time.time(), m)),
-                                      qos or QoSProfile(depth=10))
-
-    def close(self):
-        self._stop.set()
-        self.th.join(2)
-        self.ex.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
+        super().listen(mtype, topic, key, qos, timed=True)
 
 
 def _wait(cond, timeout=15.0, every=None):
