@@ -136,3 +136,29 @@ def test_constant_leader_damping_option():
         for k in range(20):
             out = h.step(k * 1e-3, leader_opening=0.02 + 0.01 * k * 1e-3, leader_velocity=0.01)
     assert out["gripper_force"] == pytest.approx(-0.05)            # opposes the motion
+
+
+def test_a_sign_that_pulls_the_fingers_closed_is_refused():
+    # gripper_force is positive when it pushes the operator's fingers apart (docs/ports.md), and every leader driver
+    # keeps to that: force_sign -1 rendered a sensed grip as a pull closing the fingers into the object (-2 N here)
+    with pytest.raises(Exception, match=r"force_sign[\s\S]*pull"):
+        PositionForce.Params(force_sign=-1)
+    assert PositionForce.Params(force_sign=1).force_sign == 1
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "smoothing_time": 0.0}) as h:
+        for k in range(50):
+            out = h.step(k * 1e-3, leader_opening=0.02, force=Sample(2.0, k * 1e-3))
+    assert out["gripper_force"] == pytest.approx(2.0)                # pushes the fingers apart
+
+
+@pytest.mark.parametrize("cls,params,names", [
+    (PositionForce, {"leader_damping": 50.0}, ("leader_damping", "max_damping")),
+    (NoFeedback, {"leader_damping": 10.0, "max_damping": 5.0}, ("leader_damping", "max_damping")),
+    (PositionPosition, {"kd": 30.0, "leader_damping": 15.0}, ("kd", "leader_damping", "max_damping")),
+])
+def test_constant_damping_beyond_what_the_leader_renders_is_refused(cls, params, names):
+    # max_damping is the most damping the leader renders stably (Omega.7: 40 N*s/m); the constant damping must fit
+    # in it (the passivity damping gets what is left)
+    with pytest.raises(Exception) as e:
+        cls.Params(**params)
+    assert all(n in str(e.value) for n in names), str(e.value)
+    cls.Params(**dict(params, max_damping=60.0))

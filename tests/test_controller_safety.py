@@ -178,7 +178,8 @@ def test_force_rate_limit_holds_after_a_late_step():
 @pytest.mark.parametrize("override", [{"max_force": math.inf}, {"max_force_rate": math.inf},
                                       {"max_damping": math.inf}, {"stale_after": math.inf},
                                       {"fade_time": math.inf}, {"leader_stale_after": math.inf},
-                                      {"offset": math.nan}, {"scale": math.inf}, {"reduction_min_velocity": 0.0}],
+                                      {"offset": math.nan}, {"scale": math.inf}, {"reduction_min_velocity": 0.0},
+                                      {"max_leader_velocity": 0.0}, {"max_leader_velocity": math.inf}],
                          ids=lambda d: next(iter(d)))
 def test_params_that_would_switch_a_limit_off_are_refused(override):
     text = f"""
@@ -241,3 +242,47 @@ def test_differentiator_skips_bad_samples():
     assert v == pytest.approx(d.v) and math.isfinite(v)
     assert math.isfinite(d.update(0.050, math.nan)) and math.isfinite(d.update(0.051, 0.01 * 0.051))
     assert d.v == pytest.approx(0.01, rel=0.1)
+
+
+@pytest.mark.parametrize("cls", [PositionForce, PositionPosition])
+def test_the_fade_of_a_lost_leader_obeys_the_rate_limit(cls):
+    # a fade_time shorter than max_force / max_force_rate must not drop the force faster than the rate limit (it
+    # dropped 4 N in one step: the fade replaced the rate limit instead of acting within it)
+    p = {"passivity": False, "fade_time": 0.001, "max_force_rate": 200.0}
+    p.update({"kp": 400.0, "kd": 0.0} if cls is PositionPosition else {"deadband": 0.0})
+    with Harness(cls, p) as h:
+        for k in range(100):
+            out = h.step(k * 1e-3, leader_opening=0.010, follower_opening=0.020, force=Sample(4.0, k * 1e-3))
+        f = [out["gripper_force"]]
+        assert f[0] == pytest.approx(4.0, abs=0.02)
+        f += [h.step(0.099 + k * 1e-3, leader_opening=math.nan, follower_opening=0.020,
+                     force=Sample(4.0, 0.099 + k * 1e-3))["gripper_force"] for k in range(1, 100)]
+    assert max(abs(b - a) for a, b in zip(f, f[1:])) <= 200.0 * 1e-3 + 1e-9
+    assert f[-1] == 0.0
+
+
+def test_an_older_force_estimate_after_a_newer_one_is_ignored():
+    # estimates out of order (an older capture delivered after a newer one): the hand must not be given the older
+    # force again (it went back from 3 N to 1 N), nor the two-port observer an interval run backwards
+    p = {"deadband": 0.0, "passivity": False, "force_prediction": False, "energy_leak_time": None}
+
+    def run(out_of_order):
+        with Harness(PositionForce, p) as h:
+            f, e = [], []
+            for k in range(300):
+                t = k * 1e-3
+                x = 0.015 - 0.005 * t
+                vals = {"leader_opening": x, "follower_opening": x}
+                if k % 17 == 0:
+                    vals["force"] = Sample(10.0 * t, t)
+                elif out_of_order and k % 17 == 8 and k > 100:
+                    vals["force"] = Sample(10.0 * (t - 0.05), t - 0.05)       # an old capture, late
+                out = h.step(t, **vals)
+                f.append(out["gripper_force"])
+                e.append(out["energy"])
+            return f, e
+
+    f0, e0 = run(False)
+    f1, e1 = run(True)
+    assert f1 == pytest.approx(f0, abs=1e-12)
+    assert e1 == pytest.approx(e0, abs=1e-12)

@@ -7,28 +7,37 @@ All three have the ports of docs/ports.md (Controller):
 - out ``opening_command`` (m, to the follower), ``gripper_force`` (N, to the leader, positive pushes the operator's
   fingers apart), ``energy`` (J, passivity observer), and ``damping`` (N*s/m, what the passivity controller added).
 
+Every input is taken in stamp order: a sample stamped before the newest fresh one already taken (out of order) is
+ignored, so an older measurement never replaces a newer one.
+
 The control law of ``position-force`` (each step, at >= 1 kHz):
 
 1. follower:  ``x_fd = clip(scale * x_l + offset, opening_min, opening_max)``; a missing, stale or non-finite leader
-   opening holds the last command (the follower keeps its position);
-2. force: every new force sample ``f_s`` is shaped, ``f = sign * min(k_f * deadband(f_s), max_force)``, and the
+   opening holds the last command (the follower keeps its position); a jump of the leader is passed on (every
+   follower driver limits its speed to its ``max_speed``);
+2. force: every new force sample ``f_s`` is shaped, ``f = min(k_f * deadband(f_s), max_force)`` (positive: it
+   pushes the operator's fingers apart), and the
    output ramps linearly from its present value to ``f`` over ``smoothing_time`` (a first-order hold: the hand never
    sees the camera-rate staircase). In contact (``force_prediction``, on by default) a local contact model bridges
-   the estimate's latency: ``+ sign * k_f * K * (x_cmd(capture) - x_cmd(now))``, with ``K = -dF/dx_cmd`` learnt from
+   the estimate's latency: ``+ k_f * K * (x_cmd(capture) - x_cmd(now))``, with ``K = -dF/dx_cmd`` learnt from
    successive estimates and the follower commands at their capture times (never past zero, never beyond
-   ``max_force``); without it the rendered force is a delayed spring, an active element that makes stiff contacts
-   oscillate. A force older than ``stale_after`` or non-finite fades linearly to zero over ``fade_time``;
+   ``max_force``; blended in and out over ``smoothing_time``; forgotten when the contact ends); without it the
+   rendered force is a delayed spring, an active element that makes stiff contacts oscillate. A force older than
+   ``stale_after`` or non-finite fades linearly to zero over ``fade_time``;
 3. passivity (on by default): the time-domain passivity observer over the leader and follower ports (two-port:
    the follower's opening at each estimate's capture time); when the observed energy
-   would go negative, damping ``-alpha * v_l`` (``alpha <= max_damping``, Omega.7: 40 N*s/m) and a cut of the
+   would go negative, damping ``-alpha * v_l`` (``alpha`` at most what the constant damping leaves of
+   ``max_damping``, Omega.7: 40 N*s/m) and a cut of the
    feedback force towards zero for what the damping cannot dissipate; never a reversal of the contact force, nothing
    in free space (see passivity.py);
-4. safety: the total leader force is rate-limited (``max_force_rate``), clipped to ``+-max_force`` and forced to 0
+4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
+   ``fade_time``, within that limit), clipped to ``+-max_force`` and forced to 0
    when anything is non-finite: nothing but a finite force within limits ever leaves the controller.
 
 ``position-position`` replaces step 2 by a PD on the position error,
 ``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
-follower side being the follower's own position servo. ``no-feedback`` sends no force at all.
+follower side being the follower's own position servo; a lost follower opening fades it out over ``fade_time``.
+``no-feedback`` sends no force at all.
 The pure functions here are tested without the runtime; the components are thin wrappers around them.
 """
 
@@ -37,9 +46,9 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from teletouch import Component, Kind, Params, Port, hookimpl
+from teletouch import Component, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
 
 from .passivity import (
@@ -214,13 +223,19 @@ class _CommonParams(Params):
     passivity_no_reversal: bool = Field(True, description="passivity_controller force: the damping never turns "
                                         "the feedback force round (no pull where the contact pushes)")
     max_damping: NewtonSecondsPerMeter = Field(OMEGA7_MAX_DAMPING, ge=0,
-                                               description="cap of the injected damping (Omega.7: 40 N*s/m)",
+                                               description="the most damping the leader renders stably (Omega.7: "
+                                               "40 N*s/m): the constant damping (leader_damping, and "
+                                               "position-position's kd) and the passivity damping together",
                                                json_schema_extra={"unit": "N*s/m"})
     energy_leak_time: Seconds | None = Field(1.0, gt=0, description="time constant of the decay of stored "
                                              "(positive) observed energy; null: no leak",
                                              json_schema_extra={"unit": "s"})
     velocity_cutoff: float = Field(50.0, gt=0, description="low-pass of differentiated velocities",
                                    json_schema_extra={"unit": "Hz"})
+    max_leader_velocity: float = Field(2.0, gt=0, description="a leader_velocity sample faster than this is taken "
+                                       "as invalid (counted; the differentiated opening is used instead): one "
+                                       "glitch would otherwise fill the passivity observer with a deficit that no "
+                                       "contact pays back", json_schema_extra={"unit": "m/s"})
     leader_damping: NewtonSecondsPerMeter = Field(0.0, ge=0, description="constant damping rendered on the leader "
                                                   "(passive; helps the slow force loop)",
                                                   json_schema_extra={"unit": "N*s/m"})
@@ -268,7 +283,21 @@ class _CommonParams(Params):
     def _check(self) -> "_CommonParams":
         if self.opening_min >= self.opening_max:
             raise ValueError(f"opening_min ({self.opening_min} m) must be below opening_max ({self.opening_max} m)")
+        constant = self.constant_damping()
+        if constant > self.max_damping:
+            names = " + ".join(n for n in self._constant_damping_fields() if getattr(self, n))
+            raise ValueError(f"{names} ({constant} N*s/m) must not exceed max_damping ({self.max_damping} N*s/m), "
+                             f"the most damping the leader renders stably (raise max_damping only for a leader "
+                             f"that renders more)")
         return self
+
+    def _constant_damping_fields(self) -> tuple[str, ...]:
+        return ("leader_damping",)
+
+    def constant_damping(self) -> float:
+        """The damping (N*s/m) always rendered on the leader; the passivity damping may add what is left of
+        max_damping."""
+        return sum(getattr(self, n) for n in self._constant_damping_fields())
 
 
 class _Bilateral(Component):
@@ -312,11 +341,28 @@ class _Bilateral(Component):
         self._two_port = p.passivity_observer == "two-port"
         rate = self.ctx.rate or self.default_rate or 1000.0
         self._max_dt = 2.0 / float(rate)        # longest step the force rate limit counts (see step)
+        self._taken: dict[str, Sample] = {}     # the newest fresh sample taken per input (see _ordered)
+        # passivity damping cap: what the constant damping leaves of what the leader renders stably
+        self._damping_cap = max(0.0, p.max_damping - p.constant_damping())
 
     # -- helpers
+    def _ordered(self, name: str, s: Sample | None, t: float, max_age: float) -> Sample | None:
+        """The sample of input ``name`` to use: ``s``, unless it is stamped before the newest fresh sample already
+        taken (it arrived out of order), then that one, so that an older measurement never replaces a newer one.
+        Only fresh samples are taken, so a sample stamped in the future (or NaN) cannot lock out the ones after it;
+        it is stale, as it always was."""
+        last = self._taken.get(name)
+        if s is None:
+            return last
+        if last is not None and s.stamp < last.stamp:
+            return last
+        if s.is_fresh(t, max_age):
+            self._taken[name] = s
+        return s
+
     def _leader(self, t: float, inputs: Any) -> bool:
         p = self.params
-        s = inputs["leader_opening"]
+        s = self._ordered("leader_opening", inputs["leader_opening"], t, p.leader_stale_after)
         if s is None or not s.is_fresh(t, p.leader_stale_after):
             return False
         x = finite_or(s.value, math.nan)
@@ -324,16 +370,19 @@ class _Bilateral(Component):
             self.invalid_inputs += 1
             return False
         self.x_l = x
-        v_raw = inputs.get("leader_velocity")
+        v_raw = self._ordered("leader_velocity", inputs.get("leader_velocity"), t, p.leader_stale_after)
         v = math.nan
         if v_raw is not None and v_raw.is_fresh(t, p.leader_stale_after):
             v = finite_or(v_raw.value, math.nan)
+            if not abs(v) <= p.max_leader_velocity:          # NaN, inf, or a glitch the opening never made
+                self.invalid_inputs += 1
+                v = math.nan
         vd = self.vel_l.update(s.stamp, x)
         self.v_l = v if math.isfinite(v) else vd
         return True
 
     def _follower(self, t: float, inputs: Any) -> bool:
-        s = inputs.get("follower_opening")
+        s = self._ordered("follower_opening", inputs.get("follower_opening"), t, self.params.leader_stale_after)
         if s is None or not s.is_fresh(t, self.params.leader_stale_after):
             return False
         x = finite_or(s.value, math.nan)
@@ -381,14 +430,14 @@ class _Bilateral(Component):
             self.pas.energy *= math.exp(-dt / p.free_space_reset)
         if p.passivity and self.leader_ok:
             # capped damping, raised and released smoothly; then a cut of what is still missing
-            f_des, alpha = passivity_force(self.pas, f_fb, v, dt, p.max_damping, p.energy_leak_time,
+            f_des, alpha = passivity_force(self.pas, f_fb, v, dt, self._damping_cap, p.energy_leak_time,
                                            reduce_force=False)
             f_capped = f_des                       # with the capped damping at once (what the cut may count on)
             if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
             elif p.damping_release > 0.0 and alpha < self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_release)
-                if alpha < 1e-3 * p.max_damping:
+                if alpha < 1e-3 * self._damping_cap:
                     alpha = 0.0
             f_des = f_fb - alpha * v
             if p.passivity_controller == "force":
@@ -415,7 +464,7 @@ class _Bilateral(Component):
         else:
             if self.leader_fade_rate is None:
                 self.leader_fade_rate = max(abs(self.out_force) / p.fade_time, 1e-6)
-            max_rate = self.leader_fade_rate
+            max_rate = min(self.leader_fade_rate, p.max_force_rate)     # a short fade_time never beats the limit
         # the rate limit's step is at most two nominal periods long: after a stalled or late step the force still
         # moves by no more than max_force_rate x 2 periods (not by the rate x the whole gap)
         f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt))
@@ -462,8 +511,9 @@ class PositionForce(_Bilateral):
 
     class Params(_CommonParams):
         force_scale: float = Field(1.0, ge=0, description="k_f: leader force per sensed force")
-        force_sign: Literal[1, -1] = Field(1, description="+1: sensed grip force pushes the operator's fingers "
-                                           "apart (docs/ports.md); -1 for a device wired the other way")
+        force_sign: Literal[1] = Field(1, description="always +1: a sensed grip force pushes the operator's "
+                                       "fingers apart (docs/ports.md); -1, which pulled them closed into the object, "
+                                       "is refused")
         deadband: Newtons = Field(0.02, ge=0, description="sensed forces below this are not rendered "
                                   "(continuous: the width is subtracted)", json_schema_extra={"unit": "N"})
         smoothing_time: Seconds = Field(1.0 / 60.0, ge=0, description="each new estimate is reached by a linear "
@@ -483,6 +533,15 @@ class PositionForce(_Bilateral):
                                               "apart in follower command", json_schema_extra={"unit": "m"})
         prediction_rate: float = Field(0.3, gt=0, le=1, description="weight of each new stiffness measurement")
 
+        @field_validator("force_sign", mode="before")
+        @classmethod
+        def _no_pull(cls, v: Any) -> Any:
+            if v == -1:
+                raise ValueError("force_sign -1 would pull the operator's fingers closed, into the object, with the "
+                                 "sensed grip force: every leader takes gripper_force positive when it pushes the "
+                                 "fingers apart (docs/ports.md); a leader wired the other way is fixed in its driver")
+            return v
+
     def _reset(self) -> None:
         super()._reset()
         self.hold = ForceHold(0.0)
@@ -490,13 +549,17 @@ class PositionForce(_Bilateral):
         self.k_hat = 0.0                        # learnt contact stiffness (N/m, sensed force per follower metre)
         self.pred_prev: tuple[float, float] | None = None
         self.pred_on = False
+        self.pred_active = False                # the predicted term was being added (see _predicted)
+        self.pred_term = 0.0                    # the term added in the last step (N, after the clip)
+        self.pred_from = 0.0                    # the term when the prediction last started or stopped
+        self.pred_t0 = 0.0                      # ... and when
         self.last_stamp: float | None = None
         self.latencies: list[float] = []        # controller time of first use - force stamp, per new estimate
         self.bad_force = 0
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         p = self.params
-        s = inputs["force"]
+        s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
         if s is not None and s.stamp != self.last_stamp:
             self.last_stamp = s.stamp
             f_s = finite_or(s.value, math.nan)
@@ -529,14 +592,34 @@ class PositionForce(_Bilateral):
         elif not s.is_fresh(t, p.stale_after) and self.state != "bad-force":
             self.state = "stale-force"
             self._fade(t)
-        f = self.hold.value(t)
-        if self.pred_on and self.state == "ok" and self.command is not None and f != 0.0:
+        return self._predicted(t, self.hold.value(t))
+
+    def _predicted(self, t: float, f: float) -> float:
+        """``f`` plus the contact prediction, within ``[0, max_force]``. When the prediction starts or stops (a
+        contact begins or ends, the estimate goes stale or comes back) the term is blended from what was added
+        to its new value over ``smoothing_time``, as the hold ramps the estimate: never a step in the hand (it
+        was dropped at once, a jump of up to prediction_max_change x force_scale)."""
+        p = self.params
+        active = self.pred_on and self.state == "ok" and self.command is not None and f != 0.0
+        target = 0.0
+        if active:
             d = self.k_hat * (self.xref.value(t) - self.command)        # sensed force change since the capture
             lim = p.prediction_max_change
             d = lim if d > lim else -lim if d < -lim else d
-            f_pred = f + p.force_sign * p.force_scale * d
-            f = min(max(0.0, f_pred), p.max_force) if f > 0.0 else max(min(0.0, f_pred), -p.max_force)
-        return f
+            target = p.force_scale * d
+        if active != self.pred_active:
+            self.pred_active = active
+            self.pred_from, self.pred_t0 = self.pred_term, t
+        term = target
+        if p.smoothing_time > 0.0 and t - self.pred_t0 < p.smoothing_time:
+            w = max(0.0, (t - self.pred_t0) / p.smoothing_time)
+            term = self.pred_from + (target - self.pred_from) * w
+        if term == 0.0:
+            self.pred_term = 0.0
+            return f
+        total = min(max(0.0, f + term), p.max_force)
+        self.pred_term = total - f
+        return total
 
     def _learn(self, t: float, stamp: float, f_s: float) -> None:
         """Contact model for the prediction: the stiffness K = -dF/dx_cmd from successive estimates."""
@@ -545,6 +628,8 @@ class PositionForce(_Bilateral):
         if x_s is None or not f_s > p.deadband:
             self.pred_prev = None
             self.pred_on = False
+            if not f_s > p.deadband:
+                self.k_hat = 0.0        # the contact is over: the next one (another object) is learnt afresh
             return
         prev = self.pred_prev
         if prev is not None and abs(x_s - prev[1]) > p.prediction_min_motion:
@@ -589,18 +674,37 @@ class PositionPosition(_Bilateral):
         passivity_observer: Literal["two-port", "leader-port"] = Field(
             "leader-port", description="no sensed force here: the leader port only")
 
+        def _constant_damping_fields(self) -> tuple[str, ...]:
+            return ("kd", "leader_damping")          # kd damps the leader's own velocity too
+
+    def _reset(self) -> None:
+        super()._reset()
+        self.coupling = ForceHold(0.0)           # the coupling force; faded out over fade_time without a follower
+        self.coupling_fading = False
+
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         p = self.params
-        if not follower_ok or not self.leader_ok:
-            self.state = "stale-follower" if self.leader_ok else self.state
+        if not self.leader_ok:                   # the step fades the force out; no stale coupling comes back
+            self.coupling.set(t, 0.0, 0.0)
+            self.coupling_fading = False
             self.force_held = 0.0
             return 0.0
+        if not follower_ok:                      # the coupling's source is lost: fade out over fade_time
+            self.state = "stale-follower"
+            if not self.coupling_fading:
+                self.coupling_fading = True
+                self.coupling.set(t, 0.0, p.fade_time)
+            self.force_held = 0.0
+            return self.coupling.value(t)
         self.state = "ok"
+        self.coupling_fading = False
         x_fb = unmap_opening(self.x_f, p.scale, p.offset)
         v_fb = self.vel_f.v / p.scale
         f = p.kp * (x_fb - self.x_l) + p.kd * (v_fb - self.v_l)
         self.force_held = f
-        return saturate(f, p.max_force)
+        f = saturate(f, p.max_force)
+        self.coupling.set(t, f if math.isfinite(f) else 0.0, 0.0)
+        return f
 
 
 class NoFeedback(_Bilateral):
