@@ -325,3 +325,133 @@ def test_bad_intent_in_a_graph_names_the_file_line_and_field():
         load_text(text.replace("NAN_AT", "null"), reg)
     msg = str(ei.value)
     assert "<test>:" in msg and "intent.speed" in msg and "greater than 0" in msg
+
+
+# ------------------------------------------------------------------------------------------------ audit
+@pytest.mark.parametrize("params", [
+    {"hand_stiffness": 1e7}, {"hand_stiffness": 1e8},                  # a stiff pinch
+    {"hand_damping": 300.0}, {"hand_damping": 1e4},                    # a heavily damped one
+    {"gripper_mass": 1e-5, "hand_mass": 0.0},                          # a very light gripper
+], ids=lambda p: ",".join(f"{k}={v:g}" for k, v in p.items()))
+def test_stiff_damped_or_light_parameters_stay_stable(params):
+    """The explicit substep went unstable past h*c/m or h^2*k/m of ~1: the hand force chattered at +-40 N and the
+    gripper ran at 0.2-70 m/s where the hand held still. Now the stiff terms are implicit: it settles."""
+    p = {"intent": {"type": "hold", "opening": 0.010}, "initial_opening": 0.020, **params}
+    with Harness(SimOmega7, p) as h:
+        outs = [h.step(i * 1e-3) for i in range(2001)]
+    assert all(math.isfinite(o["gripper_opening"]) for o in outs)
+    for o in outs[-500:]:                                              # the last 0.5 s: no chatter, no running off
+        assert 0.010 - 0.05 / 300 - 2e-5 <= o["gripper_opening"] <= 0.020
+        assert abs(o["gripper_velocity"]) < 5e-3 and abs(o["hand_force"]) < 1.0
+    if "hand_damping" in params:                                       # overdamped: straight to the intent
+        xs = [o["gripper_opening"] for o in outs]
+        assert all(a >= b - 1e-12 for a, b in zip(xs, xs[1:]))
+
+
+def test_a_light_gripper_without_a_hand_is_pushed_open_by_a_rendered_force():
+    with Harness(SimOmega7, {"intent": "none", "gripper_mass": 1e-5, "initial_opening": 0.01}) as h:
+        out = settle(h, 1.0, gripper_force=0.5)
+        assert out["gripper_opening"] == pytest.approx(h.comp.params.max_opening)  # was 0: the wrong end stop
+
+
+@pytest.mark.parametrize("params,expected", [
+    ({"intent": "none", "handle_damping": 1e4}, 1.0 * 2.0 / 1e4),           # drifts at F / b for 2 s
+    ({"intent": "hold", "arm_stiffness": 1e8}, 1.0 / 1e8),                  # held by the arm's spring
+    ({"intent": "hold", "arm_damping": 1e4, "arm_stiffness": 300.0}, None),  # slowly towards F / k
+])
+def test_stiff_or_heavily_damped_handle_stays_stable(params, expected):
+    with Harness(SimOmega7, params) as h:
+        out = h.step(0.0, force=np.array([1.0, 0.0, 0.0]))
+        for i in range(1, 2001):
+            out = h.step(i * 1e-3, force=np.array([1.0, 0.0, 0.0]))
+            assert np.linalg.norm(out["position"]) < 0.01             # it went to the workspace's edge (75 mm)
+    x = out["position"][0]
+    if expected is not None:
+        assert x == pytest.approx(expected, rel=0.02)
+    else:
+        assert 0.0 < x < 1.0 / 300.0
+
+
+class NanAfter:
+    """An intent that goes wrong after 0.1 s (a reactive intent fed a NaN cue, say)."""
+
+    name = "test-nan-after"
+
+    def desired(self, t, state):
+        return (math.nan if t > 0.1 else 0.012), 0.0
+
+
+class NotAPair:
+    name = "test-not-a-pair"
+
+    def desired(self, t, state):
+        return 0.012
+
+
+def test_an_intent_that_returns_nan_faults_instead_of_poisoning_the_state():
+    with Harness(SimOmega7, {"intent": {"type": f"{__name__}:NanAfter"}}) as h:
+        settle(h, 0.1, gripper_force=1.0)
+        x = h.comp.x
+        with pytest.raises(ComponentFault, match="test_leader_sim:NanAfter' returned opening nan"):
+            h.step(h.t + 1e-3, gripper_force=1.0)
+        assert h.comp.x == x and math.isfinite(h.comp.v)                # the opening was NaN for good before
+        assert h.comp.g_applied == 0.0 and h.comp.safe
+    with Harness(SimOmega7, {"intent": {"type": f"{__name__}:NotAPair"}, "initial_opening": 0.01}) as h:
+        with pytest.raises(ComponentFault, match=r"returned 0.012: expected \(opening m, velocity m/s\) or None"):
+            h.step(0.001)                                                # was a TypeError from the integrator
+    with pytest.raises(ComponentFault, match="returned 0.012"):      # the start opening comes from the intent too
+        Harness(SimOmega7, {"intent": {"type": f"{__name__}:NotAPair"}}).comp.configure()
+
+
+def test_huge_intent_openings_do_not_make_the_state_nan():
+    from teletouch import Sample
+
+    with Harness(SimOmega7, {"intent": "hold"}) as h:
+        h.step(0.0, intent_opening=Sample(1.7e308, 0.0))
+        h.step(0.001, intent_opening=Sample(1e308, 0.001))              # velocity -inf, spring force +inf: NaN
+        out = settle(h, 1.0, intent_opening=0.01)
+        assert math.isfinite(out["gripper_opening"]) and math.isfinite(out["hand_force"])
+        assert out["gripper_opening"] == pytest.approx(0.01, abs=3e-4)
+        with pytest.raises(ComponentFault, match="intent_opening is 'wide' \\(not a number\\)"):
+            h.step(h.t + 1e-3, intent_opening="wide")                    # was a bare ValueError, no safe state
+        assert h.comp.safe and h.comp.g_applied == 0.0
+
+
+@pytest.mark.parametrize("intent,field", [({"type": "hold", "opening": math.inf}, "intent.opening"),
+                                          ({"type": "close-and-hold", "speed": math.inf}, "intent.speed"),
+                                          ({"type": "close-and-hold", "hold_time": math.inf}, "intent.hold_time")])
+def test_intent_parameters_must_be_finite(intent, field):
+    with pytest.raises(ValidationError, match=f"{field}: Input should be a finite number"):
+        SimOmega7.Params(intent=intent)
+
+
+def test_start_outside_the_device_is_refused():
+    with pytest.raises(ValidationError, match=r"initial_opening \(50 mm\) is beyond max_opening \(25 mm"):
+        SimOmega7.Params(initial_opening="50mm")
+    SimOmega7.Params(initial_opening="25mm")
+    with pytest.raises(ValidationError, match="initial_position .* outside workspace_radius"):
+        SimOmega7.Params(initial_position=(0.1, 0.0, 0.0))
+
+
+def test_lifecycle_like_the_real_driver():
+    """Zero force while inactive and after safe_state() (latched); deactivate/activate renders commands again."""
+    h = Harness(SimOmega7, {"intent": {"type": "hold", "opening": 0.01}})
+    c = h.comp
+    c.configure()
+    c.activate()
+    settle(h, 0.05, gripper_force=2.0)
+    assert c.g_applied == 2.0
+    c.deactivate()
+    assert c.g_applied == 0.0
+    h.step(h.t + 1e-3, gripper_force=2.0)
+    assert c.g_applied == 0.0
+    c.activate()
+    h.step(h.t + 1e-3, gripper_force=2.0)
+    assert c.g_applied == 2.0
+    c.safe_state()
+    settle(h, 0.01, gripper_force=2.0)
+    assert c.g_applied == 0.0
+    c.deactivate()
+    c.activate()
+    out = settle(h, 0.5, gripper_force=2.0)
+    assert c.g_applied == 2.0 and math.isfinite(out["gripper_opening"])

@@ -67,9 +67,10 @@ class Intent(Protocol):
 
 
 class IntentParams(BaseModel):
-    """Base of intent parameter models: unknown fields are refused."""
+    """Base of intent parameter models: unknown fields are refused, numbers must be finite (an ``.inf`` opening or
+    time would pass ``ge=0`` and make the hand push with its full force or never move)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 _INTENTS: dict[str, type] = {}

@@ -8,6 +8,10 @@ would a person's: at rest ``opening = intent + F / hand_stiffness`` (within the 
 Handle: 3 axes, mass and damping, gravity compensated, a spherical workspace. Forces: the commanded ``force``
 (clamped to the device limit), the optional ``external_force`` (a simulated environment, e.g. the force-calibration
 press rig) and, when the operator holds the device, an arm impedance around ``hand_position``.
+
+Integration: semi-implicit Euler in substeps of at most ``substep``. Where that would be unstable (a stiff or heavily
+damped hand or arm, a very light gripper or handle: ``h * c / m`` or ``h^2 * k / m`` above 0.5), the viscous and
+spring terms are taken implicitly instead (stable for any step); with the default parameters the explicit path runs.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import math
 from typing import Any
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import (
@@ -29,9 +33,21 @@ from .omega7 import (
 )
 from .operator import HandImpedance, OperatorState, make_intent, validate_intent
 
+#: the operator's intended opening (m) and its rate (m/s) are clipped to +-this: far beyond any hand, and small
+#: enough that the hand's spring and damper forces stay finite (a huge but finite intent_opening, or a jump between
+#: two, made them inf - inf = NaN and the gripper's state NaN for good)
+INTENT_BOUND = 1e3
+
+#: explicit (semi-implicit Euler) substeps are used while h*c/m and h^2*k/m stay below this; above it, implicit
+STIFF_LIMIT = 0.5
+
 
 def _u(unit: str) -> dict[str, str]:
     return {"unit": unit}
+
+
+def _clip(v: float, bound: float = INTENT_BOUND) -> float:
+    return bound if v > bound else (-bound if v < -bound else v)
 
 
 class SimOmega7(Device):
@@ -119,6 +135,18 @@ class SimOmega7(Device):
                     raise ValueError(f"button_intervals[{i}]: t_off must be after t_on, got ({a}, {b})")
             return v
 
+        @model_validator(mode="after")
+        def _start_inside(self) -> "SimOmega7.Params":
+            if self.initial_opening is not None and self.initial_opening > self.max_opening:
+                raise ValueError(f"initial_opening ({self.initial_opening * 1e3:g} mm) is beyond max_opening "
+                                 f"({self.max_opening * 1e3:g} mm, the gripper's end stop): expected 0 to "
+                                 f"max_opening")
+            r = math.sqrt(sum(c * c for c in self.initial_position))
+            if r > self.workspace_radius * (1 + 1e-12):
+                raise ValueError(f"initial_position {list(self.initial_position)} m is {r * 1e3:g} mm from the "
+                                 f"centre, outside workspace_radius ({self.workspace_radius * 1e3:g} mm)")
+            return self
+
     # ------------------------------------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
         p = self.params
@@ -128,9 +156,10 @@ class SimOmega7(Device):
         self.hand = HandImpedance(p.hand_stiffness, p.hand_damping, p.hand_max_force)
         self.guard = ForceGuard(p.max_gripper_force, p.max_force, p.command_timeout)
         self.state = OperatorState()
+        self.faults = 0
         x0 = p.initial_opening
         if x0 is None:
-            d = self.intent.desired(0.0, self.state)
+            d = self._checked(self.intent.desired(0.0, self.state), "intent")
             x0 = d[0] if d is not None else 0.5 * p.max_opening
         self.x = min(max(float(x0), 0.0), p.max_opening)
         self.v = 0.0
@@ -151,7 +180,6 @@ class SimOmega7(Device):
         self.x_intent = math.nan
         self.enabled = False
         self.safe = True
-        self.faults = 0
         self._io_prev: tuple[float, float] | None = None  # last (stamp, value) of intent_opening
         self._io_vel = 0.0
 
@@ -171,22 +199,55 @@ class SimOmega7(Device):
         self.f_applied = np.zeros(3)
 
     # ------------------------------------------------------------------------------------------------ stepping
+    def _checked(self, des: Any, source: str) -> tuple[float, float] | None:
+        """An intent's answer as (opening, velocity) floats, finite and within +-INTENT_BOUND, or None (hand off).
+        Anything else faults (after the safe state) naming the intent: a NaN taken into the hand's force would
+        make the gripper's opening NaN for good."""
+        if des is None:
+            return None
+        if des.__class__ is tuple and len(des) == 2:  # the usual answer: two floats in range (NaN fails these)
+            x, v = des
+            if (x.__class__ is float and v.__class__ is float and -INTENT_BOUND <= x <= INTENT_BOUND
+                    and -INTENT_BOUND <= v <= INTENT_BOUND):
+                return des
+        try:
+            if isinstance(des, (str, bytes)):
+                raise TypeError
+            x, v = des
+            x, v = float(x), float(v)
+        except (TypeError, ValueError):
+            problem = f"{source} '{self.intent_name}' returned {des!r}: expected (opening m, velocity m/s) or None"
+        else:
+            if math.isfinite(x) and math.isfinite(v):
+                return _clip(x), _clip(v)
+            problem = (f"{source} '{self.intent_name}' returned opening {x}, velocity {v} (not finite): "
+                       f"expected finite (opening m, velocity m/s) or None")
+        self.faults += 1
+        self.safe_state()
+        raise ComponentFault(problem, getattr(self, "id", None))
+
     def _desired(self, t: float, inputs: Any) -> tuple[float, float] | None:
         s = inputs.get("intent_opening")
         to = self.params.command_timeout
         if s is not None and (to is None or s.is_fresh(t, to)):
-            x = float(s.value)
+            try:
+                x = float(s.value)
+            except (TypeError, ValueError):
+                self.faults += 1
+                self.safe_state()
+                raise ComponentFault(f"intent_opening is {s.value!r} (not a number)", self.id) from None
             if not math.isfinite(x):
                 self.faults += 1
                 self.safe_state()
                 raise ComponentFault(f"intent_opening is {x} (not finite)", self.id)
+            x = _clip(x)
             prev = self._io_prev
             if prev is not None and s.stamp > prev[0]:
-                self._io_vel = (x - prev[1]) / (s.stamp - prev[0])
+                self._io_vel = _clip((x - prev[1]) / (s.stamp - prev[0]))
             if prev is None or s.stamp != prev[0]:
                 self._io_prev = (s.stamp, x)
             return x, self._io_vel
-        return self.intent.desired(t, self.state)
+        return self._checked(self.intent.desired(t, self.state), "intent")
 
     def step(self, t: float, inputs: Any) -> dict[str, Any]:
         p = self.params
@@ -228,7 +289,8 @@ class SimOmega7(Device):
 
     def _integrate(self, h: float, n: int, g: float, f: np.ndarray, ext: np.ndarray | None,
                    des: tuple[float, float] | None) -> None:
-        """n semi-implicit Euler steps of h seconds (plain floats: this runs at up to 4 kHz x substeps)."""
+        """n semi-implicit Euler steps of h seconds (plain floats: this runs at up to 4 kHz x substeps); the stiff
+        linear terms implicitly where the explicit update would be unstable (see the module's docstring)."""
         p = self.params
         x, v = self.x, self.v
         x_max = p.max_opening
@@ -236,28 +298,59 @@ class SimOmega7(Device):
         hand = des is not None
         m = p.gripper_mass + (p.hand_mass if hand else 0.0)
         fh = 0.0
+        k_h = b_h = f_max = x_d = v_d = 0.0
         if hand:
             k_h, b_h, f_max = self.hand.stiffness, self.hand.damping, self.hand.max_force
             x_d, v_d = des
-        for _ in range(n):
-            # gripper: m x'' = F_render + F_hand - b x' - Coulomb
-            if hand:
-                fh = k_h * (x_d - x) + b_h * (v_d - v)
-                fh = f_max if fh > f_max else (-f_max if fh < -f_max else fh)
-            drive = g + fh - b * v
-            if abs(v) < 1e-9 and abs(drive) <= fc:
-                v = 0.0  # static friction holds
-            else:
-                sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
-                v_new = v + h * (drive - fc * sgn) / m
-                if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
-                    v_new = 0.0  # friction stops it, it does not reverse it
-                v = v_new
-            x += h * v
-            if x <= 0.0:
-                x, v = 0.0, max(v, 0.0)
-            elif x >= x_max:
-                x, v = x_max, min(v, 0.0)
+        a = h / m
+        if a * (b + b_h) <= STIFF_LIMIT and a * h * k_h <= STIFF_LIMIT:
+            for _ in range(n):
+                # gripper: m x'' = F_render + F_hand - b x' - Coulomb
+                if hand:
+                    fh = k_h * (x_d - x) + b_h * (v_d - v)
+                    fh = f_max if fh > f_max else (-f_max if fh < -f_max else fh)
+                drive = g + fh - b * v
+                if abs(v) < 1e-9 and abs(drive) <= fc:
+                    v = 0.0  # static friction holds
+                else:
+                    sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else drive)
+                    v_new = v + h * (drive - fc * sgn) / m
+                    if v != 0.0 and v_new * v < 0 and abs(drive) <= fc:
+                        v_new = 0.0  # friction stops it, it does not reverse it
+                    v = v_new
+                x += h * v
+                if x <= 0.0:
+                    x, v = 0.0, max(v, 0.0)
+                elif x >= x_max:
+                    x, v = x_max, min(v, 0.0)
+        else:
+            # stiff: the viscous terms and the hand's spring implicit in the new velocity (the opening moves by
+            # h * v_new); the hand's force, once saturated, is a constant force
+            den = 1.0 + a * (b + b_h) + a * h * k_h
+            for _ in range(n):
+                f0 = k_h * (x_d - x) + b_h * v_d  # the hand's force were the gripper still
+                still = g + (f_max if f0 > f_max else (-f_max if f0 < -f_max else f0))
+                if abs(v) < 1e-9 and abs(still) <= fc:
+                    v = 0.0  # static friction holds
+                    fh = still - g
+                else:
+                    sgn = math.copysign(1.0, v if abs(v) >= 1e-9 else still)
+                    if hand:
+                        v_new = (v + a * (g + f0 - fc * sgn)) / den
+                        fh = f0 - (k_h * h + b_h) * v_new
+                        if fh > f_max or fh < -f_max:
+                            fh = math.copysign(f_max, fh)
+                            v_new = (v + a * (g + fh - fc * sgn)) / (1.0 + a * b)
+                    else:
+                        v_new = (v + a * (g - fc * sgn)) / (1.0 + a * b)
+                    if v != 0.0 and v_new * v < 0 and abs(still) <= fc:
+                        v_new = 0.0  # friction stops it, it does not reverse it
+                    v = v_new
+                x += h * v
+                if x <= 0.0:
+                    x, v = 0.0, max(v, 0.0)
+                elif x >= x_max:
+                    x, v = x_max, min(v, 0.0)
         self.x, self.v, self.f_hand = x, v, fh
         # handle: M p'' = F_cmd + F_ext + F_arm - b p'
         px, py, pz = self._p
@@ -274,10 +367,18 @@ class SimOmega7(Device):
             return  # at rest with no force on it: the steps below would leave it exactly where it is
         bt, mass = p.handle_damping, p.handle_mass
         bb = bt + b_a
+        a = h / mass
+        stiff = a * bb > STIFF_LIMIT or a * h * k_a > STIFF_LIMIT
+        den = 1.0 + a * bb + a * h * k_a
         for _ in range(n):
-            vx += h * (fx + k_a * (hx - px) - bb * vx) / mass
-            vy += h * (fy + k_a * (hy - py) - bb * vy) / mass
-            vz += h * (fz + k_a * (hz - pz) - bb * vz) / mass
+            if stiff:  # damping and the arm's spring implicit in the new velocity
+                vx = (vx + a * (fx + k_a * (hx - px))) / den
+                vy = (vy + a * (fy + k_a * (hy - py))) / den
+                vz = (vz + a * (fz + k_a * (hz - pz))) / den
+            else:
+                vx += h * (fx + k_a * (hx - px) - bb * vx) / mass
+                vy += h * (fy + k_a * (hy - py) - bb * vy) / mass
+                vz += h * (fz + k_a * (hz - pz) - bb * vz) / mass
             px += h * vx
             py += h * vy
             pz += h * vz
