@@ -215,3 +215,44 @@ def test_sim_digit_sees_what_the_fingers_squeeze():
     assert d > 0.5e-3 and f > 0.5
     assert rt.latest("digit", "gt_force").value == pytest.approx(f, rel=1e-9)
     assert rt.latest("digit", "gt_max_depth").value == pytest.approx(d, rel=0.05)
+
+
+# ------------------------------------------------------------------------------------------------ audit
+def test_object_that_cannot_be_between_or_touched_by_the_fingers_is_refused():
+    # wider than the fingers open: the first step reported 40 N (1466 N for 0.2 m) with max_effort 16 N, and the
+    # next pushed the fingers open to 0.19 m at 104 m/s
+    with pytest.raises(ValidationError, match=r"object_width \(100 mm\) is wider than max_opening \(90 mm\)"):
+        SimGripper.Params(object_width=0.1)
+    SimGripper.Params(object_width=0.09)
+    # zero width or no wider than min_opening: the fingers never touch it (a run without contact)
+    for w, lo in ((0.0, 0.0), (0.002, 0.002), (0.001, 0.002)):
+        with pytest.raises(ValidationError, match="object_width"):
+            SimGripper.Params(object_width=w, min_opening=lo)
+
+
+def test_starting_inside_the_object_never_exceeds_max_effort():
+    p = {"object_width": 0.04, "initial_opening": 0.03, "max_effort": 16.0}
+    with Harness(SimGripper, p) as h:
+        o = h.step(0.0)
+        assert o["contact"] is True
+        assert o["contact_force"] <= 16.0 + 1e-9                       # was 40 N: 10 mm squeezed into the gel
+        assert 0.03 < o["opening"] < 0.04                               # where the servo's force balances the gel's
+        o, t = run_to(h, 0.03, 0.0, 0.2)
+        assert o["contact_force"] == pytest.approx(16.0, rel=1e-6) and abs(o["velocity"]) < 1e-9
+
+
+@pytest.mark.parametrize("beyond", [1e-6, 5e-3])
+def test_opening_beyond_the_object_releases_it_at_least_as_fast_as_opening_to_it(beyond):
+    """A target outside the object left the fingers inside it (moving out at the servo's pace, still squeezing);
+    a target just inside pushed them out to where the servo balances the gel. Commanding wider squeezed harder."""
+    w = 0.015
+    p = {"object_width": w, "initial_opening": 0.02, "indenter": "probe", "indenter_radius": 0.005}
+    forces = {}
+    for target in (w - 1e-5, w + beyond):
+        with Harness(SimGripper, p) as h:
+            o, t = run_to(h, 0.0148, 0.0, 1.0)
+            assert o["contact_force"] > 0.1
+            o, t = run_to(h, target, t, 0.004)                          # the setpoint gets past the surface
+            forces[target] = o["contact_force"]
+    assert forces[w + beyond] == 0.0                                    # was 0.02 N
+    assert forces[w + beyond] <= forces[w - 1e-5]

@@ -72,7 +72,8 @@ class SimGripper(FollowerBase):
                                  json_schema_extra={"unit": "Hz"})
         servo_stiffness: NewtonsPerMeter = Field(4000.0, gt=0, description="force per metre of position error "
                                                  "when blocked (up to max_effort)", json_schema_extra={"unit": "N/m"})
-        object_width: Meters | None = Field(0.04, ge=0, description="object between the fingers (None: no object)",
+        object_width: Meters | None = Field(0.04, gt=0, description="object between the fingers (None: no object); "
+                                            "wider than min_opening and at most max_opening",
                                             json_schema_extra={"unit": "m"})
         object_stiffness: NewtonsPerMeter | None = Field(None, gt=0, description="object compliance in series "
                                                          "with the gel (None: rigid)",
@@ -98,6 +99,15 @@ class SimGripper(FollowerBase):
                                                          <= self.max_opening):
                 raise ValueError(f"initial_opening {self.initial_opening} m is outside "
                                  f"[{self.min_opening}, {self.max_opening}] m")
+            w = self.object_width
+            if w is not None and w > self.max_opening:
+                raise ValueError(f"object_width ({w * 1e3:g} mm) is wider than max_opening "
+                                 f"({self.max_opening * 1e3:g} mm): the object does not fit between the fingers; "
+                                 f"expected an object_width up to max_opening (null: no object)")
+            if w is not None and w <= self.min_opening:
+                raise ValueError(f"object_width ({w * 1e3:g} mm) is not wider than min_opening "
+                                 f"({self.min_opening * 1e3:g} mm): the fingers could never touch it; expected an "
+                                 f"object_width above min_opening (null: no object)")
             return self
 
     # hardware hooks: the simulated servo ----------------------------------------------------------------------
@@ -105,14 +115,18 @@ class SimGripper(FollowerBase):
         p = self.params
         self.gel, self.indenter = load_gel_law(p)
         x0 = p.max_opening if p.initial_opening is None else p.initial_opening
+        self.target = x0
+        if p.object_width is not None and x0 < p.object_width:
+            # starting inside the object: the fingers rest where a servo commanded to initial_opening balances
+            # the contact force (never more than max_effort), as they would after closing there
+            x0 = blocked_opening(p.object_width, x0, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
+                                 p.object_stiffness)
         self.x = x0
         self.v = 0.0
-        self.target = x0
         self.t_sim: float | None = None
         self.indentation = 0.0
         self.force = 0.0
-        if p.object_width is not None and x0 < p.object_width:
-            self._contact_at(x0)
+        self._contact_at(x0)
 
     def _hw_read(self) -> Reading:
         return Reading(self.x, self.v, self.force)
@@ -143,11 +157,12 @@ class SimGripper(FollowerBase):
         x_free = x + (self.target - x) * (1.0 - math.exp(-2.0 * math.pi * p.bandwidth * dt))
         x_free = clamp(x_free, x - p.max_speed * dt, x + p.max_speed * dt)
         w = p.object_width
-        if w is not None and x_free < w and self.target < w:
+        if w is not None and x_free < w:
             x_block = blocked_opening(w, self.target, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
                                       p.object_stiffness)
             # quasi-static contact: the fingers go no further into the object than where the servo's force
-            # balances the contact force (and are pushed back out to there if they are further in)
+            # balances the contact force (and are pushed back out to there if they are further in; with the
+            # target outside the object, out to its surface: nothing holds them in)
             x_new = max(x_free, x_block)
         else:
             x_new = x_free
