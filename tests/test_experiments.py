@@ -167,3 +167,98 @@ def test_contact_experiment_through_the_image_pipeline_reduced(tmp_path):
     assert w["mean_error_m"] < 0.6e-3                          # the paper's 0.6 mm (0.3 mm needs an unbiased estimate)
     assert wo["mean_error_m"] > 2 * w["mean_error_m"]
     assert w["min_rendered_force_n"] >= 0.0                    # never a pull on the operator's fingers
+
+
+# ------------------------------------------------------------------------------------------------ audit
+def test_contact_run_without_contact_gives_null_figures_not_nan():
+    from teletouch.plugins.controllers.experiments import run_contact_once
+
+    m, _ = run_contact_once(True, sensor="ideal", duration=1.0)        # over before the fingers reach the object
+    json.dumps(m, allow_nan=False)                                      # NaN before: not JSON
+    assert m["contact"] is False and m["time_in_contact_s"] == 0.0
+    assert m["mean_error_m"] is None and m["max_error_m"] is None and m["force_estimate_mae_n"] is None
+
+
+def test_contact_experiment_refuses_a_run_too_short_to_touch_before_it_runs(capsys, tmp_path):
+    from teletouch.cli import main
+    from teletouch.plugins.controllers.experiments import experiment_contact
+
+    # 1 s was accepted: both runs ended before the contact, and contact.json held NaN (the text said "nan mm")
+    assert main(["experiment", "contact", "--duration", "1.5", "--sensor", "ideal", "--out", str(tmp_path)]) == 2
+    assert "--duration: must be at least 2 s" in capsys.readouterr().err
+    assert not (tmp_path / "contact.json").exists()
+    with pytest.raises(ValueError, match="duration: must be at least 2 s"):
+        experiment_contact(duration=1.0, sensor="ideal", plot=False)
+    with pytest.raises(ValueError, match="sensor: expected one of image, gt, ideal"):
+        experiment_contact(duration=2.0, sensor="perfect", plot=False)
+
+
+def test_pivot_where_every_trial_fails_gives_clear_strict_json_in_si_units(tmp_path):
+    from teletouch.plugins.controllers.experiments import experiment_pivot
+
+    res = experiment_pivot(trials=1, time_limit=2.0, out=tmp_path)      # too short for anyone: both time out
+    full = json.loads((tmp_path / "pivot.json").read_text(),
+                      parse_constant=lambda c: pytest.fail(f"{c} in pivot.json"))
+    for key in ("visual_force", "visual_only"):
+        s = full[key]
+        assert s["success_rate"] == 0.0 and s["successes"] == 0 and s["outcomes"] == {"timeout": 1}
+        assert s["median_completion_s"] is None and s["completion_times_s"] == []
+        trial = s["per_trial"][0]
+        assert trial["completion_time_s"] is None
+        assert trial["final_angle_rad"] == 0.0                          # SI beside the degrees people read
+        assert trial["target_rad"] == pytest.approx(math.radians(30))
+        assert trial["tolerance_rad"] == pytest.approx(math.radians(5))
+    assert full["first_seed"] == 0 and res["time_limit_s"] == 2.0
+    assert (tmp_path / "pivot.png").stat().st_size > 10_000
+
+
+def test_pivot_experiment_checks_its_arguments_before_running():
+    from teletouch.plugins.controllers.experiments import experiment_pivot
+
+    for kw, field in (({"trials": 0}, "trials"), ({"trials": 2.5}, "trials"), ({"time_limit": 0.0}, "time_limit"),
+                      ({"time_limit": math.nan}, "time_limit"), ({"seed": "1"}, "seed"),
+                      ({"sensor": "perfect"}, "sensor")):
+        with pytest.raises(ValueError, match=f"^{field}: expected"):
+            experiment_pivot(**kw, plot=False)                          # trials=0 gave a NaN success rate
+
+
+def test_pivot_components_refuse_implausible_parameters():
+    from pydantic import ValidationError
+
+    from teletouch.plugins.controllers.experiments import PivotOperator
+
+    with pytest.raises(ValidationError, match=r"mu_kinetic \(1.2\) is above mu_static \(1\)"):
+        SimPivot.Params(mu_kinetic=1.2)
+    with pytest.raises(ValidationError, match="max_angle .* is below initial_angle"):
+        SimPivot.Params(initial_angle=1.0, max_angle=0.5)
+    for bad in (0.0, -0.1, 2.0):
+        with pytest.raises(ValidationError, match="target_angle"):
+            PivotOperator.Params(target_angle=bad)
+    with pytest.raises(ValidationError, match="start_opening"):
+        PivotOperator.Params(start_opening=-0.01)
+
+
+def test_a_faulted_experiment_run_is_reported_not_a_traceback(capsys, monkeypatch, tmp_path):
+    from teletouch.cli import main
+
+    def broken(self, t, inputs):
+        raise RuntimeError("sensor broke")
+
+    monkeypatch.setattr(SimForceSensor, "step", broken)
+    assert main(["experiment", "contact", "--duration", "2", "--sensor", "ideal", "--out", str(tmp_path)]) == 3
+    err = capsys.readouterr().err
+    assert "teletouch experiment contact: contact run (with feedback) ended with fault" in err
+    assert "sensor broke" in err
+
+
+def test_pivot_trials_are_reproducible_and_seeds_differ():
+    from teletouch.plugins.controllers.experiments import run_pivot_trial
+
+    def trace(seed):
+        tr = run_pivot_trial(True, seed, time_limit=4.0, record=True)
+        rec = tr.pop("_recorder")
+        return tr, rec.data["gripper.contact_force"], rec.data["controller.gripper_force"]
+
+    a, b, c = trace(3), trace(3), trace(4)
+    assert a == b                                                       # the same seed: the same numbers
+    assert a[1] != c[1] and a[2] != c[2]                                # another seed: other noise

@@ -31,7 +31,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from teletouch import Component, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import Kilograms, Meters, Newtons, Radians, Seconds
@@ -117,6 +117,17 @@ class SimPivot(Component):
         drop_time: Seconds = Field(0.05, ge=0, description="the object falls out when the grip cannot carry its "
                                    "weight for this long", json_schema_extra={"unit": "s"})
         substep: Seconds = Field(2.5e-4, gt=0, description="largest integration step", json_schema_extra={"unit": "s"})
+
+        @model_validator(mode="after")
+        def _friction(self) -> "SimPivot.Params":
+            if self.mu_kinetic > self.mu_static:
+                raise ValueError(f"mu_kinetic ({self.mu_kinetic:g}) is above mu_static ({self.mu_static:g}): "
+                                 f"expected mu_kinetic <= mu_static (sliding friction is at most sticking friction)")
+            if self.max_angle < self.initial_angle:
+                raise ValueError(f"max_angle ({self.max_angle:g} rad) is below initial_angle "
+                                 f"({self.initial_angle:g} rad): expected initial_angle <= max_angle (the object "
+                                 f"turns down from initial_angle to max_angle)")
+            return self
 
     def configure(self) -> None:
         p = self.params
@@ -213,10 +224,13 @@ class PivotOperator(Component):
     class Params(Params):
         strategy: Literal["force", "position"] = Field("force", description="force: regulates the felt grip "
                                                        "force; position: only moves the hand (visual only)")
-        target_angle: Radians = Field(math.radians(30), description="angle to reach", json_schema_extra={"unit": "rad"})
+        target_angle: Radians = Field(math.radians(30), gt=0, le=math.pi / 2, description="angle to reach, below "
+                                      "the horizontal (the object turns down from 0 to hanging, pi/2)",
+                                      json_schema_extra={"unit": "rad"})
         tolerance: Radians = Field(math.radians(5), gt=0, description="success band around the target",
                                    json_schema_extra={"unit": "rad"})
-        start_opening: Meters = Field(0.022, description="hand opening at the start", json_schema_extra={"unit": "m"})
+        start_opening: Meters = Field(0.022, gt=0, description="hand opening at the start",
+                                      json_schema_extra={"unit": "m"})
         hold_force: Newtons = Field(3.0, gt=0, description="firm grip force (force strategy)",
                                     json_schema_extra={"unit": "N"})
         squeeze: Meters = Field(0.0025, gt=0, description="closing beyond the seen contact (position strategy; "
@@ -502,12 +516,32 @@ class Recorder:
         return t, v
 
 
+SENSORS = ("image", "gt", "ideal")
+
+
+def finite_json(v: Any) -> Any:
+    """``v`` with every non-finite float replaced by None (JSON has no NaN or Infinity: ``json.dumps`` would write
+    tokens that strict readers refuse)."""
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, dict):
+        return {k: finite_json(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [finite_json(x) for x in v]
+    return v
+
+
+def dumps(result: dict[str, Any], **kw: Any) -> str:
+    """An experiment's result as strict JSON (non-finite figures as null)."""
+    return json.dumps(finite_json(result), allow_nan=False, **kw)
+
+
 def save_outputs(out: str | Path, name: str, result: dict[str, Any], plot: Any = None) -> None:
     """Write an experiment's metrics to ``out/<name>.json`` and, when ``plot`` is given, its figure by
     ``plot(out/<name>.png)``; the paths go into ``result["files"]``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    (out / f"{name}.json").write_text(dumps(result, indent=2) + "\n")
     result["files"] = [str(out / f"{name}.json")]
     if plot is not None:
         plot(out / f"{name}.png")
@@ -553,10 +587,12 @@ def run_contact_once(feedback: bool | str, *, sensor: str = "image", duration: f
         first = tl[cont][0]
         cont &= tl >= first + settle
     err = np.abs(xl - xf_l)
-    mean_err = float(err[cont].mean()) if cont.any() else math.nan
+    touched = bool(cont.any())
+    # no contact at all (a run too short to reach the object): the in-contact figures are None, not NaN
+    mean_err = float(err[cont].mean()) if touched else None
     fg_at_e = np.interp(te, tg, fg) if len(te) else np.zeros(0)
     in_c = fg_at_e > 0.05
-    est_err = float(np.mean(np.abs(fe[in_c] - fg_at_e[in_c]))) if in_c.any() else math.nan
+    est_err = float(np.mean(np.abs(fe[in_c] - fg_at_e[in_c]))) if in_c.any() else None
     # the rendered force's ripple in contact: its largest deviation from a 50 ms moving average (chatter)
     ripple = 0.0
     if len(fr) > 51:
@@ -567,9 +603,10 @@ def run_contact_once(feedback: bool | str, *, sensor: str = "image", duration: f
         if in_contact.any():
             ripple = float(np.abs(fr - smooth)[in_contact].max())
     metrics = {
+        "contact": touched,
         "mean_error_m": mean_err,
-        "max_error_m": float(err[cont].max()) if cont.any() else math.nan,
-        "time_in_contact_s": float(cont.sum() * (tl[1] - tl[0])) if len(tl) > 1 and cont.any() else 0.0,
+        "max_error_m": float(err[cont].max()) if touched else None,
+        "time_in_contact_s": float(cont.sum() * (tl[1] - tl[0])) if len(tl) > 1 and touched else 0.0,
         "max_contact_force_n": float(fg.max()) if len(fg) else 0.0,
         "max_rendered_force_n": float(np.abs(fr).max()) if len(fr) else 0.0,
         "min_rendered_force_n": float(fr.min()) if len(fr) else 0.0,
@@ -617,19 +654,39 @@ def contact_plot(path: Path, runs: dict[str, Recorder]) -> None:
     plt.close(fig)
 
 
+#: the operator closes from 20 mm at 5 mm/s from 0.5 s: the fingers reach the 15 mm object at about 1.5 s
+CONTACT_MIN_DURATION = 2.0
+
+
+def _contact_duration_problem(duration: Any) -> str | None:
+    if isinstance(duration, bool) or not isinstance(duration, (int, float)) or not math.isfinite(duration):
+        return f"expected a finite number of seconds, got {duration!r}"
+    if duration < CONTACT_MIN_DURATION:
+        return (f"must be at least {CONTACT_MIN_DURATION:g} s (the fingers reach the object at about 1.5 s), "
+                f"got {duration:g} s")
+    return None
+
+
 def experiment_contact(duration: float = 6.0, sensor: str = "image", out: str | Path | None = None,
                        registry: Any = None, plot: bool = True, baselines: bool = False) -> dict[str, Any]:
     """Run the contact experiment with and without feedback; write metrics JSON and the Fig.-4 plot."""
+    problem = _contact_duration_problem(duration)
+    if problem:
+        raise ValueError(f"duration: {problem}")
+    if sensor not in SENSORS:
+        raise ValueError(f"sensor: expected one of {', '.join(SENSORS)}, got {sensor!r}")
     with_m, with_r = run_contact_once(True, sensor=sensor, duration=duration, registry=registry)
     without_m, without_r = run_contact_once(False, sensor=sensor, duration=duration, registry=registry)
+    e_with, e_without = with_m["mean_error_m"], without_m["mean_error_m"]
     result: dict[str, Any] = {
         "experiment": "contact",
         "sensor": sensor,
         "duration_s": duration,
         "with_feedback": with_m,
         "without_feedback": without_m,
-        "ratio_without_to_with": (without_m["mean_error_m"] / with_m["mean_error_m"]
-                                  if with_m["mean_error_m"] > 0 else math.inf),
+        # None where a run had no contact or the error with feedback is exactly zero
+        "ratio_without_to_with": (e_without / e_with if e_with is not None and e_without is not None and e_with > 0
+                                  else None),
         "paper_mean_error_m": 0.0006,
         "target_with_feedback_m": 0.0003,
     }
@@ -691,8 +748,10 @@ def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_li
     else:
         outcome = "overshoot" if angle > target else "undershoot"
     trial = {"seed": seed, "success": success, "outcome": outcome,
-             "completion_time_s": op.done_at if done else None, "final_angle_deg": math.degrees(angle),
-             "target_deg": math.degrees(target), "tolerance_deg": math.degrees(tol), "dropped": pv.dropped}
+             "completion_time_s": op.done_at if done else None,
+             "final_angle_rad": float(angle), "target_rad": float(target), "tolerance_rad": float(tol),
+             "final_angle_deg": math.degrees(angle), "target_deg": math.degrees(target),
+             "tolerance_deg": math.degrees(tol), "dropped": pv.dropped}
     if rec is not None:
         trial["_recorder"] = rec
     return trial
@@ -749,8 +808,18 @@ def pivot_plot(path: Path, summary: dict[str, Any]) -> None:
 def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float = 30.0, seed: int = 0,
                      out: str | Path | None = None, registry: Any = None, plot: bool = True,
                      progress: bool = False, operator: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Run ``trials`` seeded trials per condition (the same seeds in both conditions)."""
-    res: dict[str, Any] = {"experiment": "pivot", "sensor": sensor, "time_limit_s": time_limit}
+    """Run ``trials`` seeded trials per condition (the same seeds in both conditions: ``seed`` ...
+    ``seed + trials - 1``)."""
+    if isinstance(trials, bool) or not isinstance(trials, int) or trials < 1:
+        raise ValueError(f"trials: expected a whole number of at least 1, got {trials!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"seed: expected a whole number, got {seed!r}")
+    if (isinstance(time_limit, bool) or not isinstance(time_limit, (int, float)) or not math.isfinite(time_limit)
+            or time_limit <= 0):
+        raise ValueError(f"time_limit: expected a positive, finite number of seconds, got {time_limit!r}")
+    if sensor not in SENSORS:
+        raise ValueError(f"sensor: expected one of {', '.join(SENSORS)}, got {sensor!r}")
+    res: dict[str, Any] = {"experiment": "pivot", "sensor": sensor, "time_limit_s": time_limit, "first_seed": seed}
     per: dict[str, list[dict[str, Any]]] = {"visual_force": [], "visual_only": []}
     w0 = time.perf_counter()
     for i in range(trials):
@@ -788,8 +857,9 @@ def _cmd_contact(args: argparse.Namespace) -> int:
 
     try:
         duration = parse_quantity(args.duration, "s")
-        if not duration >= 1.0:
-            raise ValueError(f"must be at least 1 s (the operator starts closing at 0.5 s), got {args.duration!r}")
+        problem = _contact_duration_problem(duration)
+        if problem:
+            raise ValueError(problem)
     except ValueError as exc:
         print(f"teletouch experiment contact: --duration: {exc}", file=sys.stderr)
         return 2
@@ -797,13 +867,21 @@ def _cmd_contact(args: argparse.Namespace) -> int:
     if problem:
         print(f"teletouch experiment contact: {problem}", file=sys.stderr)
         return 2
-    res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out, baselines=args.baselines)
+    try:
+        res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out, baselines=args.baselines)
+    except RuntimeError as exc:  # a run that faulted: its reason, not a traceback
+        print(f"teletouch experiment contact: {exc}", file=sys.stderr)
+        return 3
     if args.json:
-        print(json.dumps(res))
+        print(dumps(res))
     else:
         w, wo = res["with_feedback"], res["without_feedback"]
-        print(f"mean |leader - follower| in contact: with feedback {w['mean_error_m'] * 1e3:.3f} mm, without "
-              f"{wo['mean_error_m'] * 1e3:.3f} mm (paper: 0.6 mm with feedback)")
+
+        def mm(e: float | None) -> str:
+            return "- (no contact)" if e is None else f"{e * 1e3:.3f} mm"
+
+        print(f"mean |leader - follower| in contact: with feedback {mm(w['mean_error_m'])}, without "
+              f"{mm(wo['mean_error_m'])} (paper: 0.6 mm with feedback)")
         for f in res.get("files", []):
             print(f"wrote {f}")
     return 0
@@ -826,12 +904,16 @@ def _cmd_pivot(args: argparse.Namespace) -> int:
     if problem:
         print(f"teletouch experiment pivot: {problem}", file=sys.stderr)
         return 2
-    res = experiment_pivot(trials=args.trials, sensor=args.sensor, time_limit=time_limit,
-                           seed=args.seed, out=args.out, progress=not args.json)
+    try:
+        res = experiment_pivot(trials=args.trials, sensor=args.sensor, time_limit=time_limit,
+                               seed=args.seed, out=args.out, progress=not args.json)
+    except RuntimeError as exc:  # a trial that faulted: its reason, not a traceback
+        print(f"teletouch experiment pivot: {exc}", file=sys.stderr)
+        return 3
     if args.json:
         slim = {k: ({kk: vv for kk, vv in v.items() if kk != "per_trial"} if isinstance(v, dict) and "per_trial" in v
                     else v) for k, v in res.items()}
-        print(json.dumps(slim))
+        print(dumps(slim))
     else:
         for key, label in (("visual_force", "visual + force"), ("visual_only", "visual only")):
             s = res[key]
@@ -850,7 +932,8 @@ def teletouch_add_commands(subparsers: Any) -> None:
     sub = p.add_subparsers(dest="experiment", metavar="NAME")
     p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
     c = sub.add_parser("contact", help="rigid-object contact with and without force feedback (paper Fig. 4)")
-    c.add_argument("--duration", default="6", help="length of each run, s (default 6)")
+    c.add_argument("--duration", default="6", help="length of each run, s (default 6, at least 2: the fingers "
+                                                      "reach the object at about 1.5 s)")
     c.add_argument("--sensor", choices=("image", "gt", "ideal"), default="image",
                    help="image: sim-digit + depth + poly-force (default); gt: sim-digit's true max depth + "
                         "poly-force; ideal: true force at camera rate")
@@ -861,7 +944,7 @@ def teletouch_add_commands(subparsers: Any) -> None:
     q = sub.add_parser("pivot", help="in-hand pivoting, visual + force vs visual only, seeded trials")
     q.add_argument("--trials", type=int, default=15, help="trials per condition (default 15, as the paper)")
     q.add_argument("--time-limit", default="30", help="time limit of a trial, s (default 30)")
-    q.add_argument("--seed", type=int, default=0, help="first seed")
+    q.add_argument("--seed", type=int, default=0, help="first seed (trial i uses seed + i, in both conditions)")
     q.add_argument("--sensor", choices=("image", "gt", "ideal"), default="ideal",
                    help="ideal: camera-rate ground truth (default, fast); image: the full estimator chain")
     q.add_argument("--out", default="teletouch-experiments", help="folder for pivot.json and pivot.png")
