@@ -8,21 +8,39 @@ for the outputs with the lock released, so the fast loop never waits for it.
 Large arrays (images, depth maps: >= 16 kB) do not go through the pipe: each side writes them into shared-memory
 blocks of its own, one per port, and sends only their names, shapes and types; the receiver copies them out at once
 (the protocol is request/reply, so a block is never rewritten before it has been read). Pickled through the pipe, a
-QVGA frame and its depth map cost the parent ~2.5 ms per step and held its interpreter lock while unpickling.
+QVGA frame and its depth map cost the parent ~2.5 ms per step and held its interpreter lock while unpickling. A
+block's pages are reserved when it is made, so a full /dev/shm is a fault of the node, not a SIGBUS of the process
+that writes into it. Every block of a node is named ``teletouch_<token>_...``; when the node is closed the parent
+removes all of them, also those of a child that was killed before it could say their names.
 
 The child is started with the ``spawn`` method (no fork of a threaded process). The component class is sent by
-reference (its module must be importable), its parameters as a plain dict. Graph time is the same in both processes
-(``time.perf_counter`` and ``time.monotonic`` are system-wide clocks on Linux and macOS). Exceptions in the child come
-back as faults of the node, with the original type, message and place. Under the simulated clock isolation is
-ignored: the node runs inline, so runs stay deterministic.
+reference (its module must be importable; a failed import in the child is a start-up failure with its reason), its
+parameters as a plain dict. Graph time is the same in both processes (``time.perf_counter`` and ``time.monotonic``
+are system-wide clocks on Linux and macOS). Exceptions in the child come back as faults of the node, with the original
+type, message and place. Under the simulated clock isolation is ignored: the node runs inline, so runs stay
+deterministic.
+
+Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
+dropped, never taken for a later call's. One call at a time: the runtime's shutdown (main thread) waits for a step
+still running in the node's thread (at most until that step's own timeout) before it sends deactivate/close. The
+child ignores SIGINT and SIGTERM (Ctrl-C reaches the whole process group; the parent ends the child through the pipe
+after its devices are safe) and, on Linux, is killed when the parent dies. A child that does not answer
+deactivate/close within ``SHUTDOWN_TIMEOUT`` is killed, and so is one still running when the interpreter exits.
 """
 
 from __future__ import annotations
 
+import errno
 import multiprocessing as mp
 import os
+import pickle
+import secrets
+import signal
+import sys
+import threading
 import time
-from multiprocessing import shared_memory
+from multiprocessing import resource_tracker, shared_memory
+from multiprocessing.reduction import ForkingPickler
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -32,8 +50,45 @@ from .errors import ComponentFault, exception_line
 
 #: seconds a child may take to answer a lifecycle call (configure may load a model)
 LIFECYCLE_TIMEOUT = 120.0
+#: seconds deactivate() and close() each wait for the child's answer at the end of a run; then it is killed
+SHUTDOWN_TIMEOUT = 10.0
 #: arrays of at least this many bytes cross through shared memory instead of the pipe
 SHARED_MIN_BYTES = 16384
+#: names of the shared-memory blocks of isolated nodes start with this (then a random token per node)
+BLOCK_PREFIX = "teletouch_"
+_SHM_DIR = "/dev/shm"
+_TERMINAL_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+#: children started and not yet ended: killed at interpreter exit (they ignore the SIGTERM multiprocessing sends
+#: its daemon children then, and its join() that follows has no timeout)
+_LIVE: set[Any] = set()
+_live_lock = threading.Lock()
+_atexit_set = False
+
+
+def _kill_leftovers() -> None:
+    with _live_lock:
+        procs = list(_LIVE)
+        _LIVE.clear()
+    for proc in procs:
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout=5.0)
+
+
+def _track(proc: Any, live: bool) -> None:
+    global _atexit_set
+    with _live_lock:
+        if live:
+            _LIVE.add(proc)
+            if not _atexit_set:   # registered after multiprocessing's own exit hook, so it runs before it
+                import atexit
+
+                atexit.register(_kill_leftovers)
+                _atexit_set = True
+        else:
+            _LIVE.discard(proc)
 
 
 class SharedRef(NamedTuple):
@@ -48,14 +103,19 @@ class ArrayLanes:
     """One side's shared-memory blocks for large arrays, and the blocks of the other side it has read from.
 
     ``pack(key, value)`` -> the value itself, or a :class:`SharedRef` after writing it into this side's
-    block for ``key`` (made, or remade larger, on demand); ``unpack(ref)`` -> a fresh array copied out of the
-    named block. The side that made a block unlinks it (``close``); ``close(unlink_peer=True)`` also unlinks the
-    blocks read from the other side (when it may have died without doing so).
+    block for ``key`` (made, or remade larger, on demand); ``unpack(ref, key)`` -> a fresh array copied out of the
+    named block. The side that made a block unlinks it (``close``, or when it remakes it larger); the reader keeps
+    one mapping per key and lets go of the old one when a new block comes for that key (a port whose arrays grow
+    step after step would otherwise pile up mappings and file descriptors). ``close(unlink_peer=True)`` also unlinks
+    the blocks read from the other side (when it may have died without doing so). ``prefix``: names of this side's
+    blocks (``prefix`` + a number); empty: random names.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, prefix: str = "") -> None:
         self._own: dict[str, shared_memory.SharedMemory] = {}
         self._peer: dict[str, shared_memory.SharedMemory] = {}
+        self._prefix = prefix
+        self._made = 0
 
     def pack(self, key: str, value: Any) -> Any:
         if not (isinstance(value, np.ndarray) and value.nbytes >= SHARED_MIN_BYTES and value.dtype.kind in "biufc"):
@@ -63,17 +123,33 @@ class ArrayLanes:
         blk = self._own.get(key)
         if blk is None or blk.size < value.nbytes:
             if blk is not None:
+                del self._own[key]
                 _release(blk, unlink=True)
-            blk = self._own[key] = _create(value.nbytes)
+            blk = self._own[key] = self._create(value.nbytes)
         np.copyto(np.ndarray(value.shape, value.dtype, buffer=blk.buf), value, casting="no")
         return SharedRef(blk.name, value.shape, value.dtype.str)
 
-    def unpack(self, value: Any) -> Any:
+    def _create(self, size: int) -> shared_memory.SharedMemory:
+        while True:
+            name = None
+            if self._prefix:
+                self._made += 1
+                name = f"{self._prefix}{self._made}"
+            try:
+                return _create(size, name)
+            except FileExistsError:
+                continue
+
+    def unpack(self, value: Any, key: str | None = None) -> Any:
         if not isinstance(value, SharedRef):
             return value
-        blk = self._peer.get(value.name)
-        if blk is None:
-            blk = self._peer[value.name] = _attach(value.name)
+        key = value.name if key is None else key
+        blk = self._peer.get(key)
+        if blk is None or blk.name != value.name:
+            if blk is not None:
+                del self._peer[key]
+                _release(blk, unlink=False)   # its maker has unlinked it when it made the new one
+            blk = self._peer[key] = _attach(value.name)
         return np.ndarray(value.shape, np.dtype(value.dtype), buffer=blk.buf).copy()
 
     def close(self, unlink_peer: bool = False) -> None:
@@ -85,12 +161,28 @@ class ArrayLanes:
         self._peer.clear()
 
 
-def _create(size: int) -> shared_memory.SharedMemory:
+def _create(size: int, name: str | None = None) -> shared_memory.SharedMemory:
+    hint = "is /dev/shm mounted and large enough (containers: --shm-size)?"
     try:
-        return shared_memory.SharedMemory(create=True, size=size)
+        blk = shared_memory.SharedMemory(name=name, create=True, size=size)
+    except FileExistsError:
+        raise
     except OSError as exc:
         raise ComponentFault(f"isolated node: cannot make a {size} B shared-memory block for its arrays ({exc}); "
-                             f"is /dev/shm mounted and large enough (containers: --shm-size)?") from None
+                             f"{hint}") from None
+    # A block is a sparse file in a tmpfs: made larger than the space left there, it is made all the same, and the
+    # first write to a page that cannot be had kills the writing process with SIGBUS (the parent: no safe state).
+    # Reserving the pages now turns that into an error here.
+    fd = getattr(blk, "_fd", -1)
+    if fd >= 0 and hasattr(os, "posix_fallocate"):
+        try:
+            os.posix_fallocate(fd, 0, size)
+        except OSError as exc:
+            if exc.errno in (errno.ENOSPC, errno.ENOMEM, errno.EFBIG):
+                _release(blk, unlink=True)
+                raise ComponentFault(f"isolated node: cannot make a {size} B shared-memory block for its arrays "
+                                     f"({os.strerror(exc.errno)}); {hint}") from None
+    return blk
 
 
 def _attach(name: str) -> shared_memory.SharedMemory:
@@ -112,18 +204,83 @@ def _release(blk: shared_memory.SharedMemory, unlink: bool) -> None:
             pass
 
 
-def _child_main(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float,
-                t0_mono: float, priority: int = 0, rate: float | None = None) -> None:
-    lanes = ArrayLanes()
+def remove_blocks(prefix: str) -> list[str]:
+    """Unlink every shared-memory block whose name starts with ``prefix`` (Linux: the entries of /dev/shm; elsewhere
+    nothing is listed) and return their names. For the blocks of a child that died before it could name them."""
     try:
-        _serve(conn, cls, params, node_id, t0_perf, t0_mono, priority, lanes, rate)
+        names = sorted(n for n in os.listdir(_SHM_DIR) if n.startswith(prefix))
+    except OSError:
+        return []
+    for name in names:
+        try:
+            blk = shared_memory.SharedMemory(name=name)   # attach + unlink: its resource-tracker entry goes too
+        except FileNotFoundError:
+            continue
+        except (OSError, ValueError):   # e.g. empty (its maker died before sizing it): never registered
+            try:
+                os.unlink(os.path.join(_SHM_DIR, name))
+            except OSError:
+                pass
+            continue
+        _release(blk, unlink=True)
+    return names
+
+
+def _send(conn: Any, msg: Any, values: dict[str, Any], what: str, where: str) -> None:
+    """``conn.send(msg)``; a message that cannot be pickled (nothing was written) names the port that cannot cross."""
+    try:
+        conn.send(msg)
+    except OSError:
+        raise
+    except Exception as exc:
+        for name, v in values.items():
+            try:
+                ForkingPickler.dumps(v)
+            except Exception as bad:
+                raise ComponentFault(f"{what} '{name}' cannot cross to {where}: {type(bad).__name__}: {bad}") \
+                    from None
+        raise ComponentFault(f"cannot send to {where}: {type(exc).__name__}: {exc}") from None
+
+
+def _child_signals(parent_pid: int) -> None:
+    """In the child: Ctrl-C (SIGINT to the whole process group) and SIGTERM are for the parent, which ends the child
+    through the pipe once its devices are safe; a child that died first would be a fault of its own and never
+    deactivate or close its component. They stay ignored (not merely handled: no EINTR in the component's C calls).
+    The parent spawns the child with both blocked, so none is lost to the default action while Python starts. On
+    Linux the child is killed if the parent (its thread that spawned it) dies: a child hung in a step would
+    otherwise outlive it, holding its camera or GPU."""
+    for sig in _TERMINAL_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _TERMINAL_SIGNALS)
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)   # PR_SET_PDEATHSIG
+        except Exception:  # pragma: no cover - best effort
+            pass
+        if os.getppid() != parent_pid:   # the parent died before that: nobody to serve
+            os._exit(1)
+
+
+def _child_main(conn: Any, cls_ref: bytes, params: dict, node_id: str, t0_perf: float, t0_mono: float,
+                priority: int = 0, rate: float | None = None, prefix: str = "", parent_pid: int = 0) -> None:
+    _child_signals(parent_pid or os.getppid())
+    lanes = ArrayLanes(prefix)
+    try:
+        try:
+            cls, error = pickle.loads(cls_ref), None
+        except BaseException as exc:  # noqa: BLE001 - reported as configure's failure
+            cls, error = None, f"cannot import the component class: {type(exc).__name__}: {exc}"
+        _serve(conn, cls, error, params, node_id, t0_perf, t0_mono, priority, lanes, rate)
     finally:
         lanes.close()
         conn.close()
 
 
-def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf: float, t0_mono: float,
-           priority: int, lanes: ArrayLanes, rate: float | None = None) -> None:
+def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, params: dict, node_id: str,
+           t0_perf: float, t0_mono: float, priority: int, lanes: ArrayLanes, rate: float | None = None) -> None:
     stop_reason: list[str] = []
     logs: list[str] = []
     if priority:
@@ -137,7 +294,7 @@ def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf:
     ctx = Context(now=lambda: time.perf_counter() - origin[0], clock_kind="wall",
                   request_stop=lambda r: stop_reason.append(r), log=logs.append,
                   from_monotonic=lambda m: m - origin[1], rate=rate)
-    slots = {name: _Slot() for name in cls.inputs}
+    slots = {name: _Slot() for name in cls.inputs} if cls is not None else {}
     inputs = Inputs(slots)
     comp: Component | None = None
     while True:
@@ -145,40 +302,55 @@ def _serve(conn: Any, cls: type[Component], params: dict, node_id: str, t0_perf:
             msg = conn.recv()
         except (EOFError, OSError):
             break
-        op = msg[0]
+        seq, op = msg[0], msg[1]
         try:
             if op == "step":
-                _, t, ins = msg
+                _, _, t, ins = msg
                 for name, v in ins.items():
-                    slots[name].sample = None if v is None else Sample(lanes.unpack(v[0]), v[1])
+                    slots[name].sample = None if v is None else Sample(lanes.unpack(v[0], name), v[1])
                 out = comp.step(t, inputs) or {}  # type: ignore[union-attr]
                 packed = {k: (("S", lanes.pack(k, v.value), v.stamp) if isinstance(v, Sample)
                               else ("V", lanes.pack(k, v))) for k, v in out.items()}
-                conn.send(("out", packed, comp.status(), stop_reason[:], logs[:]))  # type: ignore[union-attr]
+                reply = (seq, "out", packed, comp.status(), stop_reason[:], logs[:])  # type: ignore[union-attr]
+                _send(conn, reply, packed, "output", "the parent process")
                 stop_reason.clear()
                 logs.clear()
                 continue
             if op == "configure":
+                if cls is None:
+                    conn.send((seq, "exc", import_error, logs[:]))
+                    logs.clear()
+                    continue
                 comp = cls(cls.Params.model_validate(params), node_id=node_id, ctx=ctx)
                 comp.configure()
             elif op in ("activate", "deactivate"):
                 getattr(comp, op)()
             elif op == "clock":
-                origin[:] = msg[1:]
+                origin[:] = msg[2:]
             elif op == "close":
                 if comp is not None:
                     comp.close()
-                conn.send(("ok", logs[:]))
+                conn.send((seq, "ok", logs[:]))
                 break
-            conn.send(("ok", logs[:]))
+            conn.send((seq, "ok", logs[:]))
             logs.clear()
         except BaseException as exc:  # noqa: BLE001 - everything goes back to the parent
-            conn.send(("exc", exception_line(exc), logs[:]))
+            try:
+                conn.send((seq, "exc", exception_line(exc), logs[:]))
+            except OSError:
+                break   # the parent is gone
             logs.clear()
+            stop_reason.clear()
+            if op == "close":
+                break
 
 
 class ProcessProxy(Component):
-    """Stands in for a component that runs in a child process; the runtime treats it like the component."""
+    """Stands in for a component that runs in a child process; the runtime treats it like the component.
+
+    One call crosses at a time (a lock): the node's thread steps it, the runtime's main thread starts it up and
+    shuts it down. ``step_timeout``: seconds a step may take before it is a fault (the runtime gives 20 periods,
+    at least 1 s); the child's late answer is then recognised by its number and dropped."""
 
     def __init__(self, cls: type[Component], params: Any, *, node_id: str, ctx: Context, t0_perf: float,
                  t0_mono: float, step_timeout: float, priority: int = 0):
@@ -194,45 +366,98 @@ class ProcessProxy(Component):
         self._status: dict[str, Any] = {}
         self._conn: Any = None
         self._proc: Any = None
-        self._lanes = ArrayLanes()
-        self._owed = 0   # replies still owed by the child for calls that timed out (read and dropped first)
+        self._lock = threading.Lock()
+        self._seq = 0          # number of the latest request; the child's reply repeats it
+        self._stuck = False    # a call timed out and the child has not answered anything since
+        self._prefix = f"{BLOCK_PREFIX}{secrets.token_hex(4)}_"   # names of this node's blocks, both sides
+        self._lanes = ArrayLanes(self._prefix + "p")
 
     # -------------------------------------------------------------------------------------------------- plumbing
-    def _call(self, *msg: Any, timeout: float) -> Any:
-        conn = self._conn
+    def _started(self) -> bool:
+        return self._proc is not None and self._proc.pid is not None
+
+    def _call(self, op: str, *args: Any, timeout: float, wait: float | None = None) -> Any:
+        """Send one request and return its reply; ``wait``: seconds to wait for a call in flight (default
+        ``timeout``)."""
+        if not self._lock.acquire(timeout=timeout if wait is None else wait):
+            raise ComponentFault(f"'{op}' not sent: the isolated process is still busy with a step after "
+                                 f"{timeout if wait is None else wait:.3g} s")
         try:
-            # a call that timed out still gets its reply later: read and drop it first, so that this call reads
-            # its own reply (not, say, deactivate() the late answer of a step)
-            while self._owed:
-                if not conn.poll(timeout):
-                    raise ComponentFault(f"isolated process is still busy with an earlier call; '{msg[0]}' not sent "
-                                         f"after {timeout:.3g} s")
-                conn.recv()
-                self._owed -= 1
-            conn.send(msg)
-            if not conn.poll(timeout):
-                self._owed += 1
-                raise ComponentFault(f"isolated process did not answer '{msg[0]}' within {timeout:.3g} s")
-            reply = conn.recv()
-        except (EOFError, BrokenPipeError, ConnectionResetError, OSError) as exc:
-            code = self._proc.exitcode if self._proc is not None else None
-            raise ComponentFault(f"isolated process died (exit code {code}) during '{msg[0]}': "
-                                 f"{type(exc).__name__}") from None
-        for line in reply[-1]:
-            self.ctx.log(line)
-        if reply[0] == "exc":
-            raise ComponentFault(f"in isolated process: {reply[1]}")
+            return self._exchange(op, args, timeout)
+        finally:
+            self._lock.release()
+
+    def _exchange(self, op: str, args: tuple, timeout: float, values: dict[str, Any] | None = None) -> Any:
+        """One request and its reply; the caller holds the lock. Replies to earlier requests (their call timed out
+        or was interrupted) are dropped; their log lines are passed on."""
+        conn = self._conn
+        self._seq += 1
+        seq = self._seq
+        deadline = time.monotonic() + timeout
+        try:
+            _send(conn, (seq, op, *args), values or {}, "input", "the isolated process")
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0 or not conn.poll(left):
+                    self._stuck = True
+                    raise ComponentFault(f"isolated process did not answer '{op}' within {timeout:.3g} s")
+                reply = conn.recv()
+                for line in reply[-1]:
+                    self.ctx.log(line)
+                if reply[0] == seq:
+                    break
+        except (EOFError, OSError):
+            raise self._died(op) from None
+        self._stuck = False
+        if reply[1] == "exc":
+            raise ComponentFault(f"in isolated process: {reply[2]}")
         return reply
 
+    def _died(self, op: str) -> ComponentFault:
+        proc = self._proc
+        code = None
+        if self._started():
+            proc.join(1.0)   # the pipe closes a moment before the exit status can be read
+            code = proc.exitcode
+        if code is None:
+            how = "closed its end of the pipe"
+        elif code < 0:
+            try:
+                sig = signal.Signals(-code).name
+            except ValueError:
+                sig = "unknown signal"
+            how = f"was killed by signal {-code} ({sig}" + (
+                "; the out-of-memory killer sends it too" if -code == signal.SIGKILL else "") + ")"
+        else:
+            how = f"exited with code {code}"
+        pid = proc.pid if proc is not None else None
+        return ComponentFault(f"isolated process died during '{op}': {self.name} (pid {pid}) {how}")
+
     def configure(self) -> None:
+        try:
+            cls_ref = pickle.dumps(self.target)   # by reference: module and name
+        except Exception as exc:
+            raise ComponentFault(f"isolate: process needs a component class that a new process can import by name "
+                                 f"(defined at the top level of a module), not {self.target.__module__}."
+                                 f"{self.target.__qualname__}: {type(exc).__name__}: {exc}") from None
         mpctx = mp.get_context("spawn")
         parent, child = mpctx.Pipe()
-        self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
-                                   args=(child, self.target, self.params.model_dump(), self.id, *self._t0,
-                                         self._priority, self.ctx.rate))
-        self._proc.start()
-        child.close()
         self._conn = parent
+        self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
+                                   args=(child, cls_ref, self.params.model_dump(), self.id, *self._t0,
+                                         self._priority, self.ctx.rate, self._prefix + "c", os.getpid()))
+        # SIGINT/SIGTERM blocked in this thread while it spawns: the child inherits the mask and unblocks them once
+        # it ignores them. The resource tracker is started first: starting it unblocks both in this thread.
+        resource_tracker.ensure_running()
+        mask = hasattr(signal, "pthread_sigmask")
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _TERMINAL_SIGNALS) if mask else None
+        try:
+            self._proc.start()
+            _track(self._proc, True)
+        finally:
+            if mask:
+                signal.pthread_sigmask(signal.SIG_SETMASK, old)
+            child.close()
         self._call("configure", timeout=LIFECYCLE_TIMEOUT)
 
     def set_origin(self, t0_perf: float, t0_mono: float) -> None:
@@ -244,35 +469,62 @@ class ProcessProxy(Component):
         self._call("activate", timeout=LIFECYCLE_TIMEOUT)
 
     def step(self, t: float, inputs: Inputs) -> dict[str, Any]:
-        ins = {}
-        for name in self.inputs:
-            s = inputs[name]
-            ins[name] = None if s is None else (self._lanes.pack(name, s.value), s.stamp)
-        _, packed, status, stop, _logs = self._call("step", t, ins, timeout=self._step_timeout)
-        self._status = status
+        if not self._lock.acquire(timeout=self._step_timeout):
+            raise ComponentFault(f"step not sent: the isolated process is busy after {self._step_timeout:.3g} s")
+        try:
+            if not self._started():
+                raise ComponentFault("isolated process not running")
+            ins = {}
+            for name in self.inputs:
+                s = inputs[name]
+                ins[name] = None if s is None else (self._lanes.pack(name, s.value), s.stamp)
+            reply = self._exchange("step", (t, ins), self._step_timeout,
+                                   {n: v[0] for n, v in ins.items() if v is not None})
+            _, _, packed, status, stop, _logs = reply
+            self._status = status
+            unpack = self._lanes.unpack
+            out = {k: (Sample(unpack(v[1], k), v[2]) if v[0] == "S" else unpack(v[1], k)) for k, v in packed.items()}
+        finally:
+            self._lock.release()
         if stop:
             self.ctx.request_stop(stop[0])
-        unpack = self._lanes.unpack
-        return {k: (Sample(unpack(v[1]), v[2]) if v[0] == "S" else unpack(v[1])) for k, v in packed.items()}
+        return out
 
     def deactivate(self) -> None:
-        if self._proc is not None and self._proc.is_alive():
-            self._call("deactivate", timeout=LIFECYCLE_TIMEOUT)
+        if self._started() and self._proc.is_alive():
+            # a step still running in the node's thread ends by its own timeout at the latest
+            self._call("deactivate", timeout=SHUTDOWN_TIMEOUT, wait=self._step_timeout + 1.0)
 
     def close(self) -> None:
+        got = self._lock.acquire(timeout=self._step_timeout + 1.0)
         try:
-            if self._proc is not None and self._proc.is_alive():
-                self._call("close", timeout=10.0)
+            answered = False
+            try:
+                if got and self._started() and self._proc.is_alive() and not self._stuck:
+                    self._exchange("close", (), SHUTDOWN_TIMEOUT)
+                    answered = True
+            finally:
+                self._end_child(wait=SHUTDOWN_TIMEOUT if answered else 0.0)
         finally:
-            if self._proc is not None:
-                self._proc.join(timeout=5.0)
+            if got:
+                self._lock.release()
+
+    def _end_child(self, wait: float) -> None:
+        """The child gone (killed if it has not ended within ``wait`` s: it ignores SIGTERM), the pipe closed and
+        every shared-memory block of this node removed, the child's included."""
+        try:
+            if self._started():
+                self._proc.join(timeout=wait)
                 if self._proc.is_alive():
                     self._proc.kill()
                     self._proc.join(timeout=5.0)
+                if not self._proc.is_alive():
+                    _track(self._proc, False)
+        finally:
             if self._conn is not None:
                 self._conn.close()
-            # the child unlinks its blocks as it ends; if it died first, its blocks go with the parent's
             self._lanes.close(unlink_peer=True)
+            remove_blocks(self._prefix)
 
     def status(self) -> dict[str, Any]:
         return self._status
