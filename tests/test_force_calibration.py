@@ -382,3 +382,170 @@ def test_example_graphs_validate(repo_root, name):
     routine = spec.node("routine")
     assert routine.plugin == "press-routine" and routine.inputs["max_depth"].node == "depth"
     assert spec.node("leader").inputs["force"].node == "routine"
+
+
+# ------------------------------------------------------------------------------------------------ safety audit
+def _press(out: dict) -> float:
+    return float(out["force"][2]) * -1.0  # press direction is -z (FAST keeps the defaults axis z, direction -1)
+
+
+def _step_ms(h, t: float, **values):
+    """One routine step at t; returns (outputs, fault message or None)."""
+    try:
+        return h.step(t, **values), None
+    except ComponentFault as exc:
+        return None, str(exc)
+
+
+def test_depth_stamped_in_the_future_is_not_fresh_forever():
+    # a clock fault stamps a depth frame far ahead, then the camera dies: it must not count as fresh for 100 s
+    from teletouch import Sample
+
+    h = _harness_at_press()
+    h.set(max_depth=Sample(0.0, 100.0))
+    for k in range(1, 61):
+        t = 0.01 * k
+        h.t = t
+        h.set(position=np.array([0, 0, -1e-6 * k]))
+        try:
+            h.comp.step(t, h.inputs)
+        except ComponentFault:
+            pass  # retracted (here at once: the probe is still at the start height) -> aborted
+        if h.comp.state != "approach":
+            break
+    assert h.comp.state in ("abort-retract", "aborted") and t <= 0.6
+    assert "max depth stamped 99.990 s ahead" in h.comp.abort_reason
+
+
+def test_frozen_leader_position_gives_zero_force_quickly():
+    # the leader's position stops updating mid-approach: the loop must not run on it for input_timeout (0.5 s)
+    from teletouch import Sample
+
+    h = _harness_at_press()
+    frozen = Sample(np.zeros(3), 0.01)
+    fault_t = None
+    for k in range(10, 700):
+        t = 0.001 * k
+        out, fault = _step_ms(h, t, position=frozen, max_depth=0.0)
+        if fault:
+            fault_t = t
+            assert "position" in fault
+            break
+    assert fault_t is not None and fault_t <= 0.01 + h.comp.params.position_timeout + 0.002
+    assert np.all(h.comp.cmd == 0)
+
+
+def test_abort_never_pushes_further_into_a_stuck_probe():
+    # the probe is blocked (hit something hard): the target runs ahead, the loop aborts; the retract must start from
+    # where the probe is, never keep pushing towards the deep target the loop failed to reach
+    h = _harness_at_press()
+    presses_after_abort = []
+    for k in range(2, 3000):
+        t = 0.001 * k
+        out, fault = _step_ms(h, t, position=np.zeros(3), max_depth=0.0)
+        if fault:
+            break
+        if h.comp.state == "abort-retract":
+            presses_after_abort.append(_press(out))
+    assert presses_after_abort, "the routine never aborted"
+    assert max(presses_after_abort) <= 1e-9
+
+
+def test_nan_depth_at_the_start_times_out_with_a_reason():
+    with Harness(PressRoutine, dict(FAST, start_timeout=1.0)) as h:
+        h.step(0.0, position=np.zeros(3), max_depth=math.nan)
+        assert h.comp.state == "wait" and np.all(h.comp.cmd == 0)
+        with pytest.raises(ComponentFault, match="max depth .*nan"):
+            for k in range(1, 13):
+                h.step(0.1 * k, position=np.zeros(3), max_depth=math.nan)
+
+
+def _ideal_rig(h, t0: float, t1: float, surface: float = -2e-4, overshoot=None):
+    """Drive the routine with a probe that follows its target exactly over a gel whose surface is at z = surface;
+    ``overshoot(state)`` adds a press-axis error. Returns (fault message or None, largest indentation)."""
+    deepest = 0.0
+    k = 0
+    while t0 + 0.001 * k < t1:
+        t = t0 + 0.001 * k
+        k += 1
+        target = h.comp.target if h.comp.target is not None else np.zeros(3)
+        pos = np.array(target, dtype=float)
+        if overshoot is not None:
+            pos[2] -= overshoot(h.comp)
+        depth = max(0.0, surface - pos[2])
+        deepest = max(deepest, depth)
+        _, fault = _step_ms(h, t, position=pos, max_depth=depth)
+        if fault:
+            return fault, deepest
+    return None, deepest
+
+
+def test_probe_deeper_than_planned_aborts():
+    # the probe ends up 1 mm past its target (within max_tracking_error, under max_force, depth under its limit)
+    h = Harness(PressRoutine, dict(FAST, max_displacement="0.5mm", step="0.25mm"))
+    h.__enter__()
+    fault, deepest = _ideal_rig(h, 0.0, 8.0, overshoot=lambda c: 1e-3 if c.state == "hold" else 0.0)
+    assert fault is not None and "deeper than" in fault
+    assert h.comp.abort_reason and "max_overtravel" in h.comp.abort_reason
+
+
+def test_gel_that_reads_shallow_stops_the_approach_on_force(reg):
+    # the depth estimator reads far too shallow (here: it needs 2.9 mm before it calls it contact): the approach
+    # meets the gel's resistance and must stop there, not push on until max_force (~2.5 mm into the gel)
+    log = []
+    result, rt = run_yaml(graph(routine={"touch_depth": "2.9mm"}), reg,
+                          taps=[lambda n, t, o: log.append(float(o["indentation"])) if n == "rig" else None])
+    r = rt.component("routine")
+    assert result.status == "fault" and "approach_max_force" in result.message
+    assert max(log) < 0.8e-3 and log[-1] == 0.0
+    assert rt.component("leader").safe and r.samples == []
+
+
+def test_position_glitch_does_not_hammer_the_handle():
+    # one position sample 1.5 mm off (a glitch): the command may not move away from zero by more than
+    # max_force_rate * dt in a step (before: +-10 N, a 15.7 N swing within 1 ms); going to zero is always allowed
+    h = _harness_at_press()
+    prev = h.comp.cmd.copy()
+    r = h.comp.params.max_force_rate * 0.001 + 1e-9
+    for k in range(2, 200):
+        t = 0.001 * k
+        z = -1.5e-3 if k == 100 else -2e-3 * t  # follows the approach except for one sample
+        out, fault = _step_ms(h, t, position=np.array([0, 0, z]), max_depth=0.0)
+        assert fault is None
+        f = out["force"]
+        assert np.all(f <= np.maximum(prev + r, 0.0)) and np.all(f >= np.minimum(prev - r, 0.0)), (k, prev, f)
+        prev = f
+
+
+def test_out_of_order_depth_frame_is_not_a_new_frame():
+    from teletouch import Sample
+
+    h = _harness_at_press(touch_frames=2)
+    h.step(0.02, position=np.array([0, 0, -4e-5]), max_depth=Sample(1e-4, 0.02))
+    assert h.comp.state == "approach"
+    h.step(0.021, position=np.array([0, 0, -4.2e-5]), max_depth=Sample(1e-4, 0.01))  # an older frame, late
+    assert h.comp.state == "approach"
+    h.step(0.04, position=np.array([0, 0, -8e-5]), max_depth=Sample(1e-4, 0.04))
+    assert h.comp.state == "backoff"
+
+
+@pytest.mark.parametrize("params,message", [
+    ({"hold_timeout": 0.2, "settle_time": 0.4}, "hold_timeout .* must be longer than settle_time"),
+    ({"touch_depth": "3mm", "max_depth_limit": "3mm"}, "touch_depth .* must be below max_depth_limit"),
+    ({"positions": [[0, 0], [1, 2]]}, r"positions\[1\]: .* more than 25 mm"),
+    ({"approach_max_force": 10.0, "max_force": 10.0}, "approach_max_force .* must be below max_force"),
+])
+def test_params_that_cannot_work_refused_at_configure(params, message):
+    with pytest.raises(ValueError, match=message):
+        Harness(PressRoutine, dict(FAST, **params)).comp.configure()
+
+
+def test_fit_refuses_a_nan_depth_instead_of_dropping_it_as_no_contact():
+    from teletouch.plugins.estimators.poly_force import CalibrationError
+
+    d = np.linspace(0.1e-3, 2e-3, 12)
+    samples = [{"depth_m": float(x), "force_n": gel_force(x, Indenter.probe()), "phase": "loading", "cycle": 0}
+               for x in d]
+    samples[5]["depth_m"] = math.nan
+    with pytest.raises(CalibrationError, match=r"sample 5: depth .*nan.* is not finite"):
+        fit_samples(samples, 3)

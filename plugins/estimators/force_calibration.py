@@ -97,6 +97,10 @@ class PressRoutine(Component):
                                                 json_schema_extra=_u("m/s"))
         max_approach: Meters = Field(0.03, gt=0, description="give up if no contact after this travel",
                                      json_schema_extra=_u("m"))
+        approach_max_force: Newtons = Field(1.0, gt=0, description="abort the approach if it needs more than this "
+                                            "along the press axis for 0.1 s: the probe meets resistance the depth "
+                                            "estimator does not see (a gel that reads too shallow, a dead "
+                                            "estimator, something in the way)", json_schema_extra=_u("N"))
         move_speed: MetersPerSecond = Field(4e-3, gt=0, description="speed between steps and when retracting",
                                             json_schema_extra=_u("m/s"))
         backoff: Meters = Field(5e-4, ge=0, description="retreat above the touch point before the steps (the "
@@ -118,20 +122,29 @@ class PressRoutine(Component):
         ki: float = Field(2.0e4, ge=0, description="integral gain on the press axis", json_schema_extra=_u("N/(m*s)"))
         max_force: Newtons = Field(10.0, gt=0, description="abort if the press needs more than this",
                                    json_schema_extra=_u("N"))
+        max_force_rate: float = Field(500.0, gt=0, description="largest change of each force component per second "
+                                      "(a step to zero force is always allowed)", json_schema_extra=_u("N/s"))
         max_depth_limit: Meters = Field(3e-3, gt=0, description="abort if the gel is pressed deeper than this",
                                         json_schema_extra=_u("m"))
         max_tracking_error: Meters = Field(2e-3, gt=0, description="abort if the probe is this far from its "
                                            "target", json_schema_extra=_u("m"))
-        input_timeout: Seconds = Field(0.5, gt=0, description="abort if position or depth is older than this",
+        max_overtravel: Meters = Field(3e-4, gt=0, description="abort if the probe gets more than this deeper than "
+                                       "the deepest planned point (touch + max_displacement)",
+                                       json_schema_extra=_u("m"))
+        input_timeout: Seconds = Field(0.5, gt=0, description="abort if the max depth is older than this",
                                        json_schema_extra=_u("s"))
+        position_timeout: Seconds = Field(0.05, gt=0, description="zero force at once if the leader position is "
+                                          "older than this (the force loop runs on it)", json_schema_extra=_u("s"))
         start_timeout: Seconds = Field(10.0, gt=0, description="fault if no position and depth arrive within "
                                        "this after the start", json_schema_extra=_u("s"))
         samples_csv: str | None = Field(None, description="write the samples here when done (optional)")
 
-    SATURATION_TIME = 0.1  # s of a saturated press before aborting
+    SATURATION_TIME = 0.1  # s of a saturated press (or of resistance on the approach) before aborting
+    MAX_OFFSET = 0.025  # m: a press point farther than this from the start is off any DIGIT's gel (mm given as m?)
 
     STATES = ("wait", "move", "approach", "backoff", "tare", "step", "hold", "record", "retract", "done",
               "abort-retract", "aborted")
+    PRESSING = ("backoff", "tare", "step", "hold", "record", "retract")  # states in which the touch point is known
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def configure(self) -> None:
@@ -141,6 +154,20 @@ class PressRoutine(Component):
         if p.step > p.max_displacement:
             raise ValueError(f"step ({p.step * 1e3:.3f} mm) is larger than max_displacement "
                              f"({p.max_displacement * 1e3:.3f} mm)")
+        if p.hold_timeout <= p.settle_time:
+            raise ValueError(f"hold_timeout ({p.hold_timeout:g} s) must be longer than settle_time "
+                             f"({p.settle_time:g} s): every step would time out")
+        if p.touch_depth >= p.max_depth_limit:
+            raise ValueError(f"touch_depth ({p.touch_depth * 1e3:.3f} mm) must be below max_depth_limit "
+                             f"({p.max_depth_limit * 1e3:.3f} mm)")
+        if p.approach_max_force >= p.max_force:
+            raise ValueError(f"approach_max_force ({p.approach_max_force:g} N) must be below max_force "
+                             f"({p.max_force:g} N)")
+        for i, (ox, oy) in enumerate(p.positions):
+            if math.hypot(ox, oy) > self.MAX_OFFSET:
+                raise ValueError(f"positions[{i}]: ({ox * 1e3:g}, {oy * 1e3:g}) mm is more than "
+                                 f"{self.MAX_OFFSET * 1e3:g} mm from the start, off the sensor's gel (offsets are "
+                                 f"in m: write 2mm or 0.002, not 2)")
         if p.samples_csv:
             problem = output_problem(p.samples_csv)
             if problem:
@@ -180,6 +207,8 @@ class PressRoutine(Component):
         self.abort_reason: str | None = None
         self.window: dict[str, list] = {}
         self.last_depth_stamp: float | None = None
+        self.pos_stamp: float | None = None
+        self.resist_since: float | None = None
         self.events: list[tuple[float, str]] = []
         self.done_points = 0
         self.saturated_since: float | None = None
@@ -215,9 +244,13 @@ class PressRoutine(Component):
             return
         self.abort_reason = reason
         self.ctx.log(f"aborting: {reason}; retracting")
-        # straight back out along the press axis to the start height (never sideways while pressing)
+        # straight back out along the press axis to the start height (never sideways while pressing), from where the
+        # probe is: not from the target, which may lie deeper (a blocked probe) or off to the side; the integral
+        # (the force that held the probe against the gel) is dropped, and the retract never pushes (see _control)
         if self.home is not None and self.pos is not None and self.target is not None:
-            self.goal = self.target + (self._s(self.home) - self._s(self.target)) * self.u
+            self.target = self.pos.copy()
+            self.goal = self.target + (min(self._s(self.home), self._s(self.pos)) - self._s(self.pos)) * self.u
+            self.integral = min(self.integral, 0.0)
         else:
             self.goal = None
         self._go(t, "abort-retract" if self.goal is not None else "aborted")
@@ -242,18 +275,34 @@ class PressRoutine(Component):
         self.last_t = t
         ps = inputs["position"]
         pos = None
-        if ps is not None:
-            v = np.asarray(ps.value, dtype=float).reshape(-1)
-            if v.shape == (3,) and np.all(np.isfinite(v)) and t - ps.stamp <= p.input_timeout:
+        if ps is not None and ps.is_fresh(t, p.position_timeout):  # neither old nor stamped ahead of the clock
+            try:
+                v = np.asarray(ps.value, dtype=float).reshape(-1)
+            except (TypeError, ValueError):
+                v = np.full(3, np.nan)
+            if v.shape == (3,) and np.all(np.isfinite(v)):
                 pos = v
+        if pos is not None and self.pos_stamp is not None and not ps.stamp > self.pos_stamp:
+            pos = self.pos  # a repeated or out-of-order sample: the newest position known (itself still fresh)
+        elif pos is not None:
+            # --- velocity estimate, from the samples' own stamps (a leader slower than this loop, or a late sample,
+            # would otherwise give velocity spikes)
+            if self.pos is not None and self.pos_stamp is not None:
+                dtp = ps.stamp - self.pos_stamp
+                raw = (pos - self.pos) / dtp
+                a = dtp / (dtp + 0.002)  # 2 ms filter on the differentiated position
+                self.vel = self.vel + a * (raw - self.vel)
+            self.pos = pos
+            self.pos_stamp = ps.stamp
         ds = inputs["max_depth"]
         depth = None
-        if ds is not None and t - ds.stamp <= p.input_timeout:
+        if ds is not None and ds.is_fresh(t, p.input_timeout):
             try:
                 depth = float(ds.value)
             except (TypeError, ValueError):
                 depth = math.nan
-        new_depth = ds is not None and ds.stamp != self.last_depth_stamp
+        # a new frame only if newer than the last one (a repeated or late, out-of-order frame is not)
+        new_depth = ds is not None and (self.last_depth_stamp is None or ds.stamp > self.last_depth_stamp)
         if new_depth:
             self.last_depth_stamp = ds.stamp
 
@@ -265,7 +314,9 @@ class PressRoutine(Component):
                 self._go(t, "aborted")
             elif self.state != "abort-retract":
                 if depth is None:
-                    self._abort(t, f"no max depth for more than {p.input_timeout:g} s")
+                    ahead = ds is not None and ds.stamp > t
+                    self._abort(t, f"max depth stamped {ds.stamp - t:.3f} s ahead of the clock (a clock fault)"
+                                if ahead else f"no max depth for more than {p.input_timeout:g} s")
                 elif not math.isfinite(depth):
                     self._abort(t, f"max depth is {depth}")
                 elif depth > p.max_depth_limit:
@@ -273,24 +324,25 @@ class PressRoutine(Component):
                                    f"{p.max_depth_limit * 1e3:.3f} mm")
                 elif bool(inputs.value("abort", False)):
                     self._abort(t, "abort input (button) pressed")
+                elif (self.touch is not None and self.state in self.PRESSING
+                      and self._s(pos) - self.touch > p.max_displacement + p.max_overtravel):
+                    self._abort(t, f"probe {(self._s(pos) - self.touch) * 1e3:.3f} mm past the touch point, deeper "
+                                   f"than max_displacement {p.max_displacement * 1e3:.3f} mm + max_overtravel "
+                                   f"{p.max_overtravel * 1e3:.3f} mm")
                 elif self.target is not None and float(np.linalg.norm(self.target - pos)) > p.max_tracking_error:
                     self._abort(t, f"probe {np.linalg.norm(self.target - pos) * 1e3:.2f} mm from its target")
-
-        # --- velocity estimate ------------------------------------------------------------------------------
-        if pos is not None:
-            if self.pos is not None and dt > 0:
-                raw = (pos - self.pos) / dt
-                a = dt / (dt + 0.002)  # 2 ms filter on the differentiated position
-                self.vel = self.vel + a * (raw - self.vel)
-            self.pos = pos
 
         st = self.state
         if st == "wait":
             if self.t_start is None:
                 self.t_start = t
-            if (pos is None or depth is None) and t - self.t_start > p.start_timeout:
+            if (pos is None or depth is None or not math.isfinite(depth)) and t - self.t_start > p.start_timeout:
                 missing = " and ".join(n for n, v in (("position", pos), ("max depth", depth)) if v is None)
-                self.abort_reason = f"no {missing} within {p.start_timeout:g} s of the start: check the wiring"
+                if missing:
+                    self.abort_reason = f"no {missing} within {p.start_timeout:g} s of the start: check the wiring"
+                else:
+                    self.abort_reason = (f"max depth still {depth} {p.start_timeout:g} s after the start: check the "
+                                         f"depth estimator")
                 self._go(t, "aborted")
             elif pos is not None and depth is not None and math.isfinite(depth) and depth >= p.touch_depth:
                 self.abort_reason = (f"the gel is already pressed ({depth * 1e3:.3f} mm) at the start: lift the "
@@ -305,6 +357,12 @@ class PressRoutine(Component):
             if self._ramp(dt, p.move_speed):
                 self._approach(t)
         elif st == "approach":
+            # resistance the depth estimator does not see: stop here rather than push on until max_force
+            if float(self.cmd @ self.u) > p.approach_max_force:
+                if self.resist_since is None:
+                    self.resist_since = t
+            else:
+                self.resist_since = None
             arrived = self._ramp(dt, p.approach_speed)
             if new_depth:
                 self.touch_count = self.touch_count + 1 if depth >= p.touch_depth else 0
@@ -313,6 +371,10 @@ class PressRoutine(Component):
                 self.ctx.log(f"touch at {self.touch * 1e3:.3f} mm along the press axis (depth "
                              f"{depth * 1e3:.3f} mm)")
                 self._begin_cycle(t)
+            elif self.resist_since is not None and t - self.resist_since >= self.SATURATION_TIME:
+                self._abort(t, f"the approach needs {float(self.cmd @ self.u):.2f} N, more than approach_max_force "
+                               f"{p.approach_max_force:g} N, while the max depth reads {depth * 1e3:.3f} mm (below "
+                               f"touch_depth): does the depth estimator see the gel?")
             elif arrived:
                 self._abort(t, f"no contact after {p.max_approach * 1e3:.1f} mm of approach: is the sensor "
                                f"under the probe?")
@@ -415,9 +477,16 @@ class PressRoutine(Component):
                 self._abort(t, f"the press needs {press:.2f} N, more than max_force {p.max_force:g} N")
         else:
             self.saturated_since = None
+        if self.state == "abort-retract":
+            press = float(f @ self.u)
+            if press > 0:
+                f = f - press * self.u  # an abort only ever pulls the probe out
+            n = float(np.linalg.norm(f))
         if n > p.max_force:
             f = f * (p.max_force / n)
-        return f
+        # rate limit: each component moves at most max_force_rate * dt from the last command, except towards zero
+        r = p.max_force_rate * dt
+        return np.clip(f, np.minimum(self.cmd - r, 0.0), np.maximum(self.cmd + r, 0.0))
 
     def _move_to_cycle(self, t: float) -> None:
         """Go (at the start height) over this cycle's press point, then search for the gel there."""
@@ -427,6 +496,7 @@ class PressRoutine(Component):
         self.goal = self.origin.copy()
         self.touch = None
         self.touch_count = 0
+        self.resist_since = None
         if self.offsets:
             self.ctx.log(f"cycle {self.cycle + 1}: press point {np.round(self.origin * 1e3, 3).tolist()} mm")
         self._go(t, "move")
@@ -595,7 +665,8 @@ def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: fl
                 source: str = "", position_degree: int = 0) -> ForceCalibration:
     """Fit a calibration from recorded samples, leaving out those without contact (depth < min_depth). With
     ``position_degree`` > 0 every kept sample needs its contact centroid (x_m, y_m)."""
-    keep = [s for s in samples if s["depth_m"] >= min_depth]
+    # a NaN depth is kept (and refused by the fit, naming the sample), not counted as a sample without contact
+    keep = [s for s in samples if not s["depth_m"] < min_depth]
     if not keep:
         raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm: did the probe "
                                f"touch the gel?")
