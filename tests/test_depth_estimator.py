@@ -263,3 +263,169 @@ def test_outputs_from_the_solve_window_equal_the_whole_frame(model, pos, indente
     assert np.array_equal(res.contact_mask, mask) and res.contact_area == area
     np.testing.assert_allclose(res.centroid, centroid, rtol=0, atol=1e-12)
     assert pipe._window_outputs and pipe._grid_depth(img)[1] is not None   # the window path was taken
+
+
+# ------------------------------------------------------------------------------------------- run-time robustness
+def _led_dim(bg: np.ndarray, channel: int, gain: float) -> np.ndarray:
+    f = bg.astype(np.float32)
+    f[..., channel] *= gain
+    return np.clip(f, 0, 255).astype(np.uint8)
+
+
+def test_implausible_frames_give_nan_outputs_not_a_deep_contact(model, sim):
+    """LEDs off, a saturated frame or one LED mid-change read as a deep, wide contact (2.7 mm, 67 mm^2 for a black
+    frame before): now NaN outputs with the frame's stamp (poly-force: invalid input, 0 N), never blended into the
+    background, and the next good frame reads as usual."""
+    from teletouch import Sample
+
+    good, _ = sim.render(0.6e-3, (0.001, 0.0), 0.0)
+    with Harness(DepthEstimator, {}) as h:
+        ref = h.step(0.0, image=good)["max_depth"]
+    bad = {"black": np.zeros((320, 240, 3), np.uint8), "saturated": np.full((320, 240, 3), 255, np.uint8),
+           "red LED at 60%": _led_dim(model.background, 2, 0.6), "half brightness": model.background // 2}
+    with Harness(DepthEstimator, {"adapt_background": 0.5}) as h:
+        bg0 = h.comp.pipe._bg_grid_np.copy()
+        for k, (what, frame) in enumerate(bad.items()):
+            h.set(image=Sample(frame, 0.1 + k))
+            raw = h.comp.step(0.2 + k, h.inputs)
+            assert all(v.stamp == 0.1 + k for v in raw.values()), what
+            out = {n: v.value for n, v in raw.items()}
+            assert math.isnan(out["max_depth"]) and math.isnan(out["contact_area"]), (what, out["max_depth"])
+            assert np.isnan(out["centroid"]).all() and np.isnan(out["depth"]).all(), what
+            assert out["depth"].shape == (320, 240) and out["depth"].dtype == np.float32
+            assert not out["contact_mask"].any() and out["contact_mask"].shape == (320, 240)
+            assert "global colour change" in h.comp.last_problem
+        assert h.comp.bad_frames == 4 and h.comp.status()["bad_frames"] == 4
+        assert np.array_equal(h.comp.pipe._bg_grid_np, bg0)           # none of them was blended in
+        assert h.step(9.0, image=good)["max_depth"] == ref
+    # the force node reads NaN as invalid input: 0 N, not a force from a phantom contact
+    from teletouch.plugins.estimators.poly_force import PolyForce
+
+    with Harness(PolyForce, {}) as f:
+        out = f.step(1.0, max_depth=math.nan, contact_area=math.nan, centroid=np.array([math.nan, math.nan]))
+        assert out == {"force": 0.0, "status": "invalid-input"}
+
+
+def test_a_sensor_that_keeps_delivering_implausible_frames_faults(model):
+    black = np.zeros((320, 240, 3), np.uint8)
+    with Harness(DepthEstimator, {"fault_after_bad": 3}) as h:
+        h.step(0.0, image=black)
+        h.step(0.1, image=black)
+        h.step(0.2, image=model.background)              # a good frame in between starts the count again
+        h.step(0.3, image=black)
+        h.step(0.4, image=black)
+        with pytest.raises(ComponentFault, match=r"3 implausible frames in a row.*LEDs off"):
+            h.step(0.5, image=black)
+    with Harness(DepthEstimator, {"fault_after_bad": 0}) as h:
+        for k in range(40):
+            assert math.isnan(h.step(k * 0.1, image=black)["max_depth"])
+
+
+def test_background_adaptation_does_not_absorb_a_slow_press(sim):
+    """A press that builds up slowly stays below the change threshold from frame to frame against a background that
+    follows it: before, a 0.6 mm press over one second read 0.0 mm with adapt_background 0.5 (and 12% low with 0.05),
+    and a light touch (no contact yet: below contact_depth) held for half a second took 10% off the press after it."""
+    final, _ = sim.render(0.6e-3, (0.001, 0.0), 0.0)
+    with Harness(DepthEstimator, {}) as h:
+        fresh = h.step(0.0, image=final)["max_depth"]
+    assert fresh > 0.4e-3
+    for a in (0.05, 0.5):
+        with Harness(DepthEstimator, {"adapt_background": a}) as h:
+            for k in range(61):
+                out = h.step(k / 60, image=sim.render(0.6e-3 * k / 60, (0.001, 0.0), 0.0)[0])
+            assert out["max_depth"] == pytest.approx(fresh, rel=0.05), a
+            # released: what was absorbed leaves no imprint that reads as a contact
+            for k in range(10):
+                out = h.step(2 + k / 60, image=sim.render(0.0, (0.001, 0.0), 0.0)[0])
+            assert out["max_depth"] == 0.0
+        with Harness(DepthEstimator, {"adapt_background": a}) as h:
+            for k in range(30):
+                out = h.step(k / 60, image=sim.render(0.05e-3, (0.001, 0.0), 0.0)[0])
+            assert out["contact_area"] == 0.0          # a light touch: no contact yet
+            assert h.step(1.0, image=final)["max_depth"] == pytest.approx(fresh, rel=0.03), a
+
+
+def test_background_adaptation_is_bounded(model):
+    """The adapted background keeps within adapt_limit levels per channel of the configured one (apart from a
+    global offset): a local change it cannot tell from drift moves it that far and no further."""
+    frame = model.background.astype(np.int16)
+    frame[100:160, 60:120] += 25
+    frame = np.clip(frame, 0, 255).astype(np.uint8)
+    with Harness(DepthEstimator, {"adapt_background": 0.5, "change_threshold": 200.0, "adapt_limit": 6.0}) as h:
+        for k in range(20):
+            h.step(k * 0.02, image=frame)
+        dev = h.comp._bg - model.background.astype(np.float32)
+        assert np.abs(dev).max() <= 6.0 + 1e-4 and dev[100:160, 60:120].min() >= 6.0 - 1e-4
+    with Harness(DepthEstimator, {"adapt_background": 0.5}) as h:
+        assert h.comp._adapt_limit == pytest.approx(h.comp.pipe.change_threshold / 3)
+
+
+def test_activate_starts_over_with_the_configured_background_and_no_remembered_frame(model):
+    frame = model.background.astype(np.int16)
+    frame[100:160, 60:120] += 25
+    frame = np.clip(frame, 0, 255).astype(np.uint8)
+    bg0 = DepthPipeline(model)._bg_grid_np
+    with Harness(DepthEstimator, {"adapt_background": 0.5, "change_threshold": 200.0}) as h:
+        for k in range(5):
+            h.step(k * 0.02, image=frame)
+        assert not np.array_equal(h.comp.pipe._bg_grid_np, bg0)
+        h.comp.deactivate()
+        h.comp.activate()
+        assert np.array_equal(h.comp.pipe._bg_grid_np, bg0)
+    with Harness(DepthEstimator, {}) as h:
+        h.step(0.0, image=frame)
+        h.comp.deactivate()
+        h.comp.activate()
+        h.step(1.0, image=frame)
+        assert h.comp.reused == 0        # computed again after activate, not answered from before
+
+
+def test_a_frozen_camera_is_counted_and_can_fault(sim):
+    """Bit-identical frames with new stamps (a frozen camera; a real camera's noise never repeats) are answered from
+    the last result, stamped with the new time, counted in status; fault_after_repeats faults the node. The same
+    sample read again (no new frame: the same stamp) is not a repeat."""
+    from teletouch import Sample
+
+    img, _ = sim.render(0.5e-3, (0.0, 0.0), 0.0)
+    with Harness(DepthEstimator, {"fault_after_repeats": 3}) as h:
+        h.set(image=Sample(img, 0.0))
+        h.comp.step(0.0, h.inputs)
+        h.comp.step(0.01, h.inputs)                  # the same sample again: not a new frame
+        assert h.comp.status()["repeated_frames"] == 0
+        for k in (1, 2):
+            h.set(image=Sample(img.copy(), k * 0.1))
+            out = h.comp.step(k * 0.1, h.inputs)
+            assert out["max_depth"].stamp == k * 0.1 and h.comp.status()["repeated_frames"] == k
+        h.set(image=Sample(img.copy(), 0.3))
+        with pytest.raises(ComponentFault, match="3 bit-identical frames in a row.*frozen"):
+            h.comp.step(0.3, h.inputs)
+    with Harness(DepthEstimator, {}) as h:           # default: never (a simulated sensor without noise repeats)
+        for k in range(50):
+            h.step(k * 0.1, image=img)
+        assert h.comp.reused == 49 and h.comp.status()["repeated_frames"] == 49
+
+
+def test_a_frame_of_another_size_or_dtype_mid_run_faults(sim):
+    img, _ = sim.render(0.5e-3, (0.0, 0.0), 0.0)
+    with Harness(DepthEstimator, {}) as h:
+        h.step(0.0, image=img)
+        for bad in (img.astype(np.float32) / 255, np.full((320, 240, 3), np.nan, np.float32),
+                    img[:, :, :1], img[:-2], img.astype(np.uint16)):
+            with pytest.raises(ComponentFault, match="expected a uint8 BGR image of 320x240x3"):
+                h.step(0.1, image=bad)
+
+
+def test_configuration_errors_name_the_parameter(tmp_path):
+    with pytest.raises(ModelFileError, match=r"^background: .*bg.png: not a readable image file"):
+        Harness(DepthEstimator, {"background": str(tmp_path / "bg.png")}).comp.configure()
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(ModelFileError, match=r"^background: .*small.png: background frame is 10x10"):
+        Harness(DepthEstimator, {"background": str(tmp_path / "small.png")}).comp.configure()
+    with pytest.raises(ModelFileError, match=r"^model: .*no such model file"):
+        Harness(DepthEstimator, {"model": str(tmp_path / "x.model")}).comp.configure()
+    for field, value in (("adapt_background", 0.7), ("adapt_limit", 0.0), ("max_global_change", -1.0),
+                         ("fault_after_bad", -1), ("fault_after_repeats", -1), ("contact_depth", "-1mm")):
+        with pytest.raises(ValueError, match=field):
+            DepthEstimator.Params(**{field: value})

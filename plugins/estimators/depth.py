@@ -64,8 +64,23 @@ class DepthEstimator(Component):
                                         "the max depth too (Hertz: the contact edge is at half the indentation)")
         change_threshold: float | None = Field(None, gt=0, description="colour change (0-255 levels summed over "
                                                "B, G, R) that counts as touched; default: the model's")
-        adapt_background: float = Field(0.0, ge=0.0, le=0.5, description="blend weight of each no-contact frame "
-                                        "into the background (0: off), follows slow illumination drift")
+        adapt_background: float = Field(0.0, ge=0.0, le=0.5, description="blend weight of each untouched frame "
+                                        "(no cell above the change threshold) into the background (0: off), follows "
+                                        "slow illumination drift within adapt_limit")
+        adapt_limit: float | None = Field(None, gt=0, le=255, description="the adapted background stays within "
+                                          "this many levels per channel of the configured one, apart from a global "
+                                          "offset (bounded by max_global_change): what a contact absorbed into it (a "
+                                          "slow press, a touch below the threshold) can take off a reading at most; "
+                                          "default: change_threshold / 3")
+        max_global_change: float = Field(24.0, gt=0, le=255, description="a frame whose global colour change from "
+                                         "the background (per-channel median, 0-255 levels) exceeds this is not "
+                                         "a plausible DIGIT frame (LEDs off or changing, saturated, exposure "
+                                         "changed): its outputs are NaN, it is never blended into the background")
+        fault_after_bad: int = Field(30, ge=0, description="fault the node after this many implausible frames in "
+                                     "a row (0: never; at 60 Hz, 30 is half a second)")
+        fault_after_repeats: int = Field(0, ge=0, description="fault the node after this many bit-identical "
+                                         "frames in a row with new stamps (a frozen camera: a real camera's noise "
+                                         "never repeats; 0: never, as a simulated sensor without noise repeats)")
         workers: int = Field(1, ge=1, le=64, description="scipy.fft worker threads for the CPU solve")
         baseline: Literal["none", "plane"] = Field(
             "none", description="zero reference: none (depth outside the change region is 0) or plane (also "
@@ -87,13 +102,16 @@ class DepthEstimator(Component):
         from .normal_model import load_model
 
         p = self.params
-        model = load_model(p.model)
+        try:
+            model = load_model(p.model)
+        except ModelFileError as exc:
+            raise ModelFileError(f"model: {exc}") from None   # the error names the parameter
         bg = None
         if p.background:
             try:
                 bg = _read_background(p.background, model)
             except (FileNotFoundError, ValueError) as exc:
-                raise ModelFileError(str(exc)) from None
+                raise ModelFileError(f"background: {exc}") from None
         device = _check_device(p.device)
         self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
                                   contact_depth=p.contact_depth, contact_fraction=p.contact_fraction,
@@ -101,11 +119,23 @@ class DepthEstimator(Component):
                                   net_rim=p.net_rim)
         self.pipe.warm_up()
         self.model = model
-        self._bg = (bg if bg is not None else model.background).astype(np.float32)
+        self._ref_bg = (bg if bg is not None else model.background).astype(np.float32)   # the configured one
+        self._adapt_limit = (p.adapt_limit if p.adapt_limit is not None else self.pipe.change_threshold / 3.0)
         self._last: dict[str, float] = {}
         self._ms = math.nan
-        self._prev: tuple[np.ndarray, Any] | None = None  # (last frame, its result) for reuse_unchanged
         self.reused = 0
+        self.bad_frames = 0      # implausible frames (outputs NaN), in all
+        self.last_problem = ""   # why the last of them was
+        self.activate()
+
+    def activate(self) -> None:
+        """Start as configured: the configured background (the adaptation starts over), no remembered frame."""
+        self._bg = self._ref_bg.copy()
+        if getattr(self.pipe, "set_background", None) is not None:
+            self.pipe.set_background(self._bg)
+        self._prev: tuple[np.ndarray, Any, float] | None = None  # (last frame, its result, its stamp): reuse
+        self._bad_run = 0        # implausible frames in a row
+        self._repeat_run = 0     # bit-identical frames with new stamps in a row
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["image"]
@@ -117,26 +147,87 @@ class DepthEstimator(Component):
         except ValueError as exc:
             raise ComponentFault(str(exc), self.id) from None
         t0 = time.perf_counter()
+        p = self.params
         prev = self._prev
         if prev is not None and _same_frame(prev[0], frame):
             res = prev[1]
             self.reused += 1
+            if s.stamp != prev[2]:
+                self._repeat_run += 1
+                self._prev = (prev[0], res, s.stamp)
+                if p.fault_after_repeats and self._repeat_run >= p.fault_after_repeats:
+                    raise ComponentFault(f"{self._repeat_run} bit-identical frames in a row with new stamps: the "
+                                         f"camera is frozen (fault_after_repeats {p.fault_after_repeats})", self.id)
         else:
+            self._repeat_run = 0
             res = self.pipe(frame)
-            a = self.params.adapt_background
-            if a > 0 and res.contact_area == 0.0 and not res.contact_mask.any():
-                self._bg += a * (frame.astype(np.float32) - self._bg)
-                self.pipe.set_background(self._bg)
+            problem = self._frame_problem(res)
+            if problem:
+                self._prev = None
+                return self._bad(problem, s.stamp, t0)
+            if p.adapt_background > 0 and not res.changed and res.contact_area == 0.0:
+                self._adapt(frame)
                 self._prev = None   # the background moved: the same frame would now read differently
-            elif self.params.reuse_unchanged:
-                self._prev = (frame.copy(), res)
+            elif p.reuse_unchanged:
+                self._prev = (frame.copy(), res, s.stamp)
+        self._bad_run = 0
         self._ms = (time.perf_counter() - t0) * 1e3
         self._last = {"max_depth_mm": res.max_depth * 1e3, "contact_area_mm2": res.contact_area * 1e6,
-                      "ms": self._ms}
+                      "ms": self._ms, "bad_frames": self.bad_frames, "repeated_frames": self._repeat_run}
         st = s.stamp
         return {"depth": Sample(res.depth, st), "max_depth": Sample(float(res.max_depth), st),
                 "contact_mask": Sample(res.contact_mask, st), "contact_area": Sample(float(res.contact_area), st),
                 "centroid": Sample(res.centroid.astype(np.float64), st)}
+
+    def _frame_problem(self, res: Any) -> str:
+        """Why a frame is not a plausible DIGIT frame ('' if it is): its global colour change from the background.
+        A frame with the LEDs off, saturated or mid-change reads as a deep, wide contact otherwise."""
+        off = getattr(res, "offset", None)
+        if off is None:
+            return ""
+        big = float(np.max(np.abs(off)))
+        if not big <= self.params.max_global_change:   # also NaN
+            return (f"the frame's global colour change from the background is {big:.0f} levels (B, G, R "
+                    f"{', '.join(f'{v:+.0f}' for v in off)}; max_global_change {self.params.max_global_change:g}): "
+                    f"LEDs off or changing, saturated, or the exposure changed")
+        return ""
+
+    def _bad(self, problem: str, stamp: float, t0: float) -> dict[str, Any]:
+        """An implausible frame: NaN outputs (poly-force reads them as invalid input: 0 N), a fault after
+        ``fault_after_bad`` of them in a row."""
+        self.bad_frames += 1
+        self._bad_run += 1
+        self.last_problem = problem
+        n = self.params.fault_after_bad
+        if n and self._bad_run >= n:
+            raise ComponentFault(f"{self._bad_run} implausible frames in a row (fault_after_bad {n}); the last: "
+                                 f"{problem}", self.id)
+        self._ms = (time.perf_counter() - t0) * 1e3
+        self._last = {"max_depth_mm": math.nan, "contact_area_mm2": math.nan, "ms": self._ms,
+                      "bad_frames": self.bad_frames, "repeated_frames": 0}
+        rows, cols = self.model.shape
+        nan = math.nan
+        return {"depth": Sample(np.full((rows, cols), nan, np.float32), stamp), "max_depth": Sample(nan, stamp),
+                "contact_mask": Sample(np.zeros((rows, cols), bool), stamp), "contact_area": Sample(nan, stamp),
+                "centroid": Sample(np.array([nan, nan]), stamp)}
+
+    def _adapt(self, frame: np.ndarray) -> None:
+        """Blend an untouched frame into the background. The adapted background keeps within ``adapt_limit``
+        levels per channel of the configured one, apart from a global offset per channel (within
+        ``max_global_change``), so that a contact absorbed into it (a slow press, a light touch below the change
+        threshold) can take at most a sub-threshold change off a later reading, and a touch's imprint left in it
+        after release stays below the threshold (and is blended out again)."""
+        from .depth_pipeline import channel_offset
+
+        bg = self._bg
+        bg += self.params.adapt_background * (frame.astype(np.float32) - bg)
+        dev = bg - self._ref_bg
+        g = np.clip(channel_offset(dev), -self.params.max_global_change, self.params.max_global_change)
+        lim = self._adapt_limit
+        np.clip(dev - g, -lim, lim, out=dev)
+        np.add(dev, g, out=dev)
+        np.add(self._ref_bg, dev, out=bg)
+        self.pipe.set_background(bg)
 
     def status(self) -> dict[str, Any]:
         return dict(self._last)

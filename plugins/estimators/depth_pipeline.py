@@ -48,6 +48,10 @@ class DepthResult:
     contact_mask: np.ndarray   # bool (rows, cols)
     contact_area: float        # m^2
     centroid: np.ndarray       # float64 (2,) m from the image centre (x along columns, y along rows); NaN if none
+    # the frame's global colour change from the background per channel (B, G, R; 0-255 levels): the drift
+    # correction's estimate (the `depth` node flags a frame whose change is implausibly large: LEDs off, saturated)
+    offset: np.ndarray | None = None
+    changed: bool = False      # some cell of the work grid counts as touched (the change mask after opening)
 
 
 def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float, contact_fraction: float = 0.5,
@@ -139,6 +143,8 @@ class DepthPipeline:
         self.grid_y = gr[:, None].expand(self.grows, self.gcols).contiguous().to(self.device)
         self.grid_x = gc[None, :].expand(self.grows, self.gcols).contiguous().to(self.device)
         self.set_background(model.background if background is None else background)
+        self._offset = np.zeros(3, np.float32)   # the last frame's global colour change (DepthResult.offset)
+        self._changed = False
         self._use_xy = uses_xy(model.feature_set)
         self._context = context_cells(model.feature_set)
         # x and y of every cell, one row each (the CPU path gathers a row per input)
@@ -188,11 +194,12 @@ class DepthPipeline:
         """(B, rows, cols, 3) uint8 tensor -> block-averaged frame and drift-corrected diff, (B, 3, gr, gc)."""
         x = self._pool(frames.to(self.device, non_blocking=True))
         d = x - self.background_grid
+        # robust global offset per channel (the contact covers a small part of the frame)
+        sub = d[:, :, ::4, ::4].reshape(d.shape[0], 3, -1)
+        k = sub.shape[2] // 2
+        off = self._offsets = sub.sort(dim=2).values[:, :, k]
         if self.drift_correction:
-            # robust global offset per channel (the contact covers a small part of the frame)
-            sub = d[:, :, ::4, ::4].reshape(d.shape[0], 3, -1)
-            k = sub.shape[2] // 2
-            d = d - sub.sort(dim=2).values[:, :, k, None, None]
+            d = d - off[:, :, None, None]
         return x, d
 
     def _mask(self, d: Any) -> tuple[Any, Any]:
@@ -276,6 +283,8 @@ class DepthPipeline:
         with torch.inference_mode():
             x, d = self._grid(torch.from_numpy(frame)[None])
             core, m = self._mask(d)
+            self._offset = self._offsets[0].float().cpu().numpy()
+            self._changed = bool(core.any())
             gx, gy = self._dense_gradients(x, d, core)
             if self.device.type != "cpu":
                 z = poisson.integrate_torch(gx, gy)[0]
@@ -307,11 +316,12 @@ class DepthPipeline:
         else:
             x[...] = frame
         np.subtract(x, self._bg_grid_np, out=d)
+        off = self._offset = channel_offset(d)
         if self.drift_correction:
             # subtract per channel as one row of gc x 3 values: numpy's broadcast over a last axis of 3 runs its
             # inner loop 3 elements at a time (0.19 ms here against 0.03 ms, the same numbers)
             d2 = d.reshape(gr, gc * 3)
-            np.subtract(d2, np.tile(channel_offset(d), gc), out=d2)
+            np.subtract(d2, np.tile(off, gc), out=d2)
         np.abs(d, out=b["absd"])
         cv2.transform(b["absd"], self._ones13, dst=b["a"])
         cv2.blur(b["a"], (3, 3), dst=b["a2"], borderType=cv2.BORDER_REPLICATE)
@@ -322,6 +332,7 @@ class DepthPipeline:
         core = cv2.dilate(b["m2"], self._kn)   # the network runs here (change region + `net_rim` cells)
         keep = cv2.dilate(b["m2"], self._kd)   # depth is kept here (change region + `dilate` + 1 cells)
         nz_pts = cv2.findNonZero(core)
+        self._changed = nz_pts is not None
         if nz_pts is None:
             return np.zeros((gr, gc), np.float32), None
         nz_pts = nz_pts.reshape(-1, 2)
@@ -480,7 +491,7 @@ class DepthPipeline:
             # (0.25 ms of the 0.5 ms such a frame costs)
             return DepthResult(depth=np.zeros((self.rows, self.cols), np.float32), max_depth=0.0,
                                contact_mask=np.zeros((self.rows, self.cols), bool), contact_area=0.0,
-                               centroid=np.array([math.nan, math.nan]))
+                               centroid=np.array([math.nan, math.nan]), offset=self._offset, changed=self._changed)
         if w is None or not self._window_outputs:
             depth = self.upsample(zg)
             mask, area, centroid = contact_summary(depth, 1.0 / self.model.px_per_m, self.contact_depth,
@@ -500,4 +511,4 @@ class DepthPipeline:
             mask = np.zeros((self.rows, self.cols), bool)
             mask[r0 * s:r1 * s, c0 * s:c1 * s] = msub
         return DepthResult(depth=depth, max_depth=max(0.0, float(zg.max())), contact_mask=mask,
-                           contact_area=area, centroid=centroid)
+                           contact_area=area, centroid=centroid, offset=self._offset, changed=self._changed)
