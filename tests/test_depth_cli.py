@@ -109,6 +109,23 @@ def test_estimate_json_depth_files_and_force(sim_presses, tmp_path, capsys, monk
     assert png.shape == (320, 240, 3)
 
 
+def test_estimate_refuses_an_implausible_frame_instead_of_a_confident_depth(sim_presses, tmp_path, capsys):
+    # a black frame (LEDs off) read as a ~2.7 mm contact; now it is reported, with no numbers, and the exit code says
+    # so; the good image beside it is still measured
+    black = tmp_path / "black.png"
+    cv2.imwrite(str(black), np.zeros((320, 240, 3), np.uint8))
+    press = sorted(sim_presses.glob("press_*.png"))[0]
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(black), str(press), "--json"])
+    out = capsys.readouterr()
+    assert rc == 2 and "black.png: implausible frame" in out.err and "LEDs off" in out.err
+    bad, good = _json_lines(out.out)
+    assert bad["valid"] is False and bad["max_depth_m"] is None and "max_global_change 24" in bad["problem"]
+    assert good["valid"] is True and 0.1e-3 < good["max_depth_m"] < 1.5e-3
+    with pytest.raises(SystemExit) as exc:
+        main(["estimate", "--model", "sim-digit-qvga", str(press), "--max-global-change", "0"])
+    assert exc.value.code == 2 and "expected a number of levels in (0, 255]" in capsys.readouterr().err
+
+
 def test_estimate_errors(tmp_path, capsys):
     rc = main(["estimate", "--model", str(tmp_path / "missing.model"), "x.png"])
     assert rc == 1 and "missing.model: no such model file" in capsys.readouterr().err

@@ -180,17 +180,7 @@ class DepthEstimator(Component):
                 "centroid": Sample(res.centroid.astype(np.float64), st)}
 
     def _frame_problem(self, res: Any) -> str:
-        """Why a frame is not a plausible DIGIT frame ('' if it is): its global colour change from the background.
-        A frame with the LEDs off, saturated or mid-change reads as a deep, wide contact otherwise."""
-        off = getattr(res, "offset", None)
-        if off is None:
-            return ""
-        big = float(np.max(np.abs(off)))
-        if not big <= self.params.max_global_change:   # also NaN
-            return (f"the frame's global colour change from the background is {big:.0f} levels (B, G, R "
-                    f"{', '.join(f'{v:+.0f}' for v in off)}; max_global_change {self.params.max_global_change:g}): "
-                    f"LEDs off or changing, saturated, or the exposure changed")
-        return ""
+        return frame_problem(res, self.params.max_global_change)
 
     def _bad(self, problem: str, stamp: float, t0: float) -> dict[str, Any]:
         """An implausible frame: NaN outputs (poly-force reads them as invalid input: 0 N), a fault after
@@ -231,6 +221,21 @@ class DepthEstimator(Component):
 
     def status(self) -> dict[str, Any]:
         return dict(self._last)
+
+
+def frame_problem(res: Any, max_global_change: float) -> str:
+    """Why a frame is not a plausible DIGIT frame ('' if it is): its global colour change from the background
+    (``res.offset``, levels per channel). A frame with the LEDs off, saturated or mid-change reads as a deep, wide
+    contact otherwise."""
+    off = getattr(res, "offset", None)
+    if off is None:
+        return ""
+    big = float(np.max(np.abs(off)))
+    if not big <= max_global_change:   # also NaN
+        return (f"the frame's global colour change from the background is {big:.0f} levels (B, G, R "
+                f"{', '.join(f'{v:+.0f}' for v in off)}; max_global_change {max_global_change:g}): "
+                f"LEDs off or changing, saturated, or the exposure changed")
+    return ""
 
 
 def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
@@ -291,6 +296,16 @@ def _px_per_m(text: str) -> float:
     except ValueError:
         pass
     return parse_quantity(t, "px/m")
+
+
+def _positive_levels(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not 0 < v <= 255:
+        raise argparse.ArgumentTypeError(f"expected a number of levels in (0, 255], got {text!r}")
+    return v
 
 
 def _int_at_least(low: int) -> Callable[[str], int]:
@@ -479,7 +494,17 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         res = pipe(frame)
         ms = (time.perf_counter() - t0) * 1e3
-        row: dict[str, Any] = {"image": str(path), "max_depth_m": res.max_depth,
+        problem = frame_problem(res, args.max_global_change)
+        if problem:
+            # not a DIGIT frame the model can read (LEDs off, saturated, another sensor's background): no numbers,
+            # they would be a confident wrong depth
+            print(f"teletouch estimate: error: {path}: implausible frame: {problem}", file=sys.stderr)
+            rc = 2
+            if args.json:
+                print(json.dumps({"image": str(path), "valid": False, "problem": problem, "max_depth_m": None,
+                                  "contact_area_m2": None, "centroid_m": [None, None], "ms": round(ms, 3)}))
+            continue
+        row: dict[str, Any] = {"image": str(path), "valid": True, "max_depth_m": res.max_depth,
                                "contact_area_m2": res.contact_area,
                                "centroid_m": [None if not math.isfinite(c) else float(c) for c in res.centroid],
                                "ms": round(ms, 3)}
@@ -556,4 +581,8 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--json", action="store_true", help="one JSON object per image on stdout (SI units)")
     p.add_argument("--save-depth", default=None, metavar="DIR", help="write DIR/<stem>.npy (m) and a colour PNG")
+    p.add_argument("--max-global-change", type=_positive_levels, default=24.0, metavar="LEVELS",
+                   help="an image whose global colour change from the background exceeds this (0-255 levels per "
+                        "channel; default 24, as the depth node's max_global_change) is reported as implausible "
+                        "(LEDs off, saturated, another sensor's background) instead of given a depth")
     p.set_defaults(func=cmd_estimate)
