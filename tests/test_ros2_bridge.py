@@ -21,6 +21,7 @@ from teletouch.recording import image_msg, ros_time
 from teletouch.testing import load_text, make_registry
 
 from fakes.ros2_peer import Peer as _Peer
+from fakes.ros2_peer import localhost_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -30,10 +31,7 @@ DOMAIN = 120 + (os.getpid() * 7 + 1) % 90
 
 @pytest.fixture(scope="module", autouse=True)
 def ros_env():
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("ROS_DOMAIN_ID", str(DOMAIN))
-        mp.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-        mp.setenv("ROS_LOCALHOST_ONLY", "1")
+    with localhost_domain(DOMAIN):
         yield
 
 
@@ -47,15 +45,7 @@ class Peer(_Peer):
         super().listen(mtype, topic, key, qos, timed=True)
 
 
-def _wait(cond, timeout=15.0, every=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if every is not None:
-            every()
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
+_wait = wait_until
 
 
 def test_publish_standard_messages_with_preserved_stamps():

@@ -3,10 +3,12 @@ never the global one), with an executor spinning in a thread."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from typing import Any
+from typing import Any, Callable, Iterator
 
+import pytest
 import rclpy
 from rclpy.context import Context as RosContext
 from rclpy.executors import SingleThreadedExecutor
@@ -43,3 +45,26 @@ class Peer:
         self.ex.shutdown()
         self.node.destroy_node()
         rclpy.shutdown(context=self.ctx)
+
+
+@contextlib.contextmanager
+def localhost_domain(domain_id: int) -> Iterator[None]:
+    """ROS_DOMAIN_ID set to a test module's own domain, discovery kept on this host (other people's tests run ROS 2
+    on the same machine)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("ROS_DOMAIN_ID", str(domain_id))
+        mp.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        mp.setenv("ROS_LOCALHOST_ONLY", "1")
+        yield
+
+
+def wait_until(cond: Callable[[], bool], timeout: float = 15.0, every: Callable[[], Any] | None = None) -> bool:
+    """Poll ``cond`` (calling ``every`` before each poll) until it holds or ``timeout`` s pass; whether it held."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if every is not None:
+            every()
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
