@@ -348,12 +348,15 @@ def test_stamp_is_the_read_time_on_the_wall_clock(fake_hid):
 def test_spacemouse_silence_is_not_a_fault(fake_hid):
     # a SpaceMouse reports only when the cap moves: silent at rest, so no report_timeout and step-time stamps
     fake_hid.devices.append(info(0x046D, 0xC626))
-    with Harness(hl.HidLeader, {"mode": "position"}) as h:
-        assert h.comp.report_timeout is None
+    with Harness(hl.HidLeader, {"mode": "position"}) as h:   # the cap deflected, then released to the centre
+        assert h.comp.report_timeout == 0.5
         fake_hid.reports += [bytes.fromhex("01 0000 0000") + struct.pack("<h", 175)]
-        x = h.step(0.0)["gripper_opening"]
+        h.step(0.0)
+        fake_hid.reports.append(bytes.fromhex("01 0000 0000 0000"))
+        x = h.step(0.008)["gripper_opening"]
+        assert x == pytest.approx(0.0125)   # centred: half open
         for i in range(1, 2501):  # 10 s without a report
-            out = _raw_step(h, i * 0.004)
+            out = _raw_step(h, 0.008 + i * 0.004)
         assert out["gripper_opening"] == x and not isinstance(out["gripper_opening"], hl.Sample)  # stamped t
     with Harness(hl.HidLeader, {}) as h:  # rate mode: silent at rest once the cap is released
         fake_hid.reports.append(bytes.fromhex("01 0000 0000") + struct.pack("<h", 350))
@@ -364,8 +367,28 @@ def test_spacemouse_silence_is_not_a_fault(fake_hid):
             out = _raw_step(h, 0.008 + i * 0.004)
         assert out["gripper_opening"] == x and out["gripper_velocity"] == 0.0
         assert not isinstance(out["gripper_opening"], hl.Sample)  # stamped t
-    with pytest.raises(ValueError, match="not available for a SpaceMouse in position mode"):
-        Harness(hl.HidLeader, {"report_timeout": 0.5, "mode": "position"}).comp.configure()  # auto -> spacemouse
+
+
+def test_spacemouse_in_position_mode_that_goes_silent_while_deflected_faults(fake_hid):
+    # the link is lost while the cap is held deflected: before, the opening stayed at that deflection, out of the
+    # operator's control, with fresh stamps and no fault
+    fake_hid.devices.append(info(0x256F, 0xC62F))
+    with Harness(hl.HidLeader, {"mode": "position", "dead_band": 0.1}) as h:
+        t, period = 0.0, 0.004
+        for k in range(20):
+            if k % 2 == 0:
+                fake_hid.reports.append(PULL)
+            out = _raw_step(h, t)
+            if k % 2 == 0:
+                last_report, x = t, _value(out["gripper_opening"])
+            t += period
+        assert x < 0.0125   # pulled: closer than half open
+        with pytest.raises(HardwareError, match=r"sent no report for 0\.50.* while its cap was deflected"):
+            while t < 5.0:
+                out = _raw_step(h, t)
+                assert _value(out["gripper_opening"]) == x and out["gripper_opening"].stamp == last_report
+                t += period
+        assert 0.5 < t - last_report <= 0.5 + period + 1e-9
 
 
 def test_report_timeout_must_fit_the_profile(fake_hid):
@@ -373,8 +396,9 @@ def test_report_timeout_must_fit_the_profile(fake_hid):
 
     with pytest.raises(ValidationError, match="cannot be turned off for a dualsense"):
         hl.HidLeader.Params(device="dualsense", report_timeout=0)
-    with pytest.raises(ValidationError, match="not available for a SpaceMouse in position mode"):
-        hl.HidLeader.Params(device="spacemouse", mode="position", report_timeout="0.5 s")
+    with pytest.raises(ValidationError, match="cannot be turned off for a SpaceMouse.*out of the operator's"):
+        hl.HidLeader.Params(device="spacemouse", mode="position", report_timeout=0)
+    assert hl.HidLeader.Params(device="spacemouse", mode="position", report_timeout="0.8 s").report_timeout == 0.8
     assert hl.resolve_report_timeout("generic", None) is None and hl.resolve_report_timeout("generic", 0.3) == 0.3
     # a generic pad known to stream reports opts in
     fake_hid.devices.append(info(0x1234, 0x5678))
@@ -443,7 +467,7 @@ def test_spacemouse_that_goes_silent_while_deflected_stops_the_opening_and_fault
 def test_spacemouse_report_timeout_in_rate_mode(fake_hid):
     from pydantic import ValidationError
 
-    with pytest.raises(ValidationError, match="cannot be turned off for a SpaceMouse in rate mode"):
+    with pytest.raises(ValidationError, match="cannot be turned off for a SpaceMouse: .*move the opening on"):
         hl.HidLeader.Params(device="spacemouse", report_timeout=0)
     fake_hid.devices.append(info(0x046D, 0xC626))
     with Harness(hl.HidLeader, {"report_timeout": "100 ms"}) as h:  # can be changed (raised)

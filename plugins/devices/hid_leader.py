@@ -20,8 +20,10 @@ and stops a few reports after the cap is back at rest (silence is normal at rest
 holds until the next report, for at most ``report_timeout`` (0.5 s by default); silence for longer while the last
 report commanded a rate is a lost link: the opening stays where it was at the last report (the rate counts as zero
 from then on) and step() raises HardwareError; while the cap moves, the outputs carry the time of the last report.
-At rest, and in position mode, a SpaceMouse has no timeout and step-time stamps. A ``generic`` pad has a timeout (and
-report-time stamps) only when ``report_timeout`` is set, for a pad known to stream its reports.
+In position mode the same holds for the deflection: silence while deflected is a lost link (the opening would
+otherwise stay at that deflection, out of the operator's control). At rest a SpaceMouse has no timeout and
+step-time stamps. A ``generic`` pad has a timeout (and report-time stamps) only when ``report_timeout`` is set, for
+a pad known to stream its reports.
 """
 
 from __future__ import annotations
@@ -280,21 +282,15 @@ def resolve_report_timeout(profile: str, report_timeout: float | None, mode: str
                              f"(default {DEFAULT_REPORT_TIMEOUT} s)")
         return float(report_timeout)
     if profile == "spacemouse":
-        if mode == "rate":
-            if report_timeout is None:
-                return DEFAULT_REPORT_TIMEOUT
-            if report_timeout <= 0:
-                raise ValueError(f"report_timeout cannot be turned off for a SpaceMouse in rate mode: it reports "
-                                 f"every few ms while its cap is deflected, so silence then means a lost link, and "
-                                 f"the last rate would move the opening on; raise it instead (default "
-                                 f"{DEFAULT_REPORT_TIMEOUT} s)")
-            return float(report_timeout)
-        if report_timeout:
-            raise ValueError("report_timeout is not available for a SpaceMouse in position mode: it reports only "
-                             "while the cap moves or is deflected, and a lost link leaves the opening where it was; "
-                             "a lost SpaceMouse is detected by the read error when it is unplugged (in rate mode, "
-                             "by report_timeout)")
-        return None
+        if report_timeout is None:
+            return DEFAULT_REPORT_TIMEOUT
+        if report_timeout <= 0:
+            why = ("the last rate would move the opening on" if mode == "rate" else
+                   "the opening would stay at the last deflection, out of the operator's control, with no fault")
+            raise ValueError(f"report_timeout cannot be turned off for a SpaceMouse: it reports every few ms while "
+                             f"its cap is deflected, so silence then means a lost link, and {why}; raise it instead "
+                             f"(default {DEFAULT_REPORT_TIMEOUT} s)")
+        return float(report_timeout)
     return float(report_timeout) if report_timeout else None  # generic: only for a pad known to stream reports
 
 
@@ -350,9 +346,9 @@ class HidLeader(Device):
         report_timeout: Seconds | None = Field(
             None, ge=0, description="silence after which the device faults (HardwareError), and its outputs carry "
                                     "the time of the last report; None: 0.5 s for dualshock4/dualsense (they report "
-                                    "every few ms; cannot be turned off) and for a spacemouse in rate mode (while "
-                                    "its cap is deflected; cannot be turned off), off for a spacemouse in position "
-                                    "mode (cannot be set) and generic (set it for a pad that streams reports)",
+                                    "every few ms; cannot be turned off) and for a spacemouse (while its cap is "
+                                    "deflected; cannot be turned off), off for generic (set it for a pad that "
+                                    "streams reports)",
             json_schema_extra={"unit": "s"})
 
         @field_validator("vendor_id", "product_id", "report_id", mode="before")
@@ -442,33 +438,17 @@ class HidLeader(Device):
                 self._parse(r)
         except (OSError, IOError, ValueError) as exc:
             raise HardwareError(f"{self.info['name']} stopped answering ({exc}): check the USB cable") from None
+        if self.profile == "spacemouse":   # (always has a report_timeout)
+            return self._step_spacemouse(mono)
         if self.report_timeout is not None:
-            if self.profile == "spacemouse":
-                return self._step_spacemouse_rate(mono)
             return self._step_periodic(mono)
         dt = 0.0 if self.last_t is None else max(0.0, t - self.last_t)
         self.last_t = t
-        position = np.zeros(3)
-        if self.profile == "spacemouse":
-            sm = self.sm
-            u = axis_to_unit(sm.axis(p.axis), p.full_scale, p.invert)
-            if p.mode == "rate":
-                self.opening, self.velocity = integrate_rate(self.opening, u, dt, p.max_speed, p.dead_band,
-                                                             p.min_opening, p.max_opening)
-            else:
-                x = p.min_opening + 0.5 * (deadband(u, p.dead_band) + 1.0) * (p.max_opening - p.min_opening)
-                self.velocity = 0.0 if dt <= 0 else (x - self.opening) / dt
-                self.opening = x
-            position = np.array([axis_to_unit(v, p.full_scale, False) for v in (sm.tx, sm.ty, sm.tz)]) \
-                * p.position_scale
-            button = bool(sm.buttons >> p.button_bit & 1)
-        else:
-            x = trigger_to_opening(self.pad.trigger(p.trigger), p.min_opening, p.max_opening)
-            self.velocity = 0.0 if dt <= 0 else (x - self.opening) / dt
-            self.opening = x
-            button = self.pad.cross
-        return {"gripper_opening": self.opening, "gripper_velocity": self.velocity, "position": position,
-                "button": button}
+        x = trigger_to_opening(self.pad.trigger(p.trigger), p.min_opening, p.max_opening)
+        self.velocity = 0.0 if dt <= 0 else (x - self.opening) / dt
+        self.opening = x
+        return {"gripper_opening": self.opening, "gripper_velocity": self.velocity, "position": np.zeros(3),
+                "button": self.pad.cross}
 
     def _step_periodic(self, mono: float | None) -> dict[str, Any] | None:
         """A device that reports periodically: fault on silence, stamp the outputs with the last report's time."""
@@ -499,11 +479,12 @@ class HidLeader(Device):
                      "position": Sample(np.zeros(3), stamp), "button": Sample(self.pad.cross, stamp)}
         return dict(self._out)
 
-    def _step_spacemouse_rate(self, mono: float | None) -> dict[str, Any]:
-        """SpaceMouse in rate mode: the opening moves with the rate of the last report, from that report to the next
-        (for at most report_timeout); while the cap is deflected the device reports every few ms, so silence for
-        longer than report_timeout is a lost link: the opening stays where it was at the last report and step()
-        raises. At rest silence is normal (no report until the cap moves again)."""
+    def _step_spacemouse(self, mono: float | None) -> dict[str, Any]:
+        """SpaceMouse. Rate mode: the opening moves with the rate of the last report, from that report to the next
+        (for at most report_timeout). Position mode: the opening follows the deflection of each report (centred:
+        half open). While the cap is deflected the device reports every few ms, so silence for longer than
+        report_timeout is a lost link: the opening stays where it was at the last report and step() raises. At rest
+        silence is normal (no report until the cap moves again)."""
         p = self.params
         timeout = self.report_timeout
         if mono is None:
@@ -520,18 +501,24 @@ class HidLeader(Device):
                                     f"check the cable or the wireless receiver and its battery")
             return dict(self._out)  # type: ignore[arg-type]  # moving: the last report's samples, with their stamp
         stamp = self.ctx.from_monotonic(mono)
-        if self.last_report_t is not None and self._deflection != 0.0:
-            dt = stamp - self.last_report_t
-            if 0.0 < dt <= timeout:  # type: ignore[operator]  # (longer: the rate counts as zero after the report)
-                self.opening, _ = integrate_rate(self.opening, self._deflection, dt, p.max_speed, p.dead_band,
-                                                 p.min_opening, p.max_opening)
-        self.last_report_t = stamp
         sm = self.sm
         u = axis_to_unit(sm.axis(p.axis), p.full_scale, p.invert)
+        if p.mode == "rate":
+            if self.last_report_t is not None and self._deflection != 0.0:
+                dt = stamp - self.last_report_t
+                if 0.0 < dt <= timeout:  # type: ignore[operator]  # (longer: the rate counts as zero after it)
+                    self.opening, _ = integrate_rate(self.opening, self._deflection, dt, p.max_speed, p.dead_band,
+                                                     p.min_opening, p.max_opening)
+            v = deadband(u, p.dead_band) * p.max_speed
+            if (v > 0 and self.opening >= p.max_opening) or (v < 0 and self.opening <= p.min_opening):
+                v = 0.0  # against an end stop
+        else:
+            x = p.min_opening + 0.5 * (deadband(u, p.dead_band) + 1.0) * (p.max_opening - p.min_opening)
+            dt = 0.0 if self.last_report_t is None else stamp - self.last_report_t
+            v = (x - self.opening) / dt if 0.0 < dt <= timeout else 0.0  # type: ignore[operator]
+            self.opening = x
+        self.last_report_t = stamp
         self._deflection = u if deadband(u, p.dead_band) != 0.0 else 0.0
-        v = deadband(u, p.dead_band) * p.max_speed
-        if (v > 0 and self.opening >= p.max_opening) or (v < 0 and self.opening <= p.min_opening):
-            v = 0.0  # against an end stop
         self.velocity = v
         position = np.array([axis_to_unit(c, p.full_scale, False) for c in (sm.tx, sm.ty, sm.tz)]) * p.position_scale
         self._out = {"gripper_opening": Sample(self.opening, stamp), "gripper_velocity": Sample(v, stamp),
