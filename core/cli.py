@@ -142,6 +142,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _term)
+    record_error = None
     try:
         result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
     finally:
@@ -149,12 +150,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         if progress is not None:
             progress.done()
         if recorder is not None:
-            recorder.close()
+            try:
+                recorder.close()
+            except TeletouchError as exc:  # the recording failed (disk full): the run's own result still counts
+                record_error = exc
+                print(f"teletouch: error: {exc}", file=sys.stderr)
     if not args.quiet:
         print(result.summary(), file=sys.stderr)
     if args.json:
         print(json.dumps(result.as_dict(), default=str))
     print(f"teletouch: {result.status}: {result.message}", file=sys.stderr)
+    if record_error is not None and result.exit_code == EXIT_OK:
+        return EXIT_INVALID
     return result.exit_code
 
 

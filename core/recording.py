@@ -13,8 +13,8 @@ ROS 2 messages in CDR with ``ros2msg`` schemas where a standard message fits, so
 value                                   message
 ======================================  ==============================================================
 float, unit N (scalar or 3-vector)      geometry_msgs/msg/WrenchStamped (scalar on force.z)
-other float scalar                      std_msgs/msg/Float64
-bool / int / str scalar                 std_msgs/msg/Bool / Int64 / String
+other float or int scalar               std_msgs/msg/Float64 (an int is exact up to 2**53)
+bool / str scalar                       std_msgs/msg/Bool / String
 1-D or N-D float array                  std_msgs/msg/Float64MultiArray (layout keeps the shape)
 uint8 image (rows, cols, 3) BGR         sensor_msgs/msg/CompressedImage, PNG (lossless) or JPEG
 uint8 (rows, cols) / bool mask          sensor_msgs/msg/CompressedImage, PNG mono8 (mask: 0/255)
@@ -211,6 +211,8 @@ def _jsonable(v: Any) -> Any:
     if isinstance(v, Sample):
         return {"value": _jsonable(v.value), "stamp": v.stamp}
     if isinstance(v, np.ndarray):
+        if v.dtype.kind in "fc" and not np.isfinite(v).all():
+            return _jsonable(v.tolist())  # NaN/inf elements as strings (below), not the whole message lost
         return v.tolist()
     if isinstance(v, np.generic):
         return _jsonable(v.item())
@@ -398,7 +400,7 @@ class _Compressed(_Codec):
     ros_type = "sensor_msgs/msg/CompressedImage"
 
     def accepts(self, v):
-        if not isinstance(v, np.ndarray):
+        if not isinstance(v, np.ndarray) or v.size == 0:  # cv2 cannot encode an empty image: JSON takes it
             return False
         if v.dtype == np.uint8:
             return v.ndim == 2 or (v.ndim == 3 and v.shape[2] == 3)
@@ -465,9 +467,7 @@ class _Json(_Codec):
         return json.dumps({"value": _jsonable(v)}, allow_nan=False).encode()
 
     def decode(self, data, meta):
-        v = json.loads(data)["value"]
-        if isinstance(v, str) and v in ("nan", "inf", "-inf"):
-            return float(v)
+        v = _unjson(json.loads(data)["value"])
         if isinstance(v, dict) and "png" in v:
             import cv2
 
@@ -478,6 +478,17 @@ class _Json(_Codec):
             except (TypeError, ValueError):
                 return v
         return v
+
+
+def _unjson(v: Any) -> Any:
+    """The non-finite floats that :func:`_jsonable` wrote as strings, back as floats (also inside lists, dicts)."""
+    if isinstance(v, str):
+        return float(v) if v in ("nan", "inf", "-inf") else v
+    if isinstance(v, list):
+        return [_unjson(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _unjson(x) for k, x in v.items()}
+    return v
 
 
 class _JsonImage(_Json):
@@ -612,6 +623,9 @@ class Recorder:
         self._closed = False
         self.messages = 0
         self.dropped = 0
+        self._dropped_items = self._dropped_bytes = False  # which limit dropped samples (for the report)
+        self._last_t: float | None = None  # graph time of the last message handed to the writer
+        self._flushed = (0, None)  # (messages, graph time of the last one) at the last successful flush
         self.max_backlog = 0  # most items seen waiting for the writer
         self.errors: list[str] = []
         self._seq = 0
@@ -638,6 +652,10 @@ class Recorder:
             while n >= self.max_queue or (nbytes and self._queued_bytes + nbytes > self.max_queue_bytes):
                 if self.clock != "sim" or not self._thread.is_alive():
                     self.dropped += len(outputs)  # real time: never block the node's thread
+                    if n >= self.max_queue:
+                        self._dropped_items = True
+                    else:
+                        self._dropped_bytes = True
                     return
                 time.sleep(0.001)  # simulated clock: wait for the writer, record everything
                 n = self._q.qsize()
@@ -656,13 +674,25 @@ class Recorder:
         try:
             if self.fatal is None:
                 self._writer.finish()
+        except Exception as exc:  # the summary could not be written (disk full...): the data before it stays
+            self._fail(exc, "writing the summary at close")
         finally:
-            self._fh.close()
+            try:
+                self._fh.close()  # flushes what is buffered: fails again on a full disk
+            except OSError as exc:
+                if self.fatal is None:
+                    self._fail(exc, "closing the file")
         if self.dropped:
-            self.log(f"{self.dropped} samples dropped: the writer fell behind (max_queue {self.max_queue})")
+            limits = " and ".join(x for x, hit in (
+                (f"max_queue {self.max_queue} items", self._dropped_items),
+                (f"max_queue_bytes {self.max_queue_bytes} bytes", self._dropped_bytes)) if hit)
+            self.log(f"{self.dropped} samples dropped: the writer fell behind ({limits})")
         for e in self.errors[:5]:
             self.log(e)
-        self.log(f"wrote {self.messages} messages on {len(self._chans)} channels to {self.path}")
+        if len(self.errors) > 5:
+            self.log(f"... {len(self.errors) - 5} more errors")
+        done = "wrote" if self.fatal is None else "gave the writer (not all reached the file)"
+        self.log(f"{done} {self.messages} messages on {len(self._chans)} channels to {self.path}")
         if self.fatal is not None:
             raise RecordingError(f"recording {self.path} stopped early: {self.fatal}")
 
@@ -761,6 +791,16 @@ class Recorder:
             self._writer.add_message(cid, log_time=max(0, log_ns), data=data, publish_time=max(0, pub_ns),
                                      sequence=self._seq)
             self.messages += 1
+            self._last_t = (log_ns - (self._epoch_ns or 0)) * 1e-9
+
+    def _fail(self, exc: BaseException, doing: str) -> None:
+        """The file cannot be written: stop recording (taps return at once), say where and why, now and at close."""
+        n, t = self._flushed
+        at = f" at graph time {self._last_t:.3f} s" if self._last_t is not None else ""
+        kept = (f"the file keeps at least the {n} messages up to graph time {t:.3f} s (its last flush)" if n else
+                "no message reached the file before it")
+        self.fatal = f"{type(exc).__name__}: {exc} ({doing}{at}; {kept})"
+        self.log(f"recording to {self.path} stopped: {self.fatal}; the run goes on without it")
 
     def _error(self, what: str, exc: BaseException) -> None:
         if len(self.errors) < 100:
@@ -777,8 +817,7 @@ class Recorder:
         try:
             self._loop()
         except Exception as exc:  # the file cannot be written (disk full, ...): stop recording, say so at close
-            self.fatal = f"{type(exc).__name__}: {exc}"
-            self.log(f"recording stopped: {self.fatal}")
+            self._fail(exc, "writing")
         finally:
             if self._pool is not None:
                 self._pool.shutdown(wait=True)
@@ -818,6 +857,7 @@ class Recorder:
             if time.monotonic() >= next_flush:
                 self._emit(wait=True)
                 self._writer.flush()  # closes the chunk in progress and flushes the file
+                self._flushed = (self.messages, self._last_t)
                 next_flush = time.monotonic() + self.flush_interval
 
 
@@ -1092,16 +1132,27 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
     sig = read_signals(path)
     units = {ch.key: ch.metadata.get("unit", "") for ch in rec.channels.values()}
     groups: dict[str, list[str]] = {}
+    skipped = []  # numeric signals that cannot be drawn as lines, and why
     for key, (ts, vs) in sorted(sig.items()):
         if pattern is not None and not pattern.search(key):
             continue
         if isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and vs.ndim in (1, 2) and len(ts):
             groups.setdefault(key.split(".")[0], []).append(key)
+        elif isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and len(ts):
+            skipped.append(f"{key} ({'x'.join(map(str, vs.shape[1:]))} arrays)")
+        elif isinstance(vs, list) and vs and all(isinstance(v, np.ndarray) and v.dtype.kind in "fb" for v in vs):
+            shapes = sorted({v.shape for v in vs}, key=lambda sh: (len(sh), sh))
+            what = ", ".join("x".join(map(str, sh)) or "scalar" for sh in shapes[:4])
+            skipped.append(f"{key} ({what} arrays)" if len(shapes) == 1 else
+                           f"{key} (its shape changes: {what}{', ...' if len(shapes) > 4 else ''})")
+    not_drawn = f"; not drawn: {', '.join(skipped)}" if skipped else ""
     if not groups:
         raise RecordingError(f"{path}: no numeric signals to plot" + (f" matching '{select}'" if select else "")
-                             + (f": {rec.note()}" if rec.truncated else ""))
+                             + not_drawn + (f": {rec.note()}" if rec.truncated else ""))
     if rec.truncated:
         log(f"warning: {path}: {rec.note()}; plotting those")
+    if skipped:
+        log(f"note: {path}: not drawn (only 1-D signals and vectors are): {', '.join(skipped)}")
     if outdir.exists() and not outdir.is_dir():
         raise RecordingError(f"output folder {outdir} is a file, not a folder")
     try:
@@ -1114,12 +1165,24 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
         for ax, key in zip(axes[:, 0], keys):
             ts, vs = sig[key]
             vals = vs.astype(float)
+            cols = vals.reshape(len(ts), -1)
+            # a line needs two neighbouring finite points: a single sample (or one between NaNs) gets a marker
+            finite = np.isfinite(cols)
+            none = np.zeros_like(finite[:1])
+            alone = finite & ~np.vstack([none, finite[:-1]]) & ~np.vstack([finite[1:], none])
+            mark = dict(marker="o", ms=3) if alone.any() else {}
             if vals.ndim == 1:
-                ax.plot(ts, vals, lw=1)
+                ax.plot(ts, vals, lw=1, **mark)
             else:
                 for j in range(vals.shape[1]):
-                    ax.plot(ts, vals[:, j], lw=1, label=f"[{j}]")
+                    ax.plot(ts, vals[:, j], lw=1, label=f"[{j}]", **mark)
                 ax.legend(loc="upper right", fontsize=7)
+            n_nan, n_inf = int(np.isnan(cols).sum()), int(np.isinf(cols).sum())
+            if n_nan or n_inf:  # matplotlib leaves them out silently: say so on the plot
+                gaps = " and ".join(f"{n} {w}" for n, w in ((n_nan, "NaN"), (n_inf, "inf")) if n)
+                ax.text(0.01, 0.95, f"{gaps} of {cols.size} values not drawn"
+                        + (" (no finite value)" if not finite.any() else ""), transform=ax.transAxes,
+                        fontsize=8, va="top", color="tab:red")
             unit = units.get(key, "")
             ax.set_ylabel(f"{key.split('.', 1)[-1]}" + (f" [{unit}]" if unit and unit != "any" else ""), fontsize=8)
             ax.grid(alpha=0.3)

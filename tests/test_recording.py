@@ -485,3 +485,125 @@ def test_iter_images_warns_about_a_truncated_recording(tmp_path):
     assert [int(img[0, 0, 0]) for _, img in got] == [0, 20, 40, 60, 80]
     assert len(logs) == 1 and logs[0].startswith(f"warning: {cut}: the recording is truncated at byte {second}")
     assert list(iter_images(path, log=logs.append)) and len(logs) == 1  # complete: no warning
+
+
+# ----------------------------------------------------------------------------- recording audit (disk full, plot)
+DISK_GRAPH = """
+clock: sim
+duration: 2
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100, params: {signal: ramp, amplitude: 1.0}}
+  - {id: dev, plugin: mock-device, rate: 1000, inputs: {command: src.value}}
+"""
+
+
+def test_disk_full_mid_run_the_run_goes_on_devices_end_safe_file_readable(tmp_path, monkeypatch):
+    """The disk fills while recording: the run goes on to its end, the device ends in its safe state, close() says
+    where (file, graph time, what the file keeps) and why, and the file reads up to the failure."""
+    import teletouch.recording as recording
+    from fakes.mcap_files import FullDisk
+
+    disk = FullDisk(30_000)
+    monkeypatch.setattr(recording, "open", disk, raising=False)
+    reg = make_registry()
+    spec = load_text(DISK_GRAPH, reg)
+    path = tmp_path / "full.mcap"
+    logs: list[str] = []
+    rec = Recorder(path, spec, flush_interval=0.0, log=logs.append)  # a flush per item: the disk fills mid-run
+    rt = Runtime(spec, log=lambda m: None)
+    rt.add_tap(rec.tap)
+    result = rt.run()
+    assert result.status == "ok" and result.sim_time == pytest.approx(2.0)
+    dev = next(n.comp for n in rt.nodes if n.id == "dev")
+    assert dev.safe_calls >= 1 and dev.safe
+    with pytest.raises(RecordingError) as info:
+        rec.close()
+    msg = str(info.value)
+    assert msg.startswith(f"recording {path} stopped early: OSError: [Errno 28] No space left on device (writing at "
+                          f"graph time ")
+    assert disk.failures >= 1 and any("the run goes on without it" in m for m in logs)
+    kept = int(msg.split("the file keeps at least the ")[1].split()[0])
+    r, items = open_recording(path)
+    assert r.truncated and r.messages >= kept > 0 and path.stat().st_size <= 30_000
+    v = [(s, x) for k, s, _, x in items if k == "src.value"]
+    assert v and all(x == pytest.approx(s, abs=1e-9) for s, x in v)  # the ramp's value is its time: intact
+
+
+def test_disk_full_when_writing_the_summary_is_a_recording_error(tmp_path, monkeypatch):
+    import teletouch.recording as recording
+    from fakes.mcap_files import FullDisk
+
+    monkeypatch.setattr(recording, "open", FullDisk(2_000), raising=False)
+    rec = Recorder(tmp_path / "late.mcap", None, flush_interval=60.0, log=lambda m: None)  # no flush before close
+    for k in range(300):
+        rec.tap("src", k * 0.01, {"value": float(k)})
+    with pytest.raises(RecordingError, match=r"late\.mcap stopped early: OSError: \[Errno 28\] No space left on "
+                                             r"device \(writing the summary at close at graph time 2\.990 s; no "
+                                             r"message reached the file before it\)"):
+        rec.close()
+    rec.close()  # idempotent, quiet
+
+
+def test_cli_run_with_a_full_disk_keeps_the_run_summary_and_exits_1(tmp_path, monkeypatch, capsys):
+    import teletouch.recording as recording
+    from fakes.mcap_files import FullDisk
+
+    monkeypatch.setattr(recording, "open", FullDisk(3_000), raising=False)
+    graph = tmp_path / "g.yaml"
+    graph.write_text(DISK_GRAPH)
+    code = cli_main(["run", str(graph), "--quiet", "--record", str(tmp_path / "r.mcap")])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert f"teletouch: error: recording {tmp_path / 'r.mcap'} stopped early: OSError: [Errno 28]" in err
+    assert "teletouch: ok: ran 2.000 s" in err  # the run's own result is still reported
+
+
+def test_json_channels_keep_arrays_with_nan_and_inf(tmp_path):
+    """A NaN in an array (or a dict) on a JSON channel lost the whole message (json allow_nan=False)."""
+    for ros in (True, False):
+        path = tmp_path / f"nan{ros}.mcap"
+        with Recorder(path, None, ros_encoding=ros, log=lambda m: None) as rec:
+            rec.tap("n", 0.0, {"v": np.array([np.nan, np.inf, -np.inf, 1.0]), "d": {"f": np.array([np.nan, 2.0])}})
+        assert rec.errors == []
+        sig = read_signals(path)
+        v = np.asarray(sig["n.v"][1][0], dtype=float)
+        assert np.isnan(v[0]) and v[1] == np.inf and v[2] == -np.inf and v[3] == 1.0
+        d = sig["n.d"][1][0]["f"]
+        assert math.isnan(d[0]) and d[1] == 2.0
+
+
+def test_an_empty_image_goes_to_the_json_channel_not_lost(tmp_path):
+    path = tmp_path / "empty.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        for k in range(3):
+            rec.tap("cam", k * 0.1, {"image": np.zeros((0, 0, 3), np.uint8) if k == 1 else
+                                     np.full((4, 6, 3), k, np.uint8)})
+    assert rec.errors == [] and rec.messages == 3
+    _, items = open_recording(path)
+    assert [k for k, *_ in items] == ["cam.image", "cam.image/json", "cam.image"]
+    assert len(list(iter_images(path))) == 2
+
+
+def _colour_pixels(png: Path, bgr: tuple[int, int, int]) -> int:
+    img = cv2.imread(str(png)).astype(int)
+    return int((np.abs(img - np.array(bgr)).sum(axis=2) < 40).sum())
+
+
+def test_plot_a_single_sample_nan_values_and_arrays_that_change_shape(tmp_path, capsys):
+    path = tmp_path / "odd.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        rec.tap("one", 0.0, {"x": 1.5})  # a single sample
+        for k in range(4):
+            rec.tap("gap", k * 0.01, {"x": float("nan") if k != 2 else 1.0})  # one finite value between NaNs
+            rec.tap("bad", k * 0.01, {"x": float("nan")})
+            rec.tap("grow", k * 0.01, {"v": np.arange(k + 1.0)})  # the shape changes: cannot be stacked
+    code, err = _plot(capsys, path, "-o", tmp_path / "out")
+    assert code == 0
+    assert "note: " in err and "not drawn (only 1-D signals and vectors are): grow.v (its shape changes: 1, 2, 3" in err
+    blue, red = (180, 119, 31), (40, 39, 214)  # tab:blue (the line), tab:red (the note), BGR
+    assert _colour_pixels(tmp_path / "out" / "one.png", blue) > 10  # the single sample is drawn (a marker)
+    assert _colour_pixels(tmp_path / "out" / "gap.png", blue) > 10
+    assert _colour_pixels(tmp_path / "out" / "bad.png", red) > 10  # "4 NaN of 4 values not drawn"
+    assert not (tmp_path / "out" / "grow.png").exists()
+    code, err = _plot(capsys, path, "-o", tmp_path / "out2", "--select", "grow")
+    assert code == 1 and "no numeric signals to plot matching 'grow'; not drawn: grow.v (its shape changes" in err

@@ -57,3 +57,49 @@ def record_in_two_flushes(path: Path, taps: list[tuple[str, float, dict[str, Any
                     time.sleep(0.01)
                 first_go = path.stat().st_size
     return chunk_offsets(path), first_go
+
+
+class FullDisk:
+    """``open()`` for the recording module whose "wb" files take ``capacity`` bytes and then fail as a full disk
+    does: a short write, then OSError ENOSPC on every write (reading is the real ``open``)."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.failures = 0
+
+    def __call__(self, file: Any, mode: str = "r", *args: Any, **kw: Any) -> Any:
+        import builtins
+        import io
+
+        if mode != "wb":
+            return builtins.open(file, mode, *args, **kw)
+        disk = self
+
+        class _Raw(io.RawIOBase):
+            def __init__(self) -> None:
+                self.fh = builtins.open(file, "wb", buffering=0)
+
+            def writable(self) -> bool:
+                return True
+
+            def seekable(self) -> bool:
+                return True
+
+            def tell(self) -> int:
+                return self.fh.tell()
+
+            def seek(self, pos: int, whence: int = 0) -> int:
+                return self.fh.seek(pos, whence)
+
+            def write(self, b: Any) -> int:
+                room = disk.capacity - self.fh.tell()
+                if room <= 0:
+                    disk.failures += 1
+                    raise OSError(28, "No space left on device")
+                return self.fh.write(bytes(b)[:room])
+
+            def close(self) -> None:
+                self.fh.close()
+                super().close()
+
+        return io.BufferedWriter(_Raw())
