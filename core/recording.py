@@ -546,6 +546,8 @@ def _ros_available() -> bool:
 
 
 # --------------------------------------------------------------------------------------------- writing
+#: s without progress after which close() stops waiting for the writer (a write that never returns)
+CLOSE_STALL_TIMEOUT = 10.0
 _STOP = object()
 
 
@@ -670,7 +672,23 @@ class Recorder:
             return
         self._closed = True
         self._q.put(_STOP)
-        self._thread.join()
+        # the writer drains the queue first (a backlog of images takes a while): waited for while it makes progress;
+        # a writer stuck in a write (a stalled network disk) would otherwise hang the end of the run for good
+        last, idle = -1, 0.0
+        while True:
+            self._thread.join(timeout=0.25)
+            if not self._thread.is_alive():
+                break
+            if self.messages != last:
+                last, idle = self.messages, 0.0
+                continue
+            idle += 0.25
+            if idle >= CLOSE_STALL_TIMEOUT:
+                self.fatal = self.fatal or (f"the writer made no progress for {idle:.1f} s at close (a write that "
+                                            f"does not return: a stalled disk?); the file was left as it is, "
+                                            f"readable up to its last flush")
+                self.log(f"recording {self.path}: {self.fatal}")
+                raise RecordingError(f"recording {self.path} stopped early: {self.fatal}")
         try:
             if self.fatal is None:
                 self._writer.finish()

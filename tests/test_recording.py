@@ -529,6 +529,35 @@ def test_disk_full_mid_run_the_run_goes_on_devices_end_safe_file_readable(tmp_pa
     assert v and all(x == pytest.approx(s, abs=1e-9) for s, x in v)  # the ramp's value is its time: intact
 
 
+def test_a_stalled_disk_does_not_hang_close(tmp_path, monkeypatch):
+    """A write that never returns (a stalled network disk): close() stops waiting for the writer once it makes no
+    progress for CLOSE_STALL_TIMEOUT, with a RecordingError saying so, instead of hanging the end of the run."""
+    import time
+
+    import teletouch.recording as recording
+    from fakes.mcap_files import StalledDisk
+
+    disk = StalledDisk(20_000)
+    monkeypatch.setattr(recording, "open", disk, raising=False)
+    monkeypatch.setattr(recording, "CLOSE_STALL_TIMEOUT", 0.5)
+    reg = make_registry()
+    spec = load_text(DISK_GRAPH, reg)
+    path = tmp_path / "stalled.mcap"
+    rec = Recorder(path, spec, flush_interval=0.0, log=lambda m: None)
+    rt = Runtime(spec, log=lambda m: None)
+    rt.add_tap(rec.tap)
+    try:
+        assert rt.run().status == "ok"
+        assert disk.blocked.wait(5.0)
+        t0 = time.monotonic()
+        with pytest.raises(RecordingError, match=r"stalled.mcap stopped early: the writer made no progress for "
+                                                 r"0\.5 s at close"):
+            rec.close()
+        assert time.monotonic() - t0 < 3.0
+    finally:
+        disk.release.set()   # let the writer thread end
+
+
 def test_disk_full_when_writing_the_summary_is_a_recording_error(tmp_path, monkeypatch):
     import teletouch.recording as recording
     from fakes.mcap_files import FullDisk

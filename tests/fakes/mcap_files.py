@@ -103,3 +103,32 @@ class FullDisk:
                 super().close()
 
         return io.BufferedWriter(_Raw())
+
+
+class StalledDisk(FullDisk):
+    """``open()`` for the recording module whose "wb" files take ``capacity`` bytes and then block every write until
+    ``release`` is set, as a stalled network disk does (no error: the write never returns)."""
+
+    def __init__(self, capacity: int):
+        import threading
+
+        super().__init__(capacity)
+        self.release = threading.Event()
+        self.blocked = threading.Event()
+
+    def __call__(self, file: Any, mode: str = "r", *args: Any, **kw: Any) -> Any:
+        fh = super().__call__(file, mode, *args, **kw)
+        if mode != "wb":
+            return fh
+        raw = fh.raw
+        full_write = type(raw).write
+        disk = self
+
+        def write(b: Any) -> int:
+            if raw.fh.tell() + len(b) > disk.capacity:
+                disk.blocked.set()
+                disk.release.wait()
+            return full_write(raw, b)
+
+        raw.write = write
+        return fh
