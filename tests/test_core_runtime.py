@@ -450,8 +450,9 @@ clock: wall
 faults: {safe_timeout: 0.3}
 nodes:
   - {id: leader, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 4.0, locked: true}}
-  - {id: follower, plugin: mock-device, rate: 100}
+  - {id: follower, plugin: mock-device, rate: 200}
 """
+    # (the follower at another rate: a thread of its own, which the hang does not stall)
     t0 = time.perf_counter()
     res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=10.0)
     took = time.perf_counter() - t0
