@@ -39,6 +39,17 @@ def harness(emu, **params):
     return h
 
 
+def _trace_speeds(emu, n0: int, seconds: float, m_per_tick: float) -> list[float]:
+    """Let the emulated servo move for ``seconds``, then its speeds (m/s of opening) between the position-trace
+    entries recorded since entry ``n0``."""
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        emu.poll()
+        time.sleep(0.01)
+    tr = emu.trace[n0:]
+    return [abs(b[1] - a[1]) / (b[0] - a[0]) * m_per_tick for a, b in zip(tr, tr[1:]) if b[0] > a[0]]
+
+
 def test_crc_and_stuffing_helpers():
     # ROBOTIS e-Manual example: PING to ID 1 is FF FF FD 00 01 03 00 01 19 4E
     assert crc16(bytes.fromhex("FFFFFD0001030001")) == 0x4E19
@@ -296,12 +307,7 @@ def test_rh_p12_rn_presets_end_to_end(model):
             n0 = len(emu.trace)
             h.comp.safe_state()
             assert wait_for(lambda: emu.get(t.goal_position) == 0)
-            t_end = time.monotonic() + 0.3
-            while time.monotonic() < t_end:
-                emu.poll()
-                time.sleep(0.01)
-            tr = emu.trace[n0:]
-            speeds = [abs(b[1] - a[1]) / (b[0] - a[0]) * 0.106 / 740 for a, b in zip(tr, tr[1:]) if b[0] > a[0]]
+            speeds = _trace_speeds(emu, n0, 0.3, 0.106 / 740)
             assert 0.095 < max(speeds) <= 0.1  # 0.0999 (A), 0.0992 m/s (old)
 
 
@@ -363,12 +369,7 @@ def test_servo_speed_limit_from_max_speed():
             h.comp.safe_state()
             assert wait_for(lambda: emu.get(emu.table.goal_position) == 1024)  # the jump is sent in one packet ...
             n0 = len(emu.trace)
-            t_end = time.monotonic() + 0.4
-            while time.monotonic() < t_end:
-                emu.poll()
-                time.sleep(0.01)
-            tr = emu.trace[n0:]
-            speeds = [abs(b[1] - a[1]) / (b[0] - a[0]) * 0.075 / 1024 for a, b in zip(tr, tr[1:]) if b[0] > a[0]]
+            speeds = _trace_speeds(emu, n0, 0.4, 0.075 / 1024)
             assert max(speeds) <= 0.05  # ... but the servo moves no faster than max_speed (it ran at 0.22 m/s)
             assert max(speeds) > 0.045
     finally:
