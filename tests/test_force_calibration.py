@@ -493,7 +493,7 @@ def test_gel_that_reads_shallow_stops_the_approach_on_force(reg):
     # the depth estimator reads far too shallow (here: it needs 2.9 mm before it calls it contact): the approach
     # meets the gel's resistance and must stop there, not push on until max_force (~2.5 mm into the gel)
     log = []
-    result, rt = run_yaml(graph(routine={"touch_depth": "2.9mm"}), reg,
+    result, rt = run_yaml(graph(routine={"touch_depth": "2.9mm", "backoff": "3mm"}), reg,
                           taps=[lambda n, t, o: log.append(float(o["indentation"])) if n == "rig" else None])
     r = rt.component("routine")
     assert result.status == "fault" and "approach_max_force" in result.message

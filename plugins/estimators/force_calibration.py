@@ -104,7 +104,7 @@ class PressRoutine(Component):
         move_speed: MetersPerSecond = Field(4e-3, gt=0, description="speed between steps and when retracting",
                                             json_schema_extra=_u("m/s"))
         backoff: Meters = Field(5e-4, ge=0, description="retreat above the touch point before the steps (the "
-                                "device's force offset is measured there, off the gel)",
+                                "device's force offset is measured there, off the gel; more than touch_depth)",
                                 json_schema_extra=_u("m"))
         touch_depth: Meters = Field(3e-5, gt=0, description="max depth that counts as touching",
                                     json_schema_extra=_u("m"))
@@ -160,6 +160,10 @@ class PressRoutine(Component):
         if p.touch_depth >= p.max_depth_limit:
             raise ValueError(f"touch_depth ({p.touch_depth * 1e3:.3f} mm) must be below max_depth_limit "
                              f"({p.max_depth_limit * 1e3:.3f} mm)")
+        if p.backoff <= p.touch_depth:
+            raise ValueError(f"backoff ({p.backoff * 1e3:.3f} mm) must be more than touch_depth "
+                             f"({p.touch_depth * 1e3:.3f} mm): the probe is at least that far into the gel when the "
+                             f"touch is seen, and the tare is measured off the gel (the run would abort there)")
         if p.approach_max_force >= p.max_force:
             raise ValueError(f"approach_max_force ({p.approach_max_force:g} N) must be below max_force "
                              f"({p.max_force:g} N)")
@@ -216,6 +220,7 @@ class PressRoutine(Component):
         self.t_start: float | None = None
         self.tare = 0.0
         self.arrived: float | None = None
+        self._samples_written = False
 
     def activate(self) -> None:
         self.reset()
@@ -453,6 +458,7 @@ class PressRoutine(Component):
         if self.state == "aborted":
             self.cmd = np.zeros(3)
             out["force"] = np.zeros(3)
+            self._write_samples(partial=True)
             raise ComponentFault(f"press routine aborted: {self.abort_reason}", self.id)
         return out
 
@@ -549,11 +555,30 @@ class PressRoutine(Component):
         self.index += 1
         self.done_points += 1
 
+    def partial_reason(self) -> str | None:
+        """Why the samples are incomplete (for the CSV's ``# partial:`` line), or None once the routine is done."""
+        if self.state == "done":
+            return None
+        why = f": {self.abort_reason}" if self.abort_reason else ""
+        return (f"press routine {self.state}{why}; {len(self.samples)} of {self.total_points} planned steps "
+                f"recorded")
+
+    def _write_samples(self, partial: bool = False) -> None:
+        """samples_csv, once: at the end, or marked partial at an abort (the samples so far, for a look)."""
+        if not self.params.samples_csv or self._samples_written:
+            return
+        self._samples_written = True
+        try:
+            write_pairs_csv(self.params.samples_csv, self.samples, partial=self.partial_reason() if partial else None)
+        except OSError as exc:
+            if not partial:
+                raise
+            self.ctx.log(f"could not write the partial samples to {self.params.samples_csv}: {exc}")
+
     def _finish(self, t: float) -> None:
         self._go(t, "done")
         self.cmd = np.zeros(3)
-        if self.params.samples_csv:
-            write_pairs_csv(self.params.samples_csv, self.samples)
+        self._write_samples()
         self.ctx.request_stop(f"press routine done: {len(self.samples)} samples in {self.params.cycles} cycle(s)")
 
     @property
@@ -775,6 +800,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         if graph_only:
             return usage(f"{', '.join(graph_only)}: only with --graph (a press run); --csv fits the pairs of the "
                          f"file as they are")
+    elif args.allow_partial:
+        return usage("--allow-partial: only with --csv (a press run that does not finish writes no calibration)")
     elif args.duration is not None:
         try:
             duration = parse_quantity(args.duration, "s")
@@ -793,6 +820,15 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             return usage(f"{opt}: cannot write {str(path)!r}: {problem}")
     if args.csv:
         data = read_pairs_csv(args.csv)
+        partial = data.get("partial")
+        if partial and not args.allow_partial:
+            raise CalibrationError(f"{args.csv}: partial samples ({partial}): a run that did not finish may lack "
+                                   f"the deeper steps, the unloading or the other press points, so the fit would "
+                                   f"not cover the range it claims; rerun the calibration, or pass --allow-partial "
+                                   f"to fit them anyway")
+        if partial:
+            print(f"teletouch: warning: {args.csv}: fitting partial samples ({partial}) as --allow-partial asks",
+                  file=sys.stderr)
         samples = [{"depth_m": float(d), "force_n": float(f),
                     "phase": (data["phase"][i] if data["phase"] else ""),
                     "cycle": (data["cycle"][i] if data["cycle"] else 0),
@@ -803,12 +839,16 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
                           position_degree=args.position_degree,
                           zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or "",
                           depth_source="csv", source=f"csv:{Path(args.csv).name}")
+        if partial:
+            cal.extra["partial"] = partial   # recorded in the calibration file
     else:
         result, routine, spec = run_press_calibration(args.graph, sets=args.sets, clock=args.clock,
                                                       duration=duration, progress=not args.quiet)
         if routine.samples:
-            write_pairs_csv(samples_path, routine.samples)
-            print(f"wrote {len(routine.samples)} samples to {samples_path}", file=sys.stderr)
+            partial = routine.partial_reason()
+            write_pairs_csv(samples_path, routine.samples, partial=partial)
+            print(f"wrote {len(routine.samples)} samples to {samples_path}"
+                  + (" (marked partial: the run did not finish)" if partial else ""), file=sys.stderr)
         if routine.state != "done":
             why = routine.abort_reason or result.message
             print(f"teletouch: press routine did not finish (routine state {routine.state!r}, run {result.status}: "
@@ -862,6 +902,8 @@ def teletouch_add_commands(calibrate: Any) -> None:
                    help="also fit how the curve varies with the contact centroid (2-D polynomial of degree P over "
                         "the area the presses cover; needs presses across the sensor and the centroid: the "
                         "routine's 'centroid' input or x_m, y_m CSV columns). Default 0: the paper's single curve")
+    p.add_argument("--allow-partial", action="store_true", help="with --csv: fit samples marked partial (a press "
+                   "run that did not finish) instead of refusing them; the file records it (extra.partial)")
     p.add_argument("--min-depth", default="0.03mm", help="samples shallower than this are no contact (left out)")
     p.add_argument("--sensor-model-id", default=None, help="recorded in the file (default: the depth model)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",

@@ -42,7 +42,7 @@ from pydantic import Field
 
 from teletouch import Component, Kind, ModelFileError, Params, Port, Sample, TeletouchError, hookimpl
 from teletouch.errors import ComponentFault
-from teletouch.units import Hertz, Meters, Newtons
+from teletouch.units import Hertz, Meters, Newtons, Seconds
 
 __all__ = ["ForceCalibration", "CalibrationError", "PolyForce", "read_pairs_csv", "write_pairs_csv",
            "packaged_calibrations", "resolve_calibration", "FORMAT", "VERSION"]
@@ -52,6 +52,7 @@ VERSION = 1
 DATA_DIR = Path(__file__).resolve().parent / "data"
 SUFFIX = ".force.json"
 PHASES = ("loading", "unloading", "")
+UNITS = "force in N, depth in m: F(d) = sum_k coefficients[k] * d**k"
 
 
 class CalibrationError(TeletouchError, ValueError):
@@ -147,6 +148,19 @@ class PositionModel:
         return float((1 - a) * ((1 - b) * h[i, j] + b * h[i, j + 1])
                      + a * ((1 - b) * h[i + 1, j] + b * h[i + 1, j + 1]))
 
+    def high_many(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """:meth:`high` at many scaled positions in [-1, 1]^2 at once."""
+        g = self.GRID - 1
+        fu, fv = (np.asarray(u, float) + 1.0) * 0.5 * g, (np.asarray(v, float) + 1.0) * 0.5 * g
+        i, j = np.minimum(fu.astype(int), g - 1), np.minimum(fv.astype(int), g - 1)
+        a, b = fu - i, fv - j
+        h = self.depth_high
+        return ((1 - a) * ((1 - b) * h[i, j] + b * h[i, j + 1]) + a * ((1 - b) * h[i + 1, j] + b * h[i + 1, j + 1]))
+
+    def local_many(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(n, degree + 1) depth polynomials (ascending SI coefficients) at n scaled positions."""
+        return self.basis(u, v) @ self.P.T
+
     def set_depth_high(self, u: np.ndarray, v: np.ndarray, d: np.ndarray) -> None:
         """Each node's limit: the deepest sample within NEAR of it; nodes without one take the smallest limit of
         the others (the conservative choice)."""
@@ -202,6 +216,9 @@ class PositionModel:
             v = doc.get(key)
             if not isinstance(v, list) or len(v) != 2 or not all(_finite(x) for x in v):
                 raise bad(f"model.position.{key}", "[x, y] in m, finite numbers", v)
+            if not all(abs(x) < MAX_CENTROID_M for x in v):
+                raise bad(f"model.position.{key}", f"[x, y] in m within {MAX_CENTROID_M:g} m of the image centre "
+                          f"(millimetres written as metres?)", v)
         if not all(h > 0 for h in doc["half_extent_m"]):
             raise bad("model.position.half_extent_m", "two positive half widths in m", doc["half_extent_m"])
         n = len(position_exponents(deg))
@@ -252,16 +269,72 @@ def _fit_position(d: np.ndarray, f: np.ndarray, pos: np.ndarray, degree: int, pd
 
 
 def _monotonic_everywhere(coef: Sequence[float], lo: float, hi: float, pmodel: PositionModel | None) -> str | None:
-    """:func:`_monotonic_problem` of the polynomial, and with position terms at every node of the depth-limit grid over
-    the calibrated area, up to the node's own depth limit."""
+    """:func:`_monotonic_problem` of the polynomial; with position terms, everywhere over the calibrated area up to
+    each position's own depth limit: exactly (in depth) at every node of the depth-limit grid, then densely between
+    them (:func:`_position_slope_problem`)."""
     if pmodel is None:
         return _monotonic_problem(coef, lo, hi)
     for u, v in pmodel.grid():
         problem = _monotonic_problem(pmodel.local(u, v), lo, pmodel.high(u, v))
         if problem is not None:
-            x = pmodel.center[0] + u * pmodel.half_extent[0]
-            y = pmodel.center[1] + v * pmodel.half_extent[1]
-            return f"at the contact position ({x * 1e3:.2f}, {y * 1e3:.2f}) mm: {problem}"
+            return _at_position(pmodel, u, v, problem)
+    return _position_slope_problem(pmodel, lo)
+
+
+def _at_position(pmodel: PositionModel, u: float, v: float, problem: str) -> str:
+    x = pmodel.center[0] + u * pmodel.half_extent[0]
+    y = pmodel.center[1] + v * pmodel.half_extent[1]
+    return f"at the contact position ({x * 1e3:.2f}, {y * 1e3:.2f}) mm: {problem}"
+
+
+SLOPE_GRID = 65      # positions per axis of the dense monotonicity scan (the 9 x 9 depth-limit nodes are among them)
+SLOPE_DEPTHS = 257   # depths per position in the scan, from the shallowest calibrated depth to the position's limit
+SLOPE_REFINE = 8     # positions of lowest slope refined further (a dip narrower than the scan's spacing)
+
+
+def _min_relative_slope(pmodel: PositionModel, lo: float, u: np.ndarray, v: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Per scaled position: the smallest dF/dd over [lo, limit] relative to the mean slope there (<= 1e-6: flat or
+    falling), and the depth where it is."""
+    coef = pmodel.local_many(u, v)                                     # (n, deg + 1)
+    high = pmodel.high_many(u, v)                                      # (n,)
+    d = lo + (high - lo)[:, None] * np.linspace(0.0, 1.0, SLOPE_DEPTHS)[None, :]
+    slope = np.zeros_like(d)
+    for k in range(coef.shape[1] - 1, 0, -1):                          # Horner on the derivative
+        slope = slope * d + k * coef[:, k, None]
+    f_hi, f_lo = np.zeros_like(high), np.zeros_like(high)
+    for k in range(coef.shape[1] - 1, -1, -1):
+        f_hi = f_hi * high + coef[:, k]
+        f_lo = f_lo * lo + coef[:, k]
+    mean = np.abs(f_hi - f_lo) / np.maximum(high - lo, 1e-300)
+    rel = slope / np.maximum(mean, 1e-300)[:, None]
+    i = np.argmin(rel, axis=1)
+    rows = np.arange(len(u))
+    return rel[rows, i], d[rows, i]
+
+
+def _position_slope_problem(pmodel: PositionModel, lo: float) -> str | None:
+    """Where F(d, x, y) is not strictly increasing in d between the depth-limit grid's nodes, or None.
+
+    A 65 x 65 scan of the area (257 depths each), the lowest-slope positions refined on ever finer local grids, and
+    at the worst position found the exact check in depth (roots of dF/dd)."""
+    g = np.linspace(-1.0, 1.0, SLOPE_GRID)
+    uu, vv = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+    rel, _ = _min_relative_slope(pmodel, lo, uu, vv)
+    candidates = [(float(uu[i]), float(vv[i])) for i in np.argsort(rel)[:SLOPE_REFINE]]
+    offsets = np.linspace(-1.0, 1.0, 9)
+    for u0, v0 in candidates:
+        h = 2.0 / (SLOPE_GRID - 1)
+        for _ in range(6):   # each round: a 9 x 9 grid over +-h around the lowest point so far, h shrinking 4x
+            cu, cv = (a.ravel() for a in np.meshgrid(np.clip(u0 + h * offsets, -1, 1), np.clip(v0 + h * offsets, -1, 1),
+                                                       indexing="ij"))
+            r, _ = _min_relative_slope(pmodel, lo, cu, cv)
+            k = int(np.argmin(r))
+            u0, v0 = float(cu[k]), float(cv[k])
+            h /= 4.0
+        problem = _monotonic_problem(pmodel.local(u0, v0), lo, pmodel.high(u0, v0))
+        if problem is not None:
+            return _at_position(pmodel, u0, v0, problem)
     return None
 
 
@@ -499,6 +572,26 @@ class ForceCalibration:
             f = 0.0
         return float(max(f, 0.0)), status
 
+    def largest_force(self, out_of_range: str = "clamp", depth_limit: float = 5e-3) -> float:
+        """The largest force (N) :meth:`predict` gives for depths up to ``depth_limit`` (m), at any position: the
+        force at the calibrated limit (clamp) or on the end slope at ``depth_limit`` (extrapolate). With position
+        terms the maximum over a 65 x 65 grid of the area (``poly-force`` caps its output there)."""
+        if self.position is None:
+            coef = np.array([self.coefficients])
+            high = np.array([self.depth_range[1]])
+        else:
+            g = np.linspace(-1.0, 1.0, SLOPE_GRID)
+            uu, vv = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
+            coef, high = self.position.local_many(uu, vv), self.position.high_many(uu, vv)
+        f, slope = np.zeros_like(high), np.zeros_like(high)
+        for k in range(coef.shape[1] - 1, -1, -1):
+            f = f * high + coef[:, k]
+            if k:
+                slope = slope * high + k * coef[:, k]
+        if out_of_range == "extrapolate":
+            f = f + slope * np.maximum(depth_limit - high, 0.0)
+        return float(max(np.max(f), 0.0))
+
     def derivative(self, max_depth_m: float) -> float:
         return float(_polyval(_polyder(self.coefficients), np.array([float(max_depth_m)]))[0])
 
@@ -515,7 +608,7 @@ class ForceCalibration:
             "version": VERSION,
             "model": {
                 "basis": "power-ascending",
-                "units": "force in N, depth in m: F(d) = sum_k coefficients[k] * d**k",
+                "units": UNITS,
                 "degree": self.degree,
                 "coefficients": list(self.coefficients),
                 "zero_intercept": self.zero_intercept,
@@ -597,6 +690,9 @@ class ForceCalibration:
         if (not isinstance(dr, list) or len(dr) != 2 or not all(_finite(x) for x in dr) or dr[0] < 0
                 or dr[1] <= dr[0]):
             raise bad("model.depth_range_m", "[low, high] in m with 0 <= low < high", dr)
+        if dr[1] >= MAX_DEPTH_M:
+            raise bad("model.depth_range_m", f"depths in m below {MAX_DEPTH_M:g} m ({MAX_DEPTH_M * 1e3:g} mm, deeper "
+                      f"than a gel: millimetres written as metres?)", dr)
         fr = model.get("force_range_n")
         if (not isinstance(fr, list) or len(fr) != 2 or not all(_finite(x) for x in fr) or fr[1] < fr[0]
                 or abs(fr[0]) >= MAX_FORCE_N or abs(fr[1]) >= MAX_FORCE_N):
@@ -634,12 +730,23 @@ class ForceCalibration:
         zi = model.get("zero_intercept", False)
         if not isinstance(zi, bool):
             raise bad("model.zero_intercept", "true or false", zi)
-        return cls(coef, (dr[0], dr[1]), (fr[0], fr[1]), r2=_float_or_nan(q.get("r2")),
-                   rmse=_float_or_nan(q.get("rmse_n")), samples=samples, hysteresis=hyst,
-                   sensor_model_id=doc.get("sensor_model_id") or "", depth_source=doc.get("depth_source") or "",
-                   source=doc.get("source") or "", created=doc.get("created"),
-                   zero_intercept=zi, extra=extra or {},
-                   position=pmodel)
+        units = model.get("units")
+        if units is not None and units != UNITS:
+            raise bad("model.units", f"{UNITS!r} (teletouch reads SI coefficients only: refit the pairs in m and N)",
+                      units)
+        cal = cls(coef, (dr[0], dr[1]), (fr[0], fr[1]), r2=_float_or_nan(q.get("r2")),
+                  rmse=_float_or_nan(q.get("rmse_n")), samples=samples, hysteresis=hyst,
+                  sensor_model_id=doc.get("sensor_model_id") or "", depth_source=doc.get("depth_source") or "",
+                  source=doc.get("source") or "", created=doc.get("created"),
+                  zero_intercept=zi, extra=extra or {},
+                  position=pmodel)
+        # coefficients in other units (N/mm^k, mN) give forces far from the ones the calibration recorded
+        top = cal.largest_force("clamp")
+        if not 0.5 * fr[1] - 0.1 <= top <= 2.0 * fr[1] + 0.1:
+            raise bad("model.coefficients", f"a polynomial whose force at the deepest calibrated depth is near the "
+                      f"recorded force range's top ({fr[1]:.4g} N, model.force_range_n), but it gives {top:.4g} N: "
+                      f"coefficients in other units than N/m^k?", coef)
+        return cal
 
     # ---------------------------------------------------------------------------------------------------- report
     def summary(self) -> str:
@@ -764,6 +871,12 @@ def _hysteresis(d: np.ndarray, f: np.ndarray, ph: list[str], degree: int, zero_i
     return out
 
 
+def _model_name(name: str) -> str:
+    """A depth model's name as a calibration records it: the file name without folders and '.model'."""
+    n = Path(str(name).strip()).name
+    return n[: -len(".model")] if n.endswith(".model") else n
+
+
 def _finite(x: Any) -> bool:
     try:
         return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
@@ -787,6 +900,7 @@ FORCE_COLUMNS = {"force_n": 1.0, "force": 1.0, "device_force_n": 1.0}
 MAX_DEPTH_M = 0.01        # 10 mm of indentation
 MAX_FORCE_N = 200.0       # N
 MAX_CENTROID_M = 0.1      # 100 mm from the image centre
+PARTIAL_MARK = "# partial:"   # first line of a samples CSV from a press run that did not finish
 CSV_COLUMNS = ["depth_m", "force_n", "phase", "cycle", "displacement_m", "gt_max_depth_m", "gt_force_n", "x_m", "y_m"]
 
 
@@ -795,7 +909,7 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     force column (force_n or force, N); optional phase (loading/unloading), cycle, and x_m, y_m (the contact
     centroid, m; both or neither).
     Returns {"depth_m": array, "force_n": array, "phase": list | None, "cycle": list | None, "x_m": array | None,
-    "y_m": array | None}."""
+    "y_m": array | None, "partial": why the samples are incomplete (a ``# partial: why`` line) or None}."""
     path = Path(path)
     try:
         fh = path.open(newline="", encoding="utf-8-sig")   # -sig: a spreadsheet's byte order mark is no header
@@ -809,6 +923,8 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
                                    f"expected a CSV file of depth, force pairs (save it as UTF-8 CSV)") from None
         except csv.Error as exc:
             raise CalibrationError(f"{path}: not a readable CSV file ({exc})") from None
+    partial = next((",".join(r).split(":", 1)[1].strip() or "no reason given" for r in rows
+                    if r and ",".join(r).lstrip().startswith(PARTIAL_MARK)), None)
     lines = [(i + 1, r) for i, r in enumerate(rows) if r and not r[0].lstrip().startswith("#")
              and any(c.strip() for c in r)]
     if not lines:
@@ -873,7 +989,7 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
         raise CalibrationError(f"{path}: no data rows after the header")
     return {"depth_m": np.array(depth), "force_n": np.array(force),
             "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None,
-            "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None}
+            "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None, "partial": partial}
 
 
 def _implausible(name: str, v: float, is_depth: bool, is_force: bool) -> str | None:
@@ -892,11 +1008,15 @@ def _implausible(name: str, v: float, is_depth: bool, is_force: bool) -> str | N
     return None
 
 
-def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]]) -> Path:
-    """Write samples (dicts with keys from CSV_COLUMNS; missing ones left empty) as a CSV read_pairs_csv reads."""
+def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]], partial: str | None = None) -> Path:
+    """Write samples (dicts with keys from CSV_COLUMNS; missing ones left empty) as a CSV read_pairs_csv reads.
+    ``partial``: why the samples are incomplete (a press run that did not finish): written as a first comment line
+    ``# partial: <why>`` that read_pairs_csv reports and ``teletouch calibrate force --csv`` refuses."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="", encoding="utf-8") as fh:
+        if partial is not None:
+            fh.write(f"{PARTIAL_MARK} {' '.join(str(partial).split()) or 'no reason given'}\n")
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
         for r in rows:
@@ -973,11 +1093,37 @@ class PolyForce(Component):
                                              json_schema_extra={"unit": "Hz"})
         fault_after_invalid: int = Field(0, ge=0, description="fault the node after this many invalid inputs in "
                                          "a row (0 = never; force stays 0 while invalid)")
+        depth_model: str | None = Field(None, description="the depth estimator's model (its 'model' parameter): "
+                                        "when given, the calibration must have been made with it (its "
+                                        "sensor_model_id); a calibration is per sensor and per depth model")
+        depth_limit: Meters = Field(5e-3, gt=0, description="a max depth above this is invalid input (0 N): deeper "
+                                    "than a DIGIT's gel is thick (4-5 mm), an estimator or unit fault (mm sent as "
+                                    "m?); also bounds the extrapolated force", json_schema_extra={"unit": "m"})
+        max_clock_skew: Seconds = Field(0.05, ge=0, description="a depth stamped further ahead of the graph clock "
+                                        "is invalid (a clock fault): no output, counted as invalid",
+                                        json_schema_extra={"unit": "s"})
 
     def configure(self) -> None:
-        self.cal = ForceCalibration.load(resolve_calibration(self.params.calibration))
+        p = self.params
+        self.cal = ForceCalibration.load(resolve_calibration(p.calibration))
+        deepest = self.cal.depth_range[1]
+        if p.depth_limit <= deepest:
+            raise ValueError(f"depth_limit ({p.depth_limit * 1e3:.3f} mm) must be deeper than the calibration's "
+                             f"deepest depth ({deepest * 1e3:.3f} mm, {self.cal.path}): calibrated depths would be "
+                             f"invalid input")
+        made_for = self.cal.sensor_model_id or "an unnamed depth model"
+        if p.depth_model is not None and _model_name(p.depth_model) != _model_name(self.cal.sensor_model_id):
+            raise ValueError(f"depth_model: the calibration {self.cal.path} was made for {made_for!r}, not for "
+                             f"{p.depth_model!r}: calibrate the force with this depth model (`teletouch calibrate "
+                             f"force --set depth.model=...`) or give --sensor-model-id when fitting a CSV")
+        self.ctx.log(f"force calibration {self.cal.path} (depth model {made_for}, depth "
+                     f"{self.cal.depth_range[0] * 1e3:.3f}..{self.cal.depth_range[1] * 1e3:.3f} mm)")
+        self.force_limit = self.cal.largest_force(p.out_of_range, p.depth_limit)
+        if p.max_force is not None:
+            self.force_limit = min(self.force_limit, float(p.max_force))
         self._reset()
         self.counts = {s: 0 for s in STATUS_VALUES}
+        self.skipped = {"out_of_order": 0, "bad_stamp": 0}
         self.last_force = 0.0
         self.last_status = "no-contact"
         self.invalid_run = 0
@@ -987,15 +1133,42 @@ class PolyForce(Component):
         self._filt: float | None = None
         self._filt_t: float | None = None
         self._last_stamp: float | None = None
+        self._seen: Any = None
 
     def activate(self) -> None:
         self._reset()
 
+    def _invalid(self, why: str) -> None:
+        """Count an invalid input; fault after fault_after_invalid in a row."""
+        self.invalid_run += 1
+        n = self.params.fault_after_invalid
+        if n and self.invalid_run >= n:
+            raise ComponentFault(f"{self.invalid_run} invalid max-depth inputs in a row (last: {why})", self.id)
+
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["max_depth"]
-        if s is None or s.stamp == self._last_stamp:
+        if s is None or s is self._seen:
             return None
-        self._last_stamp = s.stamp
+        self._seen = s
+        # the force carries the depth's stamp: a sample without a usable one gives no force (the consumer's
+        # staleness check takes over), and only newer samples are taken, so an old frame arriving late cannot
+        # enter the median or the low-pass, nor bring back an older force; a stamp ahead of the clock is refused
+        # rather than taken, so it cannot lock out the frames after it
+        st = s.stamp
+        try:
+            st = float(st)
+        except (TypeError, ValueError):
+            st = math.nan
+        if not math.isfinite(st) or st > t + self.params.max_clock_skew:
+            self.skipped["bad_stamp"] += 1
+            self._reset_filters()
+            self._invalid(f"stamp {s.stamp!r}" + (f", {st - t:.3f} s ahead of the clock" if math.isfinite(st)
+                                                    else ""))
+            return None
+        if self._last_stamp is not None and st <= self._last_stamp:
+            self.skipped["out_of_order"] += 1
+            return None
+        self._last_stamp = st
         centroid = None
         if self.cal.position is not None:
             centroid = inputs.value("centroid")
@@ -1008,11 +1181,7 @@ class PolyForce(Component):
         self.last_force, self.last_status = force, status
         self.counts[status] += 1
         if status == "invalid-input":
-            self.invalid_run += 1
-            n = self.params.fault_after_invalid
-            if n and self.invalid_run >= n:
-                raise ComponentFault(f"{self.invalid_run} invalid max-depth inputs in a row (last {s.value!r})",
-                                     self.id)
+            self._invalid(f"{s.value!r}")
         else:
             self.invalid_run = 0
         return {"force": Sample(force, s.stamp), "status": Sample(status, s.stamp)}
@@ -1021,11 +1190,13 @@ class PolyForce(Component):
                 centroid: Any = None) -> tuple[float, str]:
         p = self.params
         try:
+            if isinstance(depth, (bool, np.bool_)):   # float(True) would be a 1 m press
+                raise TypeError("a boolean is not a depth")
             d = float(depth)
         except (TypeError, ValueError):
             self._reset_filters()
             return 0.0, "invalid-input"
-        if not math.isfinite(d) or d < -p.negative_tolerance:
+        if not math.isfinite(d) or d < -p.negative_tolerance or d > p.depth_limit:
             self._reset_filters()
             return 0.0, "invalid-input"
         if area is not None:
@@ -1066,8 +1237,8 @@ class PolyForce(Component):
                 self._filt += (force - self._filt) * (dt / (tau + dt) if dt > 0 else 0.0)
             self._filt_t = stamp
             force = self._filt
-        if p.max_force is not None and force > p.max_force:
-            force, status = float(p.max_force), "clamped"
+        if force > self.force_limit:   # max_force, or the calibration's own largest force (see largest_force)
+            force, status = self.force_limit, "clamped"
         if not math.isfinite(force) or force < 0:  # cannot happen with a validated calibration; never emit it
             return 0.0, "invalid-input"
         return float(force), status
@@ -1079,7 +1250,8 @@ class PolyForce(Component):
 
     def status(self) -> dict[str, Any]:
         return {"force_n": getattr(self, "last_force", 0.0), "status": getattr(self, "last_status", ""),
-                "invalid": getattr(self, "counts", {}).get("invalid-input", 0)}
+                "invalid": getattr(self, "counts", {}).get("invalid-input", 0),
+                "force_limit_n": getattr(self, "force_limit", None), **getattr(self, "skipped", {})}
 
 
 @hookimpl
