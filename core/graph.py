@@ -57,6 +57,7 @@ NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", 
 FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog", "safe_timeout")
 FAULT_ACTIONS = ("stop", "degrade")
 CLOCKS = ("sim", "wall")
+MAX_RATE = 1e6   # Hz
 ID_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
 
 
@@ -448,6 +449,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 rate = parse_quantity(rate, "Hz")
                 if not rate > 0 or rate != rate or rate == float("inf"):
                     raise ValueError(f"must be a positive number of Hz, got {ld.get('rate')!r}")
+                if rate > MAX_RATE:
+                    raise ValueError(f"at most {MAX_RATE:.0f} Hz (1 MHz: the simulated clock counts whole nanoseconds, "
+                                     f"and a faster tick repeats graph times), got {ld.get('rate')!r}")
             except ValueError as exc:
                 err(f"node '{nid}': rate: {exc}", ld.loc("rate"))
                 rate = None

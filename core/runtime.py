@@ -20,6 +20,7 @@ import ctypes
 import gc
 import heapq
 import math
+import numbers
 import os
 import sys
 import threading
@@ -119,7 +120,7 @@ class RunResult:
 class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
-                 "nstarts", "last_dt", "state", "hung")
+                 "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -146,6 +147,8 @@ class _Node:
         self.last_dt = 0.0
         self.state = "unconfigured"
         self.hung = False   # its safe_state() did not return within faults.safe_timeout: left behind
+        self.safe_thread: threading.Thread | None = None   # wall clock: the thread of its latest safe_state() call
+        self.in_step = False   # wall clock: its step() is running in its rate group's thread
 
 
 _libc = None
@@ -173,7 +176,7 @@ class Runtime:
                  log: Callable[[str], None] | None = None):
         self.spec = spec
         self.clock = clock or spec.clock
-        self.log = log or (lambda msg: print(msg, file=sys.stderr))
+        self._log = log or (lambda msg: print(msg, file=sys.stderr))
         self.taps: list[Tap] = []
         self.faults: list[Fault] = []
         self._now = 0.0
@@ -182,8 +185,18 @@ class Runtime:
         self._lock = threading.Lock()
         self._t0 = 0.0
         self._t0_mono = 0.0
+        self._ran = False
+        self._safe_lock = threading.Lock()   # one safe_state() call at a time per device (see _safe)
         self.nodes: list[_Node] = []
         self._build()
+
+    def log(self, msg: str) -> None:
+        """Log a line. A logger that fails (stderr closed: a pipe whose reader has gone) must not take the fault
+        handling with it: the line is dropped; every fault is in the run's result anyway."""
+        try:
+            self._log(msg)
+        except Exception:
+            pass
 
     # ------------------------------------------------------------------------------------------------- building
     def _build(self) -> None:
@@ -276,35 +289,57 @@ class Runtime:
                                                        f"was disabled by a fault", t)
 
     def _safe(self, node: _Node) -> None:
-        """``safe_state()``, bounded: it runs in a helper thread and is waited for at most ``faults.safe_timeout``.
-        A driver whose step hangs inside a hardware call usually holds the lock its safe_state() needs; unbounded,
-        that one call would block the caller (the watchdog's main thread, a rate group's exit, the shutdown) and
-        with it every other device's safe state and the end of the run. Such a node is left behind (``hung``: no
-        further lifecycle calls) and reported."""
+        """``safe_state()``. Under the wall clock it is bounded: it runs in a helper thread and is waited for at most
+        ``faults.safe_timeout``. A driver whose step hangs inside a hardware call usually holds the lock its
+        safe_state() needs; unbounded, that one call would block the caller (the watchdog's main thread, a rate
+        group's exit, the shutdown) and with it every other device's safe state and the end of the run. Such a node
+        is left behind (``hung``: no further lifecycle calls) and reported.
+
+        Calls for one device never overlap: a caller that finds a call still running (started by another thread,
+        or one whose wait a Ctrl-C cut short) waits for that call instead of starting a second one.
+
+        Under the simulated clock the call is made inline, in the one thread that also steps the device: there is
+        no hardware that could hang (hardware plugins need the wall clock), and a simulated device that hung would
+        block that thread in its step just the same."""
         if node.hung:
             return
-        error: list[BaseException] = []
-
-        def call() -> None:
+        if self.clock == "sim":
             try:
                 node.comp.safe_state()
-            except Exception as exc:
-                error.append(exc)
-
-        th = threading.Thread(target=call, name=f"teletouch-safe-{node.id}", daemon=True)
-        th.start()
-        th.join(self.spec.faults.safe_timeout)
+            except BaseException as exc:
+                self._safe_raised(node, exc)
+                if isinstance(exc, KeyboardInterrupt):
+                    raise
+            return
+        timeout = self.spec.faults.safe_timeout
+        with self._safe_lock:
+            th = node.safe_thread
+            if th is None or not th.is_alive():
+                th = threading.Thread(target=self._safe_call, args=(node,), name=f"teletouch-safe-{node.id}",
+                                      daemon=True)
+                node.safe_thread = th
+                th.start()
+        th.join(timeout)
         if th.is_alive():
-            node.hung = True
-            msg = (f"safe_state() did not return within {self.spec.faults.safe_timeout:g} s (faults.safe_timeout; "
-                   f"a call into its hardware hangs?): left behind, the other devices were made safe")
             with self._lock:
+                if node.hung:   # another caller has reported it
+                    return
+                node.hung = True
+                msg = (f"safe_state() did not return within {timeout:g} s (faults.safe_timeout; a call into its "
+                       f"hardware hangs?): left behind, the other devices were made safe")
                 self.faults.append(Fault(node.id, "hung", msg, self._now, "logged"))
             self.log(f"[{node.id}] {msg}")
-        elif error:
-            with self._lock:
-                self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(error[0])}",
-                                         self._now, "logged"))
+
+    def _safe_call(self, node: _Node) -> None:
+        try:
+            node.comp.safe_state()
+        except BaseException as exc:   # (SystemExit, or a KeyboardInterrupt raised by the driver: still its error)
+            self._safe_raised(node, exc)
+
+    def _safe_raised(self, node: _Node, exc: BaseException) -> None:
+        with self._lock:
+            self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now,
+                                     "logged"))
 
     def _check_stale(self, node: _Node, t: float) -> bool:
         if t < self.spec.faults.startup_grace:
@@ -325,12 +360,22 @@ class Runtime:
 
     def _write(self, node: _Node, out: Any, t: float) -> None:
         slots = node.out
-        for name, v in out.items():
+        try:
+            items = out.items()
+        except AttributeError:
+            raise ComponentFault(f"step() returned {type(out).__name__} {_short(out)}; expected a mapping of output "
+                                 f"name to value (outputs: {', '.join(slots) or '(none)'}) or None") from None
+        for name, v in items:
             slot = slots.get(name)
             if slot is None:
                 raise ComponentFault(f"step() returned unknown output '{name}'; outputs: {', '.join(slots)}")
             if v.__class__ is Sample:
-                if not _finite_stamp(v.stamp):
+                if v.stamp.__class__ is not float:   # an int, a numpy float, or not a time at all
+                    if not _finite_stamp(v.stamp):
+                        raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must "
+                                             f"be a finite graph time in seconds")
+                    v = Sample(v.value, float(v.stamp))
+                elif not math.isfinite(v.stamp):
                     raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
                                          f"finite graph time in seconds")
                 slot.sample = v
@@ -370,43 +415,72 @@ class Runtime:
         return None
 
     def _shutdown(self) -> None:
+        """Every device to its safe state (data-flow order), then deactivate() in reverse order, then close() in
+        reverse order; each call once. An error in one call (any exception, also SystemExit or a KeyboardInterrupt
+        raised by a component) is reported and the others are still made. A node that is left behind gets no
+        further calls: one whose safe_state() hung, and one whose step() still runs in its rate group's thread
+        (wall clock: it hangs; deactivate() or close() would pull its resources from under it)."""
+        running = self._still_stepping()
         for node in self.nodes:
             if node.is_device and node.state != "unconfigured":
-                self._safe(node)
+                try:
+                    self._safe(node)
+                except KeyboardInterrupt:   # raised by the driver itself (signals are held here): reported by _safe
+                    pass
         for node in reversed(self.nodes):
             if node.hung:   # its safe_state() hung (holding the driver's lock): deactivate/close would hang too
                 self.faults.append(Fault(node.id, "shutdown", "deactivate() and close() skipped: its safe_state() "
                                                               "hung", self._now, "logged"))
                 node.state = "finalized"
                 continue
+            if node in running:
+                self.faults.append(Fault(node.id, "shutdown", "deactivate() and close() skipped: its step() was "
+                                         "still running when the run ended (it hangs?)", self._now, "logged"))
+                node.state = "finalized"
+                continue
             if node.state == "active":
-                try:
-                    node.comp.deactivate()
-                except Exception as exc:
-                    self.faults.append(Fault(node.id, "shutdown", f"deactivate() raised {exception_line(exc)}",
-                                             self._now, "logged"))
+                self._lifecycle_call(node, "deactivate")
                 node.state = "inactive"
         for node in reversed(self.nodes):
-            if node.hung:
+            if node.state == "finalized":
                 continue
-            try:
-                node.comp.close()
-            except Exception as exc:
-                self.faults.append(Fault(node.id, "shutdown", f"close() raised {exception_line(exc)}", self._now,
-                                         "logged"))
+            self._lifecycle_call(node, "close")
             node.state = "finalized"
+
+    def _lifecycle_call(self, node: _Node, name: str) -> None:
+        try:
+            getattr(node.comp, name)()
+        except BaseException as exc:
+            self.faults.append(Fault(node.id, "shutdown", f"{name}() raised {exception_line(exc)}", self._now,
+                                     "logged"))
+
+    def _still_stepping(self) -> set[_Node]:
+        """Nodes whose step() still runs in a rate group's thread that did not end when joined (wall clock). An
+        isolated node is not among them: its proxy waits for the step in flight itself."""
+        busy = [n for n in self.nodes if n.in_step]
+        if not busy:
+            return set()
+        from .isolation import ProcessProxy
+
+        return {n for n in busy if not isinstance(n.comp, ProcessProxy)}
 
     # ------------------------------------------------------------------------------------------------- running
     def run(self, duration: float | None = None, progress: Callable[["Runtime", float], None] | None = None,
             progress_interval: float = 0.5) -> RunResult:
+        if self._ran:
+            raise RuntimeError(f"graph '{self.spec.name}': this Runtime has already run and its components are "
+                               f"closed; build a new Runtime for another run")
         duration = duration if duration is not None else self.spec.duration
         if self.clock == "sim" and duration is None:
             raise ValueError("the simulated clock needs a duration (graph 'duration:' or --duration)")
+        self._ran = True
         wall0 = time.perf_counter()
         self._t0 = wall0
         self._t0_mono = time.monotonic()
         status = None
         startup = 0.0
+        interrupted = False
+        fault_first: tuple[str, int, str] | None = None   # a fault that stopped the run before the interrupt
         # Start-up (importing torch, loading models) makes hundreds of thousands of long-lived objects. The cyclic
         # garbage collector is off while it runs (paper-sim: three full collections, ~0.25 s, were spent there)
         # and they are then frozen out of its scans, so a full collection while the graph runs (one would stall
@@ -432,19 +506,24 @@ class Runtime:
             else:
                 self._run_wall(duration, progress, progress_interval)
         except KeyboardInterrupt:
-            status = ("interrupted", EXIT_INTERRUPTED,
-                      "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
+            interrupted, fault_first = True, self._fault_reason()
             self._stop_evt.set()
         finally:
             with _signals_deferred() as late:
                 self._join()
                 self._shutdown()
-            if late and status is None:
-                status = ("interrupted", EXIT_INTERRUPTED,
-                          "interrupted (Ctrl-C or SIGTERM): devices driven to their safe state")
+            if late and not interrupted:
+                interrupted, fault_first = True, self._fault_reason()
             if gc_frozen:
                 gc.unfreeze()
         wall = time.perf_counter() - wall0
+        if status is None and interrupted:
+            # a fault that had already stopped the run stays its result (the operator's Ctrl-C after it, even during
+            # the shutdown, must not hide why the run stopped)
+            status = ((fault_first[0], fault_first[1], fault_first[2] + "; then interrupted (Ctrl-C or SIGTERM)")
+                      if fault_first else
+                      ("interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C or SIGTERM): devices driven to their "
+                                                        "safe state"))
         if status is None:
             status = self._stop_reason or ("ok", EXIT_OK, f"ran {self._now:.3f} s")
             degraded = [f for f in self.faults if f.action == "degrade"]
@@ -456,6 +535,21 @@ class Runtime:
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
                          startup_time=startup)
+
+    def _fault_reason(self) -> tuple[str, int, str] | None:
+        with self._lock:
+            reason = self._stop_reason
+        return reason if reason is not None and reason[0] == "fault" else None
+
+    def _progress_failed(self, exc: Exception, t: float) -> None:
+        """A progress callback (the caller's live view) raised: the run stops with that as its fault, and its
+        result (with every device safe) is still returned."""
+        msg = f"the progress callback raised {exception_line(exc)}"
+        with self._lock:
+            self.faults.append(Fault("", "progress", msg, t, "stop"))
+            if self._stop_reason is None:
+                self._stop_reason = ("fault", EXIT_FAULT, msg)
+        self._stop_evt.set()
 
     def stats(self) -> list[NodeStats]:
         out = []
@@ -486,6 +580,9 @@ class Runtime:
             if t_ns > end_ns:
                 break
             node = nodes[i]
+            if node.faulted:   # disabled after it was scheduled (a device behind a node degraded by a fault, made
+                heapq.heappop(heap)   # safe then): it must not be stepped again
+                continue
             t = t_ns * 1e-9
             self._now = t
             ok = True
@@ -497,7 +594,9 @@ class Runtime:
                     out = node.step(t, node.inputs)
                     if out:
                         write(node, out, t)
-                except Exception as exc:
+                except KeyboardInterrupt:   # Ctrl-C (the main thread steps): ends the run as interrupted
+                    raise
+                except BaseException as exc:   # also SystemExit from a plugin: a fault of its node
                     self._fault(node, "exception", exception_line(exc), t)
                 dt = perf() - t1
                 node.busy += dt
@@ -515,7 +614,11 @@ class Runtime:
                 now = perf()
                 if now >= next_progress:
                     next_progress = now + interval
-                    progress(self, t)
+                    try:
+                        progress(self, t)
+                    except Exception as exc:
+                        self._progress_failed(exc, t)
+                        break
         if not stop.is_set():  # ran out of ticks before the end (or every node degraded): the graph reached it
             self._now = duration
 
@@ -554,7 +657,11 @@ class Runtime:
                                                 f"{limit:g} s): made safe", self._now)
                 if progress is not None and time.perf_counter() >= next_progress:
                     next_progress += interval
-                    progress(self, self._now)
+                    try:
+                        progress(self, self._now)
+                    except Exception as exc:
+                        self._progress_failed(exc, self._now)
+                        break
         finally:
             self._stop_evt.set()
             self._join()
@@ -584,6 +691,8 @@ class Runtime:
             n.starts = [0.0] * ring
         try:
             self._wall_steps(members, period, spin, perf, sleep, t0, stop, max_over, ring)
+        except BaseException as exc:   # the loop itself failed (not a step: those are caught per node)
+            self._group_died(members, exc)
         finally:
             # leaving (stop, fault elsewhere): this group's devices are made safe at once by their own thread,
             # not after the other threads are joined (the runtime's shutdown makes them safe once more)
@@ -594,6 +703,7 @@ class Runtime:
     def _wall_steps(self, members: list[_Node], period: float, spin: float, perf: Any, sleep: Any, t0: float,
                     stop: threading.Event, max_over: int, ring: int) -> None:
         k = 0
+        late = 0   # consecutive late cycles of the group
         while not stop.is_set():
             deadline = t0 + k * period
             rem = deadline - perf()
@@ -601,6 +711,8 @@ class Runtime:
                 sleep(rem - spin)
             while perf() < deadline:
                 pass
+            worst: _Node | None = None   # the member whose step took longest in this cycle
+            worst_dt = -1.0
             for node in members:
                 if node.faulted or stop.is_set():
                     continue
@@ -610,34 +722,56 @@ class Runtime:
                 node.nstarts += 1
                 if node.stale and not self._check_stale(node, t):
                     continue
+                node.in_step = True
                 try:
                     out = node.step(t, node.inputs)
                     if out:
                         self._write(node, out, t)
-                except Exception as exc:
-                    self._fault(node, "exception", exception_line(exc), t)
+                except BaseException as exc:   # also SystemExit or KeyboardInterrupt raised by a plugin in this
+                    self._fault(node, "exception", exception_line(exc), t)   # thread (a signal reaches the main one)
+                node.in_step = False
                 node.steps += 1
                 dt = perf() - t1
                 node.busy += dt
                 if dt > node.max_step:
                     node.max_step = dt
+                if dt > worst_dt:
+                    worst, worst_dt = node, dt
             k += 1
             now = perf()
             if now > t0 + k * period:
                 missed = int((now - (t0 + k * period)) / period) + 1
                 k += missed
-                for node in members:
+                late += 1
+                for node in members:   # every member missed these ticks
                     node.overruns += missed
-                    node.consec_overruns += 1
-                    if max_over and node.consec_overruns > max_over and not node.faulted:
-                        self._fault(node, "overrun", f"missed its {period * 1e3:.3f} ms period "
-                                                     f"{node.consec_overruns} times in a row "
-                                                     f"(last step {node.max_step * 1e3:.3f} ms max)", now - t0)
+                    node.consec_overruns = late
+                # the fault goes to the member that made the group late, not to every member: a healthy device that
+                # shares its rate with a slow estimator goes on under `degrade`, and `stop` names the slow node
+                if max_over and late > max_over and worst is not None and not worst.faulted:
+                    share = (f", the longest of the {len(members)} nodes at this rate" if len(members) > 1 else "")
+                    self._fault(worst, "overrun", f"missed its {period * 1e3:.3f} ms period {late} times in a row "
+                                                  f"(its last step took {worst_dt * 1e3:.3f} ms{share})", now - t0)
+                    late = 0
             else:
+                late = 0
                 for node in members:
                     node.consec_overruns = 0
             if all(n.faulted for n in members):
                 return
+
+    def _group_died(self, members: list[_Node], exc: BaseException) -> None:
+        """A rate group's loop ended by an error outside the steps (in a tap or a fault handler): none of its nodes
+        would be stepped again. That is a fault that stops the run, never a silent end of the thread."""
+        ids = ", ".join(f"'{n.id}'" for n in members)
+        msg = f"the thread of {ids} ended with {exception_line(exc)}"
+        with self._lock:
+            self.faults.append(Fault(members[0].id, "exception", msg, self._now, "stop"))
+            if self._stop_reason is None:
+                self._stop_reason = ("fault", EXIT_FAULT, f"node {msg}" if len(members) == 1 else msg)
+        for n in members:
+            n.faulted = True
+        self._stop_evt.set()
 
     def _join(self) -> None:
         for th in getattr(self, "_threads", []):
@@ -671,10 +805,18 @@ def _signals_deferred() -> Iterator[list[int]]:
 
 
 def _finite_stamp(stamp: Any) -> bool:
+    """Whether ``stamp`` is a finite real number of seconds (a bool, a Decimal or an array is not one)."""
+    if isinstance(stamp, bool) or not isinstance(stamp, (int, float, numbers.Real)):
+        return False
     try:
         return math.isfinite(stamp)
-    except TypeError:
+    except (TypeError, ValueError, OverflowError):
         return False
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def thread_priority(realtime_priority: int, rate: float, node_priorities: list[int | None]) -> int:

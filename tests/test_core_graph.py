@@ -127,6 +127,16 @@ def test_rate_must_be_positive_and_ids_unique(reg):
     assert any("g.yaml:14:" in e and "duplicate node id 'gain'" in e and "g.yaml:9" in e for e in errs), errs
 
 
+def test_rate_above_one_megahertz_is_refused(reg):
+    # the simulated clock counts whole nanoseconds: at 2 GHz the ticks repeated graph times (0, 0, 1, 2, 2, ... ns),
+    # and `rate: 1e9` (a typo for 1 kHz) was a run of 10^9 steps per graph second that never seemed to end
+    for bad, shown in (("1e9", "'1e9'"), ("2000000", "2000000"), ("2000kHz", "'2000kHz'")):
+        errs = errors_of(GOOD.replace("rate: 1kHz", f"rate: {bad}"), reg)
+        assert any(e.startswith("g.yaml:16: node 'dev': rate: at most 1000000 Hz") and e.endswith(f"got {shown}")
+                   for e in errs), errs
+    assert load_graph_text(GOOD.replace("rate: 1kHz", "rate: 1000kHz"), "g.yaml", registry=reg).node("dev").rate == 1e6
+
+
 def test_duplicate_yaml_key_and_unknown_keys(reg):
     errs = errors_of(GOOD.replace("    rate: 100\n", "    rate: 100\n    rate: 200\n", 1), reg)
     assert any("duplicate key 'rate'" in e for e in errs), errs
