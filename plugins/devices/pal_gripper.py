@@ -1,12 +1,26 @@
 """pal-gripper: PAL Robotics' parallel gripper through ROS 2 (rclpy): joint trajectories in, /joint_states out.
 
 The gripper has two prismatic finger joints (``gripper_left_finger_joint``, ``gripper_right_finger_joint``, 0-0.045 m
-each); the opening is their sum. Each step publishes, when the setpoint changed (and at least every
-``republish_period`` so that the controller keeps its goal), a trajectory_msgs/JointTrajectory with one point
-(both fingers at half the opening, reached after ``time_from_start``) on ``<namespace>/<controller>/joint_trajectory``
--- the topic joint_trajectory_controller accepts besides its action. The state comes from sensor_msgs/JointState on
-``/joint_states`` (opening = sum of the finger positions, velocity likewise, effort = mean finger effort magnitude,
-NaN when the message carries none).
+each, ``finger_lower``/``finger_upper``); the opening is their sum. Each step publishes, when the setpoint changed
+(and at least every ``republish_period`` so that the controller keeps its goal), a trajectory_msgs/JointTrajectory
+with one point (both fingers at half the opening) on ``<namespace>/<controller>/joint_trajectory`` -- the topic
+joint_trajectory_controller accepts besides its action. The point is reached after ``time_from_start``, or after
+as long as the farther finger needs at ``max_speed`` (each finger moves at half the opening's speed), so that a
+setpoint jump (the ``open`` safe state, a gripper resting outside [min_opening, max_opening] walked into it) never
+moves the fingers faster than ``max_speed``: the controller interpolates at the speed it is given. A setpoint is
+never sent beyond the joints' range, nor non-finite.
+
+The state comes from sensor_msgs/JointState on ``joint_states_topic`` (``/joint_states``; a relative name is taken
+inside ``namespace``): opening = sum of the finger positions, velocity likewise (finite differences where it is
+missing or not finite), effort = the grip force -(e_left + e_right) / 2 (a finger's effort is positive in its
+opening direction, so a squeeze reads positive, a push outwards negative and a sideways push, one finger in and one
+out, zero), NaN when the message carries none. A message is used only when it carries both finger joints with
+finite positions within the joints' range (``RANGE_TOLERANCE`` beyond it: a position in millimetres or radians
+is refused, not taken for metres) and a header stamp that is not zero, later than the last message used (an older
+one, out of order, or the same one sent again is not a new measurement) and not ahead of the stream (stamp minus
+arrival time grown by more than ``read_timeout``: one message stamped in the future would otherwise shut out all
+the following ones). Refused messages are counted by reason (``status()``); no usable message for ``read_timeout``
+is a HardwareError that names the reasons. A sample's stamp is the arrival time of its message.
 
 The position controller has no force limit of its own, so ``max_effort`` is enforced here: while the reported effort
 exceeds it, the setpoint backs off towards the measured opening (at ``max_speed``) instead of closing further. That
@@ -17,20 +31,30 @@ at start-up or at the message that lacks them) unless ``enforce_effort: false`` 
 A controller that goes away while ``/joint_states`` keeps arriving (unloaded, crashed) is noticed too: every read
 checks that something still subscribes to the command topic, and ``controller_timeout`` without a subscriber is a
 HardwareError (how soon DDS reports a crashed process's subscription gone is its liveliness lease; a controller
-that is unloaded or shut down cleanly is gone at once).
+that is unloaded or shut down cleanly is gone at once). Start-up names an endpoint of another message type on
+either topic (DDS does not connect the two, silently). Two pal-gripper nodes of one process may not command the
+same controller (the controller follows whichever sent last).
+
+Safe state: ``hold`` sends the measured opening (the controller holds the fingers there: a squeeze is released to
+the object's surface), ``open`` sends ``max_opening``; either is always sent, and a step's command and send hold a
+lock, so a safe_state() from another thread waits for a step in progress and its hold goes out last.
 
 rclpy is imported lazily (``pip install teletouch[ros2]``). The driver owns its rclpy Context, node and executor thread
 (never rclpy's global context), so it coexists with other ROS 2 users (e.g. the ROS 2 bridge) in the same process.
+``ROS_DOMAIN_ID`` is checked before DDS sees it (Fast DDS ends the whole process, with no safe state for the other
+devices, for a domain above 232).
 """
 
 from __future__ import annotations
 
 import math
+import os
+import re
 import threading
 import time
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import HardwareError, hookimpl
 from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
@@ -38,6 +62,84 @@ from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
 from .follower_common import FollowerBase, FollowerParams, Reading, clamp
 
 JOINTS = ("gripper_left_finger_joint", "gripper_right_finger_joint")
+JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
+TRAJECTORY_TYPE = "trajectory_msgs/msg/JointTrajectory"
+MAX_DOMAIN_ID = 232  # DDS's port formula leaves no room above 232 (Fast DDS ends the process)
+RANGE_TOLERANCE = 0.003  # m a finger may read beyond its joint range (calibration) before the reading is refused
+
+# ROS 2 names (design.ros2.org "Topic and Service name mapping"): tokens of letters, digits and '_', none starting
+# with a digit, separated by '/'; checked when the graph is validated rather than refused by rclpy at start-up
+_TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
+_NAMESPACE_RE = re.compile(rf"(?:/{_TOKEN})*")
+_RELATIVE_RE = re.compile(rf"{_TOKEN}(?:/{_TOKEN})*")
+_TOPIC_RE = re.compile(rf"/?{_TOKEN}(?:/{_TOKEN})*")
+_TOKEN_RULE = "tokens of letters, digits and '_' separated by '/', none starting with a digit"
+
+_IN_USE: dict[tuple[int, str], str] = {}  # (domain, command topic) -> id of the node commanding it in this process
+_IN_USE_LOCK = threading.Lock()
+
+_REASONS = {  # why a JointState message was not used (keys of status()['dropped'])
+    "joints": "without both joints",
+    "malformed": "with fewer positions than names",
+    "nonfinite": "with a non-finite finger position",
+    "range": "with a finger position outside the joint range",
+    "zero_stamp": "with a zero header.stamp",
+    "older": "stamped no later than the last message used (out of order, or sent again)",
+    "ahead": "stamped ahead of the stream",
+}
+
+
+class _Refused(Exception):
+    def __init__(self, reason: str, detail: str):
+        super().__init__(detail)
+        self.reason = reason
+
+
+def ros_domain_id(param: int | None) -> int | None:
+    """The domain to join: the param, else ROS_DOMAIN_ID checked here (rcl refuses a word with an obscure error, and
+    Fast DDS ends the whole process, without a message or a safe state, for a number above 232)."""
+    if param is not None:
+        return param
+    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not env:
+        return None
+    try:
+        value = int(env)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_DOMAIN_ID:
+        raise HardwareError(f"ROS_DOMAIN_ID={env!r}: expected an integer from 0 to {MAX_DOMAIN_ID} (or set the "
+                            f"node's domain_id param)")
+    return value
+
+
+def parse_joint_state(msg: Any, joints: tuple[str, str] | list[str], lower: float,
+                      upper: float) -> tuple[tuple[float, float], float | None, float]:
+    """The finger positions (m), the opening velocity (m/s, None where missing or not finite) and the grip force
+    (N, NaN where missing) of a JointState message; raises _Refused when the message cannot be used."""
+    names = list(msg.name)
+    try:
+        idx = [names.index(j) for j in joints]
+    except ValueError:
+        raise _Refused("joints", f"names {names[:8]}") from None
+    if max(idx) >= len(msg.position):
+        raise _Refused("malformed", f"{len(names)} names, {len(msg.position)} positions")
+    pos = (float(msg.position[idx[0]]), float(msg.position[idx[1]]))
+    for j, x in zip(joints, pos):
+        if not math.isfinite(x):
+            raise _Refused("nonfinite", f"{j} = {x}")
+        if not lower - RANGE_TOLERANCE <= x <= upper + RANGE_TOLERANCE:
+            raise _Refused("range", f"{j} = {x:g}, outside {lower * 1e3:g}-{upper * 1e3:g} mm "
+                                    f"(finger_lower/finger_upper): millimetres or radians instead of metres, or "
+                                    f"another joint?")
+    vel = None
+    if len(msg.velocity) == len(names):
+        v = float(msg.velocity[idx[0]]) + float(msg.velocity[idx[1]])
+        vel = v if math.isfinite(v) else None
+    eff = math.nan
+    if len(msg.effort) == len(names):
+        eff = -0.5 * (float(msg.effort[idx[0]]) + float(msg.effort[idx[1]]))
+    return pos, vel, eff
 
 
 class PalGripper(FollowerBase):
@@ -52,8 +154,14 @@ class PalGripper(FollowerBase):
         controller: str = Field("gripper_controller", description="joint_trajectory_controller's name")
         joint_names: list[str] = Field(list(JOINTS), min_length=2, max_length=2,
                                        description="left and right finger joints")
-        joint_states_topic: str = Field("/joint_states", description="sensor_msgs/JointState topic")
-        domain_id: int | None = Field(None, ge=0, le=232, description="ROS_DOMAIN_ID (None: from the environment)")
+        joint_states_topic: str = Field("/joint_states", description="sensor_msgs/JointState topic (a relative "
+                                        "name is taken inside namespace)")
+        domain_id: int | None = Field(None, ge=0, le=MAX_DOMAIN_ID,
+                                      description="ROS_DOMAIN_ID (None: from the environment)")
+        finger_lower: Meters = Field(0.0, ge=0, description="each finger joint's lower limit (closed)",
+                                     json_schema_extra={"unit": "m"})
+        finger_upper: Meters = Field(0.045, gt=0, description="each finger joint's upper limit (open)",
+                                     json_schema_extra={"unit": "m"})
         max_opening: Meters = Field(0.09, gt=0, description="largest opening (2 x 0.045 m)",
                                     json_schema_extra={"unit": "m"})
         max_speed: MetersPerSecond = Field(0.1, gt=0, description="opening speed limit (2 x 0.05 m/s per finger)",
@@ -63,7 +171,8 @@ class PalGripper(FollowerBase):
         time_from_start: Seconds = Field(0.01, gt=0, description="time given to reach each setpoint: one period of "
                                          "the node's stream (100 Hz: 10 ms), so each setpoint is reached as the "
                                          "next arrives; longer makes every setpoint a partial step and the "
-                                         "follower lags", json_schema_extra={"unit": "s"})
+                                         "follower lags (a larger step gets the time max_speed needs)",
+                                         json_schema_extra={"unit": "s"})
         republish_period: Seconds = Field(0.1, gt=0, description="resend an unchanged setpoint this often",
                                           json_schema_extra={"unit": "s"})
         connect_timeout: Seconds = Field(3.0, gt=0, description="wait this long for the controller and "
@@ -80,7 +189,49 @@ class PalGripper(FollowerBase):
             v = v.strip()
             if v and not v.startswith("/"):
                 v = "/" + v
-            return v.rstrip("/")
+            v = v.rstrip("/")
+            if not _NAMESPACE_RE.fullmatch(v):
+                raise ValueError(f"expected a ROS 2 namespace such as '/tiago' ({_TOKEN_RULE}), got {v!r}")
+            return v
+
+        @field_validator("controller")
+        @classmethod
+        def _controller(cls, v: str) -> str:
+            if not _RELATIVE_RE.fullmatch(v):
+                raise ValueError(f"expected a controller name such as 'gripper_controller' ({_TOKEN_RULE}; no "
+                                 f"'/' first: it is taken inside namespace), got {v!r}")
+            return v
+
+        @field_validator("joint_states_topic")
+        @classmethod
+        def _topic(cls, v: str) -> str:
+            if not _TOPIC_RE.fullmatch(v):
+                raise ValueError(f"expected a ROS 2 topic name such as '/joint_states' ({_TOKEN_RULE}; '/' first "
+                                 f"for an absolute name), got {v!r}")
+            return v
+
+        @field_validator("joint_names")
+        @classmethod
+        def _joints(cls, v: list[str]) -> list[str]:
+            if any(not j.strip() for j in v) or v[0] == v[1]:
+                raise ValueError(f"expected two different, non-empty joint names (left, right finger), got {v!r}")
+            return v
+
+        @model_validator(mode="after")
+        def _joint_range(self) -> "PalGripper.Params":
+            lo, hi = self.finger_lower, self.finger_upper
+            if lo >= hi:
+                raise ValueError(f"finger_lower ({lo} m) must be below finger_upper ({hi} m)")
+            problems = []
+            for name, value, ok in (("min_opening", self.min_opening, self.min_opening >= 2 * lo - 1e-9),
+                                    ("max_opening", self.max_opening, self.max_opening <= 2 * hi + 1e-9)):
+                if not ok:
+                    hint = " (millimetres in a metre field? write e.g. '90mm')" if value >= 1.0 else ""
+                    problems.append(f"{name} ({value:g} m) is outside what the fingers reach, "
+                                    f"{2 * lo * 1e3:g}-{2 * hi * 1e3:g} mm (twice finger_lower/finger_upper){hint}")
+            if problems:
+                raise ValueError("; ".join(problems))
+            return self
 
     # ------------------------------------------------------------------------------------------------------------
     @property
@@ -88,7 +239,15 @@ class PalGripper(FollowerBase):
         p = self.params
         return f"{p.namespace}/{p.controller}/joint_trajectory"
 
+    @property
+    def state_topic(self) -> str:
+        p = self.params
+        t = p.joint_states_topic
+        return t if t.startswith("/") else f"{p.namespace}/{t}"
+
     def _hw_open(self) -> None:
+        p = self.params
+        domain_param = ros_domain_id(p.domain_id)  # before DDS sees a bad ROS_DOMAIN_ID
         try:
             import rclpy
             from rclpy.executors import SingleThreadedExecutor
@@ -98,41 +257,77 @@ class PalGripper(FollowerBase):
         except ImportError as exc:
             raise HardwareError(f"pal-gripper needs ROS 2's rclpy and messages ({exc}); install them with "
                                 f"pip install 'teletouch[ros2]'") from exc
-        p = self.params
         self._JointTrajectory, self._Point = JointTrajectory, JointTrajectoryPoint
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the state, between the executor thread and the steps
+        self._io_lock = threading.RLock()  # a step's command and send vs. safe_state() from another thread
         self._state: tuple[float, float | None, float, float] | None = None  # opening, velocity, effort, mono
+        self._fingers: tuple[float, float] | None = None
         self._msgs = 0
+        self._used = 0
+        self._dropped: dict[str, int] = {}  # since the last message used: reason -> count
+        self._dropped_total: dict[str, int] = {}
+        self._drop_example: dict[str, str] = {}
+        self._last_stamp: float | None = None
+        self._last_offset = 0.0  # stamp - arrival (Unix time) of the last message used
+        self._sent: float | None = None
+        self._sent_at = 0.0
+        self._no_controller_since: float | None = None
         self.ros_ctx = rclpy.Context()
-        kw = {} if p.domain_id is None else {"domain_id": p.domain_id}
-        rclpy.init(context=self.ros_ctx, **kw)
-        self.ros_node = rclpy.create_node(f"teletouch_{self.id.replace('-', '_')}", context=self.ros_ctx)
+        rclpy.init(context=self.ros_ctx, **({} if domain_param is None else {"domain_id": domain_param}))
+        domain = self.ros_ctx.get_domain_id()
+        with _IN_USE_LOCK:
+            other = _IN_USE.get((domain, self.command_topic))
+            if other is not None:
+                raise HardwareError(f"node '{other}' already commands {self.command_topic} (ROS_DOMAIN_ID {domain}) "
+                                    f"in this process: two drivers on one controller fight (it follows whichever "
+                                    f"sent last); give each gripper its own namespace/controller")
+            _IN_USE[(domain, self.command_topic)] = self.id
+            self._in_use_key = (domain, self.command_topic)
+        self.ros_node = rclpy.create_node(f"teletouch_{self.id.replace('-', '_')}", context=self.ros_ctx,
+                                          start_parameter_services=False)
         self.pub = self.ros_node.create_publisher(JointTrajectory, self.command_topic,
                                                   QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
-        self.ros_node.create_subscription(JointState, p.joint_states_topic, self._on_joint_states,
+        self.ros_node.create_subscription(JointState, self.state_topic, self._on_joint_states,
                                           QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.executor = SingleThreadedExecutor(context=self.ros_ctx)
         self.executor.add_node(self.ros_node)
         self._spin = threading.Thread(target=self._spin_loop, name=f"{self.id}-rclpy", daemon=True)
         self._spin.start()
-        domain = p.domain_id if p.domain_id is not None else self.ros_ctx.get_domain_id()
         deadline = time.monotonic() + p.connect_timeout
         while self.pub.get_subscription_count() == 0:
             if time.monotonic() > deadline:
                 raise HardwareError(f"no controller subscribes to {self.command_topic} after "
-                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}); check the robot is up, "
-                                    f"the namespace and controller name, and the network/discovery settings")
+                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}; check the "
+                                    f"robot is up, the namespace and controller name, and the network/discovery "
+                                    f"settings")
             time.sleep(0.01)
         while self._state is None:
             if time.monotonic() > deadline:
-                what = "no message" if self._msgs == 0 else f"{self._msgs} messages without both joints"
-                raise HardwareError(f"{p.joint_states_topic}: {what} for {list(p.joint_names)} after "
-                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}); check the joint names and "
-                                    f"the joint_state_broadcaster")
+                with self._lock:
+                    what = "no message" if self._msgs == 0 else f"no usable message: {self._drop_text()}"
+                raise HardwareError(f"{self.state_topic}: {what} for {list(p.joint_names)} after "
+                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}; check the "
+                                    f"joint names, joint_states_topic and the joint_state_broadcaster")
             time.sleep(0.005)
-        self._sent: float | None = None
-        self._sent_at = 0.0
-        self._no_controller_since: float | None = None
+
+    def _wrong_types(self) -> str:
+        """Endpoints of another message type on the two topics (DDS does not connect them): text for an error."""
+        found = []
+        try:
+            node = self.ros_node
+            for topic, expected, role, infos in (
+                    (self.command_topic, TRAJECTORY_TYPE, "subscription",
+                     node.get_subscriptions_info_by_topic(self.command_topic)),
+                    (self.state_topic, JOINT_STATE_TYPE, "publisher",
+                     node.get_publishers_info_by_topic(self.state_topic))):
+                for info in infos:
+                    if info.topic_type != expected:
+                        who = f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                        found.append(f"a {role} of node {who} on {topic} uses {info.topic_type}, not {expected}: "
+                                     f"DDS does not connect the two")
+        except Exception:  # a diagnosis only
+            return ""
+        return "".join(f"; {f}" for f in found)
 
     def _spin_loop(self) -> None:
         try:
@@ -140,21 +335,46 @@ class PalGripper(FollowerBase):
         except Exception:  # the context was shut down under it
             pass
 
+    def _accept(self, msg: Any, wall: float) -> tuple[tuple[float, float], float | None, float]:
+        """Parse and check one message (the executor thread); raises _Refused."""
+        p = self.params
+        fingers, vel, eff = parse_joint_state(msg, p.joint_names, p.finger_lower, p.finger_upper)
+        st = msg.header.stamp
+        stamp = st.sec + st.nanosec * 1e-9
+        if st.sec == 0 and st.nanosec == 0:
+            raise _Refused("zero_stamp", "header.stamp 0")
+        offset = stamp - wall
+        if self._last_stamp is not None:
+            if stamp <= self._last_stamp:
+                raise _Refused("older", f"stamp {stamp:.6f} s after {self._last_stamp:.6f} s")
+            if offset - self._last_offset > p.read_timeout:
+                raise _Refused("ahead", f"stamp {stamp:.6f} s, {offset - self._last_offset:.3f} s ahead of the "
+                                        f"messages before it")
+        self._last_stamp, self._last_offset = stamp, offset
+        return fingers, vel, eff
+
     def _on_joint_states(self, msg: Any) -> None:
-        mono = time.monotonic()
-        self._msgs += 1
-        names = list(msg.name)
+        mono, wall = time.monotonic(), time.time()
         try:
-            idx = [names.index(j) for j in self.params.joint_names]
-            pos = [msg.position[i] for i in idx]
-        except (ValueError, IndexError):
+            fingers, vel, eff = self._accept(msg, wall)
+        except _Refused as r:
+            with self._lock:
+                self._msgs += 1
+                self._dropped[r.reason] = self._dropped.get(r.reason, 0) + 1
+                self._dropped_total[r.reason] = self._dropped_total.get(r.reason, 0) + 1
+                self._drop_example[r.reason] = str(r)
             return
-        vel = [msg.velocity[i] for i in idx] if len(msg.velocity) == len(names) else None
-        eff = [msg.effort[i] for i in idx] if len(msg.effort) == len(names) else None
-        state = (pos[0] + pos[1], None if vel is None else vel[0] + vel[1],
-                 math.nan if eff is None else 0.5 * (abs(eff[0]) + abs(eff[1])), mono)
         with self._lock:
-            self._state = state
+            self._msgs += 1
+            self._used += 1
+            self._dropped.clear()
+            self._fingers = fingers
+            self._state = (fingers[0] + fingers[1], vel, eff, mono)
+
+    def _drop_text(self) -> str:
+        """The messages refused since the last one used, by reason (call with the lock held)."""
+        parts = [f"{n} messages {_REASONS[k]} (last: {self._drop_example[k]})" for k, n in self._dropped.items()]
+        return ", ".join(parts) or "none refused"
 
     def _check_controller(self, now: float) -> None:
         """Fault when nothing has subscribed to the command topic for controller_timeout (one graph lookup)."""
@@ -165,9 +385,16 @@ class PalGripper(FollowerBase):
             self._no_controller_since = now
         gone = now - self._no_controller_since
         if gone > self.params.controller_timeout:
+            with self._lock:
+                s = self._state
+            if s is not None and now - s[3] > min(gone, self.params.read_timeout):
+                raise HardwareError(f"no controller is subscribed to {self.command_topic} for {gone:.3f} s "
+                                    f"(controller_timeout {self.params.controller_timeout} s) and "
+                                    f"{self.state_topic} is silent for {now - s[3]:.3f} s: the robot or the "
+                                    f"network is gone")
             raise HardwareError(f"no controller is subscribed to {self.command_topic} for {gone:.3f} s "
                                 f"(controller_timeout {self.params.controller_timeout} s) while "
-                                f"{self.params.joint_states_topic} goes on: the controller was unloaded or crashed; "
+                                f"{self.state_topic} goes on: the controller was unloaded or crashed; "
                                 f"the commands reach nobody")
 
     def _hw_read(self) -> Reading | None:
@@ -176,14 +403,18 @@ class PalGripper(FollowerBase):
         self._check_controller(now)
         with self._lock:
             s = self._state
+            dropped = self._drop_text() if self._dropped else ""
         if s is None:
             return None
         age = now - s[3]
         if age > p.read_timeout:
-            raise HardwareError(f"{p.joint_states_topic} silent for {age:.3f} s (read_timeout "
+            if dropped:
+                raise HardwareError(f"{self.state_topic}: no usable message for {age:.3f} s (read_timeout "
+                                    f"{p.read_timeout} s): {dropped}")
+            raise HardwareError(f"{self.state_topic} silent for {age:.3f} s (read_timeout "
                                 f"{p.read_timeout} s); the robot or the network is gone")
         if p.enforce_effort and not math.isfinite(s[2]):
-            raise HardwareError(f"{p.joint_states_topic} carries no efforts for {list(p.joint_names)} (missing or "
+            raise HardwareError(f"{self.state_topic} carries no efforts for {list(p.joint_names)} (missing or "
                                 f"not finite): max_effort ({p.max_effort} N) cannot be enforced without them; set "
                                 f"enforce_effort: false to run without the force limit (effort output NaN)")
         return Reading(s[0], s[1], s[2], s[3])
@@ -202,24 +433,64 @@ class PalGripper(FollowerBase):
             target = self._setpoint = max(target, min(r.opening, before + self.params.max_speed * dt))
         return target
 
+    def _command_guard(self) -> Any:
+        return self._io_lock
+
+    def _move_time(self, half: float) -> float:
+        """Time for the fingers to reach ``half`` each: time_from_start, or what the farther finger needs at half
+        max_speed (each finger moves at half the opening's speed)."""
+        p = self.params
+        with self._lock:
+            fingers = self._fingers
+        if fingers is None:
+            return p.time_from_start
+        return max(p.time_from_start, max(abs(half - x) for x in fingers) / (0.5 * p.max_speed))
+
     def _hw_write(self, opening: float) -> None:
         p = self.params
-        now = time.monotonic()
-        if self._sent is not None and abs(opening - self._sent) < 1e-7 and now - self._sent_at < p.republish_period:
-            return
-        half = clamp(opening, p.min_opening, p.max_opening) / 2.0
-        msg = self._JointTrajectory()
-        msg.joint_names = list(p.joint_names)
-        pt = self._Point()
-        pt.positions = [half, half]
-        sec = int(p.time_from_start)
-        pt.time_from_start.sec = sec
-        pt.time_from_start.nanosec = int(round((p.time_from_start - sec) * 1e9))
-        msg.points = [pt]
-        self.pub.publish(msg)
-        self._sent, self._sent_at = opening, now
+        if not math.isfinite(opening):
+            return  # nothing to send (the base never asks; the controller keeps its last goal)
+        with self._io_lock:
+            now = time.monotonic()
+            if self._sent is not None and abs(opening - self._sent) < 1e-7 and \
+                    now - self._sent_at < p.republish_period:
+                return
+            # not clamped to [min_opening, max_opening]: the base walks a setpoint outside it in at max_speed;
+            # never beyond the joints
+            half = clamp(opening / 2.0, p.finger_lower, p.finger_upper)
+            duration = self._move_time(half)
+            msg = self._JointTrajectory()
+            msg.joint_names = list(p.joint_names)
+            pt = self._Point()
+            pt.positions = [half, half]
+            sec = int(duration)
+            pt.time_from_start.sec = sec
+            pt.time_from_start.nanosec = min(999_999_999, int(round((duration - sec) * 1e9)))
+            msg.points = [pt]
+            self.pub.publish(msg)
+            self._sent, self._sent_at = opening, now
+
+    def safe_state(self) -> None:
+        lock = getattr(self, "_io_lock", None)
+        if lock is None:  # never opened
+            return super().safe_state()
+        with lock:  # waits for a step's command and send in progress; its hold goes out last
+            self._sent = None  # always (re)send the hold, whatever was sent before
+            super().safe_state()
+
+    def status(self) -> dict[str, Any]:
+        d = super().status()
+        d["dropped"] = dict(getattr(self, "_dropped_total", {}))
+        d["messages"] = getattr(self, "_msgs", 0)
+        return d
 
     def _hw_close(self) -> None:
+        key = getattr(self, "_in_use_key", None)
+        if key is not None:
+            with _IN_USE_LOCK:
+                if _IN_USE.get(key) == self.id:
+                    del _IN_USE[key]
+            self._in_use_key = None
         ex = getattr(self, "executor", None)
         if ex is not None:
             try:
