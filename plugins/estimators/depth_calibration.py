@@ -11,6 +11,7 @@ with x = column and y = row in pixels of the full-resolution image; an empty rad
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import math
 import os
@@ -23,7 +24,8 @@ import numpy as np
 
 from teletouch.errors import ModelFileError
 
-from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, feature_count, make_net, max_stride
+from .normal_model import (DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, atomic_write, feature_count, make_net,
+                           max_stride)
 
 __all__ = [
     "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",
@@ -46,11 +48,15 @@ class Label:
 
     @property
     def uncertain(self) -> bool:
-        return self.r is None or self.cx is None or self.note.lower().startswith("uncertain")
+        return (self.r is None or self.cx is None or self.cy is None or self.note.lower().startswith("uncertain")
+                or (self.r <= 0 and not self.no_contact))
 
     @property
     def no_contact(self) -> bool:
-        return self.note.lower().startswith("no contact") or (self.r is not None and self.r <= 0)
+        """A frame without contact (trained as flat everywhere): only when the note says so. A radius of 0 alone
+        does not make one (:func:`read_labels` refuses it): an "uncertain" press with radius 0 was trained as a
+        flat frame, teaching the network that its colour change means no slope."""
+        return self.note.lower().startswith("no contact")
 
     @property
     def usable(self) -> bool:
@@ -60,7 +66,12 @@ class Label:
 # --- images and background -------------------------------------------------------------------------------------
 
 def load_images(folder: str | os.PathLike[str], names: Iterable[str] | None = None) -> list[tuple[str, np.ndarray]]:
-    """(name, uint8 BGR image) for every image in ``folder`` (sorted naturally), or for the given names."""
+    """(name, uint8 BGR image) for every image in ``folder`` (sorted naturally), or for the given names.
+
+    Refused with an error naming the file: an unreadable image, a grayscale one (the network reads colour: its
+    three channels equal), images of different sizes (the odd ones out are named) and two images identical pixel
+    for pixel (a copied press: it would count twice in the median background and could be trained on and held out
+    at once). An alpha channel is dropped."""
     import cv2
 
     folder = Path(folder)
@@ -72,17 +83,41 @@ def load_images(folder: str | os.PathLike[str], names: Iterable[str] | None = No
     else:
         files = [folder / n for n in names]
     out = []
+    seen: dict[bytes, str] = {}
     for p in files:
         img = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if img is None:
             raise FileNotFoundError(f"{p}: not a readable image (expected PNG/JPEG, {', '.join(IMAGE_EXTS)})")
+        if is_grayscale(img):
+            raise ValueError(f"{p}: a grayscale image (its three colour channels are equal); expected a colour "
+                             f"frame of the DIGIT as its camera delivers it (the depth model reads the colours)")
+        digest = hashlib.sha1(np.ascontiguousarray(img).data).digest()
+        if digest in seen and np.array_equal(img, dict(out)[seen[digest]]):
+            raise ValueError(f"{folder / seen[digest]} and {p.name} are identical pixel for pixel; remove the copy (a "
+                             f"press counted twice biases the median background and the training)")
+        seen.setdefault(digest, p.name)
         out.append((p.name, img))
     if not out:
         raise FileNotFoundError(f"{folder}: no images ({', '.join(IMAGE_EXTS)})")
-    shapes = {im.shape for _, im in out}
-    if len(shapes) != 1:
-        raise ValueError(f"{folder}: images differ in size: {sorted(shapes)}; all presses must share one resolution")
+    sizes: dict[tuple[int, ...], list[str]] = {}
+    for n, im in out:
+        sizes.setdefault(im.shape[:2], []).append(n)
+    if len(sizes) != 1:
+        common = max(sizes, key=lambda k: len(sizes[k]))
+        odd = "; ".join(f"{', '.join(ns[:5])}{' ...' if len(ns) > 5 else ''} {k[0]}x{k[1]}"
+                        for k, ns in sizes.items() if k != common)
+        raise ValueError(f"{folder}: images differ in size: {len(sizes[common])} are {common[0]}x{common[1]} (rows x "
+                         f"cols), but {odd}; all presses must share one resolution")
     return out
+
+
+def is_grayscale(image: np.ndarray) -> bool:
+    """True for an image whose three channels are equal within 2 levels (a grayscale frame saved as colour, or
+    expanded to BGR by OpenCV): no colour to learn from."""
+    if image.ndim == 2:
+        return True
+    b, g, r = (image[..., i].astype(np.int16) for i in range(3))
+    return bool(np.abs(b - g).max() <= 2 and np.abs(g - r).max() <= 2)
 
 
 def _natural_key(name: str) -> list[Any]:
@@ -183,8 +218,18 @@ def auto_label(name: str, image: np.ndarray, background: np.ndarray, ball_radius
     return Label(name, round(cx, 1), round(cy, 1), round(r, 1), note)
 
 
+LABEL_COLUMNS = ("image", "center_x", "center_y", "radius_px")
+
+
 def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
-    """Read a labels CSV; errors name the file, the line and the field."""
+    """Read a labels CSV; errors name the file, the line and the field.
+
+    UTF-8 (a byte-order mark is fine), any line ending; lines starting with ``#`` are comments; blank lines are
+    skipped; spaces around names and values are ignored; extra columns are ignored when the header names them.
+    Refused: a row with more fields than the header (a note typed into a file without a note column was dropped,
+    and the press trained) or without a required one, an image named twice (the later row won silently), a
+    non-number, a negative radius, and a radius of 0 without a note saying "no contact" (such a row was trained as
+    a frame without contact). Empty fields or a note starting with "uncertain" exclude the press from training."""
     path = Path(path)
     out: dict[str, Label] = {}
     try:
@@ -192,21 +237,42 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
     except OSError as exc:
         raise ModelFileError(f"{path}: cannot read the labels file: {exc.strerror or exc}") from None
     try:
-        text = data.decode("utf-8")
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = data.count(b"\n", 0, exc.start) + 1
         raise ModelFileError(f"{path}:{line}: not UTF-8 text ({exc.reason} at byte {exc.start}); expected a labels "
                              f"CSV (image,center_x,center_y,radius_px[,note]) saved as UTF-8") from None
+    # comments become blank lines (skipped by the reader), so that line numbers stay those of the file
+    text = "".join("\n" if ln.lstrip().startswith("#") else ln for ln in text.splitlines(keepends=True))
     with io.StringIO(text, newline="") as fh:
-        reader = csv.DictReader(fh)
-        need = {"image", "center_x", "center_y", "radius_px"}
-        if reader.fieldnames is None or not need <= set(reader.fieldnames):
-            raise ModelFileError(f"{path}:1: expected the columns image,center_x,center_y,radius_px[,note], got "
-                                 f"{reader.fieldnames}")
-        for i, row in enumerate(reader, start=2):
+        reader = csv.reader(fh)
+        header: list[str] | None = None
+        for row in reader:
+            if not any(f.strip() for f in row):
+                continue
+            if header is None:
+                header = [f.strip() for f in row]
+                hline = reader.line_num
+                if not set(LABEL_COLUMNS) <= set(header):
+                    hint = "; fields are separated by commas" if len(row) == 1 and ";" in row[0] else ""
+                    raise ModelFileError(f"{path}:{hline}: expected the columns image,center_x,center_y,radius_px"
+                                         f"[,note], got {header}{hint}")
+                dup = sorted({h for h in header if h and header.count(h) > 1})
+                if dup:
+                    raise ModelFileError(f"{path}:{hline}: the column {dup[0]} is named twice")
+                continue
+            i = reader.line_num
+            missing = header[len(row):]
+            if len(row) < len(header) and not set(missing) & set(LABEL_COLUMNS):
+                row = row + [""] * len(missing)       # an empty trailing note (or other extra column) left out
+            if len(row) != len(header):
+                raise ModelFileError(f"{path}:{i}: {len(row)} fields, expected {len(header)} as in the header "
+                                     f"({','.join(header)}); a note needs a note column, a value with a comma "
+                                     f"needs quotes")
+            rec = {h: f.strip() for h, f in zip(header, row)}
             vals: list[float | None] = []
-            for k in ("center_x", "center_y", "radius_px"):
-                t = (row.get(k) or "").strip()
+            for k in LABEL_COLUMNS[1:]:
+                t = rec[k]
                 if t == "":
                     vals.append(None)
                     continue
@@ -215,13 +281,23 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
                 except ValueError:
                     raise ModelFileError(f"{path}:{i}: field {k} = {t!r} is not a number") from None
                 if not math.isfinite(v) or (k == "radius_px" and v < 0):
-                    raise ModelFileError(f"{path}:{i}: field {k} = {t!r} must be a finite number >= 0")
+                    raise ModelFileError(f"{path}:{i}: field {k} = {t!r}, expected a finite number"
+                                         f"{' >= 0 (px)' if k == 'radius_px' else ' (px)'}")
                 vals.append(v)
-            name = (row.get("image") or "").strip()
+            name = rec["image"]
             if not name:
                 raise ModelFileError(f"{path}:{i}: field image is empty")
-            out[name] = Label(name, vals[0], vals[1], vals[2], (row.get("note") or "").strip(),
-                              line=reader.line_num)
+            if name in out:
+                raise ModelFileError(f"{path}:{i}: image {name} is labelled twice (also on line {out[name].line}); "
+                                     f"keep one row per image")
+            lb = Label(name, vals[0], vals[1], vals[2], rec.get("note", ""), line=i)
+            if lb.r == 0 and not lb.no_contact and not lb.note.lower().startswith("uncertain"):
+                raise ModelFileError(f"{path}:{i}: field radius_px = 0 for {name}; expected the contact radius in px "
+                                     f"(> 0), or the note 'no contact' for a frame without contact")
+            out[name] = lb
+    if header is None:
+        raise ModelFileError(f"{path}:1: expected the columns image,center_x,center_y,radius_px[,note], got an "
+                             f"empty file")
     return out
 
 
@@ -247,17 +323,19 @@ def check_labels(labels: dict[str, Label], images: Sequence[tuple[str, np.ndarra
 
 
 def write_labels(path: str | os.PathLike[str], labels: Iterable[Label]) -> Path:
+    """Write a labels CSV (atomically: an interrupted write leaves the file as it was)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="", encoding="utf-8") as fh:
-        wr = csv.writer(fh)
-        wr.writerow(["image", "center_x", "center_y", "radius_px", "note"])
 
-        def num(v: float | None) -> str:
-            return "" if v is None else f"{v:g}"
+    def num(v: float | None) -> str:
+        return "" if v is None else f"{v:g}"
 
-        for lb in labels:
-            wr.writerow([lb.image, num(lb.cx), num(lb.cy), num(lb.r), lb.note])
+    buf = io.StringIO(newline="")
+    wr = csv.writer(buf)
+    wr.writerow(["image", "center_x", "center_y", "radius_px", "note"])
+    for lb in labels:
+        wr.writerow([lb.image, num(lb.cx), num(lb.cy), num(lb.r), lb.note])
+    atomic_write(path, buf.getvalue().encode("utf-8"))
     return path
 
 
@@ -267,7 +345,7 @@ def review_overlay(image: np.ndarray, background: np.ndarray, label: Label) -> n
 
     d = np.clip((image.astype(np.float32) - background.astype(np.float32)) * 3 + 128, 0, 255).astype(np.uint8)
     out = np.hstack([image.copy(), d])
-    if label.cx is not None and label.r:
+    if label.cx is not None and label.cy is not None and label.r:
         col = (0, 0, 255) if label.uncertain else (0, 255, 0)
         for off in (0, image.shape[1]):
             cv2.circle(out, (int(round(label.cx)) + off, int(round(label.cy))), int(round(label.r)), col, 1)
@@ -380,6 +458,8 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
     if not 1 <= stride <= max_stride((h, w)):
         raise ValueError(f"stride {stride}: expected an integer from 1 to {max_stride((h, w))} px for {h}x{w} images "
                          f"(a work grid of at least 8 cells across)")
+    check_training_params(epochs=epochs, lr=lr, batch=batch, dropout=dropout, seed=seed, hidden=hidden,
+                          flat_ratio=flat_ratio)
     ball_radius_px = ball_radius_m * px_per_m
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
@@ -427,7 +507,7 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
     torch.set_num_threads(1)       # small batches: one thread is fastest and does not fight other processes
     try:
         net.train()
-        for _ in it:
+        for epoch in it:
             perm = torch.randperm(n, generator=gen)
             tot = 0.0
             for i in range(0, n, batch):
@@ -438,6 +518,9 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
                 opt.step()
                 tot += float(loss.detach()) * idx.numel()
             loss_v = tot / n
+            if not math.isfinite(loss_v):
+                raise ValueError(f"training diverged: the loss is {loss_v} in epoch {epoch + 1} of {epochs} (lr "
+                                 f"{lr:g}); no model written; try a smaller learning rate")
             if bar is not None:
                 bar.set_postfix(loss=f"{loss_v:.5f}")
     finally:
@@ -445,6 +528,15 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
         if bar is not None:
             bar.close()
     net.eval()
+    bad = [k for k, v in net.state_dict().items() if not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ValueError(f"training diverged: the weights {', '.join(bad)} hold NaN or inf (lr {lr:g}); no model "
+                         f"written; try a smaller learning rate")
+    # the targets are unit normals: predicting (0, 0, 0) everywhere scores 1/3; a final loss above 1 is divergence
+    # (measured: lr 10 ends at 63, lr 1e6 at 1.8e21, both were written as models with the depth gain clipped to 2)
+    if loss_v > 1.0:
+        raise ValueError(f"training diverged: the final loss is {loss_v:.4g} (expected well below 1 for unit normals; "
+                         f"lr {lr:g}); no model written; try a smaller learning rate")
     model = NormalModel.from_net(
         net, feature_set=feature_set, hidden=tuple(hidden), feat_mean=mean.astype(np.float32),
         feat_std=std.astype(np.float32), background=np.ascontiguousarray(background, dtype=np.uint8),
@@ -486,6 +578,29 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
                 f"{100 * model.validation['median_abs_cap_error']:.1f}%, sphere radius "
                 f"{1000 * model.validation['median_sphere_radius_m']:.2f} mm")
     return model
+
+
+def check_training_params(*, epochs: Any, lr: Any, batch: Any, dropout: Any, seed: Any, hidden: Any,
+                          flat_ratio: Any) -> None:
+    """ValueError naming the first training parameter out of range (before any work: epochs 0 wrote a model with a
+    NaN loss, a negative seed gave numpy's bare "expected non-negative integer")."""
+    def integer(v: Any) -> bool:
+        return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+
+    checks = (("epochs", epochs, integer(epochs) and epochs >= 1, "an integer >= 1"),
+              ("batch", batch, integer(batch) and batch >= 1, "an integer >= 1"),
+              ("seed", seed, integer(seed) and 0 <= seed < 2 ** 63, "an integer from 0 to 2**63 - 1"),
+              ("lr", lr, number(lr) and lr > 0, "a finite number > 0"),
+              ("dropout", dropout, number(dropout) and 0 <= dropout < 1, "a number from 0 to below 1"),
+              ("flat_ratio", flat_ratio, number(flat_ratio) and flat_ratio >= 0, "a finite number >= 0"),
+              ("hidden", hidden, isinstance(hidden, (list, tuple)) and len(hidden) >= 1
+               and all(integer(h) and h >= 1 for h in hidden), "one or more layer sizes (integers >= 1)"))
+    for name, v, ok, what in checks:
+        if not ok:
+            raise ValueError(f"training parameter {name} = {v!r}: expected {what}")
 
 
 def _inside(label: Label, shape: tuple[int, ...], k: float) -> bool:
@@ -595,6 +710,12 @@ def px_per_mm_from_caliper(image: np.ndarray, background: np.ndarray, gap_m: flo
     between the centroids of the two strongest contact regions, divided by the gap."""
     import cv2
 
+    if not (isinstance(gap_m, (int, float)) and math.isfinite(gap_m) and gap_m > 0):
+        raise ValueError(f"caliper gap {gap_m!r} m: expected a finite distance > 0 (e.g. 5mm)")
+    if image.shape != background.shape:
+        raise ValueError(f"the caliper image is {image.shape[0]}x{image.shape[1]}, the background "
+                         f"{background.shape[0]}x{background.shape[1]} (rows x cols); expected an image of the same "
+                         f"sensor at the presses' resolution")
     s = _change_map(image, background, 1.5)
     floor = float(np.median(s))
     peak = float(np.percentile(s, 99.9))
@@ -633,6 +754,9 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
         log(f"background: per-pixel median of {len(images)} presses")
     elif background.shape != images[0][1].shape:
         raise ValueError(f"background is {background.shape}, the presses are {images[0][1].shape}")
+    elif is_grayscale(background):
+        raise ValueError("the background frame is a grayscale image (its three colour channels are equal); expected "
+                         "a colour no-contact frame of the same sensor")
     ball_px = ball_radius_m * px_per_m
     if labels is not None:
         check_labels(labels, images, ball_px)
@@ -648,9 +772,16 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
         stray = [n for n in labels if n not in names]
         if stray:   # (a labels file for another folder?)
             log(f"{len(stray)} label(s) name no image in the folder, ignored: {', '.join(stray[:5])}")
+        unc = [n for n, _ in images if n in labels and labels[n].uncertain]
+        if unc:
+            log(f"{len(unc)} press(es) marked uncertain or without a complete circle, not used: {', '.join(unc[:5])}"
+                f"{' ...' if len(unc) > 5 else ''}")
     usable = [n for n, _ in images if n in labels and labels[n].usable]
     if len(usable) < 2:
         raise ValueError(f"only {len(usable)} usable press(es); record more (the paper used ~40) or fix the labels")
+    if holdout > len(usable) - 1:
+        log(f"holding out {len(usable) - 1} press(es) instead of {holdout}: {len(usable)} usable, at least one is "
+            f"trained on")
     holdout = max(0, min(holdout, len(usable) - 1))
     # hold out presses spread over the sensor: every k-th in order of position along the rows
     val: list[str] = []

@@ -39,7 +39,7 @@ from teletouch.errors import ModelFileError
 __all__ = [
     "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
     "features", "uses_xy", "context_cells", "feature_count", "NormalModel", "load_model", "packaged_model_path",
-    "resolve_model",
+    "resolve_model", "atomic_write",
 ]
 
 FORMAT = "teletouch-depth-model"
@@ -226,16 +226,50 @@ class NormalModel:
         arrays["background"] = np.ascontiguousarray(self.background, dtype=np.uint8)
         buf = io.BytesIO()
         np.savez_compressed(buf, **arrays)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_bytes(buf.getvalue())
-        os.replace(tmp, path)
+        atomic_write(path, buf.getvalue())
         return path
 
     @classmethod
     def from_net(cls, net: Any, **kw: Any) -> "NormalModel":
         sd = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in net.state_dict().items()}
         return cls(state_dict=sd, **kw)
+
+
+def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file of its own in the same folder, renamed into place: a
+    reader sees the old file or the new one, never a part. On any interruption (an error, Ctrl-C) the temporary
+    file is removed and ``path`` is left as it was. (Before: a fixed ``<name>.tmp``, left behind by an interrupted
+    write and shared by two calibrations writing the same file.) The file gets the permissions of a new file
+    (mkstemp's are 0600)."""
+    import tempfile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it (os.umask sets it, racing other threads creating files)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
 
 
 def packaged_model_path(name: str) -> Path | None:
