@@ -167,6 +167,9 @@ def _cal(folder, *extra):
     (["--ball-diameter", "6mm", "--px-per-mm", "0.01"], "the ball radius of 3 mm is 0.03 px"),
     (["--ball-diameter", "6mm", "--ball-radius", "10mm", "--px-per-mm", "17.15"],
      "--ball-diameter 6mm and --ball-radius 10mm disagree (a radius of 3 mm against 10 mm)"),
+    (["--ball-diameter", "6", "--px-per-mm", "17.15"], "a bare number is metres: did you mean 6mm?"),
+    (["--ball-diameter", "6mm", "--px-per-mm", "abc"],
+     "--px-per-mm 'abc': expected pixels per millimetre, e.g. 17.15, 17.15px/mm or 17150px/m"),
 ])
 def test_calibrate_depth_checks_scale_and_ball_size(sim_presses, tmp_path, capsys, args, msg):
     rc = _cal(sim_presses, *args, "--labels-only", "--write-labels", str(tmp_path / "l.csv"))
@@ -259,3 +262,73 @@ def test_calibrate_depth_training_options_are_range_checked(sim_presses, tmp_pat
              "--hidden", "8", opt, value, "-o", str(out))
     assert exc.value.code == 2 and msg in capsys.readouterr().err
     assert not out.exists()
+
+
+def _train_args(folder, out, *extra):
+    return ["--ball-diameter", "6mm", "--px-per-mm", "17.15", "--background", str(folder / "background.png"),
+            "--epochs", "1", "--holdout", "1", "--hidden", "8", "-o", str(out), *extra]
+
+
+def test_calibrate_depth_writes_the_model_before_the_labels_and_says_what_failed(sim_presses, tmp_path, capsys,
+                                                                                 monkeypatch):
+    from teletouch.plugins.estimators import depth_calibration
+
+    def full_disk(path, labels):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(depth_calibration, "write_labels", full_disk)
+    out = tmp_path / "sensor.model"
+    labels_out = tmp_path / "labels.out.csv"
+    rc = _cal(sim_presses, *_train_args(sim_presses, out, "--labels", str(sim_presses / "labels.csv"),
+                                        "--write-labels", str(labels_out)))
+    err = capsys.readouterr().err
+    assert rc == 1, err
+    assert f"the model was written to {out}, but {labels_out}: No space left on device" in err
+    assert load_model(out).hidden == (8,)
+
+
+def test_calibrate_depth_interrupted_writes_nothing(sim_presses, tmp_path, capsys, monkeypatch):
+    from teletouch.plugins.estimators import depth_calibration
+
+    def ctrl_c(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(depth_calibration, "calibrate", ctrl_c)
+    out = tmp_path / "sensor.model"
+    rc = _cal(sim_presses, *_train_args(sim_presses, out))
+    assert rc == 130 and "interrupted; no model written" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_calibrate_depth_refuses_an_output_in_a_folder_nothing_can_be_written_to(sim_presses, capsys, monkeypatch):
+    from teletouch.plugins.estimators import depth_calibration
+
+    monkeypatch.setattr(depth_calibration, "calibrate", lambda *a, **k: pytest.fail("trained before the check"))
+    rc = _cal(sim_presses, *_train_args(sim_presses, "/proc/teletouch-test.model"))
+    assert rc == 2 and "-o /proc/teletouch-test.model: cannot write in the folder /proc" in capsys.readouterr().err
+
+
+def test_review_overlays_of_images_with_one_stem_do_not_overwrite_each_other(sim_presses, tmp_path):
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    presses = sorted(sim_presses.glob("press_*.png"))
+    for p in presses[2:]:
+        shutil.copy(p, imgs)
+    shutil.copy(presses[0], imgs / "twin.png")
+    shutil.copy(presses[1], imgs / "twin.jpg")  # PNG data under a .jpg name: OpenCV reads it by its content
+    rc = _cal(imgs, "--ball-diameter", "6mm", "--px-per-mm", "17.15", "--background",
+              str(sim_presses / "background.png"), "--labels-only", "--write-labels", str(tmp_path / "l.csv"),
+              "--review", str(tmp_path / "review"))
+    assert rc == 0
+    names = sorted(p.name for p in (tmp_path / "review").iterdir())
+    assert "twin.png.review.png" in names and "twin.jpg.review.png" in names
+    assert len(names) == len(presses)
+
+
+def test_calibrate_depth_warns_when_it_rewrites_the_labels_file_it_reads(sim_presses, tmp_path, capsys):
+    labels = tmp_path / "labels.csv"
+    shutil.copy(sim_presses / "labels.csv", labels)
+    rc = _cal(sim_presses, *_train_args(sim_presses, tmp_path / "s.model", "--labels", str(labels),
+                                        "--write-labels", str(labels)))
+    assert rc == 0
+    assert f"warning: --write-labels {labels} is the --labels file" in capsys.readouterr().err

@@ -295,7 +295,11 @@ def _px_per_m(text: str) -> float:
         return float(t) * 1e3
     except ValueError:
         pass
-    return parse_quantity(t, "px/m")
+    try:
+        return parse_quantity(t, "px/m")
+    except ValueError:
+        raise ValueError(f"--px-per-mm {text!r}: expected pixels per millimetre, e.g. 17.15, 17.15px/mm or "
+                         f"17150px/m") from None
 
 
 def _positive_levels(text: str) -> float:
@@ -334,7 +338,14 @@ def _ball_radius(args: argparse.Namespace) -> float:
     radius = from_r if from_r is not None else from_d
     assert radius is not None
     if not 0 < radius < 0.05:
-        raise ValueError(f"ball radius {radius * 1e3:g} mm is implausible (expected e.g. --ball-diameter 6mm)")
+        given = args.ball_radius if from_r is not None else args.ball_diameter
+        hint = ""
+        try:
+            float(str(given).strip())
+            hint = f"; a bare number is metres: did you mean {str(given).strip()}mm?"
+        except ValueError:
+            pass
+        raise ValueError(f"ball radius {radius * 1e3:g} mm is implausible (expected e.g. --ball-diameter 6mm){hint}")
     return radius
 
 
@@ -407,6 +418,9 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
                           if labels is None or args.write_labels else None)
         if labels_out is not None:
             _check_output(labels_out, "--write-labels" if args.write_labels else "labels file")
+            if args.labels and _same_file(labels_out, args.labels):
+                print(f"teletouch calibrate depth: warning: --write-labels {labels_out} is the --labels file: it is "
+                      f"rewritten with this folder's presses only, without its comments", file=sys.stderr)
         if args.review:
             _check_output(args.review, "--review", folder=True)
     except (ValueError, FileNotFoundError, ModelFileError) as exc:
@@ -414,8 +428,12 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         return 2
     if args.labels_only:
         labs = [auto_label(n, im, bg, radius * px_per_m) for n, im in images]
-        out = write_labels(labels_out, labs)
-        _write_review(args.review, images, bg, labs, review_overlay)
+        try:
+            out = write_labels(labels_out, labs)
+            _write_review(args.review, images, bg, labs, review_overlay)
+        except OSError as exc:
+            print(f"teletouch calibrate depth: error: {_os_error(exc)}", file=sys.stderr)
+            return 1
         n_unc = sum(1 for lb in labs if lb.uncertain and not lb.no_contact)
         log(f"wrote {out} ({len(labs)} presses, {n_unc} uncertain): check it, fix rows, pass it with --labels")
         return 0
@@ -426,12 +444,26 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
         return 2
-    if labels_out is not None:
-        out = write_labels(labels_out, res.labels)
-        log(f"labels written to {out} (correct them and pass back with --labels)")
-    _write_review(args.review, images, res.background, res.labels, review_overlay)
+    except KeyboardInterrupt:
+        print(f"teletouch calibrate depth: interrupted; no model written ({args.output} is unchanged)",
+              file=sys.stderr)
+        return 130
+    # the model first: it is the work of minutes; the labels and overlays can be made again with --labels-only
     res.model.training["total_seconds"] = round(res.seconds, 2)
-    res.model.save(args.output)
+    try:
+        res.model.save(args.output)
+    except OSError as exc:
+        print(f"teletouch calibrate depth: error: the model could not be written: {_os_error(exc)}", file=sys.stderr)
+        return 1
+    try:
+        if labels_out is not None:
+            out = write_labels(labels_out, res.labels)
+            log(f"labels written to {out} (correct them and pass back with --labels)")
+        _write_review(args.review, images, res.background, res.labels, review_overlay)
+    except OSError as exc:
+        print(f"teletouch calibrate depth: error: the model was written to {args.output}, but {_os_error(exc)}",
+              file=sys.stderr)
+        return 1
     v = res.model.validation
     summary = {"model": str(args.output), "seconds": round(res.seconds, 2), "presses": res.model.training["presses"],
                "depth_gain": res.model.depth_gain, "change_threshold": res.model.change_threshold}
@@ -450,9 +482,28 @@ def _write_review(folder: str | None, images: list, bg: np.ndarray, labels: list
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     by = {lb.image: lb for lb in labels}
+    stems = [Path(name).stem for name, _ in images]
     for name, im in images:
         if name in by:
-            cv2.imwrite(str(out / (Path(name).stem + ".review.png")), overlay(im, bg, by[name]))
+            # a.png and a.jpg would both be a.review.png: then the full name (a.png.review.png) tells them apart
+            base = Path(name).stem if stems.count(Path(name).stem) == 1 else Path(name).name
+            path = out / (base + ".review.png")
+            if not cv2.imwrite(str(path), overlay(im, bg, by[name])):
+                raise OSError(f"--review: the overlay {path} could not be written")
+
+
+def _same_file(a: str | Path, b: str | Path) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
+def _os_error(exc: OSError) -> str:
+    """An OSError as one line naming the file: 'PATH: reason' (or the message of one raised with a text only)."""
+    if exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror or exc}"
+    return str(exc)
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
@@ -548,7 +599,7 @@ def teletouch_add_commands(subparsers, calibrate):
                              "the gel (~40 presses over the whole sensor; the ball somewhere else in each). "
                              "Writes one model file for `teletouch estimate` and the `depth` component.")
     p.add_argument("--images", required=True, help="folder of press images (PNG/JPEG), one resolution")
-    p.add_argument("--ball-diameter", default=None, help="ball diameter, e.g. 6mm")
+    p.add_argument("--ball-diameter", default=None, help="ball diameter, e.g. 6mm (a bare number is metres)")
     p.add_argument("--ball-radius", default=None, help="or the ball radius, e.g. 3mm")
     p.add_argument("--px-per-mm", default=None, help="image scale: 17.15 (px per mm) or 17.15px/mm")
     p.add_argument("--caliper", default=None, help="or: an image of two caliper tips pressed into the gel")
