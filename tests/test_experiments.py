@@ -262,3 +262,42 @@ def test_pivot_trials_are_reproducible_and_seeds_differ():
     a, b, c = trace(3), trace(3), trace(4)
     assert a == b                                                       # the same seed: the same numbers
     assert a[1] != c[1] and a[2] != c[2]                                # another seed: other noise
+
+
+# ------------------------------------------------------------------------------------------------ follow-ups
+def test_the_pivot_operator_sees_the_same_noise_with_and_without_feedback(monkeypatch):
+    # the operator drew its perception noise, tremor and drift from the one stream that also gave the felt force's
+    # noise and each regrip's size, so the conditions' paths (which regrip when) changed what the operator saw: the
+    # paired trials differed in more than the feedback
+    from teletouch.plugins.controllers.experiments import PivotOperator, run_pivot_trial
+
+    traces: list[list] = []
+    real = PivotOperator.step
+
+    def spy(self, t, inputs):
+        out = real(self, t, inputs)
+        traces[-1].append((round(t, 9), self.noise, self.tremor, self.drift))
+        return out
+
+    monkeypatch.setattr(PivotOperator, "step", spy)
+    ends = []
+    for feedback in (True, False):
+        traces.append([])
+        ends.append(run_pivot_trial(feedback, 2, time_limit=12.0)["completion_time_s"])
+    with_fb, without = traces
+    n = min(len(with_fb), len(without))
+    assert ends[0] is not None and n > 900                   # with feedback done after its regrips (9.8 s)
+    assert with_fb[:n] == without[:n]
+
+
+def test_the_pivot_operator_draws_no_number_of_the_simulated_sensor():
+    # the sensor and the operator were both seeded Random(seed): the same numbers, so the operator's per-trial
+    # misjudgement of the angle was the sensor's first noise sample scaled
+    from teletouch.plugins.controllers.experiments import PivotOperator
+
+    for seed in range(5):
+        with Harness(SimForceSensor, {"noise": 0.02, "seed": seed, "delay_frames": 0}) as h:
+            first = (h.step(0.0, force_true=1.0)["force"] - 1.0) / 0.02
+        with Harness(PivotOperator, {"seed": seed}) as h:
+            bias = h.comp.bias / math.radians(2.5)
+        assert bias != pytest.approx(first, abs=1e-9)

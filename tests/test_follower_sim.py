@@ -7,6 +7,7 @@ import math
 import pytest
 from pydantic import ValidationError
 
+from teletouch import Sample
 from teletouch.testing import Harness, make_registry, run_yaml
 
 from teletouch.plugins.devices import follower_contact as fc
@@ -256,3 +257,51 @@ def test_opening_beyond_the_object_releases_it_at_least_as_fast_as_opening_to_it
             forces[target] = o["contact_force"]
     assert forces[w + beyond] == 0.0                                    # was 0.02 N
     assert forces[w + beyond] <= forces[w - 1e-5]
+
+
+@pytest.mark.parametrize("loss", ["safe-state", "stale", "nan"])
+@pytest.mark.parametrize("command", [0.0146, 0.0])
+def test_the_hold_keeps_the_fingers_and_the_grip_where_they_are(loss, command):
+    """The P-only servo, commanded to the opening it measured, pushed with no force: in contact the object pushed the
+    fingers open and the grip relaxed (0.39 -> 0.27 N and 0.07 mm wider on the probe; 16 -> 6.8 N, 1.7 mm wider, at
+    max_effort), where the follower must hold its position. A real servo keeps its effort (integral action, or a
+    gearbox the object cannot back-drive)."""
+    p = {"object_width": 0.015, "initial_opening": 0.02, "indenter": "probe", "indenter_radius": 0.005}
+    with Harness(SimGripper, p) as h:
+        o, t = run_to(h, command, 0.0, 2.0)
+        x0, f0 = o["opening"], o["contact_force"]
+        assert o["contact"] and f0 > 0.3
+        if loss == "safe-state":
+            h.comp.safe_state()
+            o, t = run_to(h, 0.02, t, 1.0)                             # later commands are ignored
+        elif loss == "stale":
+            o, t = run_to(h, Sample(0.02, t - 1.0), t, 1.0)
+        else:
+            o, t = run_to(h, math.nan, t, 1.0)
+        assert o["opening"] == pytest.approx(x0, abs=1e-9)
+        assert o["contact_force"] == pytest.approx(f0, rel=1e-6)
+        assert o["velocity"] == pytest.approx(0.0, abs=1e-9)
+        assert h.comp._setpoint == pytest.approx(x0, abs=1e-9)          # the hold commands the measured opening
+        if loss != "safe-state":                                        # commands again: followed, nothing held
+            o, t = run_to(h, 0.02, t, 1.0)
+            assert o["opening"] == pytest.approx(0.02, abs=1e-6) and o["contact_force"] == 0.0
+            o, t = run_to(h, command, t, 2.0)
+            assert o["opening"] == pytest.approx(x0, abs=1e-9) and o["contact_force"] == pytest.approx(f0, rel=1e-6)
+
+
+def test_the_hold_in_free_motion_stops_where_the_fingers_are_and_the_open_safe_state_opens_fully():
+    with Harness(SimGripper, {"object_width": None}) as h:
+        o, t = run_to(h, 0.03, 0.0, 0.2)                                # still moving at max_speed
+        x0 = o["opening"]
+        assert o["velocity"] < -0.01
+        h.comp.safe_state()
+        o, t = run_to(h, 0.03, t, 0.5)
+        assert o["opening"] == pytest.approx(x0, abs=1e-9) and o["velocity"] == 0.0
+    # safe_mode open from a squeeze at max_effort: all the way open (no effort of the squeeze kept)
+    p = {"object_width": 0.015, "initial_opening": 0.02, "safe_mode": "open"}
+    with Harness(SimGripper, p) as h:
+        o, t = run_to(h, 0.0, 0.0, 2.0)
+        assert o["contact_force"] == pytest.approx(16.0)
+        h.comp.safe_state()
+        o, t = run_to(h, 0.0, t, 3.0)
+        assert o["opening"] == pytest.approx(0.09, abs=1e-9) and o["contact_force"] == 0.0

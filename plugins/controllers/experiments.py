@@ -38,6 +38,12 @@ from teletouch.units import Kilograms, Meters, Newtons, Radians, Seconds
 
 G = 9.81
 
+
+def seeded_stream(seed: int, name: str) -> random.Random:
+    """A random stream of its own for ``name``, derived from ``seed``: reproducible (a string seed is hashed with
+    SHA-512, not Python's per-process hash) and independent of ``Random(seed)`` and of every other name's stream."""
+    return random.Random(f"{name}/{seed}")
+
 # ================================================================================================ sim components
 
 
@@ -265,13 +271,19 @@ class PivotOperator(Component):
         seed: int = Field(0, description="seed of this operator's noise (one trial)")
         stop_when_done: bool = Field(True, description="end the run when the operator is done")
 
+    #: the operator's noise streams, each derived from ``seed`` and its name (:func:`seeded_stream`): what the
+    #: operator sees and how the hand shakes do not depend on what it feels or does (the felt force's noise and a
+    #: regrip's size come from streams of their own), and none repeats sim-force-sensor's numbers (``Random(seed)``)
+    STREAMS = ("trial", "eyes", "hand", "touch", "moves")
+
     def configure(self) -> None:
         p = self.params
-        self.rng = random.Random(p.seed)
-        self.bias = self.rng.gauss(0.0, p.angle_bias)
+        self.rngs = {name: seeded_stream(p.seed, f"pivot-operator/{name}") for name in self.STREAMS}
+        trial = self.rngs["trial"]
+        self.bias = trial.gauss(0.0, p.angle_bias)
         var = p.variability
-        self.k_loosen = max(0.2, 1.0 + var * self.rng.gauss(0.0, 1.0))     # this trial's loosening speed factor
-        self.k_squeeze = max(0.3, 1.0 + var * self.rng.gauss(0.0, 1.0))
+        self.k_loosen = max(0.2, 1.0 + var * trial.gauss(0.0, 1.0))     # this trial's loosening speed factor
+        self.k_squeeze = max(0.3, 1.0 + var * trial.gauss(0.0, 1.0))
         self.angle_hist: deque[tuple[float, float]] = deque()
         self.seen: deque[tuple[float, float]] = deque()
         self.force_hist: deque[tuple[float, float]] = deque()
@@ -313,10 +325,11 @@ class PivotOperator(Component):
         a_del = self._delayed(self.angle_hist, t, p.visual_delay, float(a))
         if dt > 0:
             decay = math.exp(-dt / 0.5)                 # perception error: an Ornstein-Uhlenbeck process, 0.5 s
-            self.noise = self.noise * decay + p.angle_noise * math.sqrt(1.0 - decay * decay) * self.rng.gauss(0, 1)
-            self.tremor += min(1.0, dt / 0.02) * (self.rng.gauss(0.0, p.tremor * 3.0) - self.tremor)
+            eyes, hand = self.rngs["eyes"], self.rngs["hand"]
+            self.noise = self.noise * decay + p.angle_noise * math.sqrt(1.0 - decay * decay) * eyes.gauss(0, 1)
+            self.tremor += min(1.0, dt / 0.02) * (hand.gauss(0.0, p.tremor * 3.0) - self.tremor)
             dec = math.exp(-dt / p.drift_time)
-            self.drift = self.drift * dec + p.hand_drift * math.sqrt(1.0 - dec * dec) * self.rng.gauss(0.0, 1.0)
+            self.drift = self.drift * dec + p.hand_drift * math.sqrt(1.0 - dec * dec) * hand.gauss(0.0, 1.0)
         self.theta_p = a_del + self.bias + self.noise
         self.seen.append((t, self.theta_p))
         while len(self.seen) > 1 and self.seen[0][0] < t - 0.5:
@@ -327,7 +340,7 @@ class PivotOperator(Component):
         if "felt_force" in inputs and inputs.get("felt_force") is not None:
             f_raw = float(inputs.value("felt_force", 0.0))
             f_del = self._delayed(self.force_hist, t, p.haptic_delay, f_raw)
-            f_felt = f_del * (1.0 + p.force_noise * self.rng.gauss(0.0, 1.0) * 0.3)
+            f_felt = f_del * (1.0 + p.force_noise * self.rngs["touch"].gauss(0.0, 1.0) * 0.3)
         contact = bool(self._delayed(self.contact_hist, t, p.visual_delay, bool(inputs.value("contact", False))))
         force_mode = p.strategy == "force"
         target, tol = p.target_angle, p.tolerance
@@ -364,7 +377,8 @@ class PivotOperator(Component):
         elif ph == "rotate":
             if self.theta_p + max(self.omega_p, 0.0) * p.lead_time >= target:
                 self.regrip_from = self.u
-                self.regrip_size = p.regrip_step * max(0.2, 1.0 + p.variability * self.rng.gauss(0.0, 1.0))
+                self.regrip_size = p.regrip_step * max(0.2, 1.0 + p.variability
+                                                       * self.rngs["moves"].gauss(0.0, 1.0))
                 if force_mode:
                     self.f_target = p.hold_force
                 self._set_phase("regrip", t)

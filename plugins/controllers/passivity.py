@@ -142,13 +142,13 @@ class FollowerPort:
     opening at their capture times.
 
     The sensed force arrives late (a camera frame and the estimator); multiplying it by the follower's present
-    velocity would misplace the energy in time, so the opening is kept for ``history`` seconds and each new sample
-    ``(stamp, f)`` adds ``(f_prev + f) / 2 * (x_f(stamp) - x_f(stamp_prev)) / scale``: the energy the environment,
-    seen through the force scale (``f`` is the leader-equivalent force) and the position scale, gave into the
-    teleoperator between the two captures (opening while pushed apart: positive; squeezing: negative). With ideal,
-    undelayed coupling this cancels the leader port's energy exactly, so the observer sees only what the
-    teleoperator itself (delay, hold, servo lag) generates or stores, and the environment's stored energy
-    is neither credited to it nor forgotten.
+    velocity would misplace the energy in time, so the last ``size`` openings are kept (256: 0.26 s at 1 kHz)
+    and each new sample ``(stamp, f)`` adds ``(f_prev + f) / 2 * (x_f(stamp) - x_f(stamp_prev)) / scale``: the
+    energy the environment, seen through the force scale (``f`` is the leader-equivalent force) and the position
+    scale, gave into the teleoperator between the two captures (opening while pushed apart: positive; squeezing:
+    negative). With ideal, undelayed coupling this cancels the leader port's energy exactly, so the observer sees
+    only what the teleoperator itself (delay, hold, servo lag) generates or stores, and the environment's stored
+    energy is neither credited to it nor forgotten.
     """
 
     __slots__ = ("hist", "prev")

@@ -29,7 +29,8 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    would go negative, damping ``-alpha * v_l`` (``alpha`` at most what the constant damping leaves of
    ``max_damping``, Omega.7: 40 N*s/m) and a cut of the
    feedback force towards zero for what the damping cannot dissipate; never a reversal of the contact force, nothing
-   in free space (see passivity.py);
+   in free space (see passivity.py); when a lost leader comes back the observer starts afresh (energy and damping
+   zero);
 4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
    ``fade_time``, within that limit), clipped to ``+-max_force`` and forced to 0
    when anything is non-finite: nothing but a finite force within limits ever leaves the controller.
@@ -56,15 +57,27 @@ from .passivity import (
 )
 
 __all__ = [
-    "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit", "finite_or",
-    "ForceHold", "Differentiator", "PositionForce", "PositionPosition", "NoFeedback",
+    "millimetres_in_metres", "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit",
+    "finite_or", "ForceHold", "Differentiator", "PositionForce", "PositionPosition", "NoFeedback",
 ]
 
 OMEGA7_MAX_GRIPPER_FORCE = 8.0     # N (CHAI3D's device table)
 OMEGA7_MAX_DAMPING = 40.0          # N*s/m
+#: no gripper opens wider than this (the PAL gripper: 0.09 m); a larger opening, offset or limit in a metre field
+#: is millimetres typed there (the ROS 2 bridge's max_opening uses the same bound)
+MAX_PLAUSIBLE_OPENING = 1.0        # m
 
 
 # ------------------------------------------------------------------------------------------------ pure functions
+def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> str | None:
+    """None if ``|value|`` (m) is a plausible gripper opening; else why ``name`` looks like millimetres typed in a
+    metre field (``opening_max: 90`` meant 90 mm and was taken as 90 m)."""
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} m) is beyond any gripper's opening ({limit:g} m at most): millimetres in the "
+            f"metre field? write {value / 1e3:g} or \"{value:g}mm\"")
+
+
 def map_opening(x_leader: float, scale: float, offset: float, lo: float, hi: float) -> float:
     """Follower opening command (m) for a leader opening (m): ``clip(scale * x + offset, lo, hi)``."""
     x = scale * x_leader + offset
@@ -183,8 +196,8 @@ _IN = {
     "leader_opening": Port("float64", (), "m", "leader gripper opening", required=True),
     "leader_velocity": Port("float64", (), "m/s", "leader gripper velocity (differentiated if not wired)",
                             required=False),
-    "follower_opening": Port("float64", (), "m", "follower opening (for the status, and position-position)",
-                             required=False),
+    "follower_opening": Port("float64", (), "m", "follower opening (the status, the two-port passivity "
+                             "observer, and position-position)", required=False),
     "force": Port("float64", (), "N", "sensed grip force (camera rate)", required=True),
 }
 _OUT = {
@@ -281,6 +294,10 @@ class _CommonParams(Params):
 
     @model_validator(mode="after")
     def _check(self) -> "_CommonParams":
+        for name in ("opening_min", "opening_max", "offset"):
+            problem = millimetres_in_metres(name, getattr(self, name))
+            if problem:
+                raise ValueError(problem)
         if self.opening_min >= self.opening_max:
             raise ValueError(f"opening_min ({self.opening_min} m) must be below opening_max ({self.opening_max} m)")
         constant = self.constant_damping()
@@ -395,6 +412,18 @@ class _Bilateral(Component):
             self.fport.record(s.stamp, x)
         return True
 
+    def _restart_observer(self) -> None:
+        """The leader is back (or there for the first time): the passivity observer starts afresh, energy and
+        damping at zero, as at activation. What it held is about a hand that was cut off: the leader port was not
+        booked while the leader was lost (the follower port's estimates were), so its energy no longer describes
+        this coupling, and its damping (up to max_damping) would have met the returning hand at once. The damping
+        then rises over damping_smoothing as for any deficit, and the force comes back within max_force_rate.
+        The totals (dissipated, active_steps, follower_energy) are kept."""
+        self.pas.energy = 0.0
+        self.pas.alpha = 0.0
+        self.cut_power = 0.0
+        self.fport.forget()                      # no two-port interval across the gap
+
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         """The desired leader force before passivity and limits (N)."""
         return 0.0
@@ -404,7 +433,10 @@ class _Bilateral(Component):
         p = self.params
         dt = 0.0 if self.t_last is None else max(0.0, t - self.t_last)
         self.t_last = t
+        was_ok = self.leader_ok
         self.leader_ok = self._leader(t, inputs)
+        if self.leader_ok and not was_ok:
+            self._restart_observer()
         follower_ok = self._follower(t, inputs)
         if self.leader_ok:
             cmd = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
@@ -554,7 +586,7 @@ class PositionForce(_Bilateral):
         self.pred_from = 0.0                    # the term when the prediction last started or stopped
         self.pred_t0 = 0.0                      # ... and when
         self.last_stamp: float | None = None
-        self.latencies: list[float] = []        # controller time of first use - force stamp, per new estimate
+        self.latencies: list[float] = []        # controller time of first use - force stamp, per new fresh estimate
         self.bad_force = 0
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
@@ -564,10 +596,10 @@ class PositionForce(_Bilateral):
             self.last_stamp = s.stamp
             f_s = finite_or(s.value, math.nan)
             if math.isfinite(f_s):
-                if len(self.latencies) < 100_000:
-                    self.latencies.append(t - s.stamp)
                 self.force_held = f_s
-                if s.is_fresh(t, p.stale_after):
+                if s.is_fresh(t, p.stale_after):      # (False for a NaN stamp, which has no latency to count)
+                    if len(self.latencies) < 100_000:
+                        self.latencies.append(t - s.stamp)
                     f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
                     self.hold.set(t, f_l, p.smoothing_time)
                     self.fading = False

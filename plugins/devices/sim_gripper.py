@@ -6,6 +6,8 @@ fingers sits an object of ``object_width``, rigid or compliant (``object_stiffne
 fingers into the object is shared in series by the fingertip gel(s) and the object; the gel's force-indentation law
 is sim-digit's (``teletouch.plugins.sensors.gel.gel_force``), so ``indentation`` wired into sim-digit makes the
 simulated DIGIT see exactly the squeeze whose force the gripper reports. Deterministic under the sim clock.
+The hold and the safe state (which command the measured opening) keep the fingers where they are and the grip as it
+is, as a real servo does (see :meth:`SimGripper.servo_target`).
 """
 
 from __future__ import annotations
@@ -126,6 +128,7 @@ class SimGripper(FollowerBase):
         self.t_sim: float | None = None
         self.indentation = 0.0
         self.force = 0.0
+        self._hold_effort: tuple[float, float] | None = None     # (the held opening, the effort when it began)
         self._contact_at(x0)
 
     def _hw_read(self) -> Reading:
@@ -143,8 +146,23 @@ class SimGripper(FollowerBase):
         else:
             self.indentation, self.force = 0.0, 0.0
 
+    def servo_target(self) -> float:
+        """Where the P-only servo model pulls: the set-point, offset during a hold (and the safe state's) by the
+        effort the servo had when the hold began over ``servo_stiffness``. The hold commands the measured
+        opening; a real servo keeps its effort there (its integral action, or a gearbox the object cannot
+        back-drive) and the fingers stay put. This model needs a position error for an effort, so without the
+        offset the object pushed the fingers open and the grip relaxed (0.39 -> 0.27 N and 0.07 mm wider on the
+        probe, 16 -> 6.8 N and 1.7 mm wider squeezing at max_effort)."""
+        holding = self._holding is not None or (self._safe and self.params.safe_mode == "hold")
+        if not holding:                         # following commands, or the safe state's open: no hold
+            self._hold_effort = None
+            return self.target
+        if self._hold_effort is None or self._hold_effort[0] != self._hold_at:
+            self._hold_effort = (self._hold_at, self.force)
+        return self.target - self._hold_effort[1] / self.params.servo_stiffness
+
     def advance(self, t: float) -> None:
-        """Move the fingers from the last step's time to ``t`` towards ``self.target``."""
+        """Move the fingers from the last step's time to ``t`` towards the servo's target (:meth:`servo_target`)."""
         p = self.params
         if self.t_sim is None:
             self.t_sim = t
@@ -154,11 +172,12 @@ class SimGripper(FollowerBase):
             return
         self.t_sim = t
         x = self.x
-        x_free = x + (self.target - x) * (1.0 - math.exp(-2.0 * math.pi * p.bandwidth * dt))
+        target = self.servo_target()
+        x_free = x + (target - x) * (1.0 - math.exp(-2.0 * math.pi * p.bandwidth * dt))
         x_free = clamp(x_free, x - p.max_speed * dt, x + p.max_speed * dt)
         w = p.object_width
         if w is not None and x_free < w:
-            x_block = blocked_opening(w, self.target, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
+            x_block = blocked_opening(w, target, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
                                       p.object_stiffness)
             # quasi-static contact: the fingers go no further into the object than where the servo's force
             # balances the contact force (and are pushed back out to there if they are further in; with the
