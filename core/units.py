@@ -34,6 +34,26 @@ _UNITS: dict[str, tuple[str, float]] = {
 
 _QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*|1/\S.*)?\s*$")
 
+#: what an example quantity of each SI unit looks like in a message
+_EXAMPLES: dict[str | None, str] = {
+    "m": "'6mm' or '0.006'", "N": "'5N' or '5'", "s": "'2ms' or '0.002'", "Hz": "'1kHz' or '1000'",
+    "rad": "'30deg' or '0.52'", "px/m": "'17.15px/mm'", "m/s": "'20mm/s' or '0.02'", "N/m": "'2N/mm' or '2000'",
+    None: "'6mm' or '0.006'",
+}
+
+#: no gripper opens wider than this (the PAL gripper: 0.09 m); a larger opening, offset or limit in a metre field
+#: is millimetres typed there
+MAX_PLAUSIBLE_OPENING = 1.0        # m
+
+
+def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> str | None:
+    """None if ``|value|`` (m) is a plausible gripper opening; else why ``name`` looks like millimetres typed in a
+    metre field (``opening_max: 90`` meant 90 mm and was taken as 90 m)."""
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} m) is beyond any gripper's opening ({limit:g} m at most): millimetres in the "
+            f"metre field? write {value / 1e3:g} or \"{value:g}mm\"")
+
 
 def parse_quantity(text: Any, unit: str | None = None) -> float:
     """Parse ``text`` (a number or a string like ``"6mm"``) into a float in the SI unit ``unit``.
@@ -55,7 +75,7 @@ def parse_quantity(text: Any, unit: str | None = None) -> float:
         raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
     m = _QTY.match(text)
     if not m:
-        raise ValueError(f"expected a number{_in(unit)} such as '6mm' or '0.006', got {text!r}")
+        raise ValueError(f"expected a number{_in(unit)} such as {_EXAMPLES.get(unit, repr('1.5'))}, got {text!r}")
     value = float(m.group(1))
     if not math.isfinite(value):
         raise ValueError(f"{text!r} is too large for a number{_in(unit)}")

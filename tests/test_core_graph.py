@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import textwrap
 
 import pytest
@@ -326,6 +327,18 @@ def test_units_of_every_declared_parameter_are_known():
             unit = prm.get("unit")
             if unit and unit not in ("", "1"):
                 assert parse_quantity(f"1 {unit}", unit) == 1.0, (row["name"], prm["name"], unit)
+
+
+def test_a_malformed_quantity_gets_an_example_in_its_own_unit():
+    from teletouch.units import _EXAMPLES, parse_quantity
+
+    with pytest.raises(ValueError, match=r"expected a number in px/m such as '17.15px/mm', got 'abc'"):
+        parse_quantity("abc", "px/m")
+    with pytest.raises(ValueError, match=r"expected a number in N such as '5N' or '5', got 'five'"):
+        parse_quantity("five", "N")
+    for unit, examples in _EXAMPLES.items():   # every example given is itself accepted in its unit
+        for text in examples.replace(" or ", ",").split(","):
+            assert math.isfinite(parse_quantity(text.strip().strip("'"), unit)), (unit, text)
 
 
 def test_set_and_remove_errors_say_what_is_supported(tmp_path, reg):

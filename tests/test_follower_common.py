@@ -185,6 +185,16 @@ def test_command_timeout_param():
             FollowerParams(command_timeout=bad)
 
 
+@pytest.mark.parametrize("field, value", [("max_opening", 90.0), ("min_opening", 5.0)])
+def test_millimetres_typed_in_an_opening_limit_are_refused(field, value):
+    """``max_opening: 90`` meant 90 mm; taken as 90 m, the open safe state drove the fingers to their end stop."""
+    other = {"max_opening": 100.0} if field == "min_opening" else {}
+    with pytest.raises(ValidationError, match=rf"{field} \({value:g} m\) is beyond any gripper's opening .*"
+                                              rf"millimetres in the metre field\? write {value / 1e3:g}"):
+        FollowerParams(**{field: value, **other})
+    assert FollowerParams(max_opening="90mm").max_opening == pytest.approx(0.09)
+
+
 @pytest.mark.parametrize("stamp", ["old", "future", "nan"])
 def test_stale_command_holds_the_measured_opening(stamp):
     with Harness(SimGripper, FREE) as h:  # command_timeout 0.2 s (the default)

@@ -50,7 +50,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, Params, Port, Sample, hookimpl
-from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds
+from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres
 
 from .passivity import (
     FollowerPort, PassivityState, adapt_gain, commit, observe, passivity_force, reduce_force_to,
@@ -63,21 +63,9 @@ __all__ = [
 
 OMEGA7_MAX_GRIPPER_FORCE = 8.0     # N (CHAI3D's device table)
 OMEGA7_MAX_DAMPING = 40.0          # N*s/m
-#: no gripper opens wider than this (the PAL gripper: 0.09 m); a larger opening, offset or limit in a metre field
-#: is millimetres typed there (the ROS 2 bridge's max_opening uses the same bound)
-MAX_PLAUSIBLE_OPENING = 1.0        # m
 
 
 # ------------------------------------------------------------------------------------------------ pure functions
-def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> str | None:
-    """None if ``|value|`` (m) is a plausible gripper opening; else why ``name`` looks like millimetres typed in a
-    metre field (``opening_max: 90`` meant 90 mm and was taken as 90 m)."""
-    if abs(value) <= limit:
-        return None
-    return (f"{name} ({value:g} m) is beyond any gripper's opening ({limit:g} m at most): millimetres in the "
-            f"metre field? write {value / 1e3:g} or \"{value:g}mm\"")
-
-
 def map_opening(x_leader: float, scale: float, offset: float, lo: float, hi: float) -> float:
     """Follower opening command (m) for a leader opening (m): ``clip(scale * x + offset, lo, hi)``."""
     x = scale * x_leader + offset

@@ -27,7 +27,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
-from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
+from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds, millimetres_in_metres
 
 __all__ = ["FollowerParams", "FollowerBase", "Reading", "OpeningMap", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS",
            "clamp", "shape_setpoint"]
@@ -109,6 +109,10 @@ class FollowerParams(Params):
 
     @model_validator(mode="after")
     def _range(self) -> "FollowerParams":
+        for name in ("min_opening", "max_opening"):
+            problem = millimetres_in_metres(name, getattr(self, name))
+            if problem:
+                raise ValueError(problem)
         if self.min_opening >= self.max_opening:
             raise ValueError(f"min_opening ({self.min_opening} m) must be below max_opening ({self.max_opening} m)")
         return self
