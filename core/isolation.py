@@ -20,6 +20,11 @@ are system-wide clocks on Linux and macOS). Exceptions in the child come back as
 type, message and place. Under the simulated clock isolation is ignored: the node runs inline, so runs stay
 deterministic.
 
+An input whose sample is the same object as the one the child already holds (a camera image that has not changed
+since the last step of a faster node) is not sent again: the child's component sees the same Sample, as inline.
+Values other than numbers, numeric arrays and text cross pickled one by one, so a value the child cannot unpickle
+(its class is not importable there) is a fault of the node that names the plugin and the input; the child lives on.
+
 Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
 dropped, never taken for a later call's. One call at a time: the runtime's shutdown (main thread) waits for a step
 still running in the node's thread (at most until that step's own timeout) before it sends deactivate/close. The
@@ -58,6 +63,9 @@ SHARED_MIN_BYTES = 16384
 BLOCK_PREFIX = "teletouch_"
 _SHM_DIR = "/dev/shm"
 _TERMINAL_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: the number of the child's reply to a request it could not unpickle (its number unknown): taken as the answer
+#: to the call in progress (one call at a time)
+_UNREADABLE = -1
 
 
 #: children started and not yet ended: killed at interpreter exit (they ignore the SIGTERM multiprocessing sends
@@ -242,6 +250,36 @@ def _send(conn: Any, msg: Any, values: dict[str, Any], what: str, where: str) ->
         raise ComponentFault(f"cannot send to {where}: {type(exc).__name__}: {exc}") from None
 
 
+_PLAIN = (float, int, bool, str, bytes, type(None), SharedRef)
+
+
+def _to_wire(name: str, value: Any) -> tuple[str, Any]:
+    """An input value as it crosses the pipe: ("V", value) for numbers, text and numeric arrays (the child can
+    always unpickle them), ("P", pickled bytes) for anything else, so the child can say which input it could not
+    unpickle (a class it cannot import) instead of dying on the whole request."""
+    cls = value.__class__
+    if cls in _PLAIN or (cls is np.ndarray and value.dtype.kind in "biufc") or (
+            isinstance(value, np.generic) and value.dtype.kind in "biufc"):
+        return "V", value
+    try:
+        return "P", bytes(ForkingPickler.dumps(value))
+    except Exception as bad:
+        raise ComponentFault(f"input '{name}' cannot cross to the isolated process: {type(bad).__name__}: {bad}") \
+            from None
+
+
+def _from_wire(name: str, kind: str, payload: Any, plugin: str) -> Any:
+    """The child's side of :func:`_to_wire`."""
+    if kind != "P":
+        return payload
+    try:
+        return pickle.loads(payload)
+    except Exception as exc:
+        raise ComponentFault(f"input '{name}' of {plugin} cannot be received in the isolated process: "
+                             f"{type(exc).__name__}: {exc} (a value crosses pickled: its class must be importable "
+                             f"by name in a new process); the input was not delivered") from None
+
+
 def _child_signals(parent_pid: int) -> None:
     """In the child: Ctrl-C (SIGINT to the whole process group) and SIGTERM are for the parent, which ends the child
     through the pipe once its devices are safe; a child that died first would be a fault of its own and never
@@ -302,12 +340,29 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
             msg = conn.recv()
         except (EOFError, OSError):
             break
+        except Exception as exc:  # a request that cannot be unpickled: said, and the child goes on
+            try:
+                conn.send((_UNREADABLE, "exc", f"{cls.name if cls is not None else 'the component'}: a request "
+                                               f"from the parent cannot be unpickled in the isolated process: "
+                                               f"{type(exc).__name__}: {exc}", logs[:]))
+            except OSError:
+                break
+            logs.clear()
+            continue
         seq, op = msg[0], msg[1]
         try:
             if op == "step":
                 _, _, t, ins = msg
+                # inputs not in the request are unchanged: their slots keep the Sample they hold. Every value is
+                # unpacked before any slot changes, so an input that cannot be received changes none of them
+                new = {}
                 for name, v in ins.items():
-                    slots[name].sample = None if v is None else Sample(lanes.unpack(v[0], name), v[1])
+                    if v is not None:
+                        kind, payload, stamp = v
+                        v = Sample(lanes.unpack(_from_wire(name, kind, payload, cls.name), name), stamp)
+                    new[name] = v
+                for name, smp in new.items():
+                    slots[name].sample = smp
                 out = comp.step(t, inputs) or {}  # type: ignore[union-attr]
                 packed = {k: (("S", lanes.pack(k, v.value), v.stamp) if isinstance(v, Sample)
                               else ("V", lanes.pack(k, v))) for k, v in out.items()}
@@ -371,6 +426,8 @@ class ProcessProxy(Component):
         self._stuck = False    # a call timed out and the child has not answered anything since
         self._prefix = f"{BLOCK_PREFIX}{secrets.token_hex(4)}_"   # names of this node's blocks, both sides
         self._lanes = ArrayLanes(self._prefix + "p")
+        # port -> the Sample the child holds for it (sent, and its step answered): not sent again while unchanged
+        self._held: dict[str, Sample | None] = {}
 
     # -------------------------------------------------------------------------------------------------- plumbing
     def _started(self) -> bool:
@@ -401,10 +458,16 @@ class ProcessProxy(Component):
                 if left <= 0 or not conn.poll(left):
                     self._stuck = True
                     raise ComponentFault(f"isolated process did not answer '{op}' within {timeout:.3g} s")
-                reply = conn.recv()
+                try:
+                    reply = conn.recv()
+                except (EOFError, OSError):
+                    raise
+                except Exception as exc:
+                    raise ComponentFault(f"a reply of the isolated process ({self.name}) to '{op}' cannot be "
+                                         f"unpickled here: {type(exc).__name__}: {exc}") from None
                 for line in reply[-1]:
                     self.ctx.log(line)
-                if reply[0] == seq:
+                if reply[0] == seq or reply[0] == _UNREADABLE:
                     break
         except (EOFError, OSError):
             raise self._died(op) from None
@@ -441,6 +504,7 @@ class ProcessProxy(Component):
                                  f"(defined at the top level of a module), not {self.target.__module__}."
                                  f"{self.target.__qualname__}: {type(exc).__name__}: {exc}") from None
         mpctx = mp.get_context("spawn")
+        self._held.clear()   # a new child holds no input yet
         parent, child = mpctx.Pipe()
         self._conn = parent
         self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
@@ -474,12 +538,21 @@ class ProcessProxy(Component):
         try:
             if not self._started():
                 raise ComponentFault("isolated process not running")
+            held = self._held
+            sent: dict[str, Sample | None] = {}
             ins = {}
             for name in self.inputs:
                 s = inputs[name]
-                ins[name] = None if s is None else (self._lanes.pack(name, s.value), s.stamp)
-            reply = self._exchange("step", (t, ins), self._step_timeout,
-                                   {n: v[0] for n, v in ins.items() if v is not None})
+                if name in held and held[name] is s:
+                    continue   # the child holds this very sample: an image is not copied again
+                sent[name] = s
+                ins[name] = None if s is None else (*_to_wire(name, self._lanes.pack(name, s.value)), s.stamp)
+            try:
+                reply = self._exchange("step", (t, ins), self._step_timeout)
+            except BaseException:
+                held.clear()   # the child may not have taken them (or only later): send everything next time
+                raise
+            held.update(sent)
             _, _, packed, status, stop, _logs = reply
             self._status = status
             unpack = self._lanes.unpack

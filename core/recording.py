@@ -625,6 +625,7 @@ class Recorder:
         self._closed = False
         self.messages = 0
         self.dropped = 0
+        self._drop_lock = threading.Lock()   # taps from several node threads drop at once
         self._dropped_items = self._dropped_bytes = False  # which limit dropped samples (for the report)
         self._last_t: float | None = None  # graph time of the last message handed to the writer
         self._flushed = (0, None)  # (messages, graph time of the last one) at the last successful flush
@@ -653,11 +654,15 @@ class Recorder:
                 self.max_backlog = n
             while n >= self.max_queue or (nbytes and self._queued_bytes + nbytes > self.max_queue_bytes):
                 if self.clock != "sim" or not self._thread.is_alive():
-                    self.dropped += len(outputs)  # real time: never block the node's thread
-                    if n >= self.max_queue:
-                        self._dropped_items = True
-                    else:
-                        self._dropped_bytes = True
+                    # real time: never block the node's thread. Taps come from every node's thread at once: the
+                    # count is a read-add-write, so it is done under a lock (unlocked, concurrent drops were lost)
+                    k = len(outputs)
+                    with self._drop_lock:
+                        self.dropped += k
+                        if n >= self.max_queue:
+                            self._dropped_items = True
+                        else:
+                            self._dropped_bytes = True
                     return
                 time.sleep(0.001)  # simulated clock: wait for the writer, record everything
                 n = self._q.qsize()
@@ -1012,13 +1017,25 @@ def open_recording(path: str | os.PathLike, decode: bool = True, keys: Any = Non
                    ) -> tuple[Recording, list[tuple[str, float, float, Any]]]:
     """Read a recording: its :class:`Recording` description and a list of (key, stamp_s, log_s, value) in file
     order (graph time, s). ``keys``: only these "node.port" keys; ``decode=False`` gives the raw bytes."""
-    rec = Recording(str(path))
+    return _read(str(path), None if keys is None else (lambda ch: ch.key in keys), decode)
+
+
+def _read(path: str, want: Callable[[ChannelInfo], bool] | None, decode: bool = True,
+          ) -> tuple[Recording, list[tuple[str, float, float, Any]]]:
+    """:func:`open_recording` in one pass over the file, keeping the messages of the channels ``want`` takes (a
+    channel's record, with its metadata, comes before its first message)."""
+    rec = Recording(path)
     out = []
     codecs: dict[int, _Codec] = {}
+    wanted: dict[int, bool] = {}
     first_ns = None
-    for ch, msg in _iter_raw(str(path), rec):
-        if keys is not None and ch.key not in keys:
-            continue
+    for ch, msg in _iter_raw(path, rec):
+        if want is not None:
+            take = wanted.get(ch.id)
+            if take is None:
+                take = wanted[ch.id] = bool(want(ch))
+            if not take:
+                continue
         if first_ns is None:
             first_ns = msg.publish_time
         if decode:
@@ -1055,11 +1072,12 @@ def read_signals(path: str | os.PathLike, images: bool = False,
                  ) -> dict[str, tuple[np.ndarray, Any]]:
     """{"node.port": (stamps_s, values)} for every channel. Numbers give a float array; equal-shape arrays a stacked
     array (N, ...); strings and the rest a list. Images and depth maps only with ``images=True`` (a list)."""
-    rec = Recording(str(path))
-    for _ in _iter_raw(str(path), rec):  # first pass: channel kinds, cheap (no decoding)
-        pass
-    keys = {ch.key for ch in rec.channels.values() if images or not _is_image(ch)}
-    rec, items = open_recording(path, keys=keys)
+    return _signals(str(path), images)[1]
+
+
+def _signals(path: str, images: bool = False) -> tuple[Recording, dict[str, tuple[np.ndarray, Any]]]:
+    """:func:`read_signals` and the :class:`Recording` it read them from, in one pass over the file."""
+    rec, items = _read(path, None if images else (lambda ch: not _is_image(ch)))
     grouped: dict[str, tuple[list[float], list[Any]]] = {}
     for key, stamp, _log, value in items:
         ts, vs = grouped.setdefault(key, ([], []))
@@ -1068,7 +1086,7 @@ def read_signals(path: str | os.PathLike, images: bool = False,
     out: dict[str, tuple[np.ndarray, Any]] = {}
     for key, (ts, vs) in grouped.items():
         out[key] = (np.asarray(ts, dtype=float), _stack(vs))
-    return out
+    return rec, out
 
 
 def _stack(vs: list[Any]) -> Any:
@@ -1090,6 +1108,8 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
     gives the images it holds, after a warning to ``log`` (if given)."""
     path = str(path)
     rec = Recording(path)
+    # a first pass (no image decoded): every channel must be known before the first image is given (an ambiguous
+    # choice is refused, not found out midway), and a file cut short is warned about before its images are used
     for _ in _iter_raw(path, rec):
         pass
     note = f"; {rec.note()}" if rec.truncated else ""
@@ -1144,10 +1164,7 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
         raise RecordingError(f"--select: invalid regular expression {select!r}: {exc}") from None
     path = Path(path)
     outdir = Path(outdir) if outdir is not None else path.with_name(path.stem + "_plots")
-    rec = Recording(str(path))
-    for _ in _iter_raw(str(path), rec):
-        pass
-    sig = read_signals(path)
+    rec, sig = _signals(str(path))   # one pass over the file: channels, units, signals and where it is cut
     units = {ch.key: ch.metadata.get("unit", "") for ch in rec.channels.values()}
     groups: dict[str, list[str]] = {}
     skipped = []  # numeric signals that cannot be drawn as lines, and why

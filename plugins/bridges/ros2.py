@@ -1,6 +1,8 @@
 """ROS 2 bridge: graph ports to and from ROS 2 topics with standard messages (extra ``teletouch[ros2]``).
 
-``ros2-publish`` publishes whatever is wired into it; ``ros2-subscribe`` turns topics back into graph outputs. Two
+``ros2-publish`` publishes whatever is wired into it (its ``topics`` are advertised at configure, before the first
+sample, so DDS matches them while the graph starts); ``ros2-subscribe`` turns topics back into graph outputs. A wired
+port whose topic is not in the node's ``topics`` is named by ``wiring_problems`` (for the graph's validation). Two
 graphs on two machines (or two processes) split a pipeline through DDS, e.g. machine A runs
 digit -> depth -> poly-force -> ros2-publish, machine B runs ros2-subscribe -> position-force -> devices.
 
@@ -56,6 +58,10 @@ from teletouch.units import Meters, Seconds
 
 TOPICS = ("force", "image", "depth", "joint_states", "value")
 TOPIC_FIELDS = tuple(f"{k}_topic" for k in TOPICS)
+#: port -> the topic (key of ``topics``) that carries it, the same on both nodes
+PORT_TOPIC = {"force": "force", "image": "image", "depth": "depth", "opening": "joint_states",
+              "velocity": "joint_states", "effort": "joint_states", "value": "value"}
+TopicKey = Literal["force", "image", "depth", "joint_states", "value"]
 _AXES = {"x": 0, "y": 1, "z": 2}
 MAX_DOMAIN_ID = 232          # DDS's port formula (7400 + 250 * domain + ...) leaves no room above 232
 GRAPH_CHECK_PERIOD = 1.0     # s between checks of the other endpoints' message types on our topics
@@ -128,6 +134,14 @@ class _BridgeParams(QosParams):
         if problems:
             raise ValueError("\n".join(problems))
         return self
+
+
+def _unlisted(ports: Any, topics: list[str], side: str, remedy: str) -> dict[str, str]:
+    """{port: why} for the wired ports whose topic is not in ``topics``."""
+    listed = ", ".join(dict.fromkeys(topics))
+    return {port: f"{side} '{port}' is wired, but its topic '{PORT_TOPIC[port]}' is not in this node's topics "
+                  f"[{listed}]: {remedy.format(topic=PORT_TOPIC[port])}"
+            for port in sorted(ports) if port in PORT_TOPIC and PORT_TOPIC[port] not in topics}
 
 
 def _resolve(namespace: str, topic: str) -> str:
@@ -365,6 +379,17 @@ class Ros2Publish(Component):
 
     class Params(_BridgeParams):
         frame_id: str = Field("digit", description="header.frame_id of the messages")
+        topics: list[TopicKey] = Field(
+            list(TOPICS), min_length=1,
+            description="topics advertised when the node starts, before the first sample, so that subscribers have "
+            "found them by then (force, image, depth, joint_states, value; default all): a wired input whose "
+            "topic is not listed is an error")
+
+    @classmethod
+    def wiring_problems(cls, params: Any, inputs: Any, outputs: Any) -> dict[str, str]:
+        """{input: why} for the wired inputs whose topic is not advertised (``params.topics``). For the graph's
+        validation: ``inputs`` are the node's wired input ports, ``outputs`` the output ports other nodes read."""
+        return _unlisted(inputs, list(params.topics), "input", "add {topic} to topics")
 
     def configure(self) -> None:
         from geometry_msgs.msg import WrenchStamped
@@ -372,10 +397,10 @@ class Ros2Publish(Component):
         from std_msgs.msg import Float64
 
         p = self.params
-        self._types = {"force": WrenchStamped, "image": Image, "depth": Image, "joint_states": JointState,
-                       "value": Float64}
-        self._topics = {"force": p.force_topic, "image": p.image_topic, "depth": p.depth_topic,
-                        "joint_states": p.joint_states_topic, "value": p.value_topic}
+        types = {"force": WrenchStamped, "image": Image, "depth": Image, "joint_states": JointState,
+                 "value": Float64}
+        names = {"force": p.force_topic, "image": p.image_topic, "depth": p.depth_topic,
+                 "joint_states": p.joint_states_topic, "value": p.value_topic}
         self._pubs: dict[str, Any] = {}
         self._last: dict[str, Sample] = {}
         self.published = 0
@@ -384,15 +409,16 @@ class Ros2Publish(Component):
         self._clock = _Clock(self.ctx)
         self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id, self._log_once)
         self._qos = qos_profile(p)
+        # every publisher now: DDS discovery (a new writer found by the subscribers, tens of ms and more across
+        # machines) runs while the graph starts; a writer made at its first sample lost the samples of that time
+        for key in dict.fromkeys(p.topics):
+            self._pubs[key] = self._ros.publisher(types[key], names[key], self._qos)
 
     def activate(self) -> None:
         self._clock = _Clock(self.ctx)
 
     def _pub(self, key: str) -> Any:
-        pub = self._pubs.get(key)
-        if pub is None:  # created on first use: only wired ports get a topic
-            pub = self._pubs[key] = self._ros.publisher(self._types[key], self._topics[key], self._qos)
-        return pub
+        return self._pubs[key]   # made at configure; _new() lets no sample through for another topic
 
     def _new(self, inputs: Any, name: str) -> Sample | None:
         """The input's sample if it is a measurement not sent yet. Compared by stamp, not only by identity: under
@@ -401,6 +427,9 @@ class Ros2Publish(Component):
         s = inputs[name]
         if s is None:
             return None
+        if PORT_TOPIC[name] not in self._pubs:   # wired, but its topic is not advertised: never dropped silently
+            raise ComponentFault(_unlisted([name], list(self.params.topics), "input",
+                                           "add {topic} to topics (its samples cannot be published)")[name])
         last = self._last.get(name)
         if last is not None and (s is last or s.stamp == last.stamp):
             return None
@@ -496,9 +525,10 @@ class Ros2Subscribe(Component):
     }
 
     class Params(_BridgeParams):
-        topics: list[Literal["force", "image", "depth", "joint_states", "value"]] = Field(
+        topics: list[TopicKey] = Field(
             ["force"], min_length=1,
-            description="which topics to subscribe to (force, image, depth, joint_states, value)")
+            description="which topics to subscribe to (force, image, depth, joint_states, value): an output read "
+            "by the graph needs its topic here")
         durability: Literal["volatile"] = Field(
             "volatile", description="QoS durability: volatile only (a late joiner must not get latched old samples)")
         stamps: Literal["message", "arrival"] = Field(
@@ -520,6 +550,13 @@ class Ros2Subscribe(Component):
                                  "stamps: arrival, or a clamped stamp, as fresh ones); a volatile subscription "
                                  "still connects to a transient_local publisher")
             return v
+
+    @classmethod
+    def wiring_problems(cls, params: Any, inputs: Any, outputs: Any) -> dict[str, str]:
+        """{output: why} for the outputs other nodes read whose topic is not subscribed (``params.topics``): such
+        an output would never carry a sample. For the graph's validation: ``outputs`` are the node's output ports
+        that other nodes read."""
+        return _unlisted(outputs, list(params.topics), "output", "add {topic} to topics, or read another output")
 
     def configure(self) -> None:
         from geometry_msgs.msg import WrenchStamped
