@@ -253,6 +253,14 @@ class Component:
         self.id = node_id or self.name
         self.ctx = ctx or Context()
 
+    @classmethod
+    def wiring_problems(cls, params: Any, inputs: Any, outputs: Any) -> dict[str, str]:
+        """Wiring this component refuses beyond what its ports declare, checked when a graph is validated:
+        ``params`` are the node's validated parameters, ``inputs`` its wired input ports, ``outputs`` its output
+        ports that other nodes read. Returns {port: why}; empty when all is well (the default). Example: a bridge
+        whose parameters leave a wired port without a topic."""
+        return {}
+
     # lifecycle hooks -------------------------------------------------------------------------------------------
     def configure(self) -> None:
         """Allocate resources, open connections, load models. May raise; then the run does not start."""

@@ -582,6 +582,25 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             if p.required and port not in n.inputs:
                 err(f"node '{n.id}': required input '{port}' ({p.describe()}) of {n.plugin} is not wired", n.where)
 
+    # each component's own wiring rules (Component.wiring_problems), e.g. a bridge port its topics do not carry
+    consumed: dict[str, dict[str, Location]] = {}   # node -> its outputs that others read -> the first reading wire
+    for n in nodes:
+        for w in n.inputs.values():
+            consumed.setdefault(w.node, {}).setdefault(w.source_port, w.where)
+    for n in nodes:
+        check = getattr(n.cls, "wiring_problems", None)
+        if check is None or n.params_obj is None:
+            continue
+        read = consumed.get(n.id, {})
+        try:
+            problems = check(n.params_obj, set(n.inputs), set(read))
+        except Exception as exc:   # a plugin's check must not hide the graph's other errors
+            err(f"node '{n.id}': the wiring check of {n.plugin} failed: {type(exc).__name__}: {exc}", n.where)
+            continue
+        for port, why in sorted((problems or {}).items()):
+            where = n.inputs[port].where if port in n.inputs else read.get(port, n.where)
+            err(f"node '{n.id}': {why}", where)
+
     if errors:
         raise GraphValidationError(errors)
     return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
