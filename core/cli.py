@@ -1,22 +1,30 @@
 """The ``teletouch`` command line.
 
 Core commands: plugins, validate, schema, run, devices. Plugins add their own (calibrate, estimate, experiment, ...)
-through the ``teletouch_add_commands`` hook.
+through the ``teletouch_add_commands`` hook; a plugin whose hook raises (or takes a name already in use) has its
+commands skipped with a warning, and every other command still works.
+
+Global option ``--block NAME[,NAME]`` (repeatable) blocks plugins like ``TELETOUCH_BLOCK_PLUGINS``. Exit codes are
+those of :mod:`teletouch.runtime` (0 ok, 1 invalid input, 2 usage, 3 fault, 4 start-up failure, 130 interrupted by
+Ctrl-C or SIGTERM); `teletouch plugins` exits 1 when a plugin failed to load, a component name is refused for a
+conflict, or a blocked name matches nothing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
+import threading
 from typing import Any, Sequence
 
 from . import __version__
-from .errors import GraphValidationError, TeletouchError
-from .registry import default_registry
-from .runtime import EXIT_INVALID, EXIT_OK, EXIT_USAGE, Runtime
+from .errors import GraphValidationError, TeletouchError, exception_line
+from .registry import Registry, default_registry
+from .runtime import EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime
 
 
 def _add_graph_args(p: argparse.ArgumentParser) -> None:
@@ -26,17 +34,46 @@ def _add_graph_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock", choices=("sim", "wall"), default=None, help="override the graph's clock")
 
 
+def _seconds(text: str) -> float:
+    """argparse type of ``--duration``: a positive, finite time ('10', '10s', '500ms')."""
+    from .units import parse_quantity
+
+    try:
+        value = parse_quantity(text, "s")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a positive time in s, got {text!r}")
+    return value
+
+
+def _positive_seconds(text: str) -> float:
+    """argparse type of ``--progress-interval``: a positive, finite number of seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive, finite number of seconds, got {text!r}")
+    return value
+
+
 def cmd_plugins(args: argparse.Namespace) -> int:
     reg = default_registry()
     rows = reg.describe()
+    problems = reg.problems() + list(getattr(args, "command_errors", []))
+    status = EXIT_INVALID if problems else EXIT_OK
     if args.json:
         print(json.dumps(rows, indent=2, default=str))
-        return EXIT_OK
+        return status
     for r in rows:
         if r.get("error"):
-            print(f"{r['name']}  [FAILED TO LOAD]  {r['distribution']} {r['version']}\n    error: {r['error']}\n")
+            if r["name"] in reg.conflicts:   # the message names every origin
+                print(f"{r['name']}  [REFUSED: provided by more than one plugin]\n    error: {r['error']}\n")
+            else:
+                print(f"{r['name']}  [FAILED TO LOAD]  {r['distribution']} {r['version']}\n    error: {r['error']}\n")
             continue
-        print(f"{r['name']}  ({r['kind']})  {r['distribution']} {r['version']}")
+        print(f"{r['name']}  ({r['kind']})  {r['distribution']} {r['version']}  (plugin {r['plugin']})")
         if r.get("description"):
             print(f"    {r['description']}")
         for p in r["ports"]:
@@ -48,10 +85,16 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             unit = f" {prm['unit']}" if prm.get("unit") else ""
             print(f"    .  {prm['name']:<16} = {prm['default']!r}{unit}   {prm.get('description', '')}")
         print()
+    others = [f"{p.name} ({p.origin}: {', '.join(h.removeprefix('teletouch_') for h in p.hooks) or 'nothing'})"
+              for p in reg.plugins.values() if not (p.components or p.error or p.blocked)]
+    if others:
+        print("plugins without components: " + ", ".join(others))
     blocked = [p.name for p in reg.plugins.values() if p.blocked]
     if blocked:
         print("blocked: " + ", ".join(blocked))
-    return EXIT_OK
+    if problems:   # each is in the list above or was warned about on stderr
+        print(f"teletouch: {len(problems)} plugin problem(s); exit status {status}", file=sys.stderr)
+    return status
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -128,7 +171,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"{args.graph}: the simulated clock needs a duration: add 'duration:' to the graph or pass "
               f"--duration S", file=sys.stderr)
         return EXIT_INVALID
-    rt = Runtime(spec)
+    try:
+        rt = Runtime(spec)
+    except TeletouchError:
+        raise
+    except Exception as exc:   # a plugin's constructor: nothing was configured yet, so nothing is live
+        print(f"teletouch: startup-failed: a component could not be created: {exception_line(exc)}", file=sys.stderr)
+        return EXIT_STARTUP
     recorder = None
     if getattr(args, "record", None):
         from .recording import Recorder
@@ -136,17 +185,20 @@ def cmd_run(args: argparse.Namespace) -> int:
         recorder = Recorder(args.record, spec, image_format=args.record_images)
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
-    old = signal.getsignal(signal.SIGTERM)
+    in_main = threading.current_thread() is threading.main_thread()   # only the main thread may set handlers
+    old = signal.getsignal(signal.SIGTERM) if in_main else None
 
     def _term(signum: int, frame: Any) -> None:
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, _term)
+    if in_main:
+        signal.signal(signal.SIGTERM, _term)
     record_error = None
     try:
         result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
     finally:
-        signal.signal(signal.SIGTERM, old)
+        if in_main:
+            signal.signal(signal.SIGTERM, old)
         if progress is not None:
             progress.done()
         if recorder is not None:
@@ -184,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="teletouch", description="Tactile force estimation and position-force "
                                      "teleoperation. See `teletouch COMMAND -h`.")
     parser.add_argument("--version", action="version", version=f"teletouch {__version__}")
+    parser.add_argument("--block", action="append", default=[], metavar="NAME[,NAME]",
+                        help="do not load these plugins (plugin or distribution names; repeatable); adds to "
+                             "TELETOUCH_BLOCK_PLUGINS")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("plugins", help="list installed components (and plugins that failed to load)")
@@ -200,10 +255,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run a graph")
     _add_graph_args(p)
-    p.add_argument("--duration", type=str, default=None, help="seconds (or '10s'); default: the graph's")
+    p.add_argument("--duration", type=_seconds, default=None, help="seconds (or '10s'); default: the graph's")
     p.add_argument("--quiet", action="store_true", help="no live view and no summary table")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
-    p.add_argument("--progress-interval", type=float, default=0.5, help="live view period (s)")
+    p.add_argument("--progress-interval", type=_positive_seconds, default=0.5, help="live view period (s)")
     p.add_argument("--record", metavar="FILE.mcap", default=None, help="record every port to an MCAP file")
     p.add_argument("--record-images", choices=("png", "jpeg"), default="png",
                    help="image compression in the recording: png (lossless, ~17 ms/frame) or jpeg (~1 ms/frame)")
@@ -219,27 +274,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _blocked_from(argv: Sequence[str] | None) -> list[str]:
+    """The ``--block`` names, read before the plugins load (their commands are part of the parser)."""
+    pre = argparse.ArgumentParser(add_help=False, exit_on_error=False)
+    pre.add_argument("--block", action="append", default=[])
+    try:
+        known, _ = pre.parse_known_args(list(sys.argv[1:] if argv is None else argv))
+    except argparse.ArgumentError:   # the full parser reports it, with the real usage line
+        return []
+    return [n.strip() for item in known.block for n in item.split(",") if n.strip()]
+
+
+def add_plugin_commands(reg: Registry, sub: argparse._SubParsersAction, cal: argparse._SubParsersAction) -> list[str]:
+    """Let each plugin add its commands. One whose hook raises (or reuses a taken name) is skipped, with what it had
+    added removed; returns one line per skipped plugin."""
+    errors = []
+    kwargs = {"subparsers": sub, "calibrate": cal}
+    for impl in reversed(reg.pm.hook.teletouch_add_commands.get_hookimpls()):   # registration order
+        before = [(a, dict(a._name_parser_map), list(a._choices_actions)) for a in (sub, cal)]
+        try:
+            impl.function(*[kwargs[name] for name in impl.argnames])
+        except (Exception, SystemExit) as exc:
+            for action, names, choices in before:
+                action._name_parser_map.clear()
+                action._name_parser_map.update(names)
+                action._choices_actions[:] = choices
+            rec = reg.plugins.get(impl.plugin_name)
+            origin = f" ({rec.origin})" if rec is not None else ""
+            errors.append(f"plugin '{impl.plugin_name}'{origin}: its commands are skipped: "
+                          f"teletouch_add_commands raised {exception_line(exc)}")
+    return errors
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     cal = sub.choices["calibrate"].get_default("_calibrate")
     try:
-        reg = default_registry()
-        reg.pm.hook.teletouch_add_commands(subparsers=sub, calibrate=cal)
+        reg = default_registry(blocked=_blocked_from(argv))
     except TeletouchError as exc:
         print(f"teletouch: error: {exc}", file=sys.stderr)
         return EXIT_INVALID
+    command_errors = add_plugin_commands(reg, sub, cal)
+    for line in command_errors + reg.unknown_blocked():
+        print(f"teletouch: warning: {line}", file=sys.stderr)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
-        parser.print_help()
-        return EXIT_OK
-    if getattr(args, "duration", None) is not None and args.command == "run":
-        from .units import parse_quantity
-
-        try:
-            args.duration = parse_quantity(args.duration, "s")
-        except ValueError as exc:
-            parser.error(f"--duration: {exc}")
+        parser.print_help(sys.stderr)
+        print("\nteletouch: error: a COMMAND is required", file=sys.stderr)
+        return EXIT_USAGE
+    args.command_errors = command_errors
     try:
         return int(args.func(args) or 0)
     except GraphValidationError as exc:

@@ -46,21 +46,25 @@ class Port:
     """A typed port.
 
     dtype: numpy dtype name ("float64", "uint8", "bool", ...) or "any".
-    shape: () for a scalar; ``None`` in a dimension means any size (an image is ``(None, None, 3)``).
+    shape: () for a scalar; ``None`` in a dimension means any size (an image is ``(None, None, 3)``); ``None`` for
+        the whole shape means any number of dimensions.
     unit: SI unit symbol ("m", "N", "s", "m^2", "m/s"); "" for dimensionless; "any" to accept anything.
     required: for inputs, whether the graph must wire it.
     max_age: for inputs, the default staleness limit in seconds (None: no limit); a graph may override it.
     """
 
     dtype: str = "float64"
-    shape: tuple[int | None, ...] = ()
+    shape: tuple[int | None, ...] | None = ()
     unit: str = ""
     description: str = ""
     required: bool = True
     max_age: float | None = None
 
     def describe(self) -> str:
-        shape = "scalar" if self.shape == () else "x".join("*" if d is None else str(d) for d in self.shape)
+        if self.shape is None:
+            shape = "any shape"
+        else:
+            shape = "scalar" if self.shape == () else "x".join("*" if d is None else str(d) for d in self.shape)
         unit = self.unit or "1"
         return f"{self.dtype}[{shape}] {unit}"
 
@@ -79,7 +83,8 @@ class Port:
         return None
 
     def as_dict(self, name: str) -> dict[str, Any]:
-        d: dict[str, Any] = {"name": name, "dtype": self.dtype, "shape": list(self.shape), "unit": self.unit}
+        shape = None if self.shape is None else list(self.shape)
+        d: dict[str, Any] = {"name": name, "dtype": self.dtype, "shape": shape, "unit": self.unit}
         if self.description:
             d["description"] = self.description
         return d

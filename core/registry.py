@@ -4,18 +4,28 @@ Components come from modules registered under the entry-point group ``teletouch`
 group as third-party ones. Environment variables (like pytest's):
 
 - ``TELETOUCH_DISABLE_PLUGIN_AUTOLOAD=1``: do not load entry points (tests register what they need).
-- ``TELETOUCH_BLOCK_PLUGINS=a,b``: skip the named plugins (entry-point names or distribution names).
+- ``TELETOUCH_BLOCK_PLUGINS=a,b``: skip the named plugins (entry-point names or distribution names); a blocked
+  plugin is not even imported. ``teletouch --block NAME`` does the same. A name that matches nothing is reported
+  (:meth:`Registry.unknown_blocked`): a typo must not leave running a plugin the user meant to switch off.
 - ``TELETOUCH_PLUGINS=pkg.mod1,pkg.mod2``: import and register these modules too (works with autoload off).
 
-A plugin that fails to import is recorded with its error and skipped. Two components with the same name are refused
-with an error naming both distributions.
+A plugin that fails to import (or raises, even ``SystemExit``), declares a hook that does not exist, leaves a
+``teletouch_*`` function without ``@teletouch.hookimpl``, or provides a component that breaks the rules of
+:func:`check_component` is recorded with its error and skipped; the others still load. Two plugins that provide a
+component with the same name (or two distributions that declare the same plugin name) are refused: the name is kept
+by neither, the conflict names both origins, and `teletouch plugins` and any graph that uses the name say how to
+resolve it. What plugins print while they load goes to stderr, so ``--json`` output stays parseable.
 """
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib
+import math
 import os
+import re
+import sys
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Iterable
@@ -24,13 +34,14 @@ import pluggy
 from pydantic import BaseModel
 
 from . import hookspecs
-from .component import NAME_RE, Component, Device, Kind, Port
+from .component import NAME_RE, Component, Device, Kind, Params, Port
 from .errors import DuplicateComponentError, PluginError, UnknownComponentError, exception_line
 
 GROUP = "teletouch"
 ENV_DISABLE = "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD"
 ENV_BLOCK = "TELETOUCH_BLOCK_PLUGINS"
 ENV_PLUGINS = "TELETOUCH_PLUGINS"
+PLUGIN_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
 @dataclass
@@ -42,6 +53,14 @@ class PluginRecord:
     error: str | None = None
     blocked: bool = False
     components: list[str] = field(default_factory=list)
+    hooks: list[str] = field(default_factory=list)
+    #: names of the components it offered when it was refused (so a graph naming one hears why it is missing)
+    offered: list[str] = field(default_factory=list)
+
+    @property
+    def origin(self) -> str:
+        """``distribution version`` as a person reads it."""
+        return f"{self.distribution} {self.version}".strip()
 
 
 @dataclass(frozen=True)
@@ -68,6 +87,24 @@ def _split(value: str | None) -> list[str]:
     return [v.strip() for v in (value or "").split(",") if v.strip()]
 
 
+def _one_line(text: str) -> str:
+    """Error text on one line (pluggy's validation messages span three)."""
+    return "; ".join(part.strip() for part in str(text).splitlines() if part.strip())
+
+
+def _error_line(exc: BaseException) -> str:
+    if isinstance(exc, PluginError):   # our own check: the message says it all, the registry's line is noise
+        return _one_line(str(exc))
+    if isinstance(exc, SystemExit):
+        return f"SystemExit({exc.code!r}) raised while loading (a plugin must not exit the process)"
+    return _one_line(exception_line(exc))
+
+
+def _quiet_stdout() -> Any:
+    """While plugins load, what they print goes to stderr: stdout carries `--json` output."""
+    return contextlib.redirect_stdout(sys.stderr)
+
+
 class Registry:
     """Holds the loaded plugins and the components they provide."""
 
@@ -77,6 +114,10 @@ class Registry:
         self.pm.add_hookspecs(hookspecs)
         self.plugins: dict[str, PluginRecord] = {}
         self.components: dict[str, ComponentInfo] = {}
+        #: component name -> every provider, for names two plugins both provide (refused: in no one's hands)
+        self.conflicts: dict[str, list[ComponentInfo]] = {}
+        #: every entry-point name and distribution name seen while loading (blocked or not): for typo checks
+        self.known_names: set[str] = set()
         env = os.environ
         self.autoload = (not _truthy(env.get(ENV_DISABLE))) if autoload is None else autoload
         self.blocked = set(_split(env.get(ENV_BLOCK))) | set(blocked or ())
@@ -87,38 +128,71 @@ class Registry:
         if self.autoload:
             self.load_entrypoints()
         for modname in self._extra:
+            self.known_names.add(modname)
             self._load_one(modname, modname, lambda m=modname: importlib.import_module(m), "(TELETOUCH_PLUGINS)", "")
         return self
 
     def load_entrypoints(self) -> None:
-        for ep in sorted(metadata.entry_points(group=GROUP), key=lambda e: e.name):
+        groups: dict[str, list[Any]] = {}
+        for ep in metadata.entry_points(group=GROUP):
             dist = ep.dist.name if ep.dist is not None else "?"
             version = ep.dist.version if ep.dist is not None else "?"
-            self._load_one(ep.name, ep.value, ep.load, dist, version)
+            self.known_names.update((ep.name, dist))
+            same = groups.setdefault(ep.name, [])
+            if not any(d == dist and e.value == ep.value for e, d, _ in same):  # editable + metadata on path
+                same.append((ep, dist, version))
+        for name in sorted(groups):
+            found = groups[name]
+            live = [f for f in found if f[1] not in self.blocked]
+            if name in self.blocked or not live:
+                ep, dist, version = found[0]
+                self.plugins[name] = PluginRecord(name=name, distribution=", ".join(f[1] for f in found),
+                                                  version=version if len(found) == 1 else "", module=ep.value,
+                                                  blocked=True)
+            elif len(live) > 1:
+                origins = " and ".join(f"'{d}' {v} ({e.value})" for e, d, v in live)
+                self.plugins[name] = PluginRecord(
+                    name=name, distribution=", ".join(d for _, d, _ in live), version="",
+                    module=", ".join(e.value for e, _, _ in live),
+                    error=f"plugin name '{name}' is declared by the distributions {origins}; neither is loaded: "
+                          f"uninstall one or block one by its distribution name, e.g. "
+                          f"{ENV_BLOCK}={live[-1][1]}")
+            else:
+                ep, dist, version = live[0]
+                self._load_one(name, ep.value, ep.load, dist, version)
 
     def _load_one(self, name: str, value: str, loader: Any, dist: str, version: str) -> None:
         if name in self.plugins:
             prev = self.plugins[name]
             if prev.distribution == dist and prev.module == value:
-                return  # same entry point seen twice (e.g. editable + metadata on path)
-            raise DuplicateComponentError(
-                f"plugin name '{name}' is registered by both '{prev.distribution}' ({prev.module}) and "
-                f"'{dist}' ({value}); uninstall one or block it with {ENV_BLOCK}={name}")
+                return
+            self.plugins[f"{name} ({dist})"] = PluginRecord(
+                name=f"{name} ({dist})", distribution=dist, version=version, module=value,
+                error=f"plugin name '{name}' is already taken by '{prev.distribution}' ({prev.module}); "
+                      f"this one is not loaded")
+            return
         rec = PluginRecord(name=name, distribution=dist, version=version, module=value)
         self.plugins[name] = rec
         if name in self.blocked or dist in self.blocked:
             rec.blocked = True
             return
-        try:
-            obj = loader()
-        except Exception as exc:  # a broken plugin is reported, not fatal
-            rec.error = exception_line(exc)
+        if not PLUGIN_NAME_RE.match(name):
+            rec.error = (f"plugin name {name!r} is not loaded: use letters, digits, '-', '_' and '.' (the names "
+                         f"entry points should use), so that {ENV_BLOCK}=NAME,NAME can name it")
             return
-        self.register(obj, name=name, _record=rec)
+        try:
+            with _quiet_stdout():
+                obj = loader()
+        except (Exception, SystemExit) as exc:  # a broken plugin is reported, not fatal
+            rec.error = _error_line(exc)
+            return
+        self._register(obj, rec, strict=False)
 
     def register(self, plugin: Any, name: str | None = None, *, distribution: str = "(registered)",
                  version: str = "", _record: PluginRecord | None = None) -> PluginRecord:
-        """Register a plugin object/module directly (tests, notebooks). Returns its record."""
+        """Register a plugin object/module directly (tests, notebooks). Returns its record; a plugin that breaks the
+        rules has ``record.error`` set and provides nothing. A component name that is already taken raises
+        :class:`DuplicateComponentError` naming both origins."""
         name = name or getattr(plugin, "__name__", None) or repr(plugin)
         rec = _record
         if rec is None:
@@ -127,60 +201,141 @@ class Registry:
             rec = PluginRecord(name=name, distribution=distribution, version=version,
                                module=getattr(plugin, "__name__", repr(plugin)))
             self.plugins[name] = rec
+        return self._register(plugin, rec, strict=_record is None)
+
+    def _register(self, plugin: Any, rec: PluginRecord, *, strict: bool) -> PluginRecord:
+        name = rec.name
         try:
             self.pm.register(plugin, name=name)
         except Exception as exc:
-            rec.error = exception_line(exc)
+            rec.error = _error_line(exc)
             return rec
-        impls = [i for i in self.pm.hook.teletouch_components.get_hookimpls() if i.plugin_name == name]
-        found: list[type[Component]] = []
         try:
-            for impl in impls:
-                found.extend(impl.function() or [])
+            rec.hooks = _check_hooks(self.pm, plugin)
+            found = self._call_components(name)
+            rec.offered = [c.name for c in found if isinstance(getattr(c, "name", None), str)]
+            seen: dict[str, type[Component]] = {}
             for cls in found:
-                _check_component(cls)
-        except Exception as exc:
-            rec.error = exception_line(exc)
+                check_component(cls)
+                if cls.name in seen and seen[cls.name] is not cls:
+                    raise PluginError(f"provides two components named '{cls.name}': {seen[cls.name].__qualname__} "
+                                      f"and {cls.__qualname__}")
+                seen[cls.name] = cls
+        except (Exception, SystemExit) as exc:
+            rec.error = _error_line(exc)
+            rec.hooks = []
             self.pm.unregister(name=name)
             return rec
-        for cls in found:
+        infos = [ComponentInfo(cls, rec.name, rec.distribution, rec.version) for cls in seen.values()]
+        if strict:
+            for info in infos:
+                other = self.components.get(info.name)
+                taken = [other] if other is not None and other.cls is not info.cls else []
+                taken = self.conflicts.get(info.name, taken)
+                if taken:
+                    self.pm.unregister(name=name)
+                    rec.error = f"duplicate component '{info.name}'"
+                    raise DuplicateComponentError(self._conflict_message(info.name, [*taken, info]))
+        for info in infos:
+            cls = info.cls
+            if cls.name in self.conflicts:
+                self.conflicts[cls.name].append(info)
+                continue
             other = self.components.get(cls.name)
             if other is not None and other.cls is not cls:
-                self.pm.unregister(name=name)
-                rec.error = f"duplicate component '{cls.name}'"
-                raise DuplicateComponentError(
-                    f"component '{cls.name}' is provided by both distribution '{other.distribution}' "
-                    f"(plugin '{other.plugin}') and distribution '{rec.distribution}' (plugin '{rec.name}'); "
-                    f"uninstall one or block it with {ENV_BLOCK}={rec.name}")
-        for cls in found:
-            self.components[cls.name] = ComponentInfo(cls, rec.name, rec.distribution, rec.version)
+                # neither keeps the name: which one a graph got would depend on the order of installation
+                del self.components[cls.name]
+                self.plugins[other.plugin].components.remove(cls.name)
+                self.conflicts[cls.name] = [other, info]
+                continue
+            self.components[cls.name] = info
             rec.components.append(cls.name)
         return rec
+
+    def _call_components(self, name: str) -> list[type[Component]]:
+        found: list[type[Component]] = []
+        for impl in self.pm.hook.teletouch_components.get_hookimpls():
+            if impl.plugin_name != name:
+                continue
+            with _quiet_stdout():
+                got = impl.function()
+            if got is None:
+                continue
+            if isinstance(got, type) or not isinstance(got, (list, tuple)):
+                hint = f" (wrap it in a list: [{got.__qualname__}])" if isinstance(got, type) else ""
+                raise PluginError(f"teletouch_components() must return a list of Component classes, got "
+                                  f"{_short(got)}{hint}")
+            found.extend(got)
+        return found
+
+    def _conflict_message(self, cname: str, providers: list[ComponentInfo]) -> str:
+        origins = " and ".join(f"plugin '{p.plugin}' ({p.distribution} {p.version})".replace(" )", ")")
+                               for p in providers)
+        blocks = " or ".join(f"{ENV_BLOCK}={p.plugin}" for p in providers)
+        return (f"component '{cname}' is provided by both {origins}; the name is refused until only one "
+                f"provides it: uninstall one or block one ({blocks}, or `teletouch --block NAME`)")
 
     # queries ---------------------------------------------------------------------------------------------------
     def get(self, name: str) -> ComponentInfo:
         try:
             return self.components[name]
         except KeyError:
+            if name in self.conflicts:
+                raise DuplicateComponentError(self._conflict_message(name, self.conflicts[name])) from None
             raise UnknownComponentError(self.unknown_message(name)) from None
 
     def unknown_message(self, name: str) -> str:
+        if name in self.conflicts:
+            return self._conflict_message(name, self.conflicts[name])
         close = difflib.get_close_matches(name, list(self.components), n=3, cutoff=0.6)
         msg = f"unknown plugin '{name}'"
         if close:
             msg += " (did you mean " + " or ".join(f"'{c}'" for c in close) + "?)"
         else:
             msg += "; run `teletouch plugins` to list what is installed"
-        broken = [p for p in self.plugins.values() if p.error and (p.name == name or name in p.module)]
+        broken = [p for p in self.plugins.values()
+                  if p.error and (p.name == name or name in p.offered or name in p.module.replace("_", "-").split("."))]
         for p in broken:
             msg += f"; plugin '{p.name}' failed to load: {p.error}"
+        others = [p.name for p in self.errors() if p not in broken]
+        if others:
+            msg += f"; plugins that failed to load (see `teletouch plugins`): {', '.join(others)}"
+        blocked = sorted(p.name for p in self.plugins.values() if p.blocked)
+        if blocked:
+            msg += f"; blocked plugins (not loaded): {', '.join(blocked)}"
+        if not self.autoload:
+            msg += f"; installed plugins are not loaded ({ENV_DISABLE} is set)"
         return msg
 
     def errors(self) -> list[PluginRecord]:
         return [p for p in self.plugins.values() if p.error]
 
+    def unknown_blocked(self) -> list[str]:
+        """One line per blocked name that matches no installed plugin or distribution (a typo), with a hint."""
+        if not self.autoload:
+            return []
+        out = []
+        for name in sorted(self.blocked - self.known_names):
+            msg = f"'{name}' is blocked but no installed plugin or distribution has that name"
+            if name in self.components:
+                msg += (f"; '{name}' is a component of plugin '{self.components[name].plugin}': block plugins by "
+                        f"plugin or distribution name")
+            else:
+                close = difflib.get_close_matches(name, sorted(self.known_names), n=3, cutoff=0.6)
+                if close:
+                    msg += " (did you mean " + " or ".join(f"'{c}'" for c in close) + "?)"
+            out.append(msg)
+        return out
+
+    def problems(self) -> list[str]:
+        """Everything `teletouch plugins` reports as a failure: broken plugins, conflicts, unknown blocked names."""
+        out = [f"plugin '{p.name}' ({p.origin}) failed to load: {p.error}" for p in self.errors()]
+        out += [self._conflict_message(c, infos) for c, infos in sorted(self.conflicts.items())]
+        return out + self.unknown_blocked()
+
     def describe(self) -> list[dict[str, Any]]:
-        """One dict per component (and per broken plugin), as `teletouch plugins --json` prints."""
+        """One dict per component (and per broken plugin and per refused component name), as `teletouch plugins
+        --json` prints. A broken plugin or a refused name has ``kind`` None and an ``error``."""
         rows = []
         for info in sorted(self.components.values(), key=lambda i: (i.kind, i.name)):
             d = info.cls.describe()
@@ -192,41 +347,122 @@ class Registry:
                 rows.append({"name": rec.name, "kind": None, "distribution": rec.distribution,
                              "version": rec.version, "plugin": rec.name, "ports": [], "params": [],
                              "error": rec.error})
+        for cname, infos in sorted(self.conflicts.items()):
+            rows.append({"name": cname, "kind": None, "distribution": ", ".join(i.distribution for i in infos),
+                         "version": ", ".join(i.version for i in infos), "plugin": ", ".join(i.plugin for i in infos),
+                         "ports": [], "params": [], "error": self._conflict_message(cname, infos)})
         return rows
 
     def discover_devices(self) -> list[dict[str, Any]]:
         found: list[dict[str, Any]] = []
         for impl in self.pm.hook.teletouch_discover_devices.get_hookimpls():
             try:
-                found.extend(impl.function() or [])
-            except Exception as exc:
-                found.append({"kind": impl.plugin_name, "id": "", "path": "", "error": exception_line(exc)})
+                with _quiet_stdout():
+                    got = impl.function()
+                if got is None:
+                    continue
+                if not (isinstance(got, (list, tuple)) and all(isinstance(d, dict) for d in got)):
+                    raise PluginError(f"teletouch_discover_devices() must return a list of dicts, got {_short(got)}")
+                found.extend(got)
+            except (Exception, SystemExit) as exc:
+                found.append({"kind": impl.plugin_name, "id": "", "path": "", "error": _error_line(exc)})
         return found
 
 
-def _check_component(cls: Any) -> None:
+def _short(obj: Any) -> str:
+    text = repr(obj)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _check_hooks(pm: pluggy.PluginManager, plugin: Any) -> list[str]:
+    """The names of the hooks ``plugin`` implements; raises PluginError for a hook name that has no spec (a typo)
+    and for a ``teletouch_*`` function left without ``@teletouch.hookimpl`` (pluggy would ignore it silently)."""
+    known = sorted(n for n in dir(hookspecs) if n.startswith(f"{GROUP}_"))
+    impl = sorted(hc.name for hc in pm.get_hookcallers(plugin) or [])
+    for hname in impl:
+        if hname not in known:
+            close = difflib.get_close_matches(hname, known, n=1, cutoff=0.6)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise PluginError(f"implements an unknown hook '{hname}'{hint}; the hooks are: {', '.join(known)}")
+    for attr in dir(plugin):
+        if attr.startswith(f"{GROUP}_") and attr not in impl and callable(getattr(plugin, attr, None)):
+            raise PluginError(f"function '{attr}' is not decorated with @teletouch.hookimpl, so it would never be "
+                              f"called")
+    return impl
+
+
+def _si_problem(unit: Any) -> str | None:
+    """Why ``unit`` may not be declared at an interface, or None. Known non-SI symbols (mm, deg, ms, kHz, g) are
+    refused; symbols the unit table does not know (e.g. 'px') are left to the plugin."""
+    from .units import _UNITS
+
+    if not isinstance(unit, str):
+        return f"must be a string (an SI unit symbol), got {_short(unit)}"
+    si = _UNITS.get(unit)
+    if si is not None and si[0] != unit:
+        return f"'{unit}' is not SI: declare '{si[0]}' (every interface is SI; millimetres only in text)"
+    return None
+
+
+def check_component(cls: Any) -> None:
+    """Raise PluginError, naming the class and the attribute, if ``cls`` cannot run in a graph."""
     if not (isinstance(cls, type) and issubclass(cls, Component)):
-        raise PluginError(f"{cls!r} is not a subclass of teletouch.Component")
+        raise PluginError(f"{_short(cls)} is not a subclass of teletouch.Component")
+    q = cls.__qualname__
     if not isinstance(cls.name, str) or not NAME_RE.match(cls.name):
-        raise PluginError(f"{cls.__qualname__}.name must be lower-case words joined by '-', got {cls.name!r}")
+        raise PluginError(f"{q}.name must be lower-case words joined by '-', got {cls.name!r}")
     if not isinstance(cls.kind, Kind):
-        raise PluginError(f"{cls.__qualname__}.kind must be a teletouch.Kind, got {cls.kind!r}")
+        raise PluginError(f"{q}.kind must be a teletouch.Kind, got {cls.kind!r}")
+    if cls.kind is Kind.DEVICE and not issubclass(cls, Device):
+        raise PluginError(f"{q}.kind is Kind.DEVICE but {q} does not subclass teletouch.Device: the runtime could "
+                          f"not drive it to a safe state")
+    if cls.step is Component.step:
+        raise PluginError(f"{q} must define step(self, t, inputs)")
     if not (isinstance(cls.Params, type) and issubclass(cls.Params, BaseModel)):
-        raise PluginError(f"{cls.__qualname__}.Params must be a pydantic model")
+        raise PluginError(f"{q}.Params must be a pydantic model")
+    if not issubclass(cls.Params, Params):
+        raise PluginError(f"{q}.Params must subclass teletouch.Params (it refuses unknown keys, so a typo in a "
+                          f"graph is an error instead of a silently ignored parameter)")
+    rate = cls.default_rate
+    if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float))
+                             or not (math.isfinite(rate) and 0 < rate <= 1e6)):
+        raise PluginError(f"{q}.default_rate must be None or a number of Hz in (0, 1e6], got {rate!r}")
     for side in ("inputs", "outputs"):
-        for pname, port in getattr(cls, side).items():
+        ports = getattr(cls, side)
+        if not isinstance(ports, dict):
+            raise PluginError(f"{q}.{side} must be a dict of port name -> teletouch.Port, got {_short(ports)}")
+        for pname, port in ports.items():
+            if not (isinstance(pname, str) and pname.isidentifier() and pname.isascii()):
+                raise PluginError(f"{q}.{side}: port name {pname!r} must be a Python identifier (graphs write "
+                                  f"'node.port')")
             if not isinstance(port, Port):
-                raise PluginError(f"{cls.__qualname__}.{side}['{pname}'] must be a teletouch.Port")
+                raise PluginError(f"{q}.{side}['{pname}'] must be a teletouch.Port, got {_short(port)}")
+            why = None if port.unit == "any" else _si_problem(port.unit)
+            if why:
+                raise PluginError(f"{q}.{side}['{pname}'] unit {why}")
     if issubclass(cls, Device) and cls.safe_state is Device.safe_state:
-        raise PluginError(f"device {cls.__qualname__} must define safe_state()")
+        raise PluginError(f"device {q} must define safe_state()")
+    try:
+        desc = cls.describe()
+    except Exception as exc:
+        raise PluginError(f"{q} cannot describe itself for `teletouch plugins`: {exception_line(exc)}") from None
+    for prm in desc["params"]:
+        why = _si_problem(prm.get("unit") or "")
+        if why:
+            raise PluginError(f"{q}.Params.{prm['name']} unit {why}")
+
+
+_check_component = check_component   # the old private name
 
 
 _default: Registry | None = None
 
 
-def default_registry(reload: bool = False) -> Registry:
-    """The process-wide registry, loaded on first use from entry points and the environment."""
+def default_registry(reload: bool = False, blocked: Iterable[str] = ()) -> Registry:
+    """The process-wide registry, loaded on first use from entry points and the environment. ``blocked`` adds
+    names to block (``teletouch --block``); giving any reloads it."""
     global _default
-    if _default is None or reload:
-        _default = Registry().load()
+    blocked = list(blocked)
+    if _default is None or reload or blocked:
+        _default = Registry(blocked=blocked).load()
     return _default

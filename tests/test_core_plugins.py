@@ -93,8 +93,10 @@ def test_duplicate_component_names_refused_naming_both(site):
               {"tt_alpha": PLUGIN_SRC.format(cls="A", comp="same-name", doc="A.")})
     make_dist(site, "beta-dist", "2.0", {"beta": "tt_beta"},
               {"tt_beta": PLUGIN_SRC.format(cls="B", comp="same-name", doc="B.")})
+    reg = Registry(autoload=True, blocked=()).load()   # refused, not fatal: everything else still loads
+    assert "mock-sensor" in reg.components and "same-name" not in reg.components
     with pytest.raises(DuplicateComponentError) as ei:
-        Registry(autoload=True, blocked=()).load()
+        reg.get("same-name")
     assert "alpha-dist" in str(ei.value) and "beta-dist" in str(ei.value)
     # blocking one of them resolves it
     reg = Registry(autoload=True, blocked=["beta"]).load()

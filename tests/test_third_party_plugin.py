@@ -72,3 +72,33 @@ def test_runs_in_a_graph(venv):
         "assert abs(y[0.5] - 2.0 * (1 - math.exp(-0.3 * 2 * math.pi * 2))) < 0.02, y[0.5]\nprint('ok')\n")
     r = subprocess.run([str(venv), "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+def test_the_examples_own_tests_pass_against_the_installed_distribution(venv, tmp_path):
+    """docs/writing-a-plugin.md section 4: the tests shipped beside the example run as a newcomer runs them."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TELETOUCH_")}
+    r = subprocess.run([str(venv), "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir", str(EXAMPLE),
+                        str(EXAMPLE / "tests")], capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "2 passed" in r.stdout
+    where = subprocess.run([str(venv), "-c", "import teletouch_plugin_example as m; print(m.__file__)"],
+                           capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120).stdout
+    assert str(EXAMPLE) not in where   # the installed copy, not the source folder
+
+
+def test_the_docs_test_snippet_is_the_examples_test():
+    """The page's test is the file the example ships, so what a newcomer copies has been run."""
+    doc = (REPO / "docs" / "writing-a-plugin.md").read_text()
+    shipped = (EXAMPLE / "tests" / "test_lowpass.py").read_text()
+    snippet = doc.split("## 4. Test it", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    assert snippet.strip() == shipped.strip()
+
+
+def test_the_docs_component_snippet_is_the_examples_code():
+    import ast
+
+    doc = (REPO / "docs" / "writing-a-plugin.md").read_text()
+    snippet = doc.split("## 1.", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    module = ast.parse((EXAMPLE / "teletouch_plugin_example" / "__init__.py").read_text())
+    module.body = module.body[1:]   # its docstring
+    assert ast.dump(ast.parse(snippet)) == ast.dump(module)

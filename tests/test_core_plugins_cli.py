@@ -1,0 +1,161 @@
+"""The `teletouch` command line against broken or conflicting plugins, blocking, and bad arguments: a clear message
+and a documented exit code, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+GRAPH = str(REPO / "examples" / "mock-loop.yaml")
+
+CMD_RAISES = ("from teletouch import hookimpl\n@hookimpl\ndef teletouch_add_commands(subparsers):\n"
+              "    raise RuntimeError('boom')\n")
+CMD_TAKES_RUN = '''
+from teletouch import hookimpl
+
+@hookimpl
+def teletouch_add_commands(subparsers):
+    subparsers.add_parser("acme-extra", help="added before the failure")
+    subparsers.add_parser("run", help="takes the core's name")
+'''
+BROKEN = "import not_a_real_module_xyz\n"
+NOISY = '''
+print("hello from the plugin")
+from teletouch import Component, Kind, Port, hookimpl
+
+class C(Component):
+    name = "noisy-c"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "N")}
+    def step(self, t, inputs):
+        return {"y": 1.0}
+
+@hookimpl
+def teletouch_components():
+    return [C]
+'''
+
+
+def install(root: Path, modules: dict[str, str]) -> Path:
+    """One fake distribution per module: 'acme-<mod>' 1.0 with the entry point '<mod>'."""
+    root.mkdir(parents=True, exist_ok=True)
+    for mod, src in modules.items():
+        info = root / f"acme_{mod}-1.0.dist-info"
+        info.mkdir()
+        (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: acme-{mod}\nVersion: 1.0\n")
+        (info / "entry_points.txt").write_text(f"[teletouch]\n{mod} = tt_{mod}\n")
+        (root / f"tt_{mod}.py").write_text(src)
+    return root
+
+
+def cli(*args: str, site: Path | None = None, **env_extra: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TELETOUCH_")}
+    if site is not None:
+        env["PYTHONPATH"] = str(site)
+    env.update(env_extra)
+    return subprocess.run([sys.executable, "-m", "teletouch", *args], capture_output=True, text=True, env=env,
+                          timeout=120, cwd=REPO)
+
+
+def test_plugin_whose_command_hook_raises_leaves_every_other_command_working(tmp_path):
+    site = install(tmp_path / "site", {"cmd": CMD_RAISES})
+    r = cli("validate", GRAPH, site=site)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    assert ("teletouch: warning: plugin 'cmd' (acme-cmd 1.0): its commands are skipped: teletouch_add_commands "
+            "raised RuntimeError: boom (tt_cmd.py:4)") in r.stderr
+    r = cli("plugins", site=site)
+    assert r.returncode == 1 and "cmd (acme-cmd 1.0: add_commands)" in r.stdout
+
+
+def test_plugin_command_that_takes_a_core_name_is_skipped_whole(tmp_path):
+    site = install(tmp_path / "site", {"cmd": CMD_TAKES_RUN})
+    r = cli("run", GRAPH, "--duration", "0.1", "--quiet", "--json", site=site)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1])["status"] == "ok"   # the core's run, not the plugin's
+    assert "conflicting subparser: run" in r.stderr and "Traceback" not in r.stderr
+    r = cli("acme-extra", site=site)   # what it added before failing is taken back too
+    assert r.returncode == 2 and "invalid choice: 'acme-extra'" in r.stderr
+
+
+def test_plugins_exits_1_and_lists_the_failure_while_json_stays_parseable(tmp_path):
+    site = install(tmp_path / "site", {"broken": BROKEN, "noisy": NOISY})
+    r = cli("plugins", "--json", site=site)
+    assert r.returncode == 1
+    rows = {row["name"]: row for row in json.loads(r.stdout)}   # the plugin's print went to stderr
+    assert rows["broken"]["error"].startswith("ModuleNotFoundError") and rows["broken"]["distribution"] == "acme-broken"
+    assert rows["noisy-c"]["distribution"] == "acme-noisy" and "hello from the plugin" in r.stderr
+    r = cli("plugins", site=site)
+    assert r.returncode == 1
+    assert "broken  [FAILED TO LOAD]  acme-broken 1.0" in r.stdout
+    assert "noisy-c  (estimator)  acme-noisy 1.0  (plugin noisy)" in r.stdout   # the name to block it by
+    r = cli("plugins", site=site, TELETOUCH_BLOCK_PLUGINS="broken")
+    assert r.returncode == 0, r.stderr
+    assert "blocked: broken" in r.stdout
+
+
+def test_block_option_on_the_command_line(tmp_path):
+    site = install(tmp_path / "site", {"broken": BROKEN})
+    r = cli("--block", "broken", "--block", "acme-noisy,mock", "plugins", "--json", site=site)
+    names = {row["name"] for row in json.loads(r.stdout)}
+    assert "broken" not in names and "mock-sensor" not in names and "digit" in names
+    assert "'acme-noisy' is blocked but no installed plugin or distribution has that name" in r.stderr
+    assert r.returncode == 1   # the typo counts as a problem
+    r = cli("--block", "mock", "validate", GRAPH)
+    assert r.returncode == 1 and "unknown plugin 'mock-sensor'" in r.stderr and "blocked plugins (not loaded): mock" \
+        in r.stderr
+
+
+def test_blocked_name_that_matches_nothing_is_warned_about_on_every_command():
+    r = cli("validate", GRAPH, TELETOUCH_BLOCK_PLUGINS="mokc")
+    assert r.returncode == 0
+    assert ("teletouch: warning: 'mokc' is blocked but no installed plugin or distribution has that name (did you "
+            "mean 'mock'?)") in r.stderr
+
+
+def test_conflicting_component_refused_but_cli_still_works(tmp_path):
+    src = NOISY.replace("noisy-c", "mock-gain").replace('print("hello from the plugin")', "")
+    site = install(tmp_path / "site", {"acme": src})
+    r = cli("--version", site=site)
+    assert r.returncode == 0 and r.stdout.startswith("teletouch ")
+    r = cli("validate", GRAPH, site=site)
+    assert r.returncode == 1
+    assert "node 'scale': component 'mock-gain' is provided by both plugin 'acme' (acme-acme 1.0) and plugin 'mock'" \
+        in r.stderr
+    r = cli("plugins", site=site)
+    assert r.returncode == 1 and "mock-gain  [REFUSED: provided by more than one plugin]" in r.stdout
+    r = cli("--block", "acme", "validate", GRAPH, site=site)
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    ((), "teletouch: error: a COMMAND is required"),
+    (("run", GRAPH, "--progress-interval", "0"), "argument --progress-interval: must be a positive, finite number"),
+    (("run", GRAPH, "--progress-interval", "nan"), "argument --progress-interval: must be a positive, finite"),
+    (("run", GRAPH, "--duration", "-1"), "teletouch run: error: argument --duration: must be a positive time in s"),
+    (("run", GRAPH, "--duration", "2kg"), "teletouch run: error: argument --duration: '2kg' is in kg, expected"),
+    (("--block",), "usage: teletouch [-h] [--version] [--block NAME[,NAME]] COMMAND"),
+])
+def test_usage_errors_exit_2_with_a_message(args, message):
+    r = cli(*args)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert message in r.stderr and "Traceback" not in r.stderr
+
+
+def test_component_constructor_that_raises_is_a_startup_failure_not_a_traceback(tmp_path):
+    src = NOISY.replace('print("hello from the plugin")', "").replace(
+        "    def step", "    def __init__(self, *a, **k):\n        super().__init__(*a, **k)\n"
+        "        raise ValueError('bad init')\n    def step")
+    site = install(tmp_path / "site", {"init": src})
+    graph = tmp_path / "g.yaml"
+    graph.write_text("clock: sim\nduration: 0.1\nnodes:\n  - {id: a, plugin: noisy-c, rate: 10}\n")
+    r = cli("run", str(graph), "--quiet", site=site)
+    assert r.returncode == 4, r.stderr
+    assert "Traceback" not in r.stderr
+    assert "teletouch: startup-failed: a component could not be created: ValueError: bad init (tt_init.py:" in r.stderr
