@@ -22,7 +22,7 @@ import threading
 from typing import Any, Sequence
 
 from . import __version__
-from .errors import GraphValidationError, TeletouchError, exception_line
+from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
 from .registry import Registry, default_registry
 from .runtime import EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime
 
@@ -173,9 +173,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         return EXIT_INVALID
     try:
         rt = Runtime(spec)
+    except ComponentFault as exc:   # a plugin's constructor (the runtime names the node): nothing is live yet
+        print(f"teletouch: startup-failed: {exc}", file=sys.stderr)
+        return EXIT_STARTUP
     except TeletouchError:
         raise
-    except Exception as exc:   # a plugin's constructor: nothing was configured yet, so nothing is live
+    except Exception as exc:
         print(f"teletouch: startup-failed: a component could not be created: {exception_line(exc)}", file=sys.stderr)
         return EXIT_STARTUP
     recorder = None

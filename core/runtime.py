@@ -217,7 +217,11 @@ class Runtime:
                                     step_timeout=max(1.0, 20.0 / float(n.rate)),
                                     priority=thread_priority(self.spec.realtime_priority, n.rate, [n.priority]))
             else:
-                comp = n.cls(params, node_id=n.id, ctx=ctx)
+                try:
+                    comp = n.cls(params, node_id=n.id, ctx=ctx)
+                except Exception as exc:   # nothing is configured yet, so nothing is live: name the node
+                    raise ComponentFault(f"{n.plugin} could not be created: {exception_line(exc)}",
+                                         node=n.id) from exc
             in_slots: dict[str, _Slot] = {}
             for port in n.cls.inputs:
                 w = n.inputs.get(port)

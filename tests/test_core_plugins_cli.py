@@ -158,4 +158,5 @@ def test_component_constructor_that_raises_is_a_startup_failure_not_a_traceback(
     r = cli("run", str(graph), "--quiet", site=site)
     assert r.returncode == 4, r.stderr
     assert "Traceback" not in r.stderr
-    assert "teletouch: startup-failed: a component could not be created: ValueError: bad init (tt_init.py:" in r.stderr
+    assert ("teletouch: startup-failed: node 'a': noisy-c could not be created: ValueError: bad init (tt_init.py:"
+            in r.stderr)

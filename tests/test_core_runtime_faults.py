@@ -479,3 +479,29 @@ def test_nan_from_a_step_is_passed_on_as_it_is(reg):
     rt = _runtime("clock: sim\nnodes:\n  - {id: s, plugin: mock-sensor, rate: 100, params: {nan_at: 0.1}}\n", reg)
     res = rt.run(0.2)
     assert res.status == "ok" and math.isnan(rt.latest("s", "value").value)
+
+
+def test_a_constructor_that_raises_names_its_node():
+    """A component's __init__ that raises was a bare exception out of Runtime(): which node of the graph?"""
+    from teletouch.errors import ComponentFault
+    from teletouch.mock import MockGain
+
+    class Fragile(MockGain):
+        name = "fragile-gain"
+
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            raise ValueError("no such device file")
+
+    @hookimpl
+    def teletouch_components():
+        return [Fragile]
+
+    import types
+
+    reg = make_registry(types.SimpleNamespace(__name__="fragile", teletouch_components=teletouch_components))
+    spec = load_text("clock: sim\nduration: 0.1\nnodes:\n  - {id: src, plugin: mock-sensor, rate: 10}\n"
+                     "  - {id: g, plugin: fragile-gain, rate: 10, inputs: {x: src.value}}\n", reg)
+    with pytest.raises(ComponentFault, match=r"node 'g': fragile-gain could not be created: ValueError: no such "
+                                             r"device file \(test_core_runtime_faults.py:\d+\)"):
+        Runtime(spec)
