@@ -51,3 +51,22 @@ def test_cli_devices_lists_can_from_fake_sysfs(tmp_path):
     assert r.returncode == 0, r.stderr
     kinds = {(d["kind"], d["id"]) for d in json.loads(r.stdout)}
     assert ("can", "can0") in kinds
+
+
+def test_cli_devices_lists_the_rest_when_a_source_fails(tmp_path):
+    """A source that fails (here pyserial broken at import) is one error row naming its plugin and the reason; the
+    other sources are still listed, a CAN interface that is down says so, and stdout stays strict JSON."""
+    broken = tmp_path / "broken" / "serial"
+    broken.mkdir(parents=True)
+    (broken / "__init__.py").write_text("raise ImportError('simulated broken pyserial')\n")
+    _net(tmp_path, "can0", 280, "down")
+    env = dict(os.environ, TELETOUCH_SYSFS_ROOT=str(tmp_path), TELETOUCH_DEV_ROOT=str(tmp_path / "dev"),
+               PYTHONPATH=str(tmp_path / "broken"))
+    r = subprocess.run([sys.executable, "-m", "teletouch", "devices", "--json"], capture_output=True, text=True,
+                       env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(f"not strict JSON: {c}")))
+    errors = {d["kind"]: d["error"] for d in rows if d.get("error")}
+    assert "simulated broken pyserial" in errors.get("dynamixel-gripper", ""), rows
+    can = [d for d in rows if d["kind"] == "can"]
+    assert [d["id"] for d in can] == ["can0"] and can[0]["details"]["state"] == "down"
