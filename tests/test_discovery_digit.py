@@ -245,3 +245,21 @@ def test_usb_permission_hint_gives_a_usb_rule(tree, monkeypatch):
         with Harness(Digit, {"sysfs_root": str(root), "dev_root": str(dev)}):
             pass
     assert 'SUBSYSTEM=="usb", ATTRS{idVendor}=="2833"' in str(ei.value)
+
+
+def test_the_devices_hook_and_the_run_path_say_when_the_usb_scan_could_not_run(tree, monkeypatch):
+    """The plugin's `teletouch devices` hook listed nothing, and the run's "no DIGIT found" said nothing, when pyusb
+    could not scan the bus: a DIGIT in DFU mode or without uvcvideo was invisible with no reason."""
+    from teletouch.plugins.sensors import digit
+
+    root, dev = tree
+    (root / "class" / "video4linux").mkdir(parents=True)
+    monkeypatch.setitem(sys.modules, "usb", None)          # import usb.core -> ImportError
+    monkeypatch.setitem(sys.modules, "usb.core", None)
+    monkeypatch.setenv("TELETOUCH_SYSFS_ROOT", str(root))
+    monkeypatch.setenv("TELETOUCH_DEV_ROOT", str(dev))
+    rows = digit.teletouch_discover_devices()
+    assert len(rows) == 1 and "USB not scanned: pyusb cannot be imported" in rows[0]["error"]
+    with pytest.raises(HardwareError, match=r"no DIGIT found .*; USB not scanned: pyusb cannot be imported"):
+        with Harness(Digit, {"sysfs_root": str(root), "dev_root": str(dev)}):
+            pass

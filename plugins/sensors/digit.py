@@ -338,7 +338,8 @@ class Digit(Component):
                 raise HardwareError(f"source {path!r} does not exist (expected a /dev/videoN node, a video file "
                                     f"or a URL)")
         else:
-            digits = discovery.find_digits(p.sysfs_root, p.dev_root)
+            self._scan_problems: list[str] = []
+            digits = discovery.find_digits(p.sysfs_root, p.dev_root, problems=self._scan_problems)
             self.info = self._choose(digits)
             path = self.info.path or ""
             is_device = True
@@ -418,6 +419,9 @@ class Digit(Component):
                 extra = f"; seen on USB without a video node: {discovery.describe(digits)}"
                 if any(d.readable is False for d in digits):
                     extra += f"; USB access is denied: {discovery.UDEV_HINT}"
+            scan = getattr(self, "_scan_problems", [])
+            if scan:   # the USB scan could not run: a DIGIT in DFU mode or without uvcvideo would not show
+                extra += "; " + "; ".join(scan)
             raise HardwareError("no DIGIT found (USB 2833:0209 with a video4linux node): plug it in with a USB 2.0 "
                                 "data cable; `teletouch devices` lists what is seen" + extra)
         if len(with_node) > 1:
@@ -565,7 +569,4 @@ def teletouch_components():
 def teletouch_discover_devices():
     root = os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys")
     dev = os.environ.get("TELETOUCH_DEV_ROOT", "/dev")
-    try:
-        return [d.as_device() for d in discovery.find_digits(root, dev)]
-    except Exception as exc:  # never raise from discovery
-        return [{"kind": "digit", "id": "", "path": "", "error": f"{type(exc).__name__}: {exc}"}]
+    return discovery.discover(root, dev)   # never raises: a source it could not read is an error row
