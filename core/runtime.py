@@ -395,12 +395,14 @@ class Runtime:
                 node.comp.configure()
                 node.state = "inactive"
             except Exception as exc:
+                self._startup_node = node.id
                 return f"node '{node.id}' ({node.spec.plugin}) failed to configure: {exception_line(exc)}"
         for node in self.nodes:
             try:
                 node.comp.activate()
                 node.state = "active"
             except Exception as exc:
+                self._startup_node = node.id
                 return f"node '{node.id}' ({node.spec.plugin}) failed to activate: {exception_line(exc)}"
         return None
 
@@ -415,6 +417,7 @@ class Runtime:
                 try:
                     node.comp.set_origin(self._t0, self._t0_mono)
                 except Exception as exc:
+                    self._startup_node = node.id
                     return f"node '{node.id}' ({node.spec.plugin}) failed to start: {exception_line(exc)}"
         return None
 
@@ -504,7 +507,7 @@ class Runtime:
             startup = time.perf_counter() - wall0
             if err is not None:
                 status = ("startup-failed", EXIT_STARTUP, err)
-                self.faults.append(Fault("", "startup", err, 0.0, "stop"))
+                self.faults.append(Fault(getattr(self, "_startup_node", ""), "startup", err, 0.0, "stop"))
             elif self.clock == "sim":
                 self._run_sim(duration, progress, progress_interval)
             else:

@@ -210,6 +210,7 @@ def test_startup_failure_closes_everything():
     res, rt = run_yaml(text, reg, duration=1.0)
     assert res.status == "startup-failed" and res.exit_code == EXIT_STARTUP
     assert "node 'b' (boom) failed to configure: OSError: camera busy" in res.message
+    assert [(f.node, f.kind) for f in res.faults] == [("b", "startup")]   # the summary names the node ('' before)
     assert rt.component("dev").lifecycle[-1] == "close"
 
 
