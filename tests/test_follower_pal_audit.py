@@ -165,8 +165,10 @@ def test_bad_names_are_refused_naming_the_field(field, value):
         PalGripper.Params(**{field: value})
 
 
-@pytest.mark.parametrize("fields, match", [({"max_opening": 90}, r"max_opening \(90 m\) is outside what the fingers "
-                                                                 r"reach, 0-90 mm .*millimetres in a metre field"),
+@pytest.mark.parametrize("fields, match", [({"max_opening": 90}, r"max_opening \(90 m\) is beyond any gripper's "
+                                                                 r"opening .*millimetres in the metre field"),
+                                           ({"max_opening": 0.5}, r"max_opening \(0.5 m\) is outside what the "
+                                                                  r"fingers reach, 0-90 mm"),
                                            ({"max_opening": 0.1}, r"max_opening \(0.1 m\) is outside"),
                                            ({"min_opening": 0.01, "finger_lower": 0.01, "finger_upper": 0.04},
                                             r"min_opening \(0.01 m\) is outside what the fingers reach, 20-80 mm"),
