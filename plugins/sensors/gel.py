@@ -24,7 +24,8 @@ Shore 10A silicone (hardware notes); this yields 2.3 N at 1.25 mm and 3.0 N at 1
 the few newtons a DIGIT is used at. The gel is a 4-5 mm layer on a rigid window, which stiffens it; set
 ``thickness`` to apply the bonded thin-layer correction of Dimitriadis et al. (Biophys. J. 2002, nu = 0.5):
 F *= 1 + 1.133 x + 1.283 x^2 + 0.769 x^3 + 0.0975 x^4, x = a_c / h (used for every shape, an approximation
-beyond the sphere).
+beyond the sphere; these are the coefficients for an incompressible gel, nu = 0.5, and are used for any Poisson ratio:
+at nu = 0.45 the paper's linear term would be 1.04 instead of 1.133, a few per cent less force).
 
 Surface (height map) model: the gel touches the indenter where its face is within d/2 of its lowest point (Hertz:
 r <= sqrt(R d); a flat punch or a fully pressed probe: the whole end face) and takes the indenter's shape there (the

@@ -60,8 +60,12 @@ def load_background(resolution: str = "qvga", path: str | Path | None = None) ->
         img = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if img is None:
             raise ModelFileError(f"{p}: cannot read background image (missing or not an image)")
-    if img.shape[:2] == (cols, rows):  # landscape frame: rotate to the portrait convention
+    if img.shape[1] > img.shape[0]:  # a landscape frame (of any size): rotate to the portrait convention first
         img = np.ascontiguousarray(np.rot90(img))
+    h, w = img.shape[:2]
+    if abs((h / w) / (rows / cols) - 1.0) > 0.02:
+        raise ModelFileError(f"{p}: background is {h} x {w} px (rows x cols, after turning it portrait), not the "
+                             f"DIGIT's 4:3 ({rows} x {cols} for {resolution}): it would be stretched")
     if img.shape[:2] != (rows, cols):
         img = cv2.resize(img, (cols, rows), interpolation=cv2.INTER_AREA)
     return img.astype(np.float32)

@@ -7,7 +7,12 @@ illumination drift, sensor noise -> uint8 BGR, portrait (QVGA 320 x 240, VGA 640
 
 Ground truth on the side: ``gt_depth`` (the gel surface, m, positive into the gel, before the optical smoothing),
 ``gt_max_depth``, ``gt_force`` (the gel model's normal force, N) and ``gt_contact_mask``. The ground-truth arrays are
-read-only (they are shared while the pose does not change); ``image`` is a fresh array every step.
+read-only (they are shared while the pose does not change); ``image`` is a fresh array every step, stamped with the
+step's time.
+
+Bad values fault rather than render something silently wrong: lengths no DIGIT setup has (millimetres typed in metre
+fields, MAX_LENGTH), an indenter axis off the image, a tilt beyond 45 degrees, an indentation through the gel, inputs
+that are not finite or older than INPUT_MAX_AGE.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.errors import ModelFileError
@@ -30,6 +35,19 @@ __all__ = ["SimDigit", "DigitSimulator", "M_PER_PX"]
 #: default pixel size per resolution: the paper's 17.15 px/mm at QVGA, Taxim's 0.0266 mm/px at VGA
 M_PER_PX = {"qvga": _gel.QVGA_M_PER_PX, "vga": _gel.VGA_M_PER_PX}
 DEFAULT_RADIUS = {"sphere": 0.003, "probe": 0.005, "flat": 0.003}
+#: smallest per-unit gain of a channel's contact response and of the gel blur (unit_variation up to 3)
+MIN_GAIN = 0.1
+#: largest plausible value (m) of each length parameter: a larger one is millimetres typed in a metre field
+#: ("indenter_radius: 3" is 3 m; "smoothing: 0.08" would be an 80 mm blur that needs gigabytes to render)
+MAX_LENGTH = {"indenter_radius": 0.1, "tip_radius": 1.0, "m_per_px": 1e-3, "indenter_map_m_per_px": 1e-3,
+              "smoothing": 1e-3, "gel_thickness": 0.1, "indentation": 0.02, "position": 0.1}
+#: the gel model tilts the indenter's face only (its sides never touch the gel): at most this tilt (rad)
+MAX_TILT = math.pi / 4
+#: gel Young's modulus range (Pa): soft silicone gels are 10 kPa - 10 MPa; outside it, kPa or MPa typed as Pa
+MODULUS_RANGE = (1e3, 1e9)
+#: input staleness limit (s): an indentation, position or tilt older than this faults the node (the runtime's
+#: max_age; a graph may set another per wire)
+INPUT_MAX_AGE = 0.25
 
 
 class DigitSimulator:
@@ -65,18 +83,25 @@ class DigitSimulator:
         self.rng = np.random.default_rng(rng.integers(2 ** 63))
         # per-unit variation: channel gains of the contact response and of the background, LED centre offset
         uv = float(unit_variation)
-        resp_gain = 1.0 + uv * np.clip(rng.normal(0.0, 0.15, 3), -0.4, 0.4)
+        # gains stay positive (>= MIN_GAIN): beyond unit_variation ~2 a bare 1 + uv x would invert a channel's
+        # response or make the blur negative (= none)
+        resp_gain = np.maximum(1.0 + uv * np.clip(rng.normal(0.0, 0.15, 3), -0.4, 0.4), MIN_GAIN)
         bg_gain = 1.0 + uv * np.clip(rng.normal(0.0, 0.05, 3), -0.15, 0.15)
         offset = tuple(uv * rng.normal(0.0, 0.03, 2) * np.array(self.shape[::-1]))
         self.drift_phase = float(rng.uniform(0, 2 * math.pi))
         # ... and the gel's/LED diffusion: how much the surface is blurred
-        blur_gain = float(1.0 + uv * np.clip(rng.normal(0.0, 0.2), -0.5, 0.5))
+        blur_gain = max(float(1.0 + uv * np.clip(rng.normal(0.0, 0.2), -0.5, 0.5)), MIN_GAIN)
         self.smoothing_px *= blur_gain
         table = optics.load_table(optical_model)
         if isinstance(background, np.ndarray):
             bg = background.astype(np.float32)
             if bg.shape != (*self.shape, 3):
                 raise ValueError(f"background array has shape {bg.shape}, expected {(*self.shape, 3)}")
+            if not (np.isfinite(bg).all() and bg.min() >= 0 and bg.max() <= 255):
+                raise ValueError("background array must hold finite intensities in 0..255 (BGR levels), got "
+                                 f"{np.nanmin(bg) if np.isfinite(bg).any() else 'nan'}.."
+                                 f"{np.nanmax(bg) if np.isfinite(bg).any() else 'nan'}"
+                                 f"{' and NaN/inf' if not np.isfinite(bg).all() else ''}")
         else:
             bg = optics.load_background(resolution, background)
         self.background = np.clip(bg * bg_gain[None, None, :].astype(np.float32), 0, 255)
@@ -243,10 +268,11 @@ class SimDigit(Component):
     default_rate = 60.0
     inputs = {
         "indentation": Port("float64", (), "m", "how far the indenter presses into the gel (<= 0: no contact)",
-                            required=False),
-        "position": Port("float64", (2,), "m", "indenter centre from the image centre (x along columns, y rows)",
-                         required=False),
-        "tilt": Port("float64", (), "rad", "indenter tilt about the axis along the rows", required=False),
+                            required=False, max_age=INPUT_MAX_AGE),
+        "position": Port("float64", (2,), "m", "indenter centre from the image centre (x along columns, y rows); "
+                         "on the image", required=False, max_age=INPUT_MAX_AGE),
+        "tilt": Port("float64", (), "rad", "indenter tilt about the axis along the rows (at most 45 deg)",
+                     required=False, max_age=INPUT_MAX_AGE),
     }
     outputs = {
         "image": Port("uint8", (None, None, 3), "", "BGR, portrait (QVGA 320x240, VGA 640x480)"),
@@ -254,8 +280,9 @@ class SimDigit(Component):
         "gt_max_depth": Port("float64", (), "m", "maximum of gt_depth"),
         "gt_force": Port("float64", (), "N", "normal force of the gel model"),
         "gt_contact_mask": Port("bool", (None, None), "", "pixels where the gel touches the indenter"),
-        "gt_position": Port("float64", (2,), "m", "indenter centre from the image centre (x along columns, y along "
-                            "rows), the true contact centre; NaN without contact"),
+        "gt_position": Port("float64", (2,), "m", "indenter axis from the image centre (x along columns, y along "
+                            "rows): the contact centre of a sphere and of an untilted probe or punch; NaN without "
+                            "contact"),
     }
 
     class Params(Params):
@@ -284,13 +311,16 @@ class SimDigit(Component):
         position: tuple[Meters, Meters] = Field((0.0, 0.0), description="static indenter position (x, y) in m, "
                                                 "e.g. [0.002, -0.001] or '2mm, -1mm'")
         tilt: Radians = Field(0.0, description="static tilt", json_schema_extra={"unit": "rad"})
-        noise: float = Field(0.0, ge=0, description="std of pixel noise (intensity levels)")
-        drift: float = Field(0.0, ge=0, description="amplitude of global illumination drift (intensity levels)")
+        noise: float = Field(0.0, ge=0, le=32, description="std of pixel noise (intensity levels, at most 32: a "
+                             "real DIGIT's is 1-2)")
+        drift: float = Field(0.0, ge=0, le=255, description="amplitude of global illumination drift (intensity "
+                             "levels)")
         drift_period: Seconds = Field(10.0, gt=0, description="period of the illumination drift",
                                       json_schema_extra={"unit": "s"})
         unit_variation: float = Field(0.0, ge=0, le=3, description="per-unit variation (0: the reference DIGIT; "
                                       "1: typical spread of LED colour, gain, centring and gel blur)")
-        seed: int = Field(0, description="random seed (noise, drift phase, unit variation)")
+        seed: int = Field(0, ge=0, description="random seed (noise, drift phase, unit variation); two nodes with "
+                          "the same seed draw the same noise")
         background: str | None = Field(None, description="background image or folder of no-contact frames "
                                        "(default: the shipped real frame)")
         optical_model: str | None = Field(None, description="polynomial table .npz (default: the shipped one)")
@@ -308,6 +338,38 @@ class SimDigit(Component):
                 raise ValueError(f"position needs two values (x, y) in m, got {v!r}")
             return v
 
+        @field_validator("indenter_radius", "tip_radius", "m_per_px", "indenter_map_m_per_px", "smoothing",
+                         "gel_thickness", "indentation", "position")
+        @classmethod
+        def _plausible_length(cls, v: Any, info) -> Any:
+            for x in (v if isinstance(v, tuple) else (v,)):
+                if x is not None:
+                    _check_length(info.field_name, x)
+            return v
+
+        @field_validator("tilt")
+        @classmethod
+        def _tilt(cls, v: float) -> float:
+            _check_tilt("tilt", v)
+            return v
+
+        @field_validator("modulus")
+        @classmethod
+        def _modulus(cls, v: float) -> float:
+            lo, hi = MODULUS_RANGE
+            if not lo <= v <= hi:
+                raise ValueError(f"modulus {v:g} Pa is outside {lo:g}-{hi:g} Pa (a soft gel; Shore 10A silicone is "
+                                 f"~0.41 MPa): kPa or MPa typed as Pa? write e.g. '0.41MPa' or 410000")
+            return v
+
+        @model_validator(mode="after")
+        def _indentation_within_gel(self):
+            h = self.gel_thickness
+            if h is not None and self.indentation >= h:
+                raise ValueError(f"indentation ({self.indentation * 1e3:g} mm) reaches through the gel "
+                                 f"(gel_thickness {h * 1e3:g} mm)")
+            return self
+
     def configure(self) -> None:
         p = self.params
         self.sim = DigitSimulator(
@@ -318,6 +380,10 @@ class SimDigit(Component):
             stride=p.render_stride)
         self._force = _gel.force_law(self.sim.indenter, self.sim.material)  # gel_force, constants computed once
         self._last: dict[str, float] = {}
+        try:
+            self._check_on_gel(np.asarray(p.position, np.float64))
+        except ValueError as e:
+            raise ValueError(f"position: {e}") from None
 
     def _indenter(self) -> _gel.Indenter:
         p = self.params
@@ -338,14 +404,31 @@ class SimDigit(Component):
             return _gel.Indenter.probe(radius, p.tip_radius)
         return _gel.Indenter.sphere(radius) if p.indenter == "sphere" else _gel.Indenter.flat(radius)
 
+    def _check_on_gel(self, pos: np.ndarray) -> None:
+        """The indenter's axis must be on the gel's sensing area (the image), else nothing could be seen of a
+        contact whose force the ground truth would still report."""
+        rows, cols = self.sim.shape
+        mpp = self.sim.m_per_px
+        hx, hy = cols / 2 * mpp, rows / 2 * mpp
+        if not (abs(pos[0]) <= hx and abs(pos[1]) <= hy):
+            raise ValueError(f"indenter position ({pos[0] * 1e3:.4g} mm, {pos[1] * 1e3:.4g} mm) is off the gel: the "
+                             f"image spans x +-{hx * 1e3:.3g} mm, y +-{hy * 1e3:.3g} mm ({cols} x {rows} px at "
+                             f"{mpp * 1e3:.4g} mm/px); positions are in m")
+
     def step(self, t: float, inputs) -> dict[str, Any]:
         p = self.params
         d = _finite(inputs.value("indentation", p.indentation), "indentation")
+        if p.gel_thickness is not None and d >= p.gel_thickness:
+            raise ValueError(f"indentation {d * 1e3:.4g} mm reaches through the gel (gel_thickness "
+                             f"{p.gel_thickness * 1e3:.4g} mm)")
         pos = inputs.value("position", p.position)
-        pos = np.asarray(pos, np.float64).reshape(-1)
+        pos = np.array(pos, np.float64).reshape(-1)  # a copy: gt_position must not alias the producer's array
         if pos.shape != (2,) or not np.isfinite(pos).all():
             raise ValueError(f"position must be two finite values (x, y) in m, got {pos!r}")
         tilt = _finite(inputs.value("tilt", p.tilt), "tilt")
+        _check_tilt("tilt", tilt)
+        if d > 0:
+            self._check_on_gel(pos)
         img, surf = self.sim.render(d, pos, tilt, t)
         force = self._force(max(d, 0.0)) if tilt == 0.0 else self.sim.force(max(d, 0.0), tilt)
         max_depth = self.sim.max_depth if d > 0 else 0.0
@@ -355,6 +438,21 @@ class SimDigit(Component):
 
     def status(self) -> dict[str, Any]:
         return dict(self._last)
+
+
+def _check_length(name: str, value: float) -> None:
+    """A length parameter beyond MAX_LENGTH[name] is millimetres typed in a metre field: say so."""
+    limit = MAX_LENGTH[name]
+    if abs(value) > limit:
+        raise ValueError(f"{name} ({value:g} m) is larger than {limit * 1e3:g} mm, which no DIGIT setup has: "
+                         f"millimetres typed in a metre field? write {value / 1e3:g} or \"{value:g}mm\"")
+
+
+def _check_tilt(name: str, value: float) -> None:
+    if not abs(value) <= MAX_TILT:
+        raise ValueError(f"{name} ({value:g} rad = {math.degrees(value):.4g} deg) is beyond +-45 deg "
+                         f"({MAX_TILT:.4g} rad): the gel model tilts the indenter's face only; degrees typed as "
+                         f"radians? write \"{value:g}deg\"")
 
 
 def _finite(v: Any, what: str) -> float:
