@@ -305,3 +305,24 @@ def test_the_hold_in_free_motion_stops_where_the_fingers_are_and_the_open_safe_s
         h.comp.safe_state()
         o, t = run_to(h, 0.0, t, 3.0)
         assert o["opening"] == pytest.approx(0.09, abs=1e-9) and o["contact_force"] == 0.0
+
+
+@pytest.mark.parametrize("cls", ["sim-gripper", "sim-press-rig"])
+@pytest.mark.parametrize("field, value, match", [
+    ("indenter_radius", 3.0, r"indenter_radius \(3 m\) is larger than 100 mm.*millimetres typed in a metre field\? "
+                             r"write 0.003"),
+    ("tip_radius", 10.0, r"tip_radius \(10 m\) is larger than 1000 mm"),
+    ("gel_thickness", 4.5, r"gel_thickness \(4.5 m\) is larger than 100 mm"),
+    ("modulus", 0.41, r"modulus 0.41 Pa is outside 1000-1e\+09 Pa.*kPa or MPa typed as Pa"),
+])
+def test_the_gel_parameters_shared_with_sim_digit_refuse_what_sim_digit_refuses(cls, field, value, match):
+    """The same gel parameters as sim-digit's: indenter_radius 3 (meant mm) was a 3 m sphere here, accepted."""
+    from teletouch.plugins.estimators.force_calibration import SimPressRig
+    from teletouch.plugins.sensors.sim_digit import SimDigit
+
+    params = (SimGripper if cls == "sim-gripper" else SimPressRig).Params
+    with pytest.raises(ValidationError, match=match):
+        params(**{field: value})
+    with pytest.raises(ValidationError, match=match):   # one rule: sim-digit says the same
+        SimDigit.Params(**{field: value})
+    assert params(**{field: "3mm" if field != "modulus" else "0.41MPa"})

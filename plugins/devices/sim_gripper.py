@@ -97,6 +97,7 @@ class SimGripper(FollowerBase):
 
         @model_validator(mode="after")
         def _initial(self) -> "SimGripper.Params":
+            _gel.check_gel_params(self)   # millimetres in metre fields, kPa/MPa as Pa: as sim-digit refuses them
             if self.initial_opening is not None and not (self.min_opening <= self.initial_opening
                                                          <= self.max_opening):
                 raise ValueError(f"initial_opening {self.initial_opening} m is outside "

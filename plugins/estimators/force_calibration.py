@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
 from teletouch.paths import output_problem
@@ -631,6 +631,13 @@ class SimPressRig(Device):
         probe_weight: Newtons = Field(0.0, ge=0, description="weight of the probe the device does not compensate "
                                       "(pulls the handle down; the routine's tare removes it)",
                                       json_schema_extra=_u("N"))
+
+        @model_validator(mode="after")
+        def _plausible_gel(self) -> "SimPressRig.Params":
+            from teletouch.plugins.sensors.gel import check_gel_params   # numpy only
+
+            check_gel_params(self)   # millimetres in metre fields, kPa/MPa as Pa: as sim-digit refuses them
+            return self
 
     def configure(self) -> None:
         from teletouch.plugins.sensors.gel import Indenter, gel_force  # the same gel model as sim-digit

@@ -75,6 +75,43 @@ def shore_a_to_modulus(shore: float) -> float:
 DEFAULT_MODULUS = shore_a_to_modulus(10.0)  # ~0.41 MPa
 DEFAULT_POISSON = 0.5
 
+#: largest plausible value (m) of the gel model's length parameters: a larger one is millimetres typed in a metre
+#: field ("indenter_radius: 3" is a 3 m sphere)
+MAX_LENGTH = {"indenter_radius": 0.1, "tip_radius": 1.0, "gel_thickness": 0.1}
+#: gel Young's modulus range (Pa): soft silicone gels are 10 kPa - 10 MPa; outside it, kPa or MPa typed as Pa
+MODULUS_RANGE = (1e3, 1e9)
+
+
+def length_problem(name: str, value: float, limit: float | None = None) -> str | None:
+    """None if the length ``value`` (m) of parameter ``name`` is at most ``limit`` (default MAX_LENGTH[name]) in
+    size; else why it looks like millimetres typed in a metre field."""
+    limit = MAX_LENGTH[name] if limit is None else limit
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} m) is larger than {limit * 1e3:g} mm, which no DIGIT setup has: millimetres typed "
+            f"in a metre field? write {value / 1e3:g} or \"{value:g}mm\"")
+
+
+def modulus_problem(value: float) -> str | None:
+    """None if ``value`` (Pa) is a soft gel's Young's modulus (MODULUS_RANGE); else why not."""
+    lo, hi = MODULUS_RANGE
+    if lo <= value <= hi:
+        return None
+    return (f"modulus {value:g} Pa is outside {lo:g}-{hi:g} Pa (a soft gel; Shore 10A silicone is ~0.41 MPa): kPa "
+            f"or MPa typed as Pa? write e.g. '0.41MPa' or 410000")
+
+
+def check_gel_params(params: object) -> None:
+    """Raise ValueError for the first implausible gel parameter of ``params`` (any object with some of the
+    attributes indenter_radius, tip_radius, gel_thickness, modulus; None values are defaults and pass)."""
+    for name in MAX_LENGTH:
+        v = getattr(params, name, None)
+        if v is not None and (why := length_problem(name, v)):
+            raise ValueError(why)
+    m = getattr(params, "modulus", None)
+    if m is not None and (why := modulus_problem(m)):
+        raise ValueError(why)
+
 
 @dataclass(frozen=True)
 class GelMaterial:

@@ -39,12 +39,11 @@ DEFAULT_RADIUS = {"sphere": 0.003, "probe": 0.005, "flat": 0.003}
 MIN_GAIN = 0.1
 #: largest plausible value (m) of each length parameter: a larger one is millimetres typed in a metre field
 #: ("indenter_radius: 3" is 3 m; "smoothing: 0.08" would be an 80 mm blur that needs gigabytes to render)
-MAX_LENGTH = {"indenter_radius": 0.1, "tip_radius": 1.0, "m_per_px": 1e-3, "indenter_map_m_per_px": 1e-3,
-              "smoothing": 1e-3, "gel_thickness": 0.1, "indentation": 0.02, "position": 0.1}
+MAX_LENGTH = {**_gel.MAX_LENGTH, "m_per_px": 1e-3, "indenter_map_m_per_px": 1e-3, "smoothing": 1e-3,
+              "indentation": 0.02, "position": 0.1}
 #: the gel model tilts the indenter's face only (its sides never touch the gel): at most this tilt (rad)
 MAX_TILT = math.pi / 4
-#: gel Young's modulus range (Pa): soft silicone gels are 10 kPa - 10 MPa; outside it, kPa or MPa typed as Pa
-MODULUS_RANGE = (1e3, 1e9)
+MODULUS_RANGE = _gel.MODULUS_RANGE
 #: input staleness limit (s): an indentation, position or tilt older than this faults the node (the runtime's
 #: max_age; a graph may set another per wire)
 INPUT_MAX_AGE = 0.25
@@ -356,10 +355,9 @@ class SimDigit(Component):
         @field_validator("modulus")
         @classmethod
         def _modulus(cls, v: float) -> float:
-            lo, hi = MODULUS_RANGE
-            if not lo <= v <= hi:
-                raise ValueError(f"modulus {v:g} Pa is outside {lo:g}-{hi:g} Pa (a soft gel; Shore 10A silicone is "
-                                 f"~0.41 MPa): kPa or MPa typed as Pa? write e.g. '0.41MPa' or 410000")
+            why = _gel.modulus_problem(v)
+            if why:
+                raise ValueError(why)
             return v
 
         @model_validator(mode="after")
@@ -442,10 +440,9 @@ class SimDigit(Component):
 
 def _check_length(name: str, value: float) -> None:
     """A length parameter beyond MAX_LENGTH[name] is millimetres typed in a metre field: say so."""
-    limit = MAX_LENGTH[name]
-    if abs(value) > limit:
-        raise ValueError(f"{name} ({value:g} m) is larger than {limit * 1e3:g} mm, which no DIGIT setup has: "
-                         f"millimetres typed in a metre field? write {value / 1e3:g} or \"{value:g}mm\"")
+    why = _gel.length_problem(name, value, MAX_LENGTH[name])
+    if why:
+        raise ValueError(why)
 
 
 def _check_tilt(name: str, value: float) -> None:
