@@ -220,18 +220,79 @@ def cmd_run(args: argparse.Namespace) -> int:
     return result.exit_code
 
 
+def _json_safe(value: Any) -> Any:
+    """``value`` with every non-finite float (NaN, inf: not JSON) turned into None, in nested dicts/lists/tuples."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _device_rows(reg: Registry) -> list[dict[str, Any]]:
+    """Every plugin's discovery rows, each as strict JSON can carry it (a plugin's NaN becomes null; a value JSON
+    cannot encode becomes its text); a row that still cannot be encoded becomes an error row of its kind."""
+    rows = []
+    for row in reg.discover_devices():
+        safe = _json_safe(row)
+        try:
+            json.dumps(safe, allow_nan=False, default=str)
+        except (TypeError, ValueError) as exc:   # e.g. a NaN inside an object that default=str does not reach
+            safe = {"kind": str(row.get("kind", "?")), "id": str(row.get("id", "")), "path": str(row.get("path", "")),
+                    "error": f"this row cannot be shown as JSON: {exc}"}
+        rows.append(safe)
+    return rows
+
+
+def _device_sources(reg: Registry) -> list[str]:
+    """The plugins whose ``teletouch_discover_devices`` was asked, in the order they are asked."""
+    return [impl.plugin_name for impl in reg.pm.hook.teletouch_discover_devices.get_hookimpls()]
+
+
+def _param_text(params: Any) -> str:
+    """A row's ``params`` as they go into a graph node: ``serial=D20001 device=spacemouse``."""
+    if isinstance(params, dict):
+        return " ".join(f"{k}={v}" for k, v in params.items())
+    return str(params)
+
+
+def _indented(label: str, text: str) -> str:
+    """``label: text`` on a line indented under its row; the text's own line breaks keep the indentation."""
+    return "    " + f"{label}: {text}".replace("\n", "\n    ")
+
+
 def cmd_devices(args: argparse.Namespace) -> int:
-    found = default_registry().discover_devices()
+    reg = default_registry()
+    found = _device_rows(reg)
     if args.json:
-        print(json.dumps(found, indent=2, default=str))
+        print(json.dumps(found, indent=2, default=str, allow_nan=False))
         return EXIT_OK
-    if not found:
-        print("no supported hardware found")
     for d in found:
-        extra = f"  error: {d['error']}" if d.get("error") else ""
-        details = d.get("details") or {}
-        det = "  ".join(f"{k}={v}" for k, v in details.items())
-        print(f"{d.get('kind', '?'):<12} {d.get('id', ''):<20} {d.get('path', ''):<20} {det}{extra}")
+        kind, ident, path = (str(d.get(k) or "") for k in ("kind", "id", "path"))
+        if d.get("error"):
+            print(f"{kind or '?':<12} {'(source not read)':<20} {path}".rstrip())
+            print(_indented("error", str(d["error"])))
+            continue
+        details = dict(d.get("details") or {})
+        problem = details.pop("problem", None)
+        plugin = details.pop("plugin", None)
+        params = details.pop("params", None)
+        use = f"plugin: {plugin}" if plugin else ""
+        if params:
+            use += (" " if use else "") + _param_text(params)
+        det = "  ".join(f"{k}={_fmt(v) if v is not None else '?'}" for k, v in details.items())
+        print(f"{kind or '?':<12} {ident:<20} {path:<20} {det}".rstrip())
+        if use:
+            print(_indented("use", use))
+        if problem:
+            print(_indented("problem", str(problem)))
+    if not any(not d.get("error") for d in found):
+        failed = sorted({str(d.get("kind") or "?") for d in found if d.get("error")})
+        note = f"; not read: {', '.join(failed)} (see the errors above)" if failed else ""
+        sources = ", ".join(_device_sources(reg)) or "none: no plugin discovers devices"
+        print(f"no supported hardware found (sources checked: {sources}{note})")
     return EXIT_OK
 
 
@@ -271,8 +332,14 @@ def build_parser() -> argparse.ArgumentParser:
     cal = calp.add_subparsers(dest="calibrate_command", metavar="WHAT")
     calp.set_defaults(func=lambda a: (calp.print_help(sys.stderr), EXIT_USAGE)[1], _calibrate=cal)
 
-    p = sub.add_parser("devices", help="list connected supported hardware")
-    p.add_argument("--json", action="store_true")
+    p = sub.add_parser("devices", help="list connected supported hardware",
+                       description="List the supported hardware connected to this machine, one row per device, "
+                                   "with the plugin and params that select it in a graph and, for a device that "
+                                   "cannot be used as it is, the problem and what to do. A source that cannot be "
+                                   "read (a missing SDK or library, no USB or sysfs access) is an error row saying "
+                                   "why. The exit status is 0 also then: the rows tell what was found and what was "
+                                   "not looked at.")
+    p.add_argument("--json", action="store_true", help="the rows as strict JSON (no NaN: a missing number is null)")
     p.set_defaults(func=cmd_devices)
     return parser
 

@@ -146,10 +146,107 @@ def fake_hid(monkeypatch):
 
 def test_no_device_is_a_clear_error(fake_hid):
     h = Harness(hl.HidLeader, {})
-    with pytest.raises(HardwareError, match="no HID leader found.*among 1 HID device.*udev"):
+    with pytest.raises(HardwareError, match="no HID leader found.*among 1 HID device.*teletouch devices"):
         h.comp.configure()
     h.comp.close()
     assert hl.teletouch_discover_devices() == []
+
+
+def test_not_found_does_not_blame_permissions(fake_hid):
+    """The message said 'if lsusb shows it but hidapi lists nothing, it is a permission problem' and gave a udev rule;
+    but hidapi lists devices without opening them (libusb/hid.c hid_enumerate lists a device whose libusb_open fails,
+    without its strings; linux/hid.c reads udev and sysfs), so a missing device never is one."""
+    with pytest.raises(HardwareError) as ei:
+        Harness(hl.HidLeader, {}).comp.configure()
+    msg = str(ei.value)
+    assert "it is a permission problem" not in msg and "udev" not in msg
+    assert "whether or not you may open it" in msg and "vendor_id and product_id" in msg
+    with pytest.raises(HardwareError, match="compare its vendor:product id with vendor_id/product_id"):
+        Harness(hl.HidLeader, {"vendor_id": 0x256F, "product_id": 0xC635}).comp.configure()
+
+
+def _usb_sysfs(root, name, bus, devnum, mode=0o666):
+    """A USB device folder in a fake sysfs and its node under root/dev/bus/usb."""
+    d = root / "sys" / "bus" / "usb" / "devices" / name
+    d.mkdir(parents=True)
+    (d / "busnum").write_text(f"{bus}\n")
+    (d / "devnum").write_text(f"{devnum}\n")
+    node = root / "dev" / "bus" / "usb" / f"{bus:03d}" / f"{devnum:03d}"
+    node.parent.mkdir(parents=True, exist_ok=True)
+    node.write_bytes(b"")
+    return node
+
+
+def test_discovery_rows_give_params_readable_and_the_udev_rule(fake_hid, tmp_path, monkeypatch):
+    """Rows had no params (which path and report format select the device in a graph) and no word on whether the
+    user may open it."""
+    usb_node = _usb_sysfs(tmp_path, "1-4.2", 1, 7)
+    hidraw = tmp_path / "dev" / "hidraw5"
+    hidraw.write_bytes(b"")
+    fake_hid.devices += [info(0x256F, 0xC635, b"1-4.2:1.0"),            # libusb backend path (pip's hid module)
+                         info(0x054C, 0x0CE6, str(hidraw).encode())]    # hidraw backend path
+    denied = {str(usb_node)}
+    monkeypatch.setattr(hl.os, "access", lambda p, mode: str(p) not in denied)   # (the tests run as root)
+    rows = hl.discover(sysfs_root=str(tmp_path / "sys"), dev_root=str(tmp_path / "dev"))
+    assert [(r["kind"], r["path"]) for r in rows] == [("spacemouse", "1-4.2:1.0"), ("dualsense", str(hidraw))]
+    sm, ds = (r["details"] for r in rows)
+    assert sm["plugin"] == ds["plugin"] == "hid-leader"
+    assert sm["params"] == {"path": "1-4.2:1.0", "device": "spacemouse"}
+    assert ds["params"] == {"path": str(hidraw), "device": "dualsense"}
+    for d in (sm, ds):
+        assert set(d["params"]) <= set(hl.HidLeader.Params.model_fields)
+    assert sm["readable"] is False and sm["node"] == str(usb_node)
+    assert f"permission denied on {usb_node}" in sm["problem"] and 'SUBSYSTEM=="usb", ATTRS{idVendor}=="256f"' in \
+        sm["problem"]
+    assert ds["readable"] is True and "problem" not in ds
+    denied.add(str(hidraw))
+    ds = hl.discover(sysfs_root=str(tmp_path / "sys"), dev_root=str(tmp_path / "dev"))[1]["details"]
+    assert ds["readable"] is False and 'KERNEL=="hidraw*", ATTRS{idVendor}=="054c"' in ds["problem"]
+    # the params select that device
+    with Harness(hl.HidLeader, ds["params"]) as h:
+        assert h.comp.info["path"] == str(hidraw).encode() and h.comp.profile == "dualsense"
+
+
+def test_discovery_when_hidapi_fails_is_an_error_row(fake_hid, monkeypatch, tmp_path):
+    """hidapi missing or failing to enumerate gave [] (the same as 'nothing plugged in')."""
+    def broken(vid=0, pid=0):
+        raise OSError("hid_enumerate failed")
+
+    monkeypatch.setattr(hid, "enumerate", broken)
+    rows = hl.teletouch_discover_devices()
+    assert len(rows) == 1 and rows[0]["kind"] == "hid-leader" and "hid_enumerate failed" in rows[0]["error"]
+
+    def missing():
+        raise HardwareError("hidapi is not installed (No module named 'hid'): pip install hidapi")
+
+    monkeypatch.setattr(hl, "_hid", missing)
+    rows = hl.teletouch_discover_devices()
+    assert len(rows) == 1 and "pip install hidapi" in rows[0]["error"]
+
+
+def test_discovery_without_a_usb_device_folder_says_so(fake_hid, tmp_path):
+    """hidapi (libusb) lists nothing, silently, where /dev/bus/usb is missing (a container without it)."""
+    fake_hid.devices.clear()
+    rows = hl.discover(dev_root=str(tmp_path))
+    assert len(rows) == 1 and f"{tmp_path / 'bus' / 'usb'} does not exist" in rows[0]["error"], rows
+    (tmp_path / "bus" / "usb").mkdir(parents=True)
+    assert hl.discover(dev_root=str(tmp_path)) == []
+
+
+def test_open_failure_on_a_libusb_path_names_the_usb_node_and_its_rule(fake_hid, tmp_path, monkeypatch):
+    """Under the libusb backend the path is "1-4.2:1.0", not a file: a permission failure was never recognised and the
+    hint gave the hidraw rule, which does not cover the USB device node that libusb opens."""
+    usb_node = _usb_sysfs(tmp_path, "1-4.2", 1, 7)
+    monkeypatch.setenv("TELETOUCH_SYSFS_ROOT", str(tmp_path / "sys"))
+    monkeypatch.setenv("TELETOUCH_DEV_ROOT", str(tmp_path / "dev"))
+    fake_hid.devices.append(info(0x256F, 0xC635, b"1-4.2:1.0"))
+    fake_hid.open_error = True
+    monkeypatch.setattr(hl.os, "access", lambda p, mode: False)
+    with pytest.raises(HardwareError) as ei:
+        Harness(hl.HidLeader, {}).comp.configure()
+    msg = str(ei.value)
+    assert f"permission denied opening SpaceMouse Compact (256f:c635) at 1-4.2:1.0 (device node {usb_node})" in msg
+    assert 'SUBSYSTEM=="usb", ATTRS{idVendor}=="256f"' in msg
 
 
 def test_permission_denied_gives_the_udev_hint(fake_hid, tmp_path, monkeypatch):

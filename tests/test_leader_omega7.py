@@ -140,10 +140,81 @@ def test_sdk_found_through_forcedim_sdk_env(sdk_dir, standin, monkeypatch):
     found = teletouch_discover_devices()
     assert found and found[0]["kind"] == "omega7" and found[0]["details"]["params"] == {"index": 0}
     standin.set_present(0)
-    assert teletouch_discover_devices() == []
+    assert teletouch_discover_devices() == []   # the SDK answers: no device plugged in
+
+
+# ------------------------------------------------------------------------------------------------ discovery rows
+def test_discovery_without_the_sdk_is_an_error_row_saying_where_it_looked(sdk_dir, monkeypatch):
+    """Without the SDK the hook returned [] (no row at all): a plugged-in omega.7 was invisible to `teletouch devices`
+    with nothing saying that the SDK, not the device, was missing."""
     monkeypatch.setenv("FORCEDIM_SDK", str(sdk_dir / "nowhere"))
     monkeypatch.setattr(dhd.ctypes.util, "find_library", lambda name: None)
-    assert teletouch_discover_devices() == []
+    rows = teletouch_discover_devices()
+    assert len(rows) == 1 and rows[0]["kind"] == "omega7", rows
+    err = rows[0]["error"]
+    assert "SDK (libdhd) not found" in err and "the system library path" in err
+    assert f"FORCEDIM_SDK={sdk_dir / 'nowhere'} (does not exist)" in err and "sdk_path" in err
+
+
+class _Lib:
+    """The stand-in libdhd with dhdGetDeviceCount replaced (or removed) and the last error set, as an SDK gives."""
+
+    def __init__(self, real, count, error=(dhd.DHD_ERROR_NO_DRIVER_FOUND, b"no driver found")):
+        self._real, self._count, self._error = real, count, error
+
+    def __getattr__(self, name):
+        if name == "dhdGetDeviceCount":
+            if self._count is None:
+                raise AttributeError(name)
+            return lambda: self._count
+        if name == "dhdErrorGetLast":
+            return lambda: self._error[0]
+        if name == "dhdErrorGetLastStr":
+            return lambda: self._error[1]
+        return getattr(self._real, name)
+
+
+@pytest.mark.parametrize("count, expected", [(-1, ["dhdGetDeviceCount failed", "no driver found (error 4)", "USB"]),
+                                             (None, ["has no dhdGetDeviceCount", "opens the first device"])])
+def test_discovery_that_cannot_count_devices_is_an_error_row(sdk_dir, standin, monkeypatch, count, expected):
+    """dhdGetDeviceCount returning -1 (an SDK error) gave an empty list, as if nothing were plugged in; an SDK
+    without dhdGetDeviceCount too."""
+    real = dhd.load(sdk_dir)
+    monkeypatch.setattr(real, "lib", _Lib(real.lib, count))
+    monkeypatch.setattr(dhd, "load", lambda sdk_path=None: real)
+    rows = teletouch_discover_devices()
+    assert len(rows) == 1 and rows[0]["kind"] == "omega7" and rows[0]["path"] == real.path, rows
+    for text in expected:
+        assert text in rows[0]["error"], rows[0]["error"]
+
+
+def test_load_says_when_the_path_given_does_not_exist(tmp_path, monkeypatch):
+    """A misspelt sdk_path or FORCEDIM_SDK was reported as 'no libdhd.so under ...' or only 'looked in ...', never
+    saying that the folder itself does not exist."""
+    monkeypatch.setattr(dhd.ctypes.util, "find_library", lambda name: None)
+    monkeypatch.delenv("FORCEDIM_SDK", raising=False)
+    with pytest.raises(dhd.SdkNotFoundError, match=rf"sdk_path={tmp_path / 'sdk-3.71'} does not exist"):
+        dhd.load(tmp_path / "sdk-3.71")
+    monkeypatch.setenv("FORCEDIM_SDK", str(tmp_path / "sdk-3.71"))
+    with pytest.raises(dhd.SdkNotFoundError, match=rf"FORCEDIM_SDK={tmp_path / 'sdk-3.71'} \(does not exist\)"):
+        dhd.load(None)
+    (tmp_path / "empty").mkdir()
+    monkeypatch.setenv("FORCEDIM_SDK", str(tmp_path / "empty"))
+    with pytest.raises(dhd.SdkNotFoundError, match=rf"FORCEDIM_SDK={tmp_path / 'empty'} \(no libdhd.so"):
+        dhd.load(None)
+
+
+def test_an_sdk_path_whose_library_fails_to_load_is_not_replaced_by_another(sdk_dir, tmp_path, monkeypatch):
+    """sdk_path names an SDK whose library does not load: the library of FORCEDIM_SDK (another SDK) was taken instead,
+    silently."""
+    broken = tmp_path / "sdk-broken"
+    broken.mkdir()
+    (broken / "libdhd.so").write_bytes(b"not an ELF file")
+    monkeypatch.setenv("FORCEDIM_SDK", str(sdk_dir))
+    with pytest.raises(dhd.SdkNotFoundError) as ei:
+        dhd.load(broken)
+    msg = str(ei.value)
+    assert f"under sdk_path={broken} could not be loaded" in msg and str(broken / "libdhd.so") in msg
 
 
 def test_a_library_without_the_dhd_calls_is_refused(tmp_path):

@@ -151,13 +151,18 @@ class CanopenGripper(FollowerBase):
         p = self.params
         self._io_lock = threading.RLock()  # one set-point handshake at a time (step vs. safe_state)
         self._target: int | None = None  # counts of the last set-point whose frames all went out
+        if p.interface == "socketcan":
+            info = can_interface_info(p.channel)
+            if info is not None and info["up"] is False:   # it would open, and every frame fail with "Network is down"
+                cmd = up_command(p.channel, info["virtual"], p.bitrate)
+                raise HardwareError(f"CAN interface {p.channel} is down: bring it up with {cmd}"
+                                    + ("" if info["virtual"] else " (the drive's bit rate: the bitrate param)"))
         self.network = canopen.Network()
         try:
             self.network.connect(interface=p.interface, channel=p.channel, bitrate=p.bitrate)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise HardwareError(f"cannot open CAN interface {p.interface}:{p.channel} ({exc}); check the adapter "
-                                f"and that the interface is up (ip link set {p.channel} up type can bitrate "
-                                f"{p.bitrate})") from exc
+            raise HardwareError(f"cannot open CAN interface {p.interface}:{p.channel} ({exc}); "
+                                f"{open_failure_hint(exc, p.interface, p.channel, p.bitrate)}") from exc
         try:
             od = p.eds if p.eds else standard_od(p.node_id)
             node = canopen.BaseNode402(p.node_id, od)
@@ -372,8 +377,79 @@ def teletouch_components():
     return [CanopenGripper]
 
 
-def can_interfaces(sysfs_root: str | None = None) -> list[dict[str, Any]]:
-    """SocketCAN network interfaces (type 280 in sysfs), for `teletouch devices`."""
+IFF_UP = 0x1   # the administrative "up" bit of a network interface's flags (sysfs ``flags``, linux/if.h)
+SOCKETCAN_MISSING = ("no SocketCAN in this kernel (or container): load it with 'sudo modprobe can can_raw' (on the "
+                     "host: a container cannot load kernel modules, and needs the interface in its network, e.g. "
+                     "docker run --network host)")
+
+
+def up_command(name: str, virtual: bool, bitrate: int = 1000000) -> str:
+    """The command that brings a CAN interface up: a virtual one (vcan, slcan: no ``device`` in sysfs) has no bit rate
+    to set."""
+    if virtual:
+        return f"sudo ip link set {name} up"
+    return f"sudo ip link set {name} up type can bitrate {bitrate}"
+
+
+def open_failure_hint(exc: BaseException, interface: str, channel: str, bitrate: int) -> str:
+    """What to do when python-can cannot open ``interface:channel``, from the error it raised."""
+    errno = getattr(exc, "errno", None) or getattr(exc.__cause__, "errno", None)
+    if errno == 97 or "Address family not supported" in str(exc):
+        return SOCKETCAN_MISSING
+    if errno == 19 or "No such device" in str(exc):
+        return (f"there is no network interface {channel}: plug in the CAN adapter (for a test without one: sudo "
+                f"modprobe vcan && sudo ip link add dev {channel} type vcan); `teletouch devices` lists the CAN "
+                f"interfaces")
+    cmd = up_command(channel, channel.startswith("vcan"), bitrate)
+    return f"check the adapter and that the interface is up ({cmd}); `teletouch devices` lists the CAN interfaces"
+
+
+def _read(path: str) -> str:
+    try:
+        with open(path) as fh:
+            return fh.read().strip()
+    except OSError:
+        return ""
+
+
+def can_interface_info(name: str, sysfs_root: str | None = None) -> dict[str, Any] | None:
+    """A SocketCAN interface from sysfs: ``up`` (IFF_UP in ``flags``; from ``operstate`` when flags cannot be read;
+    None: unknown), ``state`` (operstate: "unknown" on an up vcan, so not the up/down answer), ``virtual`` (no
+    ``device`` link: vcan, slcan). None when ``name`` is no CAN interface there."""
+    import os
+
+    d = os.path.join(sysfs_root or os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys"), "class", "net", name)
+    if _read(os.path.join(d, "type")) != "280":  # ARPHRD_CAN
+        return None
+    state = _read(os.path.join(d, "operstate")) or "unknown"
+    try:
+        up: bool | None = bool(int(_read(os.path.join(d, "flags")), 16) & IFF_UP)
+    except ValueError:
+        up = {"up": True, "down": False}.get(state)
+    return {"up": up, "state": state, "virtual": not os.path.exists(os.path.join(d, "device"))}
+
+
+def socketcan_available() -> str:
+    """"" when this kernel (in this network namespace) can open SocketCAN sockets, else why not and what to do."""
+    import socket
+
+    family = getattr(socket, "AF_CAN", None)
+    if family is None:
+        return "this Python has no socket.AF_CAN (SocketCAN needs Linux)"
+    try:
+        socket.socket(family, socket.SOCK_RAW, getattr(socket, "CAN_RAW", 1)).close()
+    except OSError as exc:
+        if exc.errno == 97:
+            return f"socket(AF_CAN) failed ({exc}): {SOCKETCAN_MISSING}"
+        return f"a SocketCAN socket cannot be opened ({exc})"
+    return ""
+
+
+def can_interfaces(sysfs_root: str | None = None, probe: Any = socketcan_available) -> list[dict[str, Any]]:
+    """SocketCAN network interfaces (type 280 in sysfs), for `teletouch devices`: with the canopen-gripper params
+    that select each, ``up``, and a ``problem`` when it cannot be used as it is (down: the command that brings it up;
+    no SocketCAN in the kernel: the modules to load). ``probe`` says whether SocketCAN sockets can be opened here
+    ("" when they can)."""
     import os
 
     root = os.path.join(sysfs_root or os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys"), "class", "net")
@@ -382,19 +458,22 @@ def can_interfaces(sysfs_root: str | None = None) -> list[dict[str, Any]]:
         names = sorted(os.listdir(root))
     except OSError:
         return []
+    missing: str | None = None
     for name in names:
-        def read(item: str) -> str:
-            try:
-                with open(os.path.join(root, name, item)) as fh:
-                    return fh.read().strip()
-            except OSError:
-                return ""
-
-        if read("type") != "280":  # ARPHRD_CAN
+        info = can_interface_info(name, sysfs_root)
+        if info is None:
             continue
-        found.append({"kind": "can", "id": name, "path": name,
-                      "details": {"state": read("operstate") or "unknown", "plugin": "canopen-gripper",
-                                  "params": {"interface": "socketcan", "channel": name}}})
+        details: dict[str, Any] = {"state": info["state"], "up": info["up"], "virtual": info["virtual"],
+                                   "plugin": "canopen-gripper", "params": {"interface": "socketcan", "channel": name}}
+        if missing is None:
+            missing = probe()
+        problems = [missing] if missing else []
+        if info["up"] is False:
+            problems.append(f"the interface is down: {up_command(name, info['virtual'])}"
+                            + ("" if info["virtual"] else " (with the drive's bit rate: canopen-gripper's bitrate)"))
+        if problems:
+            details["problem"] = "; ".join(problems)
+        found.append({"kind": "can", "id": name, "path": name, "details": details})
     return found
 
 

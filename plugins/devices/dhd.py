@@ -8,6 +8,8 @@ clipped by the device), -1 error (the reason from ``dhdErrorGetLastStr``).
 Where the library is looked for, in order:
 
 1. ``sdk_path`` given to :func:`load` (the ``omega7`` parameter of the same name): a library file, or an SDK folder;
+   when given, it is the only place used (a path that does not exist, or without a library that loads, is the
+   error);
 2. the ``FORCEDIM_SDK`` environment variable (an SDK folder or a library file), as forcedimension-core uses;
 3. the system's library path (``ctypes.util.find_library("dhd")``, e.g. after copying libdhd.so to /usr/local/lib).
 
@@ -100,6 +102,26 @@ def _names() -> tuple[str, ...]:
     return _LIB_NAMES["linux"]
 
 
+_SUBDIRS = ("", "lib", "lib/release", "lib/release/lin-x86_64-gcc", "lib/release/lin-aarch64-gcc",
+            "lib/release/mac-x86_64-clang", "lib/release/mac-arm64-clang", "bin")
+
+
+def _libraries_under(root: Path) -> list[Path]:
+    """The library files at ``root`` (a file) or under it (an SDK folder and its lib/ folders), in order."""
+    if root.is_file():
+        return [root]
+    out: list[Path] = []
+    for sub in _SUBDIRS:
+        for name in _names():
+            p = root / sub / name if sub else root / name
+            if p.is_file():
+                out.append(p)
+        d = root / sub if sub else root
+        if d.is_dir():
+            out.extend(sorted(p for p in d.glob("libdhd.so.*") if p.is_file()))
+    return out
+
+
 def candidates(sdk_path: str | os.PathLike[str] | None = None) -> list[Path]:
     """The library files that :func:`load` would try, in order (only those that exist)."""
     roots: list[Path] = []
@@ -108,51 +130,67 @@ def candidates(sdk_path: str | os.PathLike[str] | None = None) -> list[Path]:
     env = os.environ.get("FORCEDIM_SDK")
     if env:
         roots.append(Path(env).expanduser())
-    out: list[Path] = []
-    for root in roots:
-        if root.is_file():
-            out.append(root)
-            continue
-        for sub in ("", "lib", "lib/release", "lib/release/lin-x86_64-gcc", "lib/release/lin-aarch64-gcc",
-                    "lib/release/mac-x86_64-clang", "lib/release/mac-arm64-clang", "bin"):
-            for name in _names():
-                p = root / sub / name if sub else root / name
-                if p.is_file():
-                    out.append(p)
-            d = root / sub if sub else root
-            if d.is_dir():
-                out.extend(sorted(p for p in d.glob("libdhd.so.*") if p.is_file()))
     seen: set[Path] = set()
     uniq = []
-    for p in out:
-        if p not in seen:
-            seen.add(p)
-            uniq.append(p)
+    for root in roots:
+        for p in _libraries_under(root):
+            if p not in seen:
+                seen.add(p)
+                uniq.append(p)
     return uniq
 
 
-def load(sdk_path: str | os.PathLike[str] | None = None) -> "Dhd":
-    """Load libdhd (see the module docstring for where it is looked for). Raises :class:`SdkNotFoundError`."""
-    tried: list[str] = []
-    for p in candidates(sdk_path):
+def _where(label: str, value: str) -> str:
+    """``label=value`` for an error message, saying when that path does not exist (a typo, an unmounted folder) or
+    holds no library."""
+    root = Path(value).expanduser()
+    if not root.exists():
+        return f"{label}={value} (does not exist)"
+    if not _libraries_under(root):
+        return f"{label}={value} (no {'/'.join(_names())} there, nor in lib/ or lib/release/<platform>/)"
+    return f"{label}={value}"
+
+
+def _try_load(paths: list[Path], tried: list[str]) -> "Dhd | None":
+    for p in paths:
         try:
             return Dhd(ctypes.CDLL(str(p)), str(p))
         except OSError as exc:
             tried.append(f"{p} ({exc})")
+    return None
+
+
+def load(sdk_path: str | os.PathLike[str] | None = None) -> "Dhd":
+    """Load libdhd (see the module docstring for where it is looked for). Raises :class:`SdkNotFoundError`, whose
+    message names every place looked in and says which of the paths given do not exist.
+
+    A ``sdk_path`` that is given is the only place used: when it has no library, or none that loads, that is the
+    error (a library elsewhere, of another SDK version, is never taken instead)."""
+    tried: list[str] = []
     if sdk_path:
-        where = f"sdk_path={sdk_path!s}"
+        root = Path(sdk_path).expanduser()
+        if not root.exists():
+            raise SdkNotFoundError(f"Force Dimension SDK not found: sdk_path={sdk_path!s} does not exist (check the "
+                                   f"path, and that its disk is mounted); {INSTALL_HINT}")
+        lib = _try_load(_libraries_under(root), tried)
+        if lib is not None:
+            return lib
         if not tried:
-            raise SdkNotFoundError(f"Force Dimension SDK not found: no {'/'.join(_names())} under {where} "
-                                   f"(nor in lib/ or lib/release/<platform>/ there); {INSTALL_HINT}")
+            raise SdkNotFoundError(f"Force Dimension SDK not found: no {'/'.join(_names())} under sdk_path="
+                                   f"{sdk_path!s} (nor in lib/ or lib/release/<platform>/ there); {INSTALL_HINT}")
+        raise SdkNotFoundError(f"Force Dimension SDK (libdhd) under sdk_path={sdk_path!s} could not be loaded: "
+                               f"{'; '.join(tried)}; {INSTALL_HINT}")
+    env = os.environ.get("FORCEDIM_SDK")
+    lib = _try_load(candidates(None), tried)
+    if lib is not None:
+        return lib
     found = ctypes.util.find_library("dhd")
     if found:
         try:
             return Dhd(ctypes.CDLL(found), found)
         except OSError as exc:
             tried.append(f"{found} ({exc})")
-    env = os.environ.get("FORCEDIM_SDK")
-    looked = ", ".join(x for x in (f"sdk_path={sdk_path}" if sdk_path else "",
-                                   f"FORCEDIM_SDK={env}" if env else "", "the system library path") if x)
+    looked = ", ".join(x for x in (_where("FORCEDIM_SDK", env) if env else "", "the system library path") if x)
     detail = f"; could not load: {'; '.join(tried)}" if tried else ""
     raise SdkNotFoundError(f"Force Dimension SDK (libdhd) not found (looked in {looked}){detail}; {INSTALL_HINT}")
 

@@ -28,6 +28,7 @@ answers the PING with must be the preset's (a firmware mismatch names the preset
 from __future__ import annotations
 
 import math
+import os
 import time
 from typing import Any, Callable
 
@@ -318,8 +319,7 @@ class DynamixelGripper(FollowerBase):
         try:
             ok = self.port.openPort() and self.port.setBaudRate(p.baudrate)
         except Exception as exc:
-            raise HardwareError(f"cannot open {p.port} ({exc}); check the USB adapter is plugged in and that you "
-                                f"may use it (group dialout)") from exc
+            raise HardwareError(f"cannot open {p.port} ({exc}); {port_open_hint(p.port, exc)}") from exc
         if not ok:
             raise HardwareError(f"cannot set {p.baudrate} baud on {p.port}")
         self._port_open = True
@@ -501,8 +501,44 @@ KNOWN_ADAPTERS = {(0x0403, 0x6014): "ROBOTIS U2D2 (FTDI FT232H)", (0x0483, 0x574
                   (0x2F5D, 0x2202): "ROBOTIS OpenRB-150"}
 
 
+def _owner_group(path: str) -> str:
+    """The group that owns ``path`` (dialout on Debian/Ubuntu, uucp on Arch), "dialout" when it cannot be told."""
+    try:
+        import grp
+
+        return grp.getgrgid(os.stat(path).st_gid).gr_name
+    except (ImportError, KeyError, OSError):
+        return "dialout"
+
+
+def permission_hint(path: str, vid: int = 0x0403, pid: int = 0x6014) -> str:
+    """What gives this user access to a serial port: the group that owns it (dialout on Debian/Ubuntu), or a udev
+    rule for the adapter's USB ids (default: the U2D2's)."""
+    rule = (f"a udev rule (/etc/udev/rules.d/70-dynamixel.rules: KERNEL==\"tty[A-Z]*[0-9]*\", ATTRS{{idVendor}}==\""
+            f"{vid:04x}\", ATTRS{{idProduct}}==\"{pid:04x}\", MODE=\"0666\", then sudo udevadm control --reload-rules "
+            f"&& sudo udevadm trigger)")
+    group = _owner_group(path)
+    if group == "root":
+        return f"give access with {rule}"
+    return f"join the {group} group (sudo usermod -aG {group} $USER, then log out and in again), or use {rule}"
+
+
+def port_open_hint(port: str, exc: BaseException) -> str:
+    """What to do when ``port`` cannot be opened: it does not exist, or this user may not open it, or else."""
+    errno = getattr(exc, "errno", None)
+    if errno == 2 or not os.path.exists(port):
+        return (f"{port} does not exist: plug in the USB adapter (U2D2, OpenCR) and check the port name; `teletouch "
+                f"devices` lists the serial adapters, with the port param of each")
+    if errno == 13 or (os.path.exists(port) and not os.access(port, os.R_OK | os.W_OK)):
+        return f"permission denied on {port}: {permission_hint(port)}"
+    return ("check that no other program (DYNAMIXEL Wizard, another teletouch) holds it; `teletouch devices` lists "
+            "the serial adapters")
+
+
 def serial_ports() -> list[dict[str, Any]]:
-    """USB serial ports (pyserial's list), with the Dynamixel adapters named, for `teletouch devices`."""
+    """USB serial ports (pyserial's list), with the Dynamixel adapters named, for `teletouch devices`: the
+    dynamixel-gripper params that select each, whether this user may open it (``readable``) and, when not, the
+    ``problem`` saying how to get access."""
     from serial.tools import list_ports
 
     found = []
@@ -510,9 +546,13 @@ def serial_ports() -> list[dict[str, Any]]:
         if p.vid is None:
             continue  # not a USB adapter (built-in UARTs)
         name = KNOWN_ADAPTERS.get((p.vid, p.pid))
-        found.append({"kind": "serial", "id": p.serial_number or p.device, "path": p.device,
-                      "details": {"usb": f"{p.vid:04x}:{p.pid:04x}", "description": name or p.description or "",
-                                  "plugin": "dynamixel-gripper", "params": {"port": p.device}}})
+        readable = os.access(p.device, os.R_OK | os.W_OK) if os.path.exists(p.device) else None
+        details: dict[str, Any] = {"usb": f"{p.vid:04x}:{p.pid:04x}", "description": name or p.description or "",
+                                   "readable": readable, "plugin": "dynamixel-gripper",
+                                   "params": {"port": p.device}}
+        if readable is False:
+            details["problem"] = f"permission denied on {p.device}: {permission_hint(p.device, p.vid, p.pid)}"
+        found.append({"kind": "serial", "id": p.serial_number or p.device, "path": p.device, "details": details})
     return found
 
 

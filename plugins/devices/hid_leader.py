@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import struct
+import sys
 import time
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -219,6 +221,56 @@ def integrate_rate(opening: float, unit: float, dt: float, max_speed: float, ban
 UDEV_HINT = ("give your user access to the device: create /etc/udev/rules.d/70-teletouch-hid.rules with "
              'KERNEL=="hidraw*", ATTRS{idVendor}=="%04x", MODE="0660", TAG+="uaccess" '
              "then run: sudo udevadm control --reload-rules && sudo udevadm trigger (and replug the device)")
+#: the same for the USB device node (/dev/bus/usb/BBB/DDD) that hidapi's libusb backend opens: on Linux, pip's hidapi
+#: module ``hid`` is built on libusb (its ``hidraw`` module on hidraw), and its paths look like "1-4.2:1.0"
+USB_UDEV_HINT = ("give your user access to the USB device: create /etc/udev/rules.d/70-teletouch-hid.rules with "
+                 'SUBSYSTEM=="usb", ATTRS{idVendor}=="%04x", MODE="0660", TAG+="uaccess" '
+                 "then run: sudo udevadm control --reload-rules && sudo udevadm trigger (and replug the device)")
+#: what hidapi's enumeration needs, from its sources (libusb/hid.c, linux/hid.c): neither backend opens the device to
+#: list it (libusb reads the USB descriptors and lists the device even when libusb_open fails, only without its
+#: strings; hidraw reads udev/sysfs), so a device you may not open is still listed, and one that is not listed is no
+#: permission problem
+ENUMERATION_NOTE = ("hidapi lists a device whether or not you may open it (permission shows when it is opened), so a "
+                    "device missing here is not a permission problem")
+_LIBUSB_PATH = re.compile(r"^(\d+)-([\d.]+):\d+\.\d+$")   # hidapi libusb: bus-port[.port...]:config.interface
+
+
+def hid_path_text(path: Any) -> str:
+    """A hidapi path (bytes) as text."""
+    return path.decode(errors="replace") if isinstance(path, bytes) else str(path)
+
+
+def device_node(path: str, sysfs_root: str | None = None, dev_root: str | None = None) -> str | None:
+    """The device file that opening this hidapi path needs: the hidraw node itself, or for a libusb path
+    ("1-4.2:1.0") the USB device node /dev/bus/usb/BBB/DDD (through sysfs busnum/devnum); None when it cannot be told.
+    ``sysfs_root``/``dev_root`` default to $TELETOUCH_SYSFS_ROOT or /sys and $TELETOUCH_DEV_ROOT or /dev."""
+    if path.startswith("/"):
+        return path
+    m = _LIBUSB_PATH.match(path)
+    if m is None:
+        return None
+    sysfs = sysfs_root or os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys")
+    dev = dev_root or os.environ.get("TELETOUCH_DEV_ROOT", "/dev")
+    usb = os.path.join(sysfs, "bus", "usb", "devices", f"{m.group(1)}-{m.group(2)}")
+    try:
+        with open(os.path.join(usb, "busnum")) as fb, open(os.path.join(usb, "devnum")) as fd:
+            bus, num = int(fb.read().strip()), int(fd.read().strip())
+    except (OSError, ValueError):
+        return None
+    return os.path.join(dev, "bus", "usb", f"{bus:03d}", f"{num:03d}")
+
+
+def node_readable(node: str | None) -> bool | None:
+    """Whether this user may open ``node`` for reading and writing; None when unknown (no node, or it is missing)."""
+    if node is None or not os.path.exists(node):
+        return None
+    return os.access(node, os.R_OK | os.W_OK)
+
+
+def udev_hint(vendor_id: int, node: str | None) -> str:
+    """The udev rule that gives access to ``node``: the hidraw rule for a hidraw node, else the USB one."""
+    hidraw = node is not None and os.path.basename(node).startswith("hidraw")
+    return (UDEV_HINT if hidraw else USB_UDEV_HINT) % vendor_id
 
 
 def _hid() -> Any:
@@ -250,22 +302,26 @@ def find_devices(vendor_id: int | None = None, product_id: int | None = None, pr
 
 
 def open_device(info: dict[str, Any], hid: Any = None) -> Any:
-    """Open one enumerated device (non-blocking reads). Raises HardwareError saying why (permission: udev hint)."""
+    """Open one enumerated device (non-blocking reads). Raises HardwareError saying why (permission: the udev rule for
+    the node hidapi opens: the hidraw node, or the USB device node under the libusb backend)."""
     hid = hid or _hid()
     path = info["path"]
     dev = hid.device()
     try:
         dev.open_path(path)
     except (OSError, IOError) as exc:
-        spath = path.decode(errors="replace") if isinstance(path, bytes) else str(path)
+        spath = hid_path_text(path)
         vid = info.get("vendor_id", 0)
-        if os.path.exists(spath) and not os.access(spath, os.R_OK | os.W_OK):
-            raise HardwareError(f"permission denied opening {info.get('name', 'HID device')} at {spath}; "
-                                + UDEV_HINT % vid) from None
-        raise HardwareError(f"could not open {info.get('name', 'HID device')} ({vid:04x}:"
-                            f"{info.get('product_id', 0):04x}) at {spath}: {exc}; if it is a permission problem, "
-                            + UDEV_HINT % vid + "; also check that no other program (spacenavd, Steam) holds it"
-                            ) from None
+        node = device_node(spath)
+        what = f"{info.get('name', 'HID device')} ({vid:04x}:{info.get('product_id', 0):04x})"
+        if node_readable(node) is False:
+            raise HardwareError(f"permission denied opening {what} at {spath}"
+                                + (f" (device node {node})" if node != spath else "") + "; "
+                                + udev_hint(vid, node)) from None
+        raise HardwareError(f"could not open {what} at {spath}: {exc}; check that no other program (spacenavd, "
+                            f"Steam, a game) holds it; if it is a permission problem, "
+                            + udev_hint(vid, node) + " (`teletouch devices` shows readable=False for a device you "
+                            "may not open)") from None
     dev.set_nonblocking(1)
     return dev
 
@@ -318,7 +374,8 @@ class HidLeader(Device):
             "auto", description="report format; auto: from the vendor/product id of the first known device")
         vendor_id: int | None = Field(None, ge=0, le=0xFFFF, description="USB vendor id (e.g. 0x256f)")
         product_id: int | None = Field(None, ge=0, le=0xFFFF, description="USB product id")
-        path: str | None = Field(None, description="hidapi path (e.g. /dev/hidraw3) to pick one of several")
+        path: str | None = Field(None, description="hidapi path to pick one of several, as `teletouch devices` shows "
+                                                    "it (e.g. 1-4.2:1.0; /dev/hidraw3 with hidapi's hidraw build)")
         min_opening: Meters = Field(0.0, ge=0, description="opening when closed", json_schema_extra={"unit": "m"})
         max_opening: Meters = Field(OMEGA7_GRIPPER_RANGE, gt=0, description="opening when open",
                                     json_schema_extra={"unit": "m"})
@@ -375,17 +432,23 @@ class HidLeader(Device):
         hid = _hid()
         found = find_devices(p.vendor_id, p.product_id, p.device, hid=hid)
         if p.path is not None:
-            found = [d for d in found if (d["path"].decode(errors="replace") if isinstance(d["path"], bytes)
-                                          else str(d["path"])) == p.path]
+            found = [d for d in found if hid_path_text(d["path"]) == p.path]
         if not found:
             n_all = len(hid.enumerate(0, 0))
             want = (f"{p.vendor_id or 0:04x}:{p.product_id or 0:04x}" if p.vendor_id or p.product_id else
                     "a 3Dconnexion SpaceMouse (vendor 046d/256f) or a Sony gamepad (054c)")
             where = f" at {p.path}" if p.path else ""
+            if p.vendor_id or p.product_id:
+                fix = "if it does, compare its vendor:product id with vendor_id/product_id"
+            else:
+                fix = ("if it does, its vendor:product id is not one teletouch knows: set vendor_id and product_id, "
+                       "and device: generic with its report layout")
+            if p.path:
+                fix += "; path must be one that hidapi lists (it changes when the device is replugged)"
             raise HardwareError(f"no HID leader found: looked for {want}{where} among {n_all} HID device(s); "
-                                f"check the USB cable/receiver and that the device shows in lsusb; if lsusb shows it "
-                                f"but hidapi lists nothing, it is a permission problem: "
-                                + UDEV_HINT % (p.vendor_id or 0x256F))
+                                f"{ENUMERATION_NOTE}: check the USB cable/receiver and that lsusb shows the device; "
+                                f"{fix}; `teletouch devices` lists the HID leaders found, with the params that select "
+                                f"them")
         info = found[0]
         self.info = info
         self.profile = p.device if p.device != "auto" else info["profile"]
@@ -549,12 +612,44 @@ def teletouch_components():
     return [HidLeader]
 
 
+def discover(hid: Any = None, sysfs_root: str | None = None, dev_root: str | None = None) -> list[dict[str, Any]]:
+    """The rows of ``teletouch devices`` for HID leaders (never raises): one per known SpaceMouse/gamepad, with the
+    ``hid-leader`` params that select it (``path`` and ``device``, the report format) and whether this user may open
+    it (``readable``, with the udev rule as ``problem`` when not); or one ``error`` row when hidapi cannot be imported
+    or fails to enumerate, or (Linux) lists nothing because there is no USB device folder to read (a container without
+    the host's /dev/bus/usb)."""
+    try:
+        hid = hid or _hid()
+        found = find_devices(hid=hid)
+        nothing = not found and not hid.enumerate(0, 0)   # not even another HID device
+    except Exception as exc:  # HardwareError (hidapi missing), a broken hidapi, an enumeration that fails
+        return [{"kind": "hid-leader", "id": "", "path": "",
+                 "error": f"HID devices cannot be listed: {type(exc).__name__}: {exc}"}]
+    dev = dev_root or os.environ.get("TELETOUCH_DEV_ROOT", "/dev")
+    usbfs = os.path.join(dev, "bus", "usb")
+    if nothing and sys.platform.startswith("linux") and not os.path.isdir(usbfs):
+        return [{"kind": "hid-leader", "id": "", "path": "",
+                 "error": f"HID devices cannot be listed: {usbfs} does not exist, so hidapi sees no USB device (in a "
+                          f"container, pass the host's: docker run -v /dev/bus/usb:/dev/bus/usb, or --device for the "
+                          f"one device)"}]
+    rows = []
+    for d in found:
+        path = hid_path_text(d["path"])
+        vid = d.get("vendor_id", 0)
+        node = device_node(path, sysfs_root, dev_root)
+        readable = node_readable(node)
+        details: dict[str, Any] = {"name": d["name"], "usb": f"{vid:04x}:{d.get('product_id', 0):04x}",
+                                   "readable": readable, "plugin": "hid-leader",
+                                   "params": {"path": path, "device": d["profile"]}}
+        if node is not None and node != path:
+            details["node"] = node
+        if readable is False:
+            details["problem"] = f"permission denied on {node}: " + udev_hint(vid, node)
+        rows.append({"kind": d["profile"], "id": d.get("serial_number") or f"{vid:04x}:{d.get('product_id', 0):04x}",
+                     "path": path, "details": details})
+    return rows
+
+
 @hookimpl
 def teletouch_discover_devices():
-    try:
-        found = find_devices()
-    except Exception:
-        return []
-    return [{"kind": d["profile"], "id": d.get("serial_number") or f"{d['vendor_id']:04x}:{d['product_id']:04x}",
-             "path": d["path"].decode(errors="replace") if isinstance(d["path"], bytes) else str(d["path"]),
-             "details": {"name": d["name"], "plugin": "hid-leader"}} for d in found]
+    return discover()

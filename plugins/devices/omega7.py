@@ -423,18 +423,40 @@ def teletouch_components():
     return [Omega7]
 
 
-@hookimpl
-def teletouch_discover_devices():
-    """Force Dimension devices the SDK can see (nothing when the SDK is not installed)."""
+def discover(sdk_path: str | None = None) -> list[dict[str, Any]]:
+    """The rows of ``teletouch devices`` for Force Dimension devices (never raises): one per device the SDK counts,
+    with the ``omega7`` params that open it; or one ``error`` row saying why none can be listed: the SDK not found
+    (and where it was looked for: a plugged-in omega.7 is invisible without it), or a device count the SDK cannot
+    give (no dhdGetDeviceCount, or -1 with the SDK's last error)."""
     try:
         from . import dhd as dhdmod
 
-        lib = dhdmod.load(None)
+        lib = dhdmod.load(sdk_path)
+    except Exception as exc:  # SdkNotFoundError (says where it looked), or a library that breaks at load
+        return [_error_row(f"Force Dimension devices cannot be listed: {exc}")]
+    where = f"{lib.path}, SDK {lib.sdk_version()}"
+    try:
         n = lib.device_count()
-    except Exception:
-        return []
-    if not n:
-        return []
+    except Exception as exc:
+        return [_error_row(f"dhdGetDeviceCount failed ({where}): {type(exc).__name__}: {exc}", lib.path)]
+    if n is None:
+        return [_error_row(f"this libdhd ({where}) has no dhdGetDeviceCount, so its devices cannot be listed; an "
+                           f"omega7 node still opens the first device (or the one given by serial or index)",
+                           lib.path)]
+    if n < 0:
+        code, text = lib.last_error()
+        return [_error_row(f"dhdGetDeviceCount failed ({where}): {text} (error {code}); {dhdmod.DEVICE_HINT}",
+                           lib.path)]
     return [{"kind": "omega7", "id": f"dhd:{i}", "path": lib.path,
              "details": {"sdk": lib.sdk_version(), "plugin": "omega7", "params": {"index": i}}}
             for i in range(n)]
+
+
+def _error_row(message: str, path: str = "") -> dict[str, Any]:
+    return {"kind": "omega7", "id": "", "path": path, "error": message}
+
+
+@hookimpl
+def teletouch_discover_devices():
+    """Force Dimension devices the SDK can see; an error row when it cannot tell (see :func:`discover`)."""
+    return discover()
