@@ -36,6 +36,10 @@ def teletouch_add_commands(subparsers: argparse._SubParsersAction, calibrate: ar
 def teletouch_discover_devices() -> list[dict[str, Any]]:
     """Return the supported hardware this plugin can see right now, for ``teletouch devices``.
 
-    Each entry is a dict with at least ``kind`` (e.g. "digit"), ``id`` (serial or port) and ``path``;
-    it may add ``details``. Must be fast and must not raise when nothing is connected.
+    Each entry is a dict with at least ``kind`` (e.g. "digit"), ``id`` (serial or port) and ``path``; it may add
+    ``details``, where these keys are shown specially: ``plugin`` and ``params`` (what selects this device in a
+    graph, e.g. ``{"serial": "D20001"}``), ``readable`` (whether this user may open it) and ``problem`` (why it cannot
+    be used as it is, and what to do). A source that could not be read (a missing SDK or library, an unreadable
+    folder) is an entry with ``kind``, empty ``id`` and ``path``, and ``error`` saying why: not an empty list, so the
+    user learns why nothing shows. Must be fast and must not raise.
     """
