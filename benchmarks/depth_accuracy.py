@@ -14,13 +14,14 @@ background = per-pixel median of its training frames, and evaluated on the held-
 QVGA is run with four network inputs (ratio+gradxy, the default = relative change from the background, its Sobel
 gradients and X, Y; ratioxy without the gradients; diffxy = difference from the background + X, Y; rgbxy = the
 paper's R, G, B, X, Y) and VGA with the default and diffxy, to show what each input brings. 40 epochs (the
-calibration's default) everywhere; --quick: 20 epochs, one VGA fold.
+calibration's default) everywhere; --quick: 20 epochs, the default inputs only, one VGA fold, fewer simulated
+frames.
 
 Simulated (sim-digit, Taxim's optical model of a real DIGIT, pixel noise 2 levels): the packaged model
 sim-digit-qvga over indenters (6 and 10 mm balls, the paper's probe, a 4 mm flat punch), positions and
 indentations: depth RMSE over the disturbed region and max-depth error.
 
-    python benchmarks/depth_accuracy.py [--quick]
+    python benchmarks/depth_accuracy.py [--quick] [--no-vga] [--no-sim]
 
 Prints one JSON object as its last line.
 """
@@ -28,18 +29,14 @@ Prints one JSON object as its last line.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
 import sys
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
+from bench_common import DATA, data_folder, emit
 
 
 def real(ds: str, folds: int, feature_set: str, epochs: int, log, fold_limit: int | None = None) -> dict:
@@ -179,9 +176,11 @@ def sim(quick: bool, log) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer folds, epochs and simulated frames")
-    ap.add_argument("--no-sim", action="store_true")
-    ap.add_argument("--no-vga", action="store_true")
+    ap.add_argument("--no-sim", action="store_true", help="skip the simulated frames")
+    ap.add_argument("--no-vga", action="store_true", help="skip the VGA presses")
     args = ap.parse_args()
+    for ds in ("qvga",) if args.no_vga else ("qvga", "vga"):
+        data_folder(f"digit-presses-{ds}")
     warnings.filterwarnings("ignore")
     import torch
 
@@ -231,7 +230,7 @@ def main() -> int:
         summary["sim_no_contact_max_depth_mm"] = result["sim"]["no_contact_max_depth_mm"]
     result["summary"] = summary
     result["seconds"] = round(time.perf_counter() - t0, 1)
-    print(json.dumps(result))
+    emit(result)
     return 0
 
 

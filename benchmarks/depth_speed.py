@@ -19,7 +19,6 @@ throughput.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 import warnings
@@ -27,10 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-import os
+from bench_common import DATA, data_folder, emit
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
 def reference_max_depth(net, model, frame, torch, scipy_fft, zero=None):
@@ -217,8 +215,26 @@ def bench_gpu(model, frames, device: str, torch):
     out["gpu_vs_cpu_dense_contact_area_rel_diff_max"] = float(max(darea)) if darea else None
     out["gpu_dense_vs_cpu_sparse_max_depth_rel_diff_median"] = float(np.median(dsparse)) if dsparse else None
     out["gpu_dense_vs_cpu_sparse_max_depth_rel_diff_max"] = float(max(dsparse)) if dsparse else None
-    out["device_name"] = torch.cuda.get_device_name(0) if torch.device(device).type == "cuda" else device
+    out["device_name"] = (torch.cuda.get_device_name(torch.device(device)) if torch.device(device).type == "cuda"
+                          else device)
     return out
+
+
+def device_problem(device: str, torch) -> str | None:
+    """Why ``device`` cannot run the dense path here (None if it can)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError) as e:
+        return f"not a torch device ({e})"
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        return "CUDA is not available on this machine (torch.cuda.is_available() is False)"
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        return f"there are {torch.cuda.device_count()} CUDA devices"
+    try:
+        torch.zeros(1, device=dev)
+    except Exception as e:  # noqa: BLE001 - any failure to allocate there is the answer
+        return f"cannot allocate on it ({type(e).__name__}: {e})"
+    return None
 
 
 def main() -> int:
@@ -227,10 +243,16 @@ def main() -> int:
     ap.add_argument("--device", default=None, help="also measure the dense batched path on this torch device")
     ap.add_argument("--no-vga", action="store_true")
     args = ap.parse_args()
+    for ds in ("qvga",) if args.no_vga else ("qvga", "vga"):
+        data_folder(f"digit-presses-{ds}")
     warnings.filterwarnings("ignore")
     import scipy.fft as scipy_fft
     import torch
 
+    if args.device:   # refused now, not after the CPU measurements
+        problem = device_problem(args.device, torch)
+        if problem:
+            ap.error(f"--device {args.device}: {problem}")
     torch.set_num_threads(1)
     log = lambda m: print(m, file=sys.stderr)  # noqa: E731
     reps = 5 if args.quick else 20
@@ -263,7 +285,7 @@ def main() -> int:
                          "max_depth_within_2pct_median": q["max_depth_rel_diff_median"] <= 0.02,
                          "max_depth_within_2pct_every_frame": q["max_depth_rel_diff_max"] <= 0.02,
                          "calibration_under_60s": result["calibration_qvga_10_presses_s"] < 60}
-    print(json.dumps(result))
+    emit(result)
     return 0
 
 

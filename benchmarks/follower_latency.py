@@ -22,7 +22,6 @@ ratios between transports measured in the same run.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
@@ -42,6 +41,7 @@ from fakes.canopen_drive import Cia402Drive  # noqa: E402
 from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
 
 from teletouch.component import Context, Inputs, Sample, _Slot  # noqa: E402
+from bench_common import emit  # noqa: E402
 
 
 class PalProcess:
@@ -64,6 +64,11 @@ class PalProcess:
             self.proc.wait(timeout=5)
         except Exception:
             self.proc.kill()
+
+
+#: every driver's parameters here: the speed limit off (the emulated actuators move at once) and max_opening inside
+#: each driver's default calibrated range (Dynamixel: 0-75 mm, refused beyond it); commands stay within 30-60 mm
+FAST = {"max_speed": 100.0, "max_opening": 0.07}
 
 
 def percentile(xs, q):
@@ -162,7 +167,7 @@ def main(argv=None) -> int:
     from teletouch.plugins.devices.pal_gripper import PalGripper
     from teletouch.plugins.devices.sim_gripper import SimGripper
 
-    fast = {"max_speed": 100.0, "max_opening": 0.08}  # the rate test moves at most 10 mm; speed limit off here
+    fast = FAST
     results = {}
     # in-process model: no transport, so no round trip; its step rate is the reference for the drivers' overhead
     results["sim-gripper"] = bench("sim-gripper", SimGripper, dict(fast, object_width=None, bandwidth=1e6),
@@ -181,12 +186,12 @@ def main(argv=None) -> int:
         n, seconds, setup=lambda: PalProcess(DOMAIN, 1000.0))
 
     ref = results["dynamixel-1000000"]["round_trip_ms_p50"]
-    ratios = {k: (v["round_trip_ms_p50"] / ref if v["round_trip_ms_p50"] else None) for k, v in results.items()}
+    ratios = {k: (v["round_trip_ms_p50"] / ref if v["round_trip_ms_p50"] and ref else None) for k, v in results.items()}
     out = {"benchmark": "follower_latency", "quick": args.quick, "round_trips_per_driver": n,
            "rate_seconds": seconds, "results": results,
            "round_trip_p50_ratio_to_dynamixel_1mbaud": ratios,
            "note": "emulators on this machine; absolute ms are context, compare ratios"}
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

@@ -18,7 +18,6 @@ JSON says which source was used). ``--quick`` runs fewer presses.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -27,6 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench_common import emit, nonnegative_float, nonnegative_int, positive_int
 
 REPO = Path(__file__).resolve().parents[1]
 # accuracy, not speed, is measured here: one torch thread avoids oversubscribing a shared CPU (set before torch loads)
@@ -75,12 +76,12 @@ def main() -> int:
     ap.add_argument("--depth-model", default="sim-digit-qvga", help="depth model for the depth component")
     ap.add_argument("--depth-module", default="teletouch.plugins.estimators.depth",
                     help="module providing the `depth` component")
-    ap.add_argument("--presses", type=int, default=300)
+    ap.add_argument("--presses", type=positive_int, default=300)
     ap.add_argument("--out-of-range", choices=("extrapolate", "clamp"), default=None,
                     help="poly-force policy beyond the calibrated depth (default: the component's)")
-    ap.add_argument("--no-contact-frames", type=int, default=60)
-    ap.add_argument("--noise", type=float, default=2.0, help="sim-digit pixel noise (levels)")
-    ap.add_argument("--drift", type=float, default=2.0, help="sim-digit illumination drift (levels)")
+    ap.add_argument("--no-contact-frames", type=nonnegative_int, default=60)
+    ap.add_argument("--noise", type=nonnegative_float, default=2.0, help="sim-digit pixel noise (levels)")
+    ap.add_argument("--drift", type=nonnegative_float, default=2.0, help="sim-digit illumination drift (levels)")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--recalibrate", action="store_true", help="run the press routine first (slow)")
     ap.add_argument("--quick", action="store_true")
@@ -91,6 +92,11 @@ def main() -> int:
     from teletouch.plugins.estimators.poly_force import ForceCalibration, PolyForce, resolve_calibration
     from teletouch.testing import Harness
 
+    if not args.recalibrate:   # a wrong name is refused now, with the packaged names
+        try:
+            resolve_calibration(args.calibration)
+        except Exception as e:  # noqa: BLE001 - ModelFileError and its kin: the message says what is wrong
+            ap.error(f"--calibration: {e}")
     depth_source = args.depth_source
     if depth_source == "auto":
         try:
@@ -237,7 +243,7 @@ def main() -> int:
         "cpu_count": os.cpu_count(),
     }
     tmp.cleanup()
-    print(json.dumps(result))
+    emit(result)
     return 0
 
 

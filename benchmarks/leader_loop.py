@@ -3,9 +3,11 @@
 For each rate (1 kHz, 4 kHz) it runs a graph `force source -> omega7` on the core runtime with the wall clock and
 reports the achieved rate, the p99 period jitter and the overruns, next to the same graph with `sim-omega7` (pure
 Python physics) as a reference. It also times the raw ctypes calls of one driver cycle (3 reads + button + one force
-write) and one full driver step() outside the runtime.
+write) and one full driver step() outside the runtime. Each loop runs under normal scheduling and again under
+SCHED_FIFO (``--realtime-priority``, default 20; 0: not); where the process may not use SCHED_FIFO the runs say so
+(``sched_fifo_applied: false``) and ran with normal scheduling.
 
-    python benchmarks/leader_loop.py [--quick] [--duration S]
+    python benchmarks/leader_loop.py [--quick] [--duration S] [--rates 1000,4000] [--realtime-priority P]
 
 Prints one JSON object as its last line. Timings on a shared 2-core machine are noisy: read the ratios.
 """
@@ -13,13 +15,14 @@ Prints one JSON object as its last line. Timings on a shared 2-core machine are 
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from bench_common import emit, nonnegative_int, positive_float, rate_list, sched_fifo_refused, warn_if_no_sched_fifo
 
 REPO = Path(__file__).resolve().parents[1]
 SRC = REPO / "tests" / "fakes" / "dhd_standin.c"
@@ -59,7 +62,8 @@ def run_graph(plugin: str, params: str, rate: float, duration: float, prio: int 
             .replace("PRIO", str(prio)))
     result, rt = run_yaml(text, reg, duration=duration)
     node = next(n for n in result.nodes if n.id == "leader")
-    out = {"status": result.status, "realtime_priority": prio, "rate_hz": rate,
+    out = {"status": result.status, "realtime_priority": prio,
+           "sched_fifo_applied": prio > 0 and sched_fifo_refused(prio) is None, "rate_hz": rate,
            "achieved_rate_hz": round(node.achieved_rate, 1),
            "achieved_ratio": round(node.achieved_rate / rate, 4),
            "period_jitter_p99_us": None if node.period_jitter_p99_s is None
@@ -134,19 +138,23 @@ def driver_step(sdk: Path, cycles: int) -> dict:
     return out
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1 s per run instead of 3 s")
-    ap.add_argument("--duration", type=float, default=None, help="seconds per run")
-    ap.add_argument("--rates", default="1000,4000", help="comma-separated loop rates (Hz)")
-    ap.add_argument("--realtime-priority", type=int, default=20,
-                    help="also run the loops with this SCHED_FIFO priority (0: only normal scheduling)")
-    args = ap.parse_args()
-    duration = args.duration or (1.0 if args.quick else 3.0)
-    rates = [float(r) for r in args.rates.split(",")]
+    ap.add_argument("--duration", type=positive_float, default=None, help="seconds per run")
+    ap.add_argument("--rates", type=rate_list, default=[1000.0, 4000.0],
+                    help="comma-separated loop rates (Hz; default 1000,4000)")
+    ap.add_argument("--realtime-priority", type=nonnegative_int, default=20,
+                    help="also run the loops with this SCHED_FIFO priority (1-99; 0: only normal scheduling)")
+    args = ap.parse_args(argv)
+    if args.realtime_priority > 99:
+        ap.error(f"--realtime-priority: SCHED_FIFO priorities are 1-99 (0: none), got {args.realtime_priority}")
+    duration = args.duration if args.duration is not None else (1.0 if args.quick else 3.0)
+    rates = args.rates
     with tempfile.TemporaryDirectory() as tmp:
         lib = build(Path(tmp))
-        results: dict = {"benchmark": "leader_loop", "duration_s": duration, "runs": []}
+        results: dict = {"benchmark": "leader_loop", "duration_s": duration, "runs": [],
+                         "sched_fifo_refused": warn_if_no_sched_fifo(args.realtime_priority)}
         prios = [0] + ([args.realtime_priority] if args.realtime_priority > 0 else [])
         for prio in prios:
             for rate in rates:
@@ -160,7 +168,7 @@ def main() -> int:
         cycles = 20000 if args.quick else 100000
         results["raw_ctypes"] = raw_calls(lib, cycles)
         results["driver_step"] = driver_step(Path(tmp), cycles // 4)
-    print(json.dumps(results))
+    emit(results)
     return 0
 
 

@@ -16,7 +16,6 @@ Prints one JSON object as the last line. ``--quick``: shorter runs, fewer repeat
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -31,6 +30,7 @@ from teletouch import Component, Kind, Port, Sample, hookimpl
 from teletouch.recording import Recorder
 from teletouch.runtime import Runtime
 from teletouch.testing import load_text, make_registry
+from bench_common import emit
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -188,14 +188,14 @@ def main() -> None:
               f"(x{c['graph_ratio']:.2f}), incl. close {c['with_total_s']:.3f} s (x{c['total_ratio']:.2f}); "
               f"{c['overhead_total_us_per_step']:.1f} us/step, {c['file_bytes_per_step']:.0f} B/step",
               file=sys.stderr)
-    print(json.dumps({
+    emit({
         "benchmark": "recording_overhead", "quick": args.quick, "cpus": os.cpu_count(),
         "cases": [cam, loop], "tap_us_per_call": tap_us, "writer": writer, "wall_camera_60hz": wall,
         "png_writer_load_at_60hz": writer["png_ms_per_frame"] * 60 / 1e3,
         "camera_total_ratio": cam["total_ratio"], "camera_overhead_ms_per_frame":
             cam["overhead_total_us_per_step"] / 1e3,
         "loop_graph_ratio": loop["graph_ratio"], "loop_overhead_us_per_step": loop["overhead_total_us_per_step"],
-    }))
+    })
 
 
 if __name__ == "__main__":

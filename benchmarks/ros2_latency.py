@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench_common import emit
+
 PUB_GRAPH = """
 clock: wall
 faults: {{max_overruns: 0}}
@@ -46,6 +48,10 @@ nodes:
 
 def _pct(a, q):
     return float(np.percentile(a, q)) * 1e3 if len(a) else None
+
+
+def _ms(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
 
 
 def run_case(rate: float, rel: str, duration: float, domain: int, tmp: Path) -> dict:
@@ -80,10 +86,18 @@ def run_case(rate: float, rel: str, duration: float, domain: int, tmp: Path) -> 
     time.sleep(1.0)
     pub = subprocess.Popen([sys.executable, "-m", "teletouch", "run", str(g), "--quiet", "--json", "--duration",
                             str(duration + 3.0)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    out, err = pub.communicate(timeout=duration + 60)
+    try:
+        out, err = pub.communicate(timeout=duration + 60)
+    except subprocess.TimeoutExpired:
+        pub.kill()
+        out, err = pub.communicate()
     rt.request_stop("benchmark done")
     th.join(30)
-    summary = json.loads(out.decode().strip().splitlines()[-1])
+    lines = out.decode(errors="replace").strip().splitlines()
+    if pub.returncode != 0 or not lines:
+        tail = "\n".join(err.decode(errors="replace").strip().splitlines()[-8:])
+        sys.exit(f"the publisher process ({g.name}) failed with exit status {pub.returncode}:\n{tail}")
+    summary = json.loads(lines[-1])
     published = next(n["steps"] for n in summary["nodes"] if n["id"] == "force")
     # steady state only: skip discovery (first 2 s of the publisher's ramp value = its graph time)
     a = np.array([x for x in arrivals if x[2] >= 2.0]) if arrivals else np.zeros((0, 3))
@@ -115,21 +129,22 @@ def main() -> None:
             for rel in ("reliable", "best_effort"):
                 c = run_case(rate, rel, duration, domain, Path(tmp))
                 cases.append(c)
+                tl, gl = c["transport_latency_ms"], c["graph_latency_ms"]
                 print(f"{rate:6g} Hz {rel:<12} received {c['received']:6d}/{c['published']:<6d} "
-                      f"rate {c['achieved_rate_hz']:8.1f} Hz  transport p50 {c['transport_latency_ms']['p50']:.3f} "
-                      f"p99 {c['transport_latency_ms']['p99']:.3f} ms  graph p50 {c['graph_latency_ms']['p50']:.3f} "
-                      f"p99 {c['graph_latency_ms']['p99']:.3f} ms", file=sys.stderr)
+                      f"rate {c['achieved_rate_hz']:8.1f} Hz  transport p50 {_ms(tl['p50'])} p99 {_ms(tl['p99'])} ms"
+                      f"  graph p50 {_ms(gl['p50'])} p99 {_ms(gl['p99'])} ms", file=sys.stderr)
     cam = next(c for c in cases if c["rate_hz"] == 60.0 and c["reliability"] == "reliable")
     fast = next(c for c in cases if c["rate_hz"] == 1000.0 and c["reliability"] == "reliable")
-    print(json.dumps({
+    emit({
         "benchmark": "ros2_latency", "quick": args.quick, "duration_s": duration, "cpus": os.cpu_count(),
         "cases": cases,
         "camera_rate_transport_p50_ms": cam["transport_latency_ms"]["p50"],
         "camera_rate_graph_p50_ms": cam["graph_latency_ms"]["p50"],
         "khz_achieved_rate_hz": fast["achieved_rate_hz"],
         "khz_vs_camera_transport_p50_ratio": (fast["transport_latency_ms"]["p50"] / cam["transport_latency_ms"]["p50"]
-                                              if cam["transport_latency_ms"]["p50"] else None),
-    }))
+                                              if cam["transport_latency_ms"]["p50"]
+                                              and fast["transport_latency_ms"]["p50"] is not None else None),
+    })
 
 
 if __name__ == "__main__":

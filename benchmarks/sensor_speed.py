@@ -15,13 +15,14 @@ Last line: one JSON object.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bench_common import emit
 
 
 def _sim_fps(params: dict, n: int, moving: bool = True, fast: bool = True, stride: int | None = None
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             vw.write(np.roll(base, k, axis=1))
         vw.release()
         res["capture"] = _capture(path, 2 if args.quick else 5)
-    print(json.dumps(res))
+    emit(res)
     return 0
 
 

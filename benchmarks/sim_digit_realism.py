@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import time
@@ -28,15 +27,22 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+from bench_common import DATA, data_folder, emit, quantity
+
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(REPO.parent / "shared" / "data"), help="shared data folder")
+    ap.add_argument("--data", default=str(DATA), help="shared data folder (default ../shared/data, or "
+                    "TELETOUCH_SHARED_DATA)")
     ap.add_argument("--quick", action="store_true", help="every 4th press only")
-    ap.add_argument("--radius", type=float, default=0.003, help="ball radius in m (6 mm ball: 0.003)")
+    # at most 20 mm: a larger ball does not fit a DIGIT's gel (about 15-20 x 20-25 mm); 3 alone is millimetres
+    ap.add_argument("--radius", type=quantity("m", 0.0, 0.02, "--radius"), default=0.003,
+                    help="ball radius in m or with a unit (6 mm ball: 0.003 or 3mm)")
     args = ap.parse_args(argv)
+    for ds in ("digit-presses-vga", "digit-presses-qvga"):
+        if not (data_folder(ds, Path(args.data)) / "labels.csv").is_file():
+            ap.error(f"--data {args.data}: {ds}/labels.csv is missing")
 
     from teletouch.plugins.sensors import gel
 
@@ -64,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         "seconds": round(elapsed, 2),
         "per_press": {k: round(v, 4) for k, v in per.items()},
     }
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

@@ -1,7 +1,10 @@
 """Stability sweep of the simulated position-force loop: force scale x contact stiffness, passivity control off/on.
 
-Modes: ``off`` (no passivity control), ``tdpa`` (the controller's default: observer + damping capped at 40 N*s/m),
-``tdpa+force-reduction`` (also cuts the rendered force towards zero when the capped damping is not enough).
+Modes (``MODES`` below; the JSON's keys): ``off`` (no passivity control, no prediction), ``tdpa-damping`` (the
+previous default: leader-port observer, damping capped at 40 N*s/m), ``tdpa-damping+force-reduction`` (also cuts the
+rendered force towards zero when the capped damping is not enough), ``tdpa-force`` (the passivity controller on the
+force path, no prediction), ``prediction-only`` (the contact-model prediction, passivity off), ``default`` (the
+controller's defaults: prediction + two-port passivity on the force path) and ``default-leader-port``.
 
 For each (force_scale k_f, gel modulus E) the simulated operator closes on a rigid object and holds; the loop
 "oscillates" when the peak-to-peak contact force (ground truth, sim-gripper) in steady contact exceeds 0.2 N. The
@@ -21,10 +24,12 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from teletouch.plugins.controllers.experiments import Recorder, build_runtime, sim_graph
+from bench_common import emit, strict
 
 THRESHOLD_N = 0.2
 
@@ -82,6 +87,8 @@ def main() -> int:
     ap.add_argument("--out", default=None, help="also write the JSON to this file")
     ap.add_argument("--sensor", choices=("ideal", "image"), default="ideal")
     args = ap.parse_args()
+    if args.out and not Path(args.out).resolve().parent.is_dir():   # refused now, not after the sweep
+        ap.error(f"--out {args.out}: the folder {Path(args.out).resolve().parent} does not exist")
     if args.quick:
         scales, moduli, duration = [1.0, 4.0], [0.41e6, 1.0e6], 5.0
     else:
@@ -117,8 +124,8 @@ def main() -> int:
     }
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
-            json.dump(summary, fh, indent=2)
-    print(json.dumps(summary))
+            json.dump(strict(summary), fh, indent=2, allow_nan=False)
+    emit(summary)
     return 0
 
 

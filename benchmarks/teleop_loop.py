@@ -35,7 +35,6 @@ Prints one JSON object as its last line.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import threading
@@ -45,6 +44,7 @@ import numpy as np
 
 from teletouch.plugins.controllers.experiments import build_runtime, sim_graph
 from machine import cpu_times, machine_noise
+from bench_common import emit, positive_int, sched_fifo_refused, warn_if_no_sched_fifo
 
 
 def sim_speed(sensor: str, duration: float, noise: float = 0.0) -> dict:
@@ -140,6 +140,8 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
     pick = np.array([c - b for a, b, c, _ in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
     return {
         "sensor": sensor, "realtime_priority": realtime_priority, "estimator_thread_priority": estimator_priority,
+        "sched_fifo_applied": (realtime_priority > 0 or estimator_priority > 0)
+        and sched_fifo_refused(max(realtime_priority, estimator_priority)) is None,
         "isolated": sorted(n for n in isolate if n in present), "status": res.status, "duration_s": res.sim_time,
         "controller_rate_hz": ctl_stats.achieved_rate, "controller_overruns": ctl_stats.overruns,
         "controller_jitter_p99_ms": (ctl_stats.period_jitter_p99_s or float("nan")) * 1e3,
@@ -253,7 +255,7 @@ def main() -> int:
                     "configurations are in --wall-configs by default)")
     ap.add_argument("--wall-configs", default="plain,rt,rt-isolate,rt-isolate2,rt-est,rt-isolate2-est",
                     help=f"comma-separated, of {', '.join(WALL_CONFIGS)} (empty: no wall-clock runs)")
-    ap.add_argument("--repeat", type=int, default=1, help="run the wall-clock configurations this many times, "
+    ap.add_argument("--repeat", type=positive_int, default=1, help="run the wall-clock configurations this many times, "
                     "interleaved; each configuration reports the median over its runs")
     ap.add_argument("--steps", action="store_true", help="only the CPU cost of one step() of each simulated node "
                     "(sim-gripper, sim-omega7, sim-digit, poly-force), stepped by hand")
@@ -269,8 +271,10 @@ def main() -> int:
     steps = step_costs(2000 if args.quick else 5000)
     print("step() CPU cost: " + ", ".join(f"{k} {v:.1f} us" for k, v in steps.items()), file=sys.stderr)
     if args.steps:
-        print(json.dumps({"benchmark": "teleop_loop", "step_cpu_us": steps}))
+        emit({"benchmark": "teleop_loop", "step_cpu_us": steps})
         return 0
+    fifo = max([max(WALL_CONFIGS[c][0], WALL_CONFIGS[c][2]) for c in configs] + [0])
+    fifo_refused = warn_if_no_sched_fifo(fifo)
     sim = sim_speed(args.sensor, dur)
     print(f"sim clock, {args.sensor}: {sim['realtime_factor']:.2f}x real time "
           f"({sim['realtime_factor_steady']:.2f}x after start-up, {sim['realtime_factor_steady_cpu']:.2f}x per CPU "
@@ -284,7 +288,7 @@ def main() -> int:
         print(f"sim clock, ideal: {sim_ref['realtime_factor']:.2f}x real time "
               f"({sim_ref['realtime_factor_steady']:.2f}x after start-up)", file=sys.stderr)
     runs: dict[str, list[dict]] = {c: [] for c in configs}
-    for _ in range(max(1, args.repeat)):
+    for _ in range(args.repeat):
         for c in configs:
             prio, iso, est = WALL_CONFIGS[c]
             r = wall_timing(args.sensor, dur, prio, iso, est)
@@ -311,7 +315,8 @@ def main() -> int:
         load = list(os.getloadavg())
     except OSError:
         load = None
-    best = min(wall, key=lambda c: wall[c]["controller_jitter_p99_ms"]) if wall else None
+    # the configuration with the lowest jitter; one without a jitter figure (NaN: too few steps) is never the best
+    best = min(wall, key=lambda c: np.nan_to_num(wall[c]["controller_jitter_p99_ms"], nan=np.inf)) if wall else None
     out = {
         "benchmark": "teleop_loop",
         "sensor": args.sensor,
@@ -333,11 +338,11 @@ def main() -> int:
         "targets": {"sim_realtime_factor": ">= 5", "controller_jitter_p99_ms": "<= 0.25",
                     "frame_to_leader_force_p99_ms": "<= 5"},
         "controller_alone_jitter_p99_ms": solo["controller_jitter_p99_ms"] if solo else None,
-        "load_average": load, "cpus": os.cpu_count(),
+        "load_average": load, "cpus": os.cpu_count(), "sched_fifo_refused": fifo_refused,
         "sim": sim, "sim_noise": sim_noisy, "sim_ideal": sim_ref, "wall_runs": runs, "wall_controller_only": solo,
         "wall_time_s": time.perf_counter() - w0,
     }
-    print(json.dumps(out))
+    emit(out)
     return 0
 
 

@@ -1,0 +1,166 @@
+"""Shared by the benchmarks: the one strict-JSON last line, argument types that refuse bad values, the shared data.
+
+The benchmarks run as ``python benchmarks/NAME.py``, so this folder is on sys.path and they import this module by
+its bare name (as they import ``machine``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+REPO = Path(__file__).resolve().parents[1]
+#: the real DIGIT images (../shared/data next to the checkout; TELETOUCH_SHARED_DATA moves it)
+DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def strict(obj: Any, path: str = "", bad: list[str] | None = None) -> Any:
+    """``obj`` made fit for strict JSON: NaN and +-Infinity become null (their paths appended to ``bad``), numpy
+    scalars and arrays become Python numbers and lists, tuples lists, paths strings, keys strings."""
+    if isinstance(obj, dict):
+        return {str(k): strict(v, f"{path}.{k}" if path else str(k), bad) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict(v, f"{path}[{i}]", bad) for i, v in enumerate(obj)]
+    if isinstance(obj, (bool, str, int)) or obj is None:
+        return obj
+    if isinstance(obj, float):
+        if math.isfinite(obj):
+            return obj
+        if bad is not None:
+            bad.append(path or "<top>")
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    tolist = getattr(obj, "tolist", None)      # numpy scalars (np.float64, np.int64, np.bool_) and arrays
+    if callable(tolist):
+        return strict(tolist(), path, bad)
+    raise TypeError(f"benchmark result {path or '<top>'}: {type(obj).__name__} is not JSON ({obj!r:.80})")
+
+
+def dumps(obj: Any, bad: list[str] | None = None) -> str:
+    """One line of strict JSON (no NaN, no Infinity: those are null, and their fields listed under
+    ``non_finite_fields`` of a top-level object, so no measurement goes missing unnoticed; also appended to
+    ``bad``)."""
+    bad = [] if bad is None else bad
+    clean = strict(obj, "", bad)
+    if bad and isinstance(clean, dict):
+        clean["non_finite_fields"] = list(bad)
+    return json.dumps(clean, allow_nan=False)
+
+
+def emit(obj: Any) -> None:
+    """Print the benchmark's result as its last line of stdout (strict JSON, see :func:`dumps`); fields that were
+    NaN or infinite are named on stderr."""
+    bad: list[str] = []
+    line = dumps(obj, bad)
+    if bad:
+        print(f"note: no finite value for {', '.join(bad)} (null in the JSON)", file=sys.stderr)
+    print(line, flush=True)
+
+
+def _number(kind: type, lo: float | None, lo_open: bool, hi: float | None, what: str) -> Callable[[str], Any]:
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        if (isinstance(v, float) and not math.isfinite(v)) or (lo is not None and (v <= lo if lo_open else v < lo)) \
+                or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return v
+    parse.__name__ = what          # argparse names the type in its message
+    return parse
+
+
+positive_int = _number(int, 0, True, None, "an integer >= 1")
+nonnegative_int = _number(int, 0, False, None, "an integer >= 0")
+positive_float = _number(float, 0.0, True, None, "a finite number > 0")
+nonnegative_float = _number(float, 0.0, False, None, "a finite number >= 0")
+
+
+def quantity(unit: str, lo: float, hi: float, what: str) -> Callable[[str], float]:
+    """An argument in ``unit`` (SI; "3mm" or a bare SI number), refused outside (lo, hi] with a hint at the unit."""
+    from teletouch.units import parse_quantity
+
+    def parse(text: str) -> float:
+        try:
+            v = parse_quantity(text, unit)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        if not lo < v <= hi:
+            bare = _is_number(text)
+            raise argparse.ArgumentTypeError(f"{what} must be above {lo:g} and at most {hi:g} {unit}, got {text!r}"
+                                             + (f" (millimetres? write {text}mm)" if unit == "m" and v > hi and bare
+                                                else ""))
+        return v
+    parse.__name__ = what
+    return parse
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def rate_list(text: str) -> list[float]:
+    """Comma-separated loop rates in Hz (``1000,4000`` or ``1kHz,4kHz``), each > 0."""
+    from teletouch.units import parse_quantity
+
+    out = []
+    for part in text.split(","):
+        try:
+            v = parse_quantity(part.strip(), "Hz")
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"rate {part.strip()!r}: {e}") from None
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"rate {part.strip()!r}: must be above 0 Hz")
+        out.append(v)
+    return out
+
+
+def data_folder(name: str, base: Path | None = None) -> Path:
+    """``base``/``name`` (default base: :data:`DATA`), or exit with a message saying where the data were looked for."""
+    folder = (DATA if base is None else Path(base)) / name
+    if not folder.is_dir():
+        sys.exit(f"{folder}: no such folder: the real DIGIT images are expected in ../shared/data next to the "
+                 f"checkout (set TELETOUCH_SHARED_DATA to their folder)")
+    return folder
+
+
+def sched_fifo_refused(priority: int) -> str | None:
+    """None if a thread of this process may run under SCHED_FIFO ``priority`` (probed on a short-lived thread, the
+    way the runtime sets its loop threads); else why not. The runtime only logs a refusal and runs on with normal
+    scheduling, and the benchmarks silence its log: without this, a result labelled SCHED_FIFO was not."""
+    if priority <= 0:
+        return None
+    why: list[str] = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as e:
+            why.append(f"{type(e).__name__}: {e}")
+
+    t = threading.Thread(target=probe, name="sched-fifo-probe")
+    t.start()
+    t.join()
+    return why[0] if why else None
+
+
+def warn_if_no_sched_fifo(priority: int) -> str | None:
+    """:func:`sched_fifo_refused`, said on stderr when refused (the runs asking for it use normal scheduling)."""
+    why = sched_fifo_refused(priority)
+    if why:
+        print(f"note: SCHED_FIFO {priority} is not permitted here ({why}): the runs that ask for it use normal "
+              f"scheduling and say so (sched_fifo_applied: false); grant CAP_SYS_NICE or an rtprio limit",
+              file=sys.stderr)
+    return why

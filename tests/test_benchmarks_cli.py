@@ -1,0 +1,219 @@
+"""The benchmarks and scripts as a user runs them: strict JSON last lines, bad arguments refused at once with a
+message naming the argument, and the scripts never writing the packaged files unasked.
+
+The benchmarks run in subprocesses (``python benchmarks/NAME.py``, the documented way: their folder on sys.path);
+the scripts in-process with their subprocess call replaced, so nothing is calibrated or written here.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import io
+import json
+import math
+import subprocess
+import sys
+from contextlib import redirect_stdout
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "benchmarks"
+
+
+def _strict_last_line(text: str):
+    def refuse(c):
+        raise ValueError(f"non-strict JSON constant {c}")
+    return json.loads(text.strip().splitlines()[-1], parse_constant=refuse)
+
+
+def _load(path: Path, name: str):
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture()
+def bench_common(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    return _load(BENCH / "bench_common.py", "bench_common_under_test")
+
+
+def _run(args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+# --- the last line: strict JSON --------------------------------------------------------------------------------------
+
+def test_emit_turns_nan_and_infinity_into_null_and_names_them(bench_common, capsys):
+    bench_common.emit({"a": float("nan"), "b": [1.0, np.float64("inf")], "c": np.float32(1.5), "d": np.int64(3),
+                       "e": np.bool_(True), "f": {"g": -math.inf}, "h": np.array([0.5, np.nan])})
+    out, err = capsys.readouterr()
+    got = _strict_last_line(out)
+    assert got["a"] is None and got["b"] == [1.0, None] and got["f"]["g"] is None and got["h"] == [0.5, None]
+    assert got["c"] == 1.5 and got["d"] == 3 and got["e"] is True
+    assert got["non_finite_fields"] == ["a", "b[1]", "f.g", "h[1]"]
+    assert "a, b[1], f.g, h[1]" in err
+
+
+def test_emit_refuses_what_is_not_json(bench_common):
+    with pytest.raises(TypeError, match="x.y: object"):
+        bench_common.dumps({"x": {"y": object()}})
+
+
+@pytest.mark.parametrize("path", sorted(p.name for p in BENCH.glob("*.py")
+                                        if p.name not in ("bench_common.py", "machine.py")))
+def test_every_benchmark_prints_its_result_through_emit(path):
+    """json.dumps writes NaN and Infinity (not JSON): a benchmark whose run has no sample for a percentile printed
+    them; every result line goes through bench_common.emit."""
+    src = (BENCH / path).read_text()
+    assert "emit(" in src and "print(json.dumps" not in src
+
+
+def test_a_quick_benchmark_ends_with_one_strict_json_object():
+    r = _run([str(BENCH / "sim_digit_realism.py"), "--quick"], timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = _strict_last_line(r.stdout)
+    assert got["benchmark"] == "sim_digit_realism" and 0.0 < got["median_corr"] <= 1.0 and got["presses"] > 0
+
+
+# --- bad arguments: refused at once, non-zero, the argument named ----------------------------------------------------
+
+@pytest.mark.parametrize("args, words", [
+    (["leader_loop.py", "--rates", "abc"], ["--rates", "'abc'"]),
+    (["leader_loop.py", "--quick", "--rates", "1000,0"], ["--rates", "above 0 Hz"]),
+    (["leader_loop.py", "--quick", "--duration", "-1"], ["--duration", "> 0"]),
+    (["leader_loop.py", "--quick", "--realtime-priority", "120"], ["--realtime-priority", "1-99"]),
+    (["sim_digit_realism.py", "--quick", "--radius", "3"], ["--radius", "3mm"]),
+    (["force_accuracy.py", "--quick", "--presses", "0"], ["--presses", ">= 1"]),
+    (["force_accuracy.py", "--quick", "--calibration", "no-such-calibration"], ["--calibration", "packaged"]),
+    (["teleop_loop.py", "--quick", "--repeat", "0"], ["--repeat", ">= 1"]),
+    (["depth_speed.py", "--quick", "--device", "no-such-device"], ["--device", "not a torch device"]),
+    (["stability_sweep.py", "--quick", "--out", "/no/such/folder/sweep.json"], ["--out", "does not exist"]),
+])
+def test_bad_arguments_are_refused_before_any_measurement(args, words):
+    r = _run([str(BENCH / args[0]), *args[1:]])
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert "Traceback" not in r.stderr and r.stdout == ""
+    for w in words:
+        assert w in r.stderr, (w, r.stderr)
+
+
+def test_a_missing_data_folder_is_named(tmp_path):
+    r = _run([str(BENCH / "sim_digit_realism.py"), "--data", str(tmp_path / "nowhere")])
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert str(tmp_path / "nowhere" / "digit-presses-vga") in r.stderr and "TELETOUCH_SHARED_DATA" in r.stderr
+
+
+def test_follower_latency_parameters_are_valid_for_every_driver():
+    """The benchmark crashed at its first Dynamixel case: max_opening 80 mm is outside the driver's calibrated
+    0-75 mm. Every driver must accept the parameters it is given (checked in a subprocess: importing the benchmark
+    sets ROS environment variables)."""
+    code = f"""
+import sys
+sys.path.insert(0, {str(BENCH)!r})
+import follower_latency as f
+from teletouch.plugins.devices.canopen_gripper import CanopenGripper
+from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
+from teletouch.plugins.devices.pal_gripper import PalGripper
+from teletouch.plugins.devices.sim_gripper import SimGripper
+SimGripper.Params(**dict(f.FAST, object_width=None, bandwidth=1e6))
+for baud in (57600, 1000000):
+    DynamixelGripper.Params(**dict(f.FAST, port="/dev/null", baudrate=baud))
+CanopenGripper.Params(**dict(f.FAST, interface="virtual", channel="x", node_id=4))
+PalGripper.Params(**dict(f.FAST, domain_id=f.DOMAIN, time_from_start=0.001, connect_timeout=10.0))
+print("ok")
+"""
+    r = _run(["-c", code])
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr[-3000:]
+
+
+# --- the scripts: never the packaged files unasked; bad arguments refused before the work ----------------------------
+
+@pytest.fixture()
+def force_script(monkeypatch):
+    mod = _load(REPO / "scripts" / "make_sim_force_calibration.py", "make_sim_force_calibration_under_test")
+    calls: list[list[str]] = []
+
+    def fake_call(cmd, *a, **kw):
+        calls.append(list(cmd))
+        return 0
+
+    monkeypatch.setattr(mod.subprocess, "call", fake_call)
+
+    def run(*argv: str) -> int:
+        monkeypatch.setattr(sys, "argv", ["make_sim_force_calibration.py", *argv])
+        with redirect_stdout(io.StringIO()):
+            return mod.main()
+    return mod, run, calls
+
+
+def _opt(cmd: list[str], name: str) -> str:
+    return cmd[cmd.index(name) + 1]
+
+
+def test_force_script_with_output_elsewhere_keeps_the_docs_plot(force_script, tmp_path):
+    """-o /tmp/x.force.json wrote the plot over docs/force-calibration-sim.png (the --plot default)."""
+    mod, run, calls = force_script
+    assert run("--depth-source", "gt", "--quick", "-o", str(tmp_path / "x.force.json")) == 0
+    (cmd,) = calls
+    assert _opt(cmd, "-o") == str(tmp_path / "x.force.json")
+    assert _opt(cmd, "--plot") == str(tmp_path / "x.force.png")
+
+
+def test_force_script_quick_refuses_the_packaged_output(force_script, capsys):
+    """--quick alone replaced the packaged calibration and the docs' plot with a smoke test."""
+    mod, run, calls = force_script
+    with pytest.raises(SystemExit) as e:
+        run("--depth-source", "gt", "--quick")
+    assert e.value.code == 2 and calls == []
+    assert "-o" in capsys.readouterr().err
+
+
+def test_force_script_relative_output_is_the_callers(force_script, tmp_path, monkeypatch):
+    """The calibration runs with cwd=the repository: a relative -o landed there, not where the user was."""
+    mod, run, calls = force_script
+    monkeypatch.chdir(tmp_path)
+    assert run("--depth-source", "gt", "--quick", "-o", "rel.force.json") == 0
+    assert _opt(calls[0], "-o") == str(tmp_path / "rel.force.json")
+
+
+def test_force_script_bad_grid_is_an_argument_error(force_script, capsys):
+    mod, run, calls = force_script
+    with pytest.raises(SystemExit) as e:
+        run("--depth-source", "gt", "--grid", "5by5", "-o", "/tmp/unused.force.json")
+    assert e.value.code == 2 and calls == [] and "--grid" in capsys.readouterr().err
+
+
+def test_depth_script_refuses_zero_presses_before_rendering(monkeypatch, tmp_path, capsys):
+    """--presses 0 died in the renderer with a ZeroDivisionError."""
+    mod = _load(REPO / "scripts" / "make_sim_depth_model.py", "make_sim_depth_model_under_test")
+    monkeypatch.setattr(sys, "argv", ["make_sim_depth_model.py", "--presses", "0", "--keep", str(tmp_path / "p"),
+                                      "-o", str(tmp_path / "m.model")])
+    with pytest.raises(SystemExit) as e:
+        mod.main()
+    assert e.value.code == 2 and "--presses" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists() and not (tmp_path / "m.model").exists()
+
+
+# --- SCHED_FIFO: a run labelled with a realtime priority says whether it got it ---------------------------------------
+
+def test_runtime_benchmark_says_when_sched_fifo_was_refused(monkeypatch):
+    """Without CAP_SYS_NICE (any normal user) the runtime logs the refusal and runs on with normal scheduling; the
+    benchmarks silence that log, so 'wall_clock_jitter_sched_fifo' reported normal scheduling as SCHED_FIFO."""
+    import os
+
+    def refuse(*a, **kw):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.syspath_prepend(str(BENCH))
+    mod = _load(BENCH / "runtime.py", "runtime_benchmark_under_test")
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    res = mod.jitter(0.3, 1.0, priority=50)
+    assert res["realtime_priority"] == 50 and res["sched_fifo_applied"] is False
+    assert "not permitted" in res["sched_fifo_refused"]
+    plain = mod.jitter(0.3, 1.0, priority=0)
+    assert plain["sched_fifo_applied"] is False and plain["sched_fifo_refused"] is None
