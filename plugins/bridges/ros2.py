@@ -44,7 +44,6 @@ message once, at its next step after it arrived; older messages that arrived in 
 from __future__ import annotations
 
 import math
-import os
 import re
 import threading
 import time
@@ -56,6 +55,8 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import Meters, Seconds
 
+from .. import ros_names
+
 TOPICS = ("force", "image", "depth", "joint_states", "value")
 TOPIC_FIELDS = tuple(f"{k}_topic" for k in TOPICS)
 #: port -> the topic (key of ``topics``) that carries it, the same on both nodes
@@ -63,17 +64,15 @@ PORT_TOPIC = {"force": "force", "image": "image", "depth": "depth", "opening": "
               "velocity": "joint_states", "effort": "joint_states", "value": "value"}
 TopicKey = Literal["force", "image", "depth", "joint_states", "value"]
 _AXES = {"x": 0, "y": 1, "z": 2}
-MAX_DOMAIN_ID = 232          # DDS's port formula (7400 + 250 * domain + ...) leaves no room above 232
 GRAPH_CHECK_PERIOD = 1.0     # s between checks of the other endpoints' message types on our topics
 LATE_AFTER = 1.0             # s: a stamp this much older than its arrival is reported (clocks, replays)
 
-# ROS 2 names (design.ros2.org "Topic and Service name mapping"), checked when a graph is validated rather than
-# when rclpy refuses them at start-up: tokens of letters, digits and '_' that do not start with a digit.
-_TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
+# ROS 2 names (teletouch.plugins.ros_names), checked when a graph is validated rather than when rclpy refuses them
+# at start-up
+_TOKEN = ros_names.TOKEN
 _TOPIC_RE = re.compile(rf"(?:/|~/)?{_TOKEN}(?:/{_TOKEN})*")
 _NAMESPACE_RE = re.compile(rf"/?(?:{_TOKEN}(?:/{_TOKEN})*)?")
 _NODE_RE = re.compile(_TOKEN)
-_TOKEN_RULE = "tokens of letters, digits and '_' separated by '/', none starting with a digit"
 
 
 class QosParams(Params):
@@ -85,7 +84,7 @@ class QosParams(Params):
 class _BridgeParams(QosParams):
     namespace: str = Field("/teletouch", description="ROS namespace of the topics (relative topic names)")
     node_name: str | None = Field(None, description="ROS node name (default: the graph node id)")
-    domain_id: int | None = Field(None, ge=0, le=MAX_DOMAIN_ID,
+    domain_id: int | None = Field(None, ge=0, le=ros_names.MAX_DOMAIN_ID,
                                   description="ROS domain id, 0 to 232 (default: ROS_DOMAIN_ID or 0)")
     force_topic: str = Field("force", description="geometry_msgs/WrenchStamped topic of 'force'")
     image_topic: str = Field("image", description="sensor_msgs/Image (bgr8) topic of 'image'")
@@ -100,18 +99,14 @@ class _BridgeParams(QosParams):
     @field_validator(*TOPIC_FIELDS)
     @classmethod
     def _topic_name(cls, v: str) -> str:
-        if not _TOPIC_RE.fullmatch(v):
-            raise ValueError(f"expected a ROS 2 topic name ({_TOKEN_RULE}; '/' first for an absolute name, "
-                             f"'~/' for a private one; no '/' at the end), got {v!r}")
-        return v
+        return ros_names.check_name(_TOPIC_RE, v, "a ROS 2 topic name", "'/' first for an absolute name, '~/' for "
+                                    "a private one; no '/' at the end")
 
     @field_validator("namespace")
     @classmethod
     def _namespace(cls, v: str) -> str:
-        if not _NAMESPACE_RE.fullmatch(v):
-            raise ValueError(f"expected a ROS 2 namespace such as '/teletouch' or '/lab/arm' ({_TOKEN_RULE}; "
-                             f"no '/' at the end), got {v!r}")
-        return v
+        return ros_names.check_name(_NAMESPACE_RE, v, "a ROS 2 namespace such as '/teletouch' or '/lab/arm'",
+                                    "no '/' at the end")
 
     @field_validator("node_name")
     @classmethod
@@ -152,21 +147,8 @@ def _resolve(namespace: str, topic: str) -> str:
 
 
 def _domain_id(param: int | None) -> int | None:
-    """The domain to join: the param, else ROS_DOMAIN_ID checked here (rcl refuses a word with an obscure error,
-    and Fast DDS ends the whole process, without a message or a safe state, for a number above 232)."""
-    if param is not None:
-        return param
-    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-    if not env:
-        return None
-    try:
-        value = int(env)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= MAX_DOMAIN_ID:
-        raise ComponentFault(f"ROS_DOMAIN_ID={env!r}: expected an integer from 0 to {MAX_DOMAIN_ID} (or set the "
-                             f"node's domain_id param)")
-    return value
+    """The domain to join (:func:`teletouch.plugins.ros_names.domain_id`); a bad ROS_DOMAIN_ID is a fault."""
+    return ros_names.domain_id(param, ComponentFault)
 
 
 def _type_name(mtype: Any) -> str:

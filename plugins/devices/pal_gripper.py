@@ -48,7 +48,6 @@ devices, for a domain above 232).
 from __future__ import annotations
 
 import math
-import os
 import re
 import threading
 import time
@@ -59,21 +58,20 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import HardwareError, hookimpl
 from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
 
+from .. import ros_names
 from .follower_common import FollowerBase, FollowerParams, Reading, clamp
 
 JOINTS = ("gripper_left_finger_joint", "gripper_right_finger_joint")
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 TRAJECTORY_TYPE = "trajectory_msgs/msg/JointTrajectory"
-MAX_DOMAIN_ID = 232  # DDS's port formula leaves no room above 232 (Fast DDS ends the process)
 RANGE_TOLERANCE = 0.003  # m a finger may read beyond its joint range (calibration) before the reading is refused
 
-# ROS 2 names (design.ros2.org "Topic and Service name mapping"): tokens of letters, digits and '_', none starting
-# with a digit, separated by '/'; checked when the graph is validated rather than refused by rclpy at start-up
-_TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
+# ROS 2 names (teletouch.plugins.ros_names), checked when the graph is validated rather than refused by rclpy at
+# start-up
+_TOKEN = ros_names.TOKEN
 _NAMESPACE_RE = re.compile(rf"(?:/{_TOKEN})*")
 _RELATIVE_RE = re.compile(rf"{_TOKEN}(?:/{_TOKEN})*")
 _TOPIC_RE = re.compile(rf"/?{_TOKEN}(?:/{_TOKEN})*")
-_TOKEN_RULE = "tokens of letters, digits and '_' separated by '/', none starting with a digit"
 
 _IN_USE: dict[tuple[int, str], str] = {}  # (domain, command topic) -> id of the node commanding it in this process
 _IN_USE_LOCK = threading.Lock()
@@ -96,21 +94,8 @@ class _Refused(Exception):
 
 
 def ros_domain_id(param: int | None) -> int | None:
-    """The domain to join: the param, else ROS_DOMAIN_ID checked here (rcl refuses a word with an obscure error, and
-    Fast DDS ends the whole process, without a message or a safe state, for a number above 232)."""
-    if param is not None:
-        return param
-    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-    if not env:
-        return None
-    try:
-        value = int(env)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= MAX_DOMAIN_ID:
-        raise HardwareError(f"ROS_DOMAIN_ID={env!r}: expected an integer from 0 to {MAX_DOMAIN_ID} (or set the "
-                            f"node's domain_id param)")
-    return value
+    """The domain to join (:func:`teletouch.plugins.ros_names.domain_id`); a bad ROS_DOMAIN_ID is a HardwareError."""
+    return ros_names.domain_id(param, HardwareError)
 
 
 def parse_joint_state(msg: Any, joints: tuple[str, str] | list[str], lower: float,
@@ -156,7 +141,7 @@ class PalGripper(FollowerBase):
                                        description="left and right finger joints")
         joint_states_topic: str = Field("/joint_states", description="sensor_msgs/JointState topic (a relative "
                                         "name is taken inside namespace)")
-        domain_id: int | None = Field(None, ge=0, le=MAX_DOMAIN_ID,
+        domain_id: int | None = Field(None, ge=0, le=ros_names.MAX_DOMAIN_ID,
                                       description="ROS_DOMAIN_ID (None: from the environment)")
         finger_lower: Meters = Field(0.0, ge=0, description="each finger joint's lower limit (closed)",
                                      json_schema_extra={"unit": "m"})
@@ -190,25 +175,19 @@ class PalGripper(FollowerBase):
             if v and not v.startswith("/"):
                 v = "/" + v
             v = v.rstrip("/")
-            if not _NAMESPACE_RE.fullmatch(v):
-                raise ValueError(f"expected a ROS 2 namespace such as '/tiago' ({_TOKEN_RULE}), got {v!r}")
-            return v
+            return ros_names.check_name(_NAMESPACE_RE, v, "a ROS 2 namespace such as '/tiago'")
 
         @field_validator("controller")
         @classmethod
         def _controller(cls, v: str) -> str:
-            if not _RELATIVE_RE.fullmatch(v):
-                raise ValueError(f"expected a controller name such as 'gripper_controller' ({_TOKEN_RULE}; no "
-                                 f"'/' first: it is taken inside namespace), got {v!r}")
-            return v
+            return ros_names.check_name(_RELATIVE_RE, v, "a controller name such as 'gripper_controller'",
+                                        "no '/' first: it is taken inside namespace")
 
         @field_validator("joint_states_topic")
         @classmethod
         def _topic(cls, v: str) -> str:
-            if not _TOPIC_RE.fullmatch(v):
-                raise ValueError(f"expected a ROS 2 topic name such as '/joint_states' ({_TOKEN_RULE}; '/' first "
-                                 f"for an absolute name), got {v!r}")
-            return v
+            return ros_names.check_name(_TOPIC_RE, v, "a ROS 2 topic name such as '/joint_states'",
+                                        "'/' first for an absolute name")
 
         @field_validator("joint_names")
         @classmethod
