@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,18 @@ def shared_data() -> Path:
         raise RuntimeError(f"real DIGIT data not found at {SHARED_DATA}: clone the project beside shared/ "
                            f"or set TELETOUCH_SHARED_DATA")
     return SHARED_DATA
+
+
+@pytest.fixture
+def site(tmp_path, monkeypatch):
+    """A site folder first on sys.path for fake installed distributions (tests/fakes/plugin_dists.py); the plugin
+    modules (named tt_*) imported from it are forgotten after the test."""
+    root = tmp_path / "site"
+    root.mkdir()
+    monkeypatch.syspath_prepend(str(root))
+    yield root
+    for mod in [m for m in sys.modules if m.startswith("tt_")]:
+        del sys.modules[mod]
 
 
 @pytest.fixture(autouse=True)

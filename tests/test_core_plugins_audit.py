@@ -8,6 +8,9 @@ from pathlib import Path
 
 import pytest
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fakes.plugin_dists import make_dist  # noqa: E402
+
 from teletouch.errors import DuplicateComponentError
 from teletouch.registry import Registry
 from teletouch.testing import load_text
@@ -29,25 +32,6 @@ class C(Component):
 def teletouch_components():
     return [C]
 '''
-
-
-def make_dist(root: Path, dist: str, version: str, eps: dict[str, str], modules: dict[str, str]) -> None:
-    info = root / f"{dist.replace('-', '_')}-{version}.dist-info"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: {version}\n")
-    (info / "entry_points.txt").write_text("[teletouch]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()))
-    for mod, src in modules.items():
-        (root / f"{mod}.py").write_text(src)
-
-
-@pytest.fixture
-def site(tmp_path, monkeypatch):
-    root = tmp_path / "site"
-    root.mkdir()
-    monkeypatch.syspath_prepend(str(root))
-    yield root
-    for mod in [m for m in sys.modules if m.startswith("tt_")]:
-        del sys.modules[mod]
 
 
 def one(site: Path, src: str, comp: str = "acme-c", ep: str = "acme", dist: str = "acme-dist") -> Registry:
