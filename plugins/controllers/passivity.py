@@ -39,7 +39,7 @@ from collections import deque
 from dataclasses import dataclass
 
 __all__ = ["PassivityState", "port_power", "observe", "damping_for", "passivity_force", "reduce_force_to",
-           "adapt_gain", "commit", "FollowerPort"]
+           "adapt_gain", "commit", "FollowerPort", "same_sign", "opposite_signs"]
 
 
 @dataclass
@@ -51,6 +51,17 @@ class PassivityState:
     dissipated: float = 0.0    #: total energy dissipated by the controller (J)
     active_steps: int = 0      #: steps in which damping was injected (or the force was reduced)
     follower_energy: float = 0.0   #: two-port observer: energy the environment gave back at the follower port (J)
+
+
+def same_sign(a: float, b: float) -> bool:
+    """Both positive or both negative. Not ``a * b > 0``: the product of two tiny numbers underflows to 0 (a
+    subnormal force estimate let the damping turn the feedback force round into a pull)."""
+    return (a > 0.0 and b > 0.0) or (a < 0.0 and b < 0.0)
+
+
+def opposite_signs(a: float, b: float) -> bool:
+    """One positive, the other negative (see :func:`same_sign`)."""
+    return (a > 0.0 and b < 0.0) or (a < 0.0 and b > 0.0)
 
 
 def port_power(force: float, velocity: float) -> float:
@@ -105,7 +116,7 @@ def reduce_force_to(force: float, energy_after: float, velocity: float, dt: floa
     network is pushing energy out (``force * v > 0``, ``|v| >= v_min``); less force is always safe and the operator
     is never pulled. ``pay_time`` > ``dt`` spreads the payment of the deficit over that time (a smaller cut per
     step, no one-step click); 0 pays it within the step (the exact one-step TDPA)."""
-    if energy_after + margin < 0.0 and force * velocity > 0.0 and dt > 0.0 and abs(velocity) >= v_min:
+    if energy_after + margin < 0.0 and same_sign(force, velocity) and dt > 0.0 and abs(velocity) >= v_min:
         span = abs(velocity) * max(dt, pay_time)
         # (a velocity so small that the product underflows to 0: the whole force goes, never a division by zero)
         cut = min(abs(force), -(energy_after + margin) / span) if span > 0.0 else abs(force)

@@ -8,7 +8,9 @@ All three have the ports of docs/ports.md (Controller):
   fingers apart), ``energy`` (J, passivity observer), and ``damping`` (N*s/m, what the passivity controller added).
 
 Every input is taken in stamp order: a sample stamped before the newest fresh one already taken (out of order) is
-ignored, so an older measurement never replaces a newer one.
+ignored, so an older measurement never replaces a newer one. An opening (leader or follower) that is not finite or
+beyond 1 m either way (``MAX_PLAUSIBLE_OPENING``: no gripper opens wider) is invalid input, like NaN: counted, never
+differentiated into a velocity.
 
 The control law of ``position-force`` (each step, at >= 1 kHz):
 
@@ -23,7 +25,8 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    successive estimates and the follower commands at their capture times (never past zero, never beyond
    ``max_force``; blended in and out over ``smoothing_time``; forgotten when the contact ends); without it the
    rendered force is a delayed spring, an active element that makes stiff contacts oscillate. A force older than
-   ``stale_after`` or non-finite fades linearly to zero over ``fade_time``;
+   ``stale_after`` or non-finite fades linearly to zero over ``fade_time``, and meanwhile never raises the force
+   (a lost leader that comes back during the fade does not bring the stale force back);
 3. passivity (on by default): the time-domain passivity observer over the leader and follower ports (two-port:
    the follower's opening at each estimate's capture time); when the observed energy
    would go negative, damping ``-alpha * v_l`` (``alpha`` at most what the constant damping leaves of
@@ -32,12 +35,13 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    in free space (see passivity.py); when a lost leader comes back the observer starts afresh (energy and damping
    zero);
 4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
-   ``fade_time``, within that limit), clipped to ``+-max_force`` and forced to 0
-   when anything is non-finite: nothing but a finite force within limits ever leaves the controller.
+   ``fade_time``, within that limit), clipped to ``+-max_force``; a non-finite desired force is taken as 0 (reached
+   within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller.
 
 ``position-position`` replaces step 2 by a PD on the position error,
 ``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
-follower side being the follower's own position servo; a lost follower opening fades it out over ``fade_time``.
+follower side being the follower's own position servo; a lost follower opening fades it out over ``fade_time``
+(never raising it meanwhile).
 ``no-feedback`` sends no force at all.
 The pure functions here are tested without the runtime; the components are thin wrappers around them.
 """
@@ -50,15 +54,19 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, Params, Port, Sample, hookimpl
-from teletouch.units import Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres
+from teletouch.units import (
+    MAX_PLAUSIBLE_OPENING, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
+)
 
 from .passivity import (
-    FollowerPort, PassivityState, adapt_gain, commit, observe, passivity_force, reduce_force_to,
+    FollowerPort, PassivityState, adapt_gain, commit, observe, opposite_signs, passivity_force, reduce_force_to,
+    same_sign,
 )
 
 __all__ = [
     "millimetres_in_metres", "map_opening", "unmap_opening", "deadband", "shape_force", "saturate", "rate_limit",
-    "finite_or", "ForceHold", "Differentiator", "PositionForce", "PositionPosition", "NoFeedback",
+    "finite_or", "opening_or_nan", "no_rise", "ForceHold", "Differentiator", "PositionForce", "PositionPosition",
+    "NoFeedback",
 ]
 
 OMEGA7_MAX_GRIPPER_FORCE = 8.0     # N (CHAI3D's device table)
@@ -113,6 +121,22 @@ def finite_or(x: Any, default: float) -> float:
     except (TypeError, ValueError):
         return default
     return v if math.isfinite(v) else default
+
+
+def opening_or_nan(x: Any) -> float:
+    """``float(x)`` if it is a plausible gripper opening (finite, at most MAX_PLAUSIBLE_OPENING = 1 m either way),
+    else NaN: an opening of 1e30 m is no measurement, and differentiated it gave a velocity that the damping and
+    the passivity observer took as real (position-position's coupling overflowed to NaN)."""
+    v = finite_or(x, math.nan)
+    return v if abs(v) <= MAX_PLAUSIBLE_OPENING else math.nan
+
+
+def no_rise(f: float, last: float) -> float:
+    """``f`` limited so that it moves ``last`` only towards zero: never a larger magnitude, never across zero.
+    Applied to a feedback force whose source is stale (fading): stale data never pushes the hand harder."""
+    if last >= 0.0:
+        return 0.0 if f < 0.0 else min(f, last)
+    return 0.0 if f > 0.0 else max(f, last)
 
 
 class ForceHold:
@@ -370,7 +394,7 @@ class _Bilateral(Component):
         s = self._ordered("leader_opening", inputs["leader_opening"], t, p.leader_stale_after)
         if s is None or not s.is_fresh(t, p.leader_stale_after):
             return False
-        x = finite_or(s.value, math.nan)
+        x = opening_or_nan(s.value)
         if not math.isfinite(x):
             self.invalid_inputs += 1
             return False
@@ -390,7 +414,7 @@ class _Bilateral(Component):
         s = self._ordered("follower_opening", inputs.get("follower_opening"), t, self.params.leader_stale_after)
         if s is None or not s.is_fresh(t, self.params.leader_stale_after):
             return False
-        x = finite_or(s.value, math.nan)
+        x = opening_or_nan(s.value)
         if not math.isfinite(x):
             self.invalid_inputs += 1
             return False
@@ -463,10 +487,10 @@ class _Bilateral(Component):
             if p.passivity_controller == "force":
                 if free:
                     f_des = f_fb                   # nothing in free space: no drag, no pull once contact is over
-                elif p.passivity_no_reversal and f_des * f_fb < 0.0:
+                elif p.passivity_no_reversal and opposite_signs(f_des, f_fb):   # (a product may underflow)
                     f_des = 0.0                    # the damping may take the feedback force away, not reverse it
             if ((p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0
-                    and f_des * v > 0.0 and abs(v) >= p.reduction_min_velocity):
+                    and same_sign(f_des, v) and abs(v) >= p.reduction_min_velocity):
                 # cut only what even the capped damping would leave: a deficit that the damping's smooth rise
                 # merely delays is paid by the damping a few steps later (no one-step click in the hand)
                 e_after = observe(self.pas.energy, min(f_des, f_capped) if v > 0 else max(f_des, f_capped), v, dt,
@@ -477,7 +501,11 @@ class _Bilateral(Component):
                 # the power the cut takes out, averaged (passivity_cut_time): how hard the controller is working
                 self.cut_power += (abs((f_des - f_cut) * v) - self.cut_power) * min(1.0, dt / p.passivity_cut_time)
                 f_des = f_cut
-        # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness
+        # safety chain: rate limit (a lost leader fades the force to zero within fade_time), saturation, finiteness;
+        # a non-finite desired force is a fault of the law: the output goes to zero within the rate limit (it
+        # dropped from max_force to 0 in one step)
+        if not math.isfinite(f_des):
+            f_des = 0.0
         if self.leader_ok:
             self.leader_fade_rate = None
             max_rate = p.max_force_rate
@@ -612,7 +640,10 @@ class PositionForce(_Bilateral):
         elif not s.is_fresh(t, p.stale_after) and self.state != "bad-force":
             self.state = "stale-force"
             self._fade(t)
-        return self._predicted(t, self.hold.value(t))
+        f = self._predicted(t, self.hold.value(t))
+        # a stale or bad estimate fades: it never raises the force (when a lost leader came back during the fade,
+        # the force rose again towards the stale estimate)
+        return no_rise(f, self.out_force) if self.fading else f
 
     def _predicted(self, t: float, f: float) -> float:
         """``f`` plus the contact prediction, within ``[0, max_force]``. When the prediction starts or stops (a
@@ -715,15 +746,15 @@ class PositionPosition(_Bilateral):
                 self.coupling_fading = True
                 self.coupling.set(t, 0.0, p.fade_time)
             self.force_held = 0.0
-            return self.coupling.value(t)
+            return no_rise(self.coupling.value(t), self.out_force)       # the stale coupling never pushes harder
         self.state = "ok"
         self.coupling_fading = False
         x_fb = unmap_opening(self.x_f, p.scale, p.offset)
         v_fb = self.vel_f.v / p.scale
         f = p.kp * (x_fb - self.x_l) + p.kd * (v_fb - self.v_l)
         self.force_held = f
-        f = saturate(f, p.max_force)
-        self.coupling.set(t, f if math.isfinite(f) else 0.0, 0.0)
+        f = saturate(f, p.max_force) if math.isfinite(f) else 0.0
+        self.coupling.set(t, f, 0.0)
         return f
 
 
