@@ -28,6 +28,9 @@ WATCHDOG_UNITS_PER_S = 8000
 WATCHDOG_MAX_UNITS = 255  # 31.875 ms
 #: after a watchdog trip, forces come back faded in over this time (s): no step on the operator's hand
 WATCHDOG_FADE_IN = 0.05
+#: a command that was stale (the guard rendered zero) and is fresh again is faded in over this time (s), from zero: a
+#: controller that stalled past command_timeout comes back with the force it had before (0 -> 5 N in one step)
+COMMAND_FADE_IN = WATCHDOG_FADE_IN
 WATCHDOG_RANGE = "0 (off) or from 125 us to 31.875 ms (the device counts it in units of 125 us, at most 255)"
 
 
@@ -64,18 +67,42 @@ class ForceGuard:
     ``apply(t, inputs)`` returns (gripper force N, force (3,) N, problem) where ``problem`` is None, or a message when
     a command was NaN/inf or malformed (then both forces are zero and the caller must fault). A command older than
     ``timeout`` seconds (or stamped more than that ahead, or with a NaN stamp) gives zero force (no fault: the
-    runtime's ``max_age`` turns staleness into a fault where the graph asks for it). Counts clamped and stale cycles
-    for status().
+    runtime's ``max_age`` turns staleness into a fault where the graph asks for it). A command that was stale and is
+    fresh again is faded in from zero over ``fade_in`` seconds of graph time, never stepped onto the hand. Counts
+    clamped, stale and faded-in commands for status().
     """
 
-    def __init__(self, max_gripper_force: float, max_force: float, timeout: float | None):
+    def __init__(self, max_gripper_force: float, max_force: float, timeout: float | None,
+                 fade_in: float = COMMAND_FADE_IN):
         self.max_g = float(max_gripper_force)
         self.max_f = float(max_force)
         self.timeout = timeout
+        self.fade_in = float(fade_in)
         self.clamped = 0
         self.stale = 0
         self.invalid = 0
+        self.faded_in = 0
         self.zero3 = np.zeros(3)
+        self._back: dict[str, float | None] = {}   # per port that went stale: None while stale, then when it came back
+
+    def reset(self) -> None:
+        """Forget which ports were stale (at activation: the device starts from zero force anyway)."""
+        self._back = {}
+
+    def _fade(self, port: str, t: float) -> float:
+        """Scale (0..1) of a fresh command on ``port``: rising over ``fade_in`` from its first fresh step after it
+        was stale; 1 when it never was (or has finished fading in)."""
+        if port not in self._back:
+            return 1.0
+        t0 = self._back[port]
+        if t0 is None:
+            t0 = self._back[port] = t
+            self.faded_in += 1
+        k = (t - t0) / self.fade_in if self.fade_in > 0 else 1.0
+        if k >= 1.0:
+            del self._back[port]
+            return 1.0
+        return max(0.0, k)
 
     def apply(self, t: float, inputs: Any) -> tuple[float, np.ndarray, str | None]:
         g = 0.0
@@ -84,6 +111,7 @@ class ForceGuard:
         if s is not None:
             if self.timeout is not None and not s.is_fresh(t, self.timeout):
                 self.stale += 1
+                self._back["gripper_force"] = None
             else:
                 try:
                     g = float(s.value)
@@ -99,10 +127,12 @@ class ForceGuard:
                 elif g < -self.max_g:
                     g = -self.max_g
                     self.clamped += 1
+                g *= self._fade("gripper_force", t)
         s = inputs.get("force") if "force" in inputs else None
         if s is not None:
             if self.timeout is not None and not s.is_fresh(t, self.timeout):
                 self.stale += 1
+                self._back["force"] = None
             else:
                 try:
                     f = np.asarray(s.value, dtype=float).reshape(3)
@@ -116,6 +146,9 @@ class ForceGuard:
                 if n > self.max_f:
                     f = f * (self.max_f / n)
                     self.clamped += 1
+                k = self._fade("force", t)
+                if k < 1.0:
+                    f = f * k
         return g, f, None
 
 
@@ -248,6 +281,7 @@ class Omega7(Device):
                 self._set_watchdog(d)
             self._last_cmd = time.monotonic()
             d.set_forces(0.0, 0.0, 0.0, 0.0)
+            self.guard.reset()
             self._first_write = True
             self._fade_until, self._off_cause = 0.0, None
             d.enable_force(True)
@@ -414,7 +448,7 @@ class Omega7(Device):
         return {"com_freq_hz": self.com_freq_hz, "gripper_force": self.g_sent,
                 "force_norm": float(np.linalg.norm(self.f_sent)), "timeguards": self.timeguards,
                 "saturated": self.saturated, "clamped": self.guard.clamped, "stale_commands": self.guard.stale,
-                "left_handed": self.sign < 0, "lost": self.lost or "",
+                "faded_in": self.guard.faded_in, "left_handed": self.sign < 0, "lost": self.lost or "",
                 "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0, "watchdog_trips": self.watchdog_trips}
 
 

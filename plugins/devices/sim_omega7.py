@@ -9,9 +9,9 @@ Handle: 3 axes, mass and damping, gravity compensated, a spherical workspace. Fo
 (clamped to the device limit), the optional ``external_force`` (a simulated environment, e.g. the force-calibration
 press rig) and, when the operator holds the device, an arm impedance around ``hand_position``.
 
-Commands: through omega7's ``ForceGuard`` (finite, clamped, zero when older than ``command_timeout``). A command that
-was stale and is fresh again (a controller that stalled past the timeout and comes back with the force it had) is
-faded in over ``COMMAND_FADE_IN`` (0.05 s, as omega7 after a watchdog trip), not stepped onto the operator's hand.
+Commands: through omega7's ``ForceGuard`` (finite, clamped, zero when older than ``command_timeout``; a command that
+was stale and is fresh again, a controller that stalled past the timeout and comes back with the force it had, is
+faded in over ``COMMAND_FADE_IN``, 0.05 s, not stepped onto the operator's hand), as on the real device.
 
 Integration: semi-implicit Euler in substeps of at most ``substep``. Where that would be unstable (a stiff or heavily
 damped hand or arm, a very light gripper or handle: ``h * c / m`` or ``h^2 * k / m`` above 0.5), the viscous and
@@ -33,7 +33,7 @@ from teletouch.units import (
 
 from .omega7 import (
     LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE, OMEGA7_MAX_FORCE, OMEGA7_MAX_GRIPPER_FORCE,
-    OMEGA7_WORKSPACE_RADIUS, WATCHDOG_FADE_IN, ForceGuard,
+    OMEGA7_WORKSPACE_RADIUS, ForceGuard,
 )
 from .operator import HandImpedance, OperatorState, make_intent, validate_intent
 
@@ -42,9 +42,6 @@ from .operator import HandImpedance, OperatorState, make_intent, validate_intent
 #: two, made them inf - inf = NaN and the gripper's state NaN for good)
 INTENT_BOUND = 1e3
 
-#: a command that was stale and is fresh again is faded in over this time (s), from zero (omega7's fade-in after a
-#: watchdog trip): the guard rendered zero meanwhile, and the controller's force had not been felt for that long
-COMMAND_FADE_IN = WATCHDOG_FADE_IN
 
 #: explicit (semi-implicit Euler) substeps are used while h*c/m and h^2*k/m stay below this; above it, implicit
 STIFF_LIMIT = 0.5
@@ -190,14 +187,12 @@ class SimOmega7(Device):
         self.safe = True
         self._io_prev: tuple[float, float] | None = None  # last (stamp, value) of intent_opening
         self._io_vel = 0.0
-        self._reentry: dict[str, float | None] = {}  # per command port: None while stale, then when it came back
-        self.reentries = 0
 
     def activate(self) -> None:
         self.enabled = True
         self.safe = False
         self.last_t = None
-        self._reentry = {}
+        self.guard.reset()
 
     def deactivate(self) -> None:
         self.enabled = False
@@ -210,29 +205,6 @@ class SimOmega7(Device):
         self.f_applied = np.zeros(3)
 
     # ------------------------------------------------------------------------------------------------ stepping
-    def _fade_in(self, name: str, t: float, inputs: Any) -> float:
-        """Scale (0..1) of the command on port ``name``: 0 while it is stale (the guard renders zero then), rising
-        linearly over COMMAND_FADE_IN from its first fresh step after that; 1 when it never went stale. A controller
-        that stalled past command_timeout came back with the force it had before: stepped onto the hand from zero
-        (0 -> 8 N within one step)."""
-        s = inputs.get(name) if name in inputs else None
-        if s is None:
-            return 1.0
-        if not s.is_fresh(t, self.params.command_timeout):
-            self._reentry[name] = None
-            return 0.0
-        if name not in self._reentry:
-            return 1.0
-        t0 = self._reentry[name]
-        if t0 is None:
-            t0 = self._reentry[name] = t
-            self.reentries += 1
-        k = (t - t0) / COMMAND_FADE_IN
-        if k >= 1.0:
-            del self._reentry[name]
-            return 1.0
-        return max(0.0, k)
-
     def _checked(self, des: Any, source: str) -> tuple[float, float] | None:
         """An intent's answer as (opening, velocity) floats, finite and within +-INTENT_BOUND, or None (hand off).
         Anything else faults (after the safe state) naming the intent: a NaN taken into the hand's force would
@@ -288,13 +260,6 @@ class SimOmega7(Device):
         g, f, problem = self.guard.apply(t, inputs)
         if problem is not None or self.safe or not self.enabled:
             g, f = 0.0, self._zero3
-        else:
-            k = self._fade_in("gripper_force", t, inputs)
-            if k < 1.0:
-                g *= k
-            k = self._fade_in("force", t, inputs)
-            if k < 1.0:
-                f = f * k
         self.g_applied, self.f_applied = g, f
         if problem is not None:
             self.faults += 1
@@ -442,7 +407,7 @@ class SimOmega7(Device):
         return {"gripper_opening": self.x, "gripper_force": self.g_applied, "hand_force": self.f_hand,
                 "intent": self.intent_name, "intended_opening": self.x_intent,
                 "force_norm": float(np.linalg.norm(self.f_applied)), "clamped": self.guard.clamped,
-                "stale_commands": self.guard.stale, "faded_in": self.reentries, "faults": self.faults,
+                "stale_commands": self.guard.stale, "faded_in": self.guard.faded_in, "faults": self.faults,
                 "safe": self.safe}
 
 
