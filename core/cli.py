@@ -13,6 +13,7 @@ conflict, or a blocked name matches nothing.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -405,6 +406,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("teletouch: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:   # `teletouch schema | head`: the reader left; say nothing more, like git (141 = SIGPIPE)
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except OSError as exc:   # a file that cannot be read or written: the user's path, not a bug
         names = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
         print(f"teletouch: error: {exc.strerror or exc}{': ' + names if names else ''}", file=sys.stderr)

@@ -160,3 +160,16 @@ def test_component_constructor_that_raises_is_a_startup_failure_not_a_traceback(
     assert "Traceback" not in r.stderr
     assert ("teletouch: startup-failed: node 'a': noisy-c could not be created: ValueError: bad init (tt_init.py:"
             in r.stderr)
+
+
+def test_a_reader_that_leaves_early_is_not_an_error():
+    """`teletouch schema | head`: the pipe closed under a 200 kB schema printed 'teletouch: error: Broken pipe' and
+    exit 1; now nothing on stderr and 141 (SIGPIPE's code, as git)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TELETOUCH_")}
+    p = subprocess.Popen([sys.executable, "-m", "teletouch", "schema"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env=env, cwd=REPO)
+    assert p.stdout.read(100).startswith(b"{")
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141, err
+    assert err == ""

@@ -49,9 +49,12 @@ def test_discovered_from_its_own_distribution(venv):
     assert lp["kind"] == "estimator"
     assert {p["name"]: p["unit"] for p in lp["ports"]} == {"x": "N", "y": "N"}
     assert lp["params"][0]["name"] == "cutoff" and lp["params"][0]["unit"] == "Hz"
-    # not visible in this (parent) environment: discovery really comes from the installed distribution
-    from teletouch.registry import Registry
-    assert "example-lowpass" not in Registry(autoload=True, blocked=()).load().components
+    # discovery really comes from the installed distribution's entry point: blocking that distribution removes it
+    # (this holds also where a developer has installed the example into the parent environment as the docs show)
+    r = subprocess.run([str(venv), "-m", "teletouch", "--block", "teletouch-plugin-example", "plugins", "--json"],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "example-lowpass" not in {row["name"] for row in json.loads(r.stdout)}
 
 
 def test_runs_in_a_graph(venv):
