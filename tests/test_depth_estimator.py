@@ -429,3 +429,51 @@ def test_configuration_errors_name_the_parameter(tmp_path):
                          ("fault_after_bad", -1), ("fault_after_repeats", -1), ("contact_depth", "-1mm")):
         with pytest.raises(ValueError, match=field):
             DepthEstimator.Params(**{field: value})
+
+
+def _other_unit_frame(shared_data, k: int = 0) -> np.ndarray:
+    import cv2
+
+    files = sorted((shared_data / "digit-backgrounds").iterdir())
+    img = cv2.imread(str(files[k % len(files)]))
+    return img if img.shape[:2] == (320, 240) else cv2.resize(np.ascontiguousarray(np.rot90(img)), (240, 320))
+
+
+def test_another_sensors_frames_are_refused_at_start_not_read_as_contacts(shared_data):
+    """A real DIGIT with the packaged (simulated sensor's) model, or another unit's model: its own colour pattern read
+    as contacts of 0.1-2 mm and became a force from nothing. The first frames are now compared with the model's
+    background (another unit's: 9-20 levels apart, a sensor's own frames: 2-3)."""
+    import cv2
+    from teletouch import Sample
+
+    with Harness(DepthEstimator, {}) as h:
+        with pytest.raises(ComponentFault, match=r"the camera's frames do not match the depth model's background: "
+                                                 r"they differ by \d+\.\d levels .* made for another sensor .*"
+                                                 r"Calibrate this sensor"):
+            for k in range(10):
+                h.step(k / 60, image=Sample(_other_unit_frame(shared_data, k), k / 60))
+    presses = sorted((shared_data / "digit-presses-qvga").glob("*.png"))
+    with Harness(DepthEstimator, {}) as h:   # the QVGA unit whose optics the simulated sensor reproduces: 2.7 levels
+        for k, path in enumerate(presses):
+            h.step(k / 60, image=Sample(cv2.imread(str(path)), k / 60))
+        assert 2.0 <= h.comp.status()["background_mismatch"] <= 3.5
+    with Harness(DepthEstimator, {"max_background_mismatch": 0}) as h:   # the check off: frames read as before
+        for k in range(12):
+            h.step(k / 60, image=Sample(_other_unit_frame(shared_data, k), k / 60))
+        assert math.isnan(h.comp.status()["background_mismatch"])
+
+
+def test_estimate_reports_another_sensors_frame_as_implausible(shared_data, capsys):
+    import json
+
+    from teletouch.cli import main
+
+    other = sorted((shared_data / "digit-backgrounds").iterdir())[0]
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(shared_data / "digit-presses-qvga" / "0003.png"),
+               str(other), "--json"])
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rc == 2
+    assert rows[0]["valid"] and 2.0 <= rows[0]["background_mismatch"] <= 3.5
+    assert not rows[1]["valid"] and "the model (or --background) is another sensor's" in rows[1]["problem"]
+    rc = main(["estimate", "--model", "sim-digit-qvga", str(other), "--json", "--max-background-mismatch", "0"])
+    assert rc == 0 and json.loads(capsys.readouterr().out)["valid"]

@@ -76,6 +76,11 @@ class DepthEstimator(Component):
                                          "the background (per-channel median, 0-255 levels) exceeds this is not "
                                          "a plausible DIGIT frame (LEDs off or changing, saturated, exposure "
                                          "changed): its outputs are NaN, it is never blended into the background")
+        max_background_mismatch: float = Field(6.0, ge=0, le=255, description="the first frames (10) must match "
+                                               "the background: the median over the image of |frame - background| "
+                                               "after the global offset, mean over B, G, R, at most this many levels "
+                                               "(a sensor's own frames: 2-3; another DIGIT unit's: 9-20), else the "
+                                               "node faults: another sensor's model or background (0: no check)")
         fault_after_bad: int = Field(30, ge=0, description="fault the node after this many implausible frames in "
                                      "a row (0: never; at 60 Hz, 30 is half a second)")
         fault_after_repeats: int = Field(0, ge=0, description="fault the node after this many bit-identical "
@@ -136,6 +141,7 @@ class DepthEstimator(Component):
         self._prev: tuple[np.ndarray, Any, float] | None = None  # (last frame, its result, its stamp): reuse
         self._bad_run = 0        # implausible frames in a row
         self._repeat_run = 0     # bit-identical frames with new stamps in a row
+        self._mismatch: list[float] = []   # background_mismatch() of the first MATCH_FRAMES plausible frames
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["image"]
@@ -165,6 +171,8 @@ class DepthEstimator(Component):
             if problem:
                 self._prev = None
                 return self._bad(problem, s.stamp, t0)
+            if p.max_background_mismatch and len(self._mismatch) < MATCH_FRAMES:
+                self._check_match(frame)
             if p.adapt_background > 0 and not res.changed and res.contact_area == 0.0:
                 self._adapt(frame)
                 self._prev = None   # the background moved: the same frame would now read differently
@@ -181,6 +189,23 @@ class DepthEstimator(Component):
 
     def _frame_problem(self, res: Any) -> str:
         return frame_problem(res, self.params.max_global_change)
+
+    def _check_match(self, frame: np.ndarray) -> None:
+        """The first MATCH_FRAMES plausible frames against the background: a model (or background) of another
+        sensor reads another unit's pattern of colours as contacts (0.1-2 mm and a force from nothing), and the
+        packaged model is the simulated sensor's."""
+        self._mismatch.append(background_mismatch(frame, self._ref_bg))
+        if len(self._mismatch) == MATCH_FRAMES:
+            level = float(np.median(self._mismatch))
+            self.background_mismatch = level
+            limit = self.params.max_background_mismatch
+            if level > limit:
+                raise ComponentFault(
+                    f"the camera's frames do not match the depth model's background: they differ by {level:.1f} "
+                    f"levels (median over the image, after the global offset; a sensor's own frames: 2-3, another "
+                    f"DIGIT unit's: 9-20; max_background_mismatch {limit:g}): model {self.params.model!r} was made "
+                    f"for another sensor (the packaged one is the simulated sensor's). Calibrate this sensor "
+                    f"(`teletouch calibrate depth`), or give background: a no-contact frame of it", self.id)
 
     def _bad(self, problem: str, stamp: float, t0: float) -> dict[str, Any]:
         """An implausible frame: NaN outputs (poly-force reads them as invalid input: 0 N), a fault after
@@ -220,7 +245,21 @@ class DepthEstimator(Component):
         self.pipe.set_background(bg)
 
     def status(self) -> dict[str, Any]:
-        return dict(self._last)
+        return {**self._last, "background_mismatch": getattr(self, "background_mismatch", math.nan)}
+
+
+#: how many plausible frames at start-up are compared with the background (max_background_mismatch)
+MATCH_FRAMES = 10
+
+
+def background_mismatch(frame: np.ndarray, background: np.ndarray) -> float:
+    """How far a frame's colours are from the background's apart from a global offset: the median over the image
+    (every 4th pixel each way) of |frame - background - offset|, mean over B, G, R, in levels; the offset is the
+    per-channel median. A contact covers far less than half the image, so the median reads the gel around it:
+    2-3 levels for a sensor's own frames (noise), 9-20 for another DIGIT unit's (measured on ../shared/data)."""
+    d = frame[::4, ::4].astype(np.float32) - np.asarray(background, np.float32)[::4, ::4]
+    d -= np.median(d.reshape(-1, d.shape[-1]), axis=0)
+    return float(np.median(np.abs(d).mean(axis=-1)))
 
 
 def frame_problem(res: Any, max_global_change: float) -> str:
@@ -300,6 +339,16 @@ def _px_per_m(text: str) -> float:
     except ValueError:
         raise ValueError(f"--px-per-mm {text!r}: expected pixels per millimetre, e.g. 17.15, 17.15px/mm or "
                          f"17150px/m") from None
+
+
+def _levels_or_zero(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not 0 <= v <= 255:
+        raise argparse.ArgumentTypeError(f"expected a number of levels in [0, 255] (0: no check), got {text!r}")
+    return v
 
 
 def _positive_levels(text: str) -> float:
@@ -546,6 +595,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         res = pipe(frame)
         ms = (time.perf_counter() - t0) * 1e3
         problem = frame_problem(res, args.max_global_change)
+        mismatch = background_mismatch(frame, bg if bg is not None else model.background)
+        if not problem and args.max_background_mismatch and mismatch > args.max_background_mismatch:
+            problem = (f"the frame differs from the model's background by {mismatch:.1f} levels (median over the "
+                       f"image after the global offset; a sensor's own frames: 2-3; --max-background-mismatch "
+                       f"{args.max_background_mismatch:g}): the model (or --background) is another sensor's")
         if problem:
             # not a DIGIT frame the model can read (LEDs off, saturated, another sensor's background): no numbers,
             # they would be a confident wrong depth
@@ -555,7 +609,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                 print(json.dumps({"image": str(path), "valid": False, "problem": problem, "max_depth_m": None,
                                   "contact_area_m2": None, "centroid_m": [None, None], "ms": round(ms, 3)}))
             continue
-        row: dict[str, Any] = {"image": str(path), "valid": True, "max_depth_m": res.max_depth,
+        row: dict[str, Any] = {"image": str(path), "valid": True, "background_mismatch": round(mismatch, 2),
+                               "max_depth_m": res.max_depth,
                                "contact_area_m2": res.contact_area,
                                "centroid_m": [None if not math.isfinite(c) else float(c) for c in res.centroid],
                                "ms": round(ms, 3)}
@@ -635,5 +690,10 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--max-global-change", type=_positive_levels, default=24.0, metavar="LEVELS",
                    help="an image whose global colour change from the background exceeds this (0-255 levels per "
                         "channel; default 24, as the depth node's max_global_change) is reported as implausible "
-                        "(LEDs off, saturated, another sensor's background) instead of given a depth")
+                        "(LEDs off, saturated) instead of given a depth")
+    p.add_argument("--max-background-mismatch", type=_levels_or_zero, default=6.0, metavar="LEVELS",
+                   help="an image whose colours differ from the background by more than this apart from a global "
+                        "offset (median over the image, mean over B, G, R; a sensor's own frames: 2-3, another "
+                        "DIGIT unit's: 9-20; default 6, as the depth node's max_background_mismatch; 0: no check) "
+                        "is reported as implausible: the model or --background is another sensor's")
     p.set_defaults(func=cmd_estimate)
