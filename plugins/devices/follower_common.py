@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 import time
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -27,10 +28,10 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
-from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds, millimetres_in_metres
+from teletouch.units import MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, millimetres_in_metres
 
 __all__ = ["FollowerParams", "FollowerBase", "Reading", "OpeningMap", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS",
-           "clamp", "shape_setpoint"]
+           "clamp", "command_value", "shape_setpoint"]
 
 FOLLOWER_INPUTS = {
     "opening_command": Port("float64", (), "m", "desired distance between the fingers", required=True),
@@ -44,6 +45,21 @@ FOLLOWER_OUTPUTS = {
 
 def clamp(x: float, lo: float, hi: float) -> float:
     return lo if x < lo else hi if x > hi else x
+
+
+def command_value(value: Any) -> float | None:
+    """``value`` as an opening command (m): a real number (not a bool, a string or a sequence), finite and at most
+    :data:`MAX_PLAUSIBLE_OPENING` either way; None for anything else (``float()`` took ``True`` as 1 m, ``"0.03"``
+    as 30 mm and 1e30 m as a full opening)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        dtype = getattr(value, "dtype", None)  # a numpy scalar or 0-d array of a numeric type
+        if dtype is None or getattr(dtype, "kind", "") not in "fiu" or getattr(value, "shape", None) != ():
+            return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return v if math.isfinite(v) and abs(v) <= MAX_PLAUSIBLE_OPENING else None
 
 
 def shape_setpoint(previous: float, command: float, lo: float, hi: float, max_speed: float, dt: float) -> float:
@@ -158,6 +174,7 @@ class FollowerBase(Device):
         self._prev: tuple[float, float] | None = None  # (graph time, opening) for finite differences
         self._bad_commands = 0
         self._stale_commands = 0
+        self._command_stamp = -math.inf  # stamp of the newest command used: an older one is out of order
         self._holding: str | None = None  # why the setpoint holds (None: following the command)
         self._resync = False  # take the setpoint from the next reading (activate() could not read the state)
         self._hold_at = math.nan  # the measured opening the setpoint holds (walked into the range at max_speed)
@@ -180,6 +197,7 @@ class FollowerBase(Device):
         self._last_t = None
         self._holding = None
         self._prev = None
+        self._command_stamp = -math.inf  # the graph's clock may start afresh
         r = self._hw_read()
         self._last_good = time.monotonic()
         if r is not None and math.isfinite(r.opening):
@@ -242,17 +260,22 @@ class FollowerBase(Device):
                 self.ctx.log(f"opening_command stamped {s.stamp} at t={t} (command_timeout {p.command_timeout} s) "
                              f"is stale; holding the measured opening {self._hold_at * 1e3:.2f} mm")
             return None
-        try:
-            cmd = float(s.value)
-        except (TypeError, ValueError):
-            cmd = math.nan
-        if not math.isfinite(cmd):
+        cmd = command_value(s.value)
+        if cmd is None:
             self._bad_commands += 1
             self._start_hold("bad command")
             if self._bad_commands == 1:
-                self.ctx.log(f"non-finite opening_command ({s.value!r}); holding the measured opening "
+                self.ctx.log(f"opening_command {s.value!r} is not an opening (expected a finite number of metres, "
+                             f"at most {MAX_PLAUSIBLE_OPENING:g} m either way); holding the measured opening "
                              f"{self._hold_at * 1e3:.2f} mm")
             return None
+        if s.stamp < self._command_stamp:
+            self._stale_commands += 1
+            if self._start_hold("out-of-order command"):
+                self.ctx.log(f"opening_command stamped {s.stamp} is older than the one used before (stamped "
+                             f"{self._command_stamp}); holding the measured opening {self._hold_at * 1e3:.2f} mm")
+            return None
+        self._command_stamp = s.stamp
         return cmd
 
     def read_state(self, t: float) -> Reading:
