@@ -231,3 +231,24 @@ def test_own_context_leaves_global_rclpy_alone(robot):
     assert not rclpy.ok()
     assert os.environ["ROS_DOMAIN_ID"] == str(DOMAIN)
     assert math.isfinite(o["velocity"])
+
+
+def test_a_late_step_while_squeezing_backs_the_setpoint_off_by_no_more_than_two_periods(robot):
+    """Squeezing above max_effort, the set-point backs off towards the measured opening at max_speed; a late step (the
+    thread stalled 1 s) counted the whole gap and jumped there in one step (5 mm), past the base's late-step allowance
+    of two periods (found by the follower fuzz's review)."""
+    with harness(max_effort=5.0, max_speed=0.05) as h:
+        drive(h, 0.06, 1.0)
+        drive(h, 0.0, 0.8)       # the object (40 mm) stops the fingers; the grip pushes about max_effort
+        for _ in range(300):     # a step whose reading is above max_effort, with the set-point inside the object
+            h.t = time.monotonic()
+            o = h.step(h.t, opening_command=0.0)
+            if o["effort"] > 5.0 and h.comp._setpoint < o["opening"] - 1e-3:
+                break
+            time.sleep(0.005)
+        else:
+            pytest.fail("the grip never pushed above max_effort")
+        before = h.comp._setpoint
+        t = h.t + 1.0            # one step, 1 s late
+        h.step(t, opening_command=0.0)
+        assert abs(h.comp._setpoint - before) <= 0.05 * h.comp._max_dt + 1e-9

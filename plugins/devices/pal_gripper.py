@@ -408,7 +408,7 @@ class PalGripper(FollowerBase):
         r = self._last_reading
         if r is not None and math.isfinite(r.effort) and r.effort > self.params.max_effort and target < r.opening:
             # squeezing harder than max_effort: back the setpoint off towards the measured opening
-            dt = 0.0 if t_before is None else max(0.0, t - t_before)
+            dt = 0.0 if t_before is None else min(max(0.0, t - t_before), self._max_dt)   # a late step: no jump
             target = self._setpoint = max(target, min(r.opening, before + self.params.max_speed * dt))
         return target
 
