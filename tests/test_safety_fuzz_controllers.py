@@ -29,12 +29,17 @@ from __future__ import annotations
 import bisect
 import math
 import random
+import sys
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from pathlib import Path
+from typing import Any
 
 import pytest
 
-from teletouch import ComponentFault, Sample
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fakes.fuzzing import Violation, check_case  # noqa: E402
+
+from teletouch import ComponentFault, Sample  # noqa: E402
 from teletouch.plugins.controllers.position_force import NoFeedback, PositionForce, PositionPosition
 from teletouch.testing import Harness
 
@@ -195,12 +200,6 @@ def random_case(seed: int, cls: str, n_steps: int, chain: bool = False) -> Case:
 
 
 # ================================================================================================ the oracle
-class Violation(AssertionError):
-    def __init__(self, kind: str, index: int, message: str):
-        super().__init__(f"{kind} at step {index}: {message}")
-        self.kind, self.index = kind, index
-
-
 class Usable:
     """Whether an input has a sample that is fresh at ``t`` and finite (a conservative view of what the controller
     may use: any such sample fed so far)."""
@@ -375,57 +374,6 @@ def run_controller_case(case: Case) -> None:
 
 
 # ================================================================================================ shrinking
-def shrink(case: Case, run: Callable[[Case], None], kind: str, budget: int = 300) -> Case:
-    """A smaller case that still fails with the same kind of violation: cut after the failing step, then drop
-    events (halves, quarters, ... of them) and steps while the failure stays."""
-    tries = [0]
-
-    def fails(c: Case) -> Violation | None:
-        if tries[0] >= budget:
-            return None
-        tries[0] += 1
-        try:
-            run(c)
-        except Violation as v:
-            return v if v.kind == kind else None
-        return None
-
-    v = fails(case)
-    if v is None:
-        return case
-    case = Case(case.seed, case.cls, case.params, case.steps[:v.index + 1], case.world)
-    keys = [(i, p) for i, (_, ev) in enumerate(case.steps) for p in ev]
-    n = 2
-    while keys and n <= 2 * len(keys) and tries[0] < budget:
-        size = max(1, len(keys) // n)
-        removed = False
-        for start in range(0, len(keys), size):
-            drop = set(keys[start:start + size])
-            steps = [(t, {p: e for p, e in ev.items() if (i, p) not in drop}) for i, (t, ev) in enumerate(case.steps)]
-            trial = Case(case.seed, case.cls, case.params, steps, case.world)
-            v = fails(trial)
-            if v is not None:
-                case = Case(case.seed, case.cls, case.params, steps[:v.index + 1], case.world)
-                keys = [k for k in keys if k not in drop and k[0] <= v.index]
-                removed = True
-                break
-        if not removed:
-            if size == 1:
-                break
-            n *= 2
-    return case
-
-
-def check_case(case: Case, run: Callable[[Case], None]) -> None:
-    try:
-        run(case)
-        return
-    except Violation as v:
-        failure = v
-    small = shrink(case, run, failure.kind)
-    pytest.fail(f"{failure}\nrerun: seed {case.seed}; shrunk input sequence:\n{small.describe()}", pytrace=False)
-
-
 # ================================================================================================ the fuzz tests
 N_CASES = 12
 N_STEPS = 4000
