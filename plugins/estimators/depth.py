@@ -166,7 +166,11 @@ class DepthEstimator(Component):
                                          f"camera is frozen (fault_after_repeats {p.fault_after_repeats})", self.id)
         else:
             self._repeat_run = 0
-            res = self.pipe(frame)
+            try:
+                res = self.pipe(frame)
+            except ValueError as exc:   # a depth that is not finite: no output is better than a wrong one
+                self._prev = None
+                raise ComponentFault(f"the depth of this frame could not be computed: {exc}", self.id) from None
             problem = self._frame_problem(res)
             if problem:
                 self._prev = None

@@ -64,7 +64,17 @@ def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float, co
     ``depth`` may be a window of the image (zero depth outside it): ``origin`` is its (row, col) in the image and
     ``shape`` the image's (rows, cols); the mask is then the window's and the centroid is from the image's centre.
     """
+    depth = np.asarray(depth)
+    if depth.ndim != 2 or depth.dtype.kind != "f":
+        raise ValueError(f"contact_summary: expected a 2-D float depth map (m), got {depth.dtype} {depth.shape}")
+    if depth.dtype not in (np.float32, np.float64):
+        depth = depth.astype(np.float32)   # OpenCV's moments take float32 or float64
     top = float(depth.max()) if depth.size else 0.0
+    if depth.size and not (math.isfinite(top) and math.isfinite(float(depth.min()))):
+        # an inf would read as no contact (nothing exceeds half of it), a NaN would drop the contact_fraction test
+        bad = np.argwhere(~np.isfinite(depth))
+        raise ValueError(f"contact_summary: {len(bad)} depths are NaN or inf (the first at row {bad[0][0]}, column "
+                         f"{bad[0][1]}): expected a finite depth map (m)")
     mask = depth > max(contact_depth, contact_fraction * top)
     n = int(np.count_nonzero(mask))
     if n == 0:
@@ -77,6 +87,16 @@ def contact_summary(depth: np.ndarray, m_per_px: float, contact_depth: float, co
     cx = mo["m10"] / mo["m00"] + origin[1] - (wd - 1) / 2.0
     cy = mo["m01"] / mo["m00"] + origin[0] - (h - 1) / 2.0
     return mask, n * m_per_px * m_per_px, np.array([cx * m_per_px, cy * m_per_px])
+
+
+def _finite_top(zg: np.ndarray) -> float:
+    """The largest depth of a work-grid depth map, or a ValueError if the map is not finite (normals from the
+    network that are not: ``max(0.0, nan)`` would read as no contact, with a NaN depth map)."""
+    top = float(zg.max()) if zg.size else 0.0
+    if not math.isfinite(top):
+        raise ValueError(f"the depth solve gave {top} depth: the network's normals are not finite (a corrupt model "
+                         f"in memory, or a numeric overflow)")
+    return top
 
 
 def _resize_linear(z: np.ndarray, s: int) -> np.ndarray:
@@ -281,7 +301,8 @@ class DepthPipeline:
             return self._sparse_depth(frame)
         torch = self.torch
         with torch.inference_mode():
-            x, d = self._grid(torch.from_numpy(frame)[None])
+            # contiguous: torch cannot take a view with negative strides (a frame flipped by numpy, frame[::-1])
+            x, d = self._grid(torch.from_numpy(np.ascontiguousarray(frame))[None])
             core, m = self._mask(d)
             self._offset = self._offsets[0].float().cpu().numpy()
             self._changed = bool(core.any())
@@ -482,10 +503,11 @@ class DepthPipeline:
 
     def max_depth(self, frame: np.ndarray) -> float:
         """The fast path for force estimation: frame -> max depth (m) without building the full-size map."""
-        return max(0.0, float(self.grid_depth(frame).max()))
+        return max(0.0, _finite_top(self.grid_depth(frame)))
 
     def __call__(self, frame: np.ndarray) -> DepthResult:
         zg, w = self._grid_depth(frame)
+        top = _finite_top(zg)
         if not zg.any():
             # no depth anywhere (the gel at rest): the same outputs without upsampling and summing a zero map
             # (0.25 ms of the 0.5 ms such a frame costs)
@@ -510,5 +532,5 @@ class DepthPipeline:
                                                    shape=(self.rows, self.cols))
             mask = np.zeros((self.rows, self.cols), bool)
             mask[r0 * s:r1 * s, c0 * s:c1 * s] = msub
-        return DepthResult(depth=depth, max_depth=max(0.0, float(zg.max())), contact_mask=mask,
+        return DepthResult(depth=depth, max_depth=max(0.0, top), contact_mask=mask,
                            contact_area=area, centroid=centroid, offset=self._offset, changed=self._changed)

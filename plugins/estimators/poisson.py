@@ -94,8 +94,36 @@ def solve_poisson(f: np.ndarray, workers: int | None = None) -> np.ndarray:
 
 
 def integrate(gx: np.ndarray, gy: np.ndarray, workers: int | None = None) -> np.ndarray:
-    """Depth (in pixel units, same shape as the gradients) whose gradient best fits (gx, gy), zero at the border."""
-    return solve_poisson(divergence(gx, gy), workers=workers)
+    """Depth (in pixel units, same shape as the gradients) whose gradient best fits (gx, gy), zero at the border.
+
+    ValueError for gradients that are not finite, or so large that the depth overflows (one such cell would make
+    the whole solve NaN: the DST spreads it over every pixel)."""
+    _check_gradients(gx, gy)
+    with np.errstate(over="ignore", invalid="ignore"):   # an overflow is refused just below, with its cause
+        z = solve_poisson(divergence(gx, gy), workers=workers)
+    return _finite_depth(z, gx, gy)
+
+
+def _check_gradients(gx: Any, gy: Any, origin: tuple[int, int] = (0, 0)) -> None:
+    """ValueError unless gx and gy are finite 2-D maps of at least 2 x 2 (``origin``: where they start in the
+    maps the caller was given, for the message)."""
+    for name, g in (("gx", gx), ("gy", gy)):
+        g = np.asarray(g)
+        if g.ndim != 2 or min(g.shape) < 2:
+            raise ValueError(f"{name}: expected a 2-D gradient map of at least 2 x 2, got shape {g.shape}")
+        if not np.isfinite(g).all():
+            bad = np.argwhere(~np.isfinite(g))
+            raise ValueError(f"{name}: {len(bad)} gradients are NaN or inf (the first at row {bad[0][0] + origin[0]}, "
+                             f"column {bad[0][1] + origin[1]}): expected finite slopes")
+
+
+def _finite_depth(z: np.ndarray, gx: Any, gy: Any) -> np.ndarray:
+    """z, or a ValueError when finite gradients gave a depth that is not (float overflow)."""
+    if not np.isfinite(z).all():
+        big = max(float(np.max(np.abs(gx))), float(np.max(np.abs(gy))))
+        raise ValueError(f"the gradients are too large to integrate (largest |gradient| {big:.3g}): the depth "
+                         f"overflows {z.dtype}")
+    return z
 
 
 def integrate_window(gx: np.ndarray, gy: np.ndarray, box: tuple[int, int, int, int] | None,
@@ -108,11 +136,20 @@ def integrate_window(gx: np.ndarray, gy: np.ndarray, box: tuple[int, int, int, i
     z = np.zeros(np.broadcast_shapes(np.shape(gx), np.shape(gy)), dtype=np.float32)
     if box is None:
         return z
-    r0, r1, c0, c1 = box
+    if z.ndim != 2:
+        raise ValueError(f"expected 2-D gradient maps, got shape {z.shape}")
+    r0, r1, c0, c1 = (int(v) for v in box)
+    if not (0 <= r0 <= r1 <= z.shape[0] and 0 <= c0 <= c1 <= z.shape[1]):
+        # a negative index would silently solve another window (numpy counts it from the end)
+        raise ValueError(f"box (r0, r1, c0, c1) = {tuple(box)}: expected 0 <= r0 <= r1 <= {z.shape[0]} and "
+                         f"0 <= c0 <= c1 <= {z.shape[1]} (the gradients' rows and columns)")
     if r1 - r0 < 3 or c1 - c0 < 3:
         return z
-    f = divergence(gx[r0:r1, c0:c1], gy[r0:r1, c0:c1])
-    z[r0:r1, c0:c1] = solve_poisson(f, workers=workers)
+    wx, wy = gx[r0:r1, c0:c1], gy[r0:r1, c0:c1]
+    _check_gradients(wx, wy, (r0, c0))
+    with np.errstate(over="ignore", invalid="ignore"):   # a depth beyond float32 becomes inf: refused below
+        z[r0:r1, c0:c1] = solve_poisson(divergence(wx, wy), workers=workers)
+    _finite_depth(z[r0:r1, c0:c1], wx, wy)
     return z
 
 

@@ -1207,7 +1207,9 @@ class PolyForce(Component):
             if not math.isfinite(a) or a < 0:
                 self._reset_filters()
                 return 0.0, "invalid-input"
-        contact = d >= p.contact_threshold
+        # a depth of 0 (or a small negative one) is no contact, also with contact_threshold 0: else the untouched
+        # gel would be "in contact" (invalid input without a centroid, a median's older depths on release)
+        contact = d > 0.0 and d >= p.contact_threshold
         if contact and area is not None and float(area) <= p.min_contact_area:
             contact = False
         if contact and mask is not None and not bool(np.any(mask)):
