@@ -28,13 +28,18 @@ from __future__ import annotations
 
 import math
 import random
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import pytest
 
-from teletouch import ComponentFault, Sample
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fakes.fuzzing import Violation  # noqa: E402  (the shrinker below is this case's own: steps are frames)
+
+from teletouch import ComponentFault, Sample  # noqa: E402
 from teletouch.plugins.estimators import poisson
 from teletouch.plugins.estimators.depth import DepthEstimator
 from teletouch.plugins.estimators.depth_pipeline import DepthPipeline, contact_summary
@@ -203,12 +208,6 @@ def build_frame(st: dict[str, Any], renders: list[np.ndarray], prev: Any) -> Any
 
 
 # ================================================================================================ checks
-class Violation(AssertionError):
-    def __init__(self, kind: str, index: int, message: str):
-        self.kind, self.index = kind, index
-        super().__init__(f"[{kind}] step {index}: {message}")
-
-
 def _stamp_of(kind: str, t: float, last: float | None) -> float:
     if kind == "new" or last is None:
         return t - 0.004
