@@ -404,7 +404,34 @@ def test_fuzz_sim_gripper_set_points_finite_limited_and_hold_on_faults(block):
 
 
 # ================================================================================================ emulated hardware
-class DynamixelRig:
+class EmulatedRig:
+    """A driver Harness (``h``) against an emulator of its hardware (``hw``, with start() and stop()): what the
+    hardware recorded from the driver's start on (``recorded()``, counted from ``n0``) is what the oracle checks."""
+
+    h: Any
+    hw: Any
+
+    def recorded(self) -> int:
+        raise NotImplementedError
+
+    def __enter__(self) -> "EmulatedRig":
+        self.hw.start()
+        self.h.__enter__()
+        self.n0 = self.recorded()
+        self.tol = 1.01 * abs(self.h.comp.map.scale)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        try:
+            self.h.__exit__(*exc)
+        finally:
+            self.hw.stop()
+
+    def move(self, x: float) -> None:
+        raise AssertionError("the emulated hardware is not moved by hand")
+
+
+class DynamixelRig(EmulatedRig):
     """dynamixel-gripper against its Protocol 2.0 emulator: the Goal_Positions of the SYNC_WRITEs the servo got."""
 
     driver, period = "dynamixel", 0.01
@@ -416,24 +443,11 @@ class DynamixelRig:
         # resting where the fuzz puts it: maybe outside [min_opening, max_opening] (walked in)
         self.emu = DynamixelEmulator(15, position=rng.choice([1024, 2048, rng.randrange(1024, 2049)]), block_at=None,
                                      speed=rng.choice([3000.0, 300.0]))
+        self.hw = self.emu
         self.h = Harness(DynamixelGripper, dict(case.params, port=self.emu.port, baudrate=1000000))
-        self.tol = 1.01 * abs(self.h.comp.map.scale if hasattr(self.h.comp, "map") else 0.075 / 1024)
 
-    def __enter__(self) -> "DynamixelRig":
-        self.emu.start()
-        self.h.__enter__()
-        self.n0 = len(self.emu.rx_packets)
-        self.tol = 1.01 * abs(self.h.comp.map.scale)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        try:
-            self.h.__exit__(*exc)
-        finally:
-            self.emu.stop()
-
-    def move(self, x: float) -> None:
-        raise AssertionError("the emulated servo is not moved by hand")
+    def recorded(self) -> int:
+        return len(self.emu.rx_packets)
 
     def goal_ticks(self) -> list[int]:
         return [int.from_bytes(p[5:9], "little", signed=True) for (_t, _i, inst, p) in self.emu.rx_packets[self.n0:]
@@ -473,7 +487,7 @@ class RecordingDrive(Cia402Drive):
                 self.latches.append(self.latched)
 
 
-class CanopenRig:
+class CanopenRig(EmulatedRig):
     """canopen-gripper against its CiA 402 drive on virtual CAN: the set-points the drive latched. The driver sends
     a set-point only when its counts change (and the safe state's always)."""
 
@@ -483,24 +497,11 @@ class CanopenRig:
 
     def __init__(self, case: Case):
         channel = f"tt-fz-{uuid.uuid4().hex[:8]}"
-        self.drive = RecordingDrive(5, channel, position=0)
+        self.drive = self.hw = RecordingDrive(5, channel, position=0)
         self.h = Harness(CanopenGripper, dict(case.params, interface="virtual", channel=channel, node_id=5))
 
-    def __enter__(self) -> "CanopenRig":
-        self.drive.start()
-        self.h.__enter__()
-        self.n0 = len(self.drive.latches)
-        self.tol = 1.01 * abs(self.h.comp.map.scale)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        try:
-            self.h.__exit__(*exc)
-        finally:
-            self.drive.stop()
-
-    def move(self, x: float) -> None:
-        raise AssertionError("the emulated drive is not moved by hand")
+    def recorded(self) -> int:
+        return len(self.drive.latches)
 
     def sent(self) -> list[float]:
         return [self.h.comp.map.opening(c) for c in self.drive.latches[self.n0:]]
