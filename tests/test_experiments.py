@@ -126,6 +126,9 @@ def test_pivot_experiment_cli_reduced(tmp_path):
     full = json.loads((tmp_path / "pivot.json").read_text())
     trial = full["visual_force"]["per_trial"][0]
     assert trial["outcome"] in ("success", "overshoot", "undershoot", "dropped", "timeout")
+    for key in ("visual_force", "visual_only"):   # to the microsecond (a sum of 1 ms steps gave 8.860000000000001)
+        for t in full[key]["completion_times_s"]:
+            assert t == round(t, 6)
     assert (tmp_path / "pivot.png").stat().st_size > 10_000
 
 
@@ -301,3 +304,14 @@ def test_the_pivot_operator_draws_no_number_of_the_simulated_sensor():
         with Harness(PivotOperator, {"seed": seed}) as h:
             bias = h.comp.bias / math.radians(2.5)
         assert bias != pytest.approx(first, abs=1e-9)
+
+
+def test_contact_experiment_prints_the_baseline_it_ran(tmp_path):
+    """--baselines ran position-position but printed nothing of it (only the JSON had it)."""
+    code, out = _cli("experiment", "contact", "--sensor", "ideal", "--duration", "3", "--baselines", "--out",
+                     str(tmp_path))
+    assert code == 0
+    line = next(x for x in out.splitlines() if x.startswith("position-position baseline: "))
+    mm = float(line.split(": ")[1].split(" mm")[0])
+    assert mm == round(json.loads((tmp_path / "contact.json").read_text())["position_position"]["mean_error_m"]
+                       * 1e3, 3)

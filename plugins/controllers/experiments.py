@@ -762,7 +762,8 @@ def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_li
     else:
         outcome = "overshoot" if angle > target else "undershoot"
     trial = {"seed": seed, "success": success, "outcome": outcome,
-             "completion_time_s": op.done_at if done else None,
+             # the operator's clock sums 1 ms steps: 8.860000000000001 -> 8.86 (to the microsecond)
+             "completion_time_s": round(op.done_at, 6) if done else None,
              "final_angle_rad": float(angle), "target_rad": float(target), "tolerance_rad": float(tol),
              "final_angle_deg": math.degrees(angle), "target_deg": math.degrees(target),
              "tolerance_deg": math.degrees(tol), "dropped": pv.dropped}
@@ -843,7 +844,9 @@ def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float 
             per[key].append(tr)
             if progress:
                 print(f"pivot {key:<13} trial {i + 1}/{trials}: {tr['outcome']:<10} "
-                      f"angle {tr['final_angle_deg']:5.1f} deg  t={tr['completion_time_s']}", file=sys.stderr)
+                      f"angle {tr['final_angle_deg']:5.1f} deg  "
+                      f"t={'-' if tr['completion_time_s'] is None else format(tr['completion_time_s'], '.2f') + ' s'}",
+                      file=sys.stderr)
     for key in per:
         res[key] = _summary(per[key])
         res[key]["per_trial"] = per[key]
@@ -896,6 +899,8 @@ def _cmd_contact(args: argparse.Namespace) -> int:
 
         print(f"mean |leader - follower| in contact: with feedback {mm(w['mean_error_m'])}, without "
               f"{mm(wo['mean_error_m'])} (paper: 0.6 mm with feedback)")
+        if "position_position" in res:
+            print(f"position-position baseline: {mm(res['position_position']['mean_error_m'])}")
         for f in res.get("files", []):
             print(f"wrote {f}")
     return 0
