@@ -17,6 +17,9 @@ from types import SimpleNamespace
 
 import pytest
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fakes import digit_sysfs  # noqa: E402
+
 from teletouch import HardwareError
 from teletouch.plugins.sensors import discovery
 from teletouch.plugins.sensors.digit import Digit
@@ -25,32 +28,10 @@ from teletouch.testing import Harness
 
 def _usb_device(root: Path, name: str, serial: str | None, busnum: int | None = None, devnum: int | None = None,
                 vid: str = "2833", pid: str = "0209") -> Path:
-    d = root / "devices" / "pci0000:00" / "0000:00:14.0" / "usb1" / name
-    d.mkdir(parents=True)
-    (d / "idVendor").write_text(vid + "\n")
-    (d / "idProduct").write_text(pid + "\n")
-    if serial is not None:
-        (d / "serial").write_text(serial + "\n")
-    (d / "bcdDevice").write_text("0203\n")
-    (d / "product").write_text("DIGIT\n")
-    if busnum is not None:
-        (d / "busnum").write_text(f"{busnum}\n")
-        (d / "devnum").write_text(f"{devnum}\n")
-    return d
+    return digit_sysfs.usb_device(root, name, serial, vid=vid, pid=pid, busnum=busnum, devnum=devnum)
 
 
-def _video_node(root: Path, dev: Path | None, usb: Path, n: int, index: int = 0) -> None:
-    intf = usb / f"{usb.name}:1.0"
-    v = intf / "video4linux" / f"video{n}"
-    v.mkdir(parents=True)
-    (v / "index").write_text(f"{index}\n")
-    (v / "name").write_text("DIGIT: DIGIT\n")
-    os.symlink(os.path.relpath(intf, v), v / "device")
-    cls = root / "class" / "video4linux"
-    cls.mkdir(parents=True, exist_ok=True)
-    os.symlink(os.path.relpath(v, cls), cls / f"video{n}")
-    if dev is not None:
-        (dev / f"video{n}").write_bytes(b"")
+_video_node = digit_sysfs.video_node
 
 
 @pytest.fixture()

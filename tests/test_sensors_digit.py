@@ -16,6 +16,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fakes import digit_sysfs  # noqa: E402
+
 from teletouch import Context, GraphValidationError, HardwareError
 from teletouch.plugins.sensors import discovery
 from teletouch.plugins.sensors.digit import Digit, FrameGrabber, led_command, led_value, to_portrait
@@ -24,30 +27,11 @@ from teletouch.testing import Harness, make_registry, run_yaml
 
 def _usb_device(root: Path, name: str, vid: str, pid: str, serial: str | None, bcd: str = "0203",
                 product: str = "DIGIT") -> Path:
-    d = root / "devices" / "pci0000:00" / "0000:00:14.0" / "usb1" / name
-    d.mkdir(parents=True)
-    (d / "idVendor").write_text(vid + "\n")
-    (d / "idProduct").write_text(pid + "\n")
-    if serial is not None:
-        (d / "serial").write_text(serial + "\n")
-    (d / "bcdDevice").write_text(bcd + "\n")
-    (d / "product").write_text(product + "\n")
-    (d / "manufacturer").write_text("Facebook\n")
-    return d
+    return digit_sysfs.usb_device(root, name, serial, vid=vid, pid=pid, bcd=bcd, product=product,
+                                  manufacturer="Facebook")
 
 
-def _video_node(root: Path, dev_root: Path, usb: Path, n: int, index: int) -> None:
-    intf = usb / f"{usb.name}:1.0"
-    v = intf / "video4linux" / f"video{n}"
-    v.mkdir(parents=True)
-    (v / "index").write_text(f"{index}\n")
-    (v / "name").write_text("DIGIT: DIGIT\n")
-    os.symlink(os.path.relpath(intf, v), v / "device")
-    cls = root / "class" / "video4linux"
-    cls.mkdir(parents=True, exist_ok=True)
-    os.symlink(os.path.relpath(v, cls), cls / f"video{n}")
-    node = dev_root / f"video{n}"
-    node.write_bytes(b"")
+_video_node = digit_sysfs.video_node
 
 
 @pytest.fixture()
