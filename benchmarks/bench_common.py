@@ -15,6 +15,8 @@ import threading
 from pathlib import Path
 from typing import Any, Callable
 
+from teletouch.argtypes import int_at_least, number
+
 REPO = Path(__file__).resolve().parents[1]
 #: the real DIGIT images (../shared/data next to the checkout; TELETOUCH_SHARED_DATA moves it)
 DATA = Path(os.environ.get("TELETOUCH_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -64,24 +66,10 @@ def emit(obj: Any) -> None:
     print(line, flush=True)
 
 
-def _number(kind: type, lo: float | None, lo_open: bool, hi: float | None, what: str) -> Callable[[str], Any]:
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
-        if (isinstance(v, float) and not math.isfinite(v)) or (lo is not None and (v <= lo if lo_open else v < lo)) \
-                or (hi is not None and v > hi):
-            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
-        return v
-    parse.__name__ = what          # argparse names the type in its message
-    return parse
-
-
-positive_int = _number(int, 0, True, None, "an integer >= 1")
-nonnegative_int = _number(int, 0, False, None, "an integer >= 0")
-positive_float = _number(float, 0.0, True, None, "a finite number > 0")
-nonnegative_float = _number(float, 0.0, False, None, "a finite number >= 0")
+positive_int = int_at_least(1)
+nonnegative_int = int_at_least(0)
+positive_float = number(float, "a finite number > 0", lo=0.0, lo_open=True)
+nonnegative_float = number(float, "a finite number >= 0", lo=0.0)
 
 
 def quantity(unit: str, lo: float, hi: float, what: str) -> Callable[[str], float]:

@@ -28,6 +28,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from teletouch.argtypes import int_at_least
+
 REPO = Path(__file__).resolve().parents[1]
 GRAPH = REPO / "examples" / "calibrate-force-sim.yaml"
 OUT = REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.force.json"
@@ -53,15 +55,8 @@ def grid(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def degree(text: str) -> int:
-    """argparse type: a polynomial degree >= 0."""
-    try:
-        v = int(text)
-    except ValueError:
-        v = -1
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
-    return v
+#: argparse type: a polynomial degree
+degree = int_at_least(0)
 
 
 def default_plot(output: str) -> str:

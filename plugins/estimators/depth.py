@@ -19,12 +19,13 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
 
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
+from teletouch.argtypes import int_at_least, number
 from teletouch.paths import output_problem
 from teletouch.units import Meters, parse_quantity
 
@@ -345,38 +346,9 @@ def _px_per_m(text: str) -> float:
                          f"17150px/m") from None
 
 
-def _levels_or_zero(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not 0 <= v <= 255:
-        raise argparse.ArgumentTypeError(f"expected a number of levels in [0, 255] (0: no check), got {text!r}")
-    return v
-
-
-def _positive_levels(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        v = math.nan
-    if not 0 < v <= 255:
-        raise argparse.ArgumentTypeError(f"expected a number of levels in (0, 255], got {text!r}")
-    return v
-
-
-def _int_at_least(low: int) -> Callable[[str], int]:
-    """An argparse ``type``: an integer >= low, else a usage error saying so."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {text!r}") from None
-        if v < low:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {low}, got {v}")
-        return v
-
-    return parse
+#: argparse types of the levels options (0-255 per channel)
+_levels_or_zero = number(float, "a number of levels in [0, 255] (0: no check)", lo=0, hi=255)
+_positive_levels = number(float, "a number of levels in (0, 255]", lo=0, lo_open=True, hi=255)
 
 
 def _ball_radius(args: argparse.Namespace) -> float:
@@ -669,15 +641,15 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--write-labels", default=None, help="where to write the labels used (default: beside -o)")
     p.add_argument("--labels-only", action="store_true", help="only label the presses (write the CSV), no training")
     p.add_argument("--review", default=None, metavar="DIR", help="write an overlay image per press for checking")
-    p.add_argument("--holdout", type=_int_at_least(0), default=2, help="presses held out for validation (default 2)")
+    p.add_argument("--holdout", type=int_at_least(0), default=2, help="presses held out for validation (default 2)")
     p.add_argument("--features", default=DEFAULT_FEATURES, choices=sorted(FEATURE_SETS),
                    help=f"network inputs (default {DEFAULT_FEATURES}: relative change from the background, its local "
                    "gradients and the position; rgbxy is the paper's R, G, B, X, Y; see docs/depth.md)")
-    p.add_argument("--hidden", type=_int_at_least(1), nargs="+", default=list(DEFAULT_HIDDEN),
+    p.add_argument("--hidden", type=int_at_least(1), nargs="+", default=list(DEFAULT_HIDDEN),
                    help=f"hidden layer sizes (default {' '.join(map(str, DEFAULT_HIDDEN))})")
-    p.add_argument("--epochs", type=_int_at_least(1), default=40, help="training epochs (default 40)")
+    p.add_argument("--epochs", type=int_at_least(1), default=40, help="training epochs (default 40)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--stride", type=_int_at_least(1), default=None, help="work-grid stride in px (default: rows / 160)")
+    p.add_argument("--stride", type=int_at_least(1), default=None, help="work-grid stride in px (default: rows / 160)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.add_argument("-o", "--output", default=None, help="model file to write (e.g. sensor.model)")
     p.set_defaults(func=cmd_calibrate_depth)
