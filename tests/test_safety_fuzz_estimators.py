@@ -37,7 +37,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fakes.fuzzing import Violation  # noqa: E402  (the shrinker below is this case's own: steps are frames)
+from fakes.fuzzing import Attempts, Violation  # noqa: E402  (the shrinker below is this case's own: steps are frames)
 
 from teletouch import ComponentFault, Sample  # noqa: E402
 from teletouch.plugins.estimators import poisson
@@ -355,17 +355,7 @@ def run_case(case: Case, renders: list[np.ndarray]) -> dict[str, int]:
 def shrink(case: Case, run: Callable[[Case], Any], kind: str, budget: int = 120) -> Case:
     """A smaller case with the same kind of violation: cut after the failing step, drop chunks of steps (a dropped
     "repeat" step's frame is repeated from the step before it), then the ops of each step."""
-    tries = [0]
-
-    def fails(c: Case) -> Violation | None:
-        if tries[0] >= budget:
-            return None
-        tries[0] += 1
-        try:
-            run(c)
-        except Violation as v:
-            return v if v.kind == kind else None
-        return None
+    fails = Attempts(run, kind, budget)
 
     def with_steps(c: Case, steps: list[dict[str, Any]]) -> Case:
         steps = [dict(s) for s in steps]
@@ -378,7 +368,7 @@ def shrink(case: Case, run: Callable[[Case], Any], kind: str, budget: int = 120)
         return case
     case = with_steps(case, case.steps[:v.index + 1])
     n = 2
-    while len(case.steps) > 1 and n <= 2 * len(case.steps) and tries[0] < budget:
+    while len(case.steps) > 1 and n <= 2 * len(case.steps) and fails.left:
         size = max(1, len(case.steps) // n)
         removed = False
         for start in range(0, len(case.steps), size):

@@ -20,28 +20,39 @@ class Violation(AssertionError):
         self.kind, self.index = kind, index
 
 
+class Attempts:
+    """``fails(case)``: the violation of ``kind`` that running ``case`` raises, else None; after ``budget`` runs
+    every call answers None (a shrinker's bound), and ``left`` is False."""
+
+    def __init__(self, run: Callable[[Any], None], kind: str, budget: int):
+        self.run, self.kind, self.budget, self.tries = run, kind, budget, 0
+
+    @property
+    def left(self) -> bool:
+        return self.tries < self.budget
+
+    def __call__(self, case: Any) -> Violation | None:
+        if not self.left:
+            return None
+        self.tries += 1
+        try:
+            self.run(case)
+        except Violation as v:
+            return v if v.kind == self.kind else None
+        return None
+
+
 def shrink(case: Any, run: Callable[[Any], None], kind: str, budget: int = 300) -> Any:
     """A smaller case that still fails with the same kind of violation: cut after the failing step, then drop events
     (halves, quarters, ... of them) while the failure stays; at most ``budget`` runs."""
-    tries = [0]
-
-    def fails(c: Any) -> Violation | None:
-        if tries[0] >= budget:
-            return None
-        tries[0] += 1
-        try:
-            run(c)
-        except Violation as v:
-            return v if v.kind == kind else None
-        return None
-
+    fails = Attempts(run, kind, budget)
     v = fails(case)
     if v is None:
         return case
     case = dataclasses.replace(case, steps=case.steps[:v.index + 1])
     keys = [(i, k) for i, (_, ev) in enumerate(case.steps) for k in ev]
     n = 2
-    while keys and n <= 2 * len(keys) and tries[0] < budget:
+    while keys and n <= 2 * len(keys) and fails.left:
         size = max(1, len(keys) // n)
         removed = False
         for start in range(0, len(keys), size):
