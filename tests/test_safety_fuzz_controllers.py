@@ -307,6 +307,21 @@ class ControllerOracle:
 
 
 # ================================================================================================ running a case
+def _feed(ev: dict[str, Any], t: float, good: dict[str, float], last: dict[str, Sample | None], slots: Any,
+          oracle: Any) -> None:
+    """A step's input events as samples into the controller's slots and the oracle (``last``: the sample last sent
+    per port, what a "repeat" re-sends)."""
+    for port, e in ev.items():
+        if port not in PORTS or port not in slots:
+            continue
+        s = _materialize(e, t, good[port], last.get(port))
+        if s is None:
+            continue
+        last[port] = s
+        slots[port].sample = s
+        oracle.feed(port, s)
+
+
 def _materialize(ev: Any, t: float, good: float, last: Sample | None) -> Sample | None:
     if ev == "repeat":
         return last
@@ -353,15 +368,7 @@ def run_controller_case(case: Case) -> None:
         world.follow(t, command)
         x, v = world.leader(t)
         good = {"leader_opening": x, "leader_velocity": v, "follower_opening": world.x_f, "force": world.force()}
-        for port, e in ev.items():
-            if port not in PORTS or port not in h.slots:
-                continue
-            s = _materialize(e, t, good[port], last.get(port))
-            if s is None:
-                continue
-            last[port] = s
-            h.slots[port].sample = s
-            oracle.feed(port, s)
+        _feed(ev, t, good, last, h.slots, oracle)
         h.t = t
         try:
             out = h.comp.step(t, h.inputs) or {}
@@ -493,15 +500,7 @@ def run_chain_case(case: Case, device: str = "sim-omega7", sdk: Any = None) -> N
                         oracle.feed(port, s)
             if "skip_ctl" in ev:
                 stalled_until = i + ev["skip_ctl"]
-            for port, e in ev.items():
-                if port not in PORTS or port not in ctl.slots:
-                    continue
-                s = _materialize(e, t, good[port], last.get(port))
-                if s is None:
-                    continue
-                last[port] = s
-                ctl.slots[port].sample = s
-                oracle.feed(port, s)
+            _feed(ev, t, good, last, ctl.slots, oracle)
             if i > stalled_until:
                 ctl.t = t
                 try:
