@@ -27,6 +27,7 @@ from pydantic import Field
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
 from teletouch.argtypes import int_at_least, number
 from teletouch.paths import output_problem
+from teletouch.reproducible import source_date_epoch
 from teletouch.units import Meters, parse_quantity
 
 from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS, max_stride
@@ -79,9 +80,11 @@ class DepthEstimator(Component):
                                          "changed): its outputs are NaN, it is never blended into the background")
         max_background_mismatch: float = Field(6.0, ge=0, le=255, description="the first frames (10) must match "
                                                "the background: the median over the image of |frame - background| "
-                                               "after the global offset, mean over B, G, R, at most this many levels "
-                                               "(a sensor's own frames: 2-3; another DIGIT unit's: 9-20), else the "
-                                               "node faults: another sensor's model or background (0: no check)")
+                                               "in block means (8 x 8 px at QVGA: pixel noise averages out) after "
+                                               "the global offset, mean over B, G, R, at most this many levels (a "
+                                               "sensor's own frames: 1-2, sim-digit at its maximum noise 32: 3-4; "
+                                               "another DIGIT unit's: 9-20), else the node faults: another sensor's "
+                                               "model or background (0: no check)")
         fault_after_bad: int = Field(30, ge=0, description="fault the node after this many implausible frames in "
                                      "a row (0: never; at 60 Hz, 30 is half a second)")
         fault_after_repeats: int = Field(0, ge=0, description="fault the node after this many bit-identical "
@@ -207,9 +210,10 @@ class DepthEstimator(Component):
             if level > limit:
                 raise ComponentFault(
                     f"the camera's frames do not match the depth model's background: they differ by {level:.1f} "
-                    f"levels (median over the image, after the global offset; a sensor's own frames: 2-3, another "
-                    f"DIGIT unit's: 9-20; max_background_mismatch {limit:g}): model {self.params.model!r} was made "
-                    f"for another sensor (the packaged one is the simulated sensor's). Calibrate this sensor "
+                    f"levels (median over the image in block means, after the global offset; a sensor's own "
+                    f"frames: 1-2, another DIGIT unit's: 9-20; max_background_mismatch {limit:g}): model "
+                    f"{self.params.model!r} was made for another sensor (the packaged one is the simulated sensor's). "
+                    f"Calibrate this sensor "
                     f"(`teletouch calibrate depth`), or give background: a no-contact frame of it", self.id)
 
     def _bad(self, problem: str, stamp: float, t0: float) -> dict[str, Any]:
@@ -258,11 +262,21 @@ MATCH_FRAMES = 10
 
 
 def background_mismatch(frame: np.ndarray, background: np.ndarray) -> float:
-    """How far a frame's colours are from the background's apart from a global offset: the median over the image
-    (every 4th pixel each way) of |frame - background - offset|, mean over B, G, R, in levels; the offset is the
-    per-channel median. A contact covers far less than half the image, so the median reads the gel around it:
-    2-3 levels for a sensor's own frames (noise), 9-20 for another DIGIT unit's (measured on ../shared/data)."""
-    d = frame[::4, ::4].astype(np.float32) - np.asarray(background, np.float32)[::4, ::4]
+    """How far a frame's colours are from the background's apart from a global offset, in levels: the frame minus
+    the background in blocks of 1/30 of the shorter side (8 x 8 px at QVGA, 16 x 16 at VGA), block means, minus
+    the per-channel median (the offset); then the median over the blocks of |that|, mean over B, G, R. A contact
+    covers far less than half the image, so the median reads the gel around it. Block means, because zero-mean
+    pixel noise of std s adds ~0.8 s to a per-pixel median (sim-digit with ``noise: 8`` read 6.3 levels, like
+    another unit) and s / 8 here; another unit's colour pattern is smooth and stays. Measured on ../shared/data:
+    1.1 levels for the QVGA unit's own presses, 1.6-1.9 for the VGA ones, 9.1-19.7 for another DIGIT unit's
+    frames; sim-digit 0.2 (default noise) to 3.5 (``noise: 32``, its maximum)."""
+    h, w = frame.shape[:2]
+    k = max(1, min(h, w) // 30)
+    h, w = h // k * k, w // k * k
+    import cv2
+
+    d = np.subtract(frame[:h, :w], np.asarray(background, np.float32)[:h, :w], dtype=np.float32)
+    d = cv2.resize(d, (w // k, h // k), interpolation=cv2.INTER_AREA)   # exact block means (k divides h and w)
     d -= np.median(d.reshape(-1, d.shape[-1]), axis=0)
     return float(np.median(np.abs(d).mean(axis=-1)))
 
@@ -428,6 +442,7 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         if args.stride is not None and args.stride > max_stride(shape):
             raise ValueError(f"--stride {args.stride}: expected at most {max_stride(shape)} px for {shape[0]}x"
                              f"{shape[1]} images (a work grid of at least 8 cells across)")
+        source_date_epoch()   # malformed: refused here, before the work
         labels = read_labels(args.labels) if args.labels else None
         if labels is not None:
             check_labels(labels, images, radius * px_per_m, args.labels)
@@ -474,7 +489,8 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 130
     # the model first: it is the work of minutes; the labels and overlays can be made again with --labels-only
-    res.model.training["total_seconds"] = round(res.seconds, 2)
+    if source_date_epoch() is None:   # reproducible files (SOURCE_DATE_EPOCH) leave out the durations
+        res.model.training["total_seconds"] = round(res.seconds, 2)
     try:
         res.model.save(args.output)
     except OSError as exc:
@@ -574,7 +590,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         mismatch = background_mismatch(frame, bg if bg is not None else model.background)
         if not problem and args.max_background_mismatch and mismatch > args.max_background_mismatch:
             problem = (f"the frame differs from the model's background by {mismatch:.1f} levels (median over the "
-                       f"image after the global offset; a sensor's own frames: 2-3; --max-background-mismatch "
+                       f"image in block means after the global offset; a sensor's own frames: 1-2; "
+                       f"--max-background-mismatch "
                        f"{args.max_background_mismatch:g}): the model (or --background) is another sensor's")
         if problem:
             # not a DIGIT frame the model can read (LEDs off, saturated, another sensor's background): no numbers,
@@ -669,7 +686,7 @@ def teletouch_add_commands(subparsers, calibrate):
                         "(LEDs off, saturated) instead of given a depth")
     p.add_argument("--max-background-mismatch", type=_levels_or_zero, default=6.0, metavar="LEVELS",
                    help="an image whose colours differ from the background by more than this apart from a global "
-                        "offset (median over the image, mean over B, G, R; a sensor's own frames: 2-3, another "
-                        "DIGIT unit's: 9-20; default 6, as the depth node's max_background_mismatch; 0: no check) "
-                        "is reported as implausible: the model or --background is another sensor's")
+                        "offset (median over the image in block means, mean over B, G, R; a sensor's own frames: "
+                        "1-2, another DIGIT unit's: 9-20; default 6, as the depth node's max_background_mismatch; 0: "
+                        "no check) is reported as implausible: the model or --background is another sensor's")
     p.set_defaults(func=cmd_estimate)

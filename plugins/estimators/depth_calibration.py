@@ -23,6 +23,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from teletouch.errors import ModelFileError
+from teletouch.reproducible import build_time, source_date_epoch
 
 from .normal_model import (DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, atomic_write, feature_count, make_net,
                            max_stride)
@@ -560,7 +561,9 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
     model.training = {"presses": train_names, "samples": int(n), "epochs": epochs, "lr": lr, "batch": batch,
                       "dropout": dropout, "seed": seed, "loss": "mse", "optimizer": "adam", "final_loss": loss_v,
                       "flat_ratio": flat_ratio, "seconds": round(train_s, 2), "gain_presses": len(ratios),
-                      "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+                      "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(build_time()))}
+    if source_date_epoch() is not None:
+        del model.training["seconds"]   # reproducible: a duration differs from run to run (docs/depth.md)
     if log:
         log(f"trained on {len(train_names)} frames, {n} samples, {epochs} epochs, loss {loss_v:.5f}, "
             f"{train_s:.1f} s")
@@ -749,6 +752,7 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
     out and evaluated; their metrics go into the model file."""
     t0 = time.perf_counter()
     log = log or (lambda m: None)
+    source_date_epoch()   # a malformed SOURCE_DATE_EPOCH is refused before the work, not when the time is written
     if background is None:
         background = median_background([im for _, im in images])
         log(f"background: per-pixel median of {len(images)} presses")

@@ -210,6 +210,18 @@ class DepthPipeline:
             raise ValueError(f"expected a uint8 BGR image of {self.rows}x{self.cols}x3 (rows x cols, portrait) "
                              f"like the model {self.model.source}, got {got}")
 
+    def check_frames(self, frames: Any) -> None:
+        """A batch for :meth:`batch_depth`: uint8 (B, rows, cols, 3), numpy or torch; else a ValueError (a float
+        batch would be read without complaint, a NaN pixel as a NaN depth map)."""
+        torch = self.torch
+        shape = tuple(frames.shape) if isinstance(frames, (np.ndarray, torch.Tensor)) else None
+        ok = (isinstance(frames, np.ndarray) and frames.dtype == np.uint8) or (
+            isinstance(frames, torch.Tensor) and frames.dtype == torch.uint8)
+        if not ok or shape is None or len(shape) != 4 or shape[1:] != (self.rows, self.cols, 3):
+            got = f"{frames.dtype} {shape}" if shape is not None else type(frames).__name__
+            raise ValueError(f"batch_depth: expected uint8 BGR frames of B x {self.rows} x {self.cols} x 3 (frames x "
+                             f"rows x cols x channels, portrait) like the model {self.model.source}, got {got}")
+
     def _grid(self, frames: Any) -> tuple[Any, Any]:
         """(B, rows, cols, 3) uint8 tensor -> block-averaged frame and drift-corrected diff, (B, 3, gr, gc)."""
         x = self._pool(frames.to(self.device, non_blocking=True))
@@ -460,10 +472,16 @@ class DepthPipeline:
         return gx * mf, gy * mf
 
     def batch_depth(self, frames: np.ndarray | Any) -> Any:
-        """Dense, batched: (B, rows, cols, 3) uint8 -> (B, rows, cols) float32 depth tensor (m) on the device."""
+        """Dense, batched: (B, rows, cols, 3) uint8 -> (B, rows, cols) float32 depth tensor (m) on the device.
+
+        Frames (a numpy array or a torch tensor) of another dtype or shape are refused with a ValueError, as
+        :meth:`check_frame` refuses one frame. A frame whose depth cannot be computed (normals that are not finite:
+        a corrupt model in memory; where one frame's call raises a ValueError) gets NaN everywhere; the other frames
+        of the batch are the same as without it (:func:`poisson.integrate_torch`)."""
         import torch.nn.functional as F
 
         torch = self.torch
+        self.check_frames(frames)
         with torch.inference_mode():
             t = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(frames))
             x, d = self._grid(t)
@@ -505,6 +523,23 @@ class DepthPipeline:
         """The fast path for force estimation: frame -> max depth (m) without building the full-size map."""
         return max(0.0, _finite_top(self.grid_depth(frame)))
 
+    def _cell_contact(self, zg: np.ndarray, top: float) -> tuple[np.ndarray, float, np.ndarray]:
+        """The contact of a light touch at the threshold, on the work grid: max depth (the grid's largest cell)
+        above ``contact_depth`` while no pixel of the upsampled map is (bilinear upsampling lowers a one-cell peak:
+        at stride 2 a pixel takes at most 9/16 of its nearest cell). The cells deeper than max(contact_depth,
+        contact_fraction x max depth), each its ``stride x stride`` pixels; the centroid weighted by their depths at
+        their centres. Only when the full-size map gives no contact, so a frame with one is read as before."""
+        s = self.stride
+        cells = zg > max(self.contact_depth, self.contact_fraction * top)
+        mask = np.zeros((self.rows, self.cols), bool)
+        mask[: self.grows * s, : self.gcols * s] = np.repeat(np.repeat(cells, s, axis=0), s, axis=1)
+        rr, cc = np.nonzero(cells)
+        w = zg[rr, cc].astype(np.float64)
+        m = 1.0 / self.model.px_per_m
+        cy = float(np.dot(w, rr * s + (s - 1) / 2.0) / w.sum()) - (self.rows - 1) / 2.0
+        cx = float(np.dot(w, cc * s + (s - 1) / 2.0) / w.sum()) - (self.cols - 1) / 2.0
+        return mask, int(np.count_nonzero(mask)) * m * m, np.array([cx * m, cy * m])
+
     def __call__(self, frame: np.ndarray) -> DepthResult:
         zg, w = self._grid_depth(frame)
         top = _finite_top(zg)
@@ -532,5 +567,7 @@ class DepthPipeline:
                                                    shape=(self.rows, self.cols))
             mask = np.zeros((self.rows, self.cols), bool)
             mask[r0 * s:r1 * s, c0 * s:c1 * s] = msub
+        if area == 0.0 and top > self.contact_depth:
+            mask, area, centroid = self._cell_contact(zg, top)
         return DepthResult(depth=depth, max_depth=max(0.0, top), contact_mask=mask,
                            contact_area=area, centroid=centroid, offset=self._offset, changed=self._changed)

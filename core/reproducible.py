@@ -1,0 +1,32 @@
+"""Reproducible output files: the time a file records, taken from SOURCE_DATE_EPOCH when it is set.
+
+The reproducible-builds convention (https://reproducible-builds.org/specs/source-date-epoch/): a tool that writes
+the current time into what it makes writes SOURCE_DATE_EPOCH instead when the variable is set, so the same inputs
+give byte-identical files. teletouch's depth models and force calibrations do.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+__all__ = ["source_date_epoch", "build_time"]
+
+
+def source_date_epoch() -> int | None:
+    """The environment's SOURCE_DATE_EPOCH (whole seconds since 1970-01-01 UTC), or None when unset or empty.
+    ValueError naming the variable when it is not such a number (the convention: refuse, rather than write the
+    clock's time)."""
+    text = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if not text:
+        return None
+    if not text.isdigit():
+        raise ValueError(f"SOURCE_DATE_EPOCH {text!r}: expected a whole number of seconds since 1970-01-01 UTC, e.g. "
+                         f"$(git log -1 --format=%ct) (reproducible builds), or leave it unset")
+    return int(text)
+
+
+def build_time() -> float:
+    """The time to write into an output file: SOURCE_DATE_EPOCH when set, else now (s since 1970-01-01 UTC)."""
+    sde = source_date_epoch()
+    return float(sde) if sde is not None else time.time()
