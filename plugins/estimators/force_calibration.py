@@ -40,11 +40,12 @@ from pydantic import Field, model_validator
 
 from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
 from teletouch.paths import output_problem
+from teletouch.reproducible import source_date_epoch
 from teletouch.units import (
     Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals, Seconds,
 )
 
-from .poly_force import CalibrationError, ForceCalibration, read_pairs_csv, write_pairs_csv
+from .poly_force import DEFAULT_MIN_R2, CalibrationError, ForceCalibration, read_pairs_csv, write_pairs_csv
 
 __all__ = ["PressRoutine", "SimPressRig", "fit_samples", "run_press_calibration"]
 
@@ -692,16 +693,28 @@ class SimPressRig(Device):
 
 
 # ================================================================================================ fitting + CLI
+#: a force in contact more negative than this (N) is refused as a missing tare: a gel pressed in pushes back (the
+#: packaged calibration's smallest force is +0.038 N) and a smaller offset is within a fit's residual (RMSE
+#: 0.014-0.058 N in simulation)
+NEGATIVE_FORCE_TOLERANCE_N = 0.05
+
+
 def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: float = 3e-5, use: str = "all",
                 zero_intercept: bool = False, sensor_model_id: str = "", depth_source: str = "",
-                source: str = "", position_degree: int = 0) -> ForceCalibration:
+                source: str = "", position_degree: int = 0, min_r2: float | None = DEFAULT_MIN_R2,
+                where: str = "") -> ForceCalibration:
     """Fit a calibration from recorded samples, leaving out those without contact (depth < min_depth). With
-    ``position_degree`` > 0 every kept sample needs its contact centroid (x_m, y_m)."""
+    ``position_degree`` > 0 every kept sample needs its contact centroid (x_m, y_m). A sample in contact with a force
+    below -:data:`NEGATIVE_FORCE_TOLERANCE_N` (a missing tare) and a fit with R^2 below ``min_r2`` are refused.
+    ``where``: the samples' file, named with each sample's ``line`` in the errors."""
     # a NaN depth is kept (and refused by the fit, naming the sample), not counted as a sample without contact
     keep = [s for s in samples if not s["depth_m"] < min_depth]
     if not keep:
         raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm: did the probe "
                                f"touch the gel?")
+    problem = _negative_force_problem(samples, keep, min_depth, where)
+    if problem:
+        raise CalibrationError(problem)
     extra = {"excluded_no_contact": len(samples) - len(keep), "min_depth_m": min_depth}
     positions = None
     if position_degree:
@@ -716,7 +729,31 @@ def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: fl
                                 cycles=[int(s.get("cycle") or 0) for s in keep], use=use,
                                 zero_intercept=zero_intercept, sensor_model_id=sensor_model_id,
                                 depth_source=depth_source, source=source, extra=extra, positions=positions,
-                                position_degree=position_degree)
+                                position_degree=position_degree, min_r2=min_r2)
+
+
+def _negative_force_problem(samples: list[dict[str, Any]], keep: list[dict[str, Any]], min_depth: float,
+                            where: str) -> str | None:
+    """Why the forces in contact look untared (the first one below -NEGATIVE_FORCE_TOLERANCE_N), or None."""
+    tol = NEGATIVE_FORCE_TOLERANCE_N
+    low = [s for s in keep if s["force_n"] < -tol]   # a NaN force is left to the fit (it names the sample)
+    if not low:
+        return None
+    s = low[0]
+    i = next(k for k, x in enumerate(samples) if x is s)
+    if where and s.get("line"):
+        at = f"{where}:{s['line']}: column '{s.get('column') or 'force_n'}'"
+    else:
+        at = (f"{where + ': ' if where else ''}sample {i}"
+              + (f" (cycle {s.get('cycle', 0)}, {s['phase']})" if s.get("phase") else ""))
+    free = [x["force_n"] for x in samples if x["depth_m"] < min_depth and math.isfinite(x["force_n"])]
+    offset = (f"; the {len(free)} samples without contact read a median of {float(np.median(free)):.3f} N, the likely "
+              f"offset" if free else "")
+    return (f"{at}: force {s['force_n']:.4g} N at a max depth of {s['depth_m'] * 1e3:.3f} mm, below zero by more than "
+            f"the {tol:g} N tolerance ({len(low)} of {len(keep)} samples in contact are): a gel pressed in pushes "
+            f"back, so the forces were probably recorded without a tare (the force measured off the gel not "
+            f"subtracted){offset}; fitting them would leave a 0 N band at small depths. Re-tare the force measurement "
+            f"(off the gel) and record again, or add the offset to every force of the file")
 
 
 def _sensor_model_id(spec: Any) -> tuple[str, str]:
@@ -799,6 +836,13 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             raise ValueError(f"expected a depth of at least 0, got {args.min_depth!r}")
     except ValueError as exc:
         return usage(f"--min-depth: {exc}")
+    min_r2 = args.min_r2
+    if not 0.0 <= min_r2 < 1.0:   # argparse gave a float (NaN fails this too)
+        return usage(f"--min-r2: expected an R^2 from 0 (no limit) to below 1, got {min_r2!r}")
+    try:
+        source_date_epoch()   # a malformed SOURCE_DATE_EPOCH is refused before the press run, not at the write
+    except ValueError as exc:
+        return usage(str(exc))
     duration = None
     if args.csv:
         graph_only = [opt for opt, given in (("--duration", args.duration is not None), ("--set", args.sets),
@@ -836,7 +880,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         if partial:
             print(f"teletouch: warning: {args.csv}: fitting partial samples ({partial}) as --allow-partial asks",
                   file=sys.stderr)
-        samples = [{"depth_m": float(d), "force_n": float(f),
+        samples = [{"depth_m": float(d), "force_n": float(f), "line": data["line"][i],
+                    "column": data["force_column"],
                     "phase": (data["phase"][i] if data["phase"] else ""),
                     "cycle": (data["cycle"][i] if data["cycle"] else 0),
                     "x_m": (data["x_m"][i] if data["x_m"] is not None else None),
@@ -845,7 +890,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         cal = fit_samples(samples, args.degree, min_depth=min_depth, use=args.use,
                           position_degree=args.position_degree,
                           zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or "",
-                          depth_source="csv", source=f"csv:{Path(args.csv).name}")
+                          depth_source="csv", source=f"csv:{Path(args.csv).name}", min_r2=min_r2, where=args.csv)
         if partial:
             cal.extra["partial"] = partial   # recorded in the calibration file
     else:
@@ -866,7 +911,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
                           position_degree=args.position_degree,
                           zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or model_id,
-                          depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}")
+                          depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}",
+                          min_r2=min_r2)
     cal.save(out)
     cal.save_plot(plot)
     print(cal.summary())
@@ -912,6 +958,9 @@ def teletouch_add_commands(calibrate: Any) -> None:
     p.add_argument("--allow-partial", action="store_true", help="with --csv: fit samples marked partial (a press "
                    "run that did not finish) instead of refusing them; the file records it (extra.partial)")
     p.add_argument("--min-depth", default="0.03mm", help="samples shallower than this are no contact (left out)")
+    p.add_argument("--min-r2", type=float, default=DEFAULT_MIN_R2, metavar="R2",
+                   help=f"refuse (and write nothing for) a fit whose R^2 is below this (default {DEFAULT_MIN_R2:g}; "
+                        f"0: no limit)")
     p.add_argument("--sensor-model-id", default=None, help="recorded in the file (default: the depth model)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",
                    help="override a graph parameter (repeatable)")

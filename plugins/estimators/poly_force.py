@@ -42,10 +42,12 @@ from pydantic import Field
 
 from teletouch import Component, Kind, ModelFileError, Params, Port, Sample, TeletouchError, hookimpl
 from teletouch.errors import ComponentFault
+from teletouch.reproducible import build_time
 from teletouch.units import Hertz, Meters, Newtons, Seconds
 
 __all__ = ["ForceCalibration", "CalibrationError", "PolyForce", "read_pairs_csv", "write_pairs_csv",
-           "packaged_calibrations", "resolve_calibration", "FORMAT", "VERSION"]
+           "packaged_calibrations", "resolve_calibration", "depth_levels", "FORMAT", "VERSION", "DEFAULT_MIN_R2",
+           "DEPTH_LEVEL_TOLERANCE_M"]
 
 FORMAT = "teletouch-force-calibration"
 VERSION = 1
@@ -53,6 +55,14 @@ DATA_DIR = Path(__file__).resolve().parent / "data"
 SUFFIX = ".force.json"
 PHASES = ("loading", "unloading", "")
 UNITS = "force in N, depth in m: F(d) = sum_k coefficients[k] * d**k"
+#: depths closer than this (m) are one depth level when counting the levels a fit needs: the max-depth estimate of a
+#: held press jitters by 0.4-3 um (standard deviation of single frames, 0.1-1 mm presses on sim-digit) while a press
+#: routine steps 0.1 mm, so samples of a stuck probe or a repeated reading fall in one level
+DEPTH_LEVEL_TOLERANCE_M = 5e-6
+#: the smallest R^2 ``teletouch calibrate force`` accepts (``--min-r2``): the paper's fit reaches 0.9987, the packaged
+#: simulated calibration 0.9992 and the paper's protocol in simulation 0.99995; 0.99 leaves room for a noisier real
+#: sensor while a fit that explains only 95% of the force's variance is refused
+DEFAULT_MIN_R2 = 0.99
 
 
 class CalibrationError(TeletouchError, ValueError):
@@ -83,6 +93,16 @@ def _lstsq(depths: np.ndarray, forces: np.ndarray, degree: int, zero_intercept: 
     for j, k in enumerate(range(first, degree + 1)):
         coef[k] = float(a[j] / s ** k)
     return coef
+
+
+def depth_levels(depths: Any, tolerance: float = DEPTH_LEVEL_TOLERANCE_M) -> int:
+    """How many distinct depth levels the depths hold: sorted, a depth more than ``tolerance`` (m) above the first
+    depth of the current level starts a new one (near-duplicates never chain into a long level)."""
+    levels, start = 0, -math.inf
+    for x in np.sort(np.asarray(depths, dtype=float).ravel()):
+        if x > start + tolerance:
+            levels, start = levels + 1, x
+    return levels
 
 
 def _monotonic_problem(coef: Sequence[float], lo: float, hi: float) -> str | None:
@@ -371,7 +391,8 @@ class ForceCalibration:
         self.sensor_model_id = sensor_model_id
         self.depth_source = depth_source
         self.source = source
-        self.created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+        # SOURCE_DATE_EPOCH, when set, is the time written (teletouch.reproducible: byte-identical files)
+        self.created = created or _dt.datetime.fromtimestamp(int(build_time()), _dt.timezone.utc).isoformat()
         self.zero_intercept = bool(zero_intercept)
         self.extra = dict(extra or {})
         self.path: str | None = None
@@ -387,7 +408,7 @@ class ForceCalibration:
             phases: Iterable[str] | None = None, cycles: Iterable[int] | None = None, use: str = "all",
             zero_intercept: bool = False, sensor_model_id: str = "", depth_source: str = "", source: str = "",
             extra: dict[str, Any] | None = None, positions: Any = None,
-            position_degree: int = 0) -> "ForceCalibration":
+            position_degree: int = 0, min_r2: float | None = None) -> "ForceCalibration":
         """Least-squares polynomial fit of force (N) on max depth (m).
 
         phases: optional per-sample "loading"/"unloading" labels. Loading and unloading are fitted apart too and
@@ -395,7 +416,10 @@ class ForceCalibration:
         use: which samples make the calibration: "all" (default), "loading" or "unloading".
         positions, position_degree: the contact centroid (x, y) in m of each sample and the degree of the position
         terms (0: none, the paper's model; see the module doc).
-        Raises :class:`CalibrationError` for too few/invalid samples or a fit that is not strictly increasing.
+        min_r2: refuse a fit whose R^2 is below this (None: no limit; ``teletouch calibrate force`` uses
+        :data:`DEFAULT_MIN_R2`).
+        Raises :class:`CalibrationError` for too few/invalid samples or depth levels (:func:`depth_levels`), a fit
+        that is not strictly increasing, or one below ``min_r2``.
         """
         d = np.asarray(list(depths_m), dtype=float).ravel()
         f = np.asarray(list(forces_n), dtype=float).ravel()
@@ -436,12 +460,13 @@ class ForceCalibration:
                 i = int(np.argmax(badp))
                 raise CalibrationError(f"sample {i}: contact centroid {pos[i].tolist()} m is not finite")
         nfree = degree + (0 if zero_intercept else 1)
-        if dsel.size < nfree + 1:
-            raise CalibrationError(f"{dsel.size} samples ({use}) for a degree-{degree} fit: need at least "
-                                   f"{nfree + 1}")
+        levels = depth_levels(dsel)
+        if levels < nfree + 1:
+            raise CalibrationError(f"{levels} distinct depth levels ({dsel.size} samples, {use}) for a degree-{degree} "
+                                   f"fit: need at least {nfree + 1} (depths within "
+                                   f"{DEPTH_LEVEL_TOLERANCE_M * 1e3:g} mm of each other count as one level: a stuck "
+                                   f"probe or a repeated reading adds samples, not levels); press to more depths")
         lo, hi = float(dsel.min()), float(dsel.max())
-        if np.unique(np.round(dsel, 12)).size < nfree:
-            raise CalibrationError(f"only {np.unique(dsel).size} distinct depths for a degree-{degree} fit")
         if hi <= 0 or hi - lo < 1e-7:
             raise CalibrationError(f"the depth range {lo * 1e3:.4f}..{hi * 1e3:.4f} mm is too small to calibrate")
         pmodel = None
@@ -464,6 +489,13 @@ class ForceCalibration:
         ss_tot = float(np.sum((fsel - fsel.mean()) ** 2))
         r2 = 1.0 - ss_res / ss_tot if ss_tot > 0 else math.nan
         rmse = math.sqrt(ss_res / dsel.size)
+        if min_r2 is not None and not r2 >= min_r2:   # NaN (all forces equal) is refused too
+            frange = float(fsel.max() - fsel.min())
+            raise CalibrationError(f"the degree-{degree} fit's R^2 is {r2:.4f}, below the minimum R^2 {min_r2:g} (RMSE "
+                                   f"{rmse:.4f} N, {100 * rmse / frange if frange > 0 else math.nan:.1f}% of the force "
+                                   f"range, {dsel.size} samples): the forces do not follow one curve of the depth "
+                                   f"(noise, a drifting tare, presses at several points without position terms?); "
+                                   f"refusing it: check the data, or lower the limit with --min-r2 (min_r2)")
         samples = [{"depth_m": float(d[i]), "force_n": float(f[i]), "predicted_n": float(pred_all[i]),
                     "residual_n": float(f[i] - pred_all[i]), "phase": ph[i], "cycle": cy[i], "used": bool(sel[i])}
                    for i in range(d.size)]
@@ -908,8 +940,11 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     """Read (depth, force) pairs. Header required: a depth column (depth_m, max_depth_m, depth or depth_mm) and a
     force column (force_n or force, N); optional phase (loading/unloading), cycle, and x_m, y_m (the contact
     centroid, m; both or neither).
+    Lines starting with ``#`` are comments (skipped before the CSV is parsed, so a quote in a comment cannot join
+    the rows after it); errors name the file's line (a quoted cell may span lines: the row's first line).
     Returns {"depth_m": array, "force_n": array, "phase": list | None, "cycle": list | None, "x_m": array | None,
-    "y_m": array | None, "partial": why the samples are incomplete (a ``# partial: why`` line) or None}."""
+    "y_m": array | None, "line": each row's line in the file, "force_column": the force column's name, "partial": why
+    the samples are incomplete (a ``# partial: why`` line) or None}."""
     path = Path(path)
     try:
         fh = path.open(newline="", encoding="utf-8-sig")   # -sig: a spreadsheet's byte order mark is no header
@@ -917,16 +952,29 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
         raise CalibrationError(f"{path}: cannot open the CSV file: {exc}") from None
     with fh:
         try:
-            rows = [r for r in csv.reader(fh)]
+            text = list(fh)   # newline="": lines split on any line end, left as they are (the csv module's way)
         except UnicodeDecodeError as exc:
             raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x}: {exc.reason}): "
                                    f"expected a CSV file of depth, force pairs (save it as UTF-8 CSV)") from None
-        except csv.Error as exc:
-            raise CalibrationError(f"{path}: not a readable CSV file ({exc})") from None
-    partial = next((",".join(r).split(":", 1)[1].strip() or "no reason given" for r in rows
-                    if r and ",".join(r).lstrip().startswith(PARTIAL_MARK)), None)
-    lines = [(i + 1, r) for i, r in enumerate(rows) if r and not r[0].lstrip().startswith("#")
-             and any(c.strip() for c in r)]
+    comment = [t.lstrip().startswith("#") for t in text]
+    partial = next((t.strip().split(":", 1)[1].strip() or "no reason given" for t, c in zip(text, comment)
+                    if c and t.lstrip().startswith(PARTIAL_MARK)), None)
+    first = [0]   # the line the row being parsed starts on
+
+    def source() -> Iterable[str]:
+        for n, t in enumerate(text, 1):
+            if not comment[n - 1]:
+                first[0] = first[0] or n
+                yield t
+
+    lines: list[tuple[int, list[str]]] = []
+    try:
+        for r in csv.reader(source()):
+            if r and any(c.strip() for c in r):
+                lines.append((first[0], r))
+            first[0] = 0
+    except csv.Error as exc:
+        raise CalibrationError(f"{path}:{first[0]}: not a readable CSV file ({exc})") from None
     if not lines:
         raise CalibrationError(f"{path}: empty CSV file (expected a header such as 'depth_m,force_n')")
     hline, header = lines[0]
@@ -944,8 +992,9 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     if (xcol is None) != (ycol is None):
         raise CalibrationError(f"{path}:{hline}: header has {'x_m' if ycol is None else 'y_m'} without "
                                f"{'y_m' if ycol is None else 'x_m'}: the contact centroid needs both columns")
-    depth, force, phase, cycle, xs, ys = [], [], [], [], [], []
+    depth, force, phase, cycle, xs, ys, where = [], [], [], [], [], [], []
     for ln, r in lines[1:]:
+        where.append(ln)
         if len(r) > len(header) and any(c.strip() for c in r[len(header):]):
             raise CalibrationError(f"{path}:{ln}: {len(r)} cells but the header (line {hline}) names "
                                    f"{len(header)} columns: a missing header name or a stray separator?")
@@ -989,7 +1038,8 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
         raise CalibrationError(f"{path}: no data rows after the header")
     return {"depth_m": np.array(depth), "force_n": np.array(force),
             "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None,
-            "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None, "partial": partial}
+            "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None, "line": where,
+            "force_column": names[fcol], "partial": partial}
 
 
 def _implausible(name: str, v: float, is_depth: bool, is_force: bool) -> str | None:
@@ -1047,7 +1097,7 @@ def resolve_calibration(name_or_path: str) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------ the component
-STATUS_VALUES = ("ok", "no-contact", "clamped", "extrapolated", "invalid-input")
+STATUS_VALUES = ("ok", "no-contact", "clamped", "extrapolated", "invalid-input", "no-centroid")
 
 
 class PolyForce(Component):
@@ -1068,7 +1118,8 @@ class PolyForce(Component):
     outputs = {
         "force": Port("float64", (), "N", "normal force (>= 0, exactly 0 without contact); stamp of the depth"),
         "status": Port("str", (), "", "ok | no-contact | clamped (depth beyond the calibrated range, or the "
-                       "centroid outside the calibrated area) | extrapolated | invalid-input"),
+                       "centroid outside the calibrated area) | extrapolated | invalid-input | no-centroid (a light "
+                       "touch without a centroid: the force at the fallback position, see centroid_band)"),
     }
 
     class Params(Params):
@@ -1099,6 +1150,12 @@ class PolyForce(Component):
         depth_limit: Meters = Field(5e-3, gt=0, description="a max depth above this is invalid input (0 N): deeper "
                                     "than a DIGIT's gel is thick (4-5 mm), an estimator or unit fault (mm sent as "
                                     "m?); also bounds the extrapolated force", json_schema_extra={"unit": "m"})
+        centroid_band: Meters = Field(2e-5, ge=0, description="with position terms, a NaN centroid while the "
+                                      "max depth is at most this above contact_threshold is a light touch that the "
+                                      "depth node's full-size contact mask misses (its max depth is the work grid's, "
+                                      "a little deeper): the force is taken at the contact's last centroid, else at "
+                                      "the centre of the calibrated area (status no-centroid); deeper, a NaN centroid "
+                                      "is invalid input; 0: always invalid", json_schema_extra={"unit": "m"})
         max_clock_skew: Seconds = Field(0.05, ge=0, description="a depth stamped further ahead of the graph clock "
                                         "is invalid (a clock fault): no output, counted as invalid",
                                         json_schema_extra={"unit": "s"})
@@ -1124,6 +1181,7 @@ class PolyForce(Component):
         self._reset()
         self.counts = {s: 0 for s in STATUS_VALUES}
         self.skipped = {"out_of_order": 0, "bad_stamp": 0}
+        self.centroid_fallbacks = 0   # light touches evaluated at the fallback position (status no-centroid)
         self.last_force = 0.0
         self.last_status = "no-contact"
         self.invalid_run = 0
@@ -1134,6 +1192,7 @@ class PolyForce(Component):
         self._filt_t: float | None = None
         self._last_stamp: float | None = None
         self._seen: Any = None
+        self._last_pos: tuple[float, float] | None = None
 
     def activate(self) -> None:
         self._reset()
@@ -1217,19 +1276,28 @@ class PolyForce(Component):
         if not contact:
             self._reset_filters()
             return 0.0, "no-contact"
-        pos = None
+        pos, fallback = None, False
         if centroid is not None and self.cal.position is not None:
             try:
                 pos = (float(centroid[0]), float(centroid[1]))
             except (TypeError, ValueError, IndexError):
                 pos = (math.nan, math.nan)
-            if not (math.isfinite(pos[0]) and math.isfinite(pos[1])):   # in contact, but where is unknown
+            if math.isfinite(pos[0]) and math.isfinite(pos[1]):
+                self._last_pos = pos
+            elif d <= p.contact_threshold + p.centroid_band:
+                # a light touch: the depth node's max depth is its work grid's, a little deeper than the full-size
+                # map its contact mask and centroid come from, so just above the threshold no pixel may be in contact
+                pos, fallback = self._last_pos, True   # None: the centre of the calibrated area
+            else:   # in contact, pressed in, but where is unknown
                 self._reset_filters()
                 return 0.0, "invalid-input"
         self._window.append(d)
         if len(self._window) > 1:
             d = float(np.median(self._window))
         force, status = self.cal.predict_with_status(d, p.out_of_range, pos)
+        if fallback:
+            self.centroid_fallbacks += 1
+            status = "no-centroid"
         if p.lowpass_cutoff is not None:
             if self._filt is None:
                 self._filt = force
@@ -1246,6 +1314,7 @@ class PolyForce(Component):
         return float(force), status
 
     def _reset_filters(self) -> None:
+        self._last_pos = None
         self._window.clear()
         self._filt = None
         self._filt_t = None
@@ -1253,7 +1322,8 @@ class PolyForce(Component):
     def status(self) -> dict[str, Any]:
         return {"force_n": getattr(self, "last_force", 0.0), "status": getattr(self, "last_status", ""),
                 "invalid": getattr(self, "counts", {}).get("invalid-input", 0),
-                "force_limit_n": getattr(self, "force_limit", None), **getattr(self, "skipped", {})}
+                "force_limit_n": getattr(self, "force_limit", None),
+                "centroid_fallbacks": getattr(self, "centroid_fallbacks", 0), **getattr(self, "skipped", {})}
 
 
 @hookimpl
