@@ -12,7 +12,8 @@ and future stamps; frames of the wrong dtype, shape or type. On every output sam
   image) exactly when there is contact; every output carries the frame's stamp;
 - force: finite, >= 0, <= ``status()['force_limit_n']``; exactly 0 without contact (max depth NaN: invalid input;
   0, below the contact threshold, an empty mask, an area at most min_contact_area: no-contact; no contact pixel,
-  centroid (NaN, NaN): either); stamped with the depth's stamp; no output
+  centroid (NaN, NaN): either, or, within poly-force's centroid_band above its contact threshold, the force at the
+  fallback position with status no-centroid); stamped with the depth's stamp; no output
   for a stamp that is not finite or is ahead of the clock;
 - a frame of the wrong dtype/shape/type, and anything else the node cannot take, ends in a ComponentFault naming
   the node (a clean fault), never in another exception.
@@ -55,7 +56,7 @@ M_PER_PX = 1.0 / MODEL.px_per_m
 DT = 1.0 / 60.0
 #: (indentation m, (x, y) m from the image centre): the middle, the border (the image is ~14 x 18.7 mm), corners
 PRESSES = [(1e-3, (0.0, 0.0)), (5e-4, (0.002, -0.003)), (1.5e-3, (-0.003, 0.004)), (2e-4, (0.0, 0.0)),
-           (1e-3, (0.0068, 0.0)), (1e-3, (-0.0072, 0.0)), (8e-4, (0.0, 0.0092)), (8e-4, (0.0, -0.0095)),
+           (1e-3, (0.0068, 0.0)), (1e-3, (-0.0069, 0.0)), (8e-4, (0.0, 0.0092)), (8e-4, (0.0, -0.0093)),
            (1.2e-3, (0.0066, 0.009)), (1.2e-3, (-0.0066, -0.009)), (2e-3, (0.001, 0.001)), (6e-5, (0.0, 0.002))]
 WRONG = ["float32", "uint16", "int8", "gray", "bgra", "transposed", "half", "list", "none", "empty", "flipped",
          "fortran"]
@@ -294,11 +295,15 @@ def check_force(i: int, out: dict[str, Sample] | None, dout: dict[str, Sample], 
                   or ("contact_area" in case.wires and not dout["contact_area"].value > case.force["min_contact_area"]))
     if no_contact and (v != 0.0 or status.value != "no-contact"):
         bad("force-no-contact", f"force {v!r} ({status.value}) without contact (max depth {md!r})")
-    # no contact pixel (a max depth just at the threshold: the full-size map is a little shallower than the work
-    # grid's max): with the area or mask wired that is no contact above; with the centroid alone, documented as
-    # invalid input (docs/force.md): 0 N either way
-    if np.isnan(dout["centroid"].value).all() and (v != 0.0 or status.value not in ("no-contact", "invalid-input")):
-        bad("force-no-contact", f"force {v!r} ({status.value}) without a contact pixel (max depth {md!r})")
+    # no contact pixel (a max depth just at the threshold): with the area or mask wired that is no contact above;
+    # with the centroid alone, a light touch within centroid_band above the threshold is taken at the fallback
+    # position (status no-centroid, docs/force.md), deeper it is invalid input (0 N)
+    if np.isnan(dout["centroid"].value).all():
+        light = md <= case.force["contact_threshold"] + case.force.get("centroid_band", 2e-5)
+        if status.value == "no-centroid" and not light:
+            bad("force-no-contact", f"force {v!r} (no-centroid) for a max depth {md!r} beyond the centroid band")
+        if status.value != "no-centroid" and (v != 0.0 or status.value not in ("no-contact", "invalid-input")):
+            bad("force-no-contact", f"force {v!r} ({status.value}) without a contact pixel (max depth {md!r})")
 
 
 # ================================================================================================ runner

@@ -255,7 +255,7 @@ def test_same_seed_same_frames_and_two_seeds_independent_noise():
             return [h.step(k / 60)["image"].astype(float) for k in range(3)]
 
     a, b, c = frames(5), frames(5), frames(6)
-    assert all(np.array_equal(x, y) for x, y in zip(a, b))  # two nodes with one seed: the same noise (documented)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))  # one seed and one unit (id): the same noise (documented)
     clean = DigitSimulator().render(0.001)[0].astype(float)
     na, nc = a[0] - clean, c[0] - clean
     assert abs(np.corrcoef(na.ravel(), nc.ravel())[0, 1]) < 0.02

@@ -7,7 +7,8 @@ fingers into the object is shared in series by the fingertip gel(s) and the obje
 is sim-digit's (``teletouch.plugins.sensors.gel.gel_force``), so ``indentation`` wired into sim-digit makes the
 simulated DIGIT see exactly the squeeze whose force the gripper reports. Deterministic under the sim clock.
 The hold and the safe state (which command the measured opening) keep the fingers where they are and the grip as it
-is, as a real servo does (see :meth:`SimGripper.servo_target`).
+is, as a real servo does, and commands after a hold pick the servo up from the effort it held (see
+:meth:`SimGripper.servo_target`).
 """
 
 from __future__ import annotations
@@ -130,6 +131,8 @@ class SimGripper(FollowerBase):
         self.indentation = 0.0
         self.force = 0.0
         self._hold_effort: tuple[float, float] | None = None     # (the held opening, the effort when it began)
+        self._resume_offset = 0.0   # m: what is left of the hold's target offset after commands resumed
+        self._travel = 0.0          # m: how far the set-point may move this step (the base's speed limit)
         self._contact_at(x0)
 
     def _hw_read(self) -> Reading:
@@ -153,14 +156,31 @@ class SimGripper(FollowerBase):
         opening; a real servo keeps its effort there (its integral action, or a gearbox the object cannot
         back-drive) and the fingers stay put. This model needs a position error for an effort, so without the
         offset the object pushed the fingers open and the grip relaxed (0.39 -> 0.27 N and 0.07 mm wider on the
-        probe, 16 -> 6.8 N and 1.7 mm wider squeezing at max_effort)."""
-        holding = self._holding is not None or (self._safe and self.params.safe_mode == "hold")
+        probe, 16 -> 6.8 N and 1.7 mm wider squeezing at max_effort).
+
+        When commands resume, the servo picks up from the effort it held: the offset is not dropped but bled off
+        by as much as the set-point may move each step (``max_speed``, the base's speed limit), so the target is
+        continuous. A command asking for the same squeeze keeps the held target exactly while the set-point walks
+        from the held opening back to it (dropping the offset at once dipped the grip for 2-80 ms: 16 -> 6.8 N at
+        max_effort, 0.39 -> 0.27 N on the probe); a lighter squeeze or an opening is reached at up to twice
+        ``max_speed``. The open safe state keeps nothing."""
+        k = self.params.servo_stiffness
+        # the safe state decides alone: its open mode keeps nothing of a hold (a stale command's) before it
+        holding = self.params.safe_mode == "hold" if self._safe else self._holding is not None
         if not holding:                         # following commands, or the safe state's open: no hold
+            if self._safe:                      # open: release at once
+                self._resume_offset = 0.0
+            elif self._hold_effort is not None:  # a hold just ended: start from its offset
+                self._resume_offset = self._hold_effort[1] / k
             self._hold_effort = None
+            if self._resume_offset > 0.0:
+                self._resume_offset = max(self._resume_offset - self._travel, 0.0)
+                return self.target - self._resume_offset
             return self.target
+        self._resume_offset = 0.0
         if self._hold_effort is None or self._hold_effort[0] != self._hold_at:
             self._hold_effort = (self._hold_at, self.force)
-        return self.target - self._hold_effort[1] / self.params.servo_stiffness
+        return self.target - self._hold_effort[1] / k
 
     def advance(self, t: float) -> None:
         """Move the fingers from the last step's time to ``t`` towards the servo's target (:meth:`servo_target`)."""
@@ -191,6 +211,9 @@ class SimGripper(FollowerBase):
         self._contact_at(x_new)
 
     def step(self, t: float, inputs: Any) -> dict[str, Any]:
+        # how far command_target may move the set-point this step: max_speed over the time it counts
+        last = self._last_t
+        self._travel = 0.0 if last is None else self.params.max_speed * max(min(t - last, self._max_dt), 0.0)
         target = self.command_target(t, inputs)
         self._hw_write(target)
         self.advance(t)

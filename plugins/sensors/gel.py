@@ -38,7 +38,8 @@ equivalent radius. ``deformation=False`` gives the rigid cap (the plain geometri
 maps are float32 in metres, positive into the gel.
 
 Positions are in metres from the image centre, x along columns, y along rows (docs/ports.md). ``tilt`` rotates the
-indenter about the axis through its centre parallel to the rows (y): its lowest point moves towards +x.
+indenter about the axis through its centre parallel to the rows (y): its lowest point moves towards +x. The tilted
+face is projected onto the gel plane exactly (:meth:`Indenter.surface_at`).
 """
 
 from __future__ import annotations
@@ -206,17 +207,35 @@ class Indenter:
         raise ValueError("profile() is for axisymmetric indenters")
 
     def surface_at(self, x: np.ndarray, y: np.ndarray, tilt: float = 0.0) -> np.ndarray:
-        """Height (m) of the indenter's face above its lowest point at offsets (x, y) (m) from its axis."""
+        """Height (m) of the indenter's face above its lowest point at offsets (x, y) (m) from its axis.
+
+        Tilted (about the y axis through the lowest point of the untilted face), a face point (u, y, h(u, y)) goes
+        to (u c + h s, y, -u s + h c) (c, s: cosine and sine of the tilt), and the face seen from below is the
+        lower envelope of those points, exactly: the probe's cap stays a sphere of ``tip_radius`` (its footprint
+        at a depth is the untilted one while it is within the cap), the punch's end a plane, a height map a
+        staircase of its samples. Heights are from the tilted face's own lowest point, wherever it is."""
         if tilt != 0.0 and self.kind != "sphere":  # a sphere is the same shape under any rotation
-            c, s = math.cos(tilt), math.sin(tilt)
-            # rotate about the y axis: a face point (u, y, h(u, y)) goes to (u c + h s, y, -u s + h c);
-            # to first order in the face height, the face seen from below is h(x / c) c - x tan(tilt).
-            z = self._surface_untilted(x / c, y) * c - x * (s / c)
-            finite = np.isfinite(z)
-            if finite.any():
-                z = z - z[finite].min()
-            return z
+            return _tilted_face(self, np.asarray(x, np.float64), np.asarray(y, np.float64), float(tilt))
         return self._surface_untilted(x, y)
+
+    @property
+    def face_height(self) -> float:
+        """Height (m) of the face's highest finite point above its lowest (the rim of a probe's cap)."""
+        if self.kind == "sphere":
+            return self.radius
+        if self.kind == "probe":
+            Rt, a = self.tip_radius, self.radius
+            return Rt - math.sqrt(Rt * Rt - a * a)
+        if self.kind == "flat":
+            return 0.0
+        assert self.surface is not None
+        return float(self.surface[np.isfinite(self.surface)].max())
+
+    def tilted_extent(self, tilt: float = 0.0) -> float:
+        """Radius (m) around the axis that holds the face when tilted (:attr:`extent` untilted)."""
+        if tilt == 0.0 or self.kind == "sphere":
+            return self.extent
+        return max(self.extent, self.extent * abs(math.cos(tilt)) + self.face_height * abs(math.sin(tilt)))
 
     def _surface_untilted(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         if self.kind != "map":
@@ -252,6 +271,87 @@ class Indenter:
         return float(np.searchsorted(heights, s, side="left")) * cell
 
 
+def _tilted_face(ind: Indenter, x: np.ndarray, y: np.ndarray, tilt: float) -> np.ndarray:
+    """:meth:`Indenter.surface_at` of a tilted probe, punch or height map (see there): exact projection onto the
+    gel plane of the rotated face. (The first-order projection h(x / c) c - x tan(tilt) before this one narrowed the
+    face along x by c^2: a probe's footprint shrank 4% at 0.2 rad, its force 2.6%.)"""
+    c, s = math.cos(tilt), math.sin(tilt)
+    x, y = np.broadcast_arrays(x, y)
+    if ind.kind == "flat":
+        a = ind.radius
+        # the end face stays a plane: x = u c, height -u s; lowest at its rim, u = a sign(s)
+        z = np.where((x / c) ** 2 + y * y <= a * a, -x * (s / c) + a * abs(s), np.inf)
+        return np.maximum(z, 0.0)
+    if ind.kind == "probe":
+        Rt, a = ind.tip_radius, ind.radius
+        # the cap is a sphere of Rt about (0, 0, Rt), rotated to (Rt s, 0, Rt c): its lower half, where the point
+        # comes from the cap (u^2 + y^2 <= a^2 and h <= Rt before the rotation; the cylinder's sides never touch
+        # the gel)
+        q = Rt * Rt - (x - Rt * s) ** 2 - y * y
+        zr = Rt * c - np.sqrt(np.maximum(q, 0.0))
+        u, h = x * c - zr * s, x * s + zr * c
+        z = np.where((q >= 0.0) & (u * u + y * y <= a * a) & (h <= Rt), zr, np.inf)
+        # lowest point: the sphere's, if on the cap; else the cap's rim on the side it tilts to
+        zmin = Rt * c - Rt if Rt * abs(s) <= a else -a * abs(s) + (Rt - math.sqrt(Rt * Rt - a * a)) * c
+        return np.maximum(z - zmin, 0.0)
+    return _tilted_map(ind, x, y, c, s)
+
+
+def _tilted_map(ind: Indenter, x: np.ndarray, y: np.ndarray, c: float, s: float) -> np.ndarray:
+    """A tilted height map seen from below. Each map row (constant y: the tilt axis) is a polyline through its
+    samples, each run of finite samples extended flat by half a sample at its ends (the untilted map is sampled
+    nearest-neighbour, so its footprint reaches there too); rotated exactly, the gel sees the segments that face
+    down (x growing along the row) and at each (x, y) the lowest of them (a row may fold where it climbs steeply away
+    from the tilt). Query points take the nearest map row, as untilted."""
+    assert ind.surface is not None
+    S = ind.surface
+    hm, wm = S.shape
+    m = ind.map_m_per_px
+    u = (np.arange(wm) - (wm - 1) / 2.0) * m
+    fin = np.isfinite(S)
+    left_open = np.ones_like(fin)
+    left_open[:, 1:] = ~fin[:, :-1]
+    right_open = np.ones_like(fin)
+    right_open[:, :-1] = ~fin[:, 1:]
+    # three vertex slots per sample: the run's left end (u - m/2), the sample (u), the run's right end (u + m/2)
+    valid = np.stack([fin & left_open, fin, fin & right_open], axis=2).reshape(hm, 3 * wm)
+    uv = np.stack([u - m / 2.0, u, u + m / 2.0], axis=1).ravel()
+    rows, slots = np.nonzero(valid)                                       # row-major: along each row in order
+    hv = S[rows, slots // 3]
+    X = uv[slots] * c + hv * s
+    Z = -uv[slots] * s + hv * c
+    zmin = float(Z.min())
+    # a segment joins each vertex to the next one of its run (a run ends at its right-end vertex)
+    pair = (rows[:-1] == rows[1:]) & (slots[:-1] % 3 != 2)
+    X0, X1, Z0, Z1 = X[:-1][pair], X[1:][pair], Z[:-1][pair], Z[1:][pair]
+    seg_row = rows[:-1][pair]
+    down = X1 > X0
+    X0, X1, Z0, Z1, seg_row = X0[down], X1[down], Z0[down], Z1[down], seg_row[down]
+    # queries: the map row of each point (nearest sample, as untilted), sorted by (row, x)
+    xq = x.ravel()
+    rq = np.rint(y.ravel() / m + (hm - 1) / 2.0)
+    out = np.full(xq.shape, np.inf)
+    ok = (rq >= 0) & (rq < hm) & np.isfinite(xq)
+    if not ok.any() or seg_row.size == 0:
+        return out.reshape(x.shape)
+    qi = np.flatnonzero(ok)
+    span = 2.0 * (float(np.abs(xq[qi]).max()) + float(np.abs(X).max())) + 1.0  # keys keep the rows apart
+    key = rq[qi] * span + xq[qi]
+    order = np.argsort(key, kind="stable")
+    key, qi = key[order], qi[order]
+    lo = np.searchsorted(key, seg_row * span + X0, side="left")
+    hi = np.searchsorted(key, seg_row * span + X1, side="right")
+    n = hi - lo
+    if n.sum() == 0:
+        return out.reshape(x.shape)
+    seg = np.repeat(np.arange(n.size), n)
+    pos = lo[seg] + (np.arange(seg.size) - np.repeat(np.cumsum(n) - n, n))
+    q = qi[pos]
+    w = (xq[q] - X0[seg]) / (X1[seg] - X0[seg])
+    np.minimum.at(out, q, Z0[seg] + w * (Z1[seg] - Z0[seg]))
+    return np.maximum(out - zmin, 0.0).reshape(x.shape)
+
+
 @lru_cache(maxsize=32)
 def _face_samples(indenter: Indenter, tilt: float) -> tuple[np.ndarray, float]:
     """Sorted finite face heights (m) of an indenter sampled on a grid, and the area (m^2) of one sample: the
@@ -261,7 +361,7 @@ def _face_samples(indenter: Indenter, tilt: float) -> tuple[np.ndarray, float]:
         z = indenter.surface.ravel()
         cell = indenter.map_m_per_px ** 2
     else:
-        ext = indenter.extent
+        ext = indenter.tilted_extent(tilt)
         n = 513
         g = np.linspace(-ext, ext, n)
         X, Y = np.meshgrid(g, g)
@@ -474,10 +574,11 @@ def support_radius(indenter: Indenter, indentation_m: float, tilt_rad: float = 0
     if not deformation:
         if indenter.kind == "sphere":
             return math.sqrt(max(2 * indenter.radius * min(d, indenter.radius) - min(d, indenter.radius) ** 2, 0))
-        return indenter.extent
+        return indenter.tilted_extent(tilt_rad)
     if is_radial(indenter, tilt_rad):
         return SAG_TAPER[1] * a_c
-    return indenter.extent + SAG_TAPER[1] * a_c  # the sag is centred on the contact, somewhere in the footprint
+    # the sag is centred on the contact, somewhere in the footprint
+    return indenter.tilted_extent(tilt_rad) + SAG_TAPER[1] * a_c
 
 
 def _compose(face: np.ndarray, r: np.ndarray, d: float, indenter: Indenter, tilt_rad: float, deformation: bool
@@ -586,28 +687,36 @@ def gel_surface(indenter: Indenter, indentation_m: float, position_m: Sequence[f
         # contact: where the face is within d/2 of its lowest point (or the whole end face)
         re = contact_edge_radius(indenter, d) / m_per_px
         inside = r2 <= np.float32(re * re)
+    elif deformation:
+        # general shape: the contact patch (its centre and area set the sag around it) is found on the whole
+        # window around the axis, then cut to the image: near the image's edge the part of the patch off the image
+        # counts too (measured on the visible part only, the sag moved and shrank with the edge)
+        R0, C0 = int(math.floor(rc)) - rr, int(math.floor(cc)) - rr
+        y = (np.arange(R0, int(math.ceil(rc)) + rr + 1, dtype=np.float64) - rc) * m_per_px
+        x = (np.arange(C0, int(math.ceil(cc)) + rr + 1, dtype=np.float64) - cc) * m_per_px
+        X, Y = np.meshgrid(x, y)
+        face = indenter.surface_at(X, Y, tilt_rad)
+        # the gel touches the face where it is within d/2 of its lowest point (as in Hertz); around that patch
+        # the gel sags like around a Hertz contact of the same area, centred on the patch
+        inside = face <= d / 2.0
+        if inside.any():
+            xc, yc = float(X[inside].mean()), float(Y[inside].mean())
+            a_eq = math.sqrt(inside.sum() * m_per_px * m_per_px / math.pi)
+            rc_ = np.hypot(X - xc, Y - yc)
+            t0, t1 = SAG_TAPER[0] * a_eq, SAG_TAPER[1] * a_eq
+            u = np.clip((rc_ - t0) / max(t1 - t0, 1e-12), 0.0, 1.0)
+            sag = _hertz_sag(rc_, a_eq, a_eq * a_eq / d) * (0.5 + 0.5 * np.cos(np.pi * u))
+            z = np.clip(np.where(inside, np.maximum(d - face, 0.0), np.minimum(sag, d / 2.0)), 0.0, d)
+        else:  # the patch is smaller than a pixel
+            z = np.clip(d - face, 0.0, d)
+        z, inside = z[r0 - R0:r1 - R0, c0 - C0:c1 - C0], inside[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
     else:
         y = (np.arange(r0, r1, dtype=np.float64) - rc) * m_per_px
         x = (np.arange(c0, c1, dtype=np.float64) - cc) * m_per_px
         r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
         X, Y = np.meshgrid(x, y)
         face = indenter.surface_at(X, Y, tilt_rad)
-        if deformation and not is_radial(indenter, tilt_rad):
-            # general shape: the gel touches the face where it is within d/2 of its lowest point (as in Hertz);
-            # around that patch the gel sags like around a Hertz contact of the same area, centred on the patch
-            inside = face <= d / 2.0
-            if inside.any():
-                xc, yc = float(X[inside].mean()), float(Y[inside].mean())
-                a_eq = math.sqrt(inside.sum() * m_per_px * m_per_px / math.pi)
-                rc_ = np.hypot(X - xc, Y - yc)
-                t0, t1 = SAG_TAPER[0] * a_eq, SAG_TAPER[1] * a_eq
-                u = np.clip((rc_ - t0) / max(t1 - t0, 1e-12), 0.0, 1.0)
-                sag = _hertz_sag(rc_, a_eq, a_eq * a_eq / d) * (0.5 + 0.5 * np.cos(np.pi * u))
-                z = np.clip(np.where(inside, np.maximum(d - face, 0.0), np.minimum(sag, d / 2.0)), 0.0, d)
-            else:  # the patch is smaller than a pixel
-                z = np.clip(d - face, 0.0, d)
-        else:
-            z, inside = _compose(face, r, d, indenter, tilt_rad, deformation)
+        z, inside = _compose(face, r, d, indenter, tilt_rad, deformation)
     depth[r0:r1, c0:c1] = z
     mask[r0:r1, c0:c1] = inside
     return GelSurface(depth, mask, (r0, r1, c0, c1), (rc, cc), zg if deformation and is_radial(indenter, tilt_rad)

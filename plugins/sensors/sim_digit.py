@@ -17,6 +17,7 @@ that are not finite or older than INPUT_MAX_AGE.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from typing import Any, Literal
@@ -47,13 +48,29 @@ MODULUS_RANGE = _gel.MODULUS_RANGE
 #: input staleness limit (s): an indentation, position or tilt older than this faults the node (the runtime's
 #: max_age; a graph may set another per wire)
 INPUT_MAX_AGE = 0.25
+#: the stream name that keeps a seed's own random stream (the node's default id, the component's name)
+SEED_STREAM = "sim-digit"
+
+
+def seed_sequence(seed: int, stream: str | None = None) -> np.random.SeedSequence:
+    """The seed of a simulator's random stream: ``seed``'s own (``np.random.default_rng(seed)``) for ``stream``
+    None or SEED_STREAM, else one of its own for each stream name, independent of the others and reproducible (the
+    name enters as its SHA-256, not Python's per-process hash)."""
+    if stream is None or stream == SEED_STREAM:
+        return np.random.SeedSequence(seed)
+    words = np.frombuffer(hashlib.sha256(stream.encode("utf-8")).digest(), dtype="<u4")
+    return np.random.SeedSequence([int(seed), *(int(w) for w in words)])
 
 
 class DigitSimulator:
     """Renders DIGIT frames and their ground truth; the engine behind ``sim-digit`` (usable on its own).
 
     ``render(indentation, position, tilt, t)`` returns (image uint8, GelSurface); results of the last pose are
-    cached, so a resting indenter costs a copy and the noise.
+    cached, so a resting indenter costs a copy and the noise. A position off the image (:meth:`check_on_gel`) or a
+    tilt beyond MAX_TILT is refused (ValueError) with the node's messages.
+
+    The noise, drift phase and unit variation come from ``seed`` and ``stream`` (:func:`seed_sequence`): two
+    simulators with one seed and different stream names are two sensors with independent noise.
     """
 
     def __init__(self, resolution: str = "qvga", m_per_px: float | None = None,
@@ -61,7 +78,7 @@ class DigitSimulator:
                  smoothing: float = 0.08e-3, deformation: bool = True, noise: float = 0.0, drift: float = 0.0,
                  drift_period: float = 10.0, unit_variation: float = 0.0, seed: int = 0,
                  background: str | Path | np.ndarray | None = None, optical_model: str | Path | None = None,
-                 stride: int = 2):
+                 stride: int = 2, stream: str | None = None):
         import cv2
 
         from . import optics
@@ -78,7 +95,7 @@ class DigitSimulator:
         self.noise = float(noise)
         self.drift = float(drift)
         self.drift_period = float(drift_period)
-        rng = np.random.default_rng(seed)
+        rng = np.random.default_rng(seed_sequence(seed, stream))
         self.rng = np.random.default_rng(rng.integers(2 ** 63))
         # per-unit variation: channel gains of the contact response and of the background, LED centre offset
         uv = float(unit_variation)
@@ -129,7 +146,23 @@ class DigitSimulator:
         self.max_depth = 0.0  # of the last rendered surface (m)
         self.renders = 0
 
+    def check_on_gel(self, position) -> None:
+        """The indenter's axis (x, y) (m from the image centre) must be on the gel's sensing area (the image), else
+        nothing could be seen of a contact whose force the ground truth would still report: ValueError if not."""
+        rows, cols = self.shape
+        mpp = self.m_per_px
+        hx, hy = cols / 2 * mpp, rows / 2 * mpp
+        x, y = float(position[0]), float(position[1])
+        if not (abs(x) <= hx and abs(y) <= hy):
+            raise ValueError(f"indenter position ({x * 1e3:.4g} mm, {y * 1e3:.4g} mm) is off the gel: the image "
+                             f"spans x +-{hx * 1e3:.3g} mm, y +-{hy * 1e3:.3g} mm ({cols} x {rows} px at "
+                             f"{mpp * 1e3:.4g} mm/px); positions are in m")
+
     def surface(self, indentation: float, position=(0.0, 0.0), tilt: float = 0.0) -> _gel.GelSurface:
+        """The gel surface of a pose (a contact, indentation > 0, must be on the gel: :meth:`check_on_gel`)."""
+        _check_tilt("tilt", float(tilt))
+        if float(indentation) > 0:
+            self.check_on_gel(position)
         return _gel.gel_surface(self.indenter, indentation, position, tilt, self.shape, self.m_per_px,
                                 self.deformation)
 
@@ -237,6 +270,7 @@ class DigitSimulator:
                ) -> tuple[np.ndarray, _gel.GelSurface]:
         d = max(float(indentation), 0.0)
         key = (d, float(position[0]), float(position[1]), float(tilt)) if d > 0 else (0.0,)
+        _check_tilt("tilt", float(tilt))  # (and a contact off the gel: by surface(), for each new pose)
         if key != self._key:
             self._surface = self.surface(d, position, tilt)
             # shared by every step at this pose (and by every consumer): read-only
@@ -318,8 +352,11 @@ class SimDigit(Component):
                                       json_schema_extra={"unit": "s"})
         unit_variation: float = Field(0.0, ge=0, le=3, description="per-unit variation (0: the reference DIGIT; "
                                       "1: typical spread of LED colour, gain, centring and gel blur)")
-        seed: int = Field(0, ge=0, description="random seed (noise, drift phase, unit variation); two nodes with "
-                          "the same seed draw the same noise")
+        seed: int = Field(0, ge=0, description="random seed (noise, drift phase, unit variation), drawn per unit")
+        unit: str | None = Field(None, min_length=1, description="which physical DIGIT this node is: its noise, "
+                                 "drift phase and unit variation come from (seed, unit). Default: the node's id, so "
+                                 "two nodes of a graph draw independent noise; one unit for two nodes makes them one "
+                                 "sensor; 'sim-digit' (a node made outside a graph) draws the seed's own stream")
         background: str | None = Field(None, description="background image or folder of no-contact frames "
                                        "(default: the shipped real frame)")
         optical_model: str | None = Field(None, description="polynomial table .npz (default: the shipped one)")
@@ -375,11 +412,11 @@ class SimDigit(Component):
             material=_gel.GelMaterial(p.modulus, p.poisson, p.gel_thickness), smoothing=p.smoothing,
             deformation=p.deformation, noise=p.noise, drift=p.drift, drift_period=p.drift_period,
             unit_variation=p.unit_variation, seed=p.seed, background=p.background, optical_model=p.optical_model,
-            stride=p.render_stride)
+            stride=p.render_stride, stream=p.unit if p.unit is not None else self.id)
         self._force = _gel.force_law(self.sim.indenter, self.sim.material)  # gel_force, constants computed once
         self._last: dict[str, float] = {}
         try:
-            self._check_on_gel(np.asarray(p.position, np.float64))
+            self.sim.check_on_gel(p.position)
         except ValueError as e:
             raise ValueError(f"position: {e}") from None
 
@@ -402,17 +439,6 @@ class SimDigit(Component):
             return _gel.Indenter.probe(radius, p.tip_radius)
         return _gel.Indenter.sphere(radius) if p.indenter == "sphere" else _gel.Indenter.flat(radius)
 
-    def _check_on_gel(self, pos: np.ndarray) -> None:
-        """The indenter's axis must be on the gel's sensing area (the image), else nothing could be seen of a
-        contact whose force the ground truth would still report."""
-        rows, cols = self.sim.shape
-        mpp = self.sim.m_per_px
-        hx, hy = cols / 2 * mpp, rows / 2 * mpp
-        if not (abs(pos[0]) <= hx and abs(pos[1]) <= hy):
-            raise ValueError(f"indenter position ({pos[0] * 1e3:.4g} mm, {pos[1] * 1e3:.4g} mm) is off the gel: the "
-                             f"image spans x +-{hx * 1e3:.3g} mm, y +-{hy * 1e3:.3g} mm ({cols} x {rows} px at "
-                             f"{mpp * 1e3:.4g} mm/px); positions are in m")
-
     def step(self, t: float, inputs) -> dict[str, Any]:
         p = self.params
         d = _finite(inputs.value("indentation", p.indentation), "indentation")
@@ -424,10 +450,7 @@ class SimDigit(Component):
         if pos.shape != (2,) or not np.isfinite(pos).all():
             raise ValueError(f"position must be two finite values (x, y) in m, got {pos!r}")
         tilt = _finite(inputs.value("tilt", p.tilt), "tilt")
-        _check_tilt("tilt", tilt)
-        if d > 0:
-            self._check_on_gel(pos)
-        img, surf = self.sim.render(d, pos, tilt, t)
+        img, surf = self.sim.render(d, pos, tilt, t)    # refuses a tilt beyond MAX_TILT, a contact off the gel
         force = self._force(max(d, 0.0)) if tilt == 0.0 else self.sim.force(max(d, 0.0), tilt)
         max_depth = self.sim.max_depth if d > 0 else 0.0
         self._last = {"indentation": max(d, 0.0), "force": force, "max_depth": max_depth}
