@@ -1,6 +1,6 @@
 """Follower drivers against their emulators: command-to-state round trip and achievable update rate, side by side.
 
-    python benchmarks/follower_latency.py [--quick]
+    python benchmarks/follower_latency.py [--quick] [--ros-domain N]
 
 Transports: pal-gripper over ROS 2 (DDS on loopback, the simulated controller in its own process publishing
 /joint_states at 1 kHz),
@@ -14,6 +14,11 @@ canopen-gripper on python-can's virtual bus (SYNC -> TPDO), and sim-gripper as t
   thread-less sim-gripper) for a while;
   ``fresh_state_hz`` counts only steps that got a new measurement (ROS 2 state arrives asynchronously at the
   publisher's rate).
+
+ROS 2 runs on ``--ros-domain`` (default: ROS_DOMAIN_ID if set, else a domain of this process's own, chosen from its
+process id as the tests choose theirs, so that two runs at once do not see each other), discovery on this host only
+(always: the emulator runs here), and the driver commands a controller under a namespace of this run's own
+(``/bench_<pid>``), never a lab robot's ``/gripper_controller``. The JSON names the domain used.
 
 Prints one JSON object as its last line. Absolute times depend on the machine (a shared 2-core box here); compare the
 ratios between transports measured in the same run.
@@ -33,27 +38,34 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-os.environ.setdefault("ROS_LOCALHOST_ONLY", "1")
-DOMAIN = int(os.environ.get("TELETOUCH_BENCH_ROS_DOMAIN", "63"))
+# the emulator runs on this host: discovery stays on it, whatever the shell says (a lab's robot on the same domain
+# must never see the benchmark's commands)
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ["ROS_LOCALHOST_ONLY"] = "1"
+#: this process's own ROS domain, chosen from its process id as the tests choose theirs (the default when neither
+#: --ros-domain nor ROS_DOMAIN_ID is given)
+DOMAIN = 120 + (os.getpid() * 7 + 8) % 90
+#: the controller's namespace, this run's own
+NAMESPACE = f"/bench_{os.getpid()}"
 
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
 
 from teletouch.component import Context, Inputs, Sample, _Slot  # noqa: E402
-from bench_common import emit  # noqa: E402
+from teletouch.plugins.ros_names import MAX_DOMAIN_ID, domain_id  # noqa: E402
+from bench_common import emit, number  # noqa: E402
 
 
 class PalProcess:
     """The simulated PAL gripper in its own process (as the robot is another machine): no GIL shared with the driver."""
 
-    def __init__(self, domain: int, rate: float):
+    def __init__(self, domain: int, rate: float, namespace: str = ""):
         import subprocess
 
         self.proc = subprocess.Popen(
             [sys.executable, str(ROOT / "tests" / "fakes" / "pal_gripper_node.py"), "--domain-id", str(domain),
-             "--rate", str(rate), "--velocity-limit", "1000"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            text=True)
+             "--namespace", namespace, "--rate", str(rate), "--velocity-limit", "1000"], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, text=True)
         if self.proc.stdout.readline().strip() != "ready":
             self.stop()
             raise RuntimeError("simulated PAL gripper did not start")
@@ -156,10 +168,29 @@ def bench(name, cls, params, n, seconds, setup=None, round_trip=True):
     return res
 
 
+def ros_domain(given: int | None) -> int:
+    """The ROS domain to use: ``given`` (--ros-domain), else ROS_DOMAIN_ID (checked: 0..232, a ValueError naming it
+    otherwise), else :data:`DOMAIN`."""
+    d = domain_id(given, ValueError)
+    return DOMAIN if d is None else d
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer round trips, shorter rate runs")
+    ap.add_argument("--ros-domain", type=number(int, f"a ROS domain id from 0 to {MAX_DOMAIN_ID}", lo=0,
+                                                   hi=MAX_DOMAIN_ID), default=None, metavar="N",
+                    help="ROS domain of the PAL case (default: ROS_DOMAIN_ID if set, else one of this process's own, "
+                         "from its process id)")
     args = ap.parse_args(argv)
+    try:
+        domain = ros_domain(args.ros_domain)
+    except ValueError as exc:   # a bad ROS_DOMAIN_ID
+        ap.error(f"{exc}; here: --ros-domain N")
+    source = ("--ros-domain" if args.ros_domain is not None else
+              "ROS_DOMAIN_ID" if os.environ.get("ROS_DOMAIN_ID", "").strip() else "process id")
+    print(f"ROS 2 domain {domain} (from {source}), discovery on this host, controller namespace {NAMESPACE}",
+          file=sys.stderr)
     n, seconds = (40, 0.5) if args.quick else (200, 2.0)
 
     from teletouch.plugins.devices.canopen_gripper import CanopenGripper
@@ -182,12 +213,14 @@ def main(argv=None) -> int:
         "canopen (virtual CAN)", CanopenGripper, dict(fast, interface="virtual", channel=ch, node_id=4),
         n, seconds, setup=lambda: Cia402Drive(4, ch, position=0).start())
     results["pal-ros2-loopback"] = bench(
-        "pal (ROS 2 loopback)", PalGripper, dict(fast, domain_id=DOMAIN, time_from_start=0.001, connect_timeout=10.0),
-        n, seconds, setup=lambda: PalProcess(DOMAIN, 1000.0))
+        "pal (ROS 2 loopback)", PalGripper, dict(fast, domain_id=domain, namespace=NAMESPACE, time_from_start=0.001,
+                                                 connect_timeout=10.0),
+        n, seconds, setup=lambda: PalProcess(domain, 1000.0, NAMESPACE))
 
     ref = results["dynamixel-1000000"]["round_trip_ms_p50"]
     ratios = {k: (v["round_trip_ms_p50"] / ref if v["round_trip_ms_p50"] and ref else None) for k, v in results.items()}
-    out = {"benchmark": "follower_latency", "quick": args.quick, "round_trips_per_driver": n,
+    out = {"benchmark": "follower_latency", "quick": args.quick, "ros_domain": domain,
+           "ros_domain_from": source, "round_trips_per_driver": n,
            "rate_seconds": seconds, "results": results,
            "round_trip_p50_ratio_to_dynamixel_1mbaud": ratios,
            "note": "emulators on this machine; absolute ms are context, compare ratios"}

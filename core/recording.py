@@ -591,7 +591,10 @@ class Recorder:
         self.encode_threads = int(encode_threads)
         self.max_queue_bytes = int(max_queue_bytes)
         self._queued_bytes = 0
-        self._bytes_lock = threading.Lock()
+        # the writer's queue accounting: the admission check (items, bytes), the byte count, the drop count and
+        # max_backlog change together under this lock (taps come from every node's thread at once; a check made
+        # outside it let two taps both take the last place, and a max_backlog write lose a larger one)
+        self._q_lock = threading.Lock()
         self._lag_warned = False
         self.clock = getattr(spec, "clock", "wall")
         self._ports = self._port_table(spec)
@@ -625,11 +628,10 @@ class Recorder:
         self._closed = False
         self.messages = 0
         self.dropped = 0
-        self._drop_lock = threading.Lock()   # taps from several node threads drop at once
         self._dropped_items = self._dropped_bytes = False  # which limit dropped samples (for the report)
         self._last_t: float | None = None  # graph time of the last message handed to the writer
         self._flushed = (0, None)  # (messages, graph time of the last one) at the last successful flush
-        self.max_backlog = 0  # most items seen waiting for the writer
+        self.max_backlog = 0  # most items seen waiting for the writer (the one a tap just queued included)
         self.errors: list[str] = []
         self._seq = 0
         self._thread = threading.Thread(target=self._run, name="teletouch-recorder", daemon=True)
@@ -648,28 +650,32 @@ class Recorder:
                 v = v.value
             if v.__class__ is np.ndarray:
                 nbytes += v.nbytes
-        if self.max_queue:
-            n = self._q.qsize()
-            if n > self.max_backlog:
-                self.max_backlog = n
-            while n >= self.max_queue or (nbytes and self._queued_bytes + nbytes > self.max_queue_bytes):
-                if self.clock != "sim" or not self._thread.is_alive():
-                    # real time: never block the node's thread. Taps come from every node's thread at once: the
-                    # count is a read-add-write, so it is done under a lock (unlocked, concurrent drops were lost)
-                    k = len(outputs)
-                    with self._drop_lock:
-                        self.dropped += k
-                        if n >= self.max_queue:
-                            self._dropped_items = True
-                        else:
-                            self._dropped_bytes = True
-                    return
-                time.sleep(0.001)  # simulated clock: wait for the writer, record everything
+        k = len(outputs)
+        item = (node_id, t, dict(outputs), nbytes)
+        while True:
+            # check and enqueue under one lock: checked outside it, two taps could both see the last free place
+            # (or the last free bytes) and both go in, past max_queue / max_queue_bytes
+            with self._q_lock:
                 n = self._q.qsize()
-        if nbytes:
-            with self._bytes_lock:
-                self._queued_bytes += nbytes
-        self._q.put((node_id, t, dict(outputs), nbytes))
+                full = bool(self.max_queue) and n >= self.max_queue
+                over = bool(self.max_queue) and nbytes > 0 and self._queued_bytes + nbytes > self.max_queue_bytes
+                if not (full or over):
+                    self._queued_bytes += nbytes
+                    self._q.put(item)
+                    if n + 1 > self.max_backlog:
+                        self.max_backlog = n + 1
+                    return
+                if n > self.max_backlog:
+                    self.max_backlog = n
+                if self.clock != "sim" or not self._thread.is_alive():
+                    # real time: never block the node's thread; the sample is dropped and counted
+                    self.dropped += k
+                    if full:
+                        self._dropped_items = True
+                    else:
+                        self._dropped_bytes = True
+                    return
+            time.sleep(0.001)  # simulated clock: wait (without the lock) for the writer, record everything
 
     def close(self) -> None:
         """Write everything queued, the summary and the footer; close the file. Idempotent."""
@@ -859,7 +865,7 @@ class Recorder:
             if item is not None:
                 node, t, outputs, nbytes = item
                 if nbytes:
-                    with self._bytes_lock:
+                    with self._q_lock:
                         self._queued_bytes -= nbytes
                 if node == "__epoch__":
                     self._writer.add_metadata("teletouch.time", {"graph_epoch_ns": str(int(t)),
@@ -1105,7 +1111,12 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
     """Yield (stamp_s, BGR uint8 image) for the colour images of a recording, in recorded order; stamps are the
     capture times on the recording's graph clock. ``port``: "node.port", a port name or a topic; None: the only
     colour-image channel (an error names the choices if there are several). A recording cut short (a crashed run)
-    gives the images it holds, after a warning to ``log`` (if given)."""
+    gives the images it holds, after a warning to ``log`` (if given).
+
+    The file is read twice, on purpose: a first pass decodes nothing and learns every channel (a channel's record
+    may come after images of another one), so that an unknown or ambiguous ``port`` is refused and a cut file is
+    warned about before the first image is given, not midway through a replay; the second pass decodes the chosen
+    channel's images one at a time (a long recording's images are never all held in memory)."""
     path = str(path)
     rec = Recording(path)
     # a first pass (no image decoded): every channel must be known before the first image is given (an ambiguous

@@ -1,9 +1,10 @@
 """ROS 2 bridge: graph ports to and from ROS 2 topics with standard messages (extra ``teletouch[ros2]``).
 
 ``ros2-publish`` publishes whatever is wired into it (its ``topics`` are advertised at configure, before the first
-sample, so DDS matches them while the graph starts); ``ros2-subscribe`` turns topics back into graph outputs. A wired
-port whose topic is not in the node's ``topics`` is named by ``wiring_problems`` (for the graph's validation). Two
-graphs on two machines (or two processes) split a pipeline through DDS, e.g. machine A runs
+sample, so DDS matches them while the graph starts; ``wait_for_subscribers`` makes activate wait, up to
+``wait_timeout``, for matched subscribers, else the run does not start); ``ros2-subscribe`` turns topics back into
+graph outputs. A wired port whose topic is not in the node's ``topics`` is named by ``wiring_problems`` (for the
+graph's validation). Two graphs on two machines (or two processes) split a pipeline through DDS, e.g. machine A runs
 digit -> depth -> poly-force -> ros2-publish, machine B runs ros2-subscribe -> position-force -> devices.
 
 | port(s)                       | message                              | topic (param)                         |
@@ -55,7 +56,7 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import Meters, Seconds
 
-from .. import ros_names
+from .. import ros_names, ros_qos
 
 TOPICS = ("force", "image", "depth", "joint_states", "value")
 TOPIC_FIELDS = tuple(f"{k}_topic" for k in TOPICS)
@@ -175,7 +176,7 @@ class _Ros:
         self.rclpy = rclpy
         self._log_once = log_once
         self.wrong_type = 0           # endpoints of another message type on our topics (now)
-        self.incompatible_qos = 0     # peers found with QoS that cannot connect to ours (events)
+        self.qos_report = ros_qos.QosReport(log_once, _qos_hint)   # peers whose QoS cannot connect to ours
         self.errors = 0               # exceptions the executor raised while spinning
         self._watch: list[tuple[str, str]] = []   # (full topic name, our message type)
         self.ctx = Context()
@@ -197,35 +198,21 @@ class _Ros:
         self.thread.start()
 
     def subscription(self, mtype: Any, topic: str, callback: Any, qos: Any) -> Any:
-        from rclpy.event_handler import SubscriptionEventCallbacks
-
-        events = SubscriptionEventCallbacks(incompatible_qos=lambda info: self._on_qos(sub.topic_name, "publisher",
-                                                                                       info))
+        events = self.qos_report.subscription_callbacks(lambda: self.node, lambda: sub.topic_name, qos)
         sub = self.node.create_subscription(mtype, topic, callback, qos, event_callbacks=events)
         self._watch.append((sub.topic_name, _type_name(mtype)))
         return sub
 
     def publisher(self, mtype: Any, topic: str, qos: Any) -> Any:
-        from rclpy.event_handler import PublisherEventCallbacks
-
-        events = PublisherEventCallbacks(incompatible_qos=lambda info: self._on_qos(pub.topic_name, "subscription",
-                                                                                    info))
+        events = self.qos_report.publisher_callbacks(lambda: self.node, lambda: pub.topic_name, qos)
         pub = self.node.create_publisher(mtype, topic, qos, event_callbacks=events)
         self._watch.append((pub.topic_name, _type_name(mtype)))
         return pub
 
-    def _on_qos(self, topic: str, other: str, info: Any) -> None:
-        from rclpy.qos import qos_policy_name_from_kind
-
-        self.incompatible_qos += max(1, int(getattr(info, "total_count_change", 1)))
-        policy = qos_policy_name_from_kind(info.last_policy_kind)
-        hint = {"RELIABILITY": "set reliability: best_effort on this node to hear a best-effort publisher (a "
-                               "reliable publisher serves both)" if other == "publisher" else
-                               "a reliable subscription needs reliability: reliable here",
-                "DURABILITY": "a transient_local subscription needs durability: transient_local on the publisher"
-                }.get(policy, "make the two QoS settings compatible")
-        self._log_once(("qos", topic, policy), f"topic {topic}: a {other} with incompatible QoS ({policy}) was "
-                                               f"found: nothing flows between the two; {hint}")
+    @property
+    def incompatible_qos(self) -> int:
+        """Peers found with QoS that cannot connect to ours (events)."""
+        return self.qos_report.count
 
     def _check_graph(self) -> None:
         try:
@@ -267,6 +254,17 @@ class _Ros:
             if self.ctx.ok():
                 self.rclpy.shutdown(context=self.ctx)
             self.thread.join(timeout=1.0)   # a callback that held it past the first join ends with the context
+
+
+def _qos_hint(policy: str, side: str) -> str:
+    """What to set when this node's ``side`` (subscription/publisher) and a peer have incompatible ``policy``."""
+    if policy == "RELIABILITY":
+        return ("set reliability: best_effort on this node to hear a best-effort publisher (a reliable publisher "
+                "serves both)" if side == "subscription" else "a reliable subscription needs reliability: reliable "
+                "here")
+    if policy == "DURABILITY":
+        return "a transient_local subscription needs durability: transient_local on the publisher"
+    return "make the two QoS settings compatible"
 
 
 def _ros_name(name: str) -> str:
@@ -366,6 +364,30 @@ class Ros2Publish(Component):
             description="topics advertised when the node starts, before the first sample, so that subscribers have "
             "found them by then (force, image, depth, joint_states, value; default all): a wired input whose "
             "topic is not listed is an error")
+        wait_for_subscribers: int | dict[TopicKey, int] = Field(
+            0, description="at activate, wait (up to wait_timeout) until this many subscribers are matched on each "
+            "listed topic, or {topic: count} for some of them, so that the first samples are not lost to DDS "
+            "discovery; not reached in time: a start-up error naming the topic and the counts (0: no wait)")
+        wait_timeout: Seconds = Field(5.0, gt=0, description="how long activate waits for wait_for_subscribers",
+                                      json_schema_extra={"unit": "s"})
+
+        @field_validator("wait_for_subscribers")
+        @classmethod
+        def _counts(cls, v: Any) -> Any:
+            counts = v.values() if isinstance(v, dict) else [v]
+            if any(n < 0 for n in counts):
+                raise ValueError(f"expected a count of subscribers >= 0 (or {{topic: count}}), got {v!r}")
+            return v
+
+        @model_validator(mode="after")
+        def _waited_topics_listed(self) -> "Ros2Publish.Params":
+            w = self.wait_for_subscribers
+            missing = [k for k, n in w.items() if n and k not in self.topics] if isinstance(w, dict) else []
+            if missing:
+                raise ValueError(f"wait_for_subscribers: {', '.join(missing)} not in topics "
+                                 f"[{', '.join(dict.fromkeys(self.topics))}]: only an advertised topic can have "
+                                 f"subscribers (add it to topics)")
+            return self
 
     @classmethod
     def wiring_problems(cls, params: Any, inputs: Any, outputs: Any) -> dict[str, str]:
@@ -398,6 +420,43 @@ class Ros2Publish(Component):
 
     def activate(self) -> None:
         self._clock = _Clock(self.ctx)
+        self._wait_for_subscribers()
+
+    def _waited(self) -> dict[str, int]:
+        """{topic key: subscribers to wait for} (wait_for_subscribers; no key: no wait)."""
+        w = self.params.wait_for_subscribers
+        if isinstance(w, dict):
+            return {k: n for k, n in w.items() if n}
+        return {k: w for k in self._pubs} if w else {}
+
+    def _wait_for_subscribers(self) -> None:
+        """Wait until every waited-for topic has its subscribers matched, or fault naming what is missing."""
+        want = self._waited()
+        if not want:
+            return
+        timeout = self.params.wait_timeout
+        deadline = time.monotonic() + timeout
+        while True:
+            short = {k: seen for k in want if (seen := self._pubs[k].get_subscription_count()) < want[k]}
+            if not short:
+                return
+            if time.monotonic() >= deadline:
+                break
+            time.sleep(0.01)
+        parts = []
+        for k, seen in short.items():
+            topic = self._pubs[k].topic_name
+            try:
+                found = self._ros.node.count_subscribers(topic)
+            except Exception:  # a diagnosis only
+                found = seen
+            unmatched = (f" ({found - seen} more subscription(s) on the topic that DDS did not match: QoS or "
+                         f"message type)" if found > seen else "")
+            qos = "".join(f"; {t}" for t in self._ros.qos_report.texts(topic))
+            parts.append(f"{topic}: {seen} subscriber(s) matched, {want[k]} expected{unmatched}{qos}")
+        raise ComponentFault(f"wait_for_subscribers: not reached after {timeout:g} s (wait_timeout), ROS_DOMAIN_ID "
+                             f"{self._ros.ctx.get_domain_id()}: {'; '.join(parts)}; is the subscribing program "
+                             f"running, on this domain, with compatible QoS?")
 
     def _pub(self, key: str) -> Any:
         return self._pubs[key]   # made at configure; _new() lets no sample through for another topic

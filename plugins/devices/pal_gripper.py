@@ -39,6 +39,11 @@ Safe state: ``hold`` sends the measured opening (the controller holds the finger
 the object's surface), ``open`` sends ``max_opening``; either is always sent, and a step's command and send hold a
 lock, so a safe_state() from another thread waits for a step in progress and its hold goes out last.
 
+QoS: ``state_reliability``/``state_depth`` (best-effort, 1: hears a reliable and a best-effort broadcaster) and
+``command_reliability``/``command_depth`` (reliable, 1: serves the controller's reliable subscription), volatile both
+ways. A robot endpoint with incompatible QoS (DDS connects neither, silently) is named with the topic, the policy
+and both values (teletouch.plugins.ros_qos) in the start-up error, ``status()['qos_problems']`` and the log.
+
 rclpy is imported lazily (``pip install teletouch[ros2]``). The driver owns its rclpy Context, node and executor thread
 (never rclpy's global context), so it coexists with other ROS 2 users (e.g. the ROS 2 bridge) in the same process.
 ``ROS_DOMAIN_ID`` is checked before DDS sees it (Fast DDS ends the whole process, with no safe state for the other
@@ -51,14 +56,14 @@ import math
 import re
 import threading
 import time
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import HardwareError, hookimpl
 from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
 
-from .. import ros_names
+from .. import ros_names, ros_qos
 from .follower_common import FollowerBase, FollowerParams, Reading, clamp
 
 JOINTS = ("gripper_left_finger_joint", "gripper_right_finger_joint")
@@ -85,6 +90,18 @@ _REASONS = {  # why a JointState message was not used (keys of status()['dropped
     "older": "stamped no later than the last message used (out of order, or sent again)",
     "ahead": "stamped ahead of the stream",
 }
+
+
+def _qos_hint(policy: str, side: str) -> str:
+    """What to set when the driver's ``side`` and the robot's endpoint have incompatible ``policy``."""
+    if policy == "RELIABILITY":
+        return ("set state_reliability: best_effort to hear a best-effort /joint_states publisher"
+                if side == "subscription" else "the controller subscribes reliable: set command_reliability: reliable")
+    if policy == "DURABILITY":
+        return ("the controller's subscription asks transient_local; this driver publishes volatile only (a "
+                "latched command would reach a controller that starts later): make the controller's volatile"
+                if side == "publisher" else "make the two QoS settings compatible")
+    return "make the two QoS settings compatible"
 
 
 class _Refused(Exception):
@@ -167,6 +184,16 @@ class PalGripper(FollowerBase):
                                             json_schema_extra={"unit": "s"})
         enforce_effort: bool = Field(True, description="max_effort needs efforts in /joint_states: refuse to run "
                                      "without them (false: run without the force limit, effort output NaN)")
+        state_reliability: Literal["best_effort", "reliable"] = Field(
+            "best_effort", description="QoS reliability of the /joint_states subscription: best_effort hears both "
+            "a reliable and a best-effort publisher; reliable hears a reliable one only")
+        state_depth: int = Field(1, ge=1, le=1000, description="QoS history depth of the /joint_states "
+                                 "subscription (keep last N; the newest state is what counts)")
+        command_reliability: Literal["reliable", "best_effort"] = Field(
+            "reliable", description="QoS reliability of the command publisher: reliable serves both a reliable "
+            "and a best-effort subscription (joint_trajectory_controller subscribes reliable)")
+        command_depth: int = Field(1, ge=1, le=1000, description="QoS history depth of the command publisher "
+                                   "(keep last N; each command replaces the one before)")
 
         @field_validator("namespace")
         @classmethod
@@ -230,7 +257,7 @@ class PalGripper(FollowerBase):
         try:
             import rclpy
             from rclpy.executors import SingleThreadedExecutor
-            from rclpy.qos import QoSProfile, ReliabilityPolicy
+            from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
             from sensor_msgs.msg import JointState
             from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
         except ImportError as exc:
@@ -251,6 +278,7 @@ class PalGripper(FollowerBase):
         self._sent: float | None = None
         self._sent_at = 0.0
         self._no_controller_since: float | None = None
+        self.qos_report = ros_qos.QosReport(self._log_once, _qos_hint)
         self.ros_ctx = rclpy.Context()
         rclpy.init(context=self.ros_ctx, **({} if domain_param is None else {"domain_id": domain_param}))
         domain = self.ros_ctx.get_domain_id()
@@ -264,10 +292,20 @@ class PalGripper(FollowerBase):
             self._in_use_key = (domain, self.command_topic)
         self.ros_node = rclpy.create_node(f"teletouch_{self.id.replace('-', '_')}", context=self.ros_ctx,
                                           start_parameter_services=False)
-        self.pub = self.ros_node.create_publisher(JointTrajectory, self.command_topic,
-                                                  QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
-        self.ros_node.create_subscription(JointState, self.state_topic, self._on_joint_states,
-                                          QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        # volatile both ways, not configurable: a transient_local command publisher would hand its last, old
+        # setpoint to a controller that (re)starts later
+        reliability = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
+        cmd_qos = QoSProfile(depth=p.command_depth, reliability=reliability[p.command_reliability],
+                             durability=DurabilityPolicy.VOLATILE)
+        state_qos = QoSProfile(depth=p.state_depth, reliability=reliability[p.state_reliability],
+                               durability=DurabilityPolicy.VOLATILE)
+        node = self.ros_node
+        self.pub = node.create_publisher(JointTrajectory, self.command_topic, cmd_qos,
+                                         event_callbacks=self.qos_report.publisher_callbacks(
+                                             lambda: node, lambda: self.command_topic, cmd_qos))
+        node.create_subscription(JointState, self.state_topic, self._on_joint_states, state_qos,
+                                 event_callbacks=self.qos_report.subscription_callbacks(
+                                     lambda: node, lambda: self.state_topic, state_qos))
         self.executor = SingleThreadedExecutor(context=self.ros_ctx)
         self.executor.add_node(self.ros_node)
         self._spin = threading.Thread(target=self._spin_loop, name=f"{self.id}-rclpy", daemon=True)
@@ -276,7 +314,8 @@ class PalGripper(FollowerBase):
         while self.pub.get_subscription_count() == 0:
             if time.monotonic() > deadline:
                 raise HardwareError(f"no controller subscribes to {self.command_topic} after "
-                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}; check the "
+                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}"
+                                    f"{self._qos_text(self.command_topic)}; check the "
                                     f"robot is up, the namespace and controller name, and the network/discovery "
                                     f"settings")
             time.sleep(0.01)
@@ -285,8 +324,9 @@ class PalGripper(FollowerBase):
                 with self._lock:
                     what = "no message" if self._msgs == 0 else f"no usable message: {self._drop_text()}"
                 raise HardwareError(f"{self.state_topic}: {what} for {list(p.joint_names)} after "
-                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}; check the "
-                                    f"joint names, joint_states_topic and the joint_state_broadcaster")
+                                    f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}"
+                                    f"{self._qos_text(self.state_topic)}; check the joint names, "
+                                    f"joint_states_topic and the joint_state_broadcaster")
             time.sleep(0.005)
 
     def _wrong_types(self) -> str:
@@ -307,6 +347,17 @@ class PalGripper(FollowerBase):
         except Exception:  # a diagnosis only
             return ""
         return "".join(f"; {f}" for f in found)
+
+    def _qos_text(self, topic: str) -> str:
+        """The incompatible QoS found on ``topic`` (both sides' values): text for an error."""
+        return "".join(f"; {t}" for t in self.qos_report.texts(topic))
+
+    def _log_once(self, key: Any, text: str) -> None:
+        """Log each incompatible-QoS finding once (the executor thread)."""
+        seen = self.__dict__.setdefault("_logged", set())
+        if key not in seen:
+            seen.add(key)
+            self.ctx.log(text)
 
     def _spin_loop(self) -> None:
         try:
@@ -461,6 +512,9 @@ class PalGripper(FollowerBase):
         d = super().status()
         d["dropped"] = dict(getattr(self, "_dropped_total", {}))
         d["messages"] = getattr(self, "_msgs", 0)
+        report = getattr(self, "qos_report", None)
+        d["incompatible_qos"] = report.count if report is not None else 0
+        d["qos_problems"] = report.texts() if report is not None else []
         return d
 
     def _hw_close(self) -> None:
