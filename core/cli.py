@@ -4,10 +4,11 @@ Core commands: plugins, validate, schema, run, devices. Plugins add their own (c
 through the ``teletouch_add_commands`` hook; a plugin whose hook raises (or takes a name already in use) has its
 commands skipped with a warning, and every other command still works.
 
-Global option ``--block NAME[,NAME]`` (repeatable) blocks plugins like ``TELETOUCH_BLOCK_PLUGINS``. Exit codes are
-those of :mod:`teletouch.runtime` (0 ok, 1 invalid input, 2 usage, 3 fault, 4 start-up failure, 130 interrupted by
-Ctrl-C or SIGTERM); `teletouch plugins` exits 1 when a plugin failed to load, a component name is refused for a
-conflict, or a blocked name matches nothing.
+Global option ``--block NAME[,NAME]`` (repeatable) blocks plugins, adding to the environment's ``TELETOUCH_BLOCK``.
+Exit codes are those of :mod:`teletouch.runtime` (0 ok, 1 invalid input, 2 usage, 3 fault, 4 start-up failure, 130
+interrupted by Ctrl-C), and 143 (128 + SIGTERM) for a run ended by SIGTERM, after the same safe stop as Ctrl-C;
+`teletouch plugins` exits 1 when a plugin failed to load, a component name is refused for a conflict, or a blocked
+name matches nothing (a block itself changes no exit status).
 """
 
 from __future__ import annotations
@@ -25,7 +26,14 @@ from typing import Any, Sequence
 from . import __version__
 from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
 from .registry import Registry, default_registry
-from .runtime import EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime
+from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime
+
+EXIT_TERMINATED = 128 + signal.SIGTERM   # 143: the shell's code for a process ended by SIGTERM (130 is Ctrl-C)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM during `teletouch run`: raised where Ctrl-C raises KeyboardInterrupt, so the runtime makes the same
+    safe stop; the command then exits :data:`EXIT_TERMINATED` instead of 130."""
 
 
 def _add_graph_args(p: argparse.ArgumentParser) -> None:
@@ -68,6 +76,11 @@ def cmd_plugins(args: argparse.Namespace) -> int:
         print(json.dumps(rows, indent=2, default=str))
         return status
     for r in rows:
+        if r.get("blocked"):
+            by = ", ".join(_block_text(b) for b in r.get("blocked_by") or []) or "?"
+            print(f"{r['name']}  [BLOCKED by {by}]  {r['distribution']} {r['version']}".rstrip())
+            print("    not loaded (not even imported): its components are not listed\n")
+            continue
         if r.get("error"):
             if r["name"] in reg.conflicts:   # the message names every origin
                 print(f"{r['name']}  [REFUSED: provided by more than one plugin]\n    error: {r['error']}\n")
@@ -90,12 +103,15 @@ def cmd_plugins(args: argparse.Namespace) -> int:
               for p in reg.plugins.values() if not (p.components or p.error or p.blocked)]
     if others:
         print("plugins without components: " + ", ".join(others))
-    blocked = [p.name for p in reg.plugins.values() if p.blocked]
-    if blocked:
-        print("blocked: " + ", ".join(blocked))
     if problems:   # each is in the list above or was warned about on stderr
         print(f"teletouch: {len(problems)} plugin problem(s); exit status {status}", file=sys.stderr)
     return status
+
+
+def _block_text(origin: dict[str, str]) -> str:
+    """One block as the user set it: ``--block NAME`` or ``TELETOUCH_BLOCK=NAME``."""
+    setting, name = origin.get("setting", "?"), origin.get("name", "?")
+    return f"{setting} {name}" if setting.startswith("--") else f"{setting}={name}"
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -164,6 +180,26 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def run_summary(result: Any) -> str:
+    """The summary `teletouch run` prints at the end (a :class:`~teletouch.runtime.RunResult`): status, clock and
+    one row per node, with the period jitter p99 (ms; '-' where not measured: the simulated clock, or fewer than
+    11 steps) next to the rates, as ``--json`` gives it in ``period_jitter_p99_s``."""
+    lines = [f"{result.status}: {result.message}",
+             f"clock {result.clock}: {result.sim_time:.3f} s graph time in {result.wall_time - result.startup_time:.3f}"
+             f" s wall after {result.startup_time:.3f} s start-up ({result.run_realtime_factor:.1f}x real time)",
+             f"  {'node':<16}{'plugin':<20}{'rate Hz':>9}{'achieved':>10}{'jitter p99 ms':>15}{'steps':>9}"
+             f"{'overruns':>9}{'mean ms':>9}{'max ms':>9}"]
+    for n in result.nodes:
+        jit = n.period_jitter_p99_s
+        jit_text = f"{jit * 1e3:.3f}" if isinstance(jit, (int, float)) and math.isfinite(jit) else "-"
+        lines.append(f"  {n.id:<16}{n.plugin:<20}{n.rate:>9.1f}{n.achieved_rate:>10.1f}{jit_text:>15}{n.steps:>9d}"
+                     f"{n.overruns:>9d}{n.mean_step_s * 1e3:>9.3f}{n.max_step_s * 1e3:>9.3f}"
+                     + ("  FAULTED" if n.faulted else ""))
+    for f in result.faults:
+        lines.append(f"  fault: {f.line()} -> {f.action}")
+    return "\n".join(lines)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .graph import load_graph
 
@@ -192,8 +228,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     in_main = threading.current_thread() is threading.main_thread()   # only the main thread may set handlers
     old = signal.getsignal(signal.SIGTERM) if in_main else None
 
+    terminated: list[int] = []
+
     def _term(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt
+        terminated.append(signum)
+        raise Terminated
 
     if in_main:
         signal.signal(signal.SIGTERM, _term)
@@ -211,14 +250,18 @@ def cmd_run(args: argparse.Namespace) -> int:
             except TeletouchError as exc:  # the recording failed (disk full): the run's own result still counts
                 record_error = exc
                 print(f"teletouch: error: {exc}", file=sys.stderr)
+    code = result.exit_code
+    if terminated and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had stopped the run before it
+        code = EXIT_TERMINATED
     if not args.quiet:
-        print(result.summary(), file=sys.stderr)
+        print(run_summary(result), file=sys.stderr)
     if args.json:
-        print(json.dumps(result.as_dict(), default=str))
-    print(f"teletouch: {result.status}: {result.message}", file=sys.stderr)
-    if record_error is not None and result.exit_code == EXIT_OK:
+        print(json.dumps(dict(result.as_dict(), exit_code=code), default=str))
+    by = " by SIGTERM" if code == EXIT_TERMINATED else ""
+    print(f"teletouch: {result.status}{by}: {result.message}", file=sys.stderr)
+    if record_error is not None and code == EXIT_OK:
         return EXIT_INVALID
-    return result.exit_code
+    return code
 
 
 def _json_safe(value: Any) -> Any:
@@ -302,11 +345,16 @@ def build_parser() -> argparse.ArgumentParser:
                                      "teleoperation. See `teletouch COMMAND -h`.")
     parser.add_argument("--version", action="version", version=f"teletouch {__version__}")
     parser.add_argument("--block", action="append", default=[], metavar="NAME[,NAME]",
-                        help="do not load these plugins (plugin or distribution names; repeatable); adds to "
-                             "TELETOUCH_BLOCK_PLUGINS")
+                        help="do not load these plugins (plugin or distribution names; repeatable); adds to the "
+                             f"environment's TELETOUCH_BLOCK (names separated by ',' or '{os.pathsep}')")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("plugins", help="list installed components (and plugins that failed to load)")
+    p = sub.add_parser("plugins", help="list installed components, plugins that failed to load and blocked ones",
+                       description="List every installed component (kind, distribution, version, plugin, ports, "
+                                   "parameters), every plugin that failed to load or whose component name is refused "
+                                   "(provided twice), and every blocked plugin with where the block came from "
+                                   "(--block or TELETOUCH_BLOCK). Exit status 1 when a plugin failed, a name is "
+                                   "refused or a blocked name matches nothing; a block itself is not a problem.")
     p.add_argument("--json", action="store_true", help="machine-readable list")
     p.set_defaults(func=cmd_plugins)
 
@@ -318,7 +366,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="write to this file")
     p.set_defaults(func=cmd_schema)
 
-    p = sub.add_parser("run", help="run a graph")
+    p = sub.add_parser("run", help="run a graph",
+                       description="Run a graph with a live view on stderr and, at the end, a summary table (per "
+                                   "node: rate, achieved rate, period jitter p99, steps, overruns, step times). Every "
+                                   "stop drives the devices to their safe state. Exit status: 0 ok, 1 invalid graph "
+                                   "(or a failed --record), 2 usage, 3 fault (or degraded), 4 start-up failure, 130 "
+                                   "Ctrl-C, 143 SIGTERM.")
     _add_graph_args(p)
     p.add_argument("--duration", type=_seconds, default=None, help="seconds (or '10s'); default: the graph's")
     p.add_argument("--quiet", action="store_true", help="no live view and no summary table")
@@ -403,9 +456,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TeletouchError as exc:
         print(f"teletouch: error: {exc}", file=sys.stderr)
         return EXIT_INVALID
+    except Terminated:
+        print("teletouch: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("teletouch: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:   # `teletouch schema | head`: the reader left; say nothing more, like git (141 = SIGPIPE)
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -4,9 +4,11 @@ Components come from modules registered under the entry-point group ``teletouch`
 group as third-party ones. Environment variables (like pytest's):
 
 - ``TELETOUCH_DISABLE_PLUGIN_AUTOLOAD=1``: do not load entry points (tests register what they need).
-- ``TELETOUCH_BLOCK_PLUGINS=a,b``: skip the named plugins (entry-point names or distribution names); a blocked
-  plugin is not even imported. ``teletouch --block NAME`` does the same. A name that matches nothing is reported
-  (:meth:`Registry.unknown_blocked`): a typo must not leave running a plugin the user meant to switch off.
+- ``TELETOUCH_BLOCK=a,b``: skip the named plugins (entry-point names or distribution names; separated by ',' or
+  ``os.pathsep``); a blocked plugin is not even imported. ``TELETOUCH_BLOCK_PLUGINS`` (the earlier name) is still
+  read, and ``teletouch --block NAME`` adds to both. A name that matches nothing is reported, naming where it was
+  set (:meth:`Registry.unknown_blocked`): a typo must not leave running a plugin the user meant to switch off.
+  :meth:`Registry.block_origin` tells where each block came from.
 - ``TELETOUCH_PLUGINS=pkg.mod1,pkg.mod2``: import and register these modules too (works with autoload off).
 
 A plugin that fails to import (or raises, even ``SystemExit``), declares a hook that does not exist, leaves a
@@ -39,7 +41,8 @@ from .errors import DuplicateComponentError, PluginError, UnknownComponentError,
 
 GROUP = "teletouch"
 ENV_DISABLE = "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD"
-ENV_BLOCK = "TELETOUCH_BLOCK_PLUGINS"
+ENV_BLOCK = "TELETOUCH_BLOCK"
+ENV_BLOCK_OLD = "TELETOUCH_BLOCK_PLUGINS"   # the earlier name of ENV_BLOCK, still read
 ENV_PLUGINS = "TELETOUCH_PLUGINS"
 PLUGIN_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
@@ -87,6 +90,21 @@ def _split(value: str | None) -> list[str]:
     return [v.strip() for v in (value or "").split(",") if v.strip()]
 
 
+def split_names(value: str | None) -> list[str]:
+    """Plugin names in a block list: separated by ',' or ``os.pathsep`` (as PATH-like variables are), blanks
+    dropped."""
+    return [v.strip() for v in re.split(f"[,{re.escape(os.pathsep)}]", value or "") if v.strip()]
+
+
+def block_source(setting: str) -> str:
+    """Where a block setting comes from, as `teletouch plugins` reports it: command line, environment or caller."""
+    if setting.startswith("--"):
+        return "command line"
+    if setting in (ENV_BLOCK, ENV_BLOCK_OLD):
+        return "environment"
+    return "caller"
+
+
 def _one_line(text: str) -> str:
     """Error text on one line (pluggy's validation messages span three)."""
     return "; ".join(part.strip() for part in str(text).splitlines() if part.strip())
@@ -109,7 +127,9 @@ class Registry:
     """Holds the loaded plugins and the components they provide."""
 
     def __init__(self, *, autoload: bool | None = None, blocked: Iterable[str] | None = None,
-                 extra_modules: Iterable[str] | None = None):
+                 extra_modules: Iterable[str] | None = None, blocked_setting: str = "Registry(blocked=...)"):
+        """``blocked`` adds names to those of the environment; ``blocked_setting`` is how reports name where they
+        came from (``teletouch`` passes ``--block``)."""
         self.pm = pluggy.PluginManager(GROUP)
         self.pm.add_hookspecs(hookspecs)
         self.plugins: dict[str, PluginRecord] = {}
@@ -120,7 +140,16 @@ class Registry:
         self.known_names: set[str] = set()
         env = os.environ
         self.autoload = (not _truthy(env.get(ENV_DISABLE))) if autoload is None else autoload
-        self.blocked = set(_split(env.get(ENV_BLOCK))) | set(blocked or ())
+        #: blocked name -> the settings that block it (``TELETOUCH_BLOCK``, ``--block``, ...), in the order read
+        self.block_settings: dict[str, list[str]] = {}
+        for setting, names in [(ENV_BLOCK, split_names(env.get(ENV_BLOCK))),
+                               (ENV_BLOCK_OLD, split_names(env.get(ENV_BLOCK_OLD))),
+                               (blocked_setting, [str(n).strip() for n in blocked or () if str(n).strip()])]:
+            for n in names:
+                where = self.block_settings.setdefault(n, [])
+                if setting not in where:
+                    where.append(setting)
+        self.blocked = set(self.block_settings)
         self._extra = _split(env.get(ENV_PLUGINS)) + list(extra_modules or ())
 
     # loading ---------------------------------------------------------------------------------------------------
@@ -316,7 +345,8 @@ class Registry:
             return []
         out = []
         for name in sorted(self.blocked - self.known_names):
-            msg = f"'{name}' is blocked but no installed plugin or distribution has that name"
+            msg = (f"blocked name '{name}' (from {' and '.join(self.block_settings.get(name, ['?']))}) matches no "
+                   f"installed plugin or distribution")
             if name in self.components:
                 msg += (f"; '{name}' is a component of plugin '{self.components[name].plugin}': block plugins by "
                         f"plugin or distribution name")
@@ -327,6 +357,13 @@ class Registry:
             out.append(msg)
         return out
 
+    def block_origin(self, rec: PluginRecord) -> list[dict[str, str]]:
+        """Why ``rec`` is blocked: one ``{"name", "source", "setting"}`` per blocked name that matches its plugin or
+        distribution name and per setting that names it (source: command line, environment or caller)."""
+        names = dict.fromkeys([rec.name, *(d.strip() for d in rec.distribution.split(","))])
+        return [{"name": n, "source": block_source(s), "setting": s}
+                for n in names if n in self.block_settings for s in self.block_settings[n]]
+
     def problems(self) -> list[str]:
         """Everything `teletouch plugins` reports as a failure: broken plugins, conflicts, unknown blocked names."""
         out = [f"plugin '{p.name}' ({p.origin}) failed to load: {p.error}" for p in self.errors()]
@@ -334,8 +371,10 @@ class Registry:
         return out + self.unknown_blocked()
 
     def describe(self) -> list[dict[str, Any]]:
-        """One dict per component (and per broken plugin and per refused component name), as `teletouch plugins
-        --json` prints. A broken plugin or a refused name has ``kind`` None and an ``error``."""
+        """One dict per component (and per broken plugin, per refused component name and per blocked plugin), as
+        `teletouch plugins --json` prints. A broken plugin or a refused name has ``kind`` None and an ``error``; a
+        blocked plugin (never imported: its components are not known) has ``kind`` None, ``blocked`` True and
+        ``blocked_by`` (:meth:`block_origin`)."""
         rows = []
         for info in sorted(self.components.values(), key=lambda i: (i.kind, i.name)):
             d = info.cls.describe()
@@ -351,6 +390,11 @@ class Registry:
             rows.append({"name": cname, "kind": None, "distribution": ", ".join(i.distribution for i in infos),
                          "version": ", ".join(i.version for i in infos), "plugin": ", ".join(i.plugin for i in infos),
                          "ports": [], "params": [], "error": self._conflict_message(cname, infos)})
+        for rec in self.plugins.values():
+            if rec.blocked:
+                rows.append({"name": rec.name, "kind": None, "distribution": rec.distribution,
+                             "version": rec.version, "plugin": rec.name, "module": rec.module, "ports": [],
+                             "params": [], "blocked": True, "blocked_by": self.block_origin(rec)})
         return rows
 
     def discover_devices(self) -> list[dict[str, Any]]:
@@ -460,9 +504,10 @@ _default: Registry | None = None
 
 def default_registry(reload: bool = False, blocked: Iterable[str] = ()) -> Registry:
     """The process-wide registry, loaded on first use from entry points and the environment. ``blocked`` adds
-    names to block (``teletouch --block``); giving any reloads it."""
+    names to block (``teletouch --block``: reports name that option as where they came from); giving any reloads
+    it."""
     global _default
     blocked = list(blocked)
     if _default is None or reload or blocked:
-        _default = Registry(blocked=blocked).load()
+        _default = Registry(blocked=blocked, blocked_setting="--block").load()
     return _default

@@ -137,7 +137,7 @@ def test_component_name_taken_from_a_builtin_is_refused_naming_both_not_fatal(si
         reg.get("mock-sensor")
     msg = str(ei.value)
     assert "plugin 'acme' (acme-dist 1.0)" in msg and "plugin 'mock' (teletouch " in msg
-    assert "TELETOUCH_BLOCK_PLUGINS=acme" in msg and "TELETOUCH_BLOCK_PLUGINS=mock" in msg
+    assert "TELETOUCH_BLOCK=acme" in msg and "TELETOUCH_BLOCK=mock" in msg
     with pytest.raises(Exception) as ei:
         load_text("clock: sim\nduration: 1\nnodes:\n  - {id: s, plugin: mock-sensor}\n", reg)
     assert "<test>:4: node 's': component 'mock-sensor' is provided by both" in str(ei.value)
@@ -155,7 +155,7 @@ def test_same_plugin_name_in_two_distributions_resolved_by_blocking_a_distributi
     reg = Registry(autoload=True, blocked=()).load()
     assert "mock-sensor" in reg.components
     err = reg.plugins["same"].error
-    assert "'one-dist'" in err and "'two-dist'" in err and "TELETOUCH_BLOCK_PLUGINS=two-dist" in err
+    assert "'one-dist'" in err and "'two-dist'" in err and "TELETOUCH_BLOCK=two-dist" in err
     reg = Registry(autoload=True, blocked=["two-dist"]).load()   # the remedy the message gives works
     assert "one-c" in reg.components and "two-c" not in reg.components and not reg.errors()
 

@@ -97,15 +97,16 @@ def test_plugins_exits_1_and_lists_the_failure_while_json_stays_parseable(tmp_pa
     assert "noisy-c  (estimator)  acme-noisy 1.0  (plugin noisy)" in r.stdout   # the name to block it by
     r = cli("plugins", site=site, TELETOUCH_BLOCK_PLUGINS="broken")
     assert r.returncode == 0, r.stderr
-    assert "blocked: broken" in r.stdout
+    assert "broken  [BLOCKED by TELETOUCH_BLOCK_PLUGINS=broken]  acme-broken 1.0" in r.stdout
 
 
 def test_block_option_on_the_command_line(tmp_path):
     site = install(tmp_path / "site", {"broken": BROKEN})
     r = cli("--block", "broken", "--block", "acme-noisy,mock", "plugins", "--json", site=site)
-    names = {row["name"] for row in json.loads(r.stdout)}
-    assert "broken" not in names and "mock-sensor" not in names and "digit" in names
-    assert "'acme-noisy' is blocked but no installed plugin or distribution has that name" in r.stderr
+    rows = {row["name"]: row for row in json.loads(r.stdout)}
+    assert rows["broken"]["blocked"] and rows["mock"]["blocked"] and "error" not in rows["broken"]
+    assert "mock-sensor" not in rows and "digit" in rows
+    assert "blocked name 'acme-noisy' (from --block) matches no installed plugin or distribution" in r.stderr
     assert r.returncode == 1   # the typo counts as a problem
     r = cli("--block", "mock", "validate", GRAPH)
     assert r.returncode == 1 and "unknown plugin 'mock-sensor'" in r.stderr and "blocked plugins (not loaded): mock" \
@@ -115,8 +116,8 @@ def test_block_option_on_the_command_line(tmp_path):
 def test_blocked_name_that_matches_nothing_is_warned_about_on_every_command():
     r = cli("validate", GRAPH, TELETOUCH_BLOCK_PLUGINS="mokc")
     assert r.returncode == 0
-    assert ("teletouch: warning: 'mokc' is blocked but no installed plugin or distribution has that name (did you "
-            "mean 'mock'?)") in r.stderr
+    assert ("teletouch: warning: blocked name 'mokc' (from TELETOUCH_BLOCK_PLUGINS) matches no installed plugin or "
+            "distribution (did you mean 'mock'?)") in r.stderr
 
 
 def test_conflicting_component_refused_but_cli_still_works(tmp_path):
