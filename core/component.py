@@ -24,7 +24,7 @@ from typing import Any, Callable, ClassVar, Iterator, Mapping
 from pydantic import BaseModel, ConfigDict, model_validator
 
 __all__ = [
-    "Kind", "Port", "Sample", "Inputs", "Params", "Component", "Device", "Context", "NAME_RE",
+    "Kind", "Port", "Sample", "Inputs", "Params", "Component", "Device", "Context", "NAME_RE", "value_checker",
 ]
 
 NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
@@ -82,12 +82,118 @@ class Port:
                     return f"shape mismatch: {source.describe()} -> {self.describe()}"
         return None
 
+    def describe_value(self) -> str:
+        """What a value of this port is, for a person: "float64 scalar", "uint8 array of shape (*, *, 3)"."""
+        if self.dtype == "any":
+            return "any value"
+        if self.shape == ():
+            return f"{self.dtype} scalar"
+        if self.shape is None:
+            return f"{self.dtype} scalar or array of any shape"
+        dims = ", ".join("*" if d is None else str(d) for d in self.shape)
+        return f"{self.dtype} array of shape ({dims}{',' if len(self.shape) == 1 else ''})"
+
+    def value_problem(self, value: Any) -> str | None:
+        """None if ``value`` may be written to this (output) port, else what came instead ("str", "float64 array
+        of shape (240, 320)"). See :func:`value_checker` for the rules."""
+        check = value_checker(self)
+        return None if check is None else check(value)
+
     def as_dict(self, name: str) -> dict[str, Any]:
         shape = None if self.shape is None else list(self.shape)
         d: dict[str, Any] = {"name": name, "dtype": self.dtype, "shape": shape, "unit": self.unit}
         if self.description:
             d["description"] = self.description
         return d
+
+
+def _what(value: Any) -> str:
+    """What a value is, for a message: its dtype and shape for an array, else its type."""
+    import numpy as np
+
+    if isinstance(value, np.ndarray):
+        if value.ndim == 0:
+            return f"{value.dtype} 0-d array"
+        return f"{value.dtype} array of shape {value.shape}"
+    if isinstance(value, np.generic):
+        return f"numpy {value.dtype} scalar"
+    return "None" if value is None else type(value).__name__
+
+
+def value_checker(port: Port) -> Callable[[Any], str | None] | None:
+    """A function ``check(value) -> None | what came`` for the values written to an output ``port``; None for a
+    port of dtype "any" (nothing is checked). Built once per port: the runtime calls it for every output it stores.
+
+    - Scalar ports (shape ``()``): a float port (float64, float32) takes a Python float or int (not a bool) and a
+      numpy float or integer scalar; an integer port takes a Python int (not a bool) and a numpy integer scalar; a
+      bool port a Python or numpy bool; a str port a str. A 0-d numpy array counts as its scalar. NaN and inf are
+      numbers: they pass (consumers guard).
+    - Array ports: a numpy array of exactly the port's dtype (a float64 image on a uint8 port is refused), with as
+      many dimensions as the shape has and each fixed dimension equal (``None`` is any size). A list or tuple is not
+      an array.
+    - Shape ``None``: an array of the dtype with any shape, or a scalar as above.
+    - The unit is not checked: a value carries none.
+    """
+    import numpy as np
+
+    if port.dtype == "any":
+        return None
+    dt = np.dtype(port.dtype)
+    kind = dt.kind
+    if kind == "f":
+        py: tuple[type, ...] = (float, int)
+        gen: tuple[type, ...] = (np.floating, np.integer)
+        kinds = "fiu"
+    elif kind in "iu":
+        py, gen, kinds = (int,), (np.integer,), "iu"
+    elif kind == "b":
+        py, gen, kinds = (bool,), (np.bool_,), "b"
+    elif kind == "U":
+        py, gen, kinds = (str,), (np.str_,), "U"
+    elif kind == "c":
+        py, gen, kinds = (complex, float, int), (np.number,), "fiuc"
+    else:
+        py, gen, kinds = (), (np.generic,), kind
+    no_bool = kind != "b"
+    fast = {c for c in (float, int, bool, str, np.float64, np.float32, np.int64, np.bool_, np.str_)
+            if issubclass(c, py + gen) and not (no_bool and c in (bool, np.bool_))}
+    shape = port.shape
+    ndarray = np.ndarray
+
+    def scalar(value: Any) -> str | None:
+        if value.__class__ in fast:
+            return None
+        if isinstance(value, (bool, np.bool_)) and no_bool:
+            return _what(value)
+        if isinstance(value, py + gen):
+            if isinstance(value, np.generic) and value.dtype.kind not in kinds:
+                return _what(value)
+            return None
+        if isinstance(value, ndarray) and value.ndim == 0 and value.dtype.kind in kinds:
+            return None
+        return _what(value)
+
+    if shape == ():
+        return scalar
+    ndim = None if shape is None else len(shape)
+    fixed = [] if shape is None else [(i, d) for i, d in enumerate(shape) if d is not None]
+
+    def array(value: Any) -> str | None:
+        if value.__class__ is not ndarray and not isinstance(value, ndarray):
+            return scalar(value) if shape is None else _what(value)
+        vdt = value.dtype
+        if vdt is not dt and vdt != dt and not (kind == "U" and vdt.kind == "U"):   # (built-in dtypes: one object)
+            return _what(value)
+        if ndim is not None:
+            s = value.shape
+            if len(s) != ndim:
+                return _what(value)
+            for i, d in fixed:
+                if s[i] != d:
+                    return _what(value)
+        return None
+
+    return array
 
 
 class Sample:
@@ -312,7 +418,10 @@ class Device(Component):
 
     def safe_state(self) -> None:
         """Drive the hardware to its safe state (zero leader force; follower holds position). Must not raise
-        for a device that is already safe or disconnected; it is called on every stop path."""
+        for a device that is already safe or disconnected; it is called on every stop path, also after a
+        ``configure()`` that raised part-way (the port may be open and the torque on, or nothing set up at all).
+        The runtime calls it once per stop unless that call raised or the device was stepped after it; a driver
+        must still take a repeated call."""
         raise NotImplementedError(f"{type(self).__name__} must define safe_state()")
 
 

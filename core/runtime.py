@@ -28,7 +28,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot
+from .component import Component, Context, Device, Inputs, Sample, _Slot, value_checker
 from .errors import ComponentFault, exception_line
 from .graph import GraphSpec
 
@@ -40,6 +40,19 @@ EXIT_STARTUP = 4
 EXIT_INTERRUPTED = 130
 
 Tap = Callable[[str, float, dict], None]
+
+
+class StartupError(ComponentFault):
+    """Why a graph did not start: every node that failed to configure (or the one that failed to activate or to
+    start), each with its reason. ``failures``: (node id, plugin, exception) in data-flow order; the first one's
+    exception is the cause (``__cause__``). :meth:`Runtime.run` returns it as ``RunResult.error`` (it does not
+    raise it: the result, with every device safe and every component closed, says the rest)."""
+
+    def __init__(self, message: str, failures: list[tuple[str, str, BaseException]]):
+        super().__init__(message)
+        self.failures = list(failures)
+        if failures:
+            self.__cause__ = failures[0][2]
 
 
 @dataclass
@@ -83,6 +96,7 @@ class RunResult:
     nodes: list[NodeStats] = field(default_factory=list)
     faults: list[Fault] = field(default_factory=list)
     startup_time: float = 0.0   # s of wall_time spent starting up (loading models, opening devices)
+    error: StartupError | None = field(default=None, repr=False, compare=False)   # status startup-failed: why
 
     @property
     def realtime_factor(self) -> float:
@@ -103,14 +117,19 @@ class RunResult:
                 "faults": [f.__dict__ for f in self.faults]}
 
     def summary(self) -> str:
+        """The summary `teletouch run` prints at the end: status, clock and one row per node, with the period
+        jitter p99 (ms; '-' where not measured: the simulated clock, or too few steps) next to the rates, as
+        :meth:`as_dict` gives it in ``period_jitter_p99_s``."""
         lines = [f"{self.status}: {self.message}",
                  f"clock {self.clock}: {self.sim_time:.3f} s graph time in {self.wall_time - self.startup_time:.3f} s "
-                 f"wall after {self.startup_time:.3f} s start-up ({self.run_realtime_factor:.1f}x real time)"]
-        lines.append(f"  {'node':<16}{'plugin':<20}{'rate Hz':>9}{'achieved':>10}{'steps':>9}{'overruns':>9}"
-                     f"{'mean ms':>9}{'max ms':>9}")
+                 f"wall after {self.startup_time:.3f} s start-up ({self.run_realtime_factor:.1f}x real time)",
+                 f"  {'node':<16}{'plugin':<20}{'rate Hz':>9}{'achieved':>10}{'jitter p99 ms':>15}{'steps':>9}"
+                 f"{'overruns':>9}{'mean ms':>9}{'max ms':>9}"]
         for n in self.nodes:
-            lines.append(f"  {n.id:<16}{n.plugin:<20}{n.rate:>9.1f}{n.achieved_rate:>10.1f}{n.steps:>9d}"
-                         f"{n.overruns:>9d}{n.mean_step_s * 1e3:>9.3f}{n.max_step_s * 1e3:>9.3f}"
+            jit = n.period_jitter_p99_s
+            jit_text = f"{jit * 1e3:.3f}" if isinstance(jit, (int, float)) and math.isfinite(jit) else "-"
+            lines.append(f"  {n.id:<16}{n.plugin:<20}{n.rate:>9.1f}{n.achieved_rate:>10.1f}{jit_text:>15}"
+                         f"{n.steps:>9d}{n.overruns:>9d}{n.mean_step_s * 1e3:>9.3f}{n.max_step_s * 1e3:>9.3f}"
                          + ("  FAULTED" if n.faulted else ""))
         for f in self.faults:
             lines.append(f"  fault: {f.line()} -> {f.action}")
@@ -120,7 +139,7 @@ class RunResult:
 class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
-                 "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step")
+                 "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -149,6 +168,10 @@ class _Node:
         self.hung = False   # its safe_state() did not return within faults.safe_timeout: left behind
         self.safe_thread: threading.Thread | None = None   # wall clock: the thread of its latest safe_state() call
         self.in_step = False   # wall clock: its step() is running in its rate group's thread
+        # output port -> its value check (None: dtype "any"), see component.value_checker
+        self.checks = {p: value_checker(port) for p, port in spec.cls.outputs.items()}
+        self.acts = 0          # step() calls begun
+        self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
 
 
 _libc = None
@@ -305,21 +328,29 @@ class Runtime:
         Under the simulated clock the call is made inline, in the one thread that also steps the device: there is
         no hardware that could hang (hardware plugins need the wall clock), and a simulated device that hung would
         block that thread in its step just the same."""
-        if node.hung:
+        if node.hung or self._still_safe(node):
             return
         if self.clock == "sim":
+            mark = None if node.in_step else node.acts
             try:
                 node.comp.safe_state()
             except BaseException as exc:
                 self._safe_raised(node, exc)
                 if isinstance(exc, KeyboardInterrupt):
                     raise
+            else:
+                node.safe_mark = mark
             return
         timeout = self.spec.faults.safe_timeout
         with self._safe_lock:
             th = node.safe_thread
             if th is None or not th.is_alive():
-                th = threading.Thread(target=self._safe_call, args=(node,), name=f"teletouch-safe-{node.id}",
+                if self._still_safe(node):   # a call that has just ended (while this caller waited for the lock)
+                    return
+                mark = node.acts   # read before in_step: a step begun after this read changes `acts`
+                if node.in_step:   # a step in flight (it hangs: the watchdog) may command the device after the call
+                    mark = None
+                th = threading.Thread(target=self._safe_call, args=(node, mark), name=f"teletouch-safe-{node.id}",
                                       daemon=True)
                 node.safe_thread = th
                 th.start()
@@ -334,11 +365,21 @@ class Runtime:
                 self.faults.append(Fault(node.id, "hung", msg, self._now, "logged"))
             self.log(f"[{node.id}] {msg}")
 
-    def _safe_call(self, node: _Node) -> None:
+    def _safe_call(self, node: _Node, mark: int | None) -> None:
         try:
             node.comp.safe_state()
         except BaseException as exc:   # (SystemExit, or a KeyboardInterrupt raised by the driver: still its error)
             self._safe_raised(node, exc)
+        else:
+            node.safe_mark = mark
+
+    @staticmethod
+    def _still_safe(node: _Node) -> bool:
+        """Whether the device's latest safe_state() returned (did not raise) and no step() of it has begun since
+        (none was in flight when it began): then it is still in its safe state and is not called again. A call that
+        raised, or a step after it (a step that hung through it and then went on), makes the next stop path call it
+        again."""
+        return node.safe_mark is not None and node.safe_mark == node.acts and not node.in_step
 
     def _safe_raised(self, node: _Node, exc: BaseException) -> None:
         with self._lock:
@@ -363,12 +404,17 @@ class Runtime:
         return True
 
     def _write(self, node: _Node, out: Any, t: float) -> None:
+        """Store a step's outputs. Each value is checked against its port (dtype and shape, see
+        ``component.value_checker``) and each stamp: one that does not fit is a fault of the node, and then none of
+        that step's outputs is stored (consumers never see half of a step)."""
         slots = node.out
+        checks = node.checks
         try:
             items = out.items()
         except AttributeError:
             raise ComponentFault(f"step() returned {type(out).__name__} {_short(out)}; expected a mapping of output "
                                  f"name to value (outputs: {', '.join(slots) or '(none)'}) or None") from None
+        ready = []
         for name, v in items:
             slot = slots.get(name)
             if slot is None:
@@ -382,31 +428,76 @@ class Runtime:
                 elif not math.isfinite(v.stamp):
                     raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
                                          f"finite graph time in seconds")
-                slot.sample = v
             else:
-                slot.sample = Sample(v, t)
+                v = Sample(v, t)
+            check = checks[name]
+            if check is not None:
+                got = check(v.value)
+                if got is not None:
+                    raise ComponentFault(f"output '{name}': expected {node.spec.cls.outputs[name].describe_value()}, "
+                                         f"got {got}")
+            ready.append((slot, v))
+        for slot, v in ready:
+            slot.sample = v
         for tap in self.taps:
             tap(node.id, t, out)
 
     # ------------------------------------------------------------------------------------------------- lifecycle
-    def _startup(self) -> str | None:
+    def _startup(self) -> StartupError | None:
+        """Configure every node (data-flow order), then activate every node. A node that fails to configure does
+        not stop the others from being configured (a lab learns about every missing device in one run): it is made
+        safe (a device: it may be half set up) and closed at once, and after the last node nothing is activated.
+        Activation stops at the first failure (activating means acting). Returns the start-up error, or None."""
+        failed: list[tuple[_Node, BaseException]] = []
         for node in self.nodes:
+            node.state = "configuring"   # from here on a device may be live: a stop path makes it safe
             try:
                 node.comp.configure()
                 node.state = "inactive"
-            except Exception as exc:
-                self._startup_node = node.id
-                return f"node '{node.id}' ({node.spec.plugin}) failed to configure: {exception_line(exc)}"
+            except (Exception, SystemExit) as exc:   # a plugin's sys.exit() is its failure, not the process's
+                failed.append((node, exc))
+                self._startup_fault(node, f"failed to configure: {exception_line(exc)}")
+                self._configure_failed(node)
+        if failed:
+            return self._startup_error(failed, "failed to configure")
         for node in self.nodes:
             try:
                 node.comp.activate()
                 node.state = "active"
-            except Exception as exc:
-                self._startup_node = node.id
-                return f"node '{node.id}' ({node.spec.plugin}) failed to activate: {exception_line(exc)}"
+            except (Exception, SystemExit) as exc:
+                self._startup_fault(node, f"failed to activate: {exception_line(exc)}")
+                return self._startup_error([(node, exc)], "failed to activate")
         return None
 
-    def _start_clock(self) -> str | None:
+    def _startup_fault(self, node: _Node, what: str) -> None:
+        with self._lock:
+            self.faults.append(Fault(node.id, "startup", f"node '{node.id}' ({node.spec.plugin}) {what}", 0.0,
+                                     "stop"))
+
+    @staticmethod
+    def _startup_error(failed: list[tuple[_Node, BaseException]], what: str) -> StartupError:
+        lines = [f"node '{n.id}' ({n.spec.plugin}) {what}: {exception_line(exc)}" for n, exc in failed]
+        msg = "; ".join(lines)
+        if len(failed) > 1:
+            msg += f" ({len(failed)} nodes {what}; none was activated)"
+        return StartupError(msg, [(n.id, n.spec.plugin, exc) for n, exc in failed])
+
+    def _configure_failed(self, node: _Node) -> None:
+        """A node whose configure() raised: it may have set up part of its hardware (opened the port, enabled the
+        torque or the forces) before it failed. A device is driven to its safe state (best effort, bounded as
+        every safe_state() call; an error there is a fault of its own beside the start-up one), then the node is
+        closed, at once: what it holds (a serial port, a USB handle) is released before the next node configures."""
+        if node.is_device:
+            self._safe(node)
+        if node.hung:
+            with self._lock:
+                self.faults.append(Fault(node.id, "shutdown", "close() skipped: its safe_state() hung", self._now,
+                                         "logged"))
+        else:
+            self._lifecycle_call(node, "close")
+        node.state = "finalized"
+
+    def _start_clock(self) -> StartupError | None:
         """Wall clock: graph time 0 is the end of start-up (loading models, opening devices, spawning processes)."""
         from .isolation import ProcessProxy
 
@@ -416,25 +507,28 @@ class Runtime:
             if isinstance(node.comp, ProcessProxy):
                 try:
                     node.comp.set_origin(self._t0, self._t0_mono)
-                except Exception as exc:
-                    self._startup_node = node.id
-                    return f"node '{node.id}' ({node.spec.plugin}) failed to start: {exception_line(exc)}"
+                except (Exception, SystemExit) as exc:
+                    self._startup_fault(node, f"failed to start: {exception_line(exc)}")
+                    return self._startup_error([(node, exc)], "failed to start")
         return None
 
     def _shutdown(self) -> None:
-        """Every device to its safe state (data-flow order), then deactivate() in reverse order, then close() in
+        """Every device to its safe state (data-flow order; not again for one still safe from an earlier call, see
+        :meth:`_still_safe`), then deactivate() in reverse order, then close() in
         reverse order; each call once. An error in one call (any exception, also SystemExit or a KeyboardInterrupt
         raised by a component) is reported and the others are still made. A node that is left behind gets no
         further calls: one whose safe_state() hung, and one whose step() still runs in its rate group's thread
         (wall clock: it hangs; deactivate() or close() would pull its resources from under it)."""
         running = self._still_stepping()
         for node in self.nodes:
-            if node.is_device and node.state != "unconfigured":
+            if node.is_device and node.state not in ("unconfigured", "finalized"):   # finalized: closed already
                 try:
                     self._safe(node)
                 except KeyboardInterrupt:   # raised by the driver itself (signals are held here): reported by _safe
                     pass
         for node in reversed(self.nodes):
+            if node.state == "finalized":   # failed to configure: made safe and closed then
+                continue
             if node.hung:   # its safe_state() hung (holding the driver's lock): deactivate/close would hang too
                 self.faults.append(Fault(node.id, "shutdown", "deactivate() and close() skipped: its safe_state() "
                                                               "hung", self._now, "logged"))
@@ -485,6 +579,7 @@ class Runtime:
         self._t0 = wall0
         self._t0_mono = time.monotonic()
         status = None
+        error: StartupError | None = None
         startup = 0.0
         interrupted = False
         fault_first: tuple[str, int, str] | None = None   # a fault that stopped the run before the interrupt
@@ -506,8 +601,8 @@ class Runtime:
                 err = self._start_clock()
             startup = time.perf_counter() - wall0
             if err is not None:
-                status = ("startup-failed", EXIT_STARTUP, err)
-                self.faults.append(Fault(getattr(self, "_startup_node", ""), "startup", err, 0.0, "stop"))
+                status = ("startup-failed", EXIT_STARTUP, str(err))
+                error = err
             elif self.clock == "sim":
                 self._run_sim(duration, progress, progress_interval)
             else:
@@ -541,7 +636,7 @@ class Runtime:
             status = (status[0], status[1], status[2] + "; devices driven to their safe state")
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
-                         startup_time=startup)
+                         startup_time=startup, error=error)
 
     def _fault_reason(self) -> tuple[str, int, str] | None:
         with self._lock:
@@ -597,6 +692,7 @@ class Runtime:
                 ok = self._check_stale(node, t)
             if ok:
                 t1 = perf()
+                node.acts += 1
                 try:
                     out = node.step(t, node.inputs)
                     if out:
@@ -702,7 +798,8 @@ class Runtime:
             self._group_died(members, exc)
         finally:
             # leaving (stop, fault elsewhere): this group's devices are made safe at once by their own thread,
-            # not after the other threads are joined (the runtime's shutdown makes them safe once more)
+            # not after the other threads are joined (the shutdown calls safe_state() again only for a device
+            # whose call raised or that was stepped after it: see _still_safe)
             for node in members:
                 if node.is_device and node.state == "active":
                     self._safe(node)
@@ -729,13 +826,15 @@ class Runtime:
                 node.nstarts += 1
                 if node.stale and not self._check_stale(node, t):
                     continue
+                node.acts += 1
                 node.in_step = True
                 try:
                     out = node.step(t, node.inputs)
                     if out:
                         self._write(node, out, t)
                 except BaseException as exc:   # also SystemExit or KeyboardInterrupt raised by a plugin in this
-                    self._fault(node, "exception", exception_line(exc), t)   # thread (a signal reaches the main one)
+                    node.in_step = False       # thread (a signal reaches the main one)
+                    self._fault(node, "exception", exception_line(exc), t)
                 node.in_step = False
                 node.steps += 1
                 dt = perf() - t1
