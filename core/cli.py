@@ -180,26 +180,6 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def run_summary(result: Any) -> str:
-    """The summary `teletouch run` prints at the end (a :class:`~teletouch.runtime.RunResult`): status, clock and
-    one row per node, with the period jitter p99 (ms; '-' where not measured: the simulated clock, or fewer than
-    11 steps) next to the rates, as ``--json`` gives it in ``period_jitter_p99_s``."""
-    lines = [f"{result.status}: {result.message}",
-             f"clock {result.clock}: {result.sim_time:.3f} s graph time in {result.wall_time - result.startup_time:.3f}"
-             f" s wall after {result.startup_time:.3f} s start-up ({result.run_realtime_factor:.1f}x real time)",
-             f"  {'node':<16}{'plugin':<20}{'rate Hz':>9}{'achieved':>10}{'jitter p99 ms':>15}{'steps':>9}"
-             f"{'overruns':>9}{'mean ms':>9}{'max ms':>9}"]
-    for n in result.nodes:
-        jit = n.period_jitter_p99_s
-        jit_text = f"{jit * 1e3:.3f}" if isinstance(jit, (int, float)) and math.isfinite(jit) else "-"
-        lines.append(f"  {n.id:<16}{n.plugin:<20}{n.rate:>9.1f}{n.achieved_rate:>10.1f}{jit_text:>15}{n.steps:>9d}"
-                     f"{n.overruns:>9d}{n.mean_step_s * 1e3:>9.3f}{n.max_step_s * 1e3:>9.3f}"
-                     + ("  FAULTED" if n.faulted else ""))
-    for f in result.faults:
-        lines.append(f"  fault: {f.line()} -> {f.action}")
-    return "\n".join(lines)
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     from .graph import load_graph
 
@@ -254,7 +234,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if terminated and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had stopped the run before it
         code = EXIT_TERMINATED
     if not args.quiet:
-        print(run_summary(result), file=sys.stderr)
+        print(result.summary(), file=sys.stderr)
     if args.json:
         print(json.dumps(dict(result.as_dict(), exit_code=code), default=str))
     by = " by SIGTERM" if code == EXIT_TERMINATED else ""

@@ -17,7 +17,6 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.plugin_dists import make_dist  # noqa: E402
 
-from teletouch import cli  # noqa: E402
 from teletouch.registry import Registry  # noqa: E402
 from teletouch.runtime import NodeStats, RunResult  # noqa: E402
 
@@ -202,13 +201,13 @@ def _result(jitter: float | None) -> RunResult:
 
 
 def test_summary_table_has_a_jitter_column_in_ms_next_to_the_rates():
-    text = cli.run_summary(_result(0.00123))
+    text = _result(0.00123).summary()
     header, row = text.splitlines()[2:4]
     assert header.split()[:6] == ["node", "plugin", "rate", "Hz", "achieved", "jitter"]
     cols = row.split()
     assert cols[:5] == ["ctl", "position-force", "1000.0", "999.8", "1.230"]   # ms, next to the achieved rate
     assert header.index("jitter p99 ms") + len("jitter p99 ms") == row.index("1.230") + len("1.230")   # aligned
-    assert cli.run_summary(_result(None)).splitlines()[3].split()[4] == "-"   # not measured (simulated clock)
+    assert _result(None).summary().splitlines()[3].split()[4] == "-"   # not measured (simulated clock)
 
 
 def test_run_prints_the_jitter_it_reports_in_json_and_the_json_is_unchanged(tmp_path):
