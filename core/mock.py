@@ -1,6 +1,7 @@
 """Mock components that ship with the core, for tests of graphs and of third-party plugins.
 
-- ``mock-sensor``: a known signal (constant, step, ramp, sine), optionally failing or turning NaN at a given time.
+- ``mock-sensor``: a known signal (constant, step, ramp, sine), optionally failing, turning NaN or going quiet at a
+  given time; ``amplitude: 0.5mm`` is converted to SI like any quantity.
 - ``mock-gain``: an estimator that multiplies its input by a gain (for wiring and rate tests).
 - ``mock-device``: mirrors its command into its state with a first-order lag, like ros2_control's GenericSystem;
   counts calls to ``safe_state`` so tests can check that the runtime drove it there.
@@ -11,13 +12,17 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import BeforeValidator, Field
 
 from .component import Component, Device, Kind, Params, Port
 from .hookspecs import hookimpl
-from .units import Seconds
+from .units import Seconds, parse_quantity
+
+# a quantity in any unit, converted to SI ("0.5mm" -> 0.0005, "2N" -> 2.0): the mocks' ports have unit "any", so
+# they feed an input in m as well as one in N, and a test writes the value as a person reads it
+AnySI = Annotated[float, BeforeValidator(lambda v: parse_quantity(v) if isinstance(v, str) else v)]
 
 
 class MockSensor(Component):
@@ -30,8 +35,9 @@ class MockSensor(Component):
 
     class Params(Params):
         signal: Literal["constant", "step", "ramp", "sine"] = Field("sine", description="waveform")
-        amplitude: float = Field(1.0, description="amplitude (in the unit of the consumer)")
-        offset: float = Field(0.0, description="offset added to the waveform")
+        amplitude: AnySI = Field(1.0, description="amplitude in the SI unit of the consumer; a quantity with a unit "
+                                 "is converted to SI ('0.5mm' -> 0.0005)")
+        offset: AnySI = Field(0.0, description="offset added to the waveform (SI; '20mm' -> 0.02)")
         frequency: float = Field(1.0, gt=0, description="sine frequency", json_schema_extra={"unit": "Hz"})
         step_time: Seconds = Field(0.5, description="time of the step", json_schema_extra={"unit": "s"})
         fail_at: Seconds | None = Field(None, description="raise RuntimeError from this time on",

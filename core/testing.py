@@ -1,23 +1,38 @@
 """Helpers for testing components and graphs (for teletouch's own tests and for third-party plugin authors).
 
-    from teletouch.testing import make_registry, run_yaml
-    reg = make_registry("my_plugin.module")          # mocks are always included
+    from teletouch.testing import Harness, make_registry, run_yaml, safe_states
+    with Harness(MyFilter, {"cutoff": "2Hz"}) as h:        # one component, driven by hand
+        out = h.step(0.0, x=1.0)                             # outputs checked against their ports, as at run time
+    reg = make_registry("my_plugin.module")                  # mocks are always included; a broken plugin raises
     result, rt = run_yaml(GRAPH_TEXT, registry=reg, duration=1.0)
+    safe_states(rt)["gripper"]                               # graph times of each safe_state() call of a device
 """
 
 from __future__ import annotations
 
+import difflib
 import importlib
-from typing import Any, Iterable
+import math
+import numbers
+import weakref
+from typing import Any, Callable, Iterable
 
-from .component import Component, Context, Inputs, Sample, _Slot
+from .component import Component, Context, Device, Inputs, Sample, _Slot, value_checker
+from .errors import ComponentFault, PluginError
 from .graph import GraphSpec, load_graph_text
-from .registry import Registry
+from .registry import Registry, check_component
 from .runtime import RunResult, Runtime
+
+__all__ = ["Harness", "make_registry", "load_text", "run_yaml", "safe_states"]
 
 
 def make_registry(*plugins: Any, mocks: bool = True) -> Registry:
-    """A registry without entry-point autoload, holding the mock plugin and the given modules/objects."""
+    """A registry without entry-point autoload, holding the mock plugin and the given modules/objects.
+
+    A plugin that breaks the rules (a ``teletouch_*`` function without ``@hookimpl``, a device without
+    ``safe_state()``, a unit in mm, ...) raises :class:`PluginError` with the reason `teletouch plugins` would show,
+    instead of leaving its components out (a test would then only see "unknown plugin"); so does a module that
+    implements no teletouch hook at all."""
     reg = Registry(autoload=False, blocked=(), extra_modules=())
     if mocks:
         from . import mock
@@ -25,7 +40,14 @@ def make_registry(*plugins: Any, mocks: bool = True) -> Registry:
         reg.register(mock, name="mock", distribution="teletouch")
     for p in plugins:
         mod = importlib.import_module(p) if isinstance(p, str) else p
-        reg.register(mod, name=getattr(mod, "__name__", None))
+        name = getattr(mod, "__name__", None)
+        rec = reg.register(mod, name=name)
+        if rec.error:
+            raise PluginError(f"plugin '{rec.name}' failed to load: {rec.error}")
+        if not rec.hooks:
+            raise PluginError(f"plugin '{rec.name}' implements no teletouch hook: it needs a function "
+                              f"teletouch_components() decorated with @teletouch.hookimpl that returns a list of "
+                              f"Component classes")
     return reg
 
 
@@ -33,26 +55,97 @@ def load_text(text: str, registry: Registry, **kw: Any) -> GraphSpec:
     return load_graph_text(text, "<test>", registry=registry, **kw)
 
 
+# graph times of each safe_state() call, per device node, of the runtimes built by run_yaml
+_SAFE_LOGS: "weakref.WeakKeyDictionary[Runtime, dict[str, list[float]]]" = weakref.WeakKeyDictionary()
+
+
+def _spy_safe_states(rt: Runtime, spec: GraphSpec) -> None:
+    log: dict[str, list[float]] = {}
+    for node in spec.nodes:
+        comp = rt.component(node.id)
+        if not isinstance(comp, Device):
+            continue
+        calls = log.setdefault(node.id, [])
+        original = comp.safe_state
+
+        def spy(_original: Callable[[], None] = original, _calls: list[float] = calls) -> None:
+            _calls.append(rt.now())
+            _original()
+
+        comp.safe_state = spy   # type: ignore[method-assign]   # an instance attribute: the runtime calls this one
+    _SAFE_LOGS[rt] = log
+
+
 def run_yaml(text: str, registry: Registry, duration: float | None = None, clock: str | None = None,
              taps: Iterable[Any] = (), **kw: Any) -> tuple[RunResult, Runtime]:
+    """Run a graph given as YAML text (the simulated clock unless it or ``clock`` says otherwise). ``taps`` are
+    called as ``tap(node_id, t, outputs)`` for every step of every node. Every device's ``safe_state()`` calls are
+    recorded: :func:`safe_states` lists them."""
     spec = load_text(text, registry, clock=clock, **kw)
     rt = Runtime(spec, clock=clock, log=lambda m: None)
+    _spy_safe_states(rt, spec)
     for tap in taps:
         rt.add_tap(tap)
     return rt.run(duration), rt
 
 
-class Harness:
-    """Drive one component by hand: set inputs, call step, read outputs."""
+def safe_states(rt: Runtime) -> dict[str, list[float]]:
+    """For a runtime made by :func:`run_yaml`: each device node's id -> the graph times (s) at which the runtime
+    called its ``safe_state()`` (on a fault, on a stop, at the end of the run). Nodes that are not devices are not
+    listed."""
+    try:
+        return {k: list(v) for k, v in _SAFE_LOGS[rt].items()}
+    except (KeyError, TypeError):
+        raise ValueError("safe_states() knows only the runtimes that run_yaml() built") from None
 
-    def __init__(self, cls: type[Component], params: Any = None, **kw: Any):
+
+def _finite_stamp(stamp: Any) -> bool:
+    if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real):
+        return False
+    try:
+        return math.isfinite(stamp)
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+class Harness:
+    """Drive one component by hand: set inputs, call step, read outputs; what the runtime would refuse is refused.
+
+    - The class is checked as a plugin's components are checked when it loads (:class:`PluginError` naming the
+      class and attribute: a device without ``safe_state()``, a unit in mm, ...).
+    - ``h.step(t, **inputs)`` sets the inputs and steps at graph time ``t``; a value is stamped ``t``, a
+      :class:`Sample` keeps its own stamp (``Sample(v, t - 0.5)`` is half a second old: a stale input), ``None``
+      empties the input (nothing received). It returns the outputs as values; ``h.samples`` has them as Samples.
+      The outputs are checked against their ports as the runtime checks them (dtype and shape, output names,
+      stamps): what would fault the node in a graph raises :class:`ComponentFault` with the runtime's message.
+    - ``h.run(until, **inputs)`` steps on a simulated clock at the node's rate (``rate=`` or the class's
+      ``default_rate``) from the next tick up to ``until``; an input given as a function is called with ``t``.
+    - Devices: ``h.safe_state()`` calls the device's safe state, and leaving the ``with`` block calls it too (as the
+      runtime does at the end of every run, and after a fault: also when the block raised) before ``deactivate()``
+      and ``close()``; ``h.safe_calls`` counts the calls made through the harness.
+    - ``h.stopped`` is the reason given to ``ctx.request_stop()`` (None if not called).
+    """
+
+    def __init__(self, cls: type[Component], params: Any = None, *, rate: float | None = None, **kw: Any):
+        check_component(cls)
+        self.cls = cls
         self.t = 0.0
+        self.rate = rate if rate is not None else cls.default_rate
         self.ctx = Context(now=lambda: self.t, clock_kind="sim", request_stop=self._stop,
-                           log=lambda m: None, from_monotonic=lambda m: self.t, rate=cls.default_rate)
+                           log=lambda m: None, from_monotonic=lambda m: self.t, rate=self.rate)
         self.comp = cls(params, node_id=cls.name, ctx=self.ctx, **kw)
         self.slots = {name: _Slot() for name in cls.inputs}
         self.inputs = Inputs(self.slots)
+        self.checks = {name: value_checker(port) for name, port in cls.outputs.items()}
+        self.samples: dict[str, Sample] = {}
         self.stopped: str | None = None
+        self.safe_calls = 0
+        self._steps = 0
 
     def _stop(self, reason: str) -> None:
         self.stopped = reason
@@ -64,17 +157,81 @@ class Harness:
 
     def __exit__(self, *exc: Any) -> None:
         try:
+            if isinstance(self.comp, Device):
+                self.safe_state()
             self.comp.deactivate()
         finally:
             self.comp.close()
 
+    def safe_state(self) -> None:
+        """Drive a device to its safe state, as the runtime does on a fault or a stop."""
+        if not isinstance(self.comp, Device):
+            raise TypeError(f"{self.cls.__qualname__} is a {self.cls.kind.value}, not a device: it has no safe state")
+        self.safe_calls += 1
+        self.comp.safe_state()
+
     def set(self, **values: Any) -> None:
+        """Set inputs without stepping: a value is stamped with the harness time, a Sample keeps its stamp, None
+        empties the input."""
         for k, v in values.items():
-            self.slots[k].sample = v if isinstance(v, Sample) else Sample(v, self.t)
+            slot = self.slots.get(k)
+            if slot is None:
+                close = difflib.get_close_matches(k, list(self.slots), n=1, cutoff=0.6)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise KeyError(f"{self.cls.__qualname__} has no input '{k}'{hint}; inputs: "
+                               f"{', '.join(self.slots) or '(none)'}")
+            slot.sample = None if v is None else v if isinstance(v, Sample) else Sample(v, self.t)
 
     def step(self, t: float | None = None, **values: Any) -> dict[str, Any]:
+        """Set ``values`` (see :meth:`set`), step at ``t`` (default: the harness time) and return the outputs."""
         if t is not None:
             self.t = t
         self.set(**values)
-        out = self.comp.step(self.t, self.inputs) or {}
-        return {k: (v.value if isinstance(v, Sample) else v) for k, v in out.items()}
+        self._steps += 1
+        out = self.comp.step(self.t, self.inputs)
+        self.samples = self._check(out)
+        return {k: s.value for k, s in self.samples.items()}
+
+    def run(self, until: float, **values: Any) -> list[tuple[float, dict[str, Any]]]:
+        """Step at the node's rate on a simulated clock, from the next tick after the harness time (from 0.0 if it
+        has not stepped yet) up to and including ``until`` (s); returns ``[(t, outputs), ...]``. Each input value is
+        set before every step (stamped with that step's time); a function is called with ``t`` for its value."""
+        if not self.rate or not math.isfinite(self.rate) or self.rate <= 0:
+            raise ValueError(f"{self.cls.__qualname__} has no default_rate: give Harness(..., rate=HZ)")
+        period_ns = round(1e9 / self.rate)
+        tick = 0 if self._steps == 0 else math.floor(round(self.t * 1e9) / period_ns) + 1
+        result = []
+        while tick * period_ns <= round(until * 1e9):
+            t = tick * period_ns / 1e9
+            self.t = t
+            now = {k: (v(t) if callable(v) else v) for k, v in values.items()}
+            result.append((t, self.step(t, **now)))
+            tick += 1
+        return result
+
+    def _check(self, out: Any) -> dict[str, Sample]:
+        """The runtime's checks of a step's outputs; returns them as Samples."""
+        if out is None:
+            return {}
+        try:
+            items = list(out.items())
+        except AttributeError:
+            raise ComponentFault(f"step() returned {type(out).__name__} {_short(out)}; expected a mapping of output "
+                                 f"name to value (outputs: {', '.join(self.checks) or '(none)'}) or None") from None
+        samples = {}
+        for name, v in items:
+            if name not in self.checks:
+                raise ComponentFault(f"step() returned unknown output '{name}'; outputs: {', '.join(self.checks)}")
+            if isinstance(v, Sample):
+                if not _finite_stamp(v.stamp):
+                    raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
+                                         f"finite graph time in seconds")
+                v = Sample(v.value, float(v.stamp))
+            else:
+                v = Sample(v, self.t)
+            check = self.checks[name]
+            got = None if check is None else check(v.value)
+            if got is not None:
+                raise ComponentFault(f"output '{name}': expected {self.cls.outputs[name].describe_value()}, got {got}")
+            samples[name] = v
+        return samples
