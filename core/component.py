@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import math
+import numbers
 import re
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Iterator, Mapping
@@ -216,6 +217,56 @@ class Sample:
 
     def __repr__(self) -> str:
         return f"Sample({self.value!r}, stamp={self.stamp:.6f})"
+
+
+def finite_stamp(stamp: Any) -> bool:
+    """Whether ``stamp`` is a finite real number of seconds (a bool, a Decimal or an array is not one)."""
+    if isinstance(stamp, bool) or not isinstance(stamp, (int, float, numbers.Real)):
+        return False
+    try:
+        return math.isfinite(stamp)
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def step_samples(out: Any, ports: Mapping[str, Port], checks: Mapping[str, Callable[[Any], str | None] | None],
+                 t: float) -> list[tuple[str, Sample]]:
+    """A step's outputs as (port name, Sample), each checked as the runtime checks it (and the test Harness, the
+    same way): ``out`` a mapping of output name to value or Sample; a value is stamped ``t``, a Sample's stamp must
+    be a finite number of seconds (kept, as float); each value must fit its port (``checks``: port name ->
+    :func:`value_checker`'s check, None for dtype "any"). Raises ComponentFault naming the output and what was
+    expected: then none of the step's outputs may be stored (consumers never see half of a step)."""
+    from .errors import ComponentFault
+
+    try:
+        items = out.items()
+    except AttributeError:
+        raise ComponentFault(f"step() returned {type(out).__name__} {_short(out)}; expected a mapping of output "
+                             f"name to value (outputs: {', '.join(ports) or '(none)'}) or None") from None
+    ready = []
+    for name, v in items:
+        if name not in checks:
+            raise ComponentFault(f"step() returned unknown output '{name}'; outputs: {', '.join(ports)}")
+        if v.__class__ is Sample:
+            if v.stamp.__class__ is not float or not math.isfinite(v.stamp):   # fast path: a finite float
+                if not finite_stamp(v.stamp):
+                    raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
+                                         f"finite graph time in seconds")
+                v = Sample(v.value, float(v.stamp))
+        else:
+            v = Sample(v, t)
+        check = checks[name]
+        if check is not None:
+            got = check(v.value)
+            if got is not None:
+                raise ComponentFault(f"output '{name}': expected {ports[name].describe_value()}, got {got}")
+        ready.append((name, v))
+    return ready
 
 
 class _Slot:

@@ -20,7 +20,6 @@ import ctypes
 import gc
 import heapq
 import math
-import numbers
 import os
 import sys
 import threading
@@ -28,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot, value_checker
+from .component import Component, Context, Device, Inputs, Sample, _Slot, step_samples, value_checker
 from .errors import ComponentFault, exception_line
 from .graph import GraphSpec
 
@@ -408,37 +407,8 @@ class Runtime:
         ``component.value_checker``) and each stamp: one that does not fit is a fault of the node, and then none of
         that step's outputs is stored (consumers never see half of a step)."""
         slots = node.out
-        checks = node.checks
-        try:
-            items = out.items()
-        except AttributeError:
-            raise ComponentFault(f"step() returned {type(out).__name__} {_short(out)}; expected a mapping of output "
-                                 f"name to value (outputs: {', '.join(slots) or '(none)'}) or None") from None
-        ready = []
-        for name, v in items:
-            slot = slots.get(name)
-            if slot is None:
-                raise ComponentFault(f"step() returned unknown output '{name}'; outputs: {', '.join(slots)}")
-            if v.__class__ is Sample:
-                if v.stamp.__class__ is not float:   # an int, a numpy float, or not a time at all
-                    if not _finite_stamp(v.stamp):
-                        raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must "
-                                             f"be a finite graph time in seconds")
-                    v = Sample(v.value, float(v.stamp))
-                elif not math.isfinite(v.stamp):
-                    raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
-                                         f"finite graph time in seconds")
-            else:
-                v = Sample(v, t)
-            check = checks[name]
-            if check is not None:
-                got = check(v.value)
-                if got is not None:
-                    raise ComponentFault(f"output '{name}': expected {node.spec.cls.outputs[name].describe_value()}, "
-                                         f"got {got}")
-            ready.append((slot, v))
-        for slot, v in ready:
-            slot.sample = v
+        for name, v in step_samples(out, node.spec.cls.outputs, node.checks, t):
+            slots[name].sample = v
         for tap in self.taps:
             tap(node.id, t, out)
 
@@ -908,21 +878,6 @@ def _signals_deferred() -> Iterator[list[int]]:
     finally:
         for sig, prev in old.items():
             signal.signal(sig, prev)
-
-
-def _finite_stamp(stamp: Any) -> bool:
-    """Whether ``stamp`` is a finite real number of seconds (a bool, a Decimal or an array is not one)."""
-    if isinstance(stamp, bool) or not isinstance(stamp, (int, float, numbers.Real)):
-        return False
-    try:
-        return math.isfinite(stamp)
-    except (TypeError, ValueError, OverflowError):
-        return False
-
-
-def _short(value: Any, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def thread_priority(realtime_priority: int, rate: float, node_priorities: list[int | None]) -> int:

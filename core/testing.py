@@ -13,12 +13,11 @@ from __future__ import annotations
 import difflib
 import importlib
 import math
-import numbers
 import weakref
 from typing import Any, Callable, Iterable
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot, value_checker
-from .errors import ComponentFault, PluginError
+from .component import Component, Context, Device, Inputs, Sample, _Slot, step_samples, value_checker
+from .errors import PluginError
 from .graph import GraphSpec, load_graph_text
 from .registry import Registry, check_component
 from .runtime import RunResult, Runtime
@@ -97,20 +96,6 @@ def safe_states(rt: Runtime) -> dict[str, list[float]]:
         return {k: list(v) for k, v in _SAFE_LOGS[rt].items()}
     except (KeyError, TypeError):
         raise ValueError("safe_states() knows only the runtimes that run_yaml() built") from None
-
-
-def _finite_stamp(stamp: Any) -> bool:
-    if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real):
-        return False
-    try:
-        return math.isfinite(stamp)
-    except (TypeError, ValueError, OverflowError):
-        return False
-
-
-def _short(value: Any, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 class Harness:
@@ -210,28 +195,7 @@ class Harness:
         return result
 
     def _check(self, out: Any) -> dict[str, Sample]:
-        """The runtime's checks of a step's outputs; returns them as Samples."""
+        """The runtime's checks of a step's outputs (component.step_samples); returns them as Samples."""
         if out is None:
             return {}
-        try:
-            items = list(out.items())
-        except AttributeError:
-            raise ComponentFault(f"step() returned {type(out).__name__} {_short(out)}; expected a mapping of output "
-                                 f"name to value (outputs: {', '.join(self.checks) or '(none)'}) or None") from None
-        samples = {}
-        for name, v in items:
-            if name not in self.checks:
-                raise ComponentFault(f"step() returned unknown output '{name}'; outputs: {', '.join(self.checks)}")
-            if isinstance(v, Sample):
-                if not _finite_stamp(v.stamp):
-                    raise ComponentFault(f"step() returned output '{name}' stamped {v.stamp!r}: a stamp must be a "
-                                         f"finite graph time in seconds")
-                v = Sample(v.value, float(v.stamp))
-            else:
-                v = Sample(v, self.t)
-            check = self.checks[name]
-            got = None if check is None else check(v.value)
-            if got is not None:
-                raise ComponentFault(f"output '{name}': expected {self.cls.outputs[name].describe_value()}, got {got}")
-            samples[name] = v
-        return samples
+        return dict(step_samples(out, self.cls.outputs, self.checks, self.t))
