@@ -162,6 +162,9 @@ def auto_label(name: str, image: np.ndarray, background: np.ndarray, ball_radius
     then thresholded at ``level`` x its robust peak; the region holding the most area is filled, and gives the
     centroid and the radius sqrt(area / pi). ``level`` 0.35 sits between the conventions of the two shared label
     sets (hand-drawn QVGA circles lie ~10% inside the colour change, VGA automatic ones on it).
+
+    The flags ("uncertain: ..." notes, see :func:`_label_flags`) check the circle against the edge found
+    independently on rays from the centre (:func:`edge_circle`).
     """
     import cv2
 
@@ -197,26 +200,143 @@ def auto_label(name: str, image: np.ndarray, background: np.ndarray, ball_radius
         cx, cy = float(cxx.mean()), float(cyy.mean())
     else:
         cx, cy = float(xs.mean()), float(ys.mean())
+    perim = cv2.arcLength(cnt, True)
+    circ = 4 * math.pi * area / max(perim * perim, 1e-9)
+    others = np.delete(areas, k - 1)
+    notes = _label_flags(s, cx, cy, r, ball_radius_px, circularity=circ, contrast=contrast,
+                         second=float(others.max()) / area if others.size else 0.0)
+    note = ("uncertain: " + "; ".join(notes)) if notes else ""
+    return Label(name, round(cx, 1), round(cy, 1), round(r, 1), note)
+
+
+# flag thresholds (measured on the shared VGA presses against their labels, docs/depth.md "Limits"): a press is
+# "off" when its centre is > 5 px or its radius > 10% from the label
+EDGE_LEVEL = 0.5            # a ray's edge: where the change falls below this fraction of the ray's own peak
+EDGE_MIN_RAYS = 0.25        # at least this fraction of the rays must find the edge inside the image
+EDGE_MAX_RMS = 0.07         # edge points off the fitted circle: rms over the radius
+EDGE_MIN_AXES = 0.85        # minor / major axis of the ellipse through the edge points
+EDGE_MAX_SHIFT = 0.12       # the edge circle's centre from the centroid, over the radius
+BORDER_MARGIN = 1.1         # the contact circle grown by this factor must lie inside the image
+
+
+def _label_flags(s: np.ndarray, cx: float, cy: float, r: float, ball_radius_px: float, *, circularity: float,
+                 contrast: float, second: float) -> list[str]:
+    """Reasons to doubt a found contact circle (empty: none).
+
+    - the contact circle (grown by 10%) reaches the image border: its edge cannot be seen all round (the colour
+      change around it, out to ~1.3 radii, may be cut without harm: measured on VGA, presses whose change region
+      touched the border but not their circle were as accurate as the others);
+    - the edge found on rays from the centre (:func:`edge_circle`) is off a circle (fit residual), elliptic, or
+      centred away from the changed pixels' centroid: two estimates of the centre that should agree do not;
+    - the changed region is not round, not smaller than the ball, tiny, or there is a second contact;
+    - the contrast is barely above the detection limit (12 x the noise).
+    """
+    h, w = s.shape
     notes = []
-    x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
-    bw, bh = stats[k, cv2.CC_STAT_WIDTH], stats[k, cv2.CC_STAT_HEIGHT]
-    if x0 <= 1 or y0 <= 1 or x0 + bw >= w - 1 or y0 + bh >= h - 1:
+    g = BORDER_MARGIN * r
+    if cx - g < 0 or cy - g < 0 or cx + g > w - 1 or cy + g > h - 1:
         notes.append("touches the image border")
     if r > 0.95 * ball_radius_px:
         notes.append(f"radius {r:.0f} px is not smaller than the ball's {ball_radius_px:.0f} px")
     if r < 3:
         notes.append("tiny contact")
-    perim = cv2.arcLength(cnt, True)
-    circ = 4 * math.pi * area / max(perim * perim, 1e-9)
-    if circ < 0.75:
-        notes.append(f"not round (circularity {circ:.2f})")
-    others = np.delete(areas, k - 1)
-    if others.size and others.max() > 0.3 * area:
+    if circularity < 0.75:
+        notes.append(f"not round (circularity {circularity:.2f})")
+    if r >= 3:
+        fit = edge_circle(s, cx, cy, r)
+        if fit is None:
+            notes.append("no edge found on most rays from the centre")
+        else:
+            ecx, ecy, er, rms, axes = fit
+            if rms > EDGE_MAX_RMS:
+                notes.append(f"edge off a circle (fit residual {100 * rms:.0f}% of the radius)")
+            if axes < EDGE_MIN_AXES:
+                notes.append(f"edge not round (ellipse axes ratio {axes:.2f})")
+            shift = math.hypot(ecx - cx, ecy - cy)
+            if shift > EDGE_MAX_SHIFT * r:
+                notes.append(f"centre unsure (the edge circle's centre is {shift:.0f} px from the centroid)")
+    if second > 0.3:
         notes.append("more than one contact")
-    if contrast < 25.0:
+    if contrast < 15.0:
         notes.append(f"weak contrast ({contrast:.0f} x noise)")
-    note = ("uncertain: " + "; ".join(notes)) if notes else ""
-    return Label(name, round(cx, 1), round(cy, 1), round(r, 1), note)
+    return notes
+
+
+def edge_points(s: np.ndarray, cx: float, cy: float, r: float, rays: int = 90, level: float = EDGE_LEVEL
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Edge points (x, y) of a contact on ``rays`` rays from (cx, cy) in the change map ``s`` (zero = no change).
+
+    A ball pressed into the gel tilts the surface most at the contact edge and the slope falls steeply outside it,
+    so along each ray the change rises to a peak near the edge and then falls; the edge point is where it falls
+    below ``level`` x that ray's own peak (linearly interpolated), which makes it independent of how strongly the
+    sensor's lights colour each side. The peak is sought between 0.3 and 1.3 x ``r``; a ray that leaves the image
+    before its edge gives no point."""
+    import cv2
+
+    step = max(0.5, r / 60.0)
+    rad = np.arange(0.0, 1.8 * r, step, dtype=np.float32)
+    th = np.arange(rays, dtype=np.float32) * np.float32(2 * np.pi / rays)
+    mx = cx + np.cos(th)[:, None] * rad[None, :]
+    my = cy + np.sin(th)[:, None] * rad[None, :]
+    h, w = s.shape
+    p = cv2.remap(s.astype(np.float32), mx.astype(np.float32), my.astype(np.float32), cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    outside = (mx < 0) | (my < 0) | (mx > w - 1) | (my > h - 1)
+    idx = np.arange(rad.size)
+    win = (rad >= 0.3 * r) & (rad <= 1.3 * r)
+    q = np.where(win[None, :] & ~outside, p, -np.inf)
+    k = np.argmax(q, axis=1)
+    pk = p[np.arange(rays), k]
+    below = (p < level * pk[:, None]) & (idx[None, :] > k[:, None]) & ~outside
+    j = np.argmax(below, axis=1)
+    cut = np.argmax(outside & (idx[None, :] > k[:, None]), axis=1)
+    left = (outside & (idx[None, :] > k[:, None])).any(axis=1)
+    ok = below.any(axis=1) & (pk > 0) & np.isfinite(q[np.arange(rays), k]) & ~(left & (cut < j))
+    ok &= j > 0
+    i = np.nonzero(ok)[0]
+    j = j[i]
+    a, b, t_level = p[i, j - 1], p[i, j], level * pk[i]
+    frac = np.clip((a - t_level) / np.maximum(a - b, 1e-9), 0.0, 1.0)
+    e = rad[j - 1] + frac * step
+    return cx + np.cos(th[i]) * e, cy + np.sin(th[i]) * e
+
+
+def fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares circle (cx, cy, r) through points (algebraic fit: x^2 + y^2 = 2 cx x + 2 cy y + c)."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    A = np.stack([x, y, np.ones_like(x)], axis=1)
+    sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+    cx, cy = sol[0] / 2.0, sol[1] / 2.0
+    return float(cx), float(cy), float(math.sqrt(max(sol[2] + cx * cx + cy * cy, 0.0)))
+
+
+def edge_circle(s: np.ndarray, cx: float, cy: float, r: float, rays: int = 90
+                ) -> tuple[float, float, float, float, float] | None:
+    """The circle through the contact's edge points (:func:`edge_points`), refitted without outliers (points more
+    than 2.5 robust deviations off, e.g. rays that ran into another contact): (cx, cy, r, rms residual / r, minor /
+    major axis of the ellipse through the kept points); None when fewer than a quarter of the rays found the edge."""
+    import cv2
+
+    x, y = edge_points(s, cx, cy, r, rays)
+    if x.size < max(8, EDGE_MIN_RAYS * rays):
+        return None
+    keep = np.ones(x.size, bool)
+    for _ in range(3):
+        fcx, fcy, fr = fit_circle(x[keep], y[keep])
+        res = np.hypot(x - fcx, y - fcy) - fr
+        mad = 1.4826 * float(np.median(np.abs(res[keep]))) + 0.5
+        new = np.abs(res) < 2.5 * mad
+        if new.sum() < max(8, EDGE_MIN_RAYS * rays) or np.array_equal(new, keep):
+            break
+        keep = new
+    fcx, fcy, fr = fit_circle(x[keep], y[keep])
+    if fr <= 0:
+        return None
+    res = np.hypot(x[keep] - fcx, y[keep] - fcy) - fr
+    (_, _), (ea, eb), _ = cv2.fitEllipse(np.stack([x[keep], y[keep]], axis=1).astype(np.float32))
+    axes = min(ea, eb) / max(ea, eb, 1e-9)
+    return fcx, fcy, fr, float(np.sqrt(np.mean(res * res))) / fr, float(axes)
 
 
 LABEL_COLUMNS = ("image", "center_x", "center_y", "radius_px")
