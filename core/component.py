@@ -234,6 +234,13 @@ def _short(value: Any, limit: int = 60) -> str:
     return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
+def step_location(cls: type) -> str:
+    """Where a person finds a component's step(): ``returned by Class.step (file.py:line)``."""
+    code = getattr(getattr(cls, "step", None), "__code__", None)
+    at = f" ({code.co_filename.rsplit('/', 1)[-1]}:{code.co_firstlineno})" if code is not None else ""
+    return f"returned by {cls.__name__}.step{at}"
+
+
 def step_samples(out: Any, ports: Mapping[str, Port], checks: Mapping[str, Callable[[Any], str | None] | None],
                  t: float) -> list[tuple[str, Sample]]:
     """A step's outputs as (port name, Sample), each checked as the runtime checks it (and the test Harness, the

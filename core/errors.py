@@ -60,6 +60,10 @@ class GraphValidationError(TeletouchError):
 class ComponentFault(TeletouchError):
     """Raised by a component (or the runtime on its behalf) when it cannot go on safely."""
 
+    #: where a person should look, when that is not where it was raised (an output that does not fit its port is
+    #: found by the runtime, but made by the plugin's step): ``exception_line`` gives it instead of the frame
+    where: str | None = None
+
     def __init__(self, message: str, node: str | None = None):
         self.node = node
         super().__init__(f"node '{node}': {message}" if node else message)
@@ -74,7 +78,10 @@ class ModelFileError(TeletouchError):
 
 
 def exception_line(exc: BaseException) -> str:
-    """One line for a person: ``Type: message (file.py:line)`` of the innermost frame that raised."""
+    """One line for a person: ``Type: message (file.py:line)`` of the innermost frame that raised (or the
+    exception's own ``where``, see :class:`ComponentFault`)."""
+    if getattr(exc, "where", None):
+        return f"{type(exc).__name__}: {exc} ({exc.where})"
     tb = traceback.extract_tb(exc.__traceback__)
     where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
     return f"{type(exc).__name__}: {exc}{where}"

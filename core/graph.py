@@ -82,6 +82,7 @@ class NodeSpec:
     param_where: dict[str, Location] = field(default_factory=dict)
     isolate: str = "none"
     priority: int | None = None
+    plugin_where: Location | None = None   # where its plugin was named (an override's file, if one replaced it)
     # filled in by validation
     cls: type[Component] | None = None
     params_obj: Any = None
@@ -180,6 +181,12 @@ def _merge_nodes(base: list, over: list) -> LList:
             merged = _merge(out[i], node)
             if node.get("plugin") not in (None, out[i].get("plugin")) and "params" not in node:
                 merged["params"] = LDict(where=where)  # a new plugin does not inherit the old one's params
+            over_in, ins = node.get("inputs"), merged.get("inputs")
+            if isinstance(over_in, dict) and isinstance(ins, dict):
+                for port in [p for p, src in over_in.items() if src is None]:   # `port: null` unwires an input
+                    del ins[port]
+                    if isinstance(ins, LDict):
+                        ins.key_where.pop(port, None)
             out[i] = merged
         else:
             out.append(node)
@@ -481,7 +488,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         pwhere_default = ld.loc("params") if "params" in ld else ld.where
         spec = NodeSpec(id=nid, plugin=plugin if isinstance(plugin, str) else "", rate=rate,
                         params=_plain(params), inputs={}, on_fault=on_fault, where=ld.where, param_where=pwhere,
-                        isolate=isolate, priority=priority)
+                        isolate=isolate, priority=priority, plugin_where=ld.loc("plugin"))
         if cls is not None:
             spec.cls = cls
             try:
@@ -545,7 +552,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                     except ValueError as exc:
                         err(f"node '{nid}': input '{port}': max_age: {exc}", iw)
             if not isinstance(src, str) or src.count(".") != 1:
-                err(f"node '{nid}': input '{port}': expected 'node.port', got {src!r}", iw)
+                hint = (" (null unwires an input only in an override of an included graph's node; here, leave the "
+                        "input out)" if src is None else "")
+                err(f"node '{nid}': input '{port}': expected 'node.port', got {src!r}{hint}", iw)
                 continue
             snode, sport = src.split(".")
             spec.inputs[str(port)] = WireSpec(str(port), snode, sport, max_age, iw)
@@ -558,8 +567,18 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             continue
         for port, w in n.inputs.items():
             if port not in n.cls.inputs:
+                # a wire kept from an included graph when an override changed the plugin: say how to drop it
+                pw = n.plugin_where
+                inherited = pw is not None and w.where.file is not None and pw.file != w.where.file
+                hint = ""
+                if inherited and str(pw.file).startswith("--set"):
+                    hint = (f"; the wire comes from {w.where.file} and {pw.file} changed the plugin: write a graph "
+                            f"that includes it, with the node's plugin and 'inputs: {{{port}: null}}' to unwire it")
+                elif inherited:
+                    hint = (f"; the wire comes from {w.where.file}: unwire it in the override with "
+                            f"'inputs: {{{port}: null}}'")
                 err(f"node '{n.id}': {n.plugin} has no input '{port}'{_suggest(port, n.cls.inputs)}; "
-                    f"inputs: {', '.join(n.cls.inputs) or '(none)'}", w.where)
+                    f"inputs: {', '.join(n.cls.inputs) or '(none)'}{hint}", w.where)
                 continue
             src = by_id.get(w.node)
             if src is None:

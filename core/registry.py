@@ -140,6 +140,9 @@ class Registry:
         self.known_names: set[str] = set()
         env = os.environ
         self.autoload = (not _truthy(env.get(ENV_DISABLE))) if autoload is None else autoload
+        #: why installed plugins are not loaded (for messages): the environment variable, or the caller's choice
+        self._no_autoload_why = (f"{ENV_DISABLE} is set" if autoload is None else
+                                 "this registry was made with autoload=False: only the modules given to it load")
         #: blocked name -> the settings that block it (``TELETOUCH_BLOCK``, ``--block``, ...), in the order read
         self.block_settings: dict[str, list[str]] = {}
         for setting, names in [(ENV_BLOCK, split_names(env.get(ENV_BLOCK))),
@@ -320,7 +323,7 @@ class Registry:
         msg = f"unknown plugin '{name}'"
         if close:
             msg += " (did you mean " + " or ".join(f"'{c}'" for c in close) + "?)"
-        else:
+        elif self.autoload:
             msg += "; run `teletouch plugins` to list what is installed"
         broken = [p for p in self.plugins.values()
                   if p.error and (p.name == name or name in p.offered or name in p.module.replace("_", "-").split("."))]
@@ -333,7 +336,7 @@ class Registry:
         if blocked:
             msg += f"; blocked plugins (not loaded): {', '.join(blocked)}"
         if not self.autoload:
-            msg += f"; installed plugins are not loaded ({ENV_DISABLE} is set)"
+            msg += f"; installed plugins are not loaded ({self._no_autoload_why})"
         return msg
 
     def errors(self) -> list[PluginRecord]:

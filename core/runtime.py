@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot, step_samples, value_checker
+from .component import Component, Context, Device, Inputs, Sample, _Slot, step_location, step_samples, value_checker
 from .errors import ComponentFault, exception_line
 from .graph import GraphSpec
 
@@ -72,7 +72,7 @@ class NodeStats:
     plugin: str
     rate: float
     steps: int
-    achieved_rate: float
+    achieved_rate: float | None   # steps per second of graph time; None when the run was shorter than one period
     overruns: int
     mean_step_s: float
     max_step_s: float
@@ -127,7 +127,8 @@ class RunResult:
         for n in self.nodes:
             jit = n.period_jitter_p99_s
             jit_text = f"{jit * 1e3:.3f}" if isinstance(jit, (int, float)) and math.isfinite(jit) else "-"
-            lines.append(f"  {n.id:<16}{n.plugin:<20}{n.rate:>9.1f}{n.achieved_rate:>10.1f}{jit_text:>15}"
+            rate_text = "-" if n.achieved_rate is None else f"{n.achieved_rate:.1f}"
+            lines.append(f"  {n.id:<16}{n.plugin:<20}{n.rate:>9.1f}{rate_text:>10}{jit_text:>15}"
                          f"{n.steps:>9d}{n.overruns:>9d}{n.mean_step_s * 1e3:>9.3f}{n.max_step_s * 1e3:>9.3f}"
                          + ("  FAULTED" if n.faulted else ""))
         for f in self.faults:
@@ -407,7 +408,12 @@ class Runtime:
         ``component.value_checker``) and each stamp: one that does not fit is a fault of the node, and then none of
         that step's outputs is stored (consumers never see half of a step)."""
         slots = node.out
-        for name, v in step_samples(out, node.spec.cls.outputs, node.checks, t):
+        try:
+            samples = step_samples(out, node.spec.cls.outputs, node.checks, t)
+        except ComponentFault as exc:   # found here, made by the plugin: point at its step(), not at the runtime
+            exc.where = step_location(node.spec.cls)
+            raise
+        for name, v in samples:
             slots[name].sample = v
         for tap in self.taps:
             tap(node.id, t, out)
@@ -633,7 +639,9 @@ class Runtime:
                 ts = sorted(n.starts[:k])
                 errs = sorted(abs((b - a) - n.period) for a, b in zip(ts, ts[1:]))
                 jit = errs[min(len(errs) - 1, int(0.99 * len(errs)))]
-            out.append(NodeStats(n.id, n.spec.plugin, n.rate, n.steps, n.steps / elapsed, n.overruns,
+            # a run shorter than one period (a fault at t = 0) has no rate to show: 1 step / 1e-12 s read 1e12 Hz
+            achieved = n.steps / elapsed if self._now >= n.period else None
+            out.append(NodeStats(n.id, n.spec.plugin, n.rate, n.steps, achieved, n.overruns,
                                  n.busy / n.steps if n.steps else 0.0, n.max_step, n.faulted, jit))
         return out
 

@@ -196,6 +196,29 @@ def test_include_override_and_set(tmp_path, reg):
     assert "bad.yaml:16:" in str(ei.value)
 
 
+def test_an_override_that_swaps_a_plugin_unwires_inputs_with_null(tmp_path, reg):
+    # before: the override kept the old plugin's wires and 'x: null' was refused ("expected 'node.port', got None"),
+    # so swapping a node for a plugin with other inputs could not be written as an override at all
+    (tmp_path / "base.yaml").write_text(GOOD)
+    (tmp_path / "swap.yaml").write_text("include: base.yaml\nnodes:\n  - {id: gain, plugin: mock-sensor}\n")
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(tmp_path / "swap.yaml", registry=reg)
+    assert "the wire comes from " in str(ei.value) and "unwire it in the override with 'inputs: {x: null}'" in str(
+        ei.value)
+    (tmp_path / "swap.yaml").write_text("include: base.yaml\nnodes:\n  - {id: gain, plugin: mock-sensor, "
+                                        "inputs: {x: null}}\n  - {id: dev, inputs: {command: gain.value}}\n")
+    spec = load_graph(tmp_path / "swap.yaml", registry=reg)
+    assert spec.node("gain").plugin == "mock-sensor" and spec.node("gain").inputs == {}
+    # --set changed the plugin: the hint says to write an override
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(tmp_path / "base.yaml", registry=reg, sets=["gain.plugin=mock-sensor"])
+    assert "--set gain.plugin=mock-sensor changed the plugin" in str(ei.value)
+    # null outside an override is still an error, saying where it works
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph_text(GOOD.replace("x: source.value", "x: null"), registry=reg)
+    assert "null unwires an input only in an override" in str(ei.value)
+
+
 def test_include_errors(tmp_path, reg):
     (tmp_path / "a.yaml").write_text("include: b.yaml\nnodes: []\n")
     (tmp_path / "b.yaml").write_text("include: a.yaml\nnodes: []\n")

@@ -196,3 +196,13 @@ def test_device_discovery_returning_one_dict_is_an_error_row_not_a_crash(site):
     rows = [d for d in reg.discover_devices() if d["kind"] == "acme"]
     assert len(rows) == 1 and "must return a list of dicts" in rows[0]["error"]
     assert all(isinstance(d, dict) for d in reg.discover_devices())
+
+
+def test_unknown_plugin_in_a_registry_made_without_autoload_says_why_truthfully(monkeypatch):
+    # before: a test registry (autoload=False) said "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD is set" and "run `teletouch
+    # plugins`", both wrong for it
+    monkeypatch.delenv("TELETOUCH_DISABLE_PLUGIN_AUTOLOAD", raising=False)
+    msg = Registry(autoload=False).load().unknown_message("acme-linear-force")
+    assert "autoload=False" in msg and "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD" not in msg and "teletouch plugins" not in msg
+    monkeypatch.setenv("TELETOUCH_DISABLE_PLUGIN_AUTOLOAD", "1")
+    assert "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD is set" in Registry().load().unknown_message("acme-linear-force")

@@ -286,6 +286,9 @@ nodes:
     assert res.status == "fault" and res.exit_code == EXIT_FAULT
     assert res.faults[0].node == "depth" and res.faults[0].kind == "exception"
     assert f"node 'depth' exception: ComponentFault: output '{port}': {says}" in res.message, res.message
+    # the place to look is the plugin's step(), not the runtime that found it (it said 'runtime.py:432')
+    assert (f"got {says.rsplit('got ', 1)[1]} (returned by _Out.step (test_core_runtime_open_items.py:"
+            f"{_Out.step.__code__.co_firstlineno}));") in res.message, res.message
     assert res.faults[0].time == pytest.approx(0.05, abs=0.03)
     # none of that step's outputs was stored: max_depth still holds the last good step's value
     assert rt.latest("depth", "max_depth").value == 0.001
@@ -381,3 +384,19 @@ def test_a_sys_exit_at_start_up_is_the_nodes_failure_and_every_device_ends_safe(
     assert res.message.startswith(f"node 'g' (half-device) failed to {where}: SystemExit")
     assert ("g", "safe_state") in EVENTS and ("a", "safe_state") in EVENTS
     assert EVENTS[-2:] == [("g", "close"), ("a", "close")] or (where == "configure" and EVENTS[-1] == ("a", "close"))
+
+
+def test_a_run_that_faults_at_time_zero_shows_no_achieved_rate(reg):
+    # before: 1 step in max(0, 1e-12) s gave an achieved rate of 1e12 Hz, run together with the rate in the table
+    # ('1000.01000000000000.0') and in the JSON
+    import json
+
+    rt = _runtime("clock: sim\nnodes:\n  - {id: depth, plugin: bad-out, rate: 1000, params: {port: max_depth, "
+                  "value: str, at: 0.0}}\n  - {id: d, plugin: half-device, rate: 1000}\n", reg)
+    res = rt.run(0.5)
+    assert res.status == "fault" and res.sim_time == 0.0
+    stats = {n.id: n for n in res.nodes}
+    assert stats["depth"].achieved_rate is None and stats["depth"].steps == 1
+    row = next(line for line in res.summary().splitlines() if line.startswith("  depth "))
+    assert row.split()[2:4] == ["1000.0", "-"], row
+    json.dumps(res.as_dict(), allow_nan=False)
