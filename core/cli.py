@@ -18,6 +18,7 @@ import contextlib
 import json
 import math
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -137,41 +138,51 @@ def cmd_schema(args: argparse.Namespace) -> int:
 
 
 class _Progress:
-    """A one-line live view on stderr: graph time, achieved rates, overruns and each node's status numbers."""
+    """The live view on stderr: graph time and overruns, then one row per node (achieved rate and its ``status()``
+    numbers, as many as fit). On a terminal the block is redrawn in place (ANSI: cursor up, clear line), each row cut
+    to the terminal's width, so every node stays in view on an 80-column terminal (one long line lost the controller
+    and the leader there); elsewhere (a log file, a pipe) one plain line per update."""
+
+    MAX_STATUS = 6   # status() numbers shown per node
 
     def __init__(self, stream: Any = None):
         self.stream = stream or sys.stderr
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.last_len = 0
+        self.drawn = 0   # rows of the block on screen (terminal)
 
-    def __call__(self, rt: Runtime, t: float) -> None:
-        parts = [f"t={t:7.2f}s"]
+    def rows(self, rt: Runtime, t: float) -> list[str]:
         elapsed = max(t, 1e-9)
-        overruns = 0
+        overruns = sum(n.overruns for n in rt.nodes)
+        width = max((len(n.id) for n in rt.nodes), default=4)
+        rows = [f"t={t:8.2f} s  overruns {overruns}"]
         for n in rt.nodes:
-            overruns += n.overruns
-            item = f"{n.id} {n.steps / elapsed:6.1f}Hz"
             try:
                 st = n.comp.status()
             except Exception:
                 st = {}
-            for k, v in list(st.items())[:4]:
-                item += f" {k}={_fmt(v)}"
-            parts.append(item)
-        parts.append(f"overruns {overruns}")
-        line = " | ".join(parts)
+            items = " ".join(f"{k}={_fmt(v)}" for k, v in list(st.items())[:self.MAX_STATUS])
+            rows.append(f"  {n.id:<{width}} {n.steps / elapsed:7.1f} Hz  {items}".rstrip())
+        return rows
+
+    def _width(self) -> int:
+        try:
+            return os.get_terminal_size(self.stream.fileno()).columns
+        except (AttributeError, OSError, ValueError):
+            return shutil.get_terminal_size().columns
+
+    def __call__(self, rt: Runtime, t: float) -> None:
+        rows = self.rows(rt, t)
         if self.tty:
-            width = os.get_terminal_size(self.stream.fileno()).columns if hasattr(self.stream, "fileno") else 200
-            line = line[: max(width - 1, 40)]
-            self.stream.write("\r" + line + " " * max(0, self.last_len - len(line)))
-            self.last_len = len(line)
+            width = max(self._width() - 1, 20)
+            up = f"\x1b[{self.drawn}F" if self.drawn else ""   # to the first row of the block drawn last time
+            self.stream.write(up + "".join(f"\x1b[2K{r[:width]}\n" for r in rows))
+            self.drawn = len(rows)
         else:
-            self.stream.write(line + "\n")
+            self.stream.write(rows[0] + " | " + " | ".join(r.strip() for r in rows[1:]) + "\n")
         self.stream.flush()
 
     def done(self) -> None:
-        if self.tty and self.last_len:
-            self.stream.write("\n")
+        self.drawn = 0   # the block stays on screen above what follows
 
 
 def _fmt(v: Any) -> str:
