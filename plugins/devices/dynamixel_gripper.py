@@ -27,6 +27,7 @@ answers the PING with must be the preset's (a firmware mismatch names the preset
 
 from __future__ import annotations
 
+import errno
 import math
 import os
 import time
@@ -35,6 +36,7 @@ from typing import Any, Callable
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from teletouch import HardwareError, hookimpl
+from teletouch.plugins.sensors import discovery  # the device-node checks shared with `teletouch devices`
 from teletouch.units import Meters, Newtons, Seconds
 
 from .follower_common import FollowerBase, FollowerParams, OpeningMap, Reading
@@ -524,21 +526,38 @@ def permission_hint(path: str, vid: int = 0x0403, pid: int = 0x6014) -> str:
 
 
 def port_open_hint(port: str, exc: BaseException) -> str:
-    """What to do when ``port`` cannot be opened: it does not exist, or this user may not open it, or else."""
-    errno = getattr(exc, "errno", None)
-    if errno == 2 or not os.path.exists(port):
+    """What to do when ``port`` cannot be opened, from the errno of pyserial's own open (O_RDWR | O_NOCTTY |
+    O_NONBLOCK; the port is not opened again: that would pulse DTR once more) through the meanings shared with
+    `teletouch devices` (discovery.check_node): missing, permission (the group or udev rule; EPERM: a container's
+    device rule), busy, gone; without an errno, the checks that need no open."""
+    err = getattr(exc, "errno", None)
+    if err == errno.ENOENT or not os.path.lexists(port):
         return (f"{port} does not exist: plug in the USB adapter (U2D2, OpenCR) and check the port name; `teletouch "
                 f"devices` lists the serial adapters, with the port param of each")
-    if errno == 13 or (os.path.exists(port) and not os.access(port, os.R_OK | os.W_OK)):
-        return f"permission denied on {port}: {permission_hint(port)}"
+    if isinstance(err, int) and err:
+        acc = discovery.NodeAccess(port, err, detail="open()")
+    else:
+        acc = discovery.check_node(port, open_node=False, sysfs_root=os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys"))
+    if acc.errno is not None:
+        problem = acc.problem(permission_hint(port))
+        if acc.cause == "other":
+            problem += ("; check that no other program (DYNAMIXEL Wizard, another teletouch) holds it; `teletouch "
+                        "devices` lists the serial adapters")
+        return problem
     return ("check that no other program (DYNAMIXEL Wizard, another teletouch) holds it; `teletouch devices` lists "
             "the serial adapters")
 
 
+#: what the serial rows of `teletouch devices` checked (the ports are not opened: see discovery.check_node)
+SERIAL_CHECK = ("not opened (opening a serial port pulses DTR, which resets Arduino-like boards): access(2), the "
+                "mount and the device behind the node were checked")
+
+
 def serial_ports() -> list[dict[str, Any]]:
     """USB serial ports (pyserial's list), with the Dynamixel adapters named, for `teletouch devices`: the
-    dynamixel-gripper params that select each, whether this user may open it (``readable``) and, when not, the
-    ``problem`` saying how to get access."""
+    dynamixel-gripper params that select each, whether this user may open it (``readable``, from
+    discovery.check_node without opening the port: ``checked`` says so) and, when not, the ``problem`` saying why and
+    how to get access."""
     from serial.tools import list_ports
 
     found = []
@@ -546,12 +565,17 @@ def serial_ports() -> list[dict[str, Any]]:
         if p.vid is None:
             continue  # not a USB adapter (built-in UARTs)
         name = KNOWN_ADAPTERS.get((p.vid, p.pid))
-        readable = os.access(p.device, os.R_OK | os.W_OK) if os.path.exists(p.device) else None
+        acc = discovery.check_node(p.device, open_node=False,
+                                   sysfs_root=os.environ.get("TELETOUCH_SYSFS_ROOT", "/sys"))
+        readable = acc.readable
         details: dict[str, Any] = {"usb": f"{p.vid:04x}:{p.pid:04x}", "description": name or p.description or "",
                                    "readable": readable, "plugin": "dynamixel-gripper",
                                    "params": {"port": p.device}}
+        if readable is not None:
+            details["checked"] = SERIAL_CHECK
         if readable is False:
-            details["problem"] = f"permission denied on {p.device}: {permission_hint(p.device, p.vid, p.pid)}"
+            details["access"] = acc.why()
+            details["problem"] = acc.problem(permission_hint(p.device, p.vid, p.pid))
         found.append({"kind": "serial", "id": p.serial_number or p.device, "path": p.device, "details": details})
     return found
 

@@ -41,6 +41,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Sample, hookimpl
+from teletouch.plugins.sensors import discovery  # the device-node checks shared with `teletouch devices`
 from teletouch.units import Meters, MetersPerSecond, Seconds
 
 from .omega7 import LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE
@@ -260,11 +261,18 @@ def device_node(path: str, sysfs_root: str | None = None, dev_root: str | None =
     return os.path.join(dev, "bus", "usb", f"{bus:03d}", f"{num:03d}")
 
 
+def node_access(node: str | None) -> discovery.NodeAccess | None:
+    """``node`` tried as hidapi opens it (O_RDWR; discovery.check_node: opened and closed at once, never read or
+    written; opening a hidraw or USB device node changes nothing on the device); None when there is no node."""
+    if node is None:
+        return None
+    return discovery.check_node(node)
+
+
 def node_readable(node: str | None) -> bool | None:
     """Whether this user may open ``node`` for reading and writing; None when unknown (no node, or it is missing)."""
-    if node is None or not os.path.exists(node):
-        return None
-    return os.access(node, os.R_OK | os.W_OK)
+    acc = node_access(node)
+    return None if acc is None else acc.readable
 
 
 def udev_hint(vendor_id: int, node: str | None) -> str:
@@ -314,10 +322,13 @@ def open_device(info: dict[str, Any], hid: Any = None) -> Any:
         vid = info.get("vendor_id", 0)
         node = device_node(spath)
         what = f"{info.get('name', 'HID device')} ({vid:04x}:{info.get('product_id', 0):04x})"
-        if node_readable(node) is False:
+        acc = node_access(node)
+        if acc is not None and acc.cause == "permission":
             raise HardwareError(f"permission denied opening {what} at {spath}"
                                 + (f" (device node {node})" if node != spath else "") + "; "
-                                + udev_hint(vid, node)) from None
+                                + acc.problem(udev_hint(vid, node))) from None
+        if acc is not None and acc.cause in ("busy", "gone", "other"):
+            raise HardwareError(f"could not open {what} at {spath}: {acc.problem(udev_hint(vid, node))}") from None
         raise HardwareError(f"could not open {what} at {spath}: {exc}; check that no other program (spacenavd, "
                             f"Steam, a game) holds it; if it is a permission problem, "
                             + udev_hint(vid, node) + " (`teletouch devices` shows readable=False for a device you "
@@ -637,14 +648,16 @@ def discover(hid: Any = None, sysfs_root: str | None = None, dev_root: str | Non
         path = hid_path_text(d["path"])
         vid = d.get("vendor_id", 0)
         node = device_node(path, sysfs_root, dev_root)
-        readable = node_readable(node)
+        acc = node_access(node)
+        readable = None if acc is None else acc.readable
         details: dict[str, Any] = {"name": d["name"], "usb": f"{vid:04x}:{d.get('product_id', 0):04x}",
                                    "readable": readable, "plugin": "hid-leader",
                                    "params": {"path": path, "device": d["profile"]}}
         if node is not None and node != path:
             details["node"] = node
-        if readable is False:
-            details["problem"] = f"permission denied on {node}: " + udev_hint(vid, node)
+        if acc is not None and readable is False:
+            details["access"] = acc.why()
+            details["problem"] = acc.problem(udev_hint(vid, node))
         rows.append({"kind": d["profile"], "id": d.get("serial_number") or f"{vid:04x}:{d.get('product_id', 0):04x}",
                      "path": path, "details": details})
     return rows

@@ -33,7 +33,17 @@ checks that something still subscribes to the command topic, and ``controller_ti
 HardwareError (how soon DDS reports a crashed process's subscription gone is its liveliness lease; a controller
 that is unloaded or shut down cleanly is gone at once). Start-up names an endpoint of another message type on
 either topic (DDS does not connect the two, silently). Two pal-gripper nodes of one process may not command the
-same controller (the controller follows whichever sent last).
+same controller (the controller follows whichever sent last), nor may two processes or another ROS node: start-up
+asks the ROS graph for the command topic's other JointTrajectory publishers (``get_publishers_info_by_topic``; this
+driver's own is left out, even where another teletouch has the same node name) and refuses to start while there is
+one, naming its node and namespace. DDS needs a moment to discover the other participants: ``discovery_wait`` keeps
+looking until that long after joining the graph (default 0: one look once connected, which can miss a commander
+not discovered yet). The same look runs once a second while running (``PUBLISHER_CHECK_PERIOD``), and a commander
+found then (started later, or discovered late) is a HardwareError, so the graph goes to its safe state: a second
+commander can override this driver's hold and moves the fingers where the operator's hand does not say, while the
+operator still feels the force. ``allow_other_publishers: true`` (for a lab that arbitrates its commanders itself)
+runs anyway; the others are then named in ``status()['other_publishers']`` and logged once each.
+Commands through the controller's FollowJointTrajectory action are not seen by this check.
 
 Safe state: ``hold`` sends the measured opening (the controller holds the fingers there: a squeeze is released to
 the object's surface), ``open`` sends ``max_opening``; either is always sent, and a step's command and send hold a
@@ -70,6 +80,9 @@ JOINTS = ("gripper_left_finger_joint", "gripper_right_finger_joint")
 JOINT_STATE_TYPE = "sensor_msgs/msg/JointState"
 TRAJECTORY_TYPE = "trajectory_msgs/msg/JointTrajectory"
 RANGE_TOLERANCE = 0.003  # m a finger may read beyond its joint range (calibration) before the reading is refused
+PUBLISHER_CHECK_PERIOD = 1.0  # s between two looks at the command topic's other publishers while running
+NAME_WAIT = 0.5  # s given to the ROS graph to learn the node name of a publisher DDS has announced
+_UNNAMED = "(a participant the ROS graph has no node name for: a plain DDS writer, or one still being discovered)"
 
 # ROS 2 names (teletouch.plugins.ros_names), checked when the graph is validated rather than refused by rclpy at
 # start-up
@@ -194,6 +207,15 @@ class PalGripper(FollowerBase):
             "and a best-effort subscription (joint_trajectory_controller subscribes reliable)")
         command_depth: int = Field(1, ge=1, le=1000, description="QoS history depth of the command publisher "
                                    "(keep last N; each command replaces the one before)")
+        discovery_wait: Seconds = Field(0.0, ge=0, le=10.0, description="at start-up, look for other publishers "
+                                        "on the command topic until this long after joining the ROS graph (DDS "
+                                        "discovers the other participants within a moment: e.g. 1 s to refuse "
+                                        "surely at start-up; 0: one look, and one found later faults the run at "
+                                        "the once-a-second check)", json_schema_extra={"unit": "s"})
+        allow_other_publishers: bool = Field(False, description="run although another node publishes "
+                                             "JointTrajectory to the controller's command topic (the controller "
+                                             "follows whichever sent last): only where the lab arbitrates its "
+                                             "commanders itself; the others are named in status and the log")
 
         @field_validator("namespace")
         @classmethod
@@ -292,6 +314,7 @@ class PalGripper(FollowerBase):
             self._in_use_key = (domain, self.command_topic)
         self.ros_node = rclpy.create_node(f"teletouch_{self.id.replace('-', '_')}", context=self.ros_ctx,
                                           start_parameter_services=False)
+        self._joined = time.monotonic()
         # volatile both ways, not configurable: a transient_local command publisher would hand its last, old
         # setpoint to a controller that (re)starts later
         reliability = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
@@ -328,6 +351,11 @@ class PalGripper(FollowerBase):
                                     f"{self._qos_text(self.state_topic)}; check the joint names, "
                                     f"joint_states_topic and the joint_state_broadcaster")
             time.sleep(0.005)
+        self._other_pubs: list[str] = []
+        self._pubs_logged: set[str] = set()
+        self._pubs_deferred = False
+        self._pubs_checked = time.monotonic()
+        self._check_publishers(starting=True)
 
     def _wrong_types(self) -> str:
         """Endpoints of another message type on the two topics (DDS does not connect them): text for an error."""
@@ -406,6 +434,67 @@ class PalGripper(FollowerBase):
         parts = [f"{n} messages {_REASONS[k]} (last: {self._drop_example[k]})" for k, n in self._dropped.items()]
         return ", ".join(parts) or "none refused"
 
+    def _other_publishers(self) -> list[str]:
+        """The nodes (namespace/name) other than this driver that publish JointTrajectory on the command topic: one
+        entry of this node's name and namespace is this driver's own publisher, any further one another process's."""
+        node = self.ros_node
+        if node.count_publishers(self.command_topic) <= 1:
+            return []
+        own, skipped, out = (node.get_name(), node.get_namespace()), False, []
+        for info in node.get_publishers_info_by_topic(self.command_topic):
+            if info.topic_type != TRAJECTORY_TYPE:
+                continue  # DDS does not connect it to the controller
+            if not skipped and (info.node_name, info.node_namespace) == own:
+                skipped = True
+                continue
+            if info.node_name.startswith("_NODE_NAME_UNKNOWN"):
+                out.append(_UNNAMED)
+            else:
+                out.append(f"{info.node_namespace.rstrip('/')}/{info.node_name}")
+        return sorted(out)
+
+    def _check_publishers(self, starting: bool = False) -> None:
+        """Refuse (start-up) or fault (running) while another node commands the controller, unless
+        allow_other_publishers; each one is logged once."""
+        p = self.params
+        others = self._other_publishers()
+        if starting:   # DDS discovers the other participants within a moment of joining: look until discovery_wait
+            while not others and time.monotonic() < self._joined + p.discovery_wait:
+                time.sleep(0.02)
+                others = self._other_publishers()
+        if _UNNAMED in others:
+            # DDS announces the endpoint before the ROS graph has the node's name: give the name a moment
+            if starting:
+                deadline = time.monotonic() + NAME_WAIT
+                while _UNNAMED in others and time.monotonic() < deadline:
+                    time.sleep(0.02)
+                    others = self._other_publishers()
+            elif not self._pubs_deferred:
+                self._pubs_deferred = True
+                self._pubs_checked -= PUBLISHER_CHECK_PERIOD - NAME_WAIT   # look again in NAME_WAIT
+                return
+        self._pubs_deferred = False
+        self._other_pubs = others
+        domain = self.ros_ctx.get_domain_id()
+        what = (f"{self.command_topic} (ROS_DOMAIN_ID {domain}) has another JointTrajectory publisher: node "
+                f"{', '.join(others)}")
+        for o in others:
+            if o not in self._pubs_logged:
+                self._pubs_logged.add(o)
+                self.ctx.log(f"{self.command_topic}: node {o} also publishes JointTrajectory (the controller follows "
+                             f"whichever sent last)" + ("; allow_other_publishers: true, running on"
+                                                        if p.allow_other_publishers else ""))
+        if not others or p.allow_other_publishers:
+            return
+        if starting:
+            raise HardwareError(f"{what}: two commanders on one controller fight (it follows whichever sent last, "
+                                f"and can leave this driver's safe-state hold); stop the other node, give each "
+                                f"gripper its own namespace/controller, or set allow_other_publishers: true where "
+                                f"the lab arbitrates its commanders")
+        raise HardwareError(f"{what}, which appeared while running: the controller follows whichever sent last, so "
+                            f"the gripper no longer follows the operator alone; stop the other node (or set "
+                            f"allow_other_publishers: true where the lab arbitrates its commanders)")
+
     def _check_controller(self, now: float) -> None:
         """Fault when nothing has subscribed to the command topic for controller_timeout (one graph lookup)."""
         if self.pub.get_subscription_count() > 0:
@@ -431,6 +520,9 @@ class PalGripper(FollowerBase):
         p = self.params
         now = time.monotonic()
         self._check_controller(now)
+        if now - self._pubs_checked >= PUBLISHER_CHECK_PERIOD:
+            self._pubs_checked = now
+            self._check_publishers()
         with self._lock:
             s = self._state
             dropped = self._drop_text() if self._dropped else ""
@@ -515,6 +607,7 @@ class PalGripper(FollowerBase):
         report = getattr(self, "qos_report", None)
         d["incompatible_qos"] = report.count if report is not None else 0
         d["qos_problems"] = report.texts() if report is not None else []
+        d["other_publishers"] = list(getattr(self, "_other_pubs", []))
         return d
 
     def _hw_close(self) -> None:

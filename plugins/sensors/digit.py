@@ -349,7 +349,7 @@ class Digit(Component):
         else:
             self.who = f"camera {path}" if is_device else f"source {path}"
         if is_device:
-            _check_access(path)
+            _check_access(path, p.sysfs_root)
         v4l2 = is_device and sys.platform.startswith("linux")
         if v4l2:
             # OpenCV's V4L2 capture waits up to OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT s (10 by default, read once per
@@ -436,8 +436,8 @@ class Digit(Component):
         gone = not os.path.exists(self.path)
         if self.info is not None:
             try:
-                paths = [d.path for d in discovery.scan_sysfs(self.params.sysfs_root, self.params.dev_root)
-                         if d.serial == self.info.serial]
+                paths = [d.path for d in discovery.scan_sysfs(self.params.sysfs_root, self.params.dev_root,
+                                                              check_access=False) if d.serial == self.info.serial]
             except Exception:
                 paths = None
             if paths is not None:
@@ -546,18 +546,16 @@ def _is_char_device(path: str) -> bool:
         return path.startswith("/dev/")
 
 
-def _check_access(path: str) -> None:
+def _check_access(path: str, sysfs_root: str = "/sys") -> None:
+    """Refuse a video node that cannot be opened as OpenCV opens it (discovery.check_node), saying what its errno
+    means: permission (the udev rule; in a container, the device passed in), busy, or gone."""
     if not path:
         raise HardwareError("DIGIT has no video node")
-    if not os.path.exists(path):
+    if not os.path.lexists(path):
         raise HardwareError(f"{path} does not exist: is the DIGIT plugged in?")
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
-    except PermissionError:
-        raise HardwareError(f"permission denied on {path}: {discovery.UDEV_HINT}") from None
-    except OSError as e:
-        raise HardwareError(f"cannot open {path}: {e.strerror}; is the DIGIT plugged in?") from None
-    os.close(fd)
+    acc = discovery.check_node(path, sysfs_root=sysfs_root)
+    if acc.errno is not None:
+        raise HardwareError(acc.problem(discovery.UDEV_HINT))
 
 
 @hookimpl

@@ -13,11 +13,26 @@ source that could not be read (sysfs unreadable, pyusb missing or without a libu
 is never silent about what was not looked at.
 
 Both roots are parameters (``sysfs_root``, ``dev_root``) so the logic is tested on a fake tree.
+
+Whether a device node can be used is told by :func:`check_node`, the one check that ``teletouch devices`` and the
+drivers' messages (digit, dynamixel-gripper, hid-leader) share: ``os.access`` alone answered only for the node's
+owner, group and mode (and root always passes it), while open() can still fail: a nodev mount (a rootless
+container's /dev: EACCES), an AppArmor rule, a node left over from an unplugged device (ENXIO/ENODEV), a device held
+exclusively by another process (EBUSY). So the node is opened the way the drivers open it (:data:`OPEN_FLAGS`) and
+closed at once, never read or written, and the errno is named with what it means (:func:`errno_meaning`). A serial
+port is not opened (``open_node=False``): the kernel raises DTR and RTS when a tty is opened (O_NONBLOCK does not
+stop it) and drops them at the close (HUPCL), and that pulse resets an Arduino-like board on the port. It gets the
+checks that need no open instead: access(2) with its errno, a nodev mount, and (Linux sysfs) whether a device is
+registered behind the node's major:minor; the driver's own open (pyserial) then reports its errno through the same
+meanings.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno as _errno
 import os
+import stat
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable
@@ -35,6 +50,165 @@ UDEV_HINT = (f"add the udev rules\n    {UDEV_RULE}\n    {USB_UDEV_RULE}\nto /etc
              "'sudo udevadm control --reload && sudo udevadm trigger', add yourself to the plugdev (or video) group "
              "and replug the DIGIT")
 
+#: How the drivers open their device nodes, and so how :func:`check_node` tries them: OpenCV's V4L2 capture opens
+#: O_RDWR | O_NONBLOCK, hidapi's hidraw backend and libusb O_RDWR (| O_CLOEXEC), pyserial O_RDWR | O_NOCTTY |
+#: O_NONBLOCK. O_NONBLOCK: the open never waits (a tty waiting for carrier detect); O_NOCTTY: a tty never becomes
+#: this process's controlling terminal (without it a session leader that has none takes it, and a hang-up on the
+#: port then sends it SIGHUP); O_CLOEXEC: no child process inherits the descriptor in between.
+OPEN_FLAGS = os.O_RDWR | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC
+
+PERMISSION_ERRNOS = frozenset({_errno.EACCES, _errno.EPERM})
+BUSY_ERRNOS = frozenset({_errno.EBUSY})
+GONE_ERRNOS = frozenset({_errno.ENOENT, _errno.ENODEV, _errno.ENXIO})
+
+_MEANINGS = {
+    _errno.EACCES: "permission denied: the node's owner, group and mode, or an AppArmor/SELinux rule or a nodev mount "
+                   "(a container's /dev)",
+    _errno.EPERM: "not permitted: a device rule (the device cgroup of a container) refuses this device",
+    _errno.EBUSY: "busy: another process holds the device exclusively",
+    _errno.ENOENT: "gone: the node does not exist",
+    _errno.ENODEV: "gone: no device behind the node (unplugged, or a node left over from an earlier device)",
+    _errno.ENXIO: "gone: no device behind the node (unplugged, or a node left over from an earlier device)",
+    _errno.EISDIR: "a directory, not a device node",
+}
+
+
+def errno_meaning(err: int | None) -> str:
+    """What an errno of open() on a device node means, in words ("" for None)."""
+    if err is None:
+        return ""
+    return _MEANINGS.get(err) or os.strerror(err)
+
+
+def errno_name(err: int | None) -> str:
+    """The symbolic name of ``err`` (e.g. "EACCES"), or "errno N"."""
+    if err is None:
+        return ""
+    return _errno.errorcode.get(err, f"errno {err}")
+
+
+@dataclass(frozen=True)
+class NodeAccess:
+    """What :func:`check_node` found for one device node."""
+
+    path: str
+    errno: int | None = None       # why it cannot be used; None: it can (as far as checked)
+    opened: bool = True            # whether the check opened the node (False: a serial port, or refused before)
+    detail: str = ""               # what told (e.g. "access(2)", "a nodev mount"), for the message
+    major: int | None = None       # the node's device major (for a container's device rule), None if unknown
+
+    @property
+    def readable(self) -> bool | None:
+        """True: it can be opened; False: it cannot; None: there is no such node."""
+        if self.errno is None:
+            return True
+        return None if self.errno == _errno.ENOENT else False
+
+    @property
+    def cause(self) -> str:
+        """"" (usable), "permission", "busy", "gone" or "other"."""
+        e = self.errno
+        if e is None:
+            return ""
+        return ("permission" if e in PERMISSION_ERRNOS else "busy" if e in BUSY_ERRNOS else
+                "gone" if e in GONE_ERRNOS else "other")
+
+    def why(self) -> str:
+        """The errno, its meaning and what told, e.g. "EPERM from open(): not permitted: ..."."""
+        if self.errno is None:
+            return ""
+        src = f" from {self.detail}" if self.detail else ""
+        return f"{errno_name(self.errno)}{src}: {errno_meaning(self.errno)}"
+
+    def container_hint(self) -> str:
+        """How a container is given this device."""
+        rule = f", or for a device that comes and goes --device-cgroup-rule='c {self.major}:* rmw'" \
+            if self.major is not None else ""
+        return f"in a container, pass it in (docker run --device {self.path}{rule})"
+
+    def problem(self, permission_fix: str) -> str:
+        """Why the node cannot be used and what to do ("" when it can); ``permission_fix`` is the driver's way to
+        get access (its udev rule or group), given for EACCES/EPERM."""
+        cause, p = self.cause, self.path
+        if cause == "permission":
+            if self.errno == _errno.EPERM:
+                return f"permission denied on {p}: {self.container_hint()} ({self.why()}); outside a container, " \
+                       f"{permission_fix}"
+            return f"permission denied on {p}: {permission_fix} ({self.why()}); {self.container_hint()}"
+        if cause == "busy":
+            return f"{p} is in use ({self.why()}): close the other program (`fuser -v {p}` names it)"
+        if cause == "gone":
+            return (f"no device behind {p} ({self.why()}): replug it; in a container, start it again with the "
+                    f"device passed in (a node in its /dev outlives the device)")
+        if cause == "other":
+            return f"cannot open {p} ({self.why()})"
+        return ""
+
+
+def _access_errno(path: str, mode: int) -> int | None:
+    """access(2) of ``path`` for ``mode``: None when allowed, else its errno (EACCES: owner/group/mode or an LSM;
+    EPERM: the device cgroup); os.access decides (it is what was asked before) and libc tells the errno."""
+    if os.access(path, mode):
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.access(os.fsencode(path), mode) != 0:
+            return ctypes.get_errno() or _errno.EACCES
+    except (OSError, AttributeError, TypeError):
+        pass
+    return _errno.EACCES
+
+
+def _nodev(path: str) -> bool:
+    """Whether the file system holding ``path`` is mounted nodev (no device node on it can be opened)."""
+    try:
+        return bool(os.statvfs(path).f_flag & getattr(os, "ST_NODEV", 4))
+    except (OSError, AttributeError):
+        return False
+
+
+def check_node(path: str | os.PathLike, flags: int = OPEN_FLAGS, *, open_node: bool = True,
+               sysfs_root: str | os.PathLike = "/sys") -> NodeAccess:
+    """Whether ``path`` can be opened with ``flags`` (a driver's flags, :data:`OPEN_FLAGS` by default), and if not,
+    the errno. In order: the node exists (ENOENT) and is no directory (EISDIR); access(2) allows it (its own
+    errno); it is not on a nodev mount (EACCES); then it is opened and closed at once, never read or written
+    (open()'s errno). With ``open_node=False`` (a serial port: opening it pulses DTR) the open is left out and a
+    character device whose major:minor has no entry in ``<sysfs_root>/dev/char`` is ENXIO (nothing registered
+    behind it) where that folder exists."""
+    p = os.fspath(path)
+    try:
+        st = os.stat(p)
+    except OSError as exc:
+        return NodeAccess(p, exc.errno or _errno.ENOENT, opened=False, detail="stat()")
+    if stat.S_ISDIR(st.st_mode):
+        return NodeAccess(p, _errno.EISDIR, opened=False, detail="stat()")
+    device = stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+    major = os.major(st.st_rdev) if device else None
+    acc = flags & os.O_ACCMODE
+    mode = os.R_OK if acc == os.O_RDONLY else os.W_OK if acc == os.O_WRONLY else os.R_OK | os.W_OK
+    err = _access_errno(p, mode)
+    if err is not None:
+        return NodeAccess(p, err, opened=False, detail="access(2)", major=major)
+    if device and _nodev(p):
+        return NodeAccess(p, _errno.EACCES, opened=False, detail="a nodev mount (no device node on that file system "
+                                                                  "can be opened)", major=major)
+    if not open_node:
+        char_dir = Path(sysfs_root) / "dev" / "char"
+        if stat.S_ISCHR(st.st_mode) and char_dir.is_dir():
+            mm = f"{os.major(st.st_rdev)}:{os.minor(st.st_rdev)}"
+            if not (char_dir / mm).exists():
+                return NodeAccess(p, _errno.ENXIO, opened=False, detail=f"sysfs (no {char_dir / mm})", major=major)
+        return NodeAccess(p, None, opened=False, major=major)
+    try:
+        fd = os.open(p, flags)
+    except OSError as exc:
+        return NodeAccess(p, exc.errno, detail="open()", major=major)
+    os.close(fd)
+    return NodeAccess(p, None, major=major)
+
+PERMISSION_FIX = (f"add the udev rule {UDEV_RULE} to /etc/udev/rules.d/50-DIGIT.rules, reload udev, join the "
+                  f"plugdev (or video) group and replug it")
+
 
 @dataclass
 class DigitInfo:
@@ -51,6 +225,7 @@ class DigitInfo:
     details: dict[str, Any] = field(default_factory=dict)
     bus: int | None = None           # USB bus number and device address (sysfs busnum/devnum, pyusb bus/address)
     address: int | None = None
+    access: NodeAccess | None = None  # what check_node found for the video node (None: not checked)
 
     @property
     def firmware_revision(self) -> int | None:
@@ -81,8 +256,8 @@ class DigitInfo:
                     f"--device {self.path}); otherwise udev did not create the node (check `udevadm monitor` while "
                     f"replugging)")
         if self.readable is False:
-            return (f"permission denied on {self.path}: add the udev rule {UDEV_RULE} to "
-                    f"/etc/udev/rules.d/50-DIGIT.rules, reload udev, join the plugdev (or video) group and replug it")
+            acc = self.access or NodeAccess(self.path, _errno.EACCES, opened=False)
+            return acc.problem(PERMISSION_FIX)
         return ""
 
     def params(self) -> dict[str, Any]:
@@ -96,6 +271,8 @@ class DigitInfo:
         DIGIT in a graph, and ``problem`` when it cannot be opened as it is."""
         d = asdict(self)
         details = {k: d[k] for k in ("firmware", "product", "manufacturer", "usb_path", "mode", "readable")}
+        if self.access is not None and self.access.errno is not None:
+            details["access"] = self.access.why()
         details.update(self.details)
         details["plugin"] = "digit"
         details["params"] = self.params()
@@ -142,10 +319,12 @@ def _video_index(name: str) -> int:
         return 1 << 30
 
 
-def scan_sysfs(sysfs_root: str | os.PathLike = "/sys", dev_root: str | os.PathLike = "/dev") -> list[DigitInfo]:
+def scan_sysfs(sysfs_root: str | os.PathLike = "/sys", dev_root: str | os.PathLike = "/dev",
+               check_access: bool = True) -> list[DigitInfo]:
     """DIGITs with a video4linux capture node, in /dev/videoN order: one per USB device (two units that report the
-    same serial are both listed). No video4linux class (no camera driver loaded, or no such tree) is no DIGIT; a
-    class folder that cannot be listed raises HardwareError naming it."""
+    same serial are both listed), each node tried with :func:`check_node` (``check_access=False``: not, for a
+    lookup mid-run). No video4linux class (no camera driver loaded, or no such tree) is no DIGIT; a class folder that
+    cannot be listed raises HardwareError naming it."""
     base = Path(sysfs_root) / "class" / "video4linux"
     if not base.is_dir():
         return []
@@ -174,10 +353,11 @@ def scan_sysfs(sysfs_root: str | os.PathLike = "/sys", dev_root: str | os.PathLi
             continue  # a second capture node of the same camera (sysfs without ``index``)
         serial = _read(usb / "serial") or f"unknown@{usb.name}"
         node = Path(dev_root) / vd.name
+        access = check_node(node, sysfs_root=sysfs_root) if check_access and os.path.lexists(node) else None
         found[usb] = DigitInfo(
             serial=serial, path=str(node), firmware=_read(usb / "bcdDevice"), product=_read(usb / "product"),
             manufacturer=_read(usb / "manufacturer"), usb_path=usb.name,
-            readable=os.access(node, os.R_OK | os.W_OK) if node.exists() else None,
+            readable=None if access is None else access.readable, access=access,
             details={"name": _read(vd / "name")}, bus=_read_int(usb / "busnum"), address=_read_int(usb / "devnum"))
     return list(found.values())
 
