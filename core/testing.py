@@ -136,8 +136,20 @@ class Harness:
         self.stopped = reason
 
     def __enter__(self) -> "Harness":
-        self.comp.configure()
-        self.comp.activate()
+        """configure() and activate(), as the runtime starts a node; when either raises, what the runtime does
+        then: a device is made safe (it may be half set up), the component is closed, and the error goes on (the
+        ``with`` body does not run, so ``__exit__`` would not close it: a driver that holds a port or a
+        one-per-process registration leaked into the next test)."""
+        try:
+            self.comp.configure()
+            self.comp.activate()
+        except BaseException:
+            try:
+                if isinstance(self.comp, Device):
+                    self.safe_state()
+            finally:
+                self.comp.close()
+            raise
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -298,3 +298,38 @@ def test_mock_sensor_amplitude_with_a_unit_is_si():
     assert p.amplitude == pytest.approx(0.0005) and p.offset == pytest.approx(0.02)
     with pytest.raises(ValueError, match="unknown unit 'furlongs'"):
         MockSensor.Params(amplitude="5 furlongs")
+
+
+@pytest.mark.parametrize("fail_in", ["configure", "activate"])
+def test_harness_makes_safe_and_closes_a_device_whose_start_failed(fail_in):
+    # before: an exception in configure()/activate() left the component open (the with body and __exit__ never
+    # run), so a driver holding a port or a one-per-process registration broke the tests after it
+    calls = []
+
+    class Half(Device):
+        name = "half-started"
+        outputs = {"y": Port("float64", (), "m")}
+
+        def configure(self):
+            calls.append("configure")
+            if fail_in == "configure":
+                raise OSError("no answer")
+
+        def activate(self):
+            calls.append("activate")
+            if fail_in == "activate":
+                raise OSError("no answer")
+
+        def step(self, t, inputs):
+            return {"y": 0.0}
+
+        def safe_state(self):
+            calls.append("safe_state")
+
+        def close(self):
+            calls.append("close")
+
+    with pytest.raises(OSError, match="no answer"):
+        with Harness(Half):
+            pass
+    assert calls[-2:] == ["safe_state", "close"]
