@@ -206,6 +206,7 @@ def check_node(path: str | os.PathLike, flags: int = OPEN_FLAGS, *, open_node: b
     os.close(fd)
     return NodeAccess(p, None, major=major)
 
+
 PERMISSION_FIX = (f"add the udev rule {UDEV_RULE} to /etc/udev/rules.d/50-DIGIT.rules, reload udev, join the "
                   f"plugdev (or video) group and replug it")
 
