@@ -16,6 +16,7 @@ from pydantic import Field
 from teletouch.component import Component, Kind, Params, Port, Sample
 from teletouch.errors import GraphValidationError, ModelFileError
 from teletouch.hookspecs import hookimpl
+from teletouch.isolation import BLOCK_PREFIX, ProcessProxy
 from teletouch.runtime import EXIT_FAULT, EXIT_INTERRUPTED, EXIT_OK, EXIT_STARTUP
 from teletouch.testing import load_text, make_registry, run_yaml
 
@@ -233,10 +234,20 @@ def test_devices_cannot_be_isolated(reg):
 
 # --- large arrays cross through shared memory ---------------------------------------------------------------------
 
-def _shm_blocks() -> set[str]:
-    """Shared-memory blocks of isolated nodes (named teletouch_...) and of ArrayLanes without a prefix (psm_...)."""
-    prefixes = ("psm_", "teletouch_")
+def _shm_blocks(*prefixes: str) -> set[str]:
+    """The shared-memory blocks in /dev/shm whose names start with one of ``prefixes``. Only ever this test's own:
+    every process on the machine shares /dev/shm (another test run, another user of isolated nodes), so a test that
+    compared all of them before and after failed whenever someone else made or removed a block meanwhile."""
+    assert prefixes and all(prefixes), "name the blocks to look at: all of /dev/shm is not this test's"
     return {n for n in os.listdir("/dev/shm") if n.startswith(prefixes)} if os.path.isdir("/dev/shm") else set()
+
+
+def _blocks_of(rt) -> set[str]:
+    """The blocks left by ``rt``'s isolated nodes: each names all of its blocks, its own and its child's, with a
+    random prefix of its own (teletouch_<8 hex>_), so nothing else on the machine has one."""
+    prefixes = [n.comp._prefix for n in rt.nodes if isinstance(n.comp, ProcessProxy)]
+    assert prefixes and all(p.startswith(BLOCK_PREFIX) and len(p) > len(BLOCK_PREFIX) + 1 for p in prefixes), prefixes
+    return _shm_blocks(*prefixes)
 
 
 def test_array_lanes_round_trip_large_arrays_through_shared_memory():
@@ -263,7 +274,7 @@ def test_array_lanes_round_trip_large_arrays_through_shared_memory():
     assert ref2.name != ref.name and np.array_equal(b.unpack(ref2), big)
     names = {ref.name, ref2.name}
     a.close()
-    assert not (names & _shm_blocks())           # the maker unlinks its blocks
+    assert not (names & _shm_blocks("psm_"))     # the maker unlinks its blocks
     b.close(unlink_peer=True)                    # (and the reader may unlink what it read: already gone, no error)
 
 
@@ -297,7 +308,6 @@ nodes:
   - {id: digit, plugin: sim-digit, rate: 30, inputs: {indentation: press.value}}
   - {id: depth, plugin: depth, rate: 30, inputs: {image: digit.image}, isolate: process}
 """
-    before = _shm_blocks()
     images: dict[float, np.ndarray] = {}
     outs: list[dict] = []
 
@@ -319,7 +329,7 @@ nodes:
     rt.add_tap(tap)
     res = rt.run(1.0)
     assert res.exit_code == EXIT_OK, res.message
-    assert rt.component("depth")._proc.exitcode == 0 and _shm_blocks() <= before   # no block left behind
+    assert rt.component("depth")._proc.exitcode == 0 and not _blocks_of(rt)   # no block left behind
     checked = 0
     with Harness(DepthEstimator, {}) as h:
         for o in outs[3:]:
@@ -346,20 +356,19 @@ nodes:
   - {id: digit, plugin: sim-digit, rate: 30, params: {indentation: 0.0005}}
   - {id: depth, plugin: depth, rate: 30, inputs: {image: digit.image}, isolate: process}
 """
-    before = _shm_blocks()
     rt = Runtime(load_text(text, image_reg), log=lambda m: None)
     proxy = rt.component("depth")
     seen: list = []
 
     def kill_when_shared(node, t, out):
         if node == "depth" and not seen and len(proxy._lanes._peer) == 2:
-            seen.append({b.name for b in proxy._lanes._peer.values()} & _shm_blocks())   # the child's blocks exist
+            seen.append({b.name for b in proxy._lanes._peer.values()} & _blocks_of(rt))   # the child's blocks exist
             proxy._proc.kill()
 
     rt.add_tap(kill_when_shared)
     res = rt.run(3.0)
     assert res.exit_code == EXIT_FAULT and "isolated process died" in res.message
-    assert len(seen[0]) == 2 and not (seen[0] & _shm_blocks()) and _shm_blocks() <= before
+    assert len(seen[0]) == 2 and not _blocks_of(rt)
 
 
 def test_isolated_node_runs_at_its_priority(reg):
@@ -432,7 +441,6 @@ nodes:
     ("kill", "was killed by signal 9 (SIGKILL; the out-of-memory killer sends it too)"),
 ])
 def test_a_child_that_dies_is_a_fault_that_names_the_node_the_plugin_and_how(reg, how, says):
-    before = _shm_blocks()
     t0 = time.monotonic()
     res, rt = run_yaml(CRASH.replace("HOW", how), reg, duration=10.0)
     assert time.monotonic() - t0 < 20.0                 # start-up included (generous: a loaded machine)
@@ -443,7 +451,7 @@ def test_a_child_that_dies_is_a_fault_that_names_the_node_the_plugin_and_how(reg
     assert [f.kind for f in res.faults] == ["exception"]          # no second fault from its shutdown
     proc = rt.component("est")._proc
     assert proc.exitcode == {"exit": 3, "segv": -11, "kill": -9}[how]   # reaped: no zombie
-    assert _shm_blocks() <= before
+    assert not _blocks_of(rt)
 
 
 def test_a_step_that_hangs_for_good_is_a_fault_and_the_shutdown_kills_the_child_in_bounded_time(monkeypatch):
@@ -457,7 +465,6 @@ nodes:
   - {id: est, plugin: mock-burn, rate: 30, params: {burn: 0ms, hang_at: 0.1, hang_for: 600}, isolate: process}
   - {id: dev, plugin: mock-device, rate: 100, inputs: {command: est.y}}
 """
-    before = _shm_blocks()
     t0 = time.monotonic()
     res, rt = run_yaml(text, make_registry(), duration=30.0)
     assert time.monotonic() - t0 < 20.0
@@ -468,7 +475,7 @@ nodes:
         "deactivate() raised ComponentFault: isolated process did not answer 'deactivate' within 1 s"), shutdown
     assert rt.component("dev").safe
     assert rt.component("est")._proc.exitcode == -signal.SIGKILL     # killed (it ignores SIGTERM), and reaped
-    assert _shm_blocks() <= before
+    assert not _blocks_of(rt)
 
 
 def test_shutdown_while_a_step_is_still_running_waits_for_it_and_never_takes_its_reply():
@@ -498,12 +505,11 @@ clock: wall
 nodes:
   - {id: est, plugin: iso-late-block, rate: 30, isolate: process}
 """
-    before = _shm_blocks()
     res, rt = run_yaml(text, reg, duration=5.0)
     assert res.status == "fault" and "did not answer 'step'" in res.message
     assert any(f.kind == "shutdown" and "died during 'deactivate'" in f.message and "exited with code 1" in f.message
                for f in res.faults), [f.line() for f in res.faults]
-    assert _shm_blocks() <= before
+    assert not _blocks_of(rt)
 
 
 def test_arrays_that_change_size_shape_and_dtype_cross_both_ways_without_piling_up_blocks(reg):
@@ -541,12 +547,11 @@ nodes:
         mapped.append(len(proxy._lanes._peer))
 
     rt.add_tap(tap)
-    before = _shm_blocks()
     res = rt.run(1.0)
     assert res.exit_code == EXIT_OK, res.message
     assert len(checked) >= 10 and len(echoed) >= 5
     assert max(mapped) <= 2, mapped              # one block per port that comes back shared ("a", "echo")
-    assert _shm_blocks() <= before
+    assert not _blocks_of(rt)
 
 
 def test_array_lanes_keep_one_mapping_per_port_while_arrays_grow():
@@ -580,11 +585,11 @@ def test_a_full_dev_shm_is_a_clear_fault_not_a_sigbus(monkeypatch):
 
     with monkeypatch.context() as m:
         m.setattr(isolation.os, "posix_fallocate", full, raising=False)
-        before = _shm_blocks()
+        prefix = f"teletouch_testfull{os.getpid()}_"   # this process's own: nobody else makes or removes them
         with pytest.raises(ComponentFault, match=r"cannot make a 800000 B shared-memory block .*No space left.*"
                                                  r"--shm-size"):
-            isolation.ArrayLanes("teletouch_testfull_").pack("image", np.zeros(100_000))
-        assert _shm_blocks() <= before                                   # the block that could not be had is gone
+            isolation.ArrayLanes(prefix).pack("image", np.zeros(100_000))
+        assert not _shm_blocks(prefix)                                   # the block that could not be had is gone
     code = textwrap.dedent("""
         import numpy as np
         from teletouch.errors import ComponentFault

@@ -157,9 +157,15 @@ def test_reactivation_after_safe_state_also_starts_from_the_measured_opening():
 def test_reactivation_dynamixel_does_not_drive_back():
     with dynamixel() as (emu, h):
         m = h.comp.map
-        drive(h, 0.07, 0.5)
+        t_on, steps = time.monotonic(), []
+        drive(h, 0.07, 0.5, trace=steps)
         h.comp.deactivate()
-        emu._put(emu.table.goal_position, 1400)  # another program moves the servo while the node is inactive
+        # each step's Goal_Position goes out in a SYNC_WRITE, which the servo does not answer: wait until the emulator
+        # took them all (on a loaded machine the last one landed after the other program's command below, and the
+        # servo never moved to 1400)
+        assert wait_for(lambda: len(goal_positions(emu, t_on)) >= len(steps))
+        with emu._lock:   # (a packet is recorded before it is applied, both under this lock)
+            emu._put(emu.table.goal_position, 1400)  # another program moves the servo while the node is inactive
 
         def moved():
             with emu._lock:

@@ -16,7 +16,7 @@ from fakes.dynamixel_emulator import (  # noqa: E402
 )
 
 from teletouch import HardwareError  # noqa: E402
-from fakes.realtime import configure_fails, drive, wait_for  # noqa: E402
+from fakes.realtime import configure_fails, drive, drive_until, wait_for  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 
@@ -225,10 +225,11 @@ def test_full_length_late_answer_is_not_taken_by_the_shutdown_poll(emu):
     with harness(emu, error_check_period=0.001) as h:
         drive(h, 0.06, 0.4)  # 15 mm at 0.05 m/s
         emu.answer_delay, emu.delay_answers = None, 1
-        drive(h, 0.06, 0.2)
+        # until the held-back answer was taken and the driver resynchronised (not a fixed time: late when loaded)
+        drive_until(h, 0.06, lambda o: bool(emu.delayed) and h.comp.resyncs >= 1)
         assert emu.delayed and emu.delay_answers == 0
         assert h.comp.comm_failures >= 1 and h.comp.resyncs >= 1
-        o = drive(h, 0.06, 0.1)
+        o = drive_until(h, 0.06, lambda o: o["opening"] == pytest.approx(0.06, abs=1e-3))
         assert o["opening"] == pytest.approx(0.06, abs=1e-3)
 
 

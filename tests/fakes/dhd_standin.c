@@ -17,7 +17,10 @@
  *    forces are enabled, a force command (dhdSetForceAndGripperForce that reached the device, i.e. not skipped by
  *    the time guard) must arrive within that duration, else the "firmware" disables forces (as dhdEnableForce(0),
  *    force-off cause DHD_FORCEOFF_WATCHDOG). Evaluated lazily on the monotonic clock, at every vendor call and
- *    every test query, so it also acts while a call hangs.
+ *    every test query, so it also acts while a call hangs. A test may take the firmware's clock in hand
+ *    (standin_freeze_clock): from then on it moves only by standin_advance_clock(), so a step that comes late on a
+ *    loaded machine trips nothing, and a test of the watchdog decides exactly when its duration has passed. The
+ *    models above keep running on the monotonic clock.
  *
  * Test controls (not part of the vendor API) start with standin_.
  * Build: gcc -shared -fPIC -O2 -o libdhd.so dhd_standin.c -lm
@@ -85,6 +88,8 @@ static struct {
     int force_off_cause;
     int expert;             /* dhdEnableExpertMode: the expert SDK calls (dhdSetWatchdog, ...) need it */
     double peak;            /* largest |component| of a force command received since standin_mark() */
+    int clock_frozen;       /* the firmware's clock moves only by standin_advance_clock() */
+    double clock_t;         /* its time then (s, on the monotonic clock's scale) */
 } S;
 
 /* test control: vendor calls that block ("hang") until released; outside S (read by other threads) */
@@ -97,6 +102,9 @@ static double now_s(void) {
     clock_gettime(CLOCK_MONOTONIC, &ts);
     return ts.tv_sec + ts.tv_nsec * 1e-9;
 }
+
+/* the firmware's clock: the watchdog's time base */
+static double fw_now(void) { return S.clock_frozen ? S.clock_t : now_s(); }
 
 static int fail(int code, const char *msg) {
     S.last_error = code;
@@ -115,7 +123,7 @@ static void apply_forces(void);
 
 /* the device firmware's watchdog: forces off when no force command came within the duration */
 static void firmware(void) {
-    if (S.watchdog && S.force_enabled && S.connected && now_s() - S.t_cmd > S.watchdog * WATCHDOG_UNIT) {
+    if (S.watchdog && S.force_enabled && S.connected && fw_now() - S.t_cmd > S.watchdog * WATCHDOG_UNIT) {
         S.force_enabled = 0;
         S.force_off_cause = DHD_FORCEOFF_WATCHDOG;
         S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
@@ -226,6 +234,15 @@ void standin_press_force_button(void) {
     apply_forces();
 }
 int standin_get_expert(void) { return S.expert; }
+/* the firmware's clock stops here (until standin_reset); standin_advance_clock(dt) moves it on by dt seconds, the
+   watchdog evaluated at the new time */
+void standin_freeze_clock(void) {
+    if (!S.clock_frozen) { S.clock_t = now_s(); S.clock_frozen = 1; }
+}
+void standin_advance_clock(double dt) {
+    if (S.clock_frozen && dt > 0) S.clock_t += dt;
+    firmware();
+}
 double standin_get_peak(void) { return S.peak; }
 /* every later call of the named vendor function (dhdGetPosition) blocks until standin_release(); standin_hanging()
    counts the calls blocked now */
@@ -375,7 +392,7 @@ int dhdSetForceAndGripperForce(double fx, double fy, double fz, double fg, char 
     ok();
     /* the time guard: the call came too soon after the previous one, and the command is not sent (skipped) */
     if (S.force_enabled && S.timeguard_every > 0 && S.writes % S.timeguard_every == 0) return DHD_TIMEGUARD;
-    S.t_cmd = now_s(); /* received: feeds the firmware watchdog */
+    S.t_cmd = fw_now(); /* received: feeds the firmware watchdog */
     double m = fabs(fg);
     if (fabs(fx) > m) m = fabs(fx);
     if (fabs(fy) > m) m = fabs(fy);
@@ -430,7 +447,7 @@ int dhdSetWatchdog(unsigned char val, char ID) {
     if (!S.expert) return fail(DHD_ERROR_EXPERT_MODE_DISABLED, "expert mode disabled");
     if (S.watchdog_fails) return fail(DHD_ERROR_NOT_AVAILABLE, "feature not available on this device");
     S.watchdog = val;
-    S.t_cmd = now_s();
+    S.t_cmd = fw_now();
     return ok();
 }
 int dhdGetWatchdog(unsigned char *val, char ID) {

@@ -17,7 +17,13 @@ def configure_fails(h, match):
         h.comp.close()
 
 
-def wait_for(cond, timeout=1.0):
+#: How long the waits below give a condition before they give up: a bound for a failure only (a passing test stops
+#: waiting as soon as its condition holds), generous for a loaded 2-core CI machine.
+WAIT = 10.0
+
+
+def wait_for(cond, timeout=WAIT):
+    """Whether ``cond()`` became true within ``timeout`` s (polled every 2 ms)."""
     t_end = time.monotonic() + timeout
     while not cond() and time.monotonic() < t_end:
         time.sleep(0.002)
@@ -36,3 +42,18 @@ def drive(h, cmd, seconds, period=0.005, trace=None):
             trace.append(out)
         time.sleep(period)
     return out
+
+
+def drive_until(h, cmd, cond, timeout=WAIT, period=0.005, trace=None):
+    """Step a driver Harness in real time with a constant opening command until ``cond(outputs)`` holds (checked after
+    every step) or ``timeout`` s passed; the last outputs. For a test that needs the gripper somewhere: it waits for
+    that, not for a fixed time (on a loaded machine the steps come late and the set-point, limited per step, lags)."""
+    t_end = time.monotonic() + timeout
+    while True:
+        h.t = time.monotonic()
+        out = h.step(h.t, opening_command=cmd)
+        if trace is not None:
+            trace.append(out)
+        if cond(out) or time.monotonic() >= t_end:
+            return out
+        time.sleep(period)
