@@ -15,7 +15,7 @@ PLUGIN = "teletouch.plugins.controllers.position_force"
 
 
 def test_stale_force_fades_to_zero_smoothly():
-    p = {"deadband": 0.0, "passivity": False, "stale_after": 0.1, "fade_time": 0.2}
+    p = {"deadband": 0.0, "passivity": False, "stale_after": 0.1, "fade_time": 0.2, "fault_after_lost": None}
     f = []
     with Harness(PositionForce, p) as h:
         for k in range(800):
@@ -36,7 +36,8 @@ def test_stale_force_fades_to_zero_smoothly():
 
 
 def test_nan_force_never_leaves_and_fades():
-    # the core's mock sensor turns NaN at 0.5 s; the controller's outputs stay finite and the force fades out
+    # the core's mock sensor turns NaN at 0.5 s; the controller's outputs stay finite and the force fades out; the
+    # estimate lost for longer than fault_after_lost (0.5 s) is a fault: the run stops at ~1.0 s
     text = """
 name: nan-force
 clock: sim
@@ -54,13 +55,15 @@ nodes:
     rec = []
     res, rt = run_yaml(text, make_registry(PLUGIN), taps=[lambda n, t, o: rec.append((t, dict(o))) if n == "ctl"
                                                           else None])
-    assert res.status == "ok", res.summary()
+    assert (res.status, res.exit_code) == ("fault", 3), res.summary()
+    assert "force estimate lost for 0.50" in res.message and "not finite" in res.message, res.message
+    assert res.faults[0].node == "ctl" and 1.0 <= res.faults[0].time <= 1.02, res.faults
     for t, o in rec:
         for k, v in o.items():
             assert math.isfinite(v), (t, k, v)
     f = {round(t, 3): o["gripper_force"] for t, o in rec}
     assert f[0.49] == pytest.approx(1.98)
-    assert f[1.0] == 0.0
+    assert f[0.8] == 0.0 and max(f) <= 1.02          # faded out by 0.8 s; the run stopped at ~1.0 s
     assert rt.component("ctl").bad_force > 0
     assert rt.latest("leader", "command_applied").value == 0.0
 
@@ -147,7 +150,7 @@ nodes:
 @pytest.mark.parametrize("stamp", [3600.0, math.nan], ids=["future", "nan"])
 def test_badly_stamped_force_or_leader_is_stale_not_fresh_forever(stamp):
     # a last sample stamped an hour ahead, or NaN, must not be rendered forever: it counts as stale
-    p = {"deadband": 0.0, "passivity": False, "stale_after": 0.1, "fade_time": 0.2}
+    p = {"deadband": 0.0, "passivity": False, "stale_after": 0.1, "fade_time": 0.2, "fault_after_lost": None}
     with Harness(PositionForce, p) as h:
         for k in range(100):
             h.step(k * 1e-3, leader_opening=0.02, force=Sample(3.0, k * 1e-3))

@@ -95,6 +95,7 @@ def random_params(rng: random.Random, cls: str) -> dict[str, Any]:
         "damping_smoothing": rng.choice([0.005, 0.0]),
         "damping_release": rng.choice([0.05, 0.0]),
         "reduction_time": rng.choice([0.01, 0.0]),
+        "fault_after_lost": None,   # a lasting loss is a fault (tested in test_lost_force_hold): here, the fade
     }
     if rng.random() < 0.2:
         p["leader_damping"] = rng.choice([1.0, 10.0])

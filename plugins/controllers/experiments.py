@@ -438,6 +438,13 @@ DEFAULT_INTENT = {"type": "close-and-hold", "start_opening": 0.02, "target_openi
                   "start_time": 0.5, "hold_time": 3.0, "release": True}
 
 
+#: max_age (s) of the 1 kHz wires between the devices and the controller in sim_graph (50 periods)
+WIRE_MAX_AGE = 0.05
+#: faults.startup_grace (s) of sim_graph: nothing to start up under the simulated clock (every node produces from
+#: t=0), so the max_age checks start after 6 camera frames rather than after the default 1 s
+SIM_STARTUP_GRACE = 0.1
+
+
 def sim_graph(controller: str = "position-force", sensor: str = "image", *, duration: float = 10.0,
               intent: dict[str, Any] | None = None, object_width: float = 0.015, extra_nodes: list | None = None,
               controller_params: dict[str, Any] | None = None, leader_params: dict[str, Any] | None = None,
@@ -445,16 +452,19 @@ def sim_graph(controller: str = "position-force", sensor: str = "image", *, dura
     """The simulated twin of the paper's setup as a graph document (examples/paper-sim.yaml is this with the
     defaults). ``sensor``: ``image`` (sim-digit -> depth -> poly-force, the real estimators), ``gt`` (sim-digit's
     ground-truth max depth -> poly-force: no depth estimation) or ``ideal`` (sim-force-sensor: ground-truth force at
-    the camera rate, one frame late, noisy)."""
+    the camera rate, one frame late, noisy). The 1 kHz wires between the devices and the controller have a
+    ``max_age`` (WIRE_MAX_AGE, as examples/paper.yaml): a device or a controller whose data stops is a fault of the
+    run (its consumers are stopped and the devices made safe), not silence; the 60 Hz force wire has none (the
+    controller's stale_after and fault_after_lost handle a lost estimate); the checks start at SIM_STARTUP_GRACE."""
     intent = intent or dict(DEFAULT_INTENT)
     nodes: list[dict[str, Any]] = [
         {"id": "leader", "plugin": "sim-omega7", "rate": 1000,
          "params": {"intent": intent, **(leader_params or {})},
-         "inputs": {"gripper_force": "controller.gripper_force"}},
+         "inputs": {"gripper_force": {"from": "controller.gripper_force", "max_age": WIRE_MAX_AGE}}},
         {"id": "gripper", "plugin": "sim-gripper", "rate": 1000,
          "params": {"object_width": object_width, "initial_opening": 0.02, **OBJECT_SURFACE,
                     **(gripper_params or {})},
-         "inputs": {"opening_command": "controller.opening_command"}},
+         "inputs": {"opening_command": {"from": "controller.opening_command", "max_age": WIRE_MAX_AGE}}},
     ]
     if sensor == "image":
         nodes += [
@@ -480,11 +490,13 @@ def sim_graph(controller: str = "position-force", sensor: str = "image", *, dura
     else:
         raise ValueError(f"sensor must be 'image', 'gt' or 'ideal', got {sensor!r}")
     nodes.append({"id": "controller", "plugin": controller, "rate": 1000, "params": dict(controller_params or {}),
-                  "inputs": {"leader_opening": "leader.gripper_opening",
+                  "inputs": {"leader_opening": {"from": "leader.gripper_opening", "max_age": WIRE_MAX_AGE},
                              "leader_velocity": "leader.gripper_velocity",
-                             "follower_opening": "gripper.opening", "force": "force.force"}})
+                             "follower_opening": {"from": "gripper.opening", "max_age": WIRE_MAX_AGE},
+                             "force": "force.force"}})
     nodes += list(extra_nodes or [])
-    return {"name": name, "clock": "sim", "duration": duration, "nodes": nodes}
+    return {"name": name, "clock": "sim", "duration": duration, "faults": {"startup_grace": SIM_STARTUP_GRACE},
+            "nodes": nodes}
 
 
 def build_runtime(doc: dict, registry: Any = None) -> Any:

@@ -16,7 +16,10 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
 
 1. follower:  ``x_fd = clip(scale * x_l + offset, opening_min, opening_max)``; a missing, stale or non-finite leader
    opening holds the last command (the follower keeps its position); a jump of the leader is passed on (every
-   follower driver limits its speed to its ``max_speed``);
+   follower driver limits its speed to its ``max_speed``); while the force estimate is lost (stale or not finite,
+   see 2; not while waiting for the first one) the command holds (``hold_on_lost_force``): the operator, who no
+   longer feels the object, cannot make the follower squeeze it; when a fresh estimate returns the command moves
+   from the held value to the mapped opening at no more than ``resume_speed``, never a jump;
 2. force: every new force sample ``f_s`` is shaped, ``f = min(k_f * deadband(f_s), max_force)`` (positive: it
    pushes the operator's fingers apart), and the
    output ramps linearly from its present value to ``f`` over ``smoothing_time`` (a first-order hold: the hand never
@@ -36,7 +39,11 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    zero);
 4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
    ``fade_time``, within that limit), clipped to ``+-max_force``; a non-finite desired force is taken as 0 (reached
-   within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller.
+   within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller;
+5. a loss that lasts is a fault: a leader opening (once received) or, for position-force, a force estimate lost
+   continuously for longer than ``fault_after_lost`` (0.5 s; at least ``fade_time``, so the force has faded out)
+   makes step() raise ComponentFault naming what was lost and for how long; the runtime then drives the devices to
+   their safe states (zero leader force, the follower holds).
 
 ``position-position`` replaces step 2 by a PD on the position error,
 ``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
@@ -53,7 +60,7 @@ from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from teletouch import Component, Kind, Params, Port, Sample, hookimpl
+from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import (
     MAX_PLAUSIBLE_OPENING, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
 )
@@ -235,6 +242,12 @@ class _CommonParams(Params):
                                         "follower and fades the force", json_schema_extra={"unit": "s"})
     fade_time: Seconds = Field(0.2, gt=0, description="time to fade the force to zero when its source is lost",
                                json_schema_extra={"unit": "s"})
+    fault_after_lost: Seconds | None = Field(0.5, gt=0, description="a leader opening (stale or not finite) or, "
+                                             "for position-force, a force estimate (stale or not finite) lost "
+                                             "for longer than this is a fault: step() raises and the runtime "
+                                             "drives the devices to their safe states (null: never; at least "
+                                             "fade_time, so the force has faded out by then)",
+                                             json_schema_extra={"unit": "s"})
     passivity: bool = Field(True, description="time-domain passivity controller on the leader port (the observer "
                             "always runs and feeds the energy output)")
     passivity_controller: Literal["force", "damping"] = Field(
@@ -312,6 +325,10 @@ class _CommonParams(Params):
                 raise ValueError(problem)
         if self.opening_min >= self.opening_max:
             raise ValueError(f"opening_min ({self.opening_min} m) must be below opening_max ({self.opening_max} m)")
+        if self.fault_after_lost is not None and self.fault_after_lost < self.fade_time:
+            raise ValueError(f"fault_after_lost ({self.fault_after_lost} s) must be at least fade_time "
+                             f"({self.fade_time} s): the force on the hand fades out before the run stops (or "
+                             f"null: never a fault)")
         constant = self.constant_damping()
         if constant > self.max_damping:
             names = " + ".join(n for n in self._constant_damping_fields() if getattr(self, n))
@@ -373,6 +390,10 @@ class _Bilateral(Component):
         self._taken: dict[str, Sample] = {}     # the newest fresh sample taken per input (see _ordered)
         # passivity damping cap: what the constant damping leaves of what the leader renders stably
         self._damping_cap = max(0.0, p.max_damping - p.constant_damping())
+        self.leader_lost_since: float | None = None     # the leader opening lost (after it was once ok) since
+        self.force_lost_since: float | None = None      # position-force: the force estimate lost since
+        self.leader_problem = ""                        # why the leader opening is not ok (for the fault)
+        self.force_problem = ""                         # why the force estimate is lost (for the fault)
 
     # -- helpers
     def _ordered(self, name: str, s: Sample | None, t: float, max_age: float) -> Sample | None:
@@ -393,10 +414,13 @@ class _Bilateral(Component):
         p = self.params
         s = self._ordered("leader_opening", inputs["leader_opening"], t, p.leader_stale_after)
         if s is None or not s.is_fresh(t, p.leader_stale_after):
+            self.leader_problem = (f"stale (older than leader_stale_after {p.leader_stale_after:g} s)" if s is not None
+                                   else "nothing received")
             return False
         x = opening_or_nan(s.value)
         if not math.isfinite(x):
             self.invalid_inputs += 1
+            self.leader_problem = f"invalid ({s.value!r} m: not a finite opening within 1 m)"
             return False
         self.x_l = x
         v_raw = self._ordered("leader_velocity", inputs.get("leader_velocity"), t, p.leader_stale_after)
@@ -440,6 +464,36 @@ class _Bilateral(Component):
         """The desired leader force before passivity and limits (N)."""
         return 0.0
 
+    def _follow(self, target: float, dt: float) -> float:
+        """The follower command for the leader's mapped opening ``target`` (m): here the target itself."""
+        return target
+
+    def force_lost(self) -> bool:
+        """The force estimate is lost (stale or not finite; not the start-up wait for a first one)."""
+        return False
+
+    def _watch_losses(self, t: float) -> None:
+        """Raise ComponentFault when the leader opening or the force estimate has been lost continuously for
+        longer than ``fault_after_lost``: a loss that lasts is a fault, not silence. The runtime then drives the
+        devices to their safe states (zero leader force; the follower holds). The leader counts once it was ok."""
+        limit = self.params.fault_after_lost
+        if self.leader_ok or self.command is None:
+            self.leader_lost_since = None
+        elif self.leader_lost_since is None:
+            self.leader_lost_since = t
+        elif t - self.leader_lost_since > limit:
+            raise ComponentFault(f"leader opening lost for {t - self.leader_lost_since:.3f} s (since t="
+                                 f"{self.leader_lost_since:.3f} s; {self.leader_problem}), longer than "
+                                 f"fault_after_lost {limit:g} s: check the leader and its wire")
+        if not self.force_lost():
+            self.force_lost_since = None
+        elif self.force_lost_since is None:
+            self.force_lost_since = t
+        elif t - self.force_lost_since > limit:
+            raise ComponentFault(f"force estimate lost for {t - self.force_lost_since:.3f} s (since t="
+                                 f"{self.force_lost_since:.3f} s; {self.force_problem}), longer than fault_after_lost "
+                                 f"{limit:g} s: check the sensor and its estimators")
+
     # -- the step
     def step(self, t: float, inputs: Any) -> dict[str, float]:
         p = self.params
@@ -453,10 +507,12 @@ class _Bilateral(Component):
         if self.leader_ok:
             cmd = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
             if math.isfinite(cmd):               # (finite params and opening: always; else the last one holds)
-                self.command = cmd
+                self.command = cmd if self.command is None else self._follow(cmd, dt)
             if self._record_commands:
                 self.cmd_hist.record(t, self.command)
         f_fb = self.feedback(t, inputs, follower_ok)
+        if p.fault_after_lost is not None:
+            self._watch_losses(t)
         v = self.v_l if self.leader_ok else 0.0
         if not self.leader_ok:
             f_fb = 0.0
@@ -580,6 +636,13 @@ class PositionForce(_Bilateral):
         prediction_min_motion: Meters = Field(2e-5, ge=0, description="K is learnt only from estimates this far "
                                               "apart in follower command", json_schema_extra={"unit": "m"})
         prediction_rate: float = Field(0.3, gt=0, le=1, description="weight of each new stiffness measurement")
+        hold_on_lost_force: bool = Field(True, description="while the force estimate is lost (stale or not "
+                                         "finite; not while waiting for the first one) the follower command holds "
+                                         "its value: the operator, who no longer feels the object, cannot make "
+                                         "the follower squeeze it")
+        resume_speed: float = Field(0.02, gt=0, description="when a fresh estimate returns after a hold, the "
+                                    "follower command moves from the held value to the leader's mapped opening "
+                                    "at no more than this speed (never a jump)", json_schema_extra={"unit": "m/s"})
 
         @field_validator("force_sign", mode="before")
         @classmethod
@@ -604,6 +667,7 @@ class PositionForce(_Bilateral):
         self.last_stamp: float | None = None
         self.latencies: list[float] = []        # controller time of first use - force stamp, per new fresh estimate
         self.bad_force = 0
+        self.resuming = False                   # the follower command was held: it slews back (resume_speed)
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         p = self.params
@@ -704,7 +768,27 @@ class PositionForce(_Bilateral):
     def _fade(self, t: float) -> None:
         if not self.fading:
             self.fading = True
+            self.force_problem = ("not finite" if self.state == "bad-force"
+                                  else f"stale: older than stale_after {self.params.stale_after:g} s")
             self.hold.set(t, 0.0, self.params.fade_time)
+
+    def force_lost(self) -> bool:
+        """Stale or not finite since the last fresh estimate (``fading``; set by feedback()): never while waiting
+        for the first estimate at start-up."""
+        return self.fading
+
+    def _follow(self, target: float, dt: float) -> float:
+        """While the force estimate is lost (as of the last feedback(): a step later than the loss is noticed) the
+        command holds; afterwards it slews to ``target`` at ``resume_speed``, then follows again."""
+        p = self.params
+        if self.fading and p.hold_on_lost_force:
+            self.resuming = True
+            return self.command                  # type: ignore[return-value]  (not None: see step)
+        if self.resuming:
+            x = rate_limit(self.command, target, p.resume_speed, min(dt, self._max_dt))   # type: ignore[arg-type]
+            self.resuming = x != target
+            return x
+        return target
 
 
 class PositionPosition(_Bilateral):
