@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 
 from teletouch.errors import ModelFileError
-from teletouch.reproducible import build_time
 
 __all__ = [
     "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
@@ -225,31 +224,15 @@ class NormalModel:
         arrays["feat_mean"] = np.asarray(self.feat_mean, dtype=np.float32)
         arrays["feat_std"] = np.asarray(self.feat_std, dtype=np.float32)
         arrays["background"] = np.ascontiguousarray(self.background, dtype=np.uint8)
-        atomic_write(path, _npz_bytes(arrays, build_time()))
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **arrays)   # numpy stamps every member 1980-01-01: the same arrays, the same bytes
+        atomic_write(path, buf.getvalue())
         return path
 
     @classmethod
     def from_net(cls, net: Any, **kw: Any) -> "NormalModel":
         sd = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in net.state_dict().items()}
         return cls(state_dict=sd, **kw)
-
-
-def _npz_bytes(arrays: dict[str, np.ndarray], when: float) -> bytes:
-    """What ``np.savez_compressed`` writes (``np.load`` reads it the same), but every member stamped with ``when``
-    (UTC; the zip format's floor 1980-01-01) instead of the clock's local time: numpy stamps each member with the
-    current time, so two files of the same arrays differed in their bytes."""
-    import time
-
-    stamp = max(time.gmtime(when)[:6], (1980, 1, 1, 0, 0, 0))
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for key, arr in arrays.items():
-            info = zipfile.ZipInfo(key + ".npy", date_time=stamp)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o600 << 16
-            with zf.open(info, "w", force_zip64=True) as fh:
-                np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
-    return buf.getvalue()
 
 
 def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
