@@ -298,12 +298,13 @@ def test_implausible_frames_give_nan_outputs_not_a_deep_contact(model, sim):
         assert h.comp.bad_frames == 4 and h.comp.status()["bad_frames"] == 4
         assert np.array_equal(h.comp.pipe._bg_grid_np, bg0)           # none of them was blended in
         assert h.step(9.0, image=good)["max_depth"] == ref
-    # the force node reads NaN as invalid input: 0 N, not a force from a phantom contact
+    # the force node reads NaN as invalid input: no force (the controller takes the estimate as lost), not a force
+    # from a phantom contact
     from teletouch.plugins.estimators.poly_force import PolyForce
 
     with Harness(PolyForce, {}) as f:
         out = f.step(1.0, max_depth=math.nan, contact_area=math.nan, centroid=np.array([math.nan, math.nan]))
-        assert out == {"force": 0.0, "status": "invalid-input"}
+        assert out == {"status": "invalid-input"}
 
 
 def test_a_sensor_that_keeps_delivering_implausible_frames_faults(model):

@@ -182,8 +182,8 @@ def test_a_deep_press_without_a_centroid_stays_invalid(tmp_path):
     nan = np.full(2, np.nan)
     with Harness(PolyForce, {"calibration": path}) as h:
         out = h.step(0.1, max_depth=3e-5 + 2.1e-5, centroid=nan)   # beyond the band (0.02 mm above the threshold)
-        assert out == {"force": 0.0, "status": "invalid-input"}
-        assert h.step(0.2, max_depth=1e-3, centroid=nan) == {"force": 0.0, "status": "invalid-input"}
+        assert out == {"status": "invalid-input"}                  # no force sample: the estimate is lost
+        assert h.step(0.2, max_depth=1e-3, centroid=nan) == {"status": "invalid-input"}
     with Harness(PolyForce, {"calibration": path, "centroid_band": 0.0}) as h:   # the fallback off
         assert h.step(0.1, max_depth=3.1e-5, centroid=nan)["status"] == "invalid-input"
 

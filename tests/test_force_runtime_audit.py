@@ -32,11 +32,12 @@ def cal_file(tmp_path):
 @pytest.mark.parametrize("policy", ["clamp", "extrapolate"])
 def test_depth_deeper_than_a_gel_is_invalid_and_the_force_stays_below_its_limit(cal_file, policy):
     # before: extrapolate turned a 1 m "depth" (or a boolean True) into 3698 N, status extrapolated, and clamp gave
-    # full force for it; a depth deeper than the gel is thick is an estimator or unit fault: 0 N, invalid-input
+    # full force for it; a depth deeper than the gel is thick is an estimator or unit fault: invalid-input, and no
+    # force sample (the consumer takes the estimate as lost)
     with Harness(PolyForce, {"calibration": cal_file, "out_of_range": policy}) as h:
         for bad in (1.0, 0.0051, True, 1e300):
             out = h.step(h.t + 0.01, max_depth=bad)
-            assert out == {"force": 0.0, "status": "invalid-input"}, bad
+            assert out == {"status": "invalid-input"}, bad
         limit = h.comp.status()["force_limit_n"]
         expected = float(truth(2e-3)) if policy == "clamp" else float(
             truth(2e-3) + (TRUE[1] + 2 * TRUE[2] * 2e-3 + 3 * TRUE[3] * 4e-6) * 3e-3)

@@ -10,11 +10,12 @@ and future stamps; frames of the wrong dtype, shape or type. On every output sam
   max_depth, contact_area, centroid) and an empty mask; otherwise the map is finite and >= 0, max_depth finite,
   >= 0 and >= the map's largest value, contact_area = mask pixels x pixel area, the centroid finite (and on the
   image) exactly when there is contact; every output carries the frame's stamp;
-- force: finite, >= 0, <= ``status()['force_limit_n']``; exactly 0 without contact (max depth NaN: invalid input;
-  0, below the contact threshold, an empty mask, an area at most min_contact_area: no-contact; no contact pixel,
-  centroid (NaN, NaN): either, or, within poly-force's centroid_band above its contact threshold, the force at the
-  fallback position with status no-centroid); stamped with the depth's stamp; no output
-  for a stamp that is not finite or is ahead of the clock;
+- force: finite, >= 0, <= ``status()['force_limit_n']``; exactly 0 without contact (0, below the contact
+  threshold, an empty mask, an area at most min_contact_area: no-contact; no contact pixel, centroid (NaN, NaN):
+  no-contact, or, within poly-force's centroid_band above its contact threshold, the force at the fallback position
+  with status no-centroid); an invalid input (max depth NaN, a NaN centroid in contact) gives status invalid-input
+  and no force sample (the consumer takes the estimate as lost); stamped with the depth's stamp; no output for a
+  stamp that is not finite or is ahead of the clock;
 - a frame of the wrong dtype/shape/type, and anything else the node cannot take, ends in a ComponentFault naming
   the node (a clean fault), never in another exception.
 
@@ -277,7 +278,17 @@ def check_force(i: int, out: dict[str, Sample] | None, dout: dict[str, Sample], 
         return
     if not out:
         return
-    f, status = out["force"], out["status"]
+    status = out["status"]
+    md = dout["max_depth"].value
+    if status.value == "invalid-input":   # no force sample: the consumer takes the estimate as lost
+        if "force" in out:
+            bad("force-invalid", f"a force {out['force'].value!r} for an invalid input (max depth {md!r})")
+        if status.stamp != st:
+            bad("force-stamp", f"status stamped {status.stamp!r}, the depth {st!r}")
+        return
+    if "force" not in out:
+        bad("force-missing", f"no force with status {status.value!r} (max depth {md!r})")
+    f = out["force"]
     if f.stamp != st or status.stamp != st:
         bad("force-stamp", f"force stamped {f.stamp!r}, status {status.stamp!r}, the depth {st!r}")
     v = f.value
@@ -285,11 +296,8 @@ def check_force(i: int, out: dict[str, Sample] | None, dout: dict[str, Sample], 
         bad("force-range", f"force {v!r} (limit {limit} N, status {status.value!r})")
     if status.value not in STATUS_VALUES:
         bad("status", f"status {status.value!r}")
-    md = dout["max_depth"].value
-    if math.isnan(md):   # an implausible frame
-        if v != 0.0 or status.value != "invalid-input":
-            bad("force-no-contact", f"force {v!r} ({status.value}) for an implausible frame (max depth NaN)")
-        return
+    if math.isnan(md):   # an implausible frame: invalid input (above), never a force
+        bad("force-no-contact", f"force {v!r} ({status.value}) for an implausible frame (max depth NaN)")
     no_contact = (md <= 0.0 or md < case.force["contact_threshold"]
                   or ("contact_mask" in case.wires and not dout["contact_mask"].value.any())
                   or ("contact_area" in case.wires and not dout["contact_area"].value > case.force["min_contact_area"]))
@@ -297,12 +305,12 @@ def check_force(i: int, out: dict[str, Sample] | None, dout: dict[str, Sample], 
         bad("force-no-contact", f"force {v!r} ({status.value}) without contact (max depth {md!r})")
     # no contact pixel (a max depth just at the threshold): with the area or mask wired that is no contact above;
     # with the centroid alone, a light touch within centroid_band above the threshold is taken at the fallback
-    # position (status no-centroid, docs/force.md), deeper it is invalid input (0 N)
+    # position (status no-centroid, docs/force.md), deeper it is invalid input (no force, above)
     if np.isnan(dout["centroid"].value).all():
         light = md <= case.force["contact_threshold"] + case.force.get("centroid_band", 2e-5)
         if status.value == "no-centroid" and not light:
             bad("force-no-contact", f"force {v!r} (no-centroid) for a max depth {md!r} beyond the centroid band")
-        if status.value != "no-centroid" and (v != 0.0 or status.value not in ("no-contact", "invalid-input")):
+        if status.value != "no-centroid" and (v != 0.0 or status.value != "no-contact"):
             bad("force-no-contact", f"force {v!r} ({status.value}) without a contact pixel (max depth {md!r})")
 
 
@@ -353,7 +361,7 @@ def run_case(case: Case, renders: list[np.ndarray]) -> dict[str, int]:
             except Exception as exc:  # noqa: BLE001
                 raise Violation("crash", i, f"poly-force: {type(exc).__name__}: {exc}") from exc
             check_force(i, fout, dout, t, limit, case)
-            counts["forces"] += bool(fout and fout["force"].value > 0)
+            counts["forces"] += bool(fout and "force" in fout and fout["force"].value > 0)
     return counts
 
 

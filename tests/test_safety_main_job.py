@@ -15,7 +15,7 @@ run stopped and the leader's safe_state() left it at 0); the follower's opening 
 the fault (it holds: neither opens nor squeezes harder); the run ends as documented (fault, exit 3; degraded, exit 3);
 every device's safe_state() is called.
 
-What does not hold is marked ``xfail(strict=True)`` with the reason (see ABSORBED_NAN, DETECTION_LAG below).
+What does not hold is marked ``xfail(strict=True)`` with the reason (see DETECTION_LAG below).
 """
 
 from __future__ import annotations
@@ -61,16 +61,14 @@ NO_EFFECT = {("digit", "nan", "stop")}
 # sim_graph's startup_grace of 0.1 s on), SILENT for a lost leader, controller or estimate (the 1 kHz wires' max_age;
 # position-force's fault_after_lost, 0.5 s).
 
-#: poly-force turns a NaN max depth into a fresh, finite 0 N ("invalid-input") and faults only after
-#: fault_after_invalid (30 frames, half a second; it was 0, never, and the run ended ok): the controller sees an
-#: estimate, not a lost one, so it does not hold meanwhile and the follower closes on the object. The fix belongs to
-#: poly-force (an invalid input gives no force sample, which the controller takes as lost, and holds).
-ABSORBED_NAN = {("depth", "nan", "stop")}
 #: The estimate is noticed lost only after stale_after (0.1 s) plus up to one camera frame: in free motion the hand
 #: closes at 5 mm/s meanwhile, and the held command is 0.507 mm from the opening at the fault (band 0.5 mm); in
-#: contact the object blocks the follower and the grip holds (these cases pass there).
-DETECTION_LAG = {(n, "stale", "stop") for n in FORCE_PATH} | {(n, k, "degrade") for n in FORCE_PATH
-                                                             for k in ("raise", "stale")}
+#: contact the object blocks the follower and the grip holds (these cases pass there). A NaN depth is one of these:
+#: poly-force gives no force for an invalid input (it gave a fresh 0 N, which the controller could not tell from a
+#: real one: the follower followed the operator's closing hand onto the object, 1.2 -> 10 N of grip, and the run
+#: ended ok), so the controller sees the estimate go stale.
+DETECTION_LAG = ({(n, "stale", "stop") for n in FORCE_PATH} | {(n, k, "degrade") for n in FORCE_PATH
+                                                              for k in ("raise", "stale")} | {("depth", "nan", "stop")})
 
 
 def key(case: Case) -> tuple[str, str, str]:
@@ -176,10 +174,6 @@ def marks(case: Case, phase: str, check: str) -> list:
     k = key(case)
     reasons = []
     if check == "follower":
-        if k in ABSORBED_NAN:
-            reasons.append("poly-force turns a NaN depth into a fresh 0 N: the controller follows the operator, "
-                           "who no longer feels the object, until poly-force faults (fault_after_invalid, half a "
-                           "second): the follower squeezes on meanwhile (ABSORBED_NAN)")
         if k in DETECTION_LAG and phase == "free":
             reasons.append("the follower holds once the estimate is noticed stale (stale_after + a frame): in free "
                            "motion 0.507 mm from the opening at the fault, band 0.5 mm (DETECTION_LAG)")

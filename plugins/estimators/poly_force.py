@@ -1242,9 +1242,12 @@ class PolyForce(Component):
         self.last_force, self.last_status = force, status
         self.counts[status] += 1
         if status == "invalid-input":
+            # no force sample: the consumer sees its estimate go stale and takes it as lost (position-force fades
+            # the hand force and holds the follower); a fresh 0 N here read as "the object is gone", so the
+            # operator closed the hand while the follower followed onto the object
             self._invalid(f"{s.value!r}")
-        else:
-            self.invalid_run = 0
+            return {"status": Sample(status, s.stamp)}
+        self.invalid_run = 0
         return {"force": Sample(force, s.stamp), "status": Sample(status, s.stamp)}
 
     def compute(self, depth: Any, area: Any = None, mask: Any = None, stamp: float = 0.0,
