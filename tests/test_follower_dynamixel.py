@@ -437,3 +437,24 @@ def test_opening_limits_must_lie_within_the_calibration():
                                               r"\(opening_at_ticks_open, opening_at_ticks_closed\)"):
         DynamixelGripper.Params(opening_at_ticks_open=0.04)
     assert DynamixelGripper.Params(opening_at_ticks_open=0.04, max_opening=0.04).max_opening == 0.04
+
+
+def test_a_port_another_process_holds_is_refused_and_nothing_is_written_to_it(emu):
+    # before: dynamixel-sdk opens the port without a lock, so a second teletouch (or a tool with pyserial's
+    # exclusive=True) on the same U2D2 configured as well, and both wrote the servo bus
+    import fcntl
+    import os
+
+    fd = os.open(emu.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)   # what another process's exclusive open holds
+        h = harness(emu)
+        before = len(emu.rx_packets)
+        with pytest.raises(HardwareError, match=r"is in use: another process holds it"):
+            with h:
+                pass
+        assert len(emu.rx_packets) == before   # no packet reached the servo, not even a safe-state hold
+    finally:
+        os.close(fd)
+    with harness(emu) as h:   # the lock released: it starts
+        drive(h, 0.05, 0.1)

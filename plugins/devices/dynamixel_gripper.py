@@ -28,6 +28,7 @@ answers the PING with must be the preset's (a firmware mismatch names the preset
 from __future__ import annotations
 
 import errno
+import fcntl
 import math
 import os
 import time
@@ -325,6 +326,13 @@ class DynamixelGripper(FollowerBase):
         if not ok:
             raise HardwareError(f"cannot set {p.baudrate} baud on {p.port}")
         self._port_open = True
+        try:   # one program per servo bus: the lock pyserial's exclusive=True takes (the SDK opens without it)
+            fcntl.flock(self.port.ser.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            self._hw_close()   # closed before anything is written: a safe_state() after this failure sends nothing
+            raise HardwareError(f"{p.port} is in use: another process holds it (another teletouch, or a tool that "
+                                f"opens it with pyserial's exclusive=True); two programs writing one servo bus fight "
+                                f"over the gripper: stop the other one ({exc.strerror})") from exc
         # pyserial blocks for at most serial_poll per read instead of spinning (the SDK polls with timeout 0)
         self.port.ser.timeout = p.serial_poll
         data, result, error = self._transact(3, self._send_ping)
