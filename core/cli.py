@@ -244,14 +244,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     code = result.exit_code
     if terminated and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had stopped the run before it
         code = EXIT_TERMINATED
+    if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
+        code = EXIT_INVALID
     if not args.quiet:
         print(result.summary(), file=sys.stderr)
-    if args.json:
-        print(json.dumps(dict(result.as_dict(), exit_code=code), default=str))
+    if args.json:   # exit_code: what the shell sees
+        print(json.dumps(dict(result.as_dict(), exit_code=code,
+                              recording_error=None if record_error is None else str(record_error)), default=str))
     by = " by SIGTERM" if code == EXIT_TERMINATED else ""
     print(f"teletouch: {result.status}{by}: {result.message}", file=sys.stderr)
-    if record_error is not None and code == EXIT_OK:
-        return EXIT_INVALID
     return code
 
 

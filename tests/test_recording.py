@@ -585,6 +585,13 @@ def test_cli_run_with_a_full_disk_keeps_the_run_summary_and_exits_1(tmp_path, mo
     assert code == 1
     assert f"teletouch: error: recording {tmp_path / 'r.mcap'} stopped early: OSError: [Errno 28]" in err
     assert "teletouch: ok: ran 2.000 s" in err  # the run's own result is still reported
+    # --json says what the shell sees (it said exit_code 0 while the process exited 1) and why
+    import json
+
+    code = cli_main(["run", str(graph), "--quiet", "--json", "--record", str(tmp_path / "r2.mcap")])
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 1 and result["exit_code"] == 1 and result["status"] == "ok"
+    assert "stopped early" in result["recording_error"]
 
 
 def test_json_channels_keep_arrays_with_nan_and_inf(tmp_path):
