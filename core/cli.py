@@ -242,7 +242,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 record_error = exc
                 print(f"teletouch: error: {exc}", file=sys.stderr)
     code = result.exit_code
-    if terminated and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had stopped the run before it
+    sigterm = bool(terminated) or result.late_signal == signal.SIGTERM   # (held during the safe shutdown)
+    if sigterm and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had stopped the run before it
         code = EXIT_TERMINATED
     if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
         code = EXIT_INVALID

@@ -96,6 +96,9 @@ class RunResult:
     faults: list[Fault] = field(default_factory=list)
     startup_time: float = 0.0   # s of wall_time spent starting up (loading models, opening devices)
     error: StartupError | None = field(default=None, repr=False, compare=False)   # status startup-failed: why
+    #: the signal (SIGINT/SIGTERM number) that arrived during the safe shutdown and made the run "interrupted"
+    #: (held there, so the caller's own handler never saw it); None otherwise
+    late_signal: int | None = field(default=None, repr=False, compare=False)
 
     @property
     def realtime_factor(self) -> float:
@@ -558,6 +561,7 @@ class Runtime:
         error: StartupError | None = None
         startup = 0.0
         interrupted = False
+        late_signal: int | None = None
         fault_first: tuple[str, int, str] | None = None   # a fault that stopped the run before the interrupt
         # Start-up (importing torch, loading models) makes hundreds of thousands of long-lived objects. The cyclic
         # garbage collector is off while it runs (paper-sim: three full collections, ~0.25 s, were spent there)
@@ -592,6 +596,7 @@ class Runtime:
                 self._shutdown()
             if late and not interrupted:
                 interrupted, fault_first = True, self._fault_reason()
+                late_signal = late[0]
             if gc_frozen:
                 gc.unfreeze()
         wall = time.perf_counter() - wall0
@@ -612,7 +617,7 @@ class Runtime:
             status = (status[0], status[1], status[2] + "; devices driven to their safe state")
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
-                         startup_time=startup, error=error)
+                         startup_time=startup, error=error, late_signal=late_signal)
 
     def _fault_reason(self) -> tuple[str, int, str] | None:
         with self._lock:

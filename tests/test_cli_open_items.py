@@ -222,3 +222,42 @@ def test_run_prints_the_jitter_it_reports_in_json_and_the_json_is_unchanged(tmp_
     for node in result["nodes"]:
         assert node["period_jitter_p99_s"] is not None
         assert rows[node["id"]][4] == f"{node['period_jitter_p99_s'] * 1e3:.3f}"
+
+
+LATE_TERM = '''
+import os, signal
+from teletouch import Device, Port, hookimpl
+
+
+class SelfTerm(Device):
+    """A device whose safe_state() (at the end of the run) gets a SIGTERM: it arrives during the safe shutdown."""
+    name = "self-term"
+    outputs = {"y": Port("float64", (), "m")}
+
+    def step(self, t, inputs):
+        return {"y": 0.0}
+
+    def safe_state(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+@hookimpl
+def teletouch_components():
+    return [SelfTerm]
+'''
+
+
+def test_a_sigterm_during_the_safe_shutdown_exits_143_too(tmp_path, monkeypatch, capsys):
+    # before: the runtime holds signals while it makes the devices safe, so the CLI's own SIGTERM handler never saw
+    # one that came then: the run ended 'interrupted' with 130, Ctrl-C's code
+    (tmp_path / "late_term_plugin.py").write_text(LATE_TERM)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("TELETOUCH_PLUGINS", "late_term_plugin")
+    graph = tmp_path / "g.yaml"
+    graph.write_text("clock: sim\nduration: 0.1\nnodes:\n  - {id: dev, plugin: self-term, rate: 100}\n")
+    from teletouch.cli import main
+
+    assert main(["run", str(graph), "--quiet", "--json"]) == 143
+    cap = capsys.readouterr()
+    assert json.loads(cap.out.strip().splitlines()[-1])["exit_code"] == 143
+    assert "teletouch: interrupted by SIGTERM: " in cap.err
