@@ -211,3 +211,17 @@ def test_a_malformed_source_date_epoch_is_refused_before_the_fit(tmp_path, monke
     out = tmp_path / "a.force.json"
     assert _cli("--csv", csv, "-o", out) == 2
     assert "SOURCE_DATE_EPOCH 'yesterday'" in capsys.readouterr().err and not out.exists()
+
+
+def test_hysteresis_fits_count_depth_levels_not_near_duplicate_depths():
+    # before: each phase's degree came from exact unique depths, so a stuck probe's jittering repeats (5 levels,
+    # 40 samples) allowed a cubic through what is 5 levels with noise
+    from teletouch.plugins.estimators.poly_force import _hysteresis
+
+    rng = np.random.default_rng(0)
+    levels = np.repeat(np.linspace(0.2e-3, 1.0e-3, 3), 8) + rng.normal(0, 1e-6, 24)   # 3 levels, 24 samples
+    d = np.r_[levels, levels]
+    f = truth(d)
+    ph = ["loading"] * 24 + ["unloading"] * 24
+    h = _hysteresis(d, f, ph, 3, False)
+    assert h["loading"]["degree"] == 1 and h["unloading"]["degree"] == 1

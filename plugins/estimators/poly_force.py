@@ -878,7 +878,8 @@ def _hysteresis(d: np.ndarray, f: np.ndarray, ph: list[str], degree: int, zero_i
     fits = {}
     for p, m in has.items():
         n = int(m.sum())
-        deg = min(degree, max(1, np.unique(d[m]).size - 2)) if n else 0
+        # the degree each phase's depth levels allow (near-duplicate depths are one level, as for the main fit)
+        deg = min(degree, max(1, depth_levels(d[m]) - 2)) if n else 0
         if n < 3 or deg < 1:
             out[p] = {"n_samples": n}
             continue
