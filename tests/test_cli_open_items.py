@@ -253,6 +253,9 @@ def test_a_sigterm_during_the_safe_shutdown_exits_143_too(tmp_path, monkeypatch,
     (tmp_path / "late_term_plugin.py").write_text(LATE_TERM)
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setenv("TELETOUCH_PLUGINS", "late_term_plugin")
+    import teletouch.registry as registry
+
+    monkeypatch.setattr(registry, "_default", None)   # the CLI's cached registry is loaded again, with the plugin
     graph = tmp_path / "g.yaml"
     graph.write_text("clock: sim\nduration: 0.1\nnodes:\n  - {id: dev, plugin: self-term, rate: 100}\n")
     from teletouch.cli import main
