@@ -18,6 +18,7 @@ from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
 from teletouch import HardwareError  # noqa: E402
 from fakes import realtime  # noqa: E402
 from fakes.realtime import configure_fails  # noqa: E402
+from fakes.ros2_peer import localhost_domain  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
 
@@ -27,10 +28,9 @@ pytestmark = pytest.mark.timeout(60)
 
 
 @pytest.fixture(autouse=True)
-def _localhost_ros(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(DOMAIN))
+def _localhost_ros():
+    with localhost_domain(DOMAIN):
+        yield
 
 
 @pytest.fixture

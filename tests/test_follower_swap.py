@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
+from fakes.ros2_peer import localhost_domain  # noqa: E402
 
 from teletouch.testing import make_registry, run_yaml  # noqa: E402
 
@@ -55,10 +56,9 @@ pytestmark = pytest.mark.timeout(90)
 
 
 @pytest.fixture(autouse=True)
-def _localhost_ros(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(DOMAIN))
+def _localhost_ros():
+    with localhost_domain(DOMAIN):
+        yield
 
 
 class _Hardware:

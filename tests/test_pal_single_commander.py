@@ -21,7 +21,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from fakes import realtime
 from fakes.realtime import configure_fails
-from fakes.ros2_peer import Peer
+from fakes.ros2_peer import Peer, localhost_domain
 
 from teletouch import HardwareError
 from teletouch.plugins.devices.pal_gripper import JOINTS, PalGripper
@@ -34,10 +34,9 @@ pytestmark = pytest.mark.timeout(90)
 
 
 @pytest.fixture(autouse=True)
-def _localhost_ros(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(DOMAIN))
+def _localhost_ros():
+    with localhost_domain(DOMAIN):
+        yield
 
 
 class Robot:

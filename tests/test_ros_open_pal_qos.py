@@ -20,7 +20,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from fakes import realtime
 from fakes.realtime import configure_fails
-from fakes.ros2_peer import Peer
+from fakes.ros2_peer import Peer, localhost_domain
 
 from teletouch.plugins.devices.pal_gripper import JOINTS, PalGripper
 from teletouch.testing import Harness
@@ -35,10 +35,9 @@ pytestmark = pytest.mark.timeout(60)
 
 
 @pytest.fixture(autouse=True)
-def _localhost_ros(monkeypatch):
-    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(DOMAIN))
+def _localhost_ros():
+    with localhost_domain(DOMAIN):
+        yield
 
 
 def harness(logs: list[str] | None = None, **params) -> Harness:
