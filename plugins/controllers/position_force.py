@@ -346,6 +346,20 @@ class _CommonParams(Params):
         return sum(getattr(self, n) for n in self._constant_damping_fields())
 
 
+def lost_since(since: float | None, lost: bool, t: float, limit: float, what: str, problem: str, fix: str
+               ) -> float | None:
+    """When a loss of ``what`` began (None: not lost now), given when it began so far (``since``); ComponentFault
+    once it has lasted longer than ``limit`` s, naming what, for how long, why (``problem``) and what to check."""
+    if not lost:
+        return None
+    if since is None:
+        return t
+    if t - since > limit:
+        raise ComponentFault(f"{what} lost for {t - since:.3f} s (since t={since:.3f} s; {problem}), longer than "
+                             f"fault_after_lost {limit:g} s: {fix}")
+    return since
+
+
 class _Bilateral(Component):
     """Shared follower mapping, leader-force safety chain and passivity; subclasses give the force law."""
 
@@ -477,22 +491,11 @@ class _Bilateral(Component):
         longer than ``fault_after_lost``: a loss that lasts is a fault, not silence. The runtime then drives the
         devices to their safe states (zero leader force; the follower holds). The leader counts once it was ok."""
         limit = self.params.fault_after_lost
-        if self.leader_ok or self.command is None:
-            self.leader_lost_since = None
-        elif self.leader_lost_since is None:
-            self.leader_lost_since = t
-        elif t - self.leader_lost_since > limit:
-            raise ComponentFault(f"leader opening lost for {t - self.leader_lost_since:.3f} s (since t="
-                                 f"{self.leader_lost_since:.3f} s; {self.leader_problem}), longer than "
-                                 f"fault_after_lost {limit:g} s: check the leader and its wire")
-        if not self.force_lost():
-            self.force_lost_since = None
-        elif self.force_lost_since is None:
-            self.force_lost_since = t
-        elif t - self.force_lost_since > limit:
-            raise ComponentFault(f"force estimate lost for {t - self.force_lost_since:.3f} s (since t="
-                                 f"{self.force_lost_since:.3f} s; {self.force_problem}), longer than fault_after_lost "
-                                 f"{limit:g} s: check the sensor and its estimators")
+        self.leader_lost_since = lost_since(self.leader_lost_since, not (self.leader_ok or self.command is None), t,
+                                            limit, "leader opening", self.leader_problem,
+                                            "check the leader and its wire")
+        self.force_lost_since = lost_since(self.force_lost_since, self.force_lost(), t, limit, "force estimate",
+                                           self.force_problem, "check the sensor and its estimators")
 
     # -- the step
     def step(self, t: float, inputs: Any) -> dict[str, float]:
