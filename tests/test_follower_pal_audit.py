@@ -60,8 +60,7 @@ class ScriptedRobot:
         self.JointState = JointState
         self.peer = Peer("scripted_robot", DOMAIN)
         self.pub = self.peer.node.create_publisher(state_type or JointState, states_topic, 10)
-        for c in controllers:
-            self.peer.listen(JointTrajectory, f"{c}/joint_trajectory", c)
+        self.subs = {c: self.peer.listen(JointTrajectory, f"{c}/joint_trajectory", c) for c in controllers}
         self.t0 = time.time()
         self._streaming = None
 
@@ -123,6 +122,11 @@ def connect(robot, h, pos=(0.02, 0.02), eff=(0.0, 0.0)):
         h.__enter__()
     finally:
         robot.stop_stream()
+    # The driver starts once its publisher has matched the controller, but DDS matches the two ends one at a time:
+    # until the controller's end has matched too, what the driver sends is dropped there (and with the command
+    # history of depth 1 only the latest is sent again). Tests that count commands wait for both ends.
+    for sub in robot.subs.values():
+        assert realtime.wait_for(lambda s=sub: s.get_publisher_count() > 0, 10.0), "the controller never matched"
     return h
 
 
@@ -237,7 +241,7 @@ def test_two_grippers_on_one_robot():
             assert step(left, 0.02)["opening"] == pytest.approx(0.02)
             assert step(right, 0.06)["opening"] == pytest.approx(0.06)
             assert realtime.wait_for(lambda: r.commands("/tiago/left_controller") and
-                                     r.commands("/tiago/right_controller"), 2.0)
+                                     r.commands("/tiago/right_controller"), 10.0)
             assert list(r.commands("/tiago/left_controller")[-1].joint_names) == ["l_left", "l_right"]
             assert list(r.commands("/tiago/right_controller")[-1].points[0].positions) == [0.03, 0.03]
         finally:

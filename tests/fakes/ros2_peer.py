@@ -31,13 +31,13 @@ class Peer:
         while not self._stop.is_set():
             self.ex.spin_once(timeout_sec=0.02)
 
-    def listen(self, mtype: Any, topic: str, key: str, qos: QoSProfile | None = None, timed: bool = False) -> None:
+    def listen(self, mtype: Any, topic: str, key: str, qos: QoSProfile | None = None, timed: bool = False) -> Any:
         """Collect the messages of ``topic`` in ``got[key]``: the messages, or (arrival Unix time, message) pairs with
-        ``timed``."""
+        ``timed``. Returns the subscription (``get_publisher_count()`` says whether it has matched a publisher yet)."""
         self.got[key] = []
         got = self.got[key]
         cb = (lambda m: got.append((time.time(), m))) if timed else got.append
-        self.node.create_subscription(mtype, topic, cb, qos or QoSProfile(depth=50))
+        return self.node.create_subscription(mtype, topic, cb, qos or QoSProfile(depth=50))
 
     def close(self) -> None:
         self._stop.set()
