@@ -638,7 +638,8 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
     wire = {"anyOf": [
         {"type": "string", "pattern": r"^[A-Za-z_][A-Za-z0-9_-]*\.[A-Za-z_][A-Za-z0-9_]*$"},
         {"type": "object", "properties": {"from": {"type": "string"}, "max_age": number_or_qty},
-         "required": ["from"], "additionalProperties": False}]}
+         "required": ["from"], "additionalProperties": False},
+        {"type": "null", "description": "in an override of an included node: unwire this input"}]}
     node: dict[str, Any] = {
         "type": "object",
         "properties": {

@@ -397,3 +397,11 @@ def test_cli_reports_file_errors_without_a_traceback(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("teletouch: error: Not a directory:") and "afile/schema.json" in err
     assert "Traceback" not in err
+
+
+def test_json_schema_accepts_the_documented_unwiring_of_an_input(reg):
+    """docs/graphs.md: ``inputs: {port: null}`` in an override unwires an input, and validate accepts it; the
+    exported schema allowed only a wire string or {from, max_age} there, so an editor flagged documented syntax."""
+    node = graph_json_schema(reg)["properties"]["nodes"]["items"]
+    kinds = [alt.get("type") for alt in node["properties"]["inputs"]["additionalProperties"]["anyOf"]]
+    assert sorted(kinds) == ["null", "object", "string"]
