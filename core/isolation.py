@@ -26,7 +26,10 @@ Values other than numbers, numeric arrays and text cross pickled one by one, so 
 (its class is not importable there) is a fault of the node that names the plugin and the input; the child lives on.
 
 Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
-dropped, never taken for a later call's. One call at a time: the runtime's shutdown (main thread) waits for a step
+dropped, never taken for a later call's. A step in flight can be abandoned from another thread
+(:meth:`ProcessProxy.abandon_step`: the runtime's watchdog, when the node's rate group has devices that the step keeps
+from being stepped): the node's thread stops waiting at once and its step raises :class:`StepAbandoned`; the child's
+late answer is dropped as a timed-out one's. One call at a time: the runtime's shutdown (main thread) waits for a step
 still running in the node's thread (at most until that step's own timeout) before it sends deactivate/close. The
 child ignores SIGINT and SIGTERM (Ctrl-C reaches the whole process group; the parent ends the child through the pipe
 after its devices are safe) and, on Linux, is killed when the parent dies. A child that does not answer
@@ -40,6 +43,7 @@ import multiprocessing as mp
 import os
 import pickle
 import secrets
+import select
 import signal
 import sys
 import threading
@@ -66,6 +70,13 @@ _TERMINAL_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 #: the number of the child's reply to a request it could not unpickle (its number unknown): taken as the answer
 #: to the call in progress (one call at a time)
 _UNREADABLE = -1
+
+
+class StepAbandoned(ComponentFault):
+    """An isolated step whose wait another thread cut short (:meth:`ProcessProxy.abandon_step`). The one who cut it
+    has reported why (the runtime's watchdog: a fault of the node), so the runtime does not report it again."""
+
+    abandoned = True
 
 
 #: children started and not yet ended: killed at interpreter exit (they ignore the SIGTERM multiprocessing sends
@@ -280,6 +291,15 @@ def _from_wire(name: str, kind: str, payload: Any, plugin: str) -> Any:
                              f"by name in a new process); the input was not delivered") from None
 
 
+def _drain(fd: int) -> None:
+    """Read a non-blocking pipe empty."""
+    try:
+        while os.read(fd, 64):
+            pass
+    except BlockingIOError:
+        pass
+
+
 def _child_signals(parent_pid: int) -> None:
     """In the child: Ctrl-C (SIGINT to the whole process group) and SIGTERM are for the parent, which ends the child
     through the pipe once its devices are safe; a child that died first would be a fault of its own and never
@@ -405,7 +425,8 @@ class ProcessProxy(Component):
 
     One call crosses at a time (a lock): the node's thread steps it, the runtime's main thread starts it up and
     shuts it down. ``step_timeout``: seconds a step may take before it is a fault (the runtime gives 20 periods,
-    at least 1 s); the child's late answer is then recognised by its number and dropped."""
+    at least 1 s); the child's late answer is then recognised by its number and dropped. Another thread may cut the
+    wait for a step short before that (:meth:`abandon_step`)."""
 
     def __init__(self, cls: type[Component], params: Any, *, node_id: str, ctx: Context, t0_perf: float,
                  t0_mono: float, step_timeout: float, priority: int = 0):
@@ -428,6 +449,10 @@ class ProcessProxy(Component):
         self._lanes = ArrayLanes(self._prefix + "p")
         # port -> the Sample the child holds for it (sent, and its step answered): not sent again while unchanged
         self._held: dict[str, Sample | None] = {}
+        self._wake: tuple[int, int] | None = None   # (read, write) ends of the pipe that wakes a waiting step
+        self._abandon: str | None = None            # why the step in flight (or about to wait) is to be abandoned
+        self._wake_lock = threading.Lock()
+        self._poller: Any = None                    # select.poll() on the pipe and the wake-up pipe (steps)
 
     # -------------------------------------------------------------------------------------------------- plumbing
     def _started(self) -> bool:
@@ -444,20 +469,32 @@ class ProcessProxy(Component):
         finally:
             self._lock.release()
 
-    def _exchange(self, op: str, args: tuple, timeout: float, values: dict[str, Any] | None = None) -> Any:
+    def _exchange(self, op: str, args: tuple, timeout: float, values: dict[str, Any] | None = None,
+                  abandonable: bool = False) -> Any:
         """One request and its reply; the caller holds the lock. Replies to earlier requests (their call timed out
-        or was interrupted) are dropped; their log lines are passed on."""
+        or was interrupted) are dropped; their log lines are passed on. ``abandonable`` (steps): the wait also ends
+        when :meth:`abandon_step` is called (:class:`StepAbandoned`)."""
         conn = self._conn
         self._seq += 1
         seq = self._seq
-        deadline = time.monotonic() + timeout
+        sent = time.monotonic()
+        deadline = sent + timeout
+        poller = self._poller if abandonable else None   # watches the pipe and the wake-up pipe
         try:
             _send(conn, (seq, op, *args), values or {}, "input", "the isolated process")
             while True:
                 left = deadline - time.monotonic()
-                if left <= 0 or not conn.poll(left):
-                    self._stuck = True
-                    raise ComponentFault(f"isolated process did not answer '{op}' within {timeout:.3g} s")
+                if poller is None:
+                    if left <= 0 or not conn.poll(left):
+                        self._stuck = True
+                        raise ComponentFault(f"isolated process did not answer '{op}' within {timeout:.3g} s")
+                else:
+                    events = poller.poll(left * 1e3) if left > 0 else ()
+                    if not events:
+                        self._stuck = True
+                        raise ComponentFault(f"isolated process did not answer '{op}' within {timeout:.3g} s")
+                    if not self._answered(events, sent):   # a wake-up left over from a step that had ended
+                        continue
                 try:
                     reply = conn.recv()
                 except (EOFError, OSError):
@@ -475,6 +512,36 @@ class ProcessProxy(Component):
         if reply[1] == "exc":
             raise ComponentFault(f"in isolated process: {reply[2]}")
         return reply
+
+    def _answered(self, events: list[tuple[int, int]], sent: float) -> bool:
+        """The events of a step's wait on the pipe and the wake-up pipe: True when the pipe has something, False
+        after a wake-up that abandons nothing; raises :class:`StepAbandoned` after one that does."""
+        wake = self._wake[0]   # type: ignore[index]
+        answer = False
+        for fd, _ in events:
+            if fd != wake:
+                answer = True   # (POLLHUP, POLLERR too: recv() then says how the child ended)
+                continue
+            _drain(wake)
+            why, self._abandon = self._abandon, None
+            if why is not None:
+                self._stuck = True
+                raise StepAbandoned(f"step abandoned after {time.monotonic() - sent:.3f} s without an answer from "
+                                    f"the isolated process: {why}")
+        return answer
+
+    def abandon_step(self, why: str) -> None:
+        """From another thread: stop waiting for the step in flight (or the next one to wait: a step that has not
+        reached its wait yet) at once; that step raises :class:`StepAbandoned` with ``why``. For a caller that has
+        reported the node's fault already (the runtime's watchdog: the step keeps the devices of its rate group from
+        being stepped). The child goes on with the step; its late answer is dropped."""
+        self._abandon = why
+        with self._wake_lock:   # not closed (and its number reused) while this writes to it
+            if self._wake is not None:
+                try:
+                    os.write(self._wake[1], b"!")
+                except BlockingIOError:   # full: bytes not drained yet, it wakes all the same
+                    pass
 
     def _died(self, op: str) -> ComponentFault:
         proc = self._proc
@@ -507,6 +574,14 @@ class ProcessProxy(Component):
         self._held.clear()   # a new child holds no input yet
         parent, child = mpctx.Pipe()
         self._conn = parent
+        if self._wake is None:
+            r, w = os.pipe()
+            os.set_blocking(r, False)
+            os.set_blocking(w, False)
+            self._wake = (r, w)
+        self._poller = select.poll()   # kept: cheaper per step than conn.poll(), which makes a selector each time
+        self._poller.register(parent.fileno(), select.POLLIN)
+        self._poller.register(self._wake[0], select.POLLIN)
         self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
                                    args=(child, cls_ref, self.params.model_dump(), self.id, *self._t0,
                                          self._priority, self.ctx.rate, self._prefix + "c", os.getpid()))
@@ -548,7 +623,7 @@ class ProcessProxy(Component):
                 sent[name] = s
                 ins[name] = None if s is None else (*_to_wire(name, self._lanes.pack(name, s.value)), s.stamp)
             try:
-                reply = self._exchange("step", (t, ins), self._step_timeout)
+                reply = self._exchange("step", (t, ins), self._step_timeout, abandonable=True)
             except BaseException:
                 held.clear()   # the child may not have taken them (or only later): send everything next time
                 raise
@@ -577,12 +652,14 @@ class ProcessProxy(Component):
                     self._exchange("close", (), SHUTDOWN_TIMEOUT)
                     answered = True
             finally:
-                self._end_child(wait=SHUTDOWN_TIMEOUT if answered else 0.0)
+                # the wake-up pipe is kept while a step may still wait on it (the lock not had: two descriptors
+                # left, rather than a number that another file may get while that step still reads it)
+                self._end_child(wait=SHUTDOWN_TIMEOUT if answered else 0.0, close_wake=got)
         finally:
             if got:
                 self._lock.release()
 
-    def _end_child(self, wait: float) -> None:
+    def _end_child(self, wait: float, close_wake: bool = True) -> None:
         """The child gone (killed if it has not ended within ``wait`` s: it ignores SIGTERM), the pipe closed and
         every shared-memory block of this node removed, the child's included."""
         try:
@@ -596,6 +673,11 @@ class ProcessProxy(Component):
         finally:
             if self._conn is not None:
                 self._conn.close()
+            if close_wake:
+                with self._wake_lock:
+                    wake, self._wake, self._poller = self._wake, None, None
+                for fd in wake or ():
+                    os.close(fd)
             self._lanes.close(unlink_peer=True)
             remove_blocks(self._prefix)
 

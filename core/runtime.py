@@ -57,7 +57,7 @@ class StartupError(ComponentFault):
 @dataclass
 class Fault:
     node: str
-    kind: str  # exception | overrun | stale | startup | shutdown
+    kind: str  # exception | overrun | stale | stall | timeout | upstream | hung | startup | shutdown | progress
     message: str
     time: float
     action: str  # stop | degrade | logged
@@ -725,9 +725,10 @@ class Runtime:
         for th in self._threads:
             th.start()
         # the watchdog: a device whose thread has not started a step for `faults.watchdog` (at least 3 of its
-        # periods) is driven to its safe state from here and faults (a step that hangs, a stalled thread)
+        # periods) is driven to its safe state from here and faults (a step that hangs, a stalled thread); when that
+        # thread waits for the step of another node at its rate, that node is at fault (see _stalled)
         wd = self.spec.faults.watchdog
-        watched = [(n, max(wd, 3.0 * n.period)) for n in self.nodes if n.is_device] if wd > 0 else []
+        watched = [(n, max(wd, 3.0 * n.period), groups[n.rate]) for n in self.nodes if n.is_device] if wd > 0 else []
         poll = min(0.02, wd / 4.0) if watched else 0.02
         try:
             next_progress = time.perf_counter() + interval
@@ -736,11 +737,10 @@ class Runtime:
                 if duration is not None and self._now >= duration:
                     self._stop_evt.set()
                     break
-                for n, limit in watched:
+                for n, limit, members in watched:
                     last = n.starts[(n.nstarts - 1) % self.JITTER_RING] if n.nstarts else 0.0
                     if not n.faulted and self._now - last > limit:
-                        self._fault(n, "stall", f"not stepped for {self._now - last:.3f} s (watchdog "
-                                                f"{limit:g} s): made safe", self._now)
+                        self._stalled(n, self._now - last, limit, members)
                 if progress is not None and time.perf_counter() >= next_progress:
                     next_progress += interval
                     try:
@@ -755,6 +755,44 @@ class Runtime:
             self._now = time.perf_counter() - self._t0
             if duration is not None and self._stop_reason is None and duration <= self._now < duration + 0.05:
                 self._now = duration  # ended by its duration (the main thread polls every 20 ms)
+
+    def _stalled(self, dev: _Node, idle: float, limit: float, members: list[_Node]) -> None:
+        """The watchdog found device ``dev`` not stepped for ``idle`` s, more than its ``limit``: it is made safe and
+        faults (``stall``). When its rate group's thread is blocked in the step of another node (an isolated node
+        waiting for its process, an inline node that hangs), that node is the cause: it faults first (``timeout``,
+        naming its plugin: under ``stop`` its fault is the run's reason; a device whose own step hangs: ``stall``,
+        as when it is alone at its rate); then every device at its rate (none of
+        them is stepped while it runs) is made safe and faults, naming it; then the wait for an isolated node's step
+        is cut short (``ProcessProxy.abandon_step``), so that the group's thread is free at once instead of after
+        the step's own timeout (20 periods, at least 1 s)."""
+        now = self._now
+        blocker = next((m for m in members if m.in_step), None)
+        if blocker is None or blocker is dev:   # its own step hangs, or the thread is stalled outside any step
+            self._fault(dev, "stall", f"not stepped for {idle:.3f} s (watchdog {limit:g} s): made safe", now)
+            return
+        from .isolation import ProcessProxy
+
+        isolated = isinstance(blocker.comp, ProcessProxy)
+        what = f"{blocker.spec.plugin}, isolated process" if isolated else blocker.spec.plugin
+        blamed = not blocker.faulted
+        began = blocker.starts[(blocker.nstarts - 1) % self.JITTER_RING]
+        if blamed and blocker.is_device:   # a device whose own step hangs: its stall, as when it is alone
+            self._fault(blocker, "stall", f"not stepped for {now - began:.3f} s (watchdog {limit:g} s): made safe",
+                        now)
+        elif blamed:
+            devices = ", ".join(f"'{m.id}'" for m in members if m.is_device)
+            self._fault(blocker, "timeout", f"({what}) step did not return within {limit:g} s (faults.watchdog; it "
+                                            f"began at t={began:.3f} s): the devices at its rate ({devices}) are not "
+                                            f"stepped while it runs", now)
+        for m in members:   # (one already disabled is skipped: a device wired from it, under degrade)
+            if m.is_device and not m.faulted:
+                last = m.starts[(m.nstarts - 1) % self.JITTER_RING] if m.nstarts else 0.0
+                self._fault(m, "stall", f"not stepped for {now - last:.3f} s: its rate group waits for the step of "
+                                        f"node '{blocker.id}' ({what}), past the watchdog's {limit:g} s: made safe",
+                            now)
+        if blamed and isolated:   # after the devices are safe: the group's thread, freed, must not step them first
+            blocker.comp.abandon_step(f"the watchdog faulted it after {limit:g} s (faults.watchdog): the devices at "
+                                      f"its rate were not stepped meanwhile")
 
     def _wall_loop(self, members: list[_Node], rate: float) -> None:
         _set_timer_slack(1000)
@@ -817,7 +855,8 @@ class Runtime:
                         self._write(node, out, t)
                 except BaseException as exc:   # also SystemExit or KeyboardInterrupt raised by a plugin in this
                     node.in_step = False       # thread (a signal reaches the main one)
-                    self._fault(node, "exception", exception_line(exc), t)
+                    if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it
+                        self._fault(node, "exception", exception_line(exc), t)    # has reported the node's fault
                 node.in_step = False
                 node.steps += 1
                 dt = perf() - t1
