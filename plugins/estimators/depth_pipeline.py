@@ -16,8 +16,9 @@ Steps:
    minus its per-channel median over every 4th cell (global illumination drift cancels).
 2. Change mask: cells whose colour change (|diff| summed over the channels, 3 x 3 box) exceeds
    ``change_threshold`` (0..255 levels; the model's, fitted to the sensor's noise), opened (noise specks go),
-   dilated by ``dilate`` + 1 cells. Outside it the gel is flat by definition: normal (0, 0, 1), zero slope. This
-   is the zero reference: without contact there is no slope, hence no depth.
+   dilated by ``dilate`` + 1 cells, plus what it encloses (:func:`fill_enclosed`: a press's flat centre changes
+   less than its rim). Outside it the gel is flat by definition: normal (0, 0, 1), zero slope. This is the zero
+   reference: without contact there is no slope, hence no depth.
 3. The MLP gives normals; slopes ``gx = -nx / max(nz, nz_min)`` (and gy), dimensionless.
 4. Depth by the DST Poisson solve on the mask's bounding box plus ``margin`` cells (sparse) or on the whole grid
    (dense); depth outside the change mask is set to 0 and, unless ``clamp_negative=False``, negative depth (the
@@ -38,7 +39,7 @@ from teletouch.errors import ModelFileError
 from . import poisson
 from .normal_model import NormalModel, colour_maps_torch, colour_parts, context_cells, feature_count, uses_xy
 
-__all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset"]
+__all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset", "fill_enclosed", "fill_enclosed_torch"]
 
 
 @dataclass
@@ -104,6 +105,74 @@ def _resize_linear(z: np.ndarray, s: int) -> np.ndarray:
     import cv2
 
     return cv2.resize(z, (z.shape[1] * s, z.shape[0] * s), interpolation=cv2.INTER_LINEAR)
+
+
+#: closing radius (cells) before the holes of the change mask are filled: a press's centre reached by a narrow bay of
+#: unchanged cells (its rim's weakly lit side) is enclosed too
+FILL_CLOSE = 3
+
+
+def fill_enclosed(m: np.ndarray, pad: np.ndarray | None = None, close: int = FILL_CLOSE) -> np.ndarray:
+    """Add, in place, to a (rows, cols) uint8 0/1 change mask what it encloses: its closing by a square of
+    ``2 close + 1`` cells (the grid's outside counts as changed for the erosion, as on the torch path), then the holes
+    of that, the cells no path of unchanged cells (4-connected) links to the grid's border.
+
+    Why: a ball pressed in changes the colours on its sloped rim, least at its flat centre and on the rim's weakly
+    lit side. Where the change there stays below the threshold, the mask is a ring, or a ring with a narrow gap, and
+    the centre read as untouched gel: zero depth, a crater at the deepest point (the cap height 85-100% low; the VGA
+    presses with a single-frame background, whose threshold is higher, docs/depth.md).
+
+    The work is done on the changed cells' bounding box plus ``close + 1`` cells (a contact covers a small part of
+    the grid), with the same result as on the whole grid: outside that box the closed mask is 0, and every unchanged
+    cell there reaches the grid's border. ``pad``: unused (kept for callers that pass a work buffer)."""
+    import cv2
+
+    h, w = m.shape
+    x, y, bw, bh = cv2.boundingRect(m)
+    if bw == 0:
+        return m
+    e = close + 1
+    r0, r1, c0, c1 = max(0, y - e), min(h, y + bh + e), max(0, x - e), min(w, x + bw + e)
+    sub = m[r0:r1, c0:c1]   # a view: changed in place
+    rh, rw = sub.shape
+    if close > 0:
+        k = np.ones((2 * close + 1,) * 2, np.uint8)
+        grown = np.ones((rh + 2 * close, rw + 2 * close), np.uint8)   # 1: the grid's outside (counts as changed)
+        grown[max(0, close - r0):min(rh + 2 * close, h - r0 + close),
+              max(0, close - c0):min(rw + 2 * close, w - c0 + close)] = 0   # the grid's cells around the box: 0
+        grown[close:close + rh, close:close + rw] = cv2.dilate(sub, k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        np.maximum(sub, cv2.erode(grown, k, borderType=cv2.BORDER_CONSTANT, borderValue=1)[close:close + rh,
+                                                                                           close:close + rw], out=sub)
+    framed = np.zeros((rh + 2, rw + 2), np.uint8)   # the frame: the grid's border, or unchanged cells reaching it
+    framed[1:-1, 1:-1] = sub
+    cv2.floodFill(framed, None, (0, 0), 2, flags=4)   # the unchanged cells reachable from the border (via the frame)
+    sub[framed[1:-1, 1:-1] == 0] = 1
+    return m
+
+
+def fill_enclosed_torch(m: Any, close: int = FILL_CLOSE, check_every: int = 8) -> Any:
+    """:func:`fill_enclosed` for a batch of masks, float (B, 1, rows, cols) 0/1, on any torch device: the closing,
+    then the unchanged cells reachable from the border grow one cell (4-connected) per step until they stop."""
+    import torch.nn.functional as F
+
+    if close > 0:
+        k = 2 * close + 1
+        c = -F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close)
+        m = m.maximum(c)
+
+    def grow(a: Any) -> Any:   # one step along rows or columns (a cross, not the 3 x 3 square)
+        return free * F.max_pool2d(a, (3, 1), stride=1, padding=(1, 0)).maximum(
+            F.max_pool2d(a, (1, 3), stride=1, padding=(0, 1)))
+
+    free = 1.0 - m
+    out = F.pad(free[..., 1:-1, 1:-1] * 0.0, (1, 1, 1, 1), value=1.0) * free   # the free cells on the border
+    while True:
+        for _ in range(check_every):
+            out = grow(out)
+        nxt = grow(out)
+        if bool((nxt == out).all()):
+            return 1.0 - out
+        out = nxt
 
 
 def channel_offset(d: np.ndarray) -> np.ndarray:
@@ -249,7 +318,17 @@ class DepthPipeline:
         keep = F.max_pool2d(m, k, stride=1, padding=self.dilate + 1)
         rim = min(self.net_rim, self.dilate) + 1
         core = F.max_pool2d(m, 2 * rim + 1, stride=1, padding=rim)
-        return core[:, 0] > 0.5, keep[:, 0] > 0.5
+        return self._fill(core)[:, 0] > 0.5, self._fill(keep)[:, 0] > 0.5
+
+    def _fill(self, m: Any) -> Any:
+        """(B, 1, gr, gc) 0/1 masks with what they enclose, as on the sparse path (:func:`fill_enclosed`)."""
+        if m.device.type != "cpu":
+            return fill_enclosed_torch(m)
+        mn = (m[:, 0] > 0.5).to(self.torch.uint8).numpy()   # OpenCV's flood fill: the torch steps are ~100x slower
+        for f in mn:
+            if f.any():
+                fill_enclosed(f)
+        return self.torch.from_numpy(mn).to(m.dtype)[:, None]
 
     def _features(self, x: Any, d: Any) -> Any:
         """(B, 3, gr, gc) frame and diff -> standardised (B, gr, gc, F) features."""
@@ -365,6 +444,11 @@ class DepthPipeline:
         core = cv2.dilate(b["m2"], self._kn)   # the network runs here (change region + `net_rim` cells)
         keep = cv2.dilate(b["m2"], self._kd)   # depth is kept here (change region + `dilate` + 1 cells)
         nz_pts = cv2.findNonZero(core)
+        if nz_pts is not None:
+            # a press's flat centre, enclosed by its changed rim, is pressed in: not the untouched zero reference
+            fill_enclosed(core, b["pad"])
+            fill_enclosed(keep, b["pad"])
+            nz_pts = cv2.findNonZero(core)
         self._changed = nz_pts is not None
         if nz_pts is None:
             return np.zeros((gr, gc), np.float32), None
@@ -461,6 +545,7 @@ class DepthPipeline:
                  "absd": np.empty((gr, gc, 3), np.float32), "a": np.empty((gr, gc), np.float32),
                  "a2": np.empty((gr, gc), np.float32), "mb": np.empty((gr, gc), bool),
                  "m": np.empty((gr, gc), np.uint8), "m2": np.empty((gr, gc), np.uint8),
+                 "pad": np.empty((gr + 2, gc + 2), np.uint8),
                  "feats": np.empty(gr * gc * self.nfeat, np.float32)}
             self._buf = b
         return b
