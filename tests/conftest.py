@@ -30,9 +30,15 @@ def shared_data() -> Path:
 def site(tmp_path, monkeypatch):
     """A site folder first on sys.path for fake installed distributions (tests/fakes/plugin_dists.py); the plugin
     modules (named tt_*) imported from it are forgotten after the test."""
+    import teletouch.registry as registry
+
     root = tmp_path / "site"
     root.mkdir()
     monkeypatch.syspath_prepend(str(root))
+    # the CLI's cached registry (teletouch.registry._default) is loaded afresh in this test, with its distributions,
+    # and the one from before is back afterwards: a registry cached with this test's plugins (modules forgotten
+    # below) or without them (cached by an earlier test) must not depend on the order of the tests
+    monkeypatch.setattr(registry, "_default", None)
     yield root
     for mod in [m for m in sys.modules if m.startswith("tt_")]:
         del sys.modules[mod]
@@ -41,6 +47,8 @@ def site(tmp_path, monkeypatch):
 @pytest.fixture(autouse=True)
 def _no_plugin_env(monkeypatch):
     """Tests build their own registries; the user's environment must not leak in."""
+    monkeypatch.delenv("TELETOUCH_BLOCK", raising=False)
+    monkeypatch.delenv("TELETOUCH_DISABLE_PLUGIN_AUTOLOAD", raising=False)
     monkeypatch.delenv("TELETOUCH_BLOCK_PLUGINS", raising=False)
     monkeypatch.delenv("TELETOUCH_PLUGINS", raising=False)
     monkeypatch.delenv("TELETOUCH_SYSFS_ROOT", raising=False)

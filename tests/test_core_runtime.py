@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import threading
 import time
 
@@ -264,11 +265,16 @@ nodes:
   - {id: slow, plugin: slow, rate: 20, params: {sleep: 0.04}}
   - {id: dev, plugin: mock-device, rate: 500}
 """
-    res, _ = run_yaml(text, reg, duration=1.0)
+    times: list[float] = []
+    res, _ = run_yaml(text, reg, duration=1.0, taps=[lambda n, t, o: times.append(t) if n == "dev" else None])
     assert res.exit_code == EXIT_OK, res.message
-    dev = {n.id: n for n in res.nodes}["dev"]
-    # in one thread the 40 ms sleeps would cost the 500 Hz node most of its steps
-    assert dev.steps >= 0.8 * 500, dev
+    nodes = {n.id: n for n in res.nodes}
+    # in one thread each 40 ms sleep would stop the 500 Hz node for 40 ms: a gap in its steps at every slow step.
+    # Counted as gaps, not as steps in the second (a loaded machine takes steps from both threads alike); a gap of
+    # 30 ms that the load makes now and then is far from one at every slow step
+    gaps = [b - a for a, b in zip(times, times[1:]) if b - a > 0.030]
+    assert nodes["slow"].steps >= 10 and len(times) > 100, (nodes["slow"], len(times))
+    assert len(gaps) < nodes["slow"].steps / 3, (len(gaps), nodes["slow"].steps, gaps)
 
 
 def test_wall_clock_repeated_overruns_fault():
@@ -424,42 +430,46 @@ nodes:
 
 
 def test_watchdog_makes_a_hung_device_safe_while_it_hangs():
-    # wall clock: the device's step hangs 0.6 s at t = 0.2 s; the watchdog (0.1 s) makes it safe long before the
-    # step returns, and the run stops with a `stall` fault
+    # wall clock: the device's step hangs 1.5 s at t = 0.2 s; the watchdog (0.1 s) makes it safe long before the
+    # step returns, and the run stops with a `stall` fault. (The hang is long, and no overrun faults, so that a loaded
+    # 2-core machine, which makes the watchdog's own thread late, cannot make it look as if the hang ended first.)
     text = """
 clock: wall
+faults: {max_overruns: 0WATCHDOG}
 nodes:
-  - {id: dev, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 0.6}}
+  - {id: dev, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 1.5}}
 """
-    res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=2.0)
+    res, rt = run_yaml(text.replace("WATCHDOG", ""), make_registry(_FaultPlugins()), duration=3.0)
     dev = rt.component("dev")
     assert res.status == "fault" and "node 'dev' stall" in res.message and "watchdog 0.1 s" in res.message
-    assert dev.safe_at is not None and 0.09 <= dev.safe_at - dev.hung_at <= 0.35
+    assert dev.safe_at is not None and 0.09 <= dev.safe_at - dev.hung_at <= 1.0
     # the watchdog is a graph setting (0: off): without it the hang goes unnoticed until the step returns
-    res, rt = run_yaml(text.replace("clock: wall", "clock: wall\nfaults: {watchdog: 0}"),
-                       make_registry(_FaultPlugins()), duration=1.2)
+    res, rt = run_yaml(text.replace("WATCHDOG", ", watchdog: 0"), make_registry(_FaultPlugins()), duration=2.0)
     dev = rt.component("dev")
-    assert res.status == "ok" and dev.safe_at - dev.hung_at >= 0.59
+    assert res.status == "ok" and dev.safe_at - dev.hung_at >= 1.49
 
 
 def test_a_device_whose_safe_state_hangs_does_not_block_the_others_or_the_end_of_the_run():
     # the leader's step hangs inside a "hardware call" holding its driver's lock for 4 s; its safe_state() waits for
     # that lock. The watchdog must still make the other device safe at once, and the run must end (after
     # faults.safe_timeout), leaving the hung node behind, instead of blocking on its safe_state() for 4 s
+    # (no overrun faults: on a loaded machine late steps must not end the run before the hang)
     text = """
 clock: wall
-faults: {safe_timeout: 0.3}
+faults: {safe_timeout: 0.3, max_overruns: 0}
 nodes:
-  - {id: leader, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 4.0, locked: true}}
+  - {id: leader, plugin: hang-device, rate: 100, params: {hang_at: 0.2, hang_for: 8.0, locked: true}}
   - {id: follower, plugin: mock-device, rate: 200}
 """
     # (the follower at another rate: a thread of its own, which the hang does not stall)
     t0 = time.perf_counter()
-    res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=10.0)
+    res, rt = run_yaml(text, make_registry(_FaultPlugins()), duration=20.0)
     took = time.perf_counter() - t0
     leader, follower = rt.component("leader"), rt.component("follower")
     assert res.status == "fault" and "node 'leader' stall" in res.message
-    assert took < 3.0, took                        # not the 4 s hang (nor the 10 s duration)
+    # not the 8 s hang (nor the 20 s duration): the hang is long so that a loaded machine's slow start-up and
+    # shutdown leave the bound far from it
+    assert took < 5.0, took
     assert follower.safe_at is not None and follower.safe_at - leader.hung_at < 1.5
     assert leader.safe_at is None                  # it could not be made safe: reported, left behind
     kinds = {(f.node, f.kind) for f in res.faults}
@@ -479,17 +489,20 @@ def test_safe_timeout_is_validated():
 def test_on_stop_a_device_is_made_safe_by_its_own_thread_not_after_the_slow_ones():
     # the 1 kHz source faults at 0.3 s while a 2 Hz node is inside a 0.6 s step: the device (1 kHz thread) must be
     # safe within a few periods, not after that step ends and the threads are joined
+    # (no overrun faults: on a loaded machine the 1 kHz steps come late, which must not end the run first; a long
+    # burn, so that the bound below, roomy for a late thread, is still far from the end of that step)
     text = """
 clock: wall
+faults: {max_overruns: 0}
 nodes:
   - {id: src, plugin: mock-sensor, rate: 1kHz, params: {fail_at: 0.3}}
   - {id: dev, plugin: mock-device, rate: 1kHz, inputs: {command: src.value}}
-  - {id: slow, plugin: mock-burn, rate: 2, params: {burn: 0.6}}
+  - {id: slow, plugin: mock-burn, rate: 2, params: {burn: 1.5}}
 """
     res, rt = run_yaml(text, make_registry(), duration=3.0)
     assert res.status == "fault" and "node 'src' exception" in res.message
     fault_at = rt._t0 + res.faults[0].time
-    assert rt.component("dev").safe_at - fault_at < 0.1
+    assert rt.component("dev").safe_at - fault_at < 0.5
 
 
 def test_a_second_interrupt_during_shutdown_does_not_skip_safe_states():
@@ -536,7 +549,7 @@ def test_start_up_time_is_reported_apart_from_the_run():
         kind = Kind.ESTIMATOR
 
         def configure(self):
-            time.sleep(0.3)
+            time.sleep(1.0)
 
         def step(self, t, inputs):
             return None
@@ -548,8 +561,9 @@ def test_start_up_time_is_reported_apart_from_the_run():
 
     res, _ = run_yaml("clock: wall\nnodes:\n  - {id: s, plugin: slow-start, rate: 100}\n", make_registry(P()),
                       duration=0.3)
-    assert 0.3 <= res.startup_time < res.wall_time
-    # real time is real time once running; the whole call (start-up included) is slower
-    assert res.run_realtime_factor == pytest.approx(1.0, abs=0.15) and res.realtime_factor < 0.6
-    assert "s start-up (1.0x real time)" in res.summary() or "s start-up (0.9x real time)" in res.summary()
+    assert 1.0 <= res.startup_time < res.wall_time
+    # real time is real time once running; the whole call (start-up included) is slower. (A loaded machine ends a
+    # run late, which lowers the run's factor: bounded by what a start-up counted in would give, 0.3 / 1.3.)
+    assert 0.5 < res.run_realtime_factor <= 1.0 + 1e-6 and res.realtime_factor < 0.3
+    assert re.search(r"s start-up \((1\.0|0\.[5-9])x real time\)", res.summary()), res.summary()
     assert res.as_dict()["startup_time_s"] == res.startup_time

@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
-from fakes.realtime import configure_fails, drive_until, wait_for  # noqa: E402
+from fakes.realtime import WAIT, configure_fails, drive_until, wait_for  # noqa: E402
 from fakes.realtime import drive as drive_for  # noqa: E402  ('drive' is the CiA 402 drive fixture here)
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.canopen_gripper import CW_NEW_SETPOINT, CanopenGripper  # noqa: E402
@@ -236,7 +236,7 @@ def test_setpoint_speed_limited(drive, channel):
     with h:
         trace: list = []
         t0 = time.monotonic()
-        o = drive_until(h, 0.0, lambda o: o["velocity"] == pytest.approx(-0.02, rel=1e-3), timeout=2.0, trace=trace)
+        o = drive_until(h, 0.0, lambda o: o["velocity"] == pytest.approx(-0.02, rel=1e-3), trace=trace)   # a bound
         dt = time.monotonic() - t0
         assert o["opening"] > 0.08 - 0.02 * dt - 1e-3
         velocities = [s["velocity"] for s in trace]
@@ -272,7 +272,7 @@ def test_fault_with_emcy(drive, channel):
         drive_for(h, 0.05, 0.2)
         drive.inject_fault(0x2310)
         with pytest.raises(HardwareError, match=r"FAULT .*error code 0x2310.*EMCY Code 0x2310, Current"):
-            drive_for(h, 0.05, 1.0)
+            drive_for(h, 0.05, WAIT)   # a failure bound: raises at the next state
 
 
 def test_mode_change_is_a_fault(drive, channel):
@@ -280,17 +280,20 @@ def test_mode_change_is_a_fault(drive, channel):
         drive_for(h, 0.05, 0.1)
         drive.node.set_data(0x6060, 0, bytes([3]))  # someone switches the drive to profile velocity
         with pytest.raises(HardwareError, match=r"left profile position mode \(0x6061 = 3\)"):
-            drive_for(h, 0.05, 0.5)
+            drive_for(h, 0.05, WAIT)   # a failure bound: raises at the next state
 
 
 def test_node_goes_silent(drive, channel):
-    with harness(channel, read_timeout=0.3, pdo_timeout=0.02) as h:
+    # read_timeout 1 s: the emulated drive's TPDOs (a thread of this process) late by more than pdo_timeout for a
+    # while on a loaded machine must not end the run before the drive goes silent
+    with harness(channel, read_timeout=1.0, pdo_timeout=0.02) as h:
         drive_for(h, 0.05, 0.2)
         drive.go_silent()
         t0 = time.monotonic()
         with pytest.raises(HardwareError, match=r"no valid state|no heartbeat"):
-            drive_for(h, 0.05, 3.0)
-        assert time.monotonic() - t0 < 1.0
+            drive_for(h, 0.05, WAIT)
+        # after read_timeout (counted from the last good state, up to a step before t0), and not a whole wait later
+        assert 1.0 - 0.1 <= time.monotonic() - t0 < 1.0 + WAIT / 2
 
 
 def test_with_eds_file(drive, channel, tmp_path):

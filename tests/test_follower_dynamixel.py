@@ -12,17 +12,31 @@ from pydantic import ValidationError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.dynamixel_emulator import (  # noqa: E402
-    ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator, crc16, packet, stuff, unstuff,
+    ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator, crc16, packet, slow_adapter, stuff, unstuff,
 )
 
 from teletouch import HardwareError  # noqa: E402
-from fakes.realtime import configure_fails, drive, drive_until, wait_for  # noqa: E402
+from fakes.realtime import WAIT, configure_fails, drive, drive_until, wait_for  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
+
+def near(x, abs):
+    """A drive_until condition: the measured opening within ``abs`` of ``x`` (a test that needs the gripper somewhere
+    waits for that, not for a fixed time: on a loaded machine the steps come late and the set-point lags)."""
+    return lambda o: o["opening"] == pytest.approx(x, abs=abs)
+
 FAST = {"baudrate": 1000000}
+
+
+@pytest.fixture(autouse=True)
+def packet_timeout():
+    """The SDK's packet timeout (s) of a short answer, with the slower adapter the emulator needs on a loaded
+    machine (fakes/dynamixel_emulator.py, ADAPTER_LATENCY_MS)."""
+    with slow_adapter() as timeout:
+        yield timeout
 
 
 @pytest.fixture
@@ -100,10 +114,12 @@ def test_configures_current_based_position_and_squeezes(emu):
         # floor(5 N / 10 N/A / 2.69 mA) = floor(185.87): rounded down so the cap (4.977 N) never exceeds max_effort
         # (ceil gave 186 = 5.003 N)
         assert emu.get(emu.table.goal_current) == 185
-        o = drive(h, 0.04, 0.8)
+        o = drive_until(h, 0.04, near(0.04, 1e-3))
         assert o["opening"] == pytest.approx(0.04, abs=1e-3)
         assert o["effort"] == pytest.approx(0.0, abs=0.1)
-        o = drive(h, 0.0, 1.5)
+        o = drive_until(h, 0.0, lambda o: near(h.comp.opening_for(1800), 2e-4)(o)
+                        and o["effort"] == pytest.approx(185 * 2.69e-3 * 10.0, rel=1e-6)
+                        and emu.get(emu.table.goal_position) == 2048)
         # the object (at 1800 ticks) stops the fingers; the grip force is capped by Goal_Current
         assert o["opening"] == pytest.approx(h.comp.opening_for(1800), abs=2e-4)
         assert o["effort"] == pytest.approx(185 * 2.69e-3 * 10.0, rel=1e-6)
@@ -145,32 +161,43 @@ def test_wrong_model_and_refused_write(emu):
 
 
 def test_servo_stops_answering_then_fault_or_recovery(emu):
-    with harness(emu, read_timeout=0.3) as h:
+    # read_timeout 1 s: the short dropout (0.1 s) with the steps around it, late on a loaded machine, fits in it
+    with harness(emu, read_timeout=1.0) as h:
         drive(h, 0.05, 0.2)
         emu.silent = True  # a short dropout: recovers
         drive(h, 0.05, 0.1)
         emu.silent = False
         # settle: the setpoint counts at most two periods per (slow, timed-out) step, and the servo's own
         # Profile_Velocity is at or just below max_speed, so it reaches 0.05 m a little after the setpoint
-        o = drive(h, 0.05, 0.6)
+        o = drive_until(h, 0.05, near(0.05, 1e-3))
         assert o["opening"] == pytest.approx(0.05, abs=1e-3)
         emu.silent = True  # gone for good: a fault within the timeout
         t0 = time.monotonic()
         with pytest.raises(HardwareError, match=r"no valid state.*failed reads"):
-            drive(h, 0.05, 3.0)
-        assert time.monotonic() - t0 < 1.0
+            drive(h, 0.05, WAIT)
+        # after read_timeout (counted from the last good state, up to a step before t0), and not a whole wait later
+        assert 1.0 - 0.1 <= time.monotonic() - t0 < 1.0 + WAIT / 2
         emu.silent = False
 
 
 def test_late_answer_is_not_taken_for_state(emu):
     with harness(emu) as h:
         # a 25 mm move at max_speed (0.05 m/s; the servo's Profile_Velocity just below it) takes ~0.51 s
-        drive(h, 0.05, 0.5)
-        emu.late_answers = 1
-        o = drive(h, 0.05, 0.2)
-        # the short late packet before the answer is dropped and the answer behind it taken: no failed read
-        assert h.comp.stale_answers == 1 and "1-byte status packet" in h.comp.last_stale
-        assert h.comp.comm_failures == 0
+        drive_until(h, 0.05, near(0.05, 1e-3))
+        # the short late packet before the answer is dropped and the answer behind it taken: one stale answer, no
+        # failed read. On a loaded machine the in-process emulator itself now and then misses the packet
+        # timeout (a failed read and a stale answer of its own), so the exchange is tried up to five times and one
+        # clean try is the proof; a driver that takes the late packet for the answer fails every try
+        tries = []
+        for _ in range(5):
+            stale, failures = h.comp.stale_answers, h.comp.comm_failures
+            emu.late_answers = 1
+            drive_until(h, 0.05, lambda o: emu.late_answers == 0)   # the late packet went out
+            o = drive(h, 0.05, 0.05)
+            tries.append((h.comp.stale_answers - stale, h.comp.comm_failures - failures, h.comp.last_stale))
+            if tries[-1][:2] == (1, 0):
+                break
+        assert tries[-1][:2] == (1, 0) and "1-byte status packet" in h.comp.last_stale, tries
         assert o["opening"] == pytest.approx(0.05, abs=1e-3)
 
 
@@ -190,13 +217,14 @@ def _record_readings(h):
 
 
 @pytest.mark.parametrize("delay", [None, 0.05])
-def test_full_length_late_answer_is_not_taken_for_the_next_read(emu, delay):
-    # one state read's answer comes late (after the driver's ~34 ms packet timeout; None: just before the answer
+def test_full_length_late_answer_is_not_taken_for_the_next_read(emu, delay, packet_timeout):
+    # one state read's answer comes late (``delay`` s after the driver's packet timeout; None: just before the answer
     # to the next request), with its full length; meanwhile the fingers were pushed to 1200 ticks. No reading the
     # driver takes after the push may show the old position (the late answer was taken as the next read's answer)
     with harness(emu, error_check_period=30.0) as h:
-        drive(h, 0.04, 0.5)
-        assert h.comp.comm_failures == 0
+        drive_until(h, 0.04, near(0.04, 1e-3))   # far from the push's 1200 ticks (1502)
+        # (counted from here: on a loaded machine the in-process emulator now and then misses a packet timeout)
+        failures, resyncs = h.comp.comm_failures, h.comp.resyncs
         before = emu.get(emu.table.present_position)
         pushed = []
 
@@ -205,16 +233,20 @@ def test_full_length_late_answer_is_not_taken_for_the_next_read(emu, delay):
             emu.pos = 1200.0
             pushed.append(time.monotonic())
 
-        emu.on_delayed, emu.answer_delay, emu.delay_answers = push, delay, 1
+        emu.on_delayed, emu.delay_answers = push, 1
+        emu.answer_delay = None if delay is None else packet_timeout + delay
         seen = _record_readings(h)
-        drive(h, 0.04, 0.3)
+        # until the late answer came and readings followed the push (waited for: late on a loaded machine), then on
+        drive_until(h, 0.04, lambda o: bool(pushed) and bool(emu.delayed) and h.comp.resyncs > resyncs
+                    and any(r.mono > pushed[0] for r in seen))
+        drive(h, 0.04, 0.1)
         assert pushed and emu.delayed and abs(before - 1200) > 100
         late = [r for r in seen if r.mono > pushed[0]]
         assert late, "no reading after the push"
         assert [round(h.comp.ticks_for(r.opening)) for r in late] == [1200] * len(late)
         # the read whose answer came late, and a PING after it (more only where a loaded machine made the
         # in-process emulator itself miss a packet timeout)
-        assert h.comp.comm_failures >= 1 and h.comp.resyncs >= 1
+        assert h.comp.comm_failures >= failures + 1 and h.comp.resyncs >= resyncs + 1
         if delay is None:  # held back until the PING: dropped there (after a fixed delay it may also be flushed)
             assert h.comp.stale_answers >= 1 and "10-byte status packet" in h.comp.last_stale
 
@@ -238,7 +270,7 @@ def test_corrupt_answers_fault(emu):
         drive(h, 0.05, 0.1)
         emu.corrupt_crc = True
         with pytest.raises(HardwareError, match="Incorrect status packet|no valid state"):
-            drive(h, 0.05, 2.0)
+            drive(h, 0.05, WAIT)   # a failure bound
         emu.corrupt_crc = False
 
 
@@ -247,7 +279,7 @@ def test_hardware_error_alert(emu):
         drive(h, 0.05, 0.1)
         emu.inject_hardware_error(HW_OVERLOAD)
         with pytest.raises(HardwareError, match="overload"):
-            drive(h, 0.05, 1.0)
+            drive(h, 0.05, WAIT)   # a failure bound
 
 
 RH_P12 = {"dxl_id": 1, "ticks_open": 0, "ticks_closed": 740, "opening_at_ticks_open": 0.106,
@@ -268,8 +300,9 @@ def test_hardware_error_alert_without_error_status_item():
             emu.inject_hardware_error(HW_OVERLOAD)  # firmware: torque off, alert bit in every status packet
             t0 = time.monotonic()
             with pytest.raises(HardwareError, match=r"Dynamixel ID 15 .*alert \(0x80\).*no Hardware_Error_Status"):
-                drive(h, 0.02, 2.0)
-            assert time.monotonic() - t0 < 0.2
+                drive(h, 0.02, WAIT)
+            # at the next steps, not after the poll (30 s); the bound leaves room for late steps on a loaded machine
+            assert time.monotonic() - t0 < 5.0
 
 
 @pytest.mark.parametrize("model", ["xm430-w350", "rh-p12-rn-a", "rh-p12-rn"])
@@ -283,8 +316,9 @@ def test_torque_dropped_without_alert_is_a_fault(model):
                 emu._put(emu.table.torque_enable, 0)
             t0 = time.monotonic()
             with pytest.raises(HardwareError, match=rf"Dynamixel ID {dxl_id} .*Torque_Enable dropped to 0"):
-                drive(h, 0.06, 2.0)
-            assert time.monotonic() - t0 < 0.05 + 0.1
+                drive(h, 0.06, WAIT)
+            # by the poll every 0.05 s; the bound leaves room for late steps on a loaded machine, not for a miss
+            assert time.monotonic() - t0 < 1.0
 
 
 @pytest.mark.parametrize("model", ["rh-p12-rn-a", "rh-p12-rn"])
@@ -301,7 +335,9 @@ def test_rh_p12_rn_presets_end_to_end(model):
             assert emu.get(t.goal_current) == gc
             # the servo's own speed limit from max_speed (Profile_Velocity; Goal_Velocity on the old firmware)
             assert emu.get(t.profile_velocity) == RH_PV[model]
-            o = drive(h, 0.0, 0.6)  # closes on the object at 500 ticks (0.29 s away) and squeezes with Goal_Current
+            # closes on the object at 500 ticks (0.29 s away) and squeezes with Goal_Current
+            o = drive_until(h, 0.0, lambda o: near(0.106 * (1 - 500 / 740), 1e-3)(o)
+                            and o["effort"] == pytest.approx(gc * unit * 100.0, rel=1e-6))
             assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
             assert o["effort"] == pytest.approx(gc * unit * 100.0, rel=1e-6)
             # the "open" safe state jumps the goal to max_opening; the servo runs it at most at max_speed
@@ -320,14 +356,14 @@ def test_rh_p12_rn_a_hardware_error_status_register():
             drive(h, 0.08, 0.1)
             emu.inject_hardware_error(HW_OVERLOAD, alert=False)  # the register (and the torque off) only
             with pytest.raises(HardwareError, match=r"Dynamixel ID 1 .*Hardware_Error_Status overload"):
-                drive(h, 0.08, 1.0)
+                drive(h, 0.08, WAIT)   # a failure bound
     # with the alert bit too, as the firmware sets it: caught by the state read, the detail read from the register
     with DynamixelEmulator(1, "rh-p12-rn-a", position=0) as emu:
         with harness(emu, **dict(RH_P12_A, error_check_period=30.0)) as h:
             drive(h, 0.08, 0.1)
             emu.inject_hardware_error(0x0A)  # motor hall sensor + motor encoder (DYNAMIXEL-P bits)
             with pytest.raises(HardwareError, match=r"alert \(0x80\).*\(motor hall sensor, motor encoder\)"):
-                drive(h, 0.08, 1.0)
+                drive(h, 0.08, WAIT)   # a failure bound
 
 
 @pytest.mark.parametrize("model,limit", [("rh-p12-rn-a", 1984), ("rh-p12-rn", 820)])
@@ -408,7 +444,7 @@ def test_other_control_table_by_config():
         with harness(emu, **dict(RH_P12, model="x-series", control_table=table)) as h:
             assert emu.get(emu.table.goal_current) == 74
             assert emu.get(emu.table.profile_velocity) == RH_PV["rh-p12-rn"]
-            o = drive(h, 0.0, 0.6)
+            o = drive_until(h, 0.0, near(0.106 * (1 - 500 / 740), 1e-3))
             assert o["opening"] == pytest.approx(0.106 * (1 - 500 / 740), abs=1e-3)
         # nothing was written at the X-series addresses
         assert not [pk for pk in emu.rx_packets if pk[2] == 0x03 and pk[3][0] | pk[3][1] << 8 < 11]

@@ -250,8 +250,11 @@ def test_cli_run_record_and_plot(tmp_path, repo_root):
     assert r.returncode == 1 and "not an MCAP file" in r.stderr
 
 
+# faults: no overrun faults and a watchdog of 1 s: on a loaded 2-core machine the run must not end by a fault of its
+# own (late steps, a stalled thread) before the test kills it
 CRASH_GRAPH = """
 clock: wall
+faults: {max_overruns: 0, watchdog: 1.0}
 nodes:
   - {id: src, plugin: mock-sensor, rate: 100, params: {signal: ramp, amplitude: 1.0}}
   - {id: dev, plugin: mock-device, rate: 200, inputs: {command: src.value}}

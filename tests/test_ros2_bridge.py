@@ -130,18 +130,31 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
             m.wrench.force.z = value
             pubs["force"].publish(m)
 
-        # discovery: keep sending until the first one arrives
+        # discovery: keep sending until the first one arrives; then every topic's two ends (DDS matches them one at
+        # a time, and a message sent before the subscription's end has matched may never arrive: the messages
+        # below are sent once each)
         assert _wait(lambda: "force" in got, every=lambda: (send_force(0.2, 1.0), collect()))
+        ours = {s.topic_name: s for s in sub._subs}
+        assert _wait(lambda: all(p.get_subscription_count() >= 1 and ours[p.topic_name].get_publisher_count() >= 1
+                                 for p in pubs.values())), "not matched"
+        # (the force topic delivers in order: once a marker has come out, nothing of the discovery is on its way)
+        send_force(0.0, 2.0)
+        assert _wait(lambda: got["force"][-1].value == 2.0, every=collect)
         got.clear()
+        before = ctx.now()
         send_force(0.2, 3.0)
+        after = ctx.now()
         assert _wait(lambda: "force" in got, every=collect)
         s = got["force"][-1]
         assert s.value == 3.0
-        assert ctx.now() - s.stamp == pytest.approx(0.2, abs=0.05)  # the age survives the bridge
+        # the age survives the bridge: stamped 0.2 s before it was sent, whenever it arrived and was stepped out (a
+        # bound on the time of sending, not on the delivery, which a loaded machine delays)
+        assert before - 0.2 - 0.05 <= s.stamp <= after - 0.2 + 0.05, (before, s.stamp, after)
         skewed = sub.skewed
+        before = ctx.now()
         send_force(-5.0, 4.0)  # 5 s in the future: a clock problem, clamped to the arrival time
         assert _wait(lambda: got["force"][-1].value == 4.0, every=collect)
-        assert sub.skewed == skewed + 1 and abs(ctx.now() - got["force"][-1].stamp) < 0.5
+        assert sub.skewed == skewed + 1 and before <= got["force"][-1].stamp <= ctx.now()
 
         rgb = np.zeros((4, 5, 3), np.uint8)
         rgb[..., 0] = 200  # red in RGB order
@@ -168,9 +181,13 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
         pubs["image"].publish(m)
         other = JointState(name=["other"], position=[0.7])
         pubs["joint_states"].publish(other)
+        # then a marker on the same topic (a velocity only): the topic delivers in order, so once the marker has
+        # come out the other joint's state has been dealt with (waited for, not a fixed time)
+        marker = JointState(name=["gripper"], velocity=[0.02])
+        marker.header.stamp = ros_time(time.time())
+        pubs["joint_states"].publish(marker)
         assert _wait(lambda: sub.bad == bad + 1)
-        time.sleep(0.2)
-        collect()
+        assert _wait(lambda: got["velocity"][-1].value == 0.02, every=collect)
         assert got["opening"][-1].value == 0.03  # another joint's state is not ours
         assert sub.status()["received"] >= 6
     finally:

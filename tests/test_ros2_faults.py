@@ -81,8 +81,16 @@ class Sub:
         st = self.comp.status()
         return sum(st.get(k, 0) for k in ("received", "bad", "unstamped", "duplicates"))
 
+    def matched(self, pub) -> bool:
+        """Whether DDS has matched ``pub`` and this node's subscription to its topic, both ends (DDS matches them
+        one at a time: a message sent before the subscription's end has matched may never arrive)."""
+        subs = [s for s in self.comp._subs if s.topic_name == pub.topic_name]
+        return pub.get_subscription_count() >= 1 and bool(subs) and subs[0].get_publisher_count() >= 1
+
     def send(self, pub, msg) -> dict:
-        """Publish one message, wait until it has been handled, step once: what that step outputs."""
+        """Publish one message (once both ends are matched), wait until it has been handled, step once: what that
+        step outputs."""
+        assert _wait(lambda: self.matched(pub)), f"{pub.topic_name}: publisher and subscription never matched"
         h = self.handled()
         pub.publish(msg)
         assert _wait(lambda: self.handled() > h), f"message not handled: {self.comp.status()}"
@@ -103,14 +111,10 @@ def _force(value, stamp, axis="z"):
 
 
 def _connect(pub, sub, make):
-    """Keep publishing ``make()`` until the subscriber outputs something (discovery), then forget it."""
-    assert _wait(lambda: sub.out, every=lambda: (pub.publish(make()), sub.collect())), "no discovery"
-    while True:   # until the last of them has been handled
-        h = sub.handled()
-        time.sleep(0.2)
-        if sub.handled() == h:
-            break
-    sub.collect()
+    """Wait for discovery (both ends of the topic matched), check that ``make()`` comes through, then forget it.
+    Nothing is published before both ends have matched, so no message of the discovery is still on its way when a
+    test starts counting (a fixed quiet time after a burst of messages is no proof on a loaded machine)."""
+    assert sub.send(pub, make()), "the first message after discovery did not come out"
     sub.out.clear()
 
 
@@ -318,8 +322,16 @@ def test_publisher_sends_each_measurement_once_and_only_finite_values():
             pub.step(now, inputs)
 
         assert _wait(lambda: peer.got["force"] and peer.got["joints"], every=discover)
-        time.sleep(0.1)
-        # discovery: the publishers now exist and are matched; from here on count what goes out
+        # discovery: the publishers now exist and are matched. One last measurement marks the end of it: each topic
+        # delivers in order (reliable), so once the marker has arrived no message of the discovery is still on its
+        # way (a fixed wait was no proof on a loaded machine); from here on count what goes out
+        marker = ctx.now()
+        refresh("force", 1.5, marker)
+        refresh("opening", 0.039, marker)
+        refresh("velocity", 0.0, marker)
+        pub.step(marker, inputs)
+        assert _wait(lambda: peer.got["force"][-1].wrench.force.z == 1.5 and peer.got["joints"][-1].position[0]
+                     == 0.039), "the marker never arrived"
         peer.got["force"].clear()
         peer.got["joints"].clear()
         n0 = pub.published
@@ -372,7 +384,7 @@ nodes:
         time.sleep(0.3)
         sub = Sub("/f8", stamps="arrival")
         try:
-            assert _wait(lambda: pub.get_subscription_count() >= 1)
+            assert _wait(lambda: sub.matched(pub))   # both ends: what the publisher sends from now on arrives
             time.sleep(0.5)
             sub.collect()
             assert sub.out == []

@@ -40,21 +40,22 @@ def test_the_first_sample_is_published_to_a_subscriber_that_was_there_before_it(
     pub, ctx, slots, inputs = _publisher("/o1")
     peer = Peer("listener", DOMAIN)
     try:
-        peer.listen(WrenchStamped, "/o1/force", "force")
-        peer.listen(JointState, "/o1/joint_states", "joints")
+        subs = [peer.listen(WrenchStamped, "/o1/force", "force"), peer.listen(JointState, "/o1/joint_states", "joints")]
         pub.configure()
         # the graph starts (other nodes configure, a model loads): discovery happens meanwhile, before any sample
         assert wait_until(lambda: peer.node.count_publishers("/o1/force") == 1
                           and peer.node.count_publishers("/o1/joint_states") == 1), "topics not advertised"
         assert wait_until(lambda: all(p.get_subscription_count() == 1 for k, p in pub._pubs.items()
                                       if k in ("force", "joint_states"))), "not matched"
+        # DDS matches the two ends one at a time: the subscriber's end too, so that it was there before the sample
+        assert wait_until(lambda: all(s.get_publisher_count() == 1 for s in subs)), "the subscriber never matched"
         pub.activate()
         assert pub.published == 0 and peer.got["force"] == []
         now = ctx.now()
         slots["force"].sample = Sample(1.5, now)
         slots["opening"].sample = Sample(0.03, now)
         pub.step(now, inputs)                           # the very first sample, sent once
-        assert wait_until(lambda: peer.got["force"] and peer.got["joints"], timeout=5.0), "first sample lost"
+        assert wait_until(lambda: peer.got["force"] and peer.got["joints"]), "first sample lost"   # a failure bound
         assert [m.wrench.force.z for m in peer.got["force"]] == [1.5]
         assert [list(m.position) for m in peer.got["joints"]] == [[0.03]]
     finally:

@@ -40,8 +40,14 @@ def _localhost_ros():
         yield
 
 
+#: connect_timeout of the start-ups that must fail: what such a test waits, long enough for DDS to discover the robot
+#: on a loaded 2-core machine (before that, the error cannot name the robot's incompatible endpoint)
+FAILING_CONNECT = 5.0
+
+
 def harness(logs: list[str] | None = None, **params) -> Harness:
-    h = Harness(PalGripper, dict({"namespace": "tiago", "domain_id": DOMAIN, "connect_timeout": 1.5}, **params))
+    # connect_timeout: a failure bound (a start-up that connects ends once connected)
+    h = Harness(PalGripper, dict({"namespace": "tiago", "domain_id": DOMAIN, "connect_timeout": 10.0}, **params))
     h.ctx.clock_kind = "wall"
     if logs is not None:
         h.ctx._log = logs.append
@@ -80,7 +86,7 @@ class Robot:
 def test_a_reliable_state_subscription_against_a_best_effort_broadcaster_is_named_at_start_up():
     robot = Robot("be_robot", BEST_EFFORT, RELIABLE)
     try:
-        configure_fails(harness(state_reliability="reliable"),
+        configure_fails(harness(state_reliability="reliable", connect_timeout=FAILING_CONNECT),
                         r"/joint_states: no message .*; topic /joint_states: this subscription and a publisher"
                         r"( of node /peer/be_robot)? have incompatible QoS \(RELIABILITY: reliable here, best_effort "
                         r"there\): nothing flows between the two; set state_reliability: best_effort")
@@ -91,7 +97,7 @@ def test_a_reliable_state_subscription_against_a_best_effort_broadcaster_is_name
 def test_a_best_effort_command_publisher_against_the_reliable_controller_is_named_at_start_up():
     robot = Robot("rel_robot", RELIABLE, RELIABLE)
     try:
-        configure_fails(harness(command_reliability="best_effort"),
+        configure_fails(harness(command_reliability="best_effort", connect_timeout=FAILING_CONNECT),
                         rf"no controller subscribes to {COMMAND} after .*; topic {COMMAND}: this publisher and a "
                         rf"subscription( of node /peer/rel_robot)? have incompatible QoS \(RELIABILITY: best_effort "
                         rf"here, reliable there\): nothing flows between the two; the controller subscribes "
@@ -105,8 +111,9 @@ def test_with_the_defaults_a_latched_controller_subscription_is_named_at_start_u
     said only 'no controller subscribes'."""
     robot = Robot("latched_robot", RELIABLE, LATCHED)
     try:
-        configure_fails(harness(), rf"no controller subscribes to {COMMAND} .*\(DURABILITY: volatile here, "
-                                   rf"transient_local there\)")
+        configure_fails(harness(connect_timeout=FAILING_CONNECT),
+                        rf"no controller subscribes to {COMMAND} .*\(DURABILITY: volatile here, "
+                        rf"transient_local there\)")
     finally:
         robot.close()
 

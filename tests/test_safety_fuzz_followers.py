@@ -40,9 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 from fakes import fuzzing  # noqa: E402
-from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
+from fakes.dynamixel_emulator import DynamixelEmulator, slow_adapter  # noqa: E402
 from fakes.fuzzing import Violation  # noqa: E402
-from fakes.realtime import wait_for  # noqa: E402
+from fakes.realtime import WAIT, wait_for  # noqa: E402
 
 from teletouch import Sample  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
@@ -403,6 +403,13 @@ def test_fuzz_sim_gripper_set_points_finite_limited_and_hold_on_faults(block):
         check_case(random_case(seed, "sim", N_SIM_STEPS, SimRig.period), SimRig)
 
 
+@pytest.fixture(autouse=True)
+def _slow_adapter():
+    """The Dynamixel emulator's adapter for a loaded machine (fakes/dynamixel_emulator.py, slow_adapter)."""
+    with slow_adapter():
+        yield
+
+
 # ================================================================================================ emulated hardware
 class EmulatedRig:
     """A driver Harness (``h``) against an emulator of its hardware (``hw``, with start() and stop()): what the
@@ -460,7 +467,7 @@ class DynamixelRig(EmulatedRig):
 
     def on_wire(self, expected: list[tuple[int, float, float, str]]) -> list[tuple[int, float, float, str]]:
         n = sum(w[3] != "activate" for w in expected)
-        wait_for(lambda: len(self.goal_ticks()) >= n, timeout=1.0)  # the emulator reads the port in its thread
+        wait_for(lambda: len(self.goal_ticks()) >= n, timeout=WAIT)  # the emulator reads the port in its thread
         counts = self.h.comp.map.counts
         out, last = [], None
         for e in expected:
@@ -516,7 +523,7 @@ class CanopenRig(EmulatedRig):
                 out.append(e)
                 last = counts(e[1])
         n = sum(w[3] != "activate" for w in out)
-        wait_for(lambda: len(self.drive.latches) - self.n0 >= n, timeout=2.0)
+        wait_for(lambda: len(self.drive.latches) - self.n0 >= n, timeout=WAIT)   # (a bound: the drive's thread)
         return out
 
 

@@ -32,6 +32,7 @@ alert bit (0x80) in its error byte, as on the firmware.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import struct
@@ -40,7 +41,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 # --- Protocol 2.0 constants (ROBOTIS e-Manual) ------------------------------------------------------------------
 HEADER = b"\xff\xff\xfd\x00"
@@ -150,6 +151,44 @@ RH_P12_RN = Table(35073, 1, 562, (9, 1), (11, 1), (30, 2), (36, 4), (40, 4), (56
                   velocity_limit=(32, 4), velocity_limit_default=100)
 
 MODELS = {"xm430-w350": XM430_W350, "rh-p12-rn-a": RH_P12_RN_A, "rh-p12-rn": RH_P12_RN}
+
+#: The USB adapter's latency timer (ms) the tests give dynamixel-sdk (``slow_adapter``): its packet timeout is twice
+#: this plus the bytes' time. The SDK assumes an FTDI's 16 ms (a packet timeout of about 34 ms), which a servo meets
+#: with room to spare; this emulator answers from a Python thread of the test process, which a loaded 2-core machine
+#: (and the driver's own polling loop, in the same process) can keep off the CPU for longer than that: every request
+#: of a start-up then failed now and then ('no status packet'). An FTDI's latency timer is a setting of the adapter
+#: (1-255 ms), so this is a slower adapter, not another protocol.
+ADAPTER_LATENCY_MS = 60
+
+
+@contextlib.contextmanager
+def slow_adapter(latency_ms: float = ADAPTER_LATENCY_MS) -> Iterator[float]:
+    """dynamixel-sdk with a USB adapter whose latency timer is ``latency_ms``; yields the packet timeout (s) of a
+    short status packet, for tests whose answers must come after it.
+
+    Also, while it waits for an answer, the SDK's read waits up to 1 ms for the port to become readable (a select()
+    that releases the GIL) before it reads, instead of spinning: the SDK polls the port in a busy loop that holds
+    the GIL, and the emulator, a thread of the same process, got it only between two polls (and not at all while the
+    busy thread was itself off the CPU, holding it). The bytes read and the packet timeout are the SDK's own."""
+    from dynamixel_sdk import port_handler
+
+    read = port_handler.PortHandler.readPort
+
+    def read_when_ready(self, length):
+        try:
+            select.select([self.ser.fileno()], [], [], 0.001)
+        except (OSError, ValueError, AttributeError):   # closed or not a real port: the SDK's read says so
+            pass
+        return read(self, length)
+
+    old = port_handler.LATENCY_TIMER
+    port_handler.LATENCY_TIMER = latency_ms
+    port_handler.PortHandler.readPort = read_when_ready
+    try:
+        yield (2.0 * latency_ms + 2.0) / 1000.0
+    finally:
+        port_handler.LATENCY_TIMER = old
+        port_handler.PortHandler.readPort = read
 
 
 class DynamixelEmulator:
@@ -441,7 +480,12 @@ class DynamixelEmulator:
         if self.wire_timing:
             baud = self.baudrate()
             delay = (rx_len + len(out)) * 10.0 / baud + 2e-6 * self.get(self.table.return_delay)
-            time.sleep(delay)
+            if delay < 0.002:   # (a few bytes at 1 Mbaud: waited without giving the GIL to the driver's busy loop)
+                t_end = time.perf_counter() + delay
+                while time.perf_counter() < t_end:
+                    pass
+            else:
+                time.sleep(delay)
         self.raw_tx += out
         try:
             os.write(self.master, bytes(out))
