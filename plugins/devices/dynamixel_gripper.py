@@ -18,6 +18,21 @@ request without a valid answer the next one is preceded by a PING whose answer i
 order, so whatever arrives before that PING's answer is a late answer to an earlier request and is dropped. A late
 answer of the right length can therefore never be taken for a newer request's.
 
+Waiting for answers: dynamixel-sdk polls the port in a Python loop (pyserial timeout 0) until the status packet's
+bytes or its packet timeout; the driver's port (:func:`port_handler_class`) waits in select() for the port to become
+readable (which releases the GIL: the runtime's 1 kHz controller thread runs meanwhile) for at most the time left
+until the SDK's packet timeout (and ``serial_poll``), then reads what is there. The SDK's framing, checks and
+timeouts stay its own: a lost answer still times out after the SDK's packet timeout, with a handful of reads instead
+of thousands.
+
+Start-up: every request of the start-up (the PING, each read and write, the first state read) is tried up to
+:data:`STARTUP_TRIES` times when its answer is lost or corrupt (the port's input cleared, and the bus resynchronised
+by a PING, before the next try): a bus loses a packet now and then (noise, a servo busy writing its EEPROM), which
+must not fail the start-up; a servo that does not answer at all still fails it, naming the port, ID and baud rate.
+The writes are of absolute values, so repeating one whose answer was lost changes nothing. A refusal (an error in the
+status packet) is not retried. At run time a lost answer is not retried: the step goes on with the last reading, and
+no valid state for ``read_timeout`` is a fault.
+
 The opening maps linearly to ticks (``ticks_open`` <-> ``opening_at_ticks_open``, ``ticks_closed`` <->
 ``opening_at_ticks_closed``). Control tables are data: ``model`` picks a preset from :data:`CONTROL_TABLES`
 (X-series such as the OpenManipulator-X's XM430-W350; ROBOTIS RH-P12-RN with either firmware) and ``control_table``
@@ -29,8 +44,10 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import functools
 import math
 import os
+import select
 import time
 from typing import Any, Callable
 
@@ -125,6 +142,36 @@ CURRENT_BASED_POSITION = 5
 # Protocol 2.0 status packet: FF FF FD 00 | ID | LEN_L LEN_H | 0x55 | ERR | data | CRC_L CRC_H (LEN counts from 0x55)
 _PKT_ID, _PKT_LEN, _PKT_INST, _PKT_ERR, _PKT_DATA = 4, 5, 7, 8, 9
 _INST_PING = 0x01
+#: tries of each start-up request whose answer is lost or corrupt (not of a refused one)
+STARTUP_TRIES = 3
+#: how far past the SDK's packet timeout a wait for the port may end (s): the SDK's own check then sees the timeout
+#: at once instead of polling the last microseconds
+_TIMEOUT_MARGIN = 5e-5
+
+
+@functools.lru_cache(maxsize=None)
+def port_handler_class() -> type:
+    """dynamixel-sdk's ``PortHandler`` whose ``readPort`` waits for the port to become readable in select() (the GIL
+    released) instead of returning empty at once, for at most the time left until the packet timeout the SDK set
+    (``setPacketTimeout``) and at most ``max_wait`` (s); then it reads what is there, as the SDK does. rxPacket's
+    framing, checks and timeout are the SDK's: the wait ends when bytes arrive or just after the SDK's timeout, so
+    what the SDK returns, and when, is unchanged (within ``_TIMEOUT_MARGIN``)."""
+    from dynamixel_sdk import PortHandler
+
+    class WaitingPortHandler(PortHandler):
+        max_wait = 0.01
+
+        def readPort(self, length):  # noqa: N802 (the SDK's name)
+            if length > 0:
+                left = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0  # the SDK counts in ms
+                if left > 0:
+                    try:
+                        select.select([self.ser.fileno()], [], [], min(left + _TIMEOUT_MARGIN, self.max_wait))
+                    except (OSError, ValueError, AttributeError):  # closed or not a real port: the read says so
+                        pass
+            return self.ser.read(length)   # pyserial timeout 0 (as the SDK opens it): what is there
+
+    return WaitingPortHandler
 
 
 def hw_error_text(bits: int) -> str:
@@ -156,7 +203,9 @@ class DynamixelGripper(FollowerBase):
         error_check_period: Seconds = Field(0.1, gt=0, description="poll Torque_Enable and Hardware_Error_Status "
                                             "this often",
                                             json_schema_extra={"unit": "s"})
-        serial_poll: Seconds = Field(0.0005, gt=0, le=0.01, description="serial read blocking granularity",
+        serial_poll: Seconds = Field(0.01, gt=0, le=0.01, description="longest single wait (select, GIL "
+                                     "released) for the port to become readable before the SDK checks its packet "
+                                     "timeout again; a wait also ends at that timeout",
                                      json_schema_extra={"unit": "s"})
         max_opening: Meters = Field(0.075, gt=0, description="largest opening commanded",
                                     json_schema_extra={"unit": "m"})
@@ -219,8 +268,8 @@ class DynamixelGripper(FollowerBase):
 
     def _check(self, what: str, result: int, error: int) -> None:
         if result != self._sdk.COMM_SUCCESS:
-            raise HardwareError(f"{what}: no valid answer from {self._where()} ({self.ph.getTxRxResult(result)}); "
-                                f"check power, cable, ID and baud rate")
+            raise HardwareError(f"{what}: no valid answer from {self._where()} ({self.ph.getTxRxResult(result)}, "
+                                f"{STARTUP_TRIES} tries); check power, cable, ID and baud rate")
         if error & 0x80:
             raise HardwareError(f"{what}: {self._where()} reports a hardware error ({self._hw_error()}); "
                                 f"power-cycle or reboot the servo")
@@ -293,14 +342,27 @@ class DynamixelGripper(FollowerBase):
         data, result, _ = self._transact(1, self.ph.readTx, self.port, self.params.dxl_id, item[0], 1)
         return hw_error_text(data[0]) if result == self._sdk.COMM_SUCCESS and data else "status unreadable"
 
+    def _startup(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
+        """A start-up request (:meth:`_transact`), tried up to STARTUP_TRIES times while its answer is lost or
+        corrupt: the port's input cleared before each new try, whose PING (the bus is out of step after a lost answer)
+        drops whatever late answer still comes. A refusal or an alert is the answer: not retried."""
+        for attempt in range(STARTUP_TRIES):
+            if attempt:
+                self.startup_retries += 1
+                self.port.clearPort()
+            data, result, error = self._transact(n, send, *args)
+            if result == self._sdk.COMM_SUCCESS:
+                break
+        return data, result, error
+
     def _write(self, item: Item, value: int, what: str) -> None:
         addr, size = item
-        _data, result, error = self._transact(0, self._send_write, addr, size, value)
+        _data, result, error = self._startup(0, self._send_write, addr, size, value)
         self._check(f"writing {what}", result, error)
 
     def _read(self, item: Item, what: str) -> int:
         addr, size = item
-        data, result, error = self._transact(size, self.ph.readTx, self.port, self.params.dxl_id, addr, size)
+        data, result, error = self._startup(size, self.ph.readTx, self.port, self.params.dxl_id, addr, size)
         self._check(f"reading {what}", result, error)
         return _signed(int.from_bytes(bytes(data), "little"), size)
 
@@ -316,7 +378,10 @@ class DynamixelGripper(FollowerBase):
         self.resyncs = 0
         self.comm_failures = 0
         self.last_comm_error = ""
-        self.port = sdk.PortHandler(p.port)
+        self.startup_retries = 0
+        self._started = False   # until the first valid state read: requests are retried (STARTUP_TRIES)
+        self.port = port_handler_class()(p.port)
+        self.port.max_wait = p.serial_poll
         self.ph = sdk.PacketHandler(2.0)
         self.port.baudrate = p.baudrate
         try:
@@ -333,9 +398,7 @@ class DynamixelGripper(FollowerBase):
             raise HardwareError(f"{p.port} is in use: another process holds it (another teletouch, or a tool that "
                                 f"opens it with pyserial's exclusive=True); two programs writing one servo bus fight "
                                 f"over the gripper: stop the other one ({exc.strerror})") from exc
-        # pyserial blocks for at most serial_poll per read instead of spinning (the SDK polls with timeout 0)
-        self.port.ser.timeout = p.serial_poll
-        data, result, error = self._transact(3, self._send_ping)
+        data, result, error = self._startup(3, self._send_ping)
         self._check("ping", result, error)
         model = data[0] | data[1] << 8
         t = self.table
@@ -441,6 +504,17 @@ class DynamixelGripper(FollowerBase):
         t0 = time.monotonic()
         data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
         t1 = time.monotonic()
+        if not self._started:   # the first state read is part of the start-up: retried, and its failure says so
+            for _ in range(STARTUP_TRIES - 1):
+                if result == sdk.COMM_SUCCESS:
+                    break
+                self.startup_retries += 1
+                self.port.clearPort()
+                t0 = time.monotonic()
+                data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
+                t1 = time.monotonic()
+            self._check("reading the state (SYNC_READ)", result, error & 0x80)
+            self._started = True
         if result != sdk.COMM_SUCCESS:
             self.comm_failures += 1
             self.last_comm_error = self.ph.getTxRxResult(result)
@@ -491,7 +565,7 @@ class DynamixelGripper(FollowerBase):
     def status(self) -> dict[str, Any]:
         d = super().status()
         d.update(comm_failures=getattr(self, "comm_failures", 0), stale_answers=getattr(self, "stale_answers", 0),
-                 resyncs=getattr(self, "resyncs", 0))
+                 resyncs=getattr(self, "resyncs", 0), startup_retries=getattr(self, "startup_retries", 0))
         return d
 
 

@@ -4,7 +4,8 @@ The driver opens the pty's slave path with dynamixel-sdk's ``PortHandler`` exact
 this emulator sits on the master side, decodes the instruction packets byte by byte (header, CRC-16, byte
 stuffing) and answers with status packets like the servo's firmware: PING, READ, WRITE, SYNC_READ, SYNC_WRITE,
 REBOOT; CRC, access, range and instruction errors in the status packet's error byte; a hardware-error alert bit;
-and it can be told to stop answering, to corrupt its answers, or to answer late.
+and it can be told to stop answering, to lose a given number of answers (``drop``), to corrupt its answers, or to
+answer late.
 
 Models (``MODELS``): an XM430-W350 (X-series table) and the ROBOTIS RH-P12-RN gripper with either firmware: the
 RH-P12-RN(A) firmware (model number 35074, DYNAMIXEL-P-like table) and the old RH-P12-RN firmware (35073,
@@ -166,10 +167,12 @@ def slow_adapter(latency_ms: float = ADAPTER_LATENCY_MS) -> Iterator[float]:
     """dynamixel-sdk with a USB adapter whose latency timer is ``latency_ms``; yields the packet timeout (s) of a
     short status packet, for tests whose answers must come after it.
 
-    Also, while it waits for an answer, the SDK's read waits up to 1 ms for the port to become readable (a select()
-    that releases the GIL) before it reads, instead of spinning: the SDK polls the port in a busy loop that holds
-    the GIL, and the emulator, a thread of the same process, got it only between two polls (and not at all while the
-    busy thread was itself off the CPU, holding it). The bytes read and the packet timeout are the SDK's own."""
+    Also, while it waits for an answer, the SDK's own ``PortHandler.readPort`` waits up to 1 ms for the port to
+    become readable (a select() that releases the GIL) before it reads, instead of spinning: the SDK polls the port
+    in a busy loop that holds the GIL, and the emulator, a thread of the same process, got it only between two polls.
+    This is for tests that use dynamixel-sdk directly: the dynamixel-gripper driver's port is a subclass with its own
+    waiting read (dynamixel_gripper.port_handler_class), which this patch does not reach, so the driver's tests run
+    the driver's code. The bytes read and the packet timeout are the SDK's own."""
     from dynamixel_sdk import port_handler
 
     read = port_handler.PortHandler.readPort
@@ -221,6 +224,9 @@ class DynamixelEmulator:
         self.wire_timing = wire_timing
         # fault injection
         self.silent = False          # stop answering (cable pulled, servo dead)
+        self.drop_answers = 0        # lose this many answers (noise on the bus) ...
+        self.drop_after = 0          # ... after letting this many more through first
+        self.dropped: list[bytes] = []   # the status packets lost so far
         self.corrupt_crc = False     # answer with a wrong CRC
         self.status_error = 0        # error byte added to every status packet
         self.write_error = 0         # error byte answered to every WRITE (the write is not applied)
@@ -468,9 +474,22 @@ class DynamixelEmulator:
             return ERR_RESULT_FAIL
         return 0
 
+    def drop(self, n: int = 1, after: int = 0) -> None:
+        """Lose the ``n`` answers that follow the next ``after`` ones (a packet lost to noise, or a servo busy
+        writing its EEPROM): each is not sent, and is recorded in ``dropped``."""
+        with self._lock:
+            self.drop_answers, self.drop_after = n, after
+
     def _reply(self, rx_len: int, err: int, params: bytes) -> None:
         if self.silent:
             return
+        if self.drop_answers > 0:
+            if self.drop_after > 0:
+                self.drop_after -= 1
+            else:
+                self.drop_answers -= 1
+                self.dropped.append(packet(self.id, INST_STATUS, bytes([err | self.status_error]) + params))
+                return
         err |= self.status_error
         if self._alert:
             err |= ALERT
