@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from fakes.plugin_dists import make_dist  # noqa: E402
+from fakes.plugin_dists import estimator_source, make_dist  # noqa: E402
 
 from teletouch.registry import Registry  # noqa: E402
 from teletouch.runtime import NodeStats, RunResult  # noqa: E402
@@ -23,20 +23,7 @@ from teletouch.runtime import NodeStats, RunResult  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 GRAPH = str(REPO / "examples" / "mock-loop.yaml")
 BROKEN = "import not_a_real_module_xyz\n"
-GOOD = '''
-from teletouch import Component, Kind, Port, hookimpl
-
-class C(Component):
-    name = "acme-c"
-    kind = Kind.ESTIMATOR
-    outputs = {"y": Port("float64", (), "N")}
-    def step(self, t, inputs):
-        return {"y": 1.0}
-
-@hookimpl
-def teletouch_components():
-    return [C]
-'''
+GOOD = estimator_source("acme-c")
 # a slow wall-clock graph that cannot fault on a loaded machine (overruns never fault); ends only by a signal
 WALL_GRAPH = """name: term-test
 clock: wall

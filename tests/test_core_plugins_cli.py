@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from fakes.plugin_dists import estimator_source
+
 REPO = Path(__file__).resolve().parents[1]
 GRAPH = str(REPO / "examples" / "mock-loop.yaml")
 
@@ -25,21 +27,7 @@ def teletouch_add_commands(subparsers):
     subparsers.add_parser("run", help="takes the core's name")
 '''
 BROKEN = "import not_a_real_module_xyz\n"
-NOISY = '''
-print("hello from the plugin")
-from teletouch import Component, Kind, Port, hookimpl
-
-class C(Component):
-    name = "noisy-c"
-    kind = Kind.ESTIMATOR
-    outputs = {"y": Port("float64", (), "N")}
-    def step(self, t, inputs):
-        return {"y": 1.0}
-
-@hookimpl
-def teletouch_components():
-    return [C]
-'''
+NOISY = estimator_source("noisy-c", 'print("hello from the plugin")' + "\n")
 
 
 def install(root: Path, modules: dict[str, str]) -> Path:

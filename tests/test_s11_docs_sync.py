@@ -302,33 +302,40 @@ def _plugins_named(heading: str, registry) -> list[str]:
     return [n for n in re.findall(r"`([a-z0-9-]+)`", heading) if n in registry.components]
 
 
-def _param_table_problems(registry) -> tuple[list[str], int]:
-    problems, checked = [], 0
+def _plugin_tables(first: str, column: str, registry):
+    """(page, header, rows, plugins) of every table whose header starts with ``first`` and has ``column``, with the
+    plugins its heading names (there must be one)."""
     for page in PAGES:
         for heading, header, rows in _tables(_prose(page.read_text())):
-            if not header or header[0] != "param" or "default" not in header:
+            if not header or header[0] != first or column not in header:
                 continue
             plugins = _plugins_named(heading, registry)
-            assert plugins, f"{_rel(page)}: a parameter table under {heading!r} names no plugin in its heading"
-            col = header.index("default")
-            for row in rows:
-                names = [n.strip("` ") for n in re.split(r"\s*,\s*|\s+/\s+", row[0])]
-                values = re.split(r",\s+|\s+/\s+", row[col])
-                if len(values) != len(names):
-                    values = [row[col]] * len(names) if len(values) == 1 else values
-                if len(values) != len(names):
-                    problems.append(f"{_rel(page)}: row {row[0]!r}: {len(names)} names, {len(values)} defaults")
-                    continue
-                for plugin in plugins:
-                    cls = registry.components[plugin].cls
-                    for name, value in zip(names, values):
-                        checked += 1
-                        if name not in cls.Params.model_fields:
-                            problems.append(f"{_rel(page)}: {plugin} has no parameter {name!r}")
-                            continue
-                        why = _mismatch(plugin, name, _default(cls, name), value)
-                        if why:
-                            problems.append(f"{_rel(page)}: {why}")
+            assert plugins, f"{_rel(page)}: a {first} table under {heading!r} names no plugin in its heading"
+            yield page, header, rows, plugins
+
+
+def _param_table_problems(registry) -> tuple[list[str], int]:
+    problems, checked = [], 0
+    for page, header, rows, plugins in _plugin_tables("param", "default", registry):
+        col = header.index("default")
+        for row in rows:
+            names = [n.strip("` ") for n in re.split(r"\s*,\s*|\s+/\s+", row[0])]
+            values = re.split(r",\s+|\s+/\s+", row[col])
+            if len(values) != len(names):
+                values = [row[col]] * len(names) if len(values) == 1 else values
+            if len(values) != len(names):
+                problems.append(f"{_rel(page)}: row {row[0]!r}: {len(names)} names, {len(values)} defaults")
+                continue
+            for plugin in plugins:
+                cls = registry.components[plugin].cls
+                for name, value in zip(names, values):
+                    checked += 1
+                    if name not in cls.Params.model_fields:
+                        problems.append(f"{_rel(page)}: {plugin} has no parameter {name!r}")
+                        continue
+                    why = _mismatch(plugin, name, _default(cls, name), value)
+                    if why:
+                        problems.append(f"{_rel(page)}: {why}")
     return problems, checked
 
 
@@ -427,38 +434,33 @@ def _shape(text: str):
 def test_port_tables_match_the_components_ports(registry):
     known_units = {"", "m", "m/s", "N", "J", "m^2", "N*s/m", "rad", "s"}
     problems, checked = [], 0
-    for page in PAGES:
-        for heading, header, rows in _tables(_prose(page.read_text())):
-            if not header or header[0] != "port" or "dir" not in header:
-                continue
-            plugins = _plugins_named(heading, registry)
-            assert plugins, f"{_rel(page)}: a port table under {heading!r} names no plugin in its heading"
-            for row in rows:
-                cell = dict(zip(header, row))
-                port = cell["port"].strip("` ")
-                direction = cell["dir"].split()[0].strip(",")
-                optional = "optional" in cell["dir"]
-                for plugin in plugins:
-                    cls = registry.components[plugin].cls
-                    ports = cls.inputs if direction == "in" else cls.outputs
-                    checked += 1
-                    where = f"{_rel(page)}: {plugin} {direction}put {port!r}"
-                    if port not in ports:
-                        problems.append(f"{where}: no such port ({sorted(ports)})")
-                        continue
-                    p = ports[port]
-                    if direction == "in" and optional == p.required:
-                        problems.append(f"{where}: documented {'optional' if optional else 'required'}, "
-                                        f"code required={p.required}")
-                    if "dtype" in cell and cell["dtype"].strip("` ") != p.dtype:
-                        problems.append(f"{where}: dtype {cell['dtype']!r}, code {p.dtype!r}")
-                    if "shape" in cell and _shape(cell["shape"]) not in ("?", p.shape):
-                        problems.append(f"{where}: shape {cell['shape']!r}, code {p.shape!r}")
-                    if "unit" in cell:
-                        unit = cell["unit"].split(",")[0].strip().strip("`")
-                        unit = "" if unit == '""' else unit
-                        if unit in known_units and unit != p.unit:
-                            problems.append(f"{where}: unit {unit!r}, code {p.unit!r}")
+    for page, header, rows, plugins in _plugin_tables("port", "dir", registry):
+        for row in rows:
+            cell = dict(zip(header, row))
+            port = cell["port"].strip("` ")
+            direction = cell["dir"].split()[0].strip(",")
+            optional = "optional" in cell["dir"]
+            for plugin in plugins:
+                cls = registry.components[plugin].cls
+                ports = cls.inputs if direction == "in" else cls.outputs
+                checked += 1
+                where = f"{_rel(page)}: {plugin} {direction}put {port!r}"
+                if port not in ports:
+                    problems.append(f"{where}: no such port ({sorted(ports)})")
+                    continue
+                p = ports[port]
+                if direction == "in" and optional == p.required:
+                    problems.append(f"{where}: documented {'optional' if optional else 'required'}, "
+                                    f"code required={p.required}")
+                if "dtype" in cell and cell["dtype"].strip("` ") != p.dtype:
+                    problems.append(f"{where}: dtype {cell['dtype']!r}, code {p.dtype!r}")
+                if "shape" in cell and _shape(cell["shape"]) not in ("?", p.shape):
+                    problems.append(f"{where}: shape {cell['shape']!r}, code {p.shape!r}")
+                if "unit" in cell:
+                    unit = cell["unit"].split(",")[0].strip().strip("`")
+                    unit = "" if unit == '""' else unit
+                    if unit in known_units and unit != p.unit:
+                        problems.append(f"{where}: unit {unit!r}, code {p.unit!r}")
     assert not problems, "\n".join(problems)
     assert checked >= 40, checked
 

@@ -12,24 +12,11 @@ from pathlib import Path
 import teletouch.registry as registry
 from teletouch.registry import default_registry
 
-from fakes.plugin_dists import make_dist
+from fakes.plugin_dists import estimator_source, make_dist
 
 TESTS = Path(__file__).resolve().parent
 
-PLUGIN = '''
-from teletouch import Component, Kind, Port, hookimpl
-
-class C(Component):
-    name = "order-c"
-    kind = Kind.ESTIMATOR
-    outputs = {"y": Port("float64", (), "N")}
-    def step(self, t, inputs):
-        return {"y": 1.0}
-
-@hookimpl
-def teletouch_components():
-    return [C]
-'''
+PLUGIN = estimator_source("order-c")
 
 
 def test_a_registry_cached_by_an_earlier_test():

@@ -17,3 +17,22 @@ def make_dist(root: Path, dist: str, version: str, eps: dict[str, str], modules:
     for mod, src in modules.items():
         (root / f"{mod}.py").write_text(src)
 
+
+
+def estimator_source(name: str, prelude: str = "") -> str:
+    """Source of a plugin module with one estimator ``name`` (output ``y``, 1.0 N) and its hook; ``prelude``: lines
+    run before it (a print, an import that fails)."""
+    return prelude + f'''
+from teletouch import Component, Kind, Port, hookimpl
+
+class C(Component):
+    name = "{name}"
+    kind = Kind.ESTIMATOR
+    outputs = {{"y": Port("float64", (), "N")}}
+    def step(self, t, inputs):
+        return {{"y": 1.0}}
+
+@hookimpl
+def teletouch_components():
+    return [C]
+'''
