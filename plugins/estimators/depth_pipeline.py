@@ -112,7 +112,7 @@ def _resize_linear(z: np.ndarray, s: int) -> np.ndarray:
 FILL_CLOSE = 3
 
 
-def fill_enclosed(m: np.ndarray, pad: np.ndarray | None = None, close: int = FILL_CLOSE) -> np.ndarray:
+def fill_enclosed(m: np.ndarray, close: int = FILL_CLOSE) -> np.ndarray:
     """Add, in place, to a (rows, cols) uint8 0/1 change mask what it encloses: its closing by a square of
     ``2 close + 1`` cells (the grid's outside counts as changed for the erosion, as on the torch path), then the holes
     of that, the cells no path of unchanged cells (4-connected) links to the grid's border.
@@ -124,7 +124,7 @@ def fill_enclosed(m: np.ndarray, pad: np.ndarray | None = None, close: int = FIL
 
     The work is done on the changed cells' bounding box plus ``close + 1`` cells (a contact covers a small part of
     the grid), with the same result as on the whole grid: outside that box the closed mask is 0, and every unchanged
-    cell there reaches the grid's border. ``pad``: unused (kept for callers that pass a work buffer)."""
+    cell there reaches the grid's border."""
     import cv2
 
     h, w = m.shape
@@ -446,8 +446,8 @@ class DepthPipeline:
         nz_pts = cv2.findNonZero(core)
         if nz_pts is not None:
             # a press's flat centre, enclosed by its changed rim, is pressed in: not the untouched zero reference
-            fill_enclosed(core, b["pad"])
-            fill_enclosed(keep, b["pad"])
+            fill_enclosed(core)
+            fill_enclosed(keep)
             nz_pts = cv2.findNonZero(core)
         self._changed = nz_pts is not None
         if nz_pts is None:
@@ -545,7 +545,6 @@ class DepthPipeline:
                  "absd": np.empty((gr, gc, 3), np.float32), "a": np.empty((gr, gc), np.float32),
                  "a2": np.empty((gr, gc), np.float32), "mb": np.empty((gr, gc), bool),
                  "m": np.empty((gr, gc), np.uint8), "m2": np.empty((gr, gc), np.uint8),
-                 "pad": np.empty((gr + 2, gc + 2), np.uint8),
                  "feats": np.empty(gr * gc * self.nfeat, np.float32)}
             self._buf = b
         return b
