@@ -1144,9 +1144,9 @@ class PolyForce(Component):
                                              "about 1/(2 pi fc) s of delay; None = off)",
                                              json_schema_extra={"unit": "Hz"})
         fault_after_invalid: int = Field(30, ge=0, description="fault the node after this many invalid inputs in "
-                                         "a row (0 = never; force stays 0 while invalid; at 60 Hz, 30 is half a "
-                                         "second, as the depth node's fault_after_bad): the controller cannot tell "
-                                         "an invalid input's 0 N from a real one, so a lasting one must stop the run")
+                                         "a row (0 = never; no force sample while invalid, so the consumer sees "
+                                         "its estimate go stale; at 60 Hz, 30 is half a second, as the depth "
+                                         "node's fault_after_bad): a lasting invalid input must stop the run")
         depth_model: str | None = Field(None, description="the depth estimator's model (its 'model' parameter): "
                                         "when given, the calibration must have been made with it (its "
                                         "sensor_model_id); a calibration is per sensor and per depth model")
