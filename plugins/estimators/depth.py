@@ -7,7 +7,7 @@ untouched gel has no gradient and hence no depth. Details: docs/depth.md; the co
 
 CLI (added by this plugin):
   teletouch calibrate depth --images DIR --ball-diameter 6mm --px-per-mm 17.15 [--labels CSV] -o sensor.model
-  teletouch estimate --model sensor.model IMAGE... [--background F] [--json] [--save-depth DIR]
+  teletouch estimate --model sensor.model IMAGE... [--background F|DIR ...] [--json] [--save-depth DIR]
                      [--force-calibration force.json]
 """
 
@@ -403,8 +403,9 @@ def _check_scale(px_per_m: float, radius: float, shape: tuple[int, ...], source:
 
 
 def cmd_calibrate_depth(args: argparse.Namespace) -> int:
-    from .depth_calibration import (auto_label, calibrate, check_labels, load_images, median_background,
-                                    px_per_mm_from_caliper, read_labels, review_overlay, write_labels)
+    from .depth_calibration import (auto_label, calibrate, check_labels, load_background, load_images,
+                                    median_background, px_per_mm_from_caliper, read_labels, review_overlay,
+                                    write_labels)
 
     def log(msg: str) -> None:
         if not args.quiet:
@@ -414,16 +415,28 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         radius = _ball_radius(args)
         images = load_images(args.images)
         background = None
+        background_source = None
         if args.background:
-            background = _read_image(args.background)
-            images = [(n, im) for n, im in images if Path(n).name != Path(args.background).name]
+            def same_size(path: Path, frame: np.ndarray) -> None:
+                if frame.shape != images[0][1].shape:
+                    raise ValueError(f"{path}: the background frame is {frame.shape[0]}x{frame.shape[1]}, the "
+                                     f"presses in {args.images} are {images[0][1].shape[0]}x{images[0][1].shape[1]} "
+                                     f"(rows x cols); expected no-contact frames of the same sensor and resolution")
+
+            bgr = load_background(args.background, same_size)
+            background, background_source = bgr.image, bgr.meta()
+            # background frames kept in the presses folder are not presses (the same file, not the same name: two
+            # recordings may both hold a 0001.png)
+            own = {_resolved(f) for f in bgr.files}
+            left = [n for n, _ in images if _resolved(Path(args.images) / n) in own]
+            images = [(n, im) for n, im in images if n not in left]
             if not images:
-                raise ValueError(f"{args.images}: no press images besides the background {args.background}")
-            if background.shape != images[0][1].shape:
-                raise ValueError(f"{args.background}: the background frame is {background.shape[0]}x"
-                                 f"{background.shape[1]}, the presses in {args.images} are {images[0][1].shape[0]}x"
-                                 f"{images[0][1].shape[1]} (rows x cols); expected a no-contact frame of the same "
-                                 f"sensor and resolution")
+                raise ValueError(f"{args.images}: no press images besides the background frame(s) "
+                                 f"{', '.join(left[:5])}{' ...' if len(left) > 5 else ''}")
+            if left:
+                log(f"{len(left)} background frame(s) in {args.images} left out of the presses: "
+                    f"{', '.join(left[:5])}{' ...' if len(left) > 5 else ''}")
+            log(f"background: {bgr.describe()}")
         shape = images[0][1].shape[:2]
         if args.px_per_mm is not None:
             px_per_m = _px_per_m(args.px_per_mm)
@@ -479,8 +492,9 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         return 0
     try:
         res = calibrate(images, radius, px_per_m, labels=labels, background=background, holdout=args.holdout,
-                        log=log, feature_set=args.features, epochs=args.epochs, seed=args.seed,
-                        stride=args.stride, progress=not args.quiet, hidden=tuple(args.hidden))
+                        log=log, background_source=background_source, feature_set=args.features,
+                        epochs=args.epochs, seed=args.seed, stride=args.stride, progress=not args.quiet,
+                        hidden=tuple(args.hidden))
     except ValueError as exc:
         print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
         return 2
@@ -533,6 +547,28 @@ def _write_review(folder: str | None, images: list, bg: np.ndarray, labels: list
                 raise OSError(f"--review: the overlay {path} could not be written")
 
 
+def _resolved(p: str | Path) -> Path:
+    try:
+        return Path(p).resolve()
+    except OSError:
+        return Path(p).absolute()
+
+
+def _cli_background(paths: list[str], model: Any) -> tuple[np.ndarray, str]:
+    """`estimate --background`: one or more no-contact frames and/or folders of them (their per-pixel median),
+    for this model's image size; (the background, what it is for the log). FileNotFoundError / ValueError naming
+    the file."""
+    from .depth_calibration import load_background
+
+    def model_size(path: Path, frame: np.ndarray) -> None:
+        if frame.shape != (*model.shape, 3):
+            raise ValueError(f"{path}: background frame is {frame.shape[0]}x{frame.shape[1]}, the model "
+                             f"{model.source} is for {model.shape[0]}x{model.shape[1]} images (rows x cols)")
+
+    bgr = load_background(paths, model_size)
+    return bgr.image, bgr.describe()
+
+
 def _same_file(a: str | Path, b: str | Path) -> bool:
     try:
         return Path(a).resolve() == Path(b).resolve()
@@ -554,7 +590,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     save = Path(args.save_depth) if args.save_depth else None
     try:
-        bg = _read_background(args.background, model) if args.background else None
+        bg = None
+        if args.background:
+            bg, what = _cli_background(args.background, model)
+            print(f"teletouch estimate: background: {what}", file=sys.stderr)
         if save is not None:
             _check_output(save, "--save-depth", folder=True)
             try:
@@ -654,7 +693,10 @@ def teletouch_add_commands(subparsers, calibrate):
     p.add_argument("--caliper-gap", default=None, help="the distance between those tips, e.g. 5mm")
     p.add_argument("--labels", default=None, help="contact circles CSV (image,center_x,center_y,radius_px[,note]); "
                    "default: found automatically")
-    p.add_argument("--background", default=None, help="a no-contact frame; default: per-pixel median of the presses")
+    p.add_argument("--background", nargs="+", action="extend", default=None, metavar="FRAME|DIR",
+                   help="no-contact frame(s) of the sensor, or a folder of them (repeatable): one frame is used as "
+                   "it is, several as their per-pixel median (e.g. 10 frames with nothing touching: a lower change "
+                   "threshold, so lighter touches count); default: per-pixel median of the presses")
     p.add_argument("--write-labels", default=None, help="where to write the labels used (default: beside -o)")
     p.add_argument("--labels-only", action="store_true", help="only label the presses (write the CSV), no training")
     p.add_argument("--review", default=None, metavar="DIR", help="write an overlay image per press for checking")
@@ -674,7 +716,9 @@ def teletouch_add_commands(subparsers, calibrate):
     p = subparsers.add_parser("estimate", help="depth (and force) from DIGIT images with a calibrated model")
     p.add_argument("images", nargs="+", metavar="IMAGE")
     p.add_argument("--model", required=True, help="model file or packaged model name (sim-digit-qvga)")
-    p.add_argument("--background", default=None, help="a no-contact frame replacing the model's background")
+    p.add_argument("--background", action="append", default=None, metavar="FRAME|DIR",
+                   help="a no-contact frame replacing the model's background, or a folder of them (their per-pixel "
+                   "median); repeat the option for several frames (one path per --background: the images follow)")
     p.add_argument("--force-calibration", default=None, metavar="FILE", help="force calibration (poly-force JSON): "
                    "adds force_N")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")

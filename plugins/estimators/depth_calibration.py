@@ -29,7 +29,8 @@ from .normal_model import (DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, atomic
                            max_stride)
 
 __all__ = [
-    "IMAGE_EXTS", "Label", "load_images", "median_background", "auto_label", "read_labels", "write_labels",
+    "IMAGE_EXTS", "Label", "load_images", "median_background", "median_frames", "Background", "background_files",
+    "load_background", "MAX_BACKGROUND_FRAMES", "auto_label", "read_labels", "write_labels",
     "check_labels", "review_overlay", "pool_grid", "grid_images", "press_samples", "train_model", "cap_height_error",
     "sphere_fit_radius",
     "far_false_depth", "evaluate_press", "px_per_mm_from_caliper", "default_stride", "calibrate",
@@ -131,7 +132,134 @@ def median_background(images: Sequence[np.ndarray]) -> np.ndarray:
     """Per-pixel median of the presses: a clean background when the ball sits elsewhere in each image."""
     if len(images) < 3:
         raise ValueError("the background can be estimated from 3 or more presses (give --background otherwise)")
-    return np.median(np.stack(images), axis=0).round().astype(np.uint8)
+    return median_frames(images)
+
+
+def median_frames(frames: Sequence[np.ndarray]) -> np.ndarray:
+    """Per-pixel median (uint8, rounded half to even) of one or more frames of one shape; one frame is returned as
+    it is (a copy), two give their mean. Computed in bands of rows, so that the float work array stays small."""
+    if not frames:
+        raise ValueError("no frames to take the median of")
+    shape = frames[0].shape
+    if any(f.shape != shape for f in frames):
+        raise ValueError(f"frames of different shapes: {sorted({f.shape for f in frames})}")
+    if len(frames) == 1:
+        return np.array(frames[0], dtype=np.uint8, copy=True)
+    stack = np.stack(frames)
+    out = np.empty(shape, np.uint8)
+    band = max(1, (1 << 22) // max(1, stack[0, :1].size * len(frames)))   # ~4 M values (32 MiB float64) a band
+    for r0 in range(0, shape[0], band):
+        out[r0:r0 + band] = np.median(stack[:, r0:r0 + band], axis=0).round()
+    return out
+
+
+#: most no-contact frames one background is made from: the noise falls as 1 / sqrt(N) (10 frames take it to a third,
+#: docs/depth.md "A background from several no-contact frames"); more add little, and all are held in memory at once
+MAX_BACKGROUND_FRAMES = 100
+
+
+@dataclass
+class Background:
+    """A no-contact background (uint8 BGR) and the frames it was made from (``--background``)."""
+
+    image: np.ndarray
+    files: list[Path]
+    sources: list[str]          # the paths as given (frames and folders), for messages
+
+    @property
+    def frames(self) -> int:
+        return len(self.files)
+
+    def describe(self) -> str:
+        """What the background is, for the log: 'the frame F' or 'per-pixel median of N frames from DIR'."""
+        if self.frames == 1:
+            return f"the frame {self.files[0]}"
+        what = "per-pixel median" if self.frames >= 3 else "per-pixel median (the mean)"
+        folders = [s for s in self.sources if Path(s).is_dir()]
+        if len(self.sources) == 1 and folders:
+            return f"{what} of {self.frames} frames from {folders[0]}"
+        names = ", ".join(str(f) for f in self.files[:4]) + (" ..." if self.frames > 4 else "")
+        return f"{what} of {self.frames} frames ({names})"
+
+    def meta(self) -> dict[str, Any]:
+        """The model file's record of it (``training.background``): file names only, no machine paths, so that a
+        reproducible calibration (SOURCE_DATE_EPOCH) gives the same bytes from another folder."""
+        return {"from": "no-contact frames", "frames": self.frames,
+                "statistic": "frame" if self.frames == 1 else "per-pixel median",
+                "files": [f.name for f in self.files]}
+
+
+def background_files(paths: Sequence[str | os.PathLike[str]]) -> list[Path]:
+    """The frames named by ``--background``: each path a frame, or a folder (all its images, sorted naturally, as
+    :func:`load_images` lists a folder). FileNotFoundError for an empty folder, ValueError for a frame named twice
+    (also through a folder); a path that is neither a folder nor a file is kept, its reading names it."""
+    files: list[Path] = []
+    seen: dict[Path, str] = {}
+    for given in paths:
+        p = Path(given)
+        if p.is_dir():
+            found = [q for q in p.iterdir() if q.suffix.lower() in IMAGE_EXTS and ".review" not in q.name
+                     and q.is_file()]
+            if not found:
+                raise FileNotFoundError(f"{p}: no images ({', '.join(IMAGE_EXTS)}) in this background folder; "
+                                        f"expected no-contact frames of the sensor")
+            found.sort(key=lambda q: _natural_key(q.name))
+        else:
+            found = [p]
+        for q in found:
+            try:
+                key = q.resolve()
+            except OSError:
+                key = q.absolute()
+            if key in seen:
+                raise ValueError(f"{q}: given twice as a background frame (also as {seen[key]}); each frame counts "
+                                 f"once in the median")
+            seen[key] = str(q)
+            files.append(q)
+    return files
+
+
+def load_background(paths: Sequence[str | os.PathLike[str]],
+                    check_frame: Callable[[Path, np.ndarray], None] | None = None) -> Background:
+    """The background from one or more no-contact frames (``--background``: frames and/or folders of them): one
+    frame as it is, several as their per-pixel median (:func:`median_frames`; two: their mean).
+
+    Refused with an error naming the file: nothing given, an unreadable image, one ``check_frame(path, image)``
+    refuses (the caller's size check: the presses' or the model's), a grayscale one, frames of different sizes (both
+    sizes and files named), two frames identical pixel for pixel (a copy: it would count twice), more than
+    MAX_BACKGROUND_FRAMES frames."""
+    import cv2
+
+    if not paths:
+        raise ValueError("--background: no frame given; expected a no-contact frame or a folder of them")
+    files = background_files(paths)
+    if len(files) > MAX_BACKGROUND_FRAMES:
+        raise ValueError(f"{', '.join(str(p) for p in paths)}: {len(files)} background frames; at most "
+                         f"{MAX_BACKGROUND_FRAMES} are used (10-20 no-contact frames take the noise to a third or "
+                         f"less); give a folder with fewer")
+    frames: list[np.ndarray] = []
+    seen: dict[bytes, int] = {}
+    for i, f in enumerate(files):
+        img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+        if img is None:
+            why = "" if f.is_file() else " (no such file or folder)"
+            raise FileNotFoundError(f"{f}: not a readable image file{why}; expected a no-contact frame "
+                                    f"({', '.join(IMAGE_EXTS)}) or a folder of them")
+        if check_frame is not None:
+            check_frame(f, img)
+        if is_grayscale(img):
+            raise ValueError(f"{f}: a grayscale image (its three colour channels are equal); expected a colour "
+                             f"no-contact frame of the DIGIT as its camera delivers it")
+        if frames and img.shape != frames[0].shape:
+            raise ValueError(f"{f} is {img.shape[0]}x{img.shape[1]}, but {files[0]} is {frames[0].shape[0]}x"
+                             f"{frames[0].shape[1]} (rows x cols); all background frames must share one resolution")
+        digest = hashlib.sha1(np.ascontiguousarray(img).data).digest()
+        if digest in seen and np.array_equal(img, frames[seen[digest]]):
+            raise ValueError(f"{f} and {files[seen[digest]]} are identical pixel for pixel: a copy (it would count "
+                             f"twice in the median); give each no-contact frame once")
+        seen.setdefault(digest, i)
+        frames.append(img)
+    return Background(median_frames(frames), files, [str(p) for p in paths])
 
 
 def default_stride(rows: int) -> int:
@@ -866,15 +994,21 @@ class CalibrationResult:
 
 def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px_per_m: float,
               labels: dict[str, Label] | None = None, background: np.ndarray | None = None,
-              holdout: int = 2, log: Callable[[str], None] | None = None, **train_kw: Any) -> CalibrationResult:
+              holdout: int = 2, log: Callable[[str], None] | None = None,
+              background_source: dict[str, Any] | None = None, **train_kw: Any) -> CalibrationResult:
     """The whole calibration: background (given, or the per-pixel median of the presses), labels (given, or found
     by :func:`auto_label`), training on the usable presses with ``holdout`` of them (spread over the sensor) held
-    out and evaluated; their metrics go into the model file."""
+    out and evaluated; their metrics go into the model file.
+
+    The model file records where the background came from (``training.background``): ``background_source`` (e.g.
+    :meth:`Background.meta`) for a given background, {"from": "presses", "frames": N, "statistic": "per-pixel
+    median"} for the median of the presses, {"from": "given"} for an array given without a source."""
     t0 = time.perf_counter()
     log = log or (lambda m: None)
     source_date_epoch()   # a malformed SOURCE_DATE_EPOCH is refused before the work, not when the time is written
     if background is None:
         background = median_background([im for _, im in images])
+        background_source = {"from": "presses", "frames": len(images), "statistic": "per-pixel median"}
         log(f"background: per-pixel median of {len(images)} presses")
     elif background.shape != images[0][1].shape:
         raise ValueError(f"background is {background.shape}, the presses are {images[0][1].shape}")
@@ -914,5 +1048,6 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
         step = len(order) / holdout
         val = [order[int((i + 0.5) * step)] for i in range(holdout)]
     model = train_model(images, labels, background, px_per_m, ball_radius_m, validation=val, log=log, **train_kw)
+    model.training["background"] = dict(background_source) if background_source is not None else {"from": "given"}
     return CalibrationResult(model=model, labels=[labels[n] for n, _ in images if n in labels],
                              background=background, seconds=time.perf_counter() - t0)
