@@ -33,9 +33,18 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+#: numpy picks its SIMD kernels when it loads; its AVX-512 ones round some float32 results differently from the AVX2
+#: ones, and the training grows that into other weights (seen: the packaged file, made on an AVX2 CPU, remade on an
+#: AVX-512 one: weights up to 0.43 apart; with this pin, bit for bit). Run as a script, before numpy loads, the
+#: script asks numpy for its AVX2-level kernels (numpy 2 names, then numpy 1's; unknown names are ignored, a CPU
+#: without them is unaffected); NPY_DISABLE_CPU_FEATURES set by the caller wins.
+NUMPY_SIMD_PIN = "X86_V4 AVX512_ICL AVX512_SPR AVX512F AVX512CD AVX512_SKX AVX512_CLX AVX512_CNL"
+if "numpy" not in sys.modules:      # imported by a program that already has numpy: its kernels stay as they are
+    os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", NUMPY_SIMD_PIN)
 
-from teletouch.argtypes import int_at_least
+import numpy as np  # noqa: E402  (after the pin)
+
+from teletouch.argtypes import int_at_least  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.model"
@@ -246,7 +255,8 @@ def check(args: argparse.Namespace, ap: argparse.ArgumentParser) -> int:
         ap.error(f"--check {ref}: the file records other settings than the arguments: {'; '.join(other)}; give "
                  f"them to check it")
     print(f"checking {ref} against a fresh run (seed {args.seed}, {args.presses} presses, {args.epochs} epochs, "
-          f"{args.features}; SOURCE_DATE_EPOCH={sde}, the file's training.created)", file=sys.stderr)
+          f"{args.features}; SOURCE_DATE_EPOCH={sde}, the file's training.created; numpy kernels: "
+          f"NPY_DISABLE_CPU_FEATURES={os.environ.get('NPY_DISABLE_CPU_FEATURES', '(unset)')})", file=sys.stderr)
     with tempfile.TemporaryDirectory() as tmp, env_var("SOURCE_DATE_EPOCH", str(sde)):
         new = Path(tmp) / "check.model"
         with contextlib.redirect_stdout(sys.stderr):   # the calibration's summary is the log; the verdict is stdout

@@ -133,8 +133,9 @@ def test_compare_models_reports_a_changed_weight_and_passes_a_rounding(depth_scr
 
 def test_compare_models_ignores_durations_and_created_but_not_a_number(depth_script, tmp_path):
     meta, arrays = _read_model(depth_script, PACKAGED_MODEL)
+    assert "seconds" not in meta["training"]        # made with SOURCE_DATE_EPOCH: no durations in the file
     m = copy.deepcopy(meta)
-    del m["training"]["seconds"], m["training"]["total_seconds"]
+    m["training"]["seconds"], m["training"]["total_seconds"] = 7.6, 9.1     # a run without SOURCE_DATE_EPOCH
     m["training"]["created"] = "2030-01-01T00:00:00Z"
     lines, bad = depth_script.compare_models(PACKAGED_MODEL, _write_model(tmp_path / "a.model", m, arrays))
     assert bad == [] and sum(line.startswith("ignored  meta training.") for line in lines) == 3
