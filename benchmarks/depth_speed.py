@@ -12,8 +12,9 @@ presses) and one torch thread; they run interleaved frame by frame, so load from
 
 Prints one JSON object as its last line: median ms per frame for each (interleaved: `reference_ms`, `fast_ms`,
 `speedup`), the fast path alone over the same frames (`fast_alone_ms`; the interleaved reference evicts its caches),
-all five outputs (`fast_full_outputs_ms`), the max-depth agreement, VGA numbers and, with --device cuda, batched GPU
-throughput.
+all five outputs (`fast_full_outputs_ms`), the max-depth agreement, the Poisson solve by matrix products against
+scipy.fft (`qvga_poisson_solve`: alone by window side, and the pipeline with and without it), VGA numbers and, with
+--device cuda, batched GPU throughput.
 """
 
 from __future__ import annotations
@@ -155,6 +156,58 @@ def bench(model, frames, reps: int, torch, scipy_fft):
             "frames": len(frames), "reps": reps, "grid": [pipe.grows, pipe.gcols], "stride": pipe.stride}
 
 
+def bench_solve(model, frames, reps: int):
+    """The Poisson solve by matrix products (``method="auto"``: padded sides <= MATMUL_MAX) against scipy.fft's DST-I,
+    interleaved: on its own over square windows of a ball press's sizes (float32, one BLAS thread: the fast path's
+    work grid) and end to end, the pipeline's max depth on the same frames with the products switched off
+    (``MATMUL_MAX = 0``) and on, frame by frame."""
+    from teletouch.plugins.estimators import poisson
+    from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
+
+    rng = np.random.default_rng(0)
+    sizes = {}
+    for n in (24, 40, 56, 64, 71, 100):
+        f = rng.standard_normal((n, n)).astype(np.float32)
+        for method in ("fft", "matmul"):
+            poisson.solve_poisson(f, method=method)
+        t = {"fft": [], "matmul": []}
+        for _ in range(30 * reps):
+            for method in ("fft", "matmul"):
+                t0 = time.perf_counter()
+                poisson.solve_poisson(f, method=method)
+                t[method].append(time.perf_counter() - t0)
+        a = poisson.solve_poisson(f, method="fft")
+        b = poisson.solve_poisson(f, method="matmul")
+        fft_us, mm_us = (float(np.median(t[k]) * 1e6) for k in ("fft", "matmul"))
+        sizes[str(n)] = {"fft_us": round(fft_us, 1), "matmul_us": round(mm_us, 1),
+                         "matmul_over_fft": round(mm_us / fft_us, 3),
+                         "max_abs_diff_rel": float(f"{np.abs(a - b).max() / np.abs(a).max():.2g}")}
+    pipe = DepthPipeline(model, threads=1)
+    keep = poisson.MATMUL_MAX
+    t = {"fft": [], "matmul": []}
+    diff = []
+    try:
+        for fr in frames[:2]:
+            pipe.max_depth(fr)
+        for _ in range(reps):
+            for fr in frames:
+                out = {}
+                for method, limit in (("fft", 0), ("matmul", keep)):
+                    poisson.MATMUL_MAX = limit
+                    t0 = time.perf_counter()
+                    out[method] = pipe.max_depth(fr)
+                    t[method].append(time.perf_counter() - t0)
+                if out["fft"] > 1e-4:
+                    diff.append(abs(out["matmul"] / out["fft"] - 1.0))
+    finally:
+        poisson.MATMUL_MAX = keep
+    fft_ms, mm_ms = (float(np.median(t[k]) * 1e3) for k in ("fft", "matmul"))
+    return {"solve_by_side": sizes, "matmul_max": keep,
+            "pipeline_fft_solve_ms": round(fft_ms, 3), "pipeline_default_ms": round(mm_ms, 3),
+            "pipeline_default_over_fft_solve": round(mm_ms / fft_ms, 3),
+            "pipeline_max_depth_rel_diff_max": float(f"{max(diff, default=0.0):.2g}")}
+
+
 def bench_gpu(model, frames, device: str, torch):
     from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
 
@@ -261,6 +314,8 @@ def main() -> int:
     model, frames = train("qvga", epochs, None, log)
     result["qvga"] = bench(model, frames, reps, torch, scipy_fft)
     log(f"qvga: {result['qvga']}")
+    result["qvga_poisson_solve"] = bench_solve(model, frames, reps)
+    log(f"qvga poisson solve: {result['qvga_poisson_solve']}")
     if not args.no_vga:
         vmodel, vframes = train("vga", max(5, epochs // 3), 12, log)
         result["vga"] = bench(vmodel, vframes, max(2, reps // 4), torch, scipy_fft)

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "divergence", "fast_size", "eigenvalues", "solve_poisson", "integrate", "integrate_window",
-    "integrate_torch", "dst1_torch",
+    "divergence", "fast_size", "eigenvalues", "dst1_matrix", "MATMUL_MAX", "solve_poisson", "integrate",
+    "integrate_window", "integrate_torch", "dst1_torch",
 ]
 
 _DEFAULT_WORKERS = 1  # small transforms: one thread is fastest (more only pays for full VGA frames)
@@ -74,14 +74,46 @@ def eigenvalues(n: int, m: int, dtype: str = "float64") -> np.ndarray:
     return out
 
 
-def solve_poisson(f: np.ndarray, workers: int | None = None) -> np.ndarray:
-    """Solve lap(z) = f on f's grid with z = 0 just outside it (the grid is padded to a fast size internally)."""
-    import scipy.fft
+#: the largest padded side solved by matrix products (:func:`dst1_matrix`) instead of FFTs. A ball press's solve
+#: window at QVGA is 53-71 cells a side: there the four products (one BLAS thread) took 0.3-0.5x the time of the two
+#: scipy.fft DST-I calls (interleaved, this 2-core VM; docs/depth.md); at ~100 a side they break even, and OpenBLAS
+#: starts a second thread
+MATMUL_MAX = 72
 
+
+@functools.lru_cache(maxsize=64)
+def dst1_matrix(n: int, dtype: str = "float64") -> np.ndarray:
+    """The DST-I of length n as a symmetric matrix, ``S[j, k] = 2 sin(pi (j+1) (k+1) / (n+1))``: ``S @ x`` is
+    ``scipy.fft.dst(x, type=1)`` along the first axis, ``x @ S`` along the last."""
+    k = np.arange(1, n + 1, dtype=np.float64)
+    out = (2.0 * np.sin(np.pi * np.outer(k, k) / (n + 1))).astype(dtype)
+    out.setflags(write=False)
+    return out
+
+
+def solve_poisson(f: np.ndarray, workers: int | None = None, method: str = "auto") -> np.ndarray:
+    """Solve lap(z) = f on f's grid with z = 0 just outside it (the grid is padded to a fast size internally).
+
+    ``method``: ``"fft"`` (scipy.fft DST-I, ``workers`` threads), ``"matmul"`` (the same transforms as products
+    with :func:`dst1_matrix`; the zero padding is skipped by slicing the matrices, so the result is the FFT's up to
+    rounding, ~1e-6 relative in float32), or ``"auto"``: matmul when both padded sides are at most
+    :data:`MATMUL_MAX`."""
     f = np.asarray(f)
     dtype = np.float32 if f.dtype == np.float32 else np.float64
     n, m = f.shape
     pn, pm = fast_size(n), fast_size(m)
+    if method == "auto":
+        method = "matmul" if max(pn, pm) <= MATMUL_MAX else "fft"
+    if method == "matmul":
+        name = np.dtype(dtype).name
+        sn, sm = dst1_matrix(pn, name), dst1_matrix(pm, name)
+        spec = (sn[:, :n] @ f.astype(dtype, copy=False)) @ sm[:m, :]   # the DST of f padded with zeros to pn x pm
+        spec /= eigenvalues(pn, pm, name)
+        return (sn[:n, :] @ spec) @ sm[:, :m]                          # the inverse, only where f is
+    if method != "fft":
+        raise ValueError(f"method must be 'auto', 'fft' or 'matmul', got {method!r}")
+    import scipy.fft
+
     if (pn, pm) != (n, m):
         fp = np.zeros((pn, pm), dtype=dtype)
         fp[:n, :m] = f
