@@ -17,8 +17,9 @@ digit -> depth -> poly-force -> ros2-publish, machine B runs ros2-subscribe -> p
 
 Clocks. Every stamped message carries the sample's own stamp (a camera's capture time, not the publish time) in
 ``header.stamp``, as ROS time = Unix time (the system clock, what ROS uses without ``use_sim_time``):
-``ros = graph + (time.time() - graph_now())``, measured at each conversion on a wall-clock graph, and fixed when
-the node activates on a simulated clock. The subscriber keeps a message's stamp as Unix time and maps it to its own
+``ros = graph + (time.time() - graph_now())``, measured at each conversion on a wall-clock graph (the Unix time read
+between two graph-clock reads, read again when the pair is more than 0.1 ms apart: a preemption between two reads
+would shift the stamps by its length), and fixed when the node activates on a simulated clock. The subscriber keeps a message's stamp as Unix time and maps it to its own
 graph clock when a step outputs it (so a message that arrived while the graph was starting keeps its age), so a
 sample keeps its age across the bridge, and a consumer's ``max_age`` sees the force go stale when the publisher
 dies. Across machines this needs synchronised system clocks (chrony/PTP); where they are not,
@@ -285,14 +286,34 @@ def qos_profile(p: QosParams) -> Any:
 class _Clock:
     """Graph time <-> ROS time (Unix seconds); see the module docstring."""
 
+    #: a Unix-time read is taken between two graph-clock reads; a pair further apart than this (the thread was
+    #: preempted between them) is read again, up to READS times, and the tightest pair is used
+    TIGHT = 1e-4
+    READS = 3
+
     def __init__(self, ctx: Any):
         self.ctx = ctx
         self.fixed = ctx.clock_kind != "wall"
-        self.offset = time.time() - ctx.now()
+        self.offset = self._read()
+
+    def _read(self) -> float:
+        """time.time() - ctx.now(), each Unix read taken between two graph-clock reads and referred to their middle:
+        a preemption between two plain reads would shift every stamp mapped with it by its length (1-10 ms on a
+        loaded machine), so a wide pair is read again and the tightest of READS is kept."""
+        best_gap, best = math.inf, 0.0
+        for _ in range(self.READS):
+            a = self.ctx.now()
+            u = time.time()
+            b = self.ctx.now()
+            if b - a < best_gap:
+                best_gap, best = b - a, u - 0.5 * (a + b)
+            if best_gap <= self.TIGHT:
+                break
+        return best
 
     def offset_now(self) -> float:
         """ROS time - graph time, now."""
-        return self.offset if self.fixed else time.time() - self.ctx.now()
+        return self.offset if self.fixed else self._read()
 
     def to_ros(self, graph_t: float) -> float:
         return graph_t + self.offset_now()
