@@ -301,7 +301,9 @@ class Runtime:
             self.faults.append(Fault(node.id, kind, message, t, action))
             if action == "stop" and self._stop_reason is None:
                 self._stop_reason = ("fault", EXIT_FAULT, f"node '{node.id}' {kind}: {message}")
-        node.faulted = True
+            # under the lock: a step in flight (the watchdog faults a node whose step still runs) checks it there
+            # before it stores its outputs (see _write), so nothing of the node is published after its fault
+            node.faulted = True
         if node.is_device:
             self._safe(node)
         if action == "stop":
@@ -406,18 +408,29 @@ class Runtime:
                 return False
         return True
 
-    def _write(self, node: _Node, out: Any, t: float) -> None:
+    def _write(self, node: _Node, out: Any, t: float, guard: Any = None) -> None:
         """Store a step's outputs. Each value is checked against its port (dtype and shape, see
         ``component.value_checker``) and each stamp: one that does not fit is a fault of the node, and then none of
-        that step's outputs is stored (consumers never see half of a step)."""
+        that step's outputs is stored (consumers never see half of a step).
+
+        ``guard`` (wall clock: the runtime's lock, under which :meth:`_fault` disables a node): the outputs are
+        stored, and the taps called, only if the node was not faulted while its step ran (the watchdog faults an
+        inline node whose step runs past its bound; that step returns later): a disabled node publishes nothing."""
         slots = node.out
         try:
             samples = step_samples(out, node.spec.cls.outputs, node.checks, t)
         except ComponentFault as exc:   # found here, made by the plugin: point at its step(), not at the runtime
             exc.where = step_location(node.spec.cls)
             raise
-        for name, v in samples:
-            slots[name].sample = v
+        if guard is None:   # the simulated clock: one thread, nothing faults a node while its step runs
+            for name, v in samples:
+                slots[name].sample = v
+        else:
+            with guard:
+                if node.faulted:
+                    return
+                for name, v in samples:
+                    slots[name].sample = v
         for tap in self.taps:
             tap(node.id, t, out)
 
@@ -829,6 +842,7 @@ class Runtime:
                     stop: threading.Event, max_over: int, ring: int) -> None:
         k = 0
         late = 0   # consecutive late cycles of the group
+        lock = self._lock
         while not stop.is_set():
             deadline = t0 + k * period
             rem = deadline - perf()
@@ -851,8 +865,8 @@ class Runtime:
                 node.in_step = True
                 try:
                     out = node.step(t, node.inputs)
-                    if out:
-                        self._write(node, out, t)
+                    if out and not node.faulted:   # faulted while it ran (the watchdog): its outputs are dropped
+                        self._write(node, out, t, lock)
                 except BaseException as exc:   # also SystemExit or KeyboardInterrupt raised by a plugin in this
                     node.in_step = False       # thread (a signal reaches the main one)
                     if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it
