@@ -119,9 +119,18 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from .graph import load_graph
 
     spec = load_graph(args.graph, sets=args.sets, clock=args.clock)
+    _print_warnings(spec)
     rates = ", ".join(f"{n.id}@{n.rate:g}Hz" for n in spec.order())
-    print(f"{args.graph}: OK ({len(spec.nodes)} nodes: {rates}; clock {spec.clock})")
+    count = len(spec.warnings)
+    note = f"; {count} warning{'s' if count > 1 else ''}" if count else ""
+    print(f"{args.graph}: OK ({len(spec.nodes)} nodes: {rates}; clock {spec.clock}{note})")
     return EXIT_OK
+
+
+def _print_warnings(spec: Any) -> None:
+    """The graph's warnings (``GraphSpec.warnings``: it is valid and runs, but may not do what was meant), on stderr."""
+    for line in spec.warnings:
+        print(f"teletouch: warning: {line}", file=sys.stderr)
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
@@ -195,6 +204,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .graph import load_graph
 
     spec = load_graph(args.graph, sets=args.sets, clock=args.clock, duration=args.duration)
+    _print_warnings(spec)
     if spec.clock == "sim" and spec.duration is None:
         print(f"{args.graph}: the simulated clock needs a duration: add 'duration:' to the graph or pass "
               f"--duration S", file=sys.stderr)

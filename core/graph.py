@@ -107,6 +107,9 @@ class GraphSpec:
     faults: FaultPolicy = field(default_factory=FaultPolicy)
     description: str = ""
     realtime_priority: int = 0
+    #: what validation found that may work against the graph without making it invalid, one line each (led by the
+    #: file and line, as errors are): `teletouch validate` and `teletouch run` print them on stderr
+    warnings: list[str] = field(default_factory=list)
 
     def node(self, node_id: str) -> NodeSpec:
         for n in self.nodes:
@@ -624,7 +627,35 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         raise GraphValidationError(errors)
     return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
                      duration=dur, faults=faults, description=str(doc.get("description") or ""),
-                     realtime_priority=rt_prio)
+                     realtime_priority=rt_prio, warnings=_isolation_warnings(nodes, clock_v, file))
+
+
+def _isolation_warnings(nodes: list[NodeSpec], clock: str, file: str) -> list[str]:
+    """A node with ``isolate: process`` that shares its rate with a device node: under the wall clock the nodes of
+    one rate run in one thread (see runtime.Runtime._run_wall), so each isolated step holds that thread, and with it
+    the devices' steps, until the child process answers (the watchdog faults the node past ``faults.watchdog``).
+    A warning, not an error: the graph runs. None under the simulated clock, where an isolated node runs inline."""
+    if clock != "wall":
+        return []
+    device_rates = {n.rate for n in nodes if n.cls is not None and issubclass(n.cls, Device)}
+    out = []
+    for n in nodes:
+        if n.isolate != "process" or n.rate is None:
+            continue
+        devices = [d for d in nodes if d.rate == n.rate and d.cls is not None and issubclass(d.cls, Device)]
+        if not devices:
+            continue
+        names = ", ".join(f"'{d.id}'" for d in devices)
+        free = next((r for r in (n.rate - 1, n.rate + 1, n.rate * 0.9, n.rate * 1.1)
+                     if r > 0 and r not in device_rates), None)
+        hint = f" (e.g. rate: {free:g})" if free is not None else ""
+        where = n.where if n.where.file else Location(file, n.where.line)
+        what = "device node" if len(devices) == 1 else "device nodes"
+        out.append(f"{where}: node '{n.id}' (isolate: process) shares its rate, {n.rate:g} Hz, with {what} {names}: "
+                   f"under the wall clock the nodes of one rate run in one thread, so each step of '{n.id}' holds up "
+                   f"the steps of {names} until its process answers (past faults.watchdog it faults and they are "
+                   f"made safe); give node '{n.id}' a rate of its own, one no device uses{hint}")
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ JSON schema
