@@ -58,8 +58,10 @@ class DepthEstimator(Component):
         mode: Literal["auto", "sparse", "dense"] = Field(
             "auto", description="sparse: network only on changed pixels (CPU default); dense: every pixel, "
             "masked (GPU default)")
-        background: str | None = Field(None, description="a no-contact frame (image file) replacing the model's "
-                                       "background, e.g. recorded at start-up")
+        background: str | list[str] | None = Field(
+            None, description="no-contact frames replacing the model's background, e.g. recorded at start-up: an "
+            "image file, a folder of them or a list of files and folders (several: their per-pixel median, which "
+            "takes out a single frame's noise; at most 100 frames)")
         contact_depth: Meters = Field(3e-5, gt=0, description="depth above which a pixel is in contact",
                                       json_schema_extra={"unit": "m"})
         contact_fraction: float = Field(0.5, ge=0.0, lt=1.0, description="in contact where depth > this fraction of "
@@ -118,9 +120,10 @@ class DepthEstimator(Component):
         bg = None
         if p.background:
             try:
-                bg = _read_background(p.background, model)
+                bg, what = _cli_background([p.background] if isinstance(p.background, str) else p.background, model)
             except (FileNotFoundError, ValueError) as exc:
                 raise ModelFileError(f"background: {exc}") from None
+            self.ctx.log(f"background: {what}")
         device = _check_device(p.device)
         self.pipe = DepthPipeline(model, device=device, mode=p.mode, change_threshold=p.change_threshold,
                                   contact_depth=p.contact_depth, contact_fraction=p.contact_fraction,
@@ -326,15 +329,6 @@ def _read_image(path: str | Path) -> np.ndarray:
     if img is None:
         raise FileNotFoundError(f"{path}: not a readable image file")
     return img
-
-
-def _read_background(path: str | Path, model: Any) -> np.ndarray:
-    """A no-contact frame replacing the model's; FileNotFoundError / ValueError naming the file."""
-    bg = _read_image(path)
-    if bg.shape != (*model.shape, 3):
-        raise ValueError(f"{path}: background frame is {bg.shape[0]}x{bg.shape[1]}, the model {model.source} is for "
-                         f"{model.shape[0]}x{model.shape[1]} images (rows x cols)")
-    return bg
 
 
 def _check_output(path: str | Path, what: str, folder: bool = False) -> None:
@@ -555,9 +549,9 @@ def _resolved(p: str | Path) -> Path:
 
 
 def _cli_background(paths: list[str], model: Any) -> tuple[np.ndarray, str]:
-    """`estimate --background`: one or more no-contact frames and/or folders of them (their per-pixel median),
-    for this model's image size; (the background, what it is for the log). FileNotFoundError / ValueError naming
-    the file."""
+    """`estimate --background` and the node's `background`: one or more no-contact frames and/or folders of them
+    (their per-pixel median), for this model's image size; (the background, what it is for the log).
+    FileNotFoundError / ValueError naming the file."""
     from .depth_calibration import load_background
 
     def model_size(path: Path, frame: np.ndarray) -> None:
