@@ -181,9 +181,12 @@ def test_isolated_node_runs_in_its_own_process_on_the_same_clock(reg):
     pids = {o["pid"] for _, o in seen}
     assert len(pids) == 1 and os.getpid() not in pids
     assert len(seen) >= 15
-    # the echo of a ramp (value = t) shows both processes read the same graph clock
+    # the echo of a ramp (value = t) shows both processes read the same graph clock. At a tick both rates share
+    # (0.1 s, 0.2 s, ...) src's thread may write its sample after est's step took its time t and before est's
+    # inputs were read (threads of two rates, no order between them): that echo is newer than t by the few
+    # microseconds between the two (seen: 29 us), never by a period
     for t, o in seen[5:]:
-        assert 0.0 <= t - o["y"] <= 0.05
+        assert -0.001 <= t - o["y"] <= 0.05
     assert rt.latest("dev", "state").value == pytest.approx(seen[-1][1]["y"], abs=0.05)
 
 

@@ -16,19 +16,19 @@ digit -> depth -> poly-force -> ros2-publish, machine B runs ros2-subscribe -> p
 | value (float, any unit)       | std_msgs/msg/Float64 (no stamp)      | value_topic                           |
 
 Clocks. Every stamped message carries the sample's own stamp (a camera's capture time, not the publish time) in
-``header.stamp``, as ROS time = Unix time (the system clock, what ROS uses without ``use_sim_time``):
-``ros = graph + (time.time() - graph_now())``, measured at each conversion on a wall-clock graph (the Unix time read
-between two graph-clock reads, read again when the pair is more than 0.1 ms apart: a preemption between two reads
-would shift the stamps by its length), and fixed when the node activates on a simulated clock. The subscriber keeps a message's stamp as Unix time and maps it to its own
-graph clock when a step outputs it (so a message that arrived while the graph was starting keeps its age), so a
-sample keeps its age across the bridge, and a consumer's ``max_age`` sees the force go stale when the publisher
-dies. Across machines this needs synchronised system clocks (chrony/PTP); where they are not,
-``stamps: arrival`` stamps each message with its arrival time (transport latency is then hidden). A stamp more
-than ``max_clock_skew`` in the future is clamped to the arrival time and counted (``status()['skewed']``); one more
-than 1 s old on arrival is kept and reported (``late``, ``lag_s``); a zero stamp (the sender does not stamp) or an
-invalid one is refused. A message with the stamp of the last one taken on its topic is a repeat, not a new
-measurement (``duplicates``): it is not output again, so a sender re-sending its last message cannot keep a force
-fresh; the publisher sends each measurement once (by stamp, also under ``isolate: process``).
+``header.stamp``, as ROS time = Unix time (the system clock, what ROS uses without ``use_sim_time``): ``ros = graph +
+(time.time() - graph_now())``, measured at each conversion on a wall-clock graph (the Unix time read between two
+graph-clock reads, read again when the pair is more than 0.1 ms apart: a preemption between two reads would shift the
+stamps by its length), and fixed when the node activates on a simulated clock. The subscriber keeps a message's stamp as
+Unix time and maps it to its own graph clock when a step outputs it (so a message that arrived while the graph was
+starting keeps its age), so a sample keeps its age across the bridge, and a consumer's ``max_age`` sees the force go
+stale when the publisher dies. Across machines this needs synchronised system clocks (chrony/PTP); where they are not,
+``stamps: arrival`` stamps each message with its arrival time (transport latency is then hidden). A stamp more than
+``max_clock_skew`` in the future is clamped to the arrival time and counted (``status()['skewed']``); one more than 1 s
+old on arrival is kept and reported (``late``, ``lag_s``); a zero stamp (the sender does not stamp) or an invalid one is
+refused. A message with the stamp of the last one taken on its topic is a repeat, not a new measurement
+(``duplicates``): it is not output again, so a sender re-sending its last message cannot keep a force fresh; the
+publisher sends each measurement once (by stamp, also under ``isolate: process``).
 
 Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it;
 the subscriber also refuses a JointState opening above ``max_opening`` and a depth above ``max_depth``
