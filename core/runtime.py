@@ -200,9 +200,9 @@ class Runtime:
     #: under the wall clock the interpreter's GIL switch interval is at most this fraction of the fastest rate's
     #: period (20 us at 1 kHz): a thread that waits for the GIL (the 1 kHz loop, woken for its tick) gets it after
     #: at most one interval of another thread's Python code. Measured on the simulated teleoperation loop (wall
-    #: clock, SCHED_FIFO; two sessions of interleaved A/B, 3 and 4 rounds; docs/teleoperation.md): controller jitter
-    #: p99 median 0.25-0.27 -> 0.17-0.18 ms against 0.1 (100 us), the frame-to-force latency p99 the same within
-    #: the run-to-run spread
+    #: clock, SCHED_FIFO; three sessions of interleaved A/B, 3-4 rounds; docs/teleoperation.md): controller jitter
+    #: p99 median 0.25-0.28 -> 0.17-0.23 ms against 0.1 (100 us), the frame-to-force latency p99 not consistently
+    #: moved (within the run-to-run spread)
     SWITCH_FRACTION = 0.02
 
     def __init__(self, spec: GraphSpec, registry: Any = None, *, clock: str | None = None,
