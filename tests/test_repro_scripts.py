@@ -1,11 +1,12 @@
 """The packaged simulated-sensor files are reproducible, and ``--check`` proves it.
 
 scripts/make_sim_depth_model.py --check and scripts/make_sim_force_calibration.py --check make the file again in a
-temporary folder and compare it with the file -o names (default: the packaged one). A full check takes ~1 min (depth)
-and ~15-20 min (force) on a loaded 2-core machine, and the depth weights are the same only on the machine kind the
-file was made on (training amplifies another CPU's rounding), so the tests here run the depth check end to end on a
-small model they make themselves, and the comparisons on synthetic changes of the packaged files (read, never
-written). The maintainer's commands are in docs/depth.md and docs/force.md.
+temporary folder and compare it with the file -o names (default: the packaged one). A full check takes ~10-60 s
+(depth) and ~15-20 min (force) on a 2-core machine. The depth check runs here in full on the packaged model (the
+script pins numpy's kernels, so the weights come out the same on AVX2 and AVX-512 CPUs; another torch build or a CPU
+without AVX2 could still differ), and end to end on a small model the tests make themselves; the force check's
+comparisons run on synthetic changes of the packaged files (read, never written). The maintainer's commands are in
+docs/depth.md and docs/force.md.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import datetime as dt
 import importlib.util
 import io
 import json
+import os
+import subprocess
 import sys
 from contextlib import redirect_stdout
 from pathlib import Path
@@ -88,6 +91,26 @@ def test_depth_check_of_a_file_the_script_made_matches_byte_for_byte(depth_scrip
     assert "MATCHES" in out and "bytes: identical" in out and "DIFFERS" not in out
     assert small_model.read_bytes() == before
     assert list(small_model.parent.glob("*")) == [small_model]
+
+
+def test_the_packaged_model_is_remade_byte_for_byte(tmp_path):
+    """The packaged sim-digit model, made again by its script in a fresh process (as a maintainer runs --check:
+    numpy pinned to its AVX2-level kernels before it loads), is the same file byte for byte: any change of the
+    rendering, the labels, the features or the training that would make another model shows here, before the
+    packaged file is out of step with the code. Seen bit for bit on an AVX2 and an AVX-512 machine (~10-60 s)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("NPY_DISABLE_CPU_FEATURES", "SOURCE_DATE_EPOCH")}
+    run = subprocess.run([sys.executable, str(REPO / "scripts" / "make_sim_depth_model.py"), "--check"], cwd=tmp_path,
+                         env=env, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "bytes: identical" in run.stdout and "MATCHES" in run.stdout
+    assert "NPY_DISABLE_CPU_FEATURES=X86_V4" in run.stderr     # the pin was in place (the check's header says so)
+
+
+def test_the_numpy_pin_is_set_only_before_numpy_loads(depth_script):
+    """Imported by a program that already has numpy (this test), the script leaves the environment alone; its pin
+    names numpy 2's AVX-512 groups and numpy 1's features."""
+    assert {"X86_V4", "AVX512F", "AVX512_SKX"} <= set(depth_script.NUMPY_SIMD_PIN.split())
+    assert os.environ.get("NPY_DISABLE_CPU_FEATURES") != depth_script.NUMPY_SIMD_PIN
 
 
 def test_depth_check_refuses_other_settings_than_the_file_records(depth_script, small_model, capsys):
