@@ -738,7 +738,8 @@ nodes:
 
 
 _SCRIPT = """
-import json, signal, sys
+import faulthandler, json, signal, sys
+faulthandler.dump_traceback_later(45, exit=True)   # a run that hangs: every thread's stack on stderr, then exit
 sys.path.insert(0, sys.argv[1])            # the tests: their components, importable by the child as well
 import test_core_isolation
 from teletouch.runtime import Runtime
@@ -813,12 +814,18 @@ def test_ctrl_c_to_the_process_group_shuts_down_cleanly(sig, phase):
     try:
         time.sleep(0.3)
         os.killpg(proc.pid, sig)
-        out, err = proc.communicate(timeout=60)
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:   # (the script dumps its threads' stacks and exits after 45 s itself)
+            os.killpg(proc.pid, signal.SIGKILL)
+            out, err = proc.communicate()
+            raise AssertionError(f"no exit 60 s after the signal; stdout: {out[-2000:]!r}; stderr: {err[-6000:]}")
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     import json
 
+    assert "Timeout (0:00:45)!" not in err, f"the run hung; its threads' stacks:\n{err[-8000:]}"
     res = json.loads(out.strip().splitlines()[-1])
     assert res["status"] == "interrupted" and res["exit_code"] == EXIT_INTERRUPTED, res
     assert res["faults"] == [], res["faults"]
