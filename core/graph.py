@@ -637,12 +637,13 @@ def _isolation_warnings(nodes: list[NodeSpec], clock: str, file: str) -> list[st
     A warning, not an error: the graph runs. None under the simulated clock, where an isolated node runs inline."""
     if clock != "wall":
         return []
-    device_rates = {n.rate for n in nodes if n.cls is not None and issubclass(n.cls, Device)}
+    all_devices = [d for d in nodes if d.cls is not None and issubclass(d.cls, Device)]
+    device_rates = {d.rate for d in all_devices}
     out = []
     for n in nodes:
         if n.isolate != "process" or n.rate is None:
             continue
-        devices = [d for d in nodes if d.rate == n.rate and d.cls is not None and issubclass(d.cls, Device)]
+        devices = [d for d in all_devices if d.rate == n.rate]
         if not devices:
             continue
         names = ", ".join(f"'{d.id}'" for d in devices)

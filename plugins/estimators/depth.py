@@ -120,7 +120,8 @@ class DepthEstimator(Component):
         bg = None
         if p.background:
             try:
-                bg, what = _cli_background([p.background] if isinstance(p.background, str) else p.background, model)
+                given = [p.background] if isinstance(p.background, str) else p.background
+                bg, what = _background_for_model(given, model)
             except (FileNotFoundError, ValueError) as exc:
                 raise ModelFileError(f"background: {exc}") from None
             self.ctx.log(f"background: {what}")
@@ -398,8 +399,8 @@ def _check_scale(px_per_m: float, radius: float, shape: tuple[int, ...], source:
 
 def cmd_calibrate_depth(args: argparse.Namespace) -> int:
     from .depth_calibration import (auto_label, calibrate, check_labels, load_background, load_images,
-                                    median_background, px_per_mm_from_caliper, read_labels, review_overlay,
-                                    write_labels)
+                                    median_background, px_per_mm_from_caliper, read_labels, resolved_path,
+                                    review_overlay, write_labels)
 
     def log(msg: str) -> None:
         if not args.quiet:
@@ -421,8 +422,8 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
             background, background_source = bgr.image, bgr.meta()
             # background frames kept in the presses folder are not presses (the same file, not the same name: two
             # recordings may both hold a 0001.png)
-            own = {_resolved(f) for f in bgr.files}
-            left = [n for n, _ in images if _resolved(Path(args.images) / n) in own]
+            own = {resolved_path(f) for f in bgr.files}
+            left = [n for n, _ in images if resolved_path(Path(args.images) / n) in own]
             images = [(n, im) for n, im in images if n not in left]
             if not images:
                 raise ValueError(f"{args.images}: no press images besides the background frame(s) "
@@ -541,14 +542,7 @@ def _write_review(folder: str | None, images: list, bg: np.ndarray, labels: list
                 raise OSError(f"--review: the overlay {path} could not be written")
 
 
-def _resolved(p: str | Path) -> Path:
-    try:
-        return Path(p).resolve()
-    except OSError:
-        return Path(p).absolute()
-
-
-def _cli_background(paths: list[str], model: Any) -> tuple[np.ndarray, str]:
+def _background_for_model(paths: list[str], model: Any) -> tuple[np.ndarray, str]:
     """`estimate --background` and the node's `background`: one or more no-contact frames and/or folders of them
     (their per-pixel median), for this model's image size; (the background, what it is for the log).
     FileNotFoundError / ValueError naming the file."""
@@ -586,7 +580,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     try:
         bg = None
         if args.background:
-            bg, what = _cli_background(args.background, model)
+            bg, what = _background_for_model(args.background, model)
             print(f"teletouch estimate: background: {what}", file=sys.stderr)
         if save is not None:
             _check_output(save, "--save-depth", folder=True)

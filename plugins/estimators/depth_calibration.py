@@ -30,7 +30,7 @@ from .normal_model import (DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, atomic
 
 __all__ = [
     "IMAGE_EXTS", "Label", "load_images", "median_background", "median_frames", "Background", "background_files",
-    "load_background", "MAX_BACKGROUND_FRAMES", "auto_label", "read_labels", "write_labels",
+    "resolved_path", "load_background", "MAX_BACKGROUND_FRAMES", "auto_label", "read_labels", "write_labels",
     "check_labels", "review_overlay", "pool_grid", "grid_images", "press_samples", "train_model", "cap_height_error",
     "sphere_fit_radius",
     "far_false_depth", "evaluate_press", "px_per_mm_from_caliper", "default_stride", "calibrate",
@@ -189,6 +189,15 @@ class Background:
                 "files": [f.name for f in self.files]}
 
 
+def resolved_path(p: str | os.PathLike[str]) -> Path:
+    """The path with links and ``..`` resolved, to tell the same file given two ways; the absolute path where it
+    cannot be resolved (a loop of links)."""
+    try:
+        return Path(p).resolve()
+    except OSError:
+        return Path(p).absolute()
+
+
 def background_files(paths: Sequence[str | os.PathLike[str]]) -> list[Path]:
     """The frames named by ``--background``: each path a frame, or a folder (all its images, sorted naturally, as
     :func:`load_images` lists a folder). FileNotFoundError for an empty folder, ValueError for a frame named twice
@@ -207,10 +216,7 @@ def background_files(paths: Sequence[str | os.PathLike[str]]) -> list[Path]:
         else:
             found = [p]
         for q in found:
-            try:
-                key = q.resolve()
-            except OSError:
-                key = q.absolute()
+            key = resolved_path(q)
             if key in seen:
                 raise ValueError(f"{q}: given twice as a background frame (also as {seen[key]}); each frame counts "
                                  f"once in the median")
