@@ -138,8 +138,8 @@ def bench(model, frames, reps: int, torch, scipy_fft):
             t0 = time.perf_counter()
             pipe.max_depth(fr)
             alone.append(time.perf_counter() - t0)
-    # as in the loop at 60 Hz: each frame after a pause of one camera period (the step is slower then: the same
-    # code, colder caches; docs/teleoperation.md)
+    # as in the loop at 60 Hz: each frame after a pause of one camera period (the same step is slower then; what it
+    # is and is not: docs/depth.md)
     paused = []
     for _ in range(reps):
         for fr in frames:
