@@ -13,7 +13,7 @@ presses) and one torch thread; they run interleaved frame by frame, so load from
 Prints one JSON object as its last line: median ms per frame for each (interleaved: `reference_ms`, `fast_ms`,
 `speedup`), the fast path alone over the same frames (`fast_alone_ms`; the interleaved reference evicts its caches)
 and each frame after a pause of 1/60 s, as a camera delivers them (`fast_after_60hz_pause_ms`),
-all five outputs (`fast_full_outputs_ms`), the max-depth agreement and where it comes from (`qvga_geometry`:
+all five outputs (`fast_full_outputs_ms`), the max-depth agreement and where it comes from (`*_geometry`:
 per press, the cap height of each pipeline and the false depth each leaves far from the contact), the Poisson
 solve by matrix products against scipy.fft (`qvga_poisson_solve`: alone by window side, and the pipeline with and
 without it), VGA numbers and, with --device cuda, batched GPU throughput.
@@ -362,9 +362,10 @@ def main() -> int:
     result["qvga_poisson_solve"] = bench_solve(model, frames, reps)
     log(f"qvga poisson solve: {result['qvga_poisson_solve']}")
     if not args.no_vga:
-        vmodel, vframes, _ = train("vga", max(5, epochs // 3), 12, log)
+        vmodel, vframes, vlabelled = train("vga", max(5, epochs // 3), 12, log)
         result["vga"] = bench(vmodel, vframes, max(2, reps // 4), torch, scipy_fft)
         log(f"vga: {result['vga']}")
+        result["vga_geometry"] = geometry_agreement(vmodel, vframes, vlabelled, torch, scipy_fft)
     if args.device:
         result["gpu"] = {"qvga": bench_gpu(model, frames, args.device, torch)}
         if not args.no_vga:
