@@ -244,6 +244,50 @@ def test_setpoint_speed_limited(drive, channel):
         assert all(v >= -0.02 * (1 + 1e-9) for v in velocities), velocities  # never faster
 
 
+def test_profile_velocity_rounds_down(drive, channel):
+    """The drive's own speed limit (what the ``open`` safe state's jump runs at) never exceeds max_speed: 0x6081 is
+    rounded down (it was rounded to nearest: 62502 counts/s = 0.0500002 m/s here, and a limit below 1 count/s was
+    raised to 1 count/s)."""
+    with harness(channel, counts_closed=100003, max_speed=0.05) as h:
+        # 0.05 m/s / (0.08 m / 100003 counts) = 62501.875 counts/s
+        assert drive.get(0x6081) == 62501 == h.comp.profile_velocity
+        assert drive.get(0x6081) * abs(h.comp.map.scale) <= 0.05
+    with harness(channel, max_speed=0.04):   # exactly 50000 counts/s: not lost to binary rounding
+        assert drive.get(0x6081) == 50000
+    configure_fails(harness(channel, counts_closed=100, max_speed=0.0005),
+                    r"max_speed 0.0005 m/s is below the slowest profile velocity 0x6081 .* 0.0008 m/s")
+
+
+def test_safe_state_does_not_enable_a_stopped_drive(drive, channel):
+    """A drive that left OPERATION ENABLED (its quick stop: an e-stop input, another master) is not enabled again by
+    the safe state: RPDO1's controlword (enable operation) took it back to OPERATION ENABLED, and the ``open`` safe
+    state's set-point then drove the fingers open."""
+    with harness(channel, safe_mode="open") as h:
+        drive_until(h, 0.06, latched(drive, h.comp.map.counts(0.06)))
+        logs = []
+        h.ctx._log = logs.append
+        drive._controlword(0x0002)   # quick stop
+        assert drive.state == "QUICK STOP ACTIVE"
+        with pytest.raises(HardwareError, match=r"left OPERATION ENABLED \(statusword 0x"):
+            drive_for(h, 0.06, WAIT)   # a failure bound: raises at the next state
+        frames = drive.rpdo_frames
+        h.comp.safe_state()   # logs, never raises
+        time.sleep(0.1)
+        assert drive.state == "QUICK STOP ACTIVE" and drive.rpdo_frames == frames
+        assert drive.latched == h.comp.map.counts(0.06)   # not the open set-point (0 counts)
+        assert any("not in OPERATION ENABLED" in m for m in logs)
+
+
+def test_heartbeat_period_must_fit_0x1017():
+    # 0x1017 holds whole milliseconds (UNSIGNED16): 0.0004 s was written as 0 (heartbeat off, then faulted as a lost
+    # drive after read_timeout), 70 s failed at start-up with "Value does not fit in specified type"
+    for value in (0.0004, 70.0):
+        with pytest.raises(ValidationError, match=r"heartbeat_period .* 0x1017"):
+            CanopenGripper.Params(heartbeat_period=value)
+    assert CanopenGripper.Params(heartbeat_period=0).heartbeat_period == 0
+    assert CanopenGripper.Params(heartbeat_period=65.535).heartbeat_period == 65.535
+
+
 def test_safe_state_open(drive, channel):
     with harness(channel, safe_mode="open") as h:
         drive_for(h, 0.07, 0.3)
@@ -312,6 +356,9 @@ def test_params_validation():
         CanopenGripper.Params(counts_open=5, counts_closed=5)
     with pytest.raises(ValidationError, match="node_id"):
         CanopenGripper.Params(node_id=200)
+    # a calibration opening in millimetres (80 m) is refused naming the field (the limits lay within 0-80 m)
+    with pytest.raises(ValidationError, match=r"opening_at_counts_open \(80 m\) is beyond any gripper's opening"):
+        CanopenGripper.Params(opening_at_counts_open=80)
 
 
 def test_opening_limits_must_lie_within_the_calibration():

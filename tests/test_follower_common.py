@@ -203,6 +203,16 @@ def test_millimetres_typed_in_an_opening_limit_are_refused(field, value):
     assert FollowerParams(max_opening="90mm").max_opening == pytest.approx(0.09)
 
 
+@pytest.mark.parametrize("field, value", [("opening_at_ticks_open", 75.0), ("opening_at_ticks_closed", 5.0)])
+def test_millimetres_typed_in_a_calibration_opening_are_refused(field, value):
+    """``opening_at_ticks_open: 75`` meant 75 mm; taken as 75 m, the limits (0-75 mm) lay within the calibration and it
+    was accepted: the open gripper read 75 m and every command mapped to ticks near the closed end."""
+    with pytest.raises(ValidationError, match=rf"{field} \({value:g} m\) is beyond any gripper's opening .*"
+                                              rf"write {value / 1e3:g}"):
+        DynamixelGripper.Params(**{field: value})
+    assert DynamixelGripper.Params(opening_at_ticks_open="75mm").opening_at_ticks_open == pytest.approx(0.075)
+
+
 @pytest.mark.parametrize("stamp", ["old", "future", "nan"])
 def test_stale_command_holds_the_measured_opening(stamp):
     with Harness(SimGripper, FREE) as h:  # command_timeout 0.2 s (the default)

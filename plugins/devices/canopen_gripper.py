@@ -4,18 +4,19 @@ Start-up (all through the canopen library): connect the bus; check the node answ
 (0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060,
 asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078
 + velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in
-0x6061); profile velocity 0x6081 from ``max_speed``; max current 0x6073 from ``max_effort``; target := actual; NMT
-operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402).
+0x6061); profile velocity 0x6081 from ``max_speed`` (rounded down); max current 0x6073 from ``max_effort``; target :=
+actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402).
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
 transmit is retried by the next write), and the safe state always sends its hold set-point; a lock makes a step's
-command and send one unit, so a safe_state() from another thread waits for it and its hold goes out last. Max
-current 0x6073 is rounded down, so the current cap never exceeds ``max_effort``. Each step then transmits SYNC and
-waits (``pdo_timeout``) for the TPDOs it triggers. A drive in FAULT (statusword; reported with its EMCY), a lost
-heartbeat or missing TPDOs end in a HardwareError naming the cause. Scaling (counts <-> opening, per-mille current
-<-> newtons) is configuration; an EDS file is optional (without one, the standard CiA 301/402 objects above are
-assumed).
+command and send one unit, so a safe_state() from another thread waits for it and its hold goes out last. No
+set-point goes out while the last statusword is not OPERATION ENABLED: RPDO1's controlword would enable a drive in
+quick stop or switched on again (the drive's own stop holds it). Max current 0x6073 is rounded down, so the current
+cap never exceeds ``max_effort``. Each step then transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
+triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat or missing TPDOs end in a
+HardwareError naming the cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS
+file is optional (without one, the standard CiA 301/402 objects above are assumed).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import time
 from fractions import Fraction
 from typing import Any
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import HardwareError, hookimpl
 from teletouch.units import Meters, Newtons, Seconds
@@ -116,6 +117,16 @@ class CanopenGripper(FollowerBase):
         heartbeat_period: Seconds = Field(0.1, ge=0, description="drive heartbeat period (0: off); three missed "
                                           "heartbeats are a fault", json_schema_extra={"unit": "s"})
 
+        @field_validator("heartbeat_period")
+        @classmethod
+        def _heartbeat(cls, v: float) -> float:
+            # 0x1017 holds whole milliseconds (UNSIGNED16): 0.0004 s was written as 0 (heartbeat off, then faulted as
+            # a lost drive), 70 s failed with a bare "Value does not fit in specified type"
+            if v != 0 and not 0.001 <= v <= 65.535:
+                raise ValueError(f"heartbeat_period {v:g} s does not fit the drive's producer heartbeat time 0x1017 "
+                                 f"(whole ms, 1-65535): give 0 (off) or 0.001-65.535 s")
+            return v
+
         @model_validator(mode="after")
         def _map(self) -> "CanopenGripper.Params":
             OpeningMap(self.counts_open, self.opening_at_counts_open, self.counts_closed,
@@ -187,9 +198,8 @@ class CanopenGripper(FollowerBase):
         mode = self._sdo("reading mode display 0x6061", lambda: node.sdo[0x6061].raw)
         if mode != PROFILE_POSITION:
             raise HardwareError(f"{self._where()} did not enter profile position mode (0x6061 = {mode})")
-        scale = abs(self.map.scale)
-        self._sdo("writing profile velocity 0x6081",
-                  lambda: setattr(node.sdo[0x6081], "raw", max(1, int(round(p.max_speed / scale)))))
+        self.profile_velocity = self._profile_velocity()
+        self._sdo("writing profile velocity 0x6081", lambda: setattr(node.sdo[0x6081], "raw", self.profile_velocity))
         self.rated_ma = self._sdo("reading rated current 0x6075", lambda: node.sdo[0x6075].raw)
         if not self.rated_ma:
             raise HardwareError(f"{self._where()} reports a rated current (0x6075) of 0 mA")
@@ -211,6 +221,20 @@ class CanopenGripper(FollowerBase):
         finally:
             self.network.sync.stop()
         self._hb_seen = time.monotonic()
+
+    def _profile_velocity(self) -> int:
+        """Profile velocity 0x6081 (counts/s) for ``max_speed``, rounded down in exact decimal arithmetic: the drive's
+        own speed limit (what a set-point jump, the ``open`` safe state, runs at) never exceeds max_speed (rounded to
+        nearest it did, and a limit below 1 count/s became 1 count/s)."""
+        p = self.params
+        span = abs(Fraction(repr(p.opening_at_counts_open)) - Fraction(repr(p.opening_at_counts_closed)))
+        exact = Fraction(repr(p.max_speed)) * abs(p.counts_closed - p.counts_open) / span
+        raw = min(math.floor(exact), 0xFFFFFFFF)
+        if raw < 1:
+            unit = float(span) / abs(p.counts_closed - p.counts_open)
+            raise HardwareError(f"max_speed {p.max_speed} m/s is below the slowest profile velocity 0x6081 of "
+                                f"{self._where()} (1 count/s = {unit:.4g} m/s with this calibration); raise max_speed")
+        return raw
 
     def _max_current_permille(self, rated_ma: int) -> int:
         """Max current 0x6073 (per mille of the rated current) for ``max_effort``, rounded down: the cap the drive
@@ -337,6 +361,10 @@ class CanopenGripper(FollowerBase):
 
     def _hw_write(self, opening: float) -> None:
         with self._io_lock:
+            sw = self.tp1[0x6041].raw   # the last statusword received
+            if sw & 0x6F != 0x27:   # RPDO1's controlword (enable operation) would enable the drive again
+                raise HardwareError(f"{self._where()} is not in OPERATION ENABLED (statusword 0x{sw:04X}): no "
+                                    f"set-point sent, it would enable the drive again (quick stop, disabled or fault)")
             counts = self.map.counts(opening)
             if counts != self._target:
                 self._target = None  # unknown until both frames went out: a failed transmit is retried next time

@@ -86,7 +86,13 @@ class OpeningMap:
 
     def check_limits(self, params: "FollowerParams", open_field: str, closed_field: str) -> None:
         """Refuse ``min_opening``/``max_opening`` outside the two calibration points: a command there would be
-        extrapolated past the points to counts the fingers may not reach (driving into the mechanical end)."""
+        extrapolated past the points to counts the fingers may not reach (driving into the mechanical end). A
+        calibration opening beyond any gripper's (millimetres typed in the metre field) is refused, naming the field:
+        ``75`` was taken as 75 m and the limits lay within it."""
+        for field, value in ((open_field, self.opening_open), (closed_field, self.opening_closed)):
+            problem = millimetres_in_metres(field, value)
+            if problem:
+                raise ValueError(problem)
         lo, hi = sorted((self.opening_open, self.opening_closed))
         for name, value in (("min_opening", params.min_opening), ("max_opening", params.max_opening)):
             if not lo - 1e-9 <= value <= hi + 1e-9:
