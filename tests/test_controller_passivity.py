@@ -436,3 +436,59 @@ def test_the_prediction_never_steps_the_force_when_it_stops(case):
     else:
         # the predicted 1 N (the cap) is blended out over smoothing_time (~0.06 N a step) while the estimate fades
         assert max(abs(s) for s in steps) < 0.08 and fs[-1] == 0.0
+
+
+@pytest.mark.parametrize("k_env,v", [(20000.0, -0.005), (2000.0, -0.02)])
+def test_a_newly_learnt_stiffness_never_steps_the_force(k_env, v):
+    # the learnt K was used at once: when the first K of a contact was learnt (and at every large change of it) the
+    # predicted term stepped by K's change x the command's motion since the capture, 0.97 N in one step at 20 kN/m
+    # (0.41 N at 2 kN/m, 20 mm/s) where the true force moves 0.1 N (0.04 N) a step; K now ramps as the capture
+    # point does, over smoothing_time
+    rows, comp = _spring_contact(True, k_env=k_env, v=v)
+    assert comp.k_hat > 0.5 * k_env                                 # the prediction was at work
+    steps = [abs(b[1] - a[1]) for a, b in zip(rows, rows[1:])]
+    assert max(steps) < 2.0 * k_env * abs(v) * 1e-3                 # at most twice the true force's change a step
+
+
+def test_no_damping_is_kept_raised_in_free_space_for_the_next_contact():
+    # a deficit left by a released contact, the fingers closing in free space onto a new object: the force
+    # controller applies nothing in free space, yet its damping went up to 40 N*s/m there (shown on the damping
+    # output) and met the new contact at once, 2 N at 50 mm/s in one step; it now rises over damping_smoothing
+    v = -0.05
+    with Harness(PositionForce, {"deadband": 0.0, "force_prediction": False, "max_force_rate": 1e6}) as h:
+        h.step(0.0, leader_opening=0.05, leader_velocity=v, force=Sample(0.0, 0.0))
+        h.comp.pas.energy = -0.01
+        outs = []
+        for k in range(1, 80):
+            t = k * 1e-3
+            outs.append(h.step(t, leader_opening=0.05 + v * t, leader_velocity=v,
+                               force=Sample(0.0 if k < 40 else 0.5, t)))
+    free = outs[:39]
+    assert all(o["gripper_force"] == 0.0 and o["damping"] == 0.0 for o in free)    # was 40 N*s/m shown
+    assert free[-1]["energy"] < -0.005                                  # the deficit is still there
+    first = next(i for i, o in enumerate(outs) if o["gripper_force"] > 0.0)
+    d = [o["damping"] for o in outs[first - 1:]]
+    assert d[1] <= 0.2 * 40.0 + 1e-9 and max(b - a for a, b in zip(d, d[1:])) <= 0.2 * 40.0 + 1e-9
+    assert max(d) > 35.0                                                # the deficit still brings it up
+    assert outs[first]["gripper_force"] < 0.5 + 0.2 * 40.0 * abs(v)     # was 2.03 N
+
+
+def test_a_repeated_time_keeps_the_passivity_damping():
+    # a step at the same time as the previous one (dt = 0) dropped the damping to 0 with damping_release 0, and it
+    # rose again over damping_smoothing: the force surged 1.2 -> 1.6 N while the deficit was still being paid
+    p = {"deadband": 0.0, "smoothing_time": 0.0, "force_prediction": False, "damping_release": 0.0,
+         "reduction_min_velocity": 1.0}
+    v = 0.02
+    with Harness(PositionForce, p) as h:
+        outs = []
+        for k in range(120):
+            t = k * 1e-3
+            if k == 60:
+                h.comp.pas.energy = -0.05
+            vals = {"leader_opening": 0.015 + v * t, "leader_velocity": v, "force": Sample(2.0, t)}
+            outs.append(h.step(t, **vals))
+            if k == 80:
+                outs.append(h.step(t, **vals))                      # the same time again
+    assert outs[80]["damping"] == pytest.approx(40.0)
+    assert all(o["damping"] == pytest.approx(40.0) for o in outs[80:])
+    assert max(o["gripper_force"] for o in outs[80:]) == pytest.approx(2.0 - 40.0 * v)

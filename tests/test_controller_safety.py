@@ -289,3 +289,23 @@ def test_an_older_force_estimate_after_a_newer_one_is_ignored():
     f1, e1 = run(True)
     assert f1 == pytest.approx(f0, abs=1e-12)
     assert e1 == pytest.approx(e0, abs=1e-12)
+
+
+def test_the_estimate_state_comes_back_with_the_leader():
+    # the leader lost for 60 ms and back, the 60 Hz estimate fresh all along: the state stayed stale-leader (and the
+    # contact prediction, which needs the state ok, off) until the next estimate arrived, up to a frame later
+    with Harness(PositionForce, {"deadband": 0.0}) as h:
+        for k in range(400):
+            t = k * 1e-3
+            vals = {"leader_opening": math.nan if 100 <= k < 160 else 0.02}
+            if k % 17 == 0:
+                vals["force"] = Sample(2.0, t)
+            h.step(t, **vals)
+            if k == 120:
+                assert h.comp.state == "stale-leader"
+            if k == 160:                                       # back; the next estimate comes at 170
+                assert h.comp.leader_ok and h.comp.state == "ok"
+        for k in range(400, 600):                              # a stale estimate while the leader is lost: stale-force
+            t = k * 1e-3
+            h.step(t, leader_opening=math.nan if k < 450 else 0.02)
+        assert h.comp.state == "stale-force" and h.comp.force_lost()

@@ -536,7 +536,9 @@ class _Bilateral(Component):
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, self._damping_cap, p.energy_leak_time,
                                            reduce_force=False)
             f_capped = f_des                       # with the capped damping at once (what the cut may count on)
-            if p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
+            if dt <= 0.0:                          # a repeated time is no step: the damping stays (it dropped
+                alpha = self.pas.alpha             # to 0 with damping_release 0, then rose: a surge of the force)
+            elif p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_smoothing)
             elif p.damping_release > 0.0 and alpha < self.pas.alpha:
                 alpha = self.pas.alpha + (alpha - self.pas.alpha) * min(1.0, dt / p.damping_release)
@@ -545,7 +547,10 @@ class _Bilateral(Component):
             f_des = f_fb - alpha * v
             if p.passivity_controller == "force":
                 if free:
-                    f_des = f_fb                   # nothing in free space: no drag, no pull once contact is over
+                    # nothing in free space: no drag, no pull once contact is over; and no damping kept raised for
+                    # the next contact (it met that contact at once, up to max_damping, not over damping_smoothing,
+                    # and the damping output showed what was not applied)
+                    f_des, alpha = f_fb, 0.0
                 elif p.passivity_no_reversal and opposite_signs(f_des, f_fb):   # (a product may underflow)
                     f_des = 0.0                    # the damping may take the feedback force away, not reverse it
             if ((p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0
@@ -661,6 +666,8 @@ class PositionForce(_Bilateral):
         self.hold = ForceHold(0.0)
         self.xref = ForceHold(0.0)              # follower command at the capture of the estimate, ramped likewise
         self.k_hat = 0.0                        # learnt contact stiffness (N/m, sensed force per follower metre)
+        self.k_from = 0.0                       # the stiffness used when k_hat last changed (see _stiffness) ...
+        self.k_t0 = 0.0                         # ... and when
         self.pred_prev: tuple[float, float] | None = None
         self.pred_on = False
         self.pred_active = False                # the predicted term was being added (see _predicted)
@@ -671,9 +678,14 @@ class PositionForce(_Bilateral):
         self.latencies: list[float] = []        # controller time of first use - force stamp, per new fresh estimate
         self.bad_force = 0
         self.resuming = False                   # the follower command was held: it slews back (resume_speed)
+        self.force_state = "waiting"            # the estimate's state, kept while step() shows stale-leader
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         p = self.params
+        # step() shows stale-leader while the leader is lost; the estimate's own state returns with the leader (it
+        # stayed stale-leader, and the prediction off, until the next estimate came)
+        if self.state == "stale-leader":
+            self.state = self.force_state
         s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
         if s is not None and s.stamp != self.last_stamp:
             self.last_stamp = s.stamp
@@ -707,6 +719,7 @@ class PositionForce(_Bilateral):
         elif not s.is_fresh(t, p.stale_after) and self.state != "bad-force":
             self.state = "stale-force"
             self._fade(t)
+        self.force_state = self.state
         f = self._predicted(t, self.hold.value(t))
         # a stale or bad estimate fades: it never raises the force (when a lost leader came back during the fade,
         # the force rose again towards the stale estimate)
@@ -721,7 +734,7 @@ class PositionForce(_Bilateral):
         active = self.pred_on and self.state == "ok" and self.command is not None and f != 0.0
         target = 0.0
         if active:
-            d = self.k_hat * (self.xref.value(t) - self.command)        # sensed force change since the capture
+            d = self._stiffness(t) * (self.xref.value(t) - self.command)   # sensed force change since the capture
             lim = p.prediction_max_change
             d = lim if d > lim else -lim if d < -lim else d
             target = p.force_scale * d
@@ -739,6 +752,15 @@ class PositionForce(_Bilateral):
         self.pred_term = total - f
         return total
 
+    def _stiffness(self, t: float) -> float:
+        """The stiffness the prediction uses: ``k_hat``, reached by a linear ramp of ``smoothing_time`` from the
+        value used when it last changed, as the capture point ramps (a new K at once stepped the term, and the
+        force in the hand, by up to prediction_max_change x force_scale when the first K of a contact was learnt)."""
+        ts = self.params.smoothing_time
+        if ts > 0.0 and t - self.k_t0 < ts:
+            return self.k_from + (self.k_hat - self.k_from) * max(0.0, (t - self.k_t0) / ts)
+        return self.k_hat
+
     def _learn(self, t: float, stamp: float, f_s: float) -> None:
         """Contact model for the prediction: the stiffness K = -dF/dx_cmd from successive estimates."""
         p = self.params
@@ -747,12 +769,13 @@ class PositionForce(_Bilateral):
             self.pred_prev = None
             self.pred_on = False
             if not f_s > p.deadband:
-                self.k_hat = 0.0        # the contact is over: the next one (another object) is learnt afresh
+                self.k_hat = self.k_from = 0.0      # the contact is over: the next one is learnt afresh
             return
         prev = self.pred_prev
         if prev is not None and abs(x_s - prev[1]) > p.prediction_min_motion:
             k = -(f_s - prev[0]) / (x_s - prev[1])
             k = min(max(k, 0.0), p.prediction_max_stiffness)
+            self.k_from, self.k_t0 = self._stiffness(t), t
             self.k_hat += p.prediction_rate * (k - self.k_hat)
             self.pred_prev = (f_s, x_s)
         elif prev is None:
