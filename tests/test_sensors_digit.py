@@ -720,3 +720,106 @@ nodes:
     assert not cam.released_during_read
     cam.unblock.set()
     assert cam.released.wait(5) and not cam.released_during_read
+
+
+def test_a_frame_rate_the_camera_does_not_give_is_refused(fake_camera):
+    """V4L2 snaps a frame rate the format does not offer to one it does (VIDIOC_S_PARM succeeds): qvga60 on a camera
+    that gives 30 fps at 320x240 ran at 30 fps, unnoticed, and its faults said "expected 60 fps". The rate in use is
+    read back (CAP_PROP_FPS: VIDIOC_G_PARM) and checked like the size."""
+    import cv2
+
+    def snapped(cam):
+        real = cam.set
+
+        def set_(prop, value):   # what uvcvideo does: the nearest frame interval of the format
+            return real(prop, 30.0 if prop == cv2.CAP_PROP_FPS else value)
+        cam.set = set_
+
+    h, cam = fake_camera(lambda cam, k: _stall(cam))
+    snapped(cam)
+    with pytest.raises(HardwareError, match=r"DIGIT D20001 .*video2.*: asked for 60 fps \(qvga60\) but the camera "
+                                            r"gives 30 fps"):
+        with h:
+            pass
+    assert cam.released.is_set()
+    # check_resolution false accepts it, and says what it expects
+    h, cam = fake_camera(lambda cam, k: _stall(cam), check_resolution=False)
+    snapped(cam)
+    with h:
+        assert h.comp._pace_text == "30 fps, stream qvga60"
+        cam.unblock.set()
+
+
+def _step_until_a_sample(h: Harness, t0: float, limit: float = 5.0) -> list:
+    """Step at about 200 Hz until the node publishes (a fault raises), for at most ``limit`` s: the samples."""
+    start = time.monotonic()
+    while time.monotonic() - start < limit:
+        out = h.comp.step(time.monotonic() - t0, h.inputs)
+        if out:
+            return [out["image"]]
+        time.sleep(0.005)
+    return []
+
+
+def test_a_frame_from_before_a_reactivation_is_never_published(fake_camera):
+    """deactivate() then activate() (a component may be activated again): the frame the capture thread had read but
+    the graph never took, and a buffer the driver filled while no one read (V4L2 keeps its capture time), are older
+    than the activation; they were published as the first samples after it."""
+    streaming = threading.Event()
+    streaming.set()
+    queued: list[float] = []     # capture times of buffers filled while deactivated (V4L2: CLOCK_MONOTONIC, ms)
+
+    def script(cam, k):
+        if queued:
+            cam.pos_msec = queued.pop() * 1e3
+            return True, _landscape(19)
+        if not streaming.is_set():
+            return _stall(cam)
+        time.sleep(0.01)
+        cam.pos_msec = 0.0       # no buffer time: the receive time
+        return True, _landscape(k % 10)
+
+    h, cam = fake_camera(script)
+    with h:
+        t0 = _wall_clock(h)
+        assert _step_until_a_sample(h, t0)
+        g = h.comp.grabber
+        deadline = time.monotonic() + 5
+        while g.seq <= h.comp.frames + h.comp.before_start and time.monotonic() < deadline:
+            time.sleep(0.005)   # a frame waits, not taken
+        h.comp.deactivate()
+        streaming.clear()
+        queued.append(time.monotonic())
+        time.sleep(0.05)
+        t_act = time.monotonic()
+        h.comp.activate()
+        late, _, exc = _step_until_fault(h, t0, limit=0.3)
+        assert exc is None and late == [], [s.stamp for s in late]
+        assert h.comp.before_start >= 2
+        streaming.set()
+        cam.unblock.set()
+        fresh = _step_until_a_sample(h, t0)
+        assert fresh and fresh[0].stamp >= t_act - t0
+
+
+def test_a_fault_of_the_previous_activation_is_not_raised_again_after_reactivation(fake_camera):
+    """The capture thread's error (or end of file) belongs to the activation that read it: after deactivate() and
+    activate() on a camera that delivers again, the old error faulted the node at its first step."""
+    failing = threading.Event()
+    failing.set()
+
+    def script(cam, k):
+        time.sleep(0.005)
+        if failing.is_set():
+            return False, None
+        return True, _landscape(k % 10)
+
+    h, cam = fake_camera(script)
+    with h:
+        t0 = _wall_clock(h)
+        _, _, exc = _step_until_fault(h, t0, limit=5.0)
+        assert isinstance(exc, HardwareError) and "stopped delivering frames" in str(exc), exc
+        h.comp.deactivate()
+        failing.clear()          # the camera delivers again
+        h.comp.activate()
+        assert _step_until_a_sample(h, t0)

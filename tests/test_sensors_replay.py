@@ -306,3 +306,17 @@ def test_replay_folder_of_mixed_sizes_names_the_odd_frame(shared_data, tmp_path)
         h.step(0.0)
         with pytest.raises(ComponentFault, match=r"0001.jpg: size 640x480 differs"):
             h.step(1 / 30)
+
+
+def test_replay_video_without_a_frame_fails_at_configure(tmp_path):
+    """A video that opens but holds no frame (a recorder stopped before its first frame) replayed nothing and ended
+    the run as a normal stop ("finished: 0 frames"); an empty folder or recording is an error naming it."""
+    import cv2
+
+    path = tmp_path / "empty.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20.0, (320, 240))
+    vw.release()
+    assert path.stat().st_size > 0
+    with pytest.raises(ModelFileError, match=rf"{path}: no frame can be decoded"):
+        with Harness(Replay, {"path": str(path)}):
+            pass

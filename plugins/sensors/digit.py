@@ -12,8 +12,9 @@
 - A capture thread reads continuously and keeps only the newest frame, stamped with its capture time: the V4L2
   buffer's time (CLOCK_MONOTONIC, start of exposure, via CAP_PROP_POS_MSEC) when it is plausible, else
   time.monotonic() right after the read; mapped to the graph clock. Frames the graph never took are counted as
-  dropped, a frame captured during start-up, before graph time 0, is not passed on (``before_start``), and a frame
-  is published once: a step without a new frame publishes nothing, so the port's sample ages.
+  dropped, a frame captured during start-up, before graph time 0, or before activate() (one left from before a
+  deactivate()) is not passed on (``before_start``), and a frame is published once: a step without a new frame
+  publishes nothing, so the port's sample ages.
 - Errors say what to do and name the DIGIT (serial and node): no DIGIT, two DIGITs and no serial, wrong serial
   (lists what is connected), permission denied (the udev rule), unplugged or re-enumerated mid-run, a failed read,
   no frame for ``frame_timeout``, a frame of another size or format than expected (the node faults; the runtime
@@ -128,6 +129,8 @@ class FrameGrabber:
             raise HardwareError(f"{self.name}: the capture thread of the previous activation is still blocked in a "
                                 f"read; unplug and replug the DIGIT")
         self._stop.clear()
+        self.error = None      # what ended the previous activation's thread; this one reads afresh
+        self.eof = False
         with self._cap_lock:
             if self._released:
                 raise HardwareError(f"{self.name}: the capture was released (closed)")
@@ -299,7 +302,7 @@ class Digit(Component):
         on_eof: Literal["stop", "loop", "fault"] = Field("stop", description="end of a file source: stop the run, "
                                                          "loop, or fault like an unplugged sensor")
         check_resolution: bool = Field(True, description="fault if the camera does not deliver the stream's size "
-                                       "(false: any size, but it must not change mid-run)")
+                                       "and fps (false: any size and fps, but the size must not change mid-run)")
         sysfs_root: str = Field("/sys", description="sysfs root for discovery (tests use a fake tree)")
         dev_root: str = Field("/dev", description="device root for discovery")
 
@@ -381,13 +384,24 @@ class Digit(Component):
                 self.cap = None
                 raise HardwareError(f"{self.who}: asked for {width}x{height} ({p.stream}) but the camera gives "
                                     f"{got[0]}x{got[1]}; is this a DIGIT?")
+            # V4L2 (VIDIOC_S_PARM) snaps a frame rate the format does not offer to one it does, without an error;
+            # OpenCV reports the rate in use (VIDIOC_G_PARM; -1 or 0 when the driver cannot tell)
+            got_fps = float(cap.get(cv2.CAP_PROP_FPS))
+            if math.isfinite(got_fps) and got_fps > 0 and not math.isclose(got_fps, fps, rel_tol=0.02):
+                if p.check_resolution:
+                    cap.release()
+                    self.cap = None
+                    raise HardwareError(f"{self.who}: asked for {fps} fps ({p.stream}) but the camera gives "
+                                        f"{got_fps:g} fps; is this a DIGIT? (check_resolution: false accepts it)")
+                self.ctx.log(f"{self.who}: asked for {fps} fps ({p.stream}) but the camera gives {got_fps:g} fps")
+                fps = got_fps
         pace = None
         if self.is_file:
             pace = p.source_rate or (cap.get(cv2.CAP_PROP_FPS) or fps)
         # what every frame must be (portrait rows x cols); None: the first frame's size, kept for the run
         self._expect: tuple[int, int] | None = (width, height) if is_device and p.check_resolution else None
         self._expect_why = f"BGR portrait of stream {p.stream}" if self._expect else ""
-        self._pace_text = (f"{fps} fps, stream {p.stream}" if is_device else
+        self._pace_text = (f"{fps:g} fps, stream {p.stream}" if is_device else
                            f"{pace:g} fps" if pace else "a continuous stream")
         self.grabber = FrameGrabber(cap, self.who, is_file=self.is_file, pace=pace, on_eof=p.on_eof,
                                     lost=self._lost, device_clock=v4l2)
@@ -500,6 +514,11 @@ class Digit(Component):
             return None
         frame, stamp, _ = got
         self._check_frame(frame)
+        if stamp < self._activated:
+            # captured before this activate(): left over from before a deactivate(), or a buffer the driver filled
+            # while no one read; older than this activation, so not its sample (counted with before_start)
+            self.before_start += 1
+            return None
         t_cap = self.ctx.from_monotonic(stamp)
         if t_cap < 0.0:
             # captured during start-up, before graph time 0 (the capture thread starts at activate): older than the

@@ -106,7 +106,11 @@ class _Video(_Source):
         fps = cap.get(cv2.CAP_PROP_FPS)
         self.native_rate = fps if fps and math.isfinite(fps) and fps > 0 else None
         self.count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        # fail at configure time, as a folder or a recording does, if not one frame can be decoded
+        ok, img = cap.read()
         cap.release()
+        if not ok or img is None:
+            raise ModelFileError(f"{path}: no frame can be decoded (an empty, truncated or corrupt video)")
 
     def frames(self):
         import cv2
