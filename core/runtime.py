@@ -177,6 +177,34 @@ class _Node:
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
 
 
+class _StopEvent:
+    """The run's stop flag: ``is_set()``, ``set()`` and ``wait(timeout)`` of :class:`threading.Event`, safe in the
+    main thread, where a Ctrl-C raises KeyboardInterrupt at any bytecode. ``Event.wait()`` takes its Condition's lock
+    in Python code (``Condition.__enter__``/``__exit__``): an interrupt right after that acquire, or right before the
+    release, left the lock held, and the shutdown's first ``set()`` then waited for it forever. Here no lock is held
+    across Python code that anything waits for without a timeout: the first ``set()`` releases a gate (once) that
+    ``wait()`` tries with its timeout; the flag, set first, is what every reader goes by."""
+
+    def __init__(self) -> None:
+        self._flag = False
+        self._gate = threading.Lock()
+        self._gate.acquire()                # released by the first set()
+        self._opened = threading.Lock()     # taken by the first set(): the gate is released once
+
+    def is_set(self) -> bool:
+        return self._flag
+
+    def set(self) -> None:
+        self._flag = True
+        if self._opened.acquire(False):
+            self._gate.release()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if not self._flag and self._gate.acquire(True, -1 if timeout is None else timeout):
+            self._gate.release()            # (open for the other waiters; one interrupted here: they time out)
+        return self._flag
+
+
 _libc = None
 
 
@@ -213,7 +241,7 @@ class Runtime:
         self.taps: list[Tap] = []
         self.faults: list[Fault] = []
         self._now = 0.0
-        self._stop_evt = threading.Event()
+        self._stop_evt = _StopEvent()   # (not a threading.Event: see _StopEvent)
         self._stop_reason: tuple[str, int, str] | None = None  # (status, exit code, message)
         self._lock = threading.Lock()
         self._t0 = 0.0
@@ -925,7 +953,10 @@ class Runtime:
     def _join(self) -> None:
         for th in getattr(self, "_threads", []):
             if th is not threading.current_thread():
-                th.join(timeout=1.0)
+                try:
+                    th.join(timeout=1.0)
+                except RuntimeError:   # never started: a Ctrl-C while the threads were being started (its
+                    pass               # KeyboardInterrupt, not this, is what ends the run)
 
 
 @contextlib.contextmanager
