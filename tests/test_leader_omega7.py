@@ -258,6 +258,24 @@ def test_other_device_types_are_refused(sdk_dir, standin):
     h.comp.close()
 
 
+@pytest.mark.parametrize("system_type, left", [(104, False), (105, True)])
+def test_a_sigma7_is_taken_with_its_handedness(sdk_dir, standin, system_type, left):
+    """dhdc.h numbers the sigma.7 104 (right, DHD_DEVICE_SIGMA331) and 105 (left); the binding had 105 and 106: with
+    allow_other_devices a right sigma.7 was refused, and a left one taken as right, its gripper force sent with the
+    wrong sign (a positive gripper_force closed the operator's fingers)."""
+    standin.set_system_type(system_type)
+    with harness(sdk_dir, allow_other_devices=True) as h:
+        assert h.comp.status()["left_handed"] == left
+        out = wait_and_step(h, 0.05, gripper_force=3.0)
+        assert out["gripper_opening"] == pytest.approx(0.015 + 3.0 / 400.0, abs=2e-4)   # opens, whatever the hand
+        assert standin.forces()[1][3] == pytest.approx(-3.0 if left else 3.0)
+    standin.set_system_type(106)  # a (deprecated) sigma.33P, not a sigma.7
+    h = harness(sdk_dir, allow_other_devices=True)
+    with pytest.raises(dhd.DhdError, match="system type 106, not an omega.7"):
+        h.comp.configure()
+    h.comp.close()
+
+
 # ------------------------------------------------------------------------------------------------ running
 def test_configure_sets_sdk_limits_and_force_only_while_active(sdk_dir, standin):
     h = harness(sdk_dir, max_gripper_force=3.0, max_force="6 N")
@@ -360,6 +378,32 @@ def test_sdk_error_codes_are_reported_with_the_sdk_message(sdk_dir, standin):
             h.step(0.0)
         assert ei.value.code == 15 and "dhdGetButton failed: invalid button index (error 15)" in str(ei.value)
         assert not isinstance(ei.value, dhd.DeviceLostError)
+
+
+def test_dhd_get_status_gets_a_buffer_as_long_as_the_sdk_fills(sdk_dir, standin, monkeypatch):
+    """dhdGetStatus(int status[DHD_MAX_STATUS], char ID) writes DHD_MAX_STATUS ints: 17 in dhdc.h of SDK 3.11 (with
+    DHD_STATUS_AXISCHECKED = 16). The binding passed a buffer of 16: the SDK wrote past its end (heap corruption, at
+    every late step of the firmware watchdog's check)."""
+    lib = dhd.load(sdk_dir)
+    lib.open()
+    real, sizes = lib.lib, []
+
+    class Lib:
+        def __getattr__(self, name):
+            if name != "dhdGetStatus":
+                return getattr(real, name)
+
+            def get_status(status, ID):
+                sizes.append(ctypes.sizeof(status))
+                assert ctypes.sizeof(status) >= 17 * ctypes.sizeof(ctypes.c_int), "the SDK writes 17 ints"
+                return real.dhdGetStatus(status, ID)
+            return get_status
+
+    monkeypatch.setattr(lib, "lib", Lib())
+    assert lib.force_status() == (False, 0)
+    assert sizes and sizes[0] >= 17 * ctypes.sizeof(ctypes.c_int)
+    monkeypatch.undo()
+    lib.close()
 
 
 def test_com_freq_is_reported(sdk_dir, standin):
@@ -477,6 +521,21 @@ def test_safe_state_zero_force_is_not_lost_to_the_time_guard(sdk_dir, standin):
         standin.set_timeguard_every(1)
         h.comp.safe_state()
         assert not standin.flags()["force_enabled"] and standin.forces()[0] == [0.0, 0.0, 0.0, 0.0]
+
+
+def test_safe_state_switches_forces_off_when_the_zero_force_write_fails(sdk_dir, standin):
+    """safe_state()'s zero-force write answered -1 (an SDK error): the exception left _zero_forces before its fallback
+    (forces disabled), so with brakes_on_stop: false the step's 3 N stayed on the operator's hand."""
+    with harness(sdk_dir, brakes_on_stop=False) as h:
+        h.step(0.0, gripper_force=3.0)
+        assert standin.forces()[0][3] == pytest.approx(3.0)
+        standin.set_write_fails(1)
+        try:
+            h.comp.safe_state()   # never raises
+            assert not standin.flags()["force_enabled"] and standin.forces()[0] == [0.0] * 4
+            assert h.comp.safe_errors >= 1
+        finally:
+            standin.set_write_fails(0)
 
 
 # ----------------------------------------------------------------------------------------- hangs, firmware watchdog

@@ -56,8 +56,8 @@ OMEGA6_RIGHT = 34
 OMEGA7_RIGHT = 35
 OMEGA6_LEFT = 36
 OMEGA7_LEFT = 37
-SIGMA7_RIGHT = 105
-SIGMA7_LEFT = 106
+SIGMA7_RIGHT = 104  # DHD_DEVICE_SIGMA331
+SIGMA7_LEFT = 105  # DHD_DEVICE_SIGMA331_LEFT
 SYSTEM_NAMES = {OMEGA3: "omega.3", OMEGA6_RIGHT: "omega.6 right", OMEGA7_RIGHT: "omega.7 right",
                 OMEGA6_LEFT: "omega.6 left", OMEGA7_LEFT: "omega.7 left", SIGMA7_RIGHT: "sigma.7 right",
                 SIGMA7_LEFT: "sigma.7 left"}
@@ -232,8 +232,11 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
 }
 _OPTIONAL = {"dhdGetSDKVersion", "dhdErrorGetLast", "dhdGetDeviceCount", "dhdGetGripperAngleRad", "dhdSetWatchdog",
              "dhdGetWatchdog", "dhdGetStatus", "dhdEnableExpertMode", "dhdDisableExpertMode"}
-# dhdGetStatus: DHD_MAX_STATUS entries; the ones read here, and the causes of the FORCE OFF state (dhdc.h)
-DHD_MAX_STATUS = 16
+# dhdGetStatus: DHD_MAX_STATUS entries (16 in older SDKs, 17 since DHD_STATUS_AXISCHECKED, e.g. SDK 3.11); the
+# buffer has room for more, as the SDK writes as many as its own dhdc.h says; the ones read here, and the causes of the
+# FORCE OFF state (dhdc.h)
+DHD_MAX_STATUS = 17
+_STATUS_SLOTS = 32
 DHD_STATUS_FORCE = 5
 DHD_STATUS_FORCEOFFCAUSE = 14
 FORCEOFF_CAUSES = {0: "none", 1: "the force button", 2: "the velocity threshold", 3: "the firmware watchdog",
@@ -398,7 +401,7 @@ class Dhd:
         f = getattr(self.lib, "dhdGetStatus", None)
         if f is None:
             return None
-        st = (_c.c_int * DHD_MAX_STATUS)()
+        st = (_c.c_int * _STATUS_SLOTS)()
         self._check(f(st, self.id), "dhdGetStatus")
         return bool(st[DHD_STATUS_FORCE]), int(st[DHD_STATUS_FORCEOFFCAUSE])
 

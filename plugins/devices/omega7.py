@@ -397,14 +397,18 @@ class Omega7(Device):
 
     def _zero_forces(self) -> None:
         """Zero force, written until the SDK takes it: a write the time guard skips (DHD_TIMEGUARD: too soon after
-        the step's write) is tried again; if it never goes through, forces are disabled altogether."""
+        the step's write) is tried again; if it never goes through (or fails: -1), forces are disabled altogether."""
         from .dhd import DHD_TIMEGUARD
 
         d = self.dhd
-        for _ in range(20):
-            if d.set_forces(0.0, 0.0, 0.0, 0.0) != DHD_TIMEGUARD:
-                return
-            time.sleep(2e-4)
+        try:
+            for _ in range(20):
+                if d.set_forces(0.0, 0.0, 0.0, 0.0) != DHD_TIMEGUARD:
+                    return
+                time.sleep(2e-4)
+        except Exception:
+            d.enable_force(False)   # the zero-force write failed: the last force would stay on the hand
+            raise
         self.safe_errors += 1
         d.enable_force(False)
 

@@ -8,8 +8,9 @@
  *
  * Internal device model (deliberately simple and deterministic):
  *  - gripper: a first-order spring towards a rest gap, gap = rest + sign * fg / GRIP_K with time constant GRIP_TAU,
- *    integrated on real elapsed time; a left-handed unit (system type 37) reports a negative gripper angle and
- *    linear velocity, and its gripper force acts in the opposite direction (the driver must undo that).
+ *    integrated on real elapsed time; a left-handed unit (system type 37, omega.7; 105, sigma.7) reports a negative
+ *    gripper angle and linear velocity, and its gripper force acts in the opposite direction (the driver must undo
+ *    that).
  *  - handle: quasi-static spring towards a rest position, p = rest + F / HANDLE_K, first-order lag.
  *  - force is produced only while enabled (dhdEnableForce) and the brakes are off; the SDK-side limits
  *    (dhdSetMaxForce, dhdSetMaxGripperForce) clamp what is applied.
@@ -64,7 +65,7 @@ static struct {
     int connected;      /* 0 after standin_unplug(): every call fails with DHD_ERROR_COM */
     int open;
     int serial;
-    int system_type;    /* 35 omega.7 right, 37 omega.7 left */
+    int system_type;    /* 35 omega.7 right, 37 omega.7 left, 104 sigma.7 right, 105 sigma.7 left (dhdc.h) */
     int force_enabled;
     int brakes;
     int gravity;
@@ -83,6 +84,7 @@ static struct {
     char last_str[128];
     unsigned char watchdog; /* firmware watchdog, units of 125 us (0: off) */
     int watchdog_fails;     /* test switch: dhdSetWatchdog answers -1 */
+    int write_fails;        /* test switch: dhdSetForceAndGripperForce answers -1 (nothing reaches the device) */
     double t_cmd;           /* when the device last received a force command (or the watchdog was set) */
     long watchdog_trips;
     int force_off_cause;
@@ -117,7 +119,7 @@ static int ok(void) {
     return 0;
 }
 
-static double hand_sign(void) { return S.system_type == 37 ? -1.0 : 1.0; }
+static double hand_sign(void) { return S.system_type == 37 || S.system_type == 105 ? -1.0 : 1.0; }
 
 static void apply_forces(void);
 
@@ -224,6 +226,7 @@ int standin_get_watchdog(void) { return S.watchdog; }
 long standin_get_watchdog_trips(void) { firmware(); return S.watchdog_trips; }
 int standin_get_force_off_cause(void) { firmware(); return S.force_off_cause; }
 void standin_set_watchdog_fails(int v) { S.watchdog_fails = v; }
+void standin_set_write_fails(int v) { S.write_fails = v; }
 /* the largest |component| of the force commands received since this call */
 void standin_mark(void) { S.peak = 0.0; }
 /* the operator presses the device's force button: forces off, cause BUTTON (as the real device does) */
@@ -319,7 +322,7 @@ int dhdGetSerialNumber(unsigned short *sn, char ID) {
 bool dhdIsLeftHanded(char ID) {
     if (check(ID)) return false;
     ok();
-    return S.system_type == 37;
+    return hand_sign() < 0;
 }
 int dhdEnableForce(unsigned char val, char ID) {
     if (check(ID)) return -1;
@@ -388,6 +391,7 @@ int dhdGetGripperLinearVelocity(double *vg, char ID) {
 int dhdSetForceAndGripperForce(double fx, double fy, double fz, double fg, char ID) {
     if (check(ID)) return -1;
     advance();
+    if (S.write_fails) return fail(DHD_ERROR, "error");
     S.writes++;
     ok();
     /* the time guard: the call came too soon after the previous one, and the command is not sent (skipped) */
@@ -426,10 +430,17 @@ int dhdStop(char ID) {
     return ok();
 }
 
-/* status[16]: DHD_STATUS_POWER 0, CONNECTED 1, FORCE 5, BRAKE 6, FORCEOFFCAUSE 14 (the others read 0 here) */
-int dhdGetStatus(int status[16], char ID) {
+/* status[DHD_MAX_STATUS]: DHD_STATUS_POWER 0, CONNECTED 1, FORCE 5, BRAKE 6, FORCEOFFCAUSE 14 (the others read 0
+   here); DHD_MAX_STATUS is 17 (DHD_STATUS_AXISCHECKED 16) in the SDK this stand-in reports (dhdc.h of SDK 3.11 has
+   17), 16 in older ones: the SDK writes that many, whatever the caller's buffer */
+#ifdef STANDIN_NO_WATCHDOG
+#define DHD_MAX_STATUS 16
+#else
+#define DHD_MAX_STATUS 17
+#endif
+int dhdGetStatus(int status[DHD_MAX_STATUS], char ID) {
     if (check(ID)) return -1;
-    for (int i = 0; i < 16; i++) status[i] = 0;
+    for (int i = 0; i < DHD_MAX_STATUS; i++) status[i] = 0;
     status[0] = 1;
     status[1] = S.connected;
     status[5] = S.force_enabled;
