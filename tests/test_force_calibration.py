@@ -15,7 +15,7 @@ import pytest
 
 from teletouch import ComponentFault
 from teletouch.plugins.estimators.force_calibration import PressRoutine, SimPressRig, fit_samples
-from teletouch.plugins.estimators.poly_force import ForceCalibration, read_pairs_csv
+from teletouch.plugins.estimators.poly_force import CalibrationError, ForceCalibration, read_pairs_csv, write_pairs_csv
 from teletouch.plugins.sensors.gel import Indenter, gel_force
 from teletouch.testing import Harness, make_registry, run_yaml
 
@@ -549,3 +549,52 @@ def test_fit_refuses_a_nan_depth_instead_of_dropping_it_as_no_contact():
     samples[5]["depth_m"] = math.nan
     with pytest.raises(CalibrationError, match=r"sample 5: depth .*nan.* is not finite"):
         fit_samples(samples, 3)
+
+
+# ------------------------------------------------------------------------------------------------ review regressions
+@pytest.mark.parametrize("stamp", [100.0, math.nan])
+def test_a_bad_stamped_depth_while_waiting_does_not_lock_out_the_frames_after_it(stamp):
+    # one depth frame stamped far ahead (a clock fault) or NaN before the start was taken as the newest frame: no
+    # later frame was new, the approach never saw the touch and pushed on (here to the 3 mm depth limit)
+    from teletouch import Sample
+
+    h = Harness(PressRoutine, FAST)
+    h.__enter__()
+    h.step(0.0, position=np.zeros(3), max_depth=Sample(0.0, stamp))
+    assert h.comp.state == "wait"
+    for k in range(1, 2000):
+        target = h.comp.target if h.comp.target is not None else np.zeros(3)
+        pos = np.array(target, dtype=float)
+        out, fault = _step_ms(h, 0.001 * k, position=pos, max_depth=max(0.0, -2e-4 - pos[2]))
+        assert fault is None
+        if h.comp.state == "backoff":
+            break
+    assert h.comp.state == "backoff" and h.comp.touch is not None
+
+
+def test_a_reactivated_routine_starts_with_no_samples():
+    # activate() restarts the press from the wait state: the last run's samples were kept and the new run's were
+    # appended to them (the counts, the cycles and the samples CSV mixed two runs)
+    h = Harness(PressRoutine, dict(FAST, max_displacement="0.5mm", step="0.25mm"))
+    h.__enter__()
+    fault, _ = _ideal_rig(h, 0.0, 3.0)
+    assert fault is None and h.comp.samples
+    h.comp.deactivate()
+    h.comp.activate()
+    assert h.comp.samples == [] and h.comp.state == "wait" and h.comp.progress == 0.0
+
+
+def test_missing_centroid_names_the_csv_line(tmp_path):
+    # with --position-degree a contact row without its centroid was refused without the file or the line
+    rows = [{"depth_m": d, "force_n": 1e3 * d, "x_m": x, "y_m": y}
+            for x in (-2e-3, 0.0, 2e-3) for y in (-4e-3, 0.0, 4e-3) for d in np.linspace(1e-4, 2e-3, 6)]
+    rows[7]["y_m"] = None
+    path = tmp_path / "p.csv"
+    write_pairs_csv(path, rows)
+    data = read_pairs_csv(path)
+    samples = [{"depth_m": d, "force_n": f, "x_m": x, "y_m": y, "line": ln}
+               for d, f, x, y, ln in zip(data["depth_m"], data["force_n"], data["x_m"], data["y_m"], data["line"])]
+    with pytest.raises(CalibrationError, match=r"p.csv:9: column 'y_m' is empty: position_degree 1 needs"):
+        fit_samples(samples, 3, position_degree=1, where=str(path))
+    with pytest.raises(CalibrationError, match=r"sample 7 has no contact centroid"):
+        fit_samples([dict(s, line=None) for s in samples], 3, position_degree=1)

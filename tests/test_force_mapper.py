@@ -573,3 +573,47 @@ def test_hysteresis_with_position_terms_compares_the_phases_at_the_same_points()
     # counts differ); 1-D fits per phase without the correction read -0.01 N mean and -0.93 N max
     assert cal.hysteresis["mean_gap_n"] == pytest.approx(0.2, abs=0.03)
     assert cal.hysteresis["max_gap_n"] == pytest.approx(0.2, abs=0.03)
+
+
+# ------------------------------------------------------------------------------------------------ review regressions
+def test_component_reactivated_starts_the_invalid_count_over(cal_file):
+    # "N invalid inputs in a row" is per activation: a node deactivated after 2 NaN depths faulted on the first bad
+    # input after its next activate()
+    with Harness(PolyForce, {"calibration": cal_file, "fault_after_invalid": 3}) as h:
+        h.step(0.01, max_depth=float("nan"))
+        h.step(0.02, max_depth=float("nan"))
+        h.comp.deactivate()
+        h.comp.activate()
+        out = h.step(0.03, max_depth=float("nan"))
+        assert "force" not in out and out["status"] == "invalid-input"
+
+
+@pytest.mark.parametrize("field,value", [(("model", "basis"), "power-descending"), (("model", "basis"), "chebyshev"),
+                                         (("version",), True)])
+def test_file_of_another_basis_or_a_boolean_version_is_refused(cal_file, tmp_path, field, value):
+    # the coefficients' basis is written and must be read back: a file with them in another order loaded silently;
+    # "version": true passed as version 1 (True == 1)
+    doc = json.loads(open(cal_file).read())
+    target = doc
+    for key in field[:-1]:
+        target = target[key]
+    target[field[-1]] = value
+    bad = tmp_path / "bad.force.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(ModelFileError, match=f"bad.force.json: field '{'.'.join(field)}'"):
+        ForceCalibration.load(bad)
+    assert ForceCalibration.load(cal_file).degree == 3   # the file as written loads
+
+
+def test_position_fit_with_one_depth_level_away_from_the_centre_is_refused():
+    # many depths at the centre (enough depth levels in all) and enough press points for the position terms, but
+    # every other point pressed to one depth only (a few jittering readings): the curve's shape there is free and
+    # least squares took the smallest coefficients, R^2 1 and wrong forces at other depths (0.14 N at 0.5 mm)
+    rng = np.random.default_rng(0)
+    rows = [(d, 0.0, 0.0) for d in np.linspace(0.1e-3, 2e-3, 20)]
+    for x, y in ((-2e-3, -4e-3), (2e-3, -4e-3), (-2e-3, 4e-3), (2e-3, 4e-3), (0.0, 4e-3), (2e-3, 0.0)):
+        rows += [(1e-3 + rng.normal(0, 2e-6), x, y) for _ in range(5)]
+    a = np.array(rows)
+    f = (1500 + 2e5 * a[:, 1]) * a[:, 0] + 4e5 * a[:, 0] ** 2 + 5e7 * a[:, 0] ** 3
+    with pytest.raises(CalibrationError, match="do not determine a degree-3 depth curve with position terms"):
+        ForceCalibration.fit(a[:, 0], f, 3, positions=a[:, 1:], position_degree=1)

@@ -224,6 +224,7 @@ class PressRoutine(Component):
         self._samples_written = False
 
     def activate(self) -> None:
+        self.samples = []   # a new run: the last run's samples are not this one's (counts, cycles, samples_csv)
         self.reset()
 
     # ------------------------------------------------------------------------------------------------ helpers
@@ -307,8 +308,9 @@ class PressRoutine(Component):
                 depth = float(ds.value)
             except (TypeError, ValueError):
                 depth = math.nan
-        # a new frame only if newer than the last one (a repeated or late, out-of-order frame is not)
-        new_depth = ds is not None and (self.last_depth_stamp is None or ds.stamp > self.last_depth_stamp)
+        # a new frame only if newer than the last one (a repeated or late, out-of-order frame is not), and only a
+        # fresh one: a NaN stamp or one far ahead of the clock, taken as the newest, locked out every frame after it
+        new_depth = depth is not None and (self.last_depth_stamp is None or ds.stamp > self.last_depth_stamp)
         if new_depth:
             self.last_depth_stamp = ds.stamp
 
@@ -720,7 +722,13 @@ def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: fl
     if position_degree:
         missing = [i for i, s in enumerate(keep) if s.get("x_m") is None or s.get("y_m") is None]
         if missing:
-            raise CalibrationError(f"position_degree {position_degree} needs the contact centroid of every sample; "
+            s = keep[missing[0]]   # the first one, named as the other refusals name it: the file's line, or the sample
+            if where and s.get("line"):
+                at = f"{where}:{s['line']}: column '{'x_m' if s.get('x_m') is None else 'y_m'}' is empty: "
+            else:
+                i = next(k for k, x in enumerate(samples) if x is s)
+                at = f"{where + ': ' if where else ''}sample {i} has no contact centroid: "
+            raise CalibrationError(f"{at}position_degree {position_degree} needs the contact centroid of every sample; "
                                    f"{len(missing)} of {len(keep)} have none (wire depth.centroid into the "
                                    f"press-routine's 'centroid' input, or give x_m, y_m columns in the CSV)")
         positions = [(float(s["x_m"]), float(s["y_m"])) for s in keep]

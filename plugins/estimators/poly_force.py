@@ -55,6 +55,7 @@ DATA_DIR = Path(__file__).resolve().parent / "data"
 SUFFIX = ".force.json"
 PHASES = ("loading", "unloading", "")
 UNITS = "force in N, depth in m: F(d) = sum_k coefficients[k] * d**k"
+BASIS = "power-ascending"
 #: depths closer than this (m) are one depth level when counting the levels a fit needs: the max-depth estimate of a
 #: held press jitters by 0.4-3 um (standard deviation of single frames, 0.1-1 mm presses on sim-digit) while a press
 #: routine steps 0.1 mm, so samples of a stuck probe or a repeated reading fall in one level
@@ -63,6 +64,10 @@ DEPTH_LEVEL_TOLERANCE_M = 5e-6
 #: simulated calibration 0.9992 and the paper's protocol in simulation 0.99995; 0.99 leaves room for a noisier real
 #: sensor while a fit that explains only 95% of the force's variance is refused
 DEFAULT_MIN_R2 = 0.99
+#: with position terms, the smallest singular value of the fit's column-normalised design matrix relative to the
+#: largest below which the samples do not determine the terms (readings of one depth level at a press point leave
+#: ~1e-10; the packaged calibration's samples give 4e-4, and 2e-5 with position degree 6)
+POSITION_FIT_MIN_SV = 1e-7
 
 
 class CalibrationError(TeletouchError, ValueError):
@@ -280,6 +285,15 @@ def _fit_position(d: np.ndarray, f: np.ndarray, pos: np.ndarray, degree: int, pd
     u = d / s
     first = 1 if zero_intercept else 0
     A = np.concatenate([u[:, None] ** k * phi for k in range(first, degree + 1)], axis=1)
+    # enough depth levels in all and enough press points do not make enough depth levels away from the centre: a
+    # point pressed to one depth only leaves its curve's shape free there (least squares then takes the smallest
+    # coefficients, silently: R^2 1 with wrong forces at the other depths); the packaged calibration's ratio is 4e-4
+    sva = np.linalg.svd(A / np.linalg.norm(A, axis=0), compute_uv=False)
+    if sva[-1] < POSITION_FIT_MIN_SV * sva[0]:
+        raise CalibrationError(f"the samples do not determine a degree-{degree} depth curve with position terms of "
+                               f"degree {pdeg} ({A.shape[1]} terms): the depth levels are not spread over the press "
+                               f"points (a point pressed to too few depths?); press every point to at least "
+                               f"{degree + (1 if zero_intercept else 2)} depths, or lower position_degree or degree")
     a, *_ = np.linalg.lstsq(A, f, rcond=None)
     n = phi.shape[1]
     for i, k in enumerate(range(first, degree + 1)):
@@ -639,7 +653,7 @@ class ForceCalibration:
             "format": FORMAT,
             "version": VERSION,
             "model": {
-                "basis": "power-ascending",
+                "basis": BASIS,
                 "units": UNITS,
                 "degree": self.degree,
                 "coefficients": list(self.coefficients),
@@ -706,12 +720,15 @@ class ForceCalibration:
         if doc.get("format") != FORMAT:
             raise bad("format", f"'{FORMAT}' (is this a force calibration file?)", doc.get("format"))
         ver = doc.get("version")
-        if ver != VERSION:
+        if ver != VERSION or not isinstance(ver, int) or isinstance(ver, bool):   # `true` == 1 in Python
             raise ModelFileError(f"{where}: field 'version': file version {ver!r}, this teletouch reads version "
                                  f"{VERSION}; recalibrate with `teletouch calibrate force` or update teletouch")
         model = doc.get("model")
         if not isinstance(model, dict):
             raise bad("model", "an object")
+        if model.get("basis", BASIS) != BASIS:   # another order or basis would give wrong forces, not an error
+            raise bad("model.basis", f"{BASIS!r} (coefficients c_k of d^k, lowest power first) or absent",
+                      model.get("basis"))
         deg = model.get("degree")
         if not isinstance(deg, int) or isinstance(deg, bool) or not 1 <= deg <= 9:
             raise bad("model.degree", "an integer from 1 to 9", deg)
@@ -1199,6 +1216,7 @@ class PolyForce(Component):
 
     def activate(self) -> None:
         self._reset()
+        self.invalid_run = 0   # "in a row" starts over: a reactivated node may not fault on its first bad input
 
     def _invalid(self, why: str) -> None:
         """Count an invalid input; fault after fault_after_invalid in a row."""
