@@ -399,6 +399,53 @@ def test_safe_state_from_another_thread_goes_out_after_a_step_in_progress(script
         h.__exit__(None, None, None)
 
 
+def test_hold_after_the_state_went_stale_keeps_the_last_setpoint_not_the_stale_measurement(scripted):
+    """/joint_states went silent while the command moved the set-point on (the controller took the fingers along):
+    the read_timeout fault's hold sent the last measured opening, a second old, as a 10 ms goal, so the fingers
+    snapped back by all they had moved since (40 mm instead of 90); with the state stale it holds the last set-point
+    sent, where the controller has the fingers."""
+    h = connect(scripted, harness(max_speed=0.1, read_timeout=1.0))
+    try:
+        t_end = time.monotonic() + realtime.WAIT   # a failure bound
+        with pytest.raises(HardwareError, match=r"/joint_states silent for"):
+            while time.monotonic() < t_end:
+                step(h, 0.09)
+                time.sleep(0.01)
+        last = h.comp._setpoint
+        assert last > 0.06   # moved on, from the measured 40 mm, while the state was silent
+        n = len(scripted.commands())
+        h.comp.safe_state()
+        assert realtime.wait_for(lambda: len(scripted.commands()) > n, 10.0)
+        hold = scripted.commands()[-1].points[0]
+        assert hold.positions[0] * 2 == pytest.approx(last)
+    finally:
+        h.__exit__(None, None, None)
+
+
+def test_open_safe_state_after_the_state_went_stale_takes_the_time_max_speed_needs(scripted):
+    """/joint_states went silent at 90 mm while the command closed the set-point to 40 mm (the controller took the
+    fingers along): the open safe state timed its move from the stale finger positions (no distance) and sent 90 mm
+    to be reached in time_from_start (10 ms), 50 mm at 5 m/s; it counts from the last set-point sent too."""
+    h = connect(scripted, harness(safe_mode="open", max_speed=0.1, read_timeout=1.0), pos=(0.045, 0.045))
+    try:
+        t_end = time.monotonic() + realtime.WAIT   # a failure bound
+        with pytest.raises(HardwareError, match=r"/joint_states silent for"):
+            while time.monotonic() < t_end:
+                step(h, 0.04)
+                time.sleep(0.01)
+        last = h.comp._setpoint
+        assert last < 0.07   # closed, from the measured 90 mm, while the state was silent
+        n = len(scripted.commands())
+        h.comp.safe_state()
+        assert realtime.wait_for(lambda: len(scripted.commands()) > n, 10.0)
+        pt = scripted.commands()[-1].points[0]
+        assert pt.positions[0] * 2 == pytest.approx(0.09)
+        duration = pt.time_from_start.sec + pt.time_from_start.nanosec * 1e-9
+        assert duration >= (0.09 - last) / 0.1 - 1e-6
+    finally:
+        h.__exit__(None, None, None)
+
+
 # --- speeds of set-point jumps (the simulated controller) -------------------------------------------------------
 @pytest.fixture
 def robot():

@@ -5,7 +5,8 @@ each, ``finger_lower``/``finger_upper``); the opening is their sum. Each step pu
 (and at least every ``republish_period`` so that the controller keeps its goal), a trajectory_msgs/JointTrajectory
 with one point (both fingers at half the opening) on ``<namespace>/<controller>/joint_trajectory`` -- the topic
 joint_trajectory_controller accepts besides its action. The point is reached after ``time_from_start``, or after
-as long as the farther finger needs at ``max_speed`` (each finger moves at half the opening's speed), so that a
+as long as the farther finger needs at ``max_speed`` (each finger moves at half the opening's speed; counted from the
+measured fingers and from the last goal sent, where the controller takes them: the measurement may be stale), so that a
 setpoint jump (the ``open`` safe state, a gripper resting outside [min_opening, max_opening] walked into it) never
 moves the fingers faster than ``max_speed``: the controller interpolates at the speed it is given. A setpoint is
 never sent beyond the joints' range, nor non-finite.
@@ -46,8 +47,10 @@ runs anyway; the others are then named in ``status()['other_publishers']`` and l
 Commands through the controller's FollowJointTrajectory action are not seen by this check.
 
 Safe state: ``hold`` sends the measured opening (the controller holds the fingers there: a squeeze is released to
-the object's surface), ``open`` sends ``max_opening``; either is always sent, and a step's command and send hold a
-lock, so a safe_state() from another thread waits for a step in progress and its hold goes out last.
+the object's surface), or the last setpoint sent while the state is stale (no usable message for ``read_timeout``:
+the fingers have followed the setpoint since, and the stale opening would move them back), ``open`` sends
+``max_opening``; either is always sent, and a step's command and send hold a lock, so a safe_state() from another
+thread waits for a step in progress and its hold goes out last.
 
 QoS: ``state_reliability``/``state_depth`` (best-effort, 1: hears a reliable and a best-effort broadcaster) and
 ``command_reliability``/``command_depth`` (reliable, 1: serves the controller's reliable subscription), volatile both
@@ -299,6 +302,7 @@ class PalGripper(FollowerBase):
         self._last_offset = 0.0  # stamp - arrival (Unix time) of the last message used
         self._sent: float | None = None
         self._sent_at = 0.0
+        self._sent_half: float | None = None  # each finger's position in the last command sent (the controller's goal)
         self._no_controller_since: float | None = None
         self.qos_report = ros_qos.QosReport(self._log_once, _qos_hint)
         self.ros_ctx = rclpy.Context()
@@ -560,13 +564,17 @@ class PalGripper(FollowerBase):
 
     def _move_time(self, half: float) -> float:
         """Time for the fingers to reach ``half`` each: time_from_start, or what the farther finger needs at half
-        max_speed (each finger moves at half the opening's speed)."""
+        max_speed (each finger moves at half the opening's speed), counted from the measured fingers and from the
+        last goal sent (where the controller takes them: the measurement may be stale)."""
         p = self.params
         with self._lock:
             fingers = self._fingers
-        if fingers is None:
+        starts = list(fingers or ())
+        if self._sent_half is not None:
+            starts.append(self._sent_half)
+        if not starts:
             return p.time_from_start
-        return max(p.time_from_start, max(abs(half - x) for x in fingers) / (0.5 * p.max_speed))
+        return max(p.time_from_start, max(abs(half - x) for x in starts) / (0.5 * p.max_speed))
 
     def _hw_write(self, opening: float) -> None:
         p = self.params
@@ -590,7 +598,20 @@ class PalGripper(FollowerBase):
             pt.time_from_start.nanosec = min(999_999_999, int(round((duration - sec) * 1e9)))
             msg.points = [pt]
             self.pub.publish(msg)
-            self._sent, self._sent_at = opening, now
+            self._sent, self._sent_at, self._sent_half = opening, now, half
+
+    def safe_target(self) -> float:
+        """``hold`` with the state stale (no usable message for read_timeout, or none): the last set-point sent,
+        where the controller has taken the fingers since; a hold of the stale measured opening would move them
+        back at once. Otherwise the base's target."""
+        p = self.params
+        lock = getattr(self, "_lock", None)
+        if p.safe_mode == "hold" and lock is not None and math.isfinite(self._setpoint):
+            with lock:
+                s = self._state
+            if s is None or time.monotonic() - s[3] > p.read_timeout:
+                return self._setpoint
+        return super().safe_target()
 
     def safe_state(self) -> None:
         lock = getattr(self, "_io_lock", None)
