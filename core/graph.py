@@ -160,33 +160,53 @@ def _merge(base: Any, over: Any) -> Any:
     return over
 
 
+def _node_id(node: Any) -> str | None:
+    """A node's id where it can name a node (a string); a list or a mapping there is reported by validation."""
+    nid = node.get("id") if isinstance(node, dict) else None
+    return nid if isinstance(nid, str) else None
+
+
 def _merge_nodes(base: list, over: list) -> LList:
     out = LList(where=getattr(base, "where", None))
     out.extend(base)
     out.item_where = list(getattr(base, "item_where", [Location(None, None)] * len(base)))
-    index = {n.get("id"): i for i, n in enumerate(out) if isinstance(n, dict)}
+    index = {_node_id(n): i for i, n in enumerate(out) if _node_id(n) is not None}
+    seen: dict[str, Location] = {}   # ids this file lists (not to remove): a second entry is a duplicate, not a merge
     for j, node in enumerate(over):
-        nid = node.get("id") if isinstance(node, dict) else None
+        nid = _node_id(node)
+        shown = node.get("id") if isinstance(node, dict) else None   # as written, for messages
         where = over.loc(j) if isinstance(over, LList) else Location(None, None)
         remove = node.get("remove", False) if isinstance(node, dict) else False
         if not isinstance(remove, bool):
-            raise GraphError(f"node '{nid}': remove: expected true or false, got {remove!r}",
+            raise GraphError(f"node '{shown}': remove: expected true or false, got {remove!r}",
                              node.loc("remove") if isinstance(node, LDict) else where)
         if remove and (nid is None or nid not in index):
-            ids = [k for k in index if isinstance(k, str)]
-            raise GraphError(f"node '{nid}': remove: true, but no included graph has a node '{nid}'"
-                             f"{_suggest(str(nid), ids)}", where)
+            raise GraphError(f"node '{shown}': remove: true, but no included graph has a node '{shown}'"
+                             f"{_suggest(str(shown), index)}", where)
+        if nid is not None and not remove:
+            id_where = node.loc("id") if isinstance(node, LDict) else where
+            if nid in seen:
+                raise GraphError(f"duplicate node id '{nid}' (first defined at {seen[nid]})", id_where)
+            seen[nid] = id_where
         if nid is not None and nid in index:
             i = index[nid]
             if remove:
                 out[i] = None
+                del index[nid]   # a later entry with this id is a new node
                 continue
             merged = _merge(out[i], node)
             if node.get("plugin") not in (None, out[i].get("plugin")) and "params" not in node:
                 merged["params"] = LDict(where=where)  # a new plugin does not inherit the old one's params
             over_in, ins = node.get("inputs"), merged.get("inputs")
             if isinstance(over_in, dict) and isinstance(ins, dict):
+                base_in = out[i].get("inputs")
+                wired = [str(p) for p in base_in] if isinstance(base_in, dict) else []
                 for port in [p for p, src in over_in.items() if src is None]:   # `port: null` unwires an input
+                    if port not in wired:   # a typo would leave the wire it meant in place
+                        raise GraphError(f"node '{nid}': input '{port}': null unwires an input of the included node, "
+                                         f"and it has no input '{port}' wired{_suggest(str(port), wired)}; wired: "
+                                         f"{', '.join(wired) or '(none)'}",
+                                         over_in.loc(port) if isinstance(over_in, LDict) else where)
                     del ins[port]
                     if isinstance(ins, LDict):
                         ins.key_where.pop(port, None)
@@ -209,19 +229,24 @@ def load_raw(path: str | Path, _stack: tuple[str, ...] = ()) -> LDict:
     if key in _stack:
         raise GraphError("include cycle: " + " -> ".join(_stack + (key,)), Location(str(path), None))
     doc = load_yaml_file(path)
-    if not isinstance(doc, dict):
-        raise GraphError("a graph file must be a mapping with a 'nodes' list", getattr(doc, "where", None))
+    if not isinstance(doc, dict):   # (a bare scalar has no location of its own)
+        raise GraphError("a graph file must be a mapping with a 'nodes' list",
+                         getattr(doc, "where", None) or Location(str(path), 1))
     inc = doc.get("include")
     if inc is None:
         return doc
     incs = [inc] if isinstance(inc, str) else inc
     if not isinstance(incs, list) or not all(isinstance(i, str) for i in incs):
         raise GraphError("'include' must be a file name or a list of file names", doc.loc("include"))
+    if not incs:   # `include: []`: nothing to merge
+        return doc
     merged: LDict | None = None
     for i, name in enumerate(incs):
         sub_path = (path.parent / name)
         if not sub_path.exists():
             raise GraphError(f"included file '{name}' not found (looked in {sub_path.parent})", doc.loc("include"))
+        if sub_path.is_dir():
+            raise GraphError(f"included file '{name}' is a folder ({sub_path}), not a graph file", doc.loc("include"))
         sub = load_raw(sub_path, _stack + (key,))
         merged = sub if merged is None else _overlay(merged, sub)
     assert merged is not None
@@ -318,8 +343,12 @@ def load_graph(path: str | Path, *, registry: Any = None, sets: Iterable[str] = 
 def load_graph_text(text: str, file: str = "<graph>", **kw: Any) -> GraphSpec:
     try:
         doc = load_yaml_text(text, file)
-        if not isinstance(doc, dict):
-            raise GraphError("a graph file must be a mapping with a 'nodes' list", getattr(doc, "where", None))
+        if not isinstance(doc, dict):   # (a bare scalar has no location of its own)
+            raise GraphError("a graph file must be a mapping with a 'nodes' list",
+                             getattr(doc, "where", None) or Location(file, 1))
+        if doc.get("include") not in (None, []):   # a text has no folder to resolve it in: it would be left out
+            raise GraphError("'include' needs a graph file to resolve it from: load the file (load_graph, "
+                             "`teletouch run FILE`) instead of its text", doc.loc("include"))
         doc = apply_sets(doc, kw.pop("sets", ()))
     except GraphError as exc:
         raise GraphValidationError([exc]) from None
@@ -529,6 +558,12 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                         if msg.startswith("Value error, "):
                             msg = msg[len("Value error, "):]
                         err(f"node '{nid}': param '{fname}' = {e.get('input')!r}: {msg}", w)
+            else:
+                # YAML reads yes/no/on/off as booleans, and pydantic takes a boolean as 1 or 0 in a number field
+                for k, v in spec.params.items():
+                    if isinstance(v, bool) and not isinstance(getattr(spec.params_obj, str(k), v), bool):
+                        err(f"node '{nid}': param '{k}' = {v!r}: expected a number, got a boolean (YAML reads yes, "
+                            f"no, on and off as true and false)", pwhere.get(k, pwhere_default))
             if clock_v == "sim" and cls.requires_wall_clock:
                 err(f"node '{nid}': {plugin} needs the wall clock (real hardware or other processes in real time) "
                     f"and cannot run on the simulated clock; use --clock wall or a simulated plugin",

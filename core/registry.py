@@ -129,7 +129,12 @@ class Registry:
     def __init__(self, *, autoload: bool | None = None, blocked: Iterable[str] | None = None,
                  extra_modules: Iterable[str] | None = None, blocked_setting: str = "Registry(blocked=...)"):
         """``blocked`` adds names to those of the environment; ``blocked_setting`` is how reports name where they
-        came from (``teletouch`` passes ``--block``)."""
+        came from (``teletouch`` passes ``--block``). A string is a list as the environment writes it (``"a,b"``), as
+        ``extra_modules`` is: iterated, it would block single letters and leave the plugin loaded."""
+        if isinstance(blocked, str):
+            blocked = split_names(blocked)
+        if isinstance(extra_modules, str):
+            extra_modules = _split(extra_modules)
         self.pm = pluggy.PluginManager(GROUP)
         self.pm.add_hookspecs(hookspecs)
         self.plugins: dict[str, PluginRecord] = {}
@@ -510,7 +515,7 @@ def default_registry(reload: bool = False, blocked: Iterable[str] = ()) -> Regis
     names to block (``teletouch --block``: reports name that option as where they came from); giving any reloads
     it."""
     global _default
-    blocked = list(blocked)
+    blocked = split_names(blocked) if isinstance(blocked, str) else list(blocked)
     if _default is None or reload or blocked:
         _default = Registry(blocked=blocked, blocked_setting="--block").load()
     return _default

@@ -106,7 +106,7 @@ def quantity(unit: str, default: Any = ..., description: str = "", **kw: Any) ->
 
 def _validator(unit: str):
     def _v(value: Any) -> Any:
-        if isinstance(value, str):
+        if isinstance(value, (str, bool)):   # (pydantic would take a boolean, YAML's yes or on, as 1.0)
             return parse_quantity(value, unit)
         return value
 

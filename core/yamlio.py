@@ -51,23 +51,55 @@ def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeCons
             return _convert_collection(node, file, constructor, active, where)
         finally:
             active.discard(id(node))
-    return constructor.construct_object(node, deep=True)
+    try:
+        return constructor.construct_object(node, deep=True)
+    except yaml.constructor.ConstructorError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError):   # an explicit tag on a value it cannot
+        tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")              # read: `!!int abc`, `!!bool maybe`
+        raise GraphError(f"YAML error: {node.value!r} is not a valid {tag}", where) from None
+
+
+def _flatten(node: yaml.MappingNode, constructor: "yaml.constructor.SafeConstructor") -> int:
+    """Resolve the merge keys (``<<: *defaults``) of ``node`` in place; return how many of its pairs, at the start,
+    came from them (keys the mapping's own keys may override, as YAML says). Remembered on the node: an alias
+    converts the same node again."""
+    done = getattr(node, "tt_merged", None)
+    if done is not None:
+        return done
+    node.tt_merged = 0   # (while here: a merge key that refers to its own mapping)
+    own = 0
+    for knode, vnode in node.value:
+        if knode.tag != "tag:yaml.org,2002:merge":
+            own += 1
+            continue
+        for sub in vnode.value if isinstance(vnode, yaml.SequenceNode) else [vnode]:
+            if isinstance(sub, yaml.MappingNode):
+                _flatten(sub, constructor)
+    constructor.flatten_mapping(node)
+    node.tt_merged = len(node.value) - own
+    return node.tt_merged
 
 
 def _convert_collection(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor",
                         active: set[int], where: Location) -> Any:
     if isinstance(node, yaml.MappingNode):
-        constructor.flatten_mapping(node)
+        merged = _flatten(node, constructor)
         out = LDict(where=where)
-        for knode, vnode in node.value:
+        inherited: set[Any] = set()   # keys that came from a merge key, so far: the mapping's own keys override them
+        for i, (knode, vnode) in enumerate(node.value):
             key = _convert(knode, file, constructor, active)
             if isinstance(key, (dict, list)):
                 raise GraphError("a mapping key must be a plain value", Location(file, knode.start_mark.line + 1))
-            if key in out:
+            if key in out and key not in inherited:
                 raise GraphError(f"duplicate key '{key}' (first at line {out.loc(key).line})",
                                  Location(file, knode.start_mark.line + 1))
             out[key] = _convert(vnode, file, constructor, active)
             out.key_where[key] = Location(file, knode.start_mark.line + 1)
+            if i < merged:
+                inherited.add(key)
+            else:
+                inherited.discard(key)
         return out
     out_l = LList(where=where)
     for item in node.value:

@@ -405,3 +405,116 @@ def test_json_schema_accepts_the_documented_unwiring_of_an_input(reg):
     node = graph_json_schema(reg)["properties"]["nodes"]["items"]
     kinds = [alt.get("type") for alt in node["properties"]["inputs"]["additionalProperties"]["anyOf"]]
     assert sorted(kinds) == ["null", "object", "string"]
+
+
+# ------------------------------------------------------------------------------------------------ bad input (review)
+def test_an_explicit_yaml_tag_on_a_value_it_cannot_read_names_the_line(reg):
+    # before: `!!int abc` raised a bare ValueError, `!!bool maybe` a KeyError, `!!timestamp x` an AttributeError
+    for tag, value in (("!!int", "abc"), ("!!float", "''"), ("!!bool", "maybe"), ("!!timestamp", "soon")):
+        errs = errors_of(GOOD.replace("{gain: 3}", f"{{gain: {tag} {value}}}"), reg)
+        assert errs == [f"g.yaml:12: YAML error: '{value.strip(chr(39))}' is not a valid {tag}"], errs
+
+
+def test_yaml_merge_keys_are_overridden_by_the_mappings_own_keys(reg):
+    # YAML: a mapping's own keys override those of `<<: *anchor`; before, each override was a "duplicate key"
+    text = GOOD + ("  - &extra {id: extra, plugin: mock-gain, rate: 10, inputs: {x: source.value}}\n"
+                   "  - <<: *extra\n    id: extra2\n    params: {<<: [{gain: 4}, {gain: 5}]}\n")
+    spec = load_graph_text(text, "g.yaml", registry=reg)
+    assert spec.node("extra").rate == spec.node("extra2").rate == 10.0
+    assert spec.node("extra2").params_obj.gain == 4.0   # the first of a list of merged mappings wins
+    errs = errors_of(text.replace("    id: extra2\n", "    id: extra2\n    id: extra3\n"), reg)
+    assert errs == ["g.yaml:22: duplicate key 'id' (first at line 21)"], errs   # a mapping's own keys, twice
+
+
+def test_a_graph_file_that_is_a_bare_value_names_the_file(tmp_path, reg):
+    # before: "<graph>: a graph file must be a mapping ..." without the file's name
+    assert errors_of("42\n", reg) == ["g.yaml:1: a graph file must be a mapping with a 'nodes' list"]
+    (tmp_path / "scalar.yaml").write_text("hello\n")
+    (tmp_path / "main.yaml").write_text("include: scalar.yaml\n")
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(tmp_path / "main.yaml", registry=reg)
+    assert [str(e) for e in ei.value.errors] == [f"{tmp_path / 'scalar.yaml'}:1: a graph file must be a mapping with "
+                                                 f"a 'nodes' list"]
+
+
+def test_include_in_a_graph_given_as_text_is_refused(reg):
+    # before: load_graph_text (run_yaml, the tests' helpers) left `include:` out without a word
+    errs = errors_of("include: base.yaml\n" + GOOD, reg)
+    assert errs == ["g.yaml:1: 'include' needs a graph file to resolve it from: load the file (load_graph, "
+                    "`teletouch run FILE`) instead of its text"], errs
+
+
+def test_include_of_nothing_or_of_a_folder(tmp_path, reg):
+    (tmp_path / "g.yaml").write_text("include: []\n" + GOOD)   # before: AssertionError
+    assert [n.id for n in load_graph(tmp_path / "g.yaml", registry=reg).nodes] == ["source", "gain", "dev"]
+    (tmp_path / "g.yaml").write_text("include: .\n" + GOOD)    # before: named the folder, not the include's line
+    with pytest.raises(GraphValidationError, match=r"g.yaml:1: included file '.' is a folder"):
+        load_graph(tmp_path / "g.yaml", registry=reg)
+
+
+def test_override_node_ids_that_are_not_text_are_reported_not_a_traceback(tmp_path, reg):
+    # before: TypeError: unhashable type: 'LList' / 'LDict' while merging the node lists
+    (tmp_path / "base.yaml").write_text(GOOD)
+    (tmp_path / "over.yaml").write_text("include: base.yaml\nnodes:\n  - {id: [gain], plugin: noop, rate: 1}\n")
+    with pytest.raises(GraphValidationError, match=r"over.yaml:3: node id \['gain'\]: use letters"):
+        load_graph(tmp_path / "over.yaml", registry=reg)
+    (tmp_path / "over.yaml").write_text("include: base.yaml\nnodes:\n  - {id: {a: 1}, remove: true}\n")
+    with pytest.raises(GraphValidationError, match=r"over.yaml:3: node '\{'a': 1\}': remove: true, but no included"):
+        load_graph(tmp_path / "over.yaml", registry=reg)
+    (tmp_path / "b1.yaml").write_text("nodes: [{id: [a], plugin: noop, rate: 1}]\n")
+    (tmp_path / "over.yaml").write_text("include: b1.yaml\nnodes: [{id: a, plugin: noop, rate: 1}]\n")
+    with pytest.raises(GraphValidationError, match=r"b1.yaml:1: node id \['a'\]"):
+        load_graph(tmp_path / "over.yaml", registry=reg)
+
+
+def test_override_that_removes_a_node_and_adds_one_with_its_id(tmp_path, reg):
+    # before: AttributeError ('NoneType' object has no attribute 'get'): the second entry merged into the removed one
+    (tmp_path / "base.yaml").write_text(GOOD)
+    (tmp_path / "over.yaml").write_text("include: base.yaml\nnodes:\n  - {id: dev, remove: true}\n"
+                                        "  - {id: dev, plugin: noop, rate: 5}\n")
+    spec = load_graph(tmp_path / "over.yaml", registry=reg)
+    assert [(n.id, n.plugin, n.rate, n.inputs) for n in spec.nodes][-1] == ("dev", "noop", 5.0, {})
+
+
+def test_duplicate_node_id_in_an_override_file_is_reported(tmp_path, reg):
+    # before: the second entry was merged into the first without a word (rate 7 won), as if it were an override
+    (tmp_path / "base.yaml").write_text(GOOD)
+    for ids in (("gain", "gain"), ("n1", "n1")):
+        (tmp_path / "over.yaml").write_text(f"include: base.yaml\nnodes:\n  - {{id: {ids[0]}, plugin: noop, rate: 5}}\n"
+                                            f"  - {{id: {ids[1]}, plugin: noop, rate: 7}}\n")
+        with pytest.raises(GraphValidationError) as ei:
+            load_graph(tmp_path / "over.yaml", registry=reg)
+        assert [str(e) for e in ei.value.errors] == [
+            f"{tmp_path / 'over.yaml'}:4: duplicate node id '{ids[0]}' (first defined at {tmp_path / 'over.yaml'}:3)"]
+
+
+def test_unwiring_an_input_the_included_node_does_not_have_is_an_error(tmp_path, reg):
+    # before: `inputs: {xx: null}` (a typo for x) was dropped without a word, and the wire meant stayed
+    (tmp_path / "base.yaml").write_text(GOOD)
+    (tmp_path / "over.yaml").write_text("include: base.yaml\nnodes:\n  - id: gain\n    inputs: {xx: null}\n")
+    with pytest.raises(GraphValidationError) as ei:
+        load_graph(tmp_path / "over.yaml", registry=reg)
+    assert [str(e) for e in ei.value.errors] == [
+        f"{tmp_path / 'over.yaml'}:4: node 'gain': input 'xx': null unwires an input of the included node, and it has "
+        f"no input 'xx' wired (did you mean 'x'?); wired: x"]
+
+
+def test_a_boolean_for_a_number_parameter_is_refused(reg):
+    # YAML reads `yes`/`on` as true, and pydantic took it as 1.0: `gain: yes` ran with gain 1, `step_time: on` at 1 s
+    for text in ("{gain: yes}", "{gain: on}", "{gain: true}"):
+        errs = errors_of(GOOD.replace("{gain: 3}", text), reg)
+        assert errs == ["g.yaml:12: node 'gain': param 'gain' = True: expected a number, got a boolean (YAML reads "
+                        "yes, no, on and off as true and false)"], errs
+    errs = errors_of(GOOD.replace("amplitude: 2.0", "step_time: on"), reg)
+    assert errs == ["g.yaml:8: node 'source': param 'step_time' = True: expected a number in s, got True"], errs
+
+
+def test_unit_typed_fields_refuse_booleans():
+    from pydantic import TypeAdapter, ValidationError
+
+    from teletouch.units import Hertz, Meters, Seconds
+
+    for typ in (Meters, Seconds, Hertz):
+        with pytest.raises(ValidationError, match="expected a number in"):
+            TypeAdapter(typ).validate_python(True)
+        assert TypeAdapter(typ).validate_python(2) == 2.0

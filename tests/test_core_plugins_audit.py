@@ -183,6 +183,20 @@ def test_blocked_plugin_is_never_imported_even_if_broken(site):
     assert reg.unknown_blocked() == []
 
 
+
+def test_blocked_names_given_as_one_string_block_those_plugins(site, monkeypatch):
+    # before: a string was iterated, so Registry(blocked="digit") blocked 'd', 'i', 'g', 't' and loaded digit
+    reg = Registry(autoload=True, blocked="digit,mock").load()
+    assert reg.plugins["digit"].blocked and reg.plugins["mock"].blocked and "mock-gain" not in reg.components
+    assert sorted(reg.blocked) == ["digit", "mock"] and reg.unknown_blocked() == []
+    import teletouch.registry as registry
+
+    monkeypatch.setattr(registry, "_default", None)
+    assert registry.default_registry(blocked="digit").plugins["digit"].blocked
+    make_dist(site, "acme-dist", "1.0", {}, {"tt_extra": GOOD.replace("{comp}", "acme-c")})
+    reg = Registry(autoload=False, extra_modules="tt_extra").load()
+    assert "acme-c" in reg.components and not reg.errors()
+
 def test_unknown_name_mentions_blocked_plugins(site):
     reg = Registry(autoload=True, blocked=["mock"]).load()
     msg = reg.unknown_message("mock-gain")
