@@ -399,6 +399,25 @@ def test_safe_state_from_another_thread_goes_out_after_a_step_in_progress(script
         h.__exit__(None, None, None)
 
 
+def _command_until_silent(h, opening: float) -> float:
+    """Command ``opening`` every 10 ms while /joint_states stays silent, until the read_timeout fault; the set-point
+    reached then."""
+    t_end = time.monotonic() + realtime.WAIT   # a failure bound
+    with pytest.raises(HardwareError, match=r"/joint_states silent for"):
+        while time.monotonic() < t_end:
+            step(h, opening)
+            time.sleep(0.01)
+    return h.comp._setpoint
+
+
+def _safe_state_command(h, scripted):
+    """safe_state(), and the trajectory point it sent."""
+    n = len(scripted.commands())
+    h.comp.safe_state()
+    assert realtime.wait_for(lambda: len(scripted.commands()) > n, 10.0)
+    return scripted.commands()[-1].points[0]
+
+
 def test_hold_after_the_state_went_stale_keeps_the_last_setpoint_not_the_stale_measurement(scripted):
     """/joint_states went silent while the command moved the set-point on (the controller took the fingers along):
     the read_timeout fault's hold sent the last measured opening, a second old, as a 10 ms goal, so the fingers
@@ -406,17 +425,9 @@ def test_hold_after_the_state_went_stale_keeps_the_last_setpoint_not_the_stale_m
     sent, where the controller has the fingers."""
     h = connect(scripted, harness(max_speed=0.1, read_timeout=1.0))
     try:
-        t_end = time.monotonic() + realtime.WAIT   # a failure bound
-        with pytest.raises(HardwareError, match=r"/joint_states silent for"):
-            while time.monotonic() < t_end:
-                step(h, 0.09)
-                time.sleep(0.01)
-        last = h.comp._setpoint
+        last = _command_until_silent(h, 0.09)
         assert last > 0.06   # moved on, from the measured 40 mm, while the state was silent
-        n = len(scripted.commands())
-        h.comp.safe_state()
-        assert realtime.wait_for(lambda: len(scripted.commands()) > n, 10.0)
-        hold = scripted.commands()[-1].points[0]
+        hold = _safe_state_command(h, scripted)
         assert hold.positions[0] * 2 == pytest.approx(last)
     finally:
         h.__exit__(None, None, None)
@@ -428,17 +439,9 @@ def test_open_safe_state_after_the_state_went_stale_takes_the_time_max_speed_nee
     to be reached in time_from_start (10 ms), 50 mm at 5 m/s; it counts from the last set-point sent too."""
     h = connect(scripted, harness(safe_mode="open", max_speed=0.1, read_timeout=1.0), pos=(0.045, 0.045))
     try:
-        t_end = time.monotonic() + realtime.WAIT   # a failure bound
-        with pytest.raises(HardwareError, match=r"/joint_states silent for"):
-            while time.monotonic() < t_end:
-                step(h, 0.04)
-                time.sleep(0.01)
-        last = h.comp._setpoint
+        last = _command_until_silent(h, 0.04)
         assert last < 0.07   # closed, from the measured 90 mm, while the state was silent
-        n = len(scripted.commands())
-        h.comp.safe_state()
-        assert realtime.wait_for(lambda: len(scripted.commands()) > n, 10.0)
-        pt = scripted.commands()[-1].points[0]
+        pt = _safe_state_command(h, scripted)
         assert pt.positions[0] * 2 == pytest.approx(0.09)
         duration = pt.time_from_start.sec + pt.time_from_start.nanosec * 1e-9
         assert duration >= (0.09 - last) / 0.1 - 1e-6
