@@ -874,7 +874,7 @@ class Runtime:
                     self._safe(node)
 
     def _wall_steps(self, members: list[_Node], period: float, spin: float, perf: Any, sleep: Any, t0: float,
-                    stop: threading.Event, max_over: int, ring: int) -> None:
+                    stop: _StopEvent, max_over: int, ring: int) -> None:
         k = 0
         late = 0   # consecutive late cycles of the group
         lock = self._lock
