@@ -330,7 +330,8 @@ class Inputs:
 
 class Params(BaseModel):
     """Base class of component parameters: unknown fields are refused, values are validated on assignment, and
-    numbers must be finite (``.inf`` would switch a limit off, NaN would pass every comparison).
+    numbers must be finite (``.inf`` would switch a limit off, NaN would pass every comparison) and not booleans
+    (pydantic takes ``True`` as 1; YAML reads ``yes`` and ``on`` as true).
 
     A field whose schema names a unit (``json_schema_extra={"unit": "Hz"}``, or ``teletouch.units.quantity``)
     also accepts a string with units, converted to SI: ``cutoff: 2kHz`` -> 2000.0, ``radius: 5mm`` -> 0.005.
@@ -364,6 +365,21 @@ class Params(BaseModel):
         if problems:   # every bad quantity at once, one per line, each led by its field name
             raise ValueError("\n".join(problems))
         return data if out is None else out
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _no_boolean_numbers(cls, data: Any, handler: Any) -> Any:
+        """A boolean given where the field keeps no boolean is refused, each led by its field name: pydantic takes
+        it as 1 or 0 in a number field, and YAML reads yes, no, on and off as booleans (``gain: yes`` ran with gain
+        1, ``step_time: on`` at 1 s)."""
+        result = handler(data)
+        if isinstance(data, dict) and isinstance(result, BaseModel):
+            bad = [f"{k}: expected a number, got a boolean (YAML reads yes, no, on and off as true and false)"
+                   for k, v in data.items() if isinstance(v, bool) and k in cls.model_fields
+                   and not isinstance(getattr(result, k, v), bool)]
+            if bad:
+                raise ValueError("\n".join(bad))
+        return result
 
 
 class Context:

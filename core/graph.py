@@ -558,12 +558,6 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                         if msg.startswith("Value error, "):
                             msg = msg[len("Value error, "):]
                         err(f"node '{nid}': param '{fname}' = {e.get('input')!r}: {msg}", w)
-            else:
-                # YAML reads yes/no/on/off as booleans, and pydantic takes a boolean as 1 or 0 in a number field
-                for k, v in spec.params.items():
-                    if isinstance(v, bool) and not isinstance(getattr(spec.params_obj, str(k), v), bool):
-                        err(f"node '{nid}': param '{k}' = {v!r}: expected a number, got a boolean (YAML reads yes, "
-                            f"no, on and off as true and false)", pwhere.get(k, pwhere_default))
             if clock_v == "sim" and cls.requires_wall_clock:
                 err(f"node '{nid}': {plugin} needs the wall clock (real hardware or other processes in real time) "
                     f"and cannot run on the simulated clock; use --clock wall or a simulated plugin",

@@ -509,6 +509,23 @@ def test_a_boolean_for_a_number_parameter_is_refused(reg):
     assert errs == ["g.yaml:8: node 'source': param 'step_time' = True: expected a number in s, got True"], errs
 
 
+def test_params_built_in_python_refuse_a_boolean_for_a_number():
+    # the check is the Params base class's, so it holds beside a graph file too (Harness, Component(params=...))
+    from pydantic import ValidationError
+
+    from teletouch.component import Params
+
+    class P(Params):
+        gain: float = 1.0
+        count: int = 0
+        flag: bool = False
+
+    for field in ("gain", "count"):
+        with pytest.raises(ValidationError, match=rf"{field}: expected a number, got a boolean"):
+            P(**{field: True})
+    assert P(flag=True, gain=2).flag is True
+
+
 def test_unit_typed_fields_refuse_booleans():
     from pydantic import TypeAdapter, ValidationError
 
