@@ -142,9 +142,9 @@ class ForceGuard:
                 if not np.all(np.isfinite(f)):
                     self.invalid += 1
                     return 0.0, self.zero3, f"force command {f.tolist()} is not finite: force set to zero"
-                n = float(np.linalg.norm(f))
-                if n > self.max_f:
-                    f = f * (self.max_f / n)
+                if math.hypot(*f) > self.max_f:   # (hypot: no overflow of the squares, up to ~1e308 N)
+                    u = f / float(np.max(np.abs(f)))   # components within [-1, 1]: its norm is finite
+                    f = u * (self.max_f / math.hypot(*u))
                     self.clamped += 1
                 k = self._fade("force", t)
                 if k < 1.0:
@@ -218,10 +218,8 @@ class Omega7(Device):
         self.guard = ForceGuard(p.max_gripper_force, p.max_force, p.command_timeout)
         self.dhd = None
         self.active = False
-        self.lost: str | None = None
         self.sign = 1.0
-        self.com_freq_hz = math.nan
-        self._next_freq = 0.0
+        self._new_session()
         self.timeguards = 0
         self.saturated = 0
         self.faults = 0
@@ -284,10 +282,18 @@ class Omega7(Device):
             self.guard.reset()
             self._first_write = True
             self._fade_until, self._off_cause = 0.0, None
+            self._new_session()
             d.enable_force(True)
             d.set_gravity_compensation(self.params.gravity_compensation)
             d.set_brakes(False)
             self.active = True
+
+    def _new_session(self) -> None:
+        """What status() reports of one activation: the device's loss and the SDK's communication rate (read at the
+        first step, whatever the graph time: it starts from 0 again in a new run)."""
+        self.lost: str | None = None
+        self.com_freq_hz = math.nan
+        self._next_freq = -math.inf
 
     def _after_late_gap(self, d: Any, sent: float) -> bool:
         """Before a write that comes later than the firmware watchdog (under the lock). If the watchdog switched the
@@ -417,14 +423,35 @@ class Omega7(Device):
         d = getattr(self, "dhd", None)
         if d is not None:
             with self._lock:
-                try:
-                    d.enable_force(False)
-                except Exception:
-                    self.safe_errors += 1
-                self._watchdog_off(d)
+                self._forces_off(d, "deactivate")
+
+    def _forces_off(self, d: Any, when: str) -> None:
+        """Forces off (dhdEnableForce(0)), then the firmware watchdog off, so the device does not keep it for the
+        next program. When dhdEnableForce(0) fails the forces may still be on: the watchdog, the last protection that
+        takes them off the hand once no force command comes, stays on, and the failure is raised as a DhdError that
+        says so. A device that stopped answering (DeviceLostError) is only counted in safe_errors: nothing can be set
+        on it, its firmware switches the forces off on a USB disconnection, and the watchdog stays on."""
+        from .dhd import DeviceLostError, DhdError
+
+        try:
+            d.enable_force(False)
+        except Exception as exc:
+            self.safe_errors += 1
+            if isinstance(exc, DeviceLostError):
+                return
+            if self._wd_set:
+                kept = (f"the firmware watchdog ({self._wd_s * 1e3:g} ms) is left on, so the device switches them "
+                        f"off by itself once no force command comes")
+            else:
+                kept = ("no firmware watchdog is set (firmware_watchdog: 0): switch them off at the device (its "
+                        "force button) or power it off")
+            msg = f"{when}: dhdEnableForce(0) failed ({exc}): the forces may still be on; {kept}"
+            self.ctx.log(msg)
+            raise DhdError(msg, getattr(exc, "code", None)) from exc
+        self._watchdog_off(d)
 
     def _watchdog_off(self, d: Any) -> None:
-        """The firmware watchdog off (forces are off first), so the device does not keep it for the next program."""
+        """The firmware watchdog off (only once the forces are off: see :meth:`_forces_off`)."""
         if getattr(self, "_wd_set", False):
             try:
                 d.set_watchdog(0)
@@ -434,13 +461,12 @@ class Omega7(Device):
 
     def close(self) -> None:
         d = getattr(self, "dhd", None)
-        if d is not None:
-            self.dhd = None
-            try:
-                d.enable_force(False)   # (already off after deactivate; close may come without it)
-            except Exception:
-                pass
-            self._watchdog_off(d)
+        if d is None:
+            return
+        self.dhd = None
+        try:
+            self._forces_off(d, "close")   # (already off after deactivate; close may come without it)
+        finally:
             try:
                 d.close()
             except Exception:

@@ -85,6 +85,7 @@ static struct {
     unsigned char watchdog; /* firmware watchdog, units of 125 us (0: off) */
     int watchdog_fails;     /* test switch: dhdSetWatchdog answers -1 */
     int write_fails;        /* test switch: dhdSetForceAndGripperForce answers -1 (nothing reaches the device) */
+    int force_off_fails;    /* test switch: dhdEnableForce(0) answers -1 (forces stay as they are) */
     double t_cmd;           /* when the device last received a force command (or the watchdog was set) */
     long watchdog_trips;
     int force_off_cause;
@@ -227,6 +228,7 @@ long standin_get_watchdog_trips(void) { firmware(); return S.watchdog_trips; }
 int standin_get_force_off_cause(void) { firmware(); return S.force_off_cause; }
 void standin_set_watchdog_fails(int v) { S.watchdog_fails = v; }
 void standin_set_write_fails(int v) { S.write_fails = v; }
+void standin_set_force_off_fails(int v) { S.force_off_fails = v; }
 /* the largest |component| of the force commands received since this call */
 void standin_mark(void) { S.peak = 0.0; }
 /* the operator presses the device's force button: forces off, cause BUTTON (as the real device does) */
@@ -326,6 +328,7 @@ bool dhdIsLeftHanded(char ID) {
 }
 int dhdEnableForce(unsigned char val, char ID) {
     if (check(ID)) return -1;
+    if (!val && S.force_off_fails) return fail(DHD_ERROR, "error");
     S.force_enabled = val ? 1 : 0;
     S.force_off_cause = val ? DHD_FORCEOFF_NONE : DHD_FORCEOFF_SOFTWARE;
     if (!val) { S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0; }
