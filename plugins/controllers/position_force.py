@@ -10,7 +10,9 @@ All three have the ports of docs/ports.md (Controller):
 Every input is taken in stamp order: a sample stamped before the newest fresh one already taken (out of order) is
 ignored, so an older measurement never replaces a newer one. An opening (leader or follower) that is not finite or
 beyond 1 m either way (``MAX_PLAUSIBLE_OPENING``: no gripper opens wider) is invalid input, like NaN: counted, never
-differentiated into a velocity.
+differentiated into a velocity. A bad sample is counted once, not on every step while it stays the latest. No
+velocity is differentiated across a gap of more than ``leader_stale_after`` between two openings (a loss): the
+estimate restarts at zero.
 
 The control law of ``position-force`` (each step, at >= 1 kHz):
 
@@ -179,12 +181,18 @@ class ForceHold:
 
 
 class Differentiator:
-    """d/dt of a sampled signal with a first-order low-pass (cutoff ``hz``); robust to repeated or missing samples."""
+    """d/dt of a sampled signal with a first-order low-pass (cutoff ``hz``); robust to repeated or missing samples.
 
-    __slots__ = ("tau", "x", "t", "v")
+    Two samples more than ``max_gap`` s apart have a loss between them (the signal was stale): no velocity is
+    derived across it, the estimate restarts from the new sample at zero velocity, as at the first one (the gap's
+    average velocity met a hand at rest as a damping kick and an energy deficit it never caused). A shorter gap, a
+    missed sample or a few, is differentiated across (its average is the motion)."""
 
-    def __init__(self, hz: float):
+    __slots__ = ("tau", "max_gap", "x", "t", "v")
+
+    def __init__(self, hz: float, max_gap: float = math.inf):
         self.tau = 1.0 / (2.0 * math.pi * hz)
+        self.max_gap = max_gap
         self.x: float | None = None
         self.t: float | None = None
         self.v = 0.0
@@ -197,6 +205,9 @@ class Differentiator:
             return self.v
         dt = t - self.t
         if dt <= 0.0:
+            return self.v
+        if dt > self.max_gap:                  # a loss in between: restart here (no velocity across the gap)
+            self.x, self.t, self.v = x, t, 0.0
             return self.v
         raw = (x - self.x) / dt
         a = dt / (self.tau + dt)
@@ -385,8 +396,9 @@ class _Bilateral(Component):
         self.x_f = math.nan
         self.out_force = 0.0                     # last leader force sent (N)
         self.pas = PassivityState()
-        self.vel_l = Differentiator(p.velocity_cutoff)
-        self.vel_f = Differentiator(p.velocity_cutoff)
+        # openings more than leader_stale_after apart have a loss between them: no velocity across it
+        self.vel_l = Differentiator(p.velocity_cutoff, p.leader_stale_after)
+        self.vel_f = Differentiator(p.velocity_cutoff, p.leader_stale_after)
         self.leader_ok = False
         self.state = "waiting"                   # waiting | ok | stale-force | bad-force | stale-leader
         self.invalid_inputs = 0
@@ -402,6 +414,7 @@ class _Bilateral(Component):
         rate = self.ctx.rate or self.default_rate or 1000.0
         self._max_dt = 2.0 / float(rate)        # longest step the force rate limit counts (see step)
         self._taken: dict[str, Sample] = {}     # the newest fresh sample taken per input (see _ordered)
+        self._looked: dict[str, Sample] = {}    # the sample looked at last per input (see _first_look)
         # passivity damping cap: what the constant damping leaves of what the leader renders stably
         self._damping_cap = max(0.0, p.max_damping - p.constant_damping())
         self.leader_lost_since: float | None = None     # the leader opening lost (after it was once ok) since
@@ -424,6 +437,17 @@ class _Bilateral(Component):
             self._taken[name] = s
         return s
 
+    def _first_look(self, name: str, s: Sample) -> bool:
+        """Whether ``s`` is looked at for the first time on input ``name``: not the sample of the last look (it
+        stays the latest for many steps) nor a copy of it (the same stamp). A bad sample is counted on its first
+        look only, once per sample (a bad opening was counted on every step while it was fresh, and a NaN stamp,
+        never equal to itself, made every step a first look: the counters grew at 1 kHz)."""
+        last = self._looked.get(name)
+        if last is not None and (s is last or s.stamp == last.stamp):
+            return False
+        self._looked[name] = s
+        return True
+
     def _leader(self, t: float, inputs: Any) -> bool:
         p = self.params
         s = self._ordered("leader_opening", inputs["leader_opening"], t, p.leader_stale_after)
@@ -433,7 +457,8 @@ class _Bilateral(Component):
             return False
         x = opening_or_nan(s.value)
         if not math.isfinite(x):
-            self.invalid_inputs += 1
+            if self._first_look("leader_opening", s):
+                self.invalid_inputs += 1
             self.leader_problem = f"invalid ({s.value!r} m: not a finite opening within 1 m)"
             return False
         self.x_l = x
@@ -442,7 +467,8 @@ class _Bilateral(Component):
         if v_raw is not None and v_raw.is_fresh(t, p.leader_stale_after):
             v = finite_or(v_raw.value, math.nan)
             if not abs(v) <= p.max_leader_velocity:          # NaN, inf, or a glitch the opening never made
-                self.invalid_inputs += 1
+                if self._first_look("leader_velocity", v_raw):
+                    self.invalid_inputs += 1
                 v = math.nan
         vd = self.vel_l.update(s.stamp, x)
         self.v_l = v if math.isfinite(v) else vd
@@ -454,7 +480,8 @@ class _Bilateral(Component):
             return False
         x = opening_or_nan(s.value)
         if not math.isfinite(x):
-            self.invalid_inputs += 1
+            if self._first_look("follower_opening", s):
+                self.invalid_inputs += 1
             return False
         self.x_f = x
         self.vel_f.update(s.stamp, x)
@@ -674,7 +701,6 @@ class PositionForce(_Bilateral):
         self.pred_term = 0.0                    # the term added in the last step (N, after the clip)
         self.pred_from = 0.0                    # the term when the prediction last started or stopped
         self.pred_t0 = 0.0                      # ... and when
-        self.last_stamp: float | None = None
         self.latencies: list[float] = []        # controller time of first use - force stamp, per new fresh estimate
         self.bad_force = 0
         self.resuming = False                   # the follower command was held: it slews back (resume_speed)
@@ -687,8 +713,7 @@ class PositionForce(_Bilateral):
         if self.state == "stale-leader":
             self.state = self.force_state
         s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
-        if s is not None and s.stamp != self.last_stamp:
-            self.last_stamp = s.stamp
+        if s is not None and self._first_look("force", s):     # once per sample (a NaN stamp too)
             f_s = finite_or(s.value, math.nan)
             if math.isfinite(f_s):
                 self.force_held = f_s
