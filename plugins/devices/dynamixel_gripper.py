@@ -5,7 +5,14 @@ more than Goal_Current, which is how the grip force is capped (``max_effort`` / 
 reads Present_Current, Present_Velocity and Present_Position with one SYNC_READ and sends Goal_Position with a
 GroupSyncWrite. The status packet of that read is checked for the alert bit (0x80, set by the firmware while the
 servo is in hardware-error shutdown), and Torque_Enable (with Hardware_Error_Status where the table has it) is polled
-every ``error_check_period``: the torque dropping to 0 (a shutdown, or a servo reset by a brown-out) is a fault.
+every ``error_check_period``: the torque dropping to 0 (a shutdown, or a servo reset by a brown-out) is a fault. Where
+the two are read apart (far apart in the table), each is judged when its own read was answered.
+
+One thing on the bus at a time: a lock makes every request with its answer, and a step's goal worked out and sent,
+one unit, so a safe_state() from another thread (the watchdog) waits for the one in progress (dynamixel-sdk refused
+its write while a read waited for its answer: "Port is in use") and its hold goes out last. The ``hold`` safe state
+sends the measured opening, or with the state stale (no valid state for ``read_timeout``) the last set-point sent:
+the goals went on reaching the servo while its answers were lost, and the stale opening would move the fingers back.
 
 The servo's own speed limit: Profile_Velocity is set from ``max_speed`` at start-up (rounded down, and capped at
 Velocity_Limit where the table names it), so a setpoint jump (the ``open`` safe state) is not run at the servo's full
@@ -48,6 +55,7 @@ import functools
 import math
 import os
 import select
+import threading
 import time
 from typing import Any, Callable
 
@@ -279,12 +287,14 @@ class DynamixelGripper(FollowerBase):
     # requests and their answers: every answer is checked, a lost one makes the next request resynchronise first
     def _transact(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
         """Send a request (``send(*args)``, which sets the SDK's packet timeout) and take its answer: ``n`` data
-        bytes. After a lost answer the bus is resynchronised by a PING first (see :meth:`_resync_bus`)."""
-        if self._desync:
-            result = self._resync_bus()
-            if result != self._sdk.COMM_SUCCESS:
-                return [], result, 0
-        return self._request(n, send, *args)
+        bytes. After a lost answer the bus is resynchronised by a PING first (see :meth:`_resync_bus`). Under the
+        I/O lock: a safe_state() from another thread waits for the answer instead of finding the port in use."""
+        with self._io_lock:
+            if self._desync:
+                result = self._resync_bus()
+                if result != self._sdk.COMM_SUCCESS:
+                    return [], result, 0
+            return self._request(n, send, *args)
 
     def _request(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
         result = send(*args)
@@ -371,6 +381,9 @@ class DynamixelGripper(FollowerBase):
 
         p = self.params
         self._sdk = sdk
+        # one transaction on the bus at a time, and a step's goal worked out and sent as one unit (step vs.
+        # safe_state() from another thread: dynamixel-sdk refuses a second request while one waits for its answer)
+        self._io_lock = threading.RLock()
         self.table = p.table()
         self._desync = False
         self.stale_answers = 0
@@ -462,7 +475,10 @@ class DynamixelGripper(FollowerBase):
         return raw
 
     def _poll_shutdown(self) -> None:
-        """Every error_check_period: Torque_Enable (0 while active: shutdown or reset) and Hardware_Error_Status."""
+        """Every error_check_period: Torque_Enable (0 while active: shutdown or reset) and Hardware_Error_Status,
+        each judged when its read was answered: where the two are read apart (far apart in the table), one read
+        refused or lost does not keep the other's value from being judged. A lost answer is otherwise the state
+        read's business (read_timeout); what was not read is read again at the next poll."""
         p, t, sdk = self.params, self.table, self._sdk
         items = [t.torque_enable] + ([t.hardware_error_status] if t.hardware_error_status is not None else [])
         start = min(a for a, _ in items)
@@ -471,17 +487,21 @@ class DynamixelGripper(FollowerBase):
         mem: dict[int, int] = {}
         for addr, n in spans:
             data, result, error = self._transact(n, self.ph.readTx, self.port, p.dxl_id, addr, n)
-            if result != sdk.COMM_SUCCESS or len(data) != n:
-                return  # a lost answer is the state read's business (read_timeout)
+            if result != sdk.COMM_SUCCESS:
+                continue  # lost: the other span may still have been read
             if error & 0x80:
                 self._alert("hardware-error alert (0x80) in the status packet")
-            mem.update({addr + i: b for i, b in enumerate(data)})
+            if len(data) == n:  # (not a refusal)
+                mem.update({addr + i: b for i, b in enumerate(data)})
 
-        def value(item: Item) -> int:
+        def value(item: Item | None) -> int | None:
+            if item is None or any(item[0] + i not in mem for i in range(item[1])):
+                return None
             return int.from_bytes(bytes(mem[item[0] + i] for i in range(item[1])), "little")
 
-        if t.hardware_error_status is not None and value(t.hardware_error_status):
-            self._alert(f"Hardware_Error_Status {hw_error_text(value(t.hardware_error_status))}")
+        hw_error = value(t.hardware_error_status)
+        if hw_error:
+            self._alert(f"Hardware_Error_Status {hw_error_text(hw_error)}")
         if value(t.torque_enable) == 0:
             raise HardwareError(f"{self._where()}: Torque_Enable dropped to 0 while active (hardware-error shutdown "
                                 f"or the servo was reset, e.g. by a power dip); the gripper no longer holds. Check "
@@ -540,18 +560,44 @@ class DynamixelGripper(FollowerBase):
         try:
             return super().read_state(t)
         except HardwareError as exc:
+            if "no valid state" not in str(exc):  # the servo's own faults (shutdown poll, alert) name it already
+                raise
             raise HardwareError(f"{exc}: {self._where()}, {self.comm_failures} failed reads, last: "
                                 f"{self.last_comm_error}") from None
+
+    def _command_guard(self) -> Any:
+        # the step's goal and its send are one unit against a safe_state() from elsewhere (the state read takes the
+        # lock per transaction, so the hold waits at most for one answer)
+        return self._io_lock
 
     def _hw_write(self, opening: float) -> None:
         ticks = self.ticks_for(opening)
         data = list(int(ticks & 0xFFFFFFFF).to_bytes(4, "little"))
         p = self.params
-        if not self.gsw.changeParam(p.dxl_id, data):
-            self.gsw.addParam(p.dxl_id, data)
-        result = self.gsw.txPacket()
+        with self._io_lock:
+            if not self.gsw.changeParam(p.dxl_id, data):
+                self.gsw.addParam(p.dxl_id, data)
+            result = self.gsw.txPacket()
         if result != self._sdk.COMM_SUCCESS:
             raise HardwareError(f"sending Goal_Position to {self._where()}: {self.ph.getTxRxResult(result)}")
+
+    def safe_target(self) -> float:
+        """``hold`` with the state stale (no valid state for read_timeout: the answers are lost while the goals, which
+        need none, still reach the servo): the last set-point sent, where the servo has taken the fingers since; a
+        hold of the stale measured opening moved them back, by up to read_timeout x max_speed. Otherwise the base's
+        target."""
+        p = self.params
+        if p.safe_mode == "hold" and math.isfinite(self._setpoint) and \
+                time.monotonic() - self._last_good > p.read_timeout:
+            return self._setpoint
+        return super().safe_target()
+
+    def safe_state(self) -> None:
+        lock = getattr(self, "_io_lock", None)
+        if lock is None:  # never opened
+            return super().safe_state()
+        with lock:  # waits for a transaction, or a step's goal and send, in progress: the hold goes out last
+            super().safe_state()
 
     def _hw_close(self) -> None:
         if getattr(self, "_port_open", False):

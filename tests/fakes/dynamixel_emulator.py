@@ -5,7 +5,8 @@ this emulator sits on the master side, decodes the instruction packets byte by b
 stuffing) and answers with status packets like the servo's firmware: PING, READ, WRITE, SYNC_READ, SYNC_WRITE,
 REBOOT; CRC, access, range and instruction errors in the status packet's error byte; a hardware-error alert bit;
 and it can be told to stop answering, to lose a given number of answers (``drop``), to corrupt its answers, or to
-answer late.
+answer late; ``refuse_reads`` (address -> error byte) refuses, and ``drop_reads`` (addresses) loses, the answers to
+READs that start at given addresses (one item of a poll refused or lost while the others are answered).
 
 Models (``MODELS``): an XM430-W350 (X-series table) and the ROBOTIS RH-P12-RN gripper with either firmware: the
 RH-P12-RN(A) firmware (model number 35074, DYNAMIXEL-P-like table) and the old RH-P12-RN firmware (35073,
@@ -236,6 +237,8 @@ class DynamixelEmulator:
         self.on_delayed: Callable[[], None] | None = None  # called (lock held) once a held-back answer is taken
         self.delayed: list[tuple[float, bytes]] = []  # (monotonic, data) of every held-back answer
         self._held: tuple[int, int, bytes] | None = None
+        self.refuse_reads: dict[int, int] = {}  # READ start address -> error byte answered instead of the data
+        self.drop_reads: set[int] = set()        # READ start addresses whose answers are lost (kept in ``dropped``)
         # observation
         self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
         self.trace: list[tuple[float, float]] = []  # (monotonic, position in ticks) at every physics update
@@ -404,6 +407,11 @@ class DynamixelEmulator:
                 addr, n = struct.unpack("<HH", params)
                 if addr + n > self.table.size:
                     return self._reply(len(pkt), ERR_ACCESS, b"")
+                if addr in self.refuse_reads:  # refused (e.g. an item this firmware does not give out)
+                    return self._reply(len(pkt), self.refuse_reads[addr], b"")
+                if addr in self.drop_reads:  # this one answer lost on the bus, every time
+                    self.dropped.append(packet(self.id, INST_STATUS, bytes([0]) + bytes(self.mem[addr:addr + n])))
+                    return
                 self._reply(len(pkt), 0, bytes(self.mem[addr:addr + n]))
             elif inst == INST_WRITE:
                 if len(params) < 3:
