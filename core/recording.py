@@ -236,6 +236,11 @@ class _Codec:
     def __init__(self, recorder_opts: dict[str, Any] | None = None):
         self.opts = recorder_opts or {}
 
+    @property
+    def expected(self) -> str:
+        """What a message of this codec holds, for an error about one that cannot be decoded."""
+        return f"a CDR {self.ros_type}"
+
     def accepts(self, v: Any) -> bool:
         return True
 
@@ -462,6 +467,7 @@ class _Raw(_Codec):
 class _Json(_Codec):
     kind = "json"
     ros_type = None
+    expected = 'JSON {"value": ...}, as teletouch writes'
 
     def encode(self, v, stamp_ns, frame_id):
         return json.dumps({"value": _jsonable(v)}, allow_nan=False).encode()
@@ -495,6 +501,7 @@ class _JsonImage(_Json):
     """Without ROS 2 message packages: images as base64 PNG inside JSON."""
 
     kind = "json-image"
+    expected = 'JSON {"value": {"png": base64 PNG}}, as teletouch writes'
 
     def accepts(self, v):
         return _Compressed().accepts(v)
@@ -566,7 +573,8 @@ class Recorder:
     ``ros_encoding`` False writes JSON everywhere (also the fallback when the ROS 2 message packages are missing);
     ``max_queue`` items (or ``max_queue_bytes`` of arrays) waiting for the writer before new ones are dropped
     (counted, reported at close; 0: no limit) on a wall clock; on a simulated clock the tap waits for the writer
-    instead (nothing is lost, the simulation slows down);
+    instead (nothing is lost, the simulation slows down; a sample larger than ``max_queue_bytes`` waits until no
+    array is queued);
     ``encode_threads`` threads compress images in parallel (cv2 releases the GIL; capped at the CPU count).
     """
 
@@ -659,6 +667,10 @@ class Recorder:
                 n = self._q.qsize()
                 full = bool(self.max_queue) and n >= self.max_queue
                 over = bool(self.max_queue) and nbytes > 0 and self._queued_bytes + nbytes > self.max_queue_bytes
+                if over and self.clock == "sim" and self._queued_bytes == 0:
+                    # a sample larger than the whole byte budget: no room can ever be made for it, so on the
+                    # simulated clock it waits for the arrays before it to be written, not forever
+                    over = False
                 if not (full or over):
                     self._queued_bytes += nbytes
                     self._q.put(item)
@@ -922,7 +934,7 @@ class Recording:
         return f"{self.problem}; {self.messages} messages read before it" if self.truncated else ""
 
 
-def _codec_for(ch: ChannelInfo) -> _Codec:
+def _codec_for(ch: ChannelInfo, path: str) -> _Codec:
     kind = ch.metadata.get("codec")
     if kind in _CODECS:
         return _CODECS[kind]()
@@ -931,7 +943,19 @@ def _codec_for(ch: ChannelInfo) -> _Codec:
     for c in _CODECS.values():
         if c.ros_type and c.ros_type.replace("/msg/", "/") == ch.schema_name.replace("/msg/", "/"):
             return c()
-    raise RecordingError(f"{ch.topic}: no decoder for schema '{ch.schema_name}' ({ch.message_encoding})")
+    raise RecordingError(f"{path}: channel {ch.topic}: no decoder for schema '{ch.schema_name}' "
+                         f"({ch.message_encoding})")
+
+
+def _decode(path: str, codec: _Codec, ch: ChannelInfo, msg: Any, epoch_ns: int) -> Any:
+    """The value of one message; one that cannot be decoded is a RecordingError naming the file, the channel, which
+    of its messages (``ch.count``: the messages read on it so far) and what was expected."""
+    try:
+        return codec.decode(msg.data, ch.metadata)
+    except Exception as exc:
+        t = (msg.publish_time - epoch_ns) * 1e-9
+        raise RecordingError(f"{path}: channel {ch.topic}: message {ch.count} (at {t:.3f} s) cannot be decoded "
+                             f"(expected {codec.expected}): {_why(exc)}") from None
 
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -1047,8 +1071,8 @@ def _read(path: str, want: Callable[[ChannelInfo], bool] | None, decode: bool = 
         if decode:
             c = codecs.get(ch.id)
             if c is None:
-                c = codecs[ch.id] = _codec_for(ch)
-            value = c.decode(msg.data, ch.metadata)
+                c = codecs[ch.id] = _codec_for(ch, path)
+            value = _decode(path, c, ch, msg, rec.epoch_ns if rec.epoch_ns is not None else first_ns)
         else:
             value = msg.data
         out.append((ch.key, msg.publish_time, msg.log_time, value))
@@ -1149,13 +1173,14 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
     for ch, msg in _iter_raw(path, rec2):
         if ch.id not in ids:
             continue
-        c = codecs.get(ch.id) or codecs.setdefault(ch.id, _codec_for(ch))
-        img = c.decode(msg.data, ch.metadata)
+        c = codecs.get(ch.id) or codecs.setdefault(ch.id, _codec_for(ch, path))
+        epoch = rec.epoch_ns if rec.epoch_ns is not None else 0
+        img = _decode(path, c, ch, msg, epoch)
         if img.ndim == 2:
             import cv2
 
             img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-        yield (msg.publish_time - (rec.epoch_ns if rec.epoch_ns is not None else 0)) * 1e-9, img
+        yield (msg.publish_time - epoch) * 1e-9, img
 
 
 # --------------------------------------------------------------------------------------------- plotting
@@ -1179,10 +1204,11 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
     units = {ch.key: ch.metadata.get("unit", "") for ch in rec.channels.values()}
     groups: dict[str, list[str]] = {}
     skipped = []  # numeric signals that cannot be drawn as lines, and why
+    drawable = [key for key, (ts, vs) in sorted(sig.items()) if _drawable(ts, vs)]
     for key, (ts, vs) in sorted(sig.items()):
         if pattern is not None and not pattern.search(key):
             continue
-        if isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and vs.ndim in (1, 2) and len(ts):
+        if _drawable(ts, vs):
             groups.setdefault(key.split(".")[0], []).append(key)
         elif isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and len(ts):
             skipped.append(f"{key} ({'x'.join(map(str, vs.shape[1:]))} arrays)")
@@ -1193,8 +1219,9 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
                            f"{key} (its shape changes: {what}{', ...' if len(shapes) > 4 else ''})")
     not_drawn = f"; not drawn: {', '.join(skipped)}" if skipped else ""
     if not groups:
+        there = (f"; numeric signals in the recording: {', '.join(drawable)}" if select and drawable else "")
         raise RecordingError(f"{path}: no numeric signals to plot" + (f" matching '{select}'" if select else "")
-                             + not_drawn + (f": {rec.note()}" if rec.truncated else ""))
+                             + not_drawn + there + (f": {rec.note()}" if rec.truncated else ""))
     if rec.truncated:
         log(f"warning: {path}: {rec.note()}; plotting those")
     if skipped:
@@ -1237,13 +1264,33 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
         fig.tight_layout()
         out = outdir / f"{re.sub(r'[^A-Za-z0-9_.-]', '_', node)}.png"
         try:
-            fig.savefig(out, dpi=90)
-        except OSError as exc:
-            raise RecordingError(f"cannot write the plot {out}: {exc.strerror or exc}") from None
+            _save_png(fig, out)
         finally:
             plt.close(fig)
         written.append(out)
     return written
+
+
+def _drawable(ts: np.ndarray, vs: Any) -> bool:
+    """Whether a signal is drawn as lines: numbers or bools, scalars or vectors, at least one sample."""
+    return isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and vs.ndim in (1, 2) and len(ts) > 0
+
+
+def _save_png(fig: Any, out: Path) -> None:
+    """Write ``fig`` to the PNG ``out`` atomically: into a temporary file beside it, then renamed over it, so a
+    write that fails midway (a full disk, a Ctrl-C) leaves the previous plot whole and no truncated file."""
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        fig.savefig(tmp, dpi=90, format="png")
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise RecordingError(f"cannot write the plot {out}: {exc.strerror or exc}") from None
+    finally:
+        if tmp.exists():
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
