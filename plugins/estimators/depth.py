@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
 from teletouch.argtypes import int_at_least, number
@@ -33,6 +33,10 @@ from teletouch.units import Meters, parse_quantity
 from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS, max_stride
 
 __all__ = ["DepthEstimator"]
+
+#: deepest plausible contact_depth (m): a DIGIT's gel is 4-5 mm thick (as poly-force's depth_limit); deeper, no
+#: pixel is ever in contact ("0.03", meant in mm, read every press as no contact)
+MAX_CONTACT_DEPTH = 5e-3
 
 
 class DepthEstimator(Component):
@@ -108,6 +112,15 @@ class DepthEstimator(Component):
                                       "gives the previous result again, stamped with the new frame's time, "
                                       "without recomputing it")
 
+        @field_validator("contact_depth")
+        @classmethod
+        def _contact_depth(cls, v: float) -> float:
+            if v > MAX_CONTACT_DEPTH:
+                raise ValueError(f"contact_depth ({v:g} m) is deeper than {MAX_CONTACT_DEPTH * 1e3:g} mm, deeper "
+                                 f"than a DIGIT's gel is thick (no pixel would ever be in contact): millimetres "
+                                 f"typed in a metre field? write {v / 1e3:g} or \"{v:g}mm\"")
+            return v
+
     def configure(self) -> None:
         from .depth_pipeline import DepthPipeline
         from .normal_model import load_model
@@ -150,11 +163,22 @@ class DepthEstimator(Component):
         self._bad_run = 0        # implausible frames in a row
         self._repeat_run = 0     # bit-identical frames with new stamps in a row
         self._mismatch: list[float] = []   # background_mismatch() of the first MATCH_FRAMES plausible frames
+        # the last input sample handled and its outputs: the port's sample read again is no new frame
+        self._handled: tuple[Sample, dict[str, Any]] | None = None
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["image"]
         if s is None:
             return None
+        if self._handled is not None and s is self._handled[0]:
+            # the sample handled last, read again (this node steps faster than the camera delivers): its outputs
+            # again, with its stamp; not another frame, so not counted (bad, repeated) nor blended in again
+            return dict(self._handled[1])
+        out = self._frame(s)
+        self._handled = (s, out)   # not when it raised: a sample that faulted the node faults it again
+        return dict(out)
+
+    def _frame(self, s: Sample) -> dict[str, Any]:
         frame = s.value
         try:
             self.pipe.check_frame(frame)

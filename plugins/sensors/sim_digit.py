@@ -11,7 +11,8 @@ read-only (they are shared while the pose does not change); ``image`` is a fresh
 step's time.
 
 Bad values fault rather than render something silently wrong: lengths no DIGIT setup has (millimetres typed in metre
-fields, MAX_LENGTH), an indenter axis off the image, a tilt beyond 45 degrees, an indentation through the gel, inputs
+fields, MAX_LENGTH; the indentation input too), a pixel size below MIN_M_PER_PX or a blur wider than
+MAX_SMOOTHING_PX, an indenter axis off the image, a tilt beyond 45 degrees, an indentation through the gel, inputs
 that are not finite or older than INPUT_MAX_AGE.
 """
 
@@ -42,6 +43,12 @@ MIN_GAIN = 0.1
 #: ("indenter_radius: 3" is 3 m; "smoothing: 0.08" would be an 80 mm blur that needs gigabytes to render)
 MAX_LENGTH = {**_gel.MAX_LENGTH, "m_per_px": 1e-3, "indenter_map_m_per_px": 1e-3, "smoothing": 1e-3,
               "indentation": 0.02, "position": 0.1}
+#: smallest plausible pixel size (m): 1 um, 27x finer than the DIGIT at VGA; below it a contact's profile takes
+#: gigabytes (1e-9: 4.5 GB and 14 s a frame)
+MIN_M_PER_PX = 1e-6
+#: widest blur the renderer takes (px, before the unit's blur gain): the largest smoothing (1 mm) at the default
+#: pixel sizes is 17 px (QVGA) and 38 px (VGA); 0.08 mm at m_per_px 1e-9 would be 80000 px (a 47.7 TiB matrix)
+MAX_SMOOTHING_PX = 64
 #: the gel model tilts the indenter's face only (its sides never touch the gel): at most this tilt (rad)
 MAX_TILT = math.pi / 4
 MODULUS_RANGE = _gel.MODULUS_RANGE
@@ -88,6 +95,9 @@ class DigitSimulator:
             raise ValueError(f"resolution must be one of {sorted(optics.RESOLUTIONS)}, got {resolution!r}")
         self.shape = optics.RESOLUTIONS[resolution]
         self.m_per_px = float(m_per_px) if m_per_px else M_PER_PX[resolution]
+        why = scale_problem(self.m_per_px, float(smoothing))
+        if why:
+            raise ValueError(why)
         self.indenter = indenter or _gel.Indenter.sphere(0.003)
         self.material = material or _gel.GelMaterial()
         self.smoothing_px = float(smoothing) / self.m_per_px
@@ -398,6 +408,13 @@ class SimDigit(Component):
             return v
 
         @model_validator(mode="after")
+        def _scale(self):
+            why = scale_problem(self.m_per_px or M_PER_PX[self.resolution], self.smoothing)
+            if why:
+                raise ValueError(why)
+            return self
+
+        @model_validator(mode="after")
         def _indentation_within_gel(self):
             h = self.gel_thickness
             if h is not None and self.indentation >= h:
@@ -442,6 +459,9 @@ class SimDigit(Component):
     def step(self, t: float, inputs) -> dict[str, Any]:
         p = self.params
         d = _finite(inputs.value("indentation", p.indentation), "indentation")
+        if not abs(d) <= MAX_LENGTH["indentation"]:
+            raise ValueError(f"indentation input ({d:g} m) is larger than {MAX_LENGTH['indentation'] * 1e3:g} mm, "
+                             f"which no DIGIT setup has: the input is in m (its producer sends mm?)")
         if p.gel_thickness is not None and d >= p.gel_thickness:
             raise ValueError(f"indentation {d * 1e3:.4g} mm reaches through the gel (gel_thickness "
                              f"{p.gel_thickness * 1e3:.4g} mm)")
@@ -466,6 +486,20 @@ def _check_length(name: str, value: float) -> None:
     why = _gel.length_problem(name, value, MAX_LENGTH[name])
     if why:
         raise ValueError(why)
+
+
+def scale_problem(m_per_px: float, smoothing: float) -> str | None:
+    """None if the pixel size (m) and the blur (m) can be rendered; else why not (a pixel size no DIGIT setup has,
+    or a blur so many pixels wide that its matrix would not fit in memory)."""
+    if not m_per_px >= MIN_M_PER_PX:
+        return (f"m_per_px ({m_per_px:g} m) is below {MIN_M_PER_PX * 1e3:g} mm, which no DIGIT setup has (QVGA "
+                f"{M_PER_PX['qvga'] * 1e3:.4g} mm, VGA {M_PER_PX['vga'] * 1e3:.4g} mm): an exponent off?")
+    px = smoothing / m_per_px
+    if px > MAX_SMOOTHING_PX:
+        return (f"smoothing ({smoothing * 1e3:g} mm) is a blur of {px:.4g} px at m_per_px {m_per_px * 1e3:.4g} mm: "
+                f"expected at most {MAX_SMOOTHING_PX} px (a wider blur leaves no contact to see and takes gigabytes "
+                f"to render)")
+    return None
 
 
 def _check_tilt(name: str, value: float) -> None:
