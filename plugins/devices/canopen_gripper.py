@@ -5,7 +5,9 @@ Start-up (all through the canopen library): connect the bus; check the node answ
 asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078
 + velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in
 0x6061); profile velocity 0x6081 from ``max_speed`` (rounded down); max current 0x6073 from ``max_effort``; target :=
-actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402).
+actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402), starting from
+the statusword of the drive's first TPDO1 (a drive found enabled stays enabled; one found in FAULT is logged with its
+error code, then reset).
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
@@ -14,9 +16,12 @@ command and send one unit, so a safe_state() from another thread waits for it an
 set-point goes out while the last statusword is not OPERATION ENABLED: RPDO1's controlword would enable a drive in
 quick stop or switched on again (the drive's own stop holds it). Max current 0x6073 is rounded down, so the current
 cap never exceeds ``max_effort``. Each step then transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
-triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat or missing TPDOs end in a
-HardwareError naming the cause. Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS
-file is optional (without one, the standard CiA 301/402 objects above are assumed).
+triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat, a heartbeat saying the drive left
+NMT OPERATIONAL, or missing TPDOs end in a HardwareError naming the cause. Heartbeats and TPDOs are timed and counted
+as they arrive, on the local monotonic clock: a received frame's timestamp is on whatever clock the python-can
+interface uses (epoch on socketcan; monotonic, a device counter or none on others). Scaling (counts <-> opening,
+per-mille current <-> newtons) is configuration; an EDS file is optional (without one, the standard CiA 301/402
+objects above are assumed).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from teletouch.units import Meters, Newtons, Seconds
 from .follower_common import FollowerBase, FollowerParams, OpeningMap, Reading
 
 PROFILE_POSITION = 1
+NMT_OPERATIONAL = 5  # the NMT state in a heartbeat (CiA 301)
 CW_ENABLE = 0x000F
 CW_NEW_SETPOINT = 0x0010
 CW_CHANGE_IMMEDIATELY = 0x0020
@@ -185,6 +191,9 @@ class CanopenGripper(FollowerBase):
         node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry forever in canopen 2.4)
         self.emcys: list[Any] = []
         node.emcy.add_callback(self.emcys.append)
+        self._hb_seen = time.monotonic()
+        self._nmt_state: int | None = None  # the NMT state in the drive's last heartbeat
+        node.nmt.add_heartbeat_callback(self._on_heartbeat)
         dev = self._sdo("reading device type 0x1000", lambda: node.sdo[0x1000].raw)
         if dev & 0xFFFF != 402:
             raise HardwareError(f"{self._where()} is not a CiA 402 drive: device type 0x{dev:08X} (profile "
@@ -214,6 +223,12 @@ class CanopenGripper(FollowerBase):
         # SYNC drives the TPDOs that carry the statusword while the state machine is walked
         self.network.sync.start(0.005)
         try:
+            # the walk starts from the drive's own statusword: from canopen's default (0, none received yet) its
+            # first controlword was "disable voltage", switching off a drive found enabled (and holding)
+            sw = node.check_statusword()
+            if sw & 0x4F in (0x08, 0x0F):   # FAULT (reaction active): the walk resets it
+                self.ctx.log(f"{self._where()} was in FAULT (statusword 0x{sw:04X}, error code {self._fault_code()}, "
+                             f"{self._emcy_text()}): resetting it (controlword bit 7)")
             node.state = "OPERATION ENABLED"
         except (RuntimeError, ValueError) as exc:
             raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
@@ -221,6 +236,7 @@ class CanopenGripper(FollowerBase):
         finally:
             self.network.sync.stop()
         self._hb_seen = time.monotonic()
+        self._nmt_state = None  # heartbeats from here on (the ones before said PRE-OPERATIONAL)
 
     def _profile_velocity(self) -> int:
         """Profile velocity 0x6081 (counts/s) for ``max_speed``, rounded down in exact decimal arithmetic: the drive's
@@ -276,6 +292,21 @@ class CanopenGripper(FollowerBase):
 
         self._sdo("mapping PDOs", configure)
         self.tp1, self.tp2, self.rp1 = n.tpdo[1], n.tpdo[2], n.rpdo[1]
+        self._arrivals = {id(self.tp1): 0, id(self.tp2): 0}
+        for m in (self.tp1, self.tp2):
+            m.add_callback(self._on_tpdo)
+
+    def _on_heartbeat(self, state: int) -> None:
+        # the age of a heartbeat is measured on the local monotonic clock from when it arrived (called as the frame
+        # is received): msg.timestamp's clock depends on the python-can interface (epoch on socketcan, monotonic,
+        # a device counter or nothing on others), so comparing it with time.time() lost live drives and kept dead
+        # ones alive
+        self._hb_seen = time.monotonic()
+        self._nmt_state = state
+
+    def _on_tpdo(self, pdo: Any) -> None:
+        # counted on arrival (under pdo.receive_condition): msg.timestamp need not change from frame to frame
+        self._arrivals[id(pdo)] += 1
 
     def _send_setpoint(self, counts: int, toggle: bool = True) -> None:
         r = self.rp1
@@ -295,9 +326,10 @@ class CanopenGripper(FollowerBase):
         e = self.emcys[-1]
         return f"last EMCY {e}"
 
-    def _wait_tpdo(self, pdo: Any, before: float | None, deadline: float) -> bool:
+    def _wait_tpdo(self, pdo: Any, before: int, deadline: float) -> bool:
+        """Whether a frame of ``pdo`` arrived after the first ``before`` ones, waiting until ``deadline``."""
         with pdo.receive_condition:
-            while pdo.timestamp == before:
+            while self._arrivals[id(pdo)] == before:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
@@ -305,16 +337,10 @@ class CanopenGripper(FollowerBase):
         return True
 
     def _hw_read(self) -> Reading | None:
-        p, n = self.params, self.node
+        p = self.params
         if p.heartbeat_period > 0:
-            hb = n.nmt.timestamp
-            if hb is not None:
-                self._hb_seen = max(self._hb_seen, time.monotonic() - (time.time() - hb))
-            if time.monotonic() - self._hb_seen > 3 * p.heartbeat_period:
-                self.last_error = f"no heartbeat for {time.monotonic() - self._hb_seen:.3f} s"
-                if time.monotonic() - self._hb_seen > p.read_timeout:
-                    raise HardwareError(f"{self._where()}: {self.last_error}; the drive is gone (power, cable)")
-        b1, b2 = self.tp1.timestamp, self.tp2.timestamp
+            self._check_heartbeat()
+        b1, b2 = self._arrivals[id(self.tp1)], self._arrivals[id(self.tp2)]
         t0 = time.monotonic()
         self.network.sync.transmit()
         deadline = t0 + p.pdo_timeout
@@ -338,6 +364,23 @@ class CanopenGripper(FollowerBase):
         amps = self.tp2[0x6078].raw / 1000.0 * self.rated_ma / 1000.0
         vel = self.tp2[0x606C].raw * self.map.scale
         return Reading(self.map.opening(counts), vel, abs(amps) * p.newtons_per_amp, 0.5 * (t0 + t1))
+
+    def _check_heartbeat(self) -> None:
+        """The drive's heartbeat: none for more than three periods is noted, for more than read_timeout a fault; one
+        saying the drive left NMT OPERATIONAL (reset, or another master) is a fault at once: its PDOs stopped."""
+        from canopen.nmt import NMT_STATES
+
+        p = self.params
+        age = time.monotonic() - self._hb_seen
+        if age > 3 * p.heartbeat_period:
+            self.last_error = f"no heartbeat for {age:.3f} s"
+            if age > p.read_timeout:
+                raise HardwareError(f"{self._where()}: {self.last_error}; the drive is gone (power, cable)")
+        state = self._nmt_state
+        if state is not None and state != NMT_OPERATIONAL:
+            raise HardwareError(f"{self._where()} left NMT OPERATIONAL (heartbeat: {NMT_STATES.get(state, state)}): "
+                                f"it sends and takes no PDOs; the drive was reset (power, watchdog) or another master "
+                                f"changed its NMT state")
 
     def _fault_code(self) -> str:
         try:

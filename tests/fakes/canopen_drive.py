@@ -7,8 +7,11 @@ configured by the master through SDO (0x1400/0x1600 receive, 0x1800/0x1A00 trans
 ("new set-point") latches target position 0x607A, acknowledged by statusword bit 12; the axis moves towards it at
 profile velocity 0x6081 (counts/s). An object at ``block_at`` counts (approached in the ``closing`` direction) stops
 it, and the current rises to ``min(max current 0x6073, current_gain * |target - block_at|)`` (per mille of the rated
-current 0x6075). ``go_silent()`` makes the node vanish from the bus (no SDO, PDO or heartbeat); ``inject_fault()``
-sends an EMCY and enters FAULT.
+current 0x6075). Entering OPERATION ENABLED holds the actual position (the position demand starts there, as on a
+real drive): only a new set-point moves the axis. ``go_silent()`` makes the node vanish from the bus (no SDO, PDO or
+heartbeat); ``inject_fault()`` sends an EMCY and enters FAULT. ``stamp`` (a clock, or None for the interface's own)
+stamps every frame the drive sends, as the receiving interface would: python-can interfaces differ (socketcan: epoch
+kernel stamps; others monotonic, device counters or none at all), so the driver must not trust the stamp's clock.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import struct
 import threading
 import time
+from typing import Callable
 
 import canopen
 from canopen import objectdictionary as od_mod
@@ -88,7 +92,7 @@ class Cia402Drive:
 
     def __init__(self, node_id: int = 5, channel: str = "teletouch-vcan", *, position: int = 0,
                  block_at: int | None = None, closing: int = 1, current_gain: float = 0.5,
-                 device_type: int = DEVICE_TYPE_402):
+                 device_type: int = DEVICE_TYPE_402, stamp: Callable[[], float] | None = None):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id)
@@ -101,7 +105,8 @@ class Cia402Drive:
         self.state = "SWITCH ON DISABLED"
         self.silent = False
         self.syncs = 0
-        self.latched = 0
+        self.stamp = stamp
+        self.latched = int(round(self.pos))  # the position demand: where the axis is, until a new set-point
         self.rpdo_frames = 0
         self._cw = 0
         self._batch = False
@@ -114,7 +119,18 @@ class Cia402Drive:
 
     # --- life cycle ------------------------------------------------------------------------------------------
     def start(self) -> "Cia402Drive":
-        self.network.connect(interface="virtual", channel=self.channel, receive_own_messages=False)
+        if self.stamp is None:
+            self.network.connect(interface="virtual", channel=self.channel, receive_own_messages=False)
+        else:  # the virtual bus passes a sent frame's stamp on (preserve_timestamps): stamp each on our clock
+            self.network.connect(interface="virtual", channel=self.channel, receive_own_messages=False,
+                                 preserve_timestamps=True)
+            bus, send = self.network.bus, self.network.bus.send
+
+            def stamped_send(msg, timeout=None):
+                msg.timestamp = self.stamp()
+                return send(msg, timeout)
+
+            bus.send = stamped_send  # also what the heartbeat's periodic task sends through
         self.network.add_node(self.node)
         n = self.node
         n.data_store.setdefault(0x6064, {})[0] = struct.pack("<i", int(self.pos))
@@ -212,6 +228,7 @@ class Cia402Drive:
             elif cw & 0x8F == 0x0F:
                 if s in ("SWITCHED ON", "QUICK STOP ACTIVE"):
                     self.state = "OPERATION ENABLED"
+                    self.latched = int(round(self.pos))  # enabled: holds where it is until a new set-point
             ack = None
             if self.state == "OPERATION ENABLED" and self.get(0x6061) == 1:
                 if cw & 0x10 and not prev & 0x10:
