@@ -45,7 +45,10 @@ from teletouch.units import (
     Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals, Seconds,
 )
 
-from .poly_force import DEFAULT_MIN_R2, CalibrationError, ForceCalibration, read_pairs_csv, write_pairs_csv
+from .poly_force import (
+    DEFAULT_MIN_R2, MAX_DEGREE, MAX_POSITION_DEGREE, PHASES, CalibrationError, ForceCalibration, read_pairs_csv,
+    write_pairs_csv,
+)
 
 __all__ = ["PressRoutine", "SimPressRig", "fit_samples", "run_press_calibration"]
 
@@ -714,7 +717,8 @@ def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: fl
     if not keep:
         raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm: did the probe "
                                f"touch the gel?")
-    problem = _negative_force_problem(samples, keep, min_depth, where)
+    problem = _sample_problem(samples, min_depth, position_degree, where) or _negative_force_problem(
+        samples, keep, min_depth, where)
     if problem:
         raise CalibrationError(problem)
     extra = {"excluded_no_contact": len(samples) - len(keep), "min_depth_m": min_depth}
@@ -732,12 +736,35 @@ def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: fl
                                    f"{len(missing)} of {len(keep)} have none (wire depth.centroid into the "
                                    f"press-routine's 'centroid' input, or give x_m, y_m columns in the CSV)")
         positions = [(float(s["x_m"]), float(s["y_m"])) for s in keep]
-    return ForceCalibration.fit([s["depth_m"] for s in keep], [s["force_n"] for s in keep], degree,
-                                phases=[s.get("phase") or "" for s in keep],
-                                cycles=[int(s.get("cycle") or 0) for s in keep], use=use,
-                                zero_intercept=zero_intercept, sensor_model_id=sensor_model_id,
-                                depth_source=depth_source, source=source, extra=extra, positions=positions,
-                                position_degree=position_degree, min_r2=min_r2)
+    try:
+        return ForceCalibration.fit([s["depth_m"] for s in keep], [s["force_n"] for s in keep], degree,
+                                    phases=[s.get("phase") or "" for s in keep],
+                                    cycles=[int(s.get("cycle") or 0) for s in keep], use=use,
+                                    zero_intercept=zero_intercept, sensor_model_id=sensor_model_id,
+                                    depth_source=depth_source, source=source, extra=extra, positions=positions,
+                                    position_degree=position_degree, min_r2=min_r2)
+    except CalibrationError as exc:   # the fit's refusals of the data as a whole name the file too
+        if not where:
+            raise
+        raise CalibrationError(f"{where}: {exc}") from None
+
+
+def _sample_problem(samples: list[dict[str, Any]], min_depth: float, position_degree: int,
+                    where: str) -> str | None:
+    """Why a sample in contact cannot be fitted (a non-finite value, an unknown phase), named by its line in the file
+    or its index in ``samples`` (the fit, given the samples in contact only, would count those), or None."""
+    for i, s in enumerate(samples):
+        if s["depth_m"] < min_depth:
+            continue   # no contact: left out
+        at = f"{where}:{s['line']}" if where and s.get("line") else f"{where + ': ' if where else ''}sample {i}"
+        if not (math.isfinite(s["depth_m"]) and math.isfinite(s["force_n"])):
+            return f"{at}: depth {float(s['depth_m'])!r} m, force {float(s['force_n'])!r} N is not finite"
+        if (s.get("phase") or "") not in PHASES:
+            return f"{at}: phase must be 'loading', 'unloading' or empty, got {s['phase']!r}"
+        xy = (s.get("x_m"), s.get("y_m"))
+        if position_degree and None not in xy and not all(math.isfinite(float(v)) for v in xy):
+            return f"{at}: contact centroid {[float(v) for v in xy]} m is not finite"
+    return None
 
 
 def _negative_force_problem(samples: list[dict[str, Any]], keep: list[dict[str, Any]], min_depth: float,
@@ -847,6 +874,12 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     min_r2 = args.min_r2
     if not 0.0 <= min_r2 < 1.0:   # argparse gave a float (NaN fails this too)
         return usage(f"--min-r2: expected an R^2 from 0 (no limit) to below 1, got {min_r2!r}")
+    # the fit's own limits, checked before a press run that a refused degree would waste
+    if not 1 <= args.degree <= MAX_DEGREE:
+        return usage(f"--degree: expected an integer from 1 to {MAX_DEGREE}, got {args.degree}")
+    if not 0 <= args.position_degree <= MAX_POSITION_DEGREE:
+        return usage(f"--position-degree: expected an integer from 0 (none) to {MAX_POSITION_DEGREE}, got "
+                     f"{args.position_degree}")
     try:
         source_date_epoch()   # a malformed SOURCE_DATE_EPOCH is refused before the press run, not at the write
     except ValueError as exc:

@@ -11,10 +11,12 @@ Model: ``F(d) = sum_k c_k d^k`` inside the calibrated depth range ``[d_lo, d_hi]
 N/m^k). Outside it the cubic is never evaluated:
 
 - above ``d_hi``: ``clamp`` (the default) holds ``F(d_hi)`` (status ``clamped``); ``extrapolate`` continues the fit on
-  the straight line of its end slope, ``F(d_hi) + F'(d_hi) (d - d_hi)`` (status ``extrapolated``);
+  the straight line of its end slope, ``F(d_hi) + F'(d_hi) (d - d_hi)`` (status ``extrapolated``), up to
+  ``MAX_DEPTH_M`` (10 mm, deeper than any gel) and holds it beyond (status ``clamped``);
 - between 0 and ``d_lo``: a straight line from (0, 0) to (d_lo, F(d_lo)) (status ``extrapolated``).
 
-Forces are never negative. A fit that is not strictly increasing inside its range is refused.
+Forces are never negative; a non-finite depth (NaN, inf) raises ValueError. A fit that is not strictly increasing
+inside its range is refused, and so is one outside the limits a calibration file is held to (``_limits_problem``).
 
 Optional position terms (``position_degree`` p > 0, beyond the paper): the coefficients vary over the sensor as 2-D
 polynomials of total degree p in the contact centroid, ``c_k(x, y) = sum_j P[k][j] u^a_j v^b_j`` with ``(u, v)`` the
@@ -47,7 +49,7 @@ from teletouch.units import Hertz, Meters, Newtons, Seconds
 
 __all__ = ["ForceCalibration", "CalibrationError", "PolyForce", "read_pairs_csv", "write_pairs_csv",
            "packaged_calibrations", "resolve_calibration", "depth_levels", "FORMAT", "VERSION", "DEFAULT_MIN_R2",
-           "DEPTH_LEVEL_TOLERANCE_M"]
+           "DEPTH_LEVEL_TOLERANCE_M", "MAX_DEGREE", "MAX_POSITION_DEGREE", "MAX_DEPTH_M"]
 
 FORMAT = "teletouch-force-calibration"
 VERSION = 1
@@ -68,6 +70,9 @@ DEFAULT_MIN_R2 = 0.99
 #: largest below which the samples do not determine the terms (readings of one depth level at a press point leave
 #: ~1e-10; the packaged calibration's samples give 4e-4, and 2e-5 with position degree 6)
 POSITION_FIT_MIN_SV = 1e-7
+#: the highest polynomial degree in depth, and of the position terms, that a fit and a calibration file may have
+MAX_DEGREE = 9
+MAX_POSITION_DEGREE = 6
 
 
 class CalibrationError(TeletouchError, ValueError):
@@ -230,20 +235,17 @@ class PositionModel:
                         "depth_high_m[i][j]: the calibrated depth limit at u = -1 + 2 i / 8, v = -1 + 2 j / 8"}
 
     @classmethod
-    def from_dict(cls, doc: Any, depth_degree: int, depth_range: Sequence[float],
-                  bad: Callable[..., Exception]) -> "PositionModel":
+    def from_dict(cls, doc: Any, depth_degree: int, bad: Callable[..., Exception]) -> "PositionModel":
+        """The model of a file's ``model.position``, its structure checked (its limits: :func:`_limits_problem`)."""
         if not isinstance(doc, dict):
             raise bad("model.position", "an object (or absent)", doc)
         deg = doc.get("degree")
-        if not isinstance(deg, int) or isinstance(deg, bool) or not 1 <= deg <= 6:
-            raise bad("model.position.degree", "an integer from 1 to 6", deg)
+        if not isinstance(deg, int) or isinstance(deg, bool) or not 1 <= deg <= MAX_POSITION_DEGREE:
+            raise bad("model.position.degree", f"an integer from 1 to {MAX_POSITION_DEGREE}", deg)
         for key in ("center_m", "half_extent_m"):
             v = doc.get(key)
             if not isinstance(v, list) or len(v) != 2 or not all(_finite(x) for x in v):
                 raise bad(f"model.position.{key}", "[x, y] in m, finite numbers", v)
-            if not all(abs(x) < MAX_CENTROID_M for x in v):
-                raise bad(f"model.position.{key}", f"[x, y] in m within {MAX_CENTROID_M:g} m of the image centre "
-                          f"(millimetres written as metres?)", v)
         if not all(h > 0 for h in doc["half_extent_m"]):
             raise bad("model.position.half_extent_m", "two positive half widths in m", doc["half_extent_m"])
         n = len(position_exponents(deg))
@@ -255,10 +257,8 @@ class PositionModel:
         hi = doc.get("depth_high_m")
         g = cls.GRID
         if (not isinstance(hi, list) or len(hi) != g
-                or not all(isinstance(r, list) and len(r) == g and all(_finite(x) for x in r) for r in hi)
-                or not all(depth_range[0] < x <= depth_range[1] for r in hi for x in r)):
-            raise bad("model.position.depth_high_m", f"{g} lists of {g} depths in m inside the depth range "
-                      f"({depth_range[0]:.6g}, {depth_range[1]:.6g}]", hi)
+                or not all(isinstance(r, list) and len(r) == g and all(_finite(x) for x in r) for r in hi)):
+            raise bad("model.position.depth_high_m", f"{g} lists of {g} depths in m", hi)
         return cls(deg, doc["center_m"], doc["half_extent_m"], coef, hi)
 
 
@@ -372,6 +372,52 @@ def _position_slope_problem(pmodel: PositionModel, lo: float) -> str | None:
     return None
 
 
+def _limits_problem(cal: "ForceCalibration", monotonic: bool = True) -> tuple[str, str, Any, str] | None:
+    """The first plausibility limit a calibration breaks, or None: (the file's field, what it should hold, what it
+    holds, what that means for the data fitted). One check for both ends: :meth:`ForceCalibration.load` refuses such
+    a file and :meth:`ForceCalibration.fit` such a fit, so every calibration the fit accepts loads from its file.
+    ``monotonic``: check that the curve is strictly increasing too (the fit checks it first, in its own words)."""
+    (lo, hi), (f_lo, f_hi) = cal.depth_range, cal.force_range
+    if hi >= MAX_DEPTH_M:
+        return ("model.depth_range_m", f"depths in m below {MAX_DEPTH_M:g} m ({MAX_DEPTH_M * 1e3:g} mm, deeper than a "
+                f"gel: millimetres written as metres?)", [lo, hi], "are the depths in mm? give them in m")
+    if abs(f_lo) >= MAX_FORCE_N or abs(f_hi) >= MAX_FORCE_N:
+        return ("model.force_range_n", f"[low, high] in N with low <= high, below {MAX_FORCE_N:g} N", [f_lo, f_hi],
+                "are the forces in mN? give them in N")
+    pm = cal.position
+    if pm is not None:
+        for key, v in (("center_m", pm.center), ("half_extent_m", pm.half_extent)):
+            if not all(abs(x) < MAX_CENTROID_M for x in v):
+                return (f"model.position.{key}", f"[x, y] in m within {MAX_CENTROID_M:g} m of the image centre "
+                        f"(millimetres written as metres?)", list(v), "are the contact centroids in mm? give them in m")
+        h = pm.depth_high
+        outside = ~((h > lo) & (h <= hi))
+        if outside.any():
+            i, j = np.argwhere(outside)[0]
+            g = pm.GRID
+            x = pm.center[0] + (-1.0 + 2.0 * i / (g - 1)) * pm.half_extent[0]
+            y = pm.center[1] + (-1.0 + 2.0 * j / (g - 1)) * pm.half_extent[1]
+            return ("model.position.depth_high_m", f"{g} lists of {g} depths in m inside the depth range "
+                    f"({lo:.6g}, {hi:.6g}]", h.tolist(),
+                    f"at the contact position ({x * 1e3:.2f}, {y * 1e3:.2f}) mm the calibrated depth limit is "
+                    f"{h[i, j] * 1e3:.4f} mm: no sample is deeper than the shallowest ({lo * 1e3:.4f} mm) there or "
+                    f"nearer it, so the curve there is not calibrated (press every point of the area to several "
+                    f"depths)")
+    problem = _monotonic_everywhere(cal.coefficients, lo, hi, pm) if monotonic else None   # up to the limits above
+    if problem is not None:
+        return ("model.coefficients", f"a strictly increasing polynomial on the depth range ({problem})",
+                list(cal.coefficients), "the curve is not strictly increasing")
+    # coefficients in other units (N/mm^k, mN) give forces far from the ones the calibration recorded
+    top = cal.largest_force("clamp")
+    if not 0.5 * f_hi - 0.1 <= top <= 2.0 * f_hi + 0.1:
+        return ("model.coefficients", f"a polynomial whose force at the deepest calibrated depth is near the "
+                f"recorded force range's top ({f_hi:.4g} N, model.force_range_n), but it gives {top:.4g} N: "
+                f"coefficients in other units than N/m^k?", list(cal.coefficients),
+                f"the curve's force at the deepest depth ({top:.4g} N) is far from the largest force recorded "
+                f"({f_hi:.4g} N): an outlier, or forces that do not follow one curve of the depth; check the data")
+    return None
+
+
 # ------------------------------------------------------------------------------------------------ the calibration
 class ForceCalibration:
     """A polynomial map from max depth (m) to normal force (N), with its range, quality and data.
@@ -439,8 +485,8 @@ class ForceCalibration:
         f = np.asarray(list(forces_n), dtype=float).ravel()
         if d.shape != f.shape:
             raise CalibrationError(f"{d.size} depths but {f.size} forces")
-        if not isinstance(degree, (int, np.integer)) or not 1 <= degree <= 9:
-            raise CalibrationError(f"degree must be an integer from 1 to 9, got {degree!r}")
+        if not isinstance(degree, (int, np.integer)) or not 1 <= degree <= MAX_DEGREE:
+            raise CalibrationError(f"degree must be an integer from 1 to {MAX_DEGREE}, got {degree!r}")
         ph = [str(p or "") for p in phases] if phases is not None else [""] * d.size
         cy = [int(c) for c in cycles] if cycles is not None else [0] * d.size
         if len(ph) != d.size or len(cy) != d.size:
@@ -451,7 +497,7 @@ class ForceCalibration:
         bad = ~(np.isfinite(d) & np.isfinite(f))
         if bad.any():
             i = int(np.argmax(bad))
-            raise CalibrationError(f"sample {i}: depth {d[i]!r} m, force {f[i]!r} N is not finite")
+            raise CalibrationError(f"sample {i}: depth {float(d[i])!r} m, force {float(f[i])!r} N is not finite")
         if (d < 0).any():
             i = int(np.argmax(d < 0))
             raise CalibrationError(f"sample {i}: depth {d[i]:.6g} m is negative (depth is positive into the gel)")
@@ -459,8 +505,9 @@ class ForceCalibration:
             raise CalibrationError(f"use must be 'all', 'loading' or 'unloading', got {use!r}")
         sel = np.ones(d.size, bool) if use == "all" else np.array([p == use for p in ph])
         dsel, fsel = d[sel], f[sel]
-        if not isinstance(position_degree, (int, np.integer)) or not 0 <= position_degree <= 6:
-            raise CalibrationError(f"position_degree must be an integer from 0 (none) to 6, got {position_degree!r}")
+        if not isinstance(position_degree, (int, np.integer)) or not 0 <= position_degree <= MAX_POSITION_DEGREE:
+            raise CalibrationError(f"position_degree must be an integer from 0 (none) to {MAX_POSITION_DEGREE}, got "
+                                   f"{position_degree!r}")
         pos = None
         if position_degree:
             if positions is None:
@@ -524,6 +571,13 @@ class ForceCalibration:
         cal = cls(coef, (lo, hi), frange, r2=r2, rmse=rmse, samples=samples, hysteresis=hyst,
                   sensor_model_id=sensor_model_id, depth_source=depth_source, source=source,
                   zero_intercept=zero_intercept, extra=dict(extra or {}, use=use), position=pmodel)
+        # the file's checks (monotonicity: above): a fit its own file would not load is refused here
+        limits = _limits_problem(cal, monotonic=False)
+        if limits is not None:
+            field, expected, got, means = limits
+            got = repr(got) if len(repr(got)) <= 120 else repr(got)[:117] + "..."
+            raise CalibrationError(f"the fitted calibration is implausible: {field}: expected {expected}, got {got}; "
+                                   f"{means}; refusing it (its file would not load)")
         return cal
 
     # ---------------------------------------------------------------------------------------------------- predict
@@ -531,12 +585,15 @@ class ForceCalibration:
                  position: Any = None) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised map with the range guard. Returns (force N, code) with code 0 ok, 1 extrapolated, 2 clamped.
 
-        Negative depths give 0 N (code 0); NaN raises ValueError. ``position``: the contact centroid (x, y) in m,
-        one pair or one per depth, for a calibration with position terms (None: the centre of its area).
+        Negative depths give 0 N (code 0); a non-finite one (NaN, inf) raises ValueError. ``position``: the contact
+        centroid (x, y) in m, one pair or one per depth, for a calibration with position terms (None: the centre of
+        its area). ``extrapolate`` continues the end slope up to :data:`MAX_DEPTH_M` (no gel is that deep) and holds
+        the force there beyond it (code 2): the force is at most ``largest_force("extrapolate", MAX_DEPTH_M)``.
         """
         d = np.asarray(max_depth_m, dtype=float)
-        if np.isnan(d).any():
-            raise ValueError("max depth is NaN; a force cannot be computed from it")
+        bad = ~np.isfinite(d)
+        if bad.any():
+            _refuse_depth(float(d[bad].flat[0]))
         if out_of_range not in ("extrapolate", "clamp"):
             raise ValueError(f"out_of_range must be 'extrapolate' or 'clamp', got {out_of_range!r}")
         if self.position is not None:
@@ -563,8 +620,9 @@ class ForceCalibration:
                 f[above] = self._f_hi
                 code[above] = 2
             else:
-                f[above] = self._f_hi + self._slope_hi * np.minimum(d[above] - hi, 1e3)
-                code[above] = 1
+                end = max(MAX_DEPTH_M, hi)
+                f[above] = self._f_hi + self._slope_hi * (np.minimum(d[above], end) - hi)
+                code[above] = np.where(d[above] > end, 2, 1)
         f = np.maximum(f, 0.0)
         return f, code
 
@@ -584,8 +642,8 @@ class ForceCalibration:
     def _evaluate_scalar(self, d: float, out_of_range: str,
                          position: tuple[float, float] | None = None) -> tuple[float, str]:
         """:meth:`evaluate` for one float, operation for operation (60 Hz x a few us of numpy saved)."""
-        if d != d:
-            raise ValueError("max depth is NaN; a force cannot be computed from it")
+        if not math.isfinite(d):
+            _refuse_depth(d)
         if out_of_range not in ("extrapolate", "clamp"):
             raise ValueError(f"out_of_range must be 'extrapolate' or 'clamp', got {out_of_range!r}")
         lo, hi = self.depth_range
@@ -613,15 +671,18 @@ class ForceCalibration:
             if out_of_range == "clamp":
                 f, status = f_hi, "clamped"
             else:
-                f, status = f_hi + slope_hi * min(d - hi, 1e3), "extrapolated"
+                end = max(MAX_DEPTH_M, hi)
+                f = f_hi + slope_hi * (min(d, end) - hi)
+                status = "extrapolated" if d <= end else "clamped"
         else:
             f = 0.0
         return float(max(f, 0.0)), status
 
     def largest_force(self, out_of_range: str = "clamp", depth_limit: float = 5e-3) -> float:
         """The largest force (N) :meth:`predict` gives for depths up to ``depth_limit`` (m), at any position: the
-        force at the calibrated limit (clamp) or on the end slope at ``depth_limit`` (extrapolate). With position
-        terms the maximum over a 65 x 65 grid of the area (``poly-force`` caps its output there)."""
+        force at the calibrated limit (clamp) or on the end slope at ``depth_limit`` (extrapolate; at most at
+        :data:`MAX_DEPTH_M`, where it stops). With position terms the maximum over a 65 x 65 grid of the area
+        (``poly-force`` caps its output there)."""
         if self.position is None:
             coef = np.array([self.coefficients])
             high = np.array([self.depth_range[1]])
@@ -635,7 +696,7 @@ class ForceCalibration:
             if k:
                 slope = slope * high + k * coef[:, k]
         if out_of_range == "extrapolate":
-            f = f + slope * np.maximum(depth_limit - high, 0.0)
+            f = f + slope * np.maximum(np.minimum(depth_limit, np.maximum(MAX_DEPTH_M, high)) - high, 0.0)
         return float(max(np.max(f), 0.0))
 
     def derivative(self, max_depth_m: float) -> float:
@@ -730,8 +791,8 @@ class ForceCalibration:
             raise bad("model.basis", f"{BASIS!r} (coefficients c_k of d^k, lowest power first) or absent",
                       model.get("basis"))
         deg = model.get("degree")
-        if not isinstance(deg, int) or isinstance(deg, bool) or not 1 <= deg <= 9:
-            raise bad("model.degree", "an integer from 1 to 9", deg)
+        if not isinstance(deg, int) or isinstance(deg, bool) or not 1 <= deg <= MAX_DEGREE:
+            raise bad("model.degree", f"an integer from 1 to {MAX_DEGREE}", deg)
         coef = model.get("coefficients")
         if not isinstance(coef, list) or len(coef) != deg + 1 or not all(_finite(c) for c in coef):
             raise bad("model.coefficients", f"a list of {deg + 1} finite numbers (degree {deg})", coef)
@@ -739,22 +800,15 @@ class ForceCalibration:
         if (not isinstance(dr, list) or len(dr) != 2 or not all(_finite(x) for x in dr) or dr[0] < 0
                 or dr[1] <= dr[0]):
             raise bad("model.depth_range_m", "[low, high] in m with 0 <= low < high", dr)
-        if dr[1] >= MAX_DEPTH_M:
-            raise bad("model.depth_range_m", f"depths in m below {MAX_DEPTH_M:g} m ({MAX_DEPTH_M * 1e3:g} mm, deeper "
-                      f"than a gel: millimetres written as metres?)", dr)
         fr = model.get("force_range_n")
-        if (not isinstance(fr, list) or len(fr) != 2 or not all(_finite(x) for x in fr) or fr[1] < fr[0]
-                or abs(fr[0]) >= MAX_FORCE_N or abs(fr[1]) >= MAX_FORCE_N):
+        if not isinstance(fr, list) or len(fr) != 2 or not all(_finite(x) for x in fr) or fr[1] < fr[0]:
             raise bad("model.force_range_n", f"[low, high] in N with low <= high, below {MAX_FORCE_N:g} N", fr)
         pmodel = None
         if model.get("position") is not None:
-            pmodel = PositionModel.from_dict(model["position"], deg, dr, bad)
+            pmodel = PositionModel.from_dict(model["position"], deg, bad)
             if not np.allclose(pmodel.P[:, 0], coef, rtol=1e-9, atol=0.0):
                 raise bad("model.coefficients", "the constant position terms (model.position.coefficients[k][0]: "
                           "the polynomial at the centre of the calibrated area)", coef)
-        problem = _monotonic_everywhere(coef, dr[0], dr[1], pmodel)
-        if problem is not None:
-            raise bad("model.coefficients", f"a strictly increasing polynomial on the depth range ({problem})")
         q = doc.get("quality", {})
         if not isinstance(q, dict):
             raise bad("quality", "an object", q)
@@ -789,12 +843,9 @@ class ForceCalibration:
                   source=doc.get("source") or "", created=doc.get("created"),
                   zero_intercept=zi, extra=extra or {},
                   position=pmodel)
-        # coefficients in other units (N/mm^k, mN) give forces far from the ones the calibration recorded
-        top = cal.largest_force("clamp")
-        if not 0.5 * fr[1] - 0.1 <= top <= 2.0 * fr[1] + 0.1:
-            raise bad("model.coefficients", f"a polynomial whose force at the deepest calibrated depth is near the "
-                      f"recorded force range's top ({fr[1]:.4g} N, model.force_range_n), but it gives {top:.4g} N: "
-                      f"coefficients in other units than N/m^k?", coef)
+        limits = _limits_problem(cal)   # the limits a fit is held to too
+        if limits is not None:
+            raise bad(*limits[:3])
         return cal
 
     # ---------------------------------------------------------------------------------------------------- report
@@ -919,6 +970,11 @@ def _hysteresis(d: np.ndarray, f: np.ndarray, ph: list[str], degree: int, zero_i
             return out
     out.update({"max_gap_n": None, "note": "needs both loading and unloading samples"})
     return out
+
+
+def _refuse_depth(d: float) -> None:
+    """A non-finite max depth has no force: raise ValueError (an inf is no more a depth than a NaN)."""
+    raise ValueError(f"max depth is {'NaN' if d != d else d}; a force cannot be computed from it")
 
 
 def _model_name(name: str) -> str:
