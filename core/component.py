@@ -22,7 +22,7 @@ import re
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Iterator, Mapping
 
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, ValidationError, model_validator
 
 __all__ = [
     "Kind", "Port", "Sample", "Inputs", "Params", "Component", "Device", "Context", "NAME_RE", "value_checker",
@@ -328,6 +328,16 @@ class Inputs:
         return slot.sample.value
 
 
+def _field_unit(f: Any) -> str | None:
+    """The SI unit a Params field's schema names (``json_schema_extra={"unit": "Hz"}``), None for none or "1"."""
+    extra = f.json_schema_extra
+    unit = extra.get("unit") if isinstance(extra, dict) else None
+    return unit if unit and unit not in ("", "1") else None
+
+
+_BOOLEAN_NUMBER = "expected a number, got a boolean (YAML reads yes, no, on and off as true and false)"
+
+
 class Params(BaseModel):
     """Base class of component parameters: unknown fields are refused, values are validated on assignment, and
     numbers must be finite (``.inf`` would switch a limit off, NaN would pass every comparison) and not booleans
@@ -349,11 +359,10 @@ class Params(BaseModel):
         out = None
         problems = []
         for fname, f in cls.model_fields.items():
-            extra = f.json_schema_extra
-            unit = extra.get("unit") if isinstance(extra, dict) else None
+            unit = _field_unit(f)
             key = f.alias or fname
             value = data.get(key)
-            if unit and isinstance(value, str) and unit not in ("", "1"):
+            if unit and isinstance(value, str):
                 try:
                     parsed = parse_quantity(value, unit)
                 except ValueError as exc:
@@ -374,12 +383,39 @@ class Params(BaseModel):
         1, ``step_time: on`` at 1 s)."""
         result = handler(data)
         if isinstance(data, dict) and isinstance(result, BaseModel):
-            bad = [f"{k}: expected a number, got a boolean (YAML reads yes, no, on and off as true and false)"
+            bad = [f"{k}: {_BOOLEAN_NUMBER}"
                    for k, v in data.items() if isinstance(v, bool) and k in cls.model_fields
                    and not isinstance(getattr(result, k, v), bool)]
             if bad:
                 raise ValueError("\n".join(bad))
         return result
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """Assignment is validated (``validate_assignment``) as construction is: the model validators above see only
+        the model there, not the value, so their two rules are applied here. A boolean for a field that keeps no
+        boolean is refused (before, ``params.scale = True`` set 1.0); a string with units for a field whose schema
+        names one is converted to SI (``params.cutoff = "2kHz"`` was refused). The same messages as at
+        construction; on an error the field keeps its value."""
+        f = type(self).model_fields.get(name)
+        unit = None if f is None else _field_unit(f)
+        if unit and isinstance(value, str):
+            from .units import parse_quantity
+
+            try:
+                value = parse_quantity(value, unit)
+            except ValueError as exc:
+                raise self._assignment_error(name, value, str(exc)) from None
+        elif f is not None and isinstance(value, bool):
+            probe = self.model_copy()
+            super(Params, probe).__setattr__(name, value)   # validated as the assignment would be (may raise)
+            if not isinstance(getattr(probe, name), bool):
+                raise self._assignment_error(name, value, _BOOLEAN_NUMBER)
+        super().__setattr__(name, value)
+
+    def _assignment_error(self, name: str, value: Any, problem: str) -> ValidationError:
+        """The ValidationError that construction raises for ``problem`` of field ``name``: led by its name."""
+        return ValidationError.from_exception_data(type(self).__name__, [{
+            "type": "value_error", "loc": (), "input": value, "ctx": {"error": ValueError(f"{name}: {problem}")}}])
 
 
 class Context:

@@ -108,8 +108,14 @@ class GraphSpec:
     description: str = ""
     realtime_priority: int = 0
     #: what validation found that may work against the graph without making it invalid, one line each (led by the
-    #: file and line, as errors are): `teletouch validate` and `teletouch run` print them on stderr
+    #: file and line, as errors are), under the clock it was loaded for (``clock``): `teletouch validate` and
+    #: `teletouch run` print them on stderr. A runtime on another clock has its own: :meth:`warnings_for`
     warnings: list[str] = field(default_factory=list)
+
+    def warnings_for(self, clock: str) -> list[str]:
+        """The graph's warnings when it runs under ``clock`` ("sim" or "wall"), which need not be the clock it was
+        loaded for (``Runtime(spec, clock=...)``): as :attr:`warnings`, for that clock."""
+        return _isolation_warnings(self.nodes, clock, self.file)
 
     def node(self, node_id: str) -> NodeSpec:
         for n in self.nodes:

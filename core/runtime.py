@@ -93,6 +93,8 @@ class RunResult:
     wall_time: float
     clock: str
     nodes: list[NodeStats] = field(default_factory=list)
+    #: in the order they were found; one per failure: the first cause of a node's fault is its fault, and a later
+    #: error of that node (its step, running when the watchdog faulted it, then raised) is only logged
     faults: list[Fault] = field(default_factory=list)
     startup_time: float = 0.0   # s of wall_time spent starting up (loading models, opening devices)
     error: StartupError | None = field(default=None, repr=False, compare=False)   # status startup-failed: why
@@ -249,6 +251,12 @@ class Runtime:
         self._ran = False
         self._safe_lock = threading.Lock()   # one safe_state() call at a time per device (see _safe)
         self.nodes: list[_Node] = []
+        #: the graph's warnings under this runtime's clock (``spec.warnings`` are those of the clock it was loaded
+        #: for, which the loader's caller has shown); each of them that the loader did not give is logged here
+        self.warnings = spec.warnings_for(self.clock)
+        for line in self.warnings:
+            if line not in spec.warnings:
+                self.log(f"warning: {line}")
         self._build()
 
     def log(self, msg: str) -> None:
@@ -331,14 +339,24 @@ class Runtime:
 
     # ------------------------------------------------------------------------------------------------- faults
     def _fault(self, node: _Node, kind: str, message: str, t: float) -> None:
+        """Record a fault of ``node`` and act on it (its policy). One fault per node: the first cause wins. A node
+        faulted already (the watchdog faulted it while its step ran; that step then raised) gets no second fault
+        (the run's result would list two for one failure, the later one stamped at the step's start, before the
+        first): the later error is only logged."""
         action = node.policy
         with self._lock:
-            self.faults.append(Fault(node.id, kind, message, t, action))
-            if action == "stop" and self._stop_reason is None:
-                self._stop_reason = ("fault", EXIT_FAULT, f"node '{node.id}' {kind}: {message}")
-            # under the lock: a step in flight (the watchdog faults a node whose step still runs) checks it there
-            # before it stores its outputs (see _write), so nothing of the node is published after its fault
-            node.faulted = True
+            first = not node.faulted
+            if first:
+                self.faults.append(Fault(node.id, kind, message, t, action))
+                if action == "stop" and self._stop_reason is None:
+                    self._stop_reason = ("fault", EXIT_FAULT, f"node '{node.id}' {kind}: {message}")
+                # under the lock: a step in flight (the watchdog faults a node whose step still runs) checks it
+                # there before it stores its outputs (see _write), so nothing of the node is published after its
+                # fault
+                node.faulted = True
+        if not first:   # (a device among them is made safe again by its rate group once that step returned)
+            self.log(f"[{node.id}] {kind} after its fault (not recorded: the first one stands): {message}")
+            return
         if node.is_device:
             self._safe(node)
         if action == "stop":
@@ -762,23 +780,23 @@ class Runtime:
             groups.setdefault(n.rate, []).append(n)
         fast = max(groups) if groups else 1.0
         old_switch = sys.getswitchinterval()
-        # the fastest loop must get the GIL back within a fraction of its period (the default interval, 5 ms, is
-        # half the period of a 100 Hz loop); not below 5 us, where the hand-overs themselves would dominate
-        sys.setswitchinterval(min(old_switch, max(self.SWITCH_FRACTION / fast, 5e-6)))
         self._threads = []
         for rate, members in sorted(groups.items(), reverse=True):
             th = threading.Thread(target=self._wall_loop, args=(members, rate), name=f"teletouch-{rate:g}Hz",
                                   daemon=True)
             self._threads.append(th)
-        for th in self._threads:
-            th.start()
         # the watchdog: a device whose thread has not started a step for `faults.watchdog` (at least 3 of its
         # periods) is driven to its safe state from here and faults (a step that hangs, a stalled thread); when that
         # thread waits for the step of another node at its rate, that node is at fault (see _stalled)
         wd = self.spec.faults.watchdog
         watched = [(n, max(wd, 3.0 * n.period), groups[n.rate]) for n in self.nodes if n.is_device] if wd > 0 else []
         poll = min(0.02, wd / 4.0) if watched else 0.02
-        try:
+        try:   # (from here on: a Ctrl-C while the threads start stops the ones started and restores the interval)
+            # the fastest loop must get the GIL back within a fraction of its period (the default interval, 5 ms,
+            # is half the period of a 100 Hz loop); not below 5 us, where the hand-overs themselves would dominate
+            sys.setswitchinterval(min(old_switch, max(self.SWITCH_FRACTION / fast, 5e-6)))
+            for th in self._threads:
+                th.start()
             next_progress = time.perf_counter() + interval
             while not self._stop_evt.wait(poll):
                 self._now = time.perf_counter() - self._t0
@@ -798,8 +816,10 @@ class Runtime:
                         break
         finally:
             self._stop_evt.set()
-            self._join()
-            sys.setswitchinterval(old_switch)
+            try:
+                self._join()
+            finally:   # also when a second Ctrl-C cuts the join short (the run's shutdown joins them again)
+                sys.setswitchinterval(old_switch)
             self._now = time.perf_counter() - self._t0
             if duration is not None and self._stop_reason is None and duration <= self._now < duration + 0.05:
                 self._now = duration  # ended by its duration (the main thread polls every 20 ms)
@@ -914,15 +934,18 @@ class Runtime:
                     node.max_step = dt
                 if dt > worst_dt:
                     worst, worst_dt = node, dt
+                if node.faulted and node.is_device:   # faulted while its step ran (the watchdog): that step may have
+                    self._safe(node)                  # commanded it after its safe_state(): made safe again now
             k += 1
             now = perf()
             if now > t0 + k * period:
                 missed = int((now - (t0 + k * period)) / period) + 1
                 k += missed
                 late += 1
-                for node in members:   # every member missed these ticks
-                    node.overruns += missed
-                    node.consec_overruns = late
+                for node in members:   # every member missed these ticks; one disabled by a fault (not stepped
+                    if not node.faulted:   # again) has no ticks to miss
+                        node.overruns += missed
+                        node.consec_overruns = late
                 # the fault goes to the member that made the group late, not to every member: a healthy device that
                 # shares its rate with a slow estimator goes on under `degrade`, and `stop` names the slow node
                 if max_over and late > max_over and worst is not None and not worst.faulted:
