@@ -483,8 +483,9 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
     skipped; spaces around names and values are ignored; extra columns are ignored when the header names them.
     Refused: a row with more fields than the header (a note typed into a file without a note column was dropped,
     and the press trained) or without a required one, an image named twice (the later row won silently), a
-    non-number, a negative radius, and a radius of 0 without a note saying "no contact" (such a row was trained as
-    a frame without contact). Empty fields or a note starting with "uncertain" exclude the press from training."""
+    non-number, a negative radius, a radius of 0 without a note saying "no contact" (such a row was trained as
+    a frame without contact), and a quoted field running on over several lines (an unclosed quote took the rows
+    after it into its note). Empty fields or a note starting with "uncertain" exclude the press from training."""
     path = Path(path)
     out: dict[str, Label] = {}
     try:
@@ -497,12 +498,18 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
         line = data.count(b"\n", 0, exc.start) + 1
         raise ModelFileError(f"{path}:{line}: not UTF-8 text ({exc.reason} at byte {exc.start}); expected a labels "
                              f"CSV (image,center_x,center_y,radius_px[,note]) saved as UTF-8") from None
-    # comments become blank lines (skipped by the reader), so that line numbers stay those of the file
-    text = "".join("\n" if ln.lstrip().startswith("#") else ln for ln in text.splitlines(keepends=True))
+    # comments become blank lines (skipped by the reader), so that line numbers stay those of the file; the lines
+    # are the CSV reader's (\n, \r\n or \r), not str.splitlines's, which also ends one at a form feed, U+0085 or
+    # U+2028 inside a note (a '#' after it cut the note there)
+    text = "".join("\n" if ln.lstrip().startswith("#") else ln for ln in io.StringIO(text, newline=""))
     with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         header: list[str] | None = None
+        end = 0
         for row in reader:
+            start, end = end + 1, reader.line_num
+            if end > start:
+                _refuse_multiline(path, start, end)
             if not any(f.strip() for f in row):
                 continue
             if header is None:
@@ -556,6 +563,15 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
     return out
 
 
+def _refuse_multiline(path: Path, start: int, end: int) -> None:
+    """A row of the labels CSV must be one line: a quoted field running on over several lines is an unclosed quote
+    (measured: a note opened with a quote and never closed took every later row into it, those presses silently
+    unlabelled)."""
+    raise ModelFileError(f"{path}:{start}: a quoted field runs on over {end - start + 1} lines (to line {end}): an "
+                         f"unclosed quote? Expected one row per line (a quote in a field: the field in quotes, the "
+                         f"quote doubled)")
+
+
 def check_labels(labels: dict[str, Label], images: Sequence[tuple[str, np.ndarray]], ball_radius_px: float,
                  source: str = "labels") -> None:
     """The usable labels of the given images must fit them: centre inside the image, contact radius smaller than
@@ -578,7 +594,8 @@ def check_labels(labels: dict[str, Label], images: Sequence[tuple[str, np.ndarra
 
 
 def write_labels(path: str | os.PathLike[str], labels: Iterable[Label]) -> Path:
-    """Write a labels CSV (atomically: an interrupted write leaves the file as it was)."""
+    """Write a labels CSV (atomically: an interrupted write leaves the file as it was); a note's line breaks are
+    written as spaces, so that the file reads back (:func:`read_labels`: one row per line)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
 
@@ -589,9 +606,14 @@ def write_labels(path: str | os.PathLike[str], labels: Iterable[Label]) -> Path:
     wr = csv.writer(buf)
     wr.writerow(["image", "center_x", "center_y", "radius_px", "note"])
     for lb in labels:
-        wr.writerow([lb.image, num(lb.cx), num(lb.cy), num(lb.r), lb.note])
+        wr.writerow([lb.image, num(lb.cx), num(lb.cy), num(lb.r), _one_line(lb.note)])
     atomic_write(path, buf.getvalue().encode("utf-8"))
     return path
+
+
+def _one_line(text: str) -> str:
+    """A note for the labels CSV: line breaks become spaces (:func:`read_labels` reads one row per line)."""
+    return " ".join(part.strip() for part in text.replace("\r\n", "\n").replace("\r", "\n").split("\n"))
 
 
 def review_overlay(image: np.ndarray, background: np.ndarray, label: Label) -> np.ndarray:
@@ -715,6 +737,10 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
                          f"(a work grid of at least 8 cells across)")
     check_training_params(epochs=epochs, lr=lr, batch=batch, dropout=dropout, seed=seed, hidden=hidden,
                           flat_ratio=flat_ratio)
+    # numpy numbers pass the check; as Python's: torch's generator refused a numpy seed ("an integer is required"),
+    # and the model file's JSON record a numpy number
+    epochs, batch, seed, hidden = int(epochs), int(batch), int(seed), tuple(int(h) for h in hidden)
+    lr, dropout, flat_ratio = float(lr), float(dropout), float(flat_ratio)
     ball_radius_px = ball_radius_m * px_per_m
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)

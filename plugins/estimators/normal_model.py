@@ -28,6 +28,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -196,6 +197,7 @@ class NormalModel:
         """A torch module in eval mode holding the weights."""
         import torch
 
+        self._check_weights()
         net = make_net(feature_count(self.feature_set), self.hidden)
         sd = {k: torch.from_numpy(np.array(v, dtype=np.float32)) for k, v in self.state_dict.items()}
         try:
@@ -204,6 +206,28 @@ class NormalModel:
             raise ModelFileError(f"{self.source}: the weights do not fit a {self.feature_set} network with hidden "
                                  f"sizes {list(self.hidden)}: {exc}") from None
         return net.to(device).eval()
+
+    def _check_weights(self) -> None:
+        """ModelFileError unless the weights have the names and shapes of the declared network, compared before
+        that network is built (hidden sizes [2**40] that did not fit the weights made torch allocate 20 TB first:
+        a RuntimeError from the allocator, no file named)."""
+        import torch
+
+        with torch.device("meta"):   # shapes only, no memory
+            want = {k: tuple(v.shape) for k, v in make_net(feature_count(self.feature_set), self.hidden)
+                    .state_dict().items()}
+        have = {k: tuple(np.shape(v)) for k, v in self.state_dict.items()}
+        what = (f"{self.source}: the weights do not fit a {self.feature_set} network with hidden sizes "
+                f"{list(self.hidden)}")
+        missing = [k for k in want if k not in have]
+        extra = [k for k in have if k not in want]
+        if missing or extra:
+            raise ModelFileError(f"{what}: {'missing ' + ', '.join(missing) if missing else ''}"
+                                 f"{'; ' if missing and extra else ''}"
+                                 f"{'unexpected ' + ', '.join(extra) if extra else ''}")
+        for k, shape in want.items():
+            if have[k] != shape:
+                raise ModelFileError(f"{what}: weight {k} is {have[k]}, expected {shape}")
 
     def meta(self) -> dict[str, Any]:
         rows, cols = self.shape
@@ -218,7 +242,8 @@ class NormalModel:
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the model file (atomically: a temporary file renamed into place)."""
         path = Path(path)
-        arrays: dict[str, np.ndarray] = {"meta": np.array(json.dumps(self.meta(), sort_keys=True))}
+        arrays: dict[str, np.ndarray] = {"meta": np.array(json.dumps(self.meta(), sort_keys=True,
+                                                                     default=_json_number))}
         for k, v in self.state_dict.items():
             arrays["w." + k] = np.asarray(v, dtype=np.float32)
         arrays["feat_mean"] = np.asarray(self.feat_mean, dtype=np.float32)
@@ -233,6 +258,14 @@ class NormalModel:
     def from_net(cls, net: Any, **kw: Any) -> "NormalModel":
         sd = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in net.state_dict().items()}
         return cls(state_dict=sd, **kw)
+
+
+def _json_number(v: Any) -> Any:
+    """A numpy number in the metadata (a training parameter, a metric) as JSON's; anything else is refused as
+    json.dumps refuses it."""
+    if isinstance(v, (np.integer, np.floating, np.bool_)):
+        return v.item()
+    raise TypeError(f"Object of type {type(v).__name__} is not JSON serializable")
 
 
 def atomic_write(path: str | os.PathLike[str], data: bytes) -> None:
@@ -340,7 +373,8 @@ def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | Non
             raise ModelFileError(f"{name}: a single NumPy array, not a teletouch depth model ({expected})")
         with z:
             files = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as exc:
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError) as exc:
+        # zlib.error: a damaged compressed entry (not a subclass of any of the others)
         raise ModelFileError(f"{name}: not a readable teletouch depth model ({expected}): {exc}") from None
     if "meta" not in files:
         raise ModelFileError(f"{name}: no 'meta' entry; expected a {FORMAT} file written by `teletouch calibrate "

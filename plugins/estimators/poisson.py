@@ -144,6 +144,13 @@ def _check_gradients(gx: Any, gy: Any, origin: tuple[int, int] = (0, 0)) -> None
         g = np.asarray(g)
         if g.ndim != 2 or min(g.shape) < 2:
             raise ValueError(f"{name}: expected a 2-D gradient map of at least 2 x 2, got shape {g.shape}")
+    _check_finite(gx, gy, origin)
+
+
+def _check_finite(gx: Any, gy: Any, origin: tuple[int, int] = (0, 0)) -> None:
+    """ValueError naming the first gradient of gx or gy that is NaN or inf (at its row and column + ``origin``)."""
+    for name, g in (("gx", gx), ("gy", gy)):
+        g = np.asarray(g)
         if not np.isfinite(g).all():
             bad = np.argwhere(~np.isfinite(g))
             raise ValueError(f"{name}: {len(bad)} gradients are NaN or inf (the first at row {bad[0][0] + origin[0]}, "
@@ -165,6 +172,7 @@ def integrate_window(gx: np.ndarray, gy: np.ndarray, box: tuple[int, int, int, i
 
     Exact when the true surface is flat (z = 0) outside the box, as it is around a contact once the gradients
     there are zero; much faster than a full-frame solve for a small contact. ``box=None`` means no contact: zeros.
+    A box under 3 cells across gives zeros too, but its gradients must be finite (ValueError, as in a wider box).
     """
     z = np.zeros(np.broadcast_shapes(np.shape(gx), np.shape(gy)), dtype=np.float32)
     if box is None:
@@ -176,9 +184,12 @@ def integrate_window(gx: np.ndarray, gy: np.ndarray, box: tuple[int, int, int, i
         # a negative index would silently solve another window (numpy counts it from the end)
         raise ValueError(f"box (r0, r1, c0, c1) = {tuple(box)}: expected 0 <= r0 <= r1 <= {z.shape[0]} and "
                          f"0 <= c0 <= c1 <= {z.shape[1]} (the gradients' rows and columns)")
-    if r1 - r0 < 3 or c1 - c0 < 3:
-        return z
     wx, wy = gx[r0:r1, c0:c1], gy[r0:r1, c0:c1]
+    if r1 - r0 < 3 or c1 - c0 < 3:
+        # no depth in so narrow a window, but a gradient that is not finite is refused as in a wider one (it was
+        # given zero depth: NaN read as flat)
+        _check_finite(wx, wy, (r0, c0))
+        return z
     _check_gradients(wx, wy, (r0, c0))
     with np.errstate(over="ignore", invalid="ignore"):   # a depth beyond float32 becomes inf: refused below
         z[r0:r1, c0:c1] = solve_poisson(divergence(wx, wy), workers=workers)
