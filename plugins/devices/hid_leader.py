@@ -42,7 +42,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Sample, hookimpl
 from teletouch.plugins.sensors import discovery  # the device-node checks shared with `teletouch devices`
-from teletouch.units import Meters, MetersPerSecond, Seconds
+from teletouch.units import Meters, MetersPerSecond, Seconds, millimetres_in_metres
 
 from .omega7 import LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE
 
@@ -204,6 +204,12 @@ def axis_to_unit(counts: int, full_scale: float, invert: bool) -> float:
     x = counts / full_scale
     x = min(max(x, -1.0), 1.0)
     return -x if invert else x
+
+
+def deflection_to_opening(unit: float, band: float, min_opening: float, max_opening: float) -> float:
+    """Position mode: the cap's deflection (-1..1, after the dead band) to the opening; centred (at rest) = half
+    open."""
+    return min_opening + 0.5 * (deadband(unit, band) + 1.0) * (max_opening - min_opening)
 
 
 def integrate_rate(opening: float, unit: float, dt: float, max_speed: float, band: float, min_opening: float,
@@ -424,6 +430,14 @@ class HidLeader(Device):
         def _ids(cls, v: Any) -> Any:
             return _parse_id(v)
 
+        @field_validator("min_opening", "max_opening")
+        @classmethod
+        def _plausible(cls, v: float, info: Any) -> float:
+            problem = millimetres_in_metres(info.field_name, v)
+            if problem:
+                raise ValueError(problem)
+            return v
+
         @field_validator("max_opening")
         @classmethod
         def _range(cls, v: float, info: Any) -> float:
@@ -471,7 +485,10 @@ class HidLeader(Device):
         self.dev = open_device(info, hid=hid)
         self.sm = SpaceMouseState()
         self.pad = GamepadState()
-        self.opening = p.max_opening
+        # the opening before the first report: a released trigger (open), a SpaceMouse's rate from open; in
+        # position mode the cap at rest (a SpaceMouse is silent at rest): half open
+        rest = self.profile == "spacemouse" and p.mode == "position"
+        self.opening = deflection_to_opening(0.0, p.dead_band, p.min_opening, p.max_opening) if rest else p.max_opening
         self.velocity = 0.0
         self.last_t: float | None = None
         self.reports = 0
@@ -511,7 +528,11 @@ class HidLeader(Device):
                 self.reports += 1
                 self._parse(r)
         except (OSError, IOError, ValueError) as exc:
-            raise HardwareError(f"{self.info['name']} stopped answering ({exc}): check the USB cable") from None
+            info = self.info
+            raise HardwareError(f"{info['name']} stopped answering ({exc}): the HID device "
+                                f"{info.get('vendor_id', 0):04x}:{info.get('product_id', 0):04x} at "
+                                f"{hid_path_text(info['path'])} was unplugged or lost its link; check the USB cable "
+                                f"(or the wireless receiver / Bluetooth link)") from None
         if self.profile == "spacemouse":   # (always has a report_timeout)
             return self._step_spacemouse(mono)
         if self.report_timeout is not None:
@@ -587,7 +608,7 @@ class HidLeader(Device):
             if (v > 0 and self.opening >= p.max_opening) or (v < 0 and self.opening <= p.min_opening):
                 v = 0.0  # against an end stop
         else:
-            x = p.min_opening + 0.5 * (deadband(u, p.dead_band) + 1.0) * (p.max_opening - p.min_opening)
+            x = deflection_to_opening(u, p.dead_band, p.min_opening, p.max_opening)
             dt = 0.0 if self.last_report_t is None else stamp - self.last_report_t
             v = (x - self.opening) / dt if 0.0 < dt <= timeout else 0.0  # type: ignore[operator]
             self.opening = x

@@ -24,7 +24,8 @@ the hand is off the gripper (no force at all). Built in:
 
 Other modules add intents (e.g. a pivoting operator that reacts to the perceived angle) with :func:`register_intent`,
 or a graph names a class by import path (``type: "my_pkg.my_module:PivotIntent"``). An intent class has a ``name``,
-a pydantic ``Params`` model (fields may use unit strings such as "5mm") and ``desired``; ``reset()`` is optional.
+a pydantic ``Params`` model (fields may use unit strings such as "5mm") and ``desired``; ``reset()`` is optional
+(``sim-omega7`` calls it at every activation: an intent that keeps state, a latch, starts afresh in a new run).
 """
 
 from __future__ import annotations
@@ -37,11 +38,11 @@ from typing import Any, Callable, ClassVar, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from teletouch.units import Meters, MetersPerSecond, Seconds
+from teletouch.units import Meters, MetersPerSecond, Seconds, millimetres_in_metres
 
 __all__ = [
     "OperatorState", "Intent", "IntentParams", "register_intent", "intent_names", "make_intent", "validate_intent",
-    "HandImpedance", "NoneIntent", "HoldIntent", "CloseAndHoldIntent", "TrajectoryIntent",
+    "HandImpedance", "NoneIntent", "HoldIntent", "CloseAndHoldIntent", "TrajectoryIntent", "plausible_opening",
 ]
 
 
@@ -71,6 +72,15 @@ class IntentParams(BaseModel):
     time would pass ``ge=0`` and make the hand push with its full force or never move)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def plausible_opening(name: str, value: float) -> float:
+    """``value`` (m) if it is a plausible gripper opening; ValueError naming ``name`` otherwise (millimetres typed
+    in a metre field: ``opening: 15`` held 15 m, the hand pushing the gripper into its end stop with all its force)."""
+    problem = millimetres_in_metres(name, value)
+    if problem:
+        raise ValueError(problem)
+    return value
 
 
 _INTENTS: dict[str, type] = {}
@@ -178,6 +188,11 @@ class HoldIntent:
     class Params(IntentParams):
         opening: Meters = Field(0.015, ge=0, description="opening to hold", json_schema_extra={"unit": "m"})
 
+        @field_validator("opening")
+        @classmethod
+        def _plausible(cls, v: float, info: Any) -> float:
+            return plausible_opening(info.field_name, v)
+
     def __init__(self, params: "HoldIntent.Params"):
         self.params = params
 
@@ -202,6 +217,11 @@ class CloseAndHoldIntent:
         hold_time: Seconds = Field(2.0, ge=0, description="how long to hold the target",
                                    json_schema_extra={"unit": "s"})
         release: bool = Field(False, description="open back to start_opening after the hold")
+
+        @field_validator("start_opening", "target_opening")
+        @classmethod
+        def _plausible(cls, v: float, info: Any) -> float:
+            return plausible_opening(info.field_name, v)
 
     def __init__(self, params: "CloseAndHoldIntent.Params"):
         p = self.params = params
@@ -254,6 +274,7 @@ class TrajectoryIntent:
             for i, (t, x) in enumerate(v):
                 if not (math.isfinite(t) and math.isfinite(x)) or x < 0:
                     raise ValueError(f"waypoint {i}: expected finite t and opening >= 0, got ({t}, {x})")
+                plausible_opening(f"waypoint {i} opening", x)
             return v
 
     def __init__(self, params: "TrajectoryIntent.Params"):

@@ -135,6 +135,14 @@ class SimGripper(FollowerBase):
         self._travel = 0.0          # m: how far the set-point may move this step (the base's speed limit)
         self._contact_at(x0)
 
+    def activate(self) -> None:
+        """The servo model starts from rest at the first step (as the base's set-point does): the fingers stood
+        still while the node was inactive (nothing stepped them), and the graph's clock may start afresh (the time
+        of the last run's last step made every step of a new run look like no time had passed)."""
+        self.t_sim = None
+        self.v = 0.0
+        super().activate()
+
     def _hw_read(self) -> Reading:
         return Reading(self.x, self.v, self.force)
 

@@ -28,7 +28,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import (
-    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds,
+    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
 )
 
 from .omega7 import (
@@ -142,6 +142,9 @@ class SimOmega7(Device):
 
         @model_validator(mode="after")
         def _start_inside(self) -> "SimOmega7.Params":
+            problem = millimetres_in_metres("max_opening", self.max_opening)
+            if problem:
+                raise ValueError(problem)
             if self.initial_opening is not None and self.initial_opening > self.max_opening:
                 raise ValueError(f"initial_opening ({self.initial_opening * 1e3:g} mm) is beyond max_opening "
                                  f"({self.max_opening * 1e3:g} mm, the gripper's end stop): expected 0 to "
@@ -189,10 +192,19 @@ class SimOmega7(Device):
         self._io_vel = 0.0
 
     def activate(self) -> None:
+        """Start (again) from zero force with the operator afresh: the intent's optional ``reset()`` is called, and
+        nothing perceived in an earlier activation (the cue, the rate of intent_opening) is carried over; the graph's
+        clock may start again from zero."""
         self.enabled = True
         self.safe = False
         self.last_t = None
         self.guard.reset()
+        self.state.extra.clear()
+        self._io_prev = None
+        self._io_vel = 0.0
+        reset = getattr(self.intent, "reset", None)
+        if callable(reset):
+            reset()
 
     def deactivate(self) -> None:
         self.enabled = False
