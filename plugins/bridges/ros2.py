@@ -26,12 +26,14 @@ stale when the publisher dies. Across machines this needs synchronised system cl
 ``stamps: arrival`` stamps each message with its arrival time (transport latency is then hidden). A stamp more than
 ``max_clock_skew`` in the future is clamped to the arrival time and counted (``status()['skewed']``); one more than 1 s
 old on arrival is kept and reported (``late``, ``lag_s``); a zero stamp (the sender does not stamp) or an invalid one is
-refused. A message with the stamp of the last one taken on its topic is a repeat, not a new measurement
-(``duplicates``): it is not output again, so a sender re-sending its last message cannot keep a force fresh; the
+refused. A value with the stamp of the last one taken for its port is a repeat, not a new measurement
+(``duplicates`` when a message has nothing else): it is not output again, so a sender re-sending its last message
+cannot keep a force fresh (per port: a JointState's fields of one measurement may come in two messages); the
 publisher sends each measurement once (by stamp, also under ``isolate: process``).
 
-Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it;
-the subscriber also refuses a JointState opening above ``max_opening`` and a depth above ``max_depth``
+Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it
+(a non-finite JointState field is left out, the others go on); the subscriber also refuses a JointState whose
+finite opening is above ``max_opening`` and a depth above ``max_depth``
 (millimetres in a metre field), and malformed images. Refused messages are counted (``bad``) and each kind of
 problem is logged once.
 
@@ -630,7 +632,7 @@ class Ros2Subscribe(Component):
         # port -> (value, Unix time of the stamp): converted to graph time when a step outputs it, so a message
         # that arrived before the graph clock started (while other nodes were starting) keeps its age
         self._pending: dict[str, tuple[Any, float]] = {}
-        self._last_raw: dict[str, int] = {}   # topic -> header.stamp (ns) of the last message taken
+        self._last_raw: dict[str, int] = {}   # port -> header.stamp (ns) of the last value taken
         self.received = 0
         self.skewed = 0
         self.bad = 0
@@ -689,11 +691,15 @@ class Ros2Subscribe(Component):
                                                        f"stamp its messages): refused, its age is unknown; set "
                                                        f"stamps: arrival to stamp such messages on arrival")
                     return
-            if raw != 0 and self._last_raw.get(key) == raw:
-                # the same measurement again (a sender re-sending its last message): not a new sample, and
-                # never one stamped afresh on arrival
-                self.duplicates += 1
-                return
+            if raw != 0:
+                # a port whose last value taken has this stamp has this measurement already (a sender re-sending
+                # its last message): not a new sample, and never one stamped afresh on arrival. Per port, not per
+                # topic: a JointState's fields of one measurement may come in two messages (one field sent, the
+                # other not yet written when the sender read it)
+                values = {port: v for port, v in values.items() if self._last_raw.get(port) != raw}
+                if not values:
+                    self.duplicates += 1
+                    return
             if p.stamps == "message":
                 stamp = sec + nsec * 1e-9
                 lag = arrival - stamp
@@ -710,7 +716,7 @@ class Ros2Subscribe(Component):
                                                   f"or set stamps: arrival) or it sends old data; the samples "
                                                   f"keep their stamps and look stale")
                 self.lag = lag
-            self._last_raw[key] = raw
+            self._last_raw.update(dict.fromkeys(values, raw))
         with self._lock:
             for port, v in values.items():
                 self._pending[port] = (v, stamp)
@@ -788,13 +794,14 @@ class Ros2Subscribe(Component):
             if len(arr) <= i:
                 raise _Bad(f"JointState.{field} length", f": no value for joint {i}")
             out[port] = float(arr[i])
-        if "opening" in out and abs(out["opening"]) > p.max_opening:
-            raise _Bad("opening larger than max_opening", f" ({out['opening']:g} m > {p.max_opening:g} m): "
-                                                          f"millimetres in the metre field? (the whole message is "
-                                                          f"refused: its velocity would be in mm/s too)")
-        # NaN often means "not measured": such a field is left out, the others go on
+        # NaN (or inf) often means "not measured": such a field is left out, the others go on; it is sorted out
+        # first, as an inf opening is no sign of millimetres
         bad = {k: v for k, v in out.items() if not math.isfinite(v)}
         ok = {k: v for k, v in out.items() if k not in bad}
+        if "opening" in ok and abs(ok["opening"]) > p.max_opening:
+            raise _Bad("opening larger than max_opening", f" ({ok['opening']:g} m > {p.max_opening:g} m): "
+                                                          f"millimetres in the metre field? (the whole message is "
+                                                          f"refused: its velocity would be in mm/s too)")
         if ok:
             self._take("joint_states", msg.header, ok)
         for k, v in bad.items():
