@@ -7,8 +7,10 @@ the simulated clock. Landscape frames are turned portrait the way the ``digit`` 
 At the end the run stops normally (or starts again with ``loop``: each pass starts at least one frame period after
 the last frame of the one before; a recording of one frame, or whose stamps never advance, loops at the node's rate;
 a recorded stamp that goes backwards counts as the one before it, so stamps never go backwards). A corrupt,
-unreadable or vanished frame is reported with its file name (and frame number): logged and skipped
-(``on_corrupt: report``) or a fault (``on_corrupt: fault``).
+unreadable or vanished frame is reported with its file name (and frame number) when it is due, and why (a read error
+such as permission denied, or cannot be decoded): logged and skipped, once however often a loop meets it
+(``on_corrupt: report``), or a fault (``on_corrupt: fault``); its slot stays empty. In a video, the frames after a
+corrupt one are played; undecodable frames up to the end are a video cut short: one report, and the end.
 """
 
 from __future__ import annotations
@@ -65,32 +67,49 @@ class _Folder(_Source):
     kind = "folder"
 
     def __init__(self, path: Path):
-        self.files = list_images(path)
+        try:
+            self.files = list_images(path)
+        except OSError as e:
+            raise ModelFileError(f"{path}: cannot list the folder ({e.strerror or e})") from None
         if not self.files:
             raise ModelFileError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
         # fail at configure time if not one frame can be read (reads up to the first good one)
-        if all(self._read(f) is None for f in self.files):
-            raise ModelFileError(f"no readable image in {path}: {len(self.files)} files could not be read "
-                                 f"(corrupt or not images), e.g. {self.files[0].name}")
+        first_why = None
+        for f in self.files:
+            got = self._read(f)
+            if not isinstance(got, str):
+                break
+            first_why = first_why or f"{f.name}: {got}"
+        else:
+            raise ModelFileError(f"no readable image in {path}: {len(self.files)} files could not be read, "
+                                 f"e.g. {first_why}")
 
     @staticmethod
-    def _read(f: Path) -> np.ndarray | None:
+    def _read(f: Path) -> np.ndarray | str:
+        """The image as 8-bit BGR (grey, alpha and 16 bits converted, as cv2.imread does), or why there is none:
+        the file's own read error (cv2.imread tells none: a file this user may not read looked corrupt), or that it
+        cannot be decoded."""
         import cv2
 
         try:
-            return cv2.imread(str(f), cv2.IMREAD_COLOR)
+            data = np.fromfile(f, np.uint8)
+        except FileNotFoundError:
+            return "no longer exists (removed since the replay was configured)"
+        except OSError as e:
+            return f"cannot be read ({e.strerror or e})"
+        try:
+            img = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
         except cv2.error:
-            return None
+            img = None
+        return "cannot decode the image (corrupt or not an image)" if img is None else img
 
     def frames(self):
         for f in self.files:
-            img = self._read(f)
-            if img is None:
-                why = ("cannot decode the image (corrupt or not an image)" if f.exists() else
-                       "no longer exists (removed since the replay was configured)")
-                yield f.name, CorruptFrame(str(f), why), None
+            got = self._read(f)
+            if isinstance(got, str):
+                yield f.name, CorruptFrame(str(f), got), None
             else:
-                yield f.name, img, None
+                yield f.name, got, None
 
 
 class _Video(_Source):
@@ -100,6 +119,11 @@ class _Video(_Source):
         import cv2
 
         self.path = path
+        try:   # OpenCV tells no read error: a video this user may not read would look corrupt
+            with open(path, "rb"):
+                pass
+        except OSError as e:
+            raise ModelFileError(f"{path}: cannot be read ({e.strerror or e})") from None
         cap = cv2.VideoCapture(str(path))
         if not cap.isOpened():
             raise ModelFileError(f"{path}: cannot open the video (corrupt or unsupported codec)")
@@ -113,20 +137,33 @@ class _Video(_Source):
             raise ModelFileError(f"{path}: no frame can be decoded (an empty, truncated or corrupt video)")
 
     def frames(self):
+        """Frame k as the k-th item (its stamp is k / fps). A frame that cannot be decoded, with good ones after it,
+        is one CorruptFrame each (OpenCV's next read goes on after it); undecodable frames up to the end that the
+        container counts are the video cut short: one CorruptFrame at the first of them, and the end."""
         import cv2
 
         cap = cv2.VideoCapture(str(self.path))
         try:
             k = 0
+            failed_from: int | None = None   # the first of a run of undecodable frames, not yet reported
             while True:
                 ok, img = cap.read()
-                if not ok or img is None:
-                    if self.count and k < self.count - 1:  # (some containers count one frame too many)
-                        yield (f"{self.path.name}#{k}",
-                               CorruptFrame(f"{self.path}#frame{k}", f"cannot decode frame {k} of {self.count}: "
-                                                                     f"truncated or corrupt video"), None)
+                if ok and img is not None:
+                    for j in range(k if failed_from is None else failed_from, k):
+                        yield (f"{self.path.name}#{j}",
+                               CorruptFrame(f"{self.path}#frame{j}", f"cannot decode frame {j} of {self.count} "
+                                                                     f"(a corrupt frame)"), None)
+                    failed_from = None
+                    yield f"{self.path.name}#{k}", img, None
+                elif self.count > 0 and k < self.count - 1:   # (some containers count one frame too many)
+                    failed_from = k if failed_from is None else failed_from
+                else:
+                    if failed_from is not None:
+                        yield (f"{self.path.name}#{failed_from}",
+                               CorruptFrame(f"{self.path}#frame{failed_from}",
+                                            f"cannot decode frame {failed_from} of {self.count} nor any after it: "
+                                            f"truncated or corrupt video"), None)
                     return
-                yield f"{self.path.name}#{k}", img, None
                 k += 1
         finally:
             cap.release()
@@ -223,6 +260,7 @@ class Replay(Component):
         else:
             self.source = _Video(path)
         self.corrupt: list[str] = []
+        self._reported: set[str] = set()
         self.published = 0
         self.skipped = 0
         self.passes = 0
@@ -231,11 +269,13 @@ class Replay(Component):
     def activate(self) -> None:
         self._it = self._frames()
         self._t0: float | None = None
-        self._pending: tuple[str, np.ndarray, float] | None = None
+        self._pending: tuple[str, np.ndarray | CorruptFrame, float] | None = None
         self._done = False
 
-    def _frames(self) -> Iterator[tuple[str, np.ndarray, float]]:
-        """(name, image, due time relative to the start) for every good frame, across loops."""
+    def _frames(self) -> Iterator[tuple[str, np.ndarray | CorruptFrame, float]]:
+        """(name, image or CorruptFrame, due time relative to the start; NaN: one per step) for every frame, across
+        loops. A corrupt frame is reported by :meth:`step` when it is due, not here: the step that publishes frame k
+        reads frame k + 1 ahead."""
         p = self.params
         offset = 0.0
         while True:
@@ -254,14 +294,12 @@ class Replay(Component):
                     due = k / self.source.native_rate
                 else:
                     due = None  # one per step
-                if isinstance(img, CorruptFrame):
-                    self._report(img)
-                    continue
-                img = self._orient(name, img)
-                if img is None:
-                    continue
-                any_good = True
+                # a corrupt frame keeps its slot (empty), also the last one: the next pass starts one period after
+                # it (recorded stamps: a damaged message has none)
                 last_due = due if due is not None else last_due
+                if not isinstance(img, CorruptFrame):
+                    img = self._orient(name, img)
+                any_good = any_good or not isinstance(img, CorruptFrame)
                 yield name, img, (offset + due) if due is not None else math.nan
             self.passes += 1
             if not p.loop or not any_good:
@@ -278,10 +316,9 @@ class Replay(Component):
                 period = 1.0 / (self.ctx.rate or self.default_rate)
             offset += last_due + period
 
-    def _orient(self, name: str, img: np.ndarray) -> np.ndarray | None:
+    def _orient(self, name: str, img: np.ndarray) -> np.ndarray | CorruptFrame:
         if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
-            self._report(CorruptFrame(name, f"not an 8-bit colour image (shape {img.shape}, {img.dtype})"))
-            return None
+            return CorruptFrame(name, f"not an 8-bit colour image (shape {img.shape}, {img.dtype})")
         if self.params.orientation == "portrait" and img.shape[1] > img.shape[0]:
             import cv2
 
@@ -289,15 +326,20 @@ class Replay(Component):
         if self._shape is None:
             self._shape = img.shape
         elif img.shape != self._shape:
-            self._report(CorruptFrame(name, f"size {img.shape[0]}x{img.shape[1]} differs from the first frame's "
-                                            f"{self._shape[0]}x{self._shape[1]}"))
-            return None
+            return CorruptFrame(name, f"size {img.shape[0]}x{img.shape[1]} differs from the first frame's "
+                                      f"{self._shape[0]}x{self._shape[1]}")
         return img
 
     def _report(self, err: CorruptFrame) -> None:
-        self.corrupt.append(str(err))
+        """A corrupt frame: a fault, or logged and counted once (a loop meets it again on every pass; a file that
+        changes, e.g. is removed, is a new report)."""
         if self.params.on_corrupt == "fault":
+            self.corrupt.append(str(err))
             raise ComponentFault(f"corrupt frame {err}")
+        if str(err) in self._reported:
+            return
+        self._reported.add(str(err))
+        self.corrupt.append(str(err))
         self.ctx.log(f"replay: skipped corrupt frame {err}")
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
@@ -314,17 +356,17 @@ class Replay(Component):
                     break
                 self._pending = nxt
             name, img, due = self._pending
-            if math.isnan(due):  # one frame per step
-                if newest is None:
-                    newest = self._pending
-                    self._pending = None
+            if not math.isnan(due) and due > rel + 1e-9:
                 break
-            if due > rel + 1e-9:
-                break
+            self._pending = None
+            if isinstance(img, CorruptFrame):   # due now: reported (or a fault), and the next one is looked at
+                self._report(img)
+                continue
             if newest is not None:
                 self.skipped += 1
-            newest = self._pending
-            self._pending = None
+            newest = (name, img, due)
+            if math.isnan(due):  # one frame per step
+                break
         if newest is None:
             if self._pending is None:
                 self._done = True
