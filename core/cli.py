@@ -58,11 +58,16 @@ def _seconds(text: str) -> float:
 
 
 def _positive_seconds(text: str) -> float:
-    """argparse type of ``--progress-interval``: a positive, finite number of seconds."""
+    """argparse type of ``--progress-interval``: a positive, finite time ('0.5', '500ms'), as ``--duration``."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+        from .units import parse_quantity
+
+        try:
+            value = parse_quantity(text, "s")
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive, finite number of seconds, got {text!r}")
     return value
@@ -165,13 +170,17 @@ class _Progress:
         width = max((len(n.id) for n in rt.nodes), default=4)
         rows = [f"t={t:8.2f} s  overruns {overruns}"]
         for n in rt.nodes:
-            try:
-                st = n.comp.status()
-            except Exception:
-                st = {}
-            items = " ".join(f"{k}={_fmt(v)}" for k, v in list(st.items())[:self.MAX_STATUS])
-            rows.append(f"  {n.id:<{width}} {n.steps / elapsed:7.1f} Hz  {items}".rstrip())
+            rows.append(f"  {n.id:<{width}} {n.steps / elapsed:7.1f} Hz  {self._status_text(n.comp)}".rstrip())
         return rows
+
+    def _status_text(self, comp: Any) -> str:
+        """The first ``status()`` numbers as ``key=value``; nothing when status() raises, is not a mapping or holds
+        a value that cannot be printed (a plugin's bug there must not stop the run: the live view raising does)."""
+        try:
+            items = list(comp.status().items())[:self.MAX_STATUS]
+            return " ".join(f"{k}={_fmt(v)}" for k, v in items)
+        except Exception:
+            return ""
 
     def _width(self) -> int:
         try:
@@ -376,10 +385,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(or a failed --record), 2 usage, 3 fault (or degraded), 4 start-up failure, 130 "
                                    "Ctrl-C, 143 SIGTERM.")
     _add_graph_args(p)
-    p.add_argument("--duration", type=_seconds, default=None, help="seconds (or '10s'); default: the graph's")
+    p.add_argument("--duration", type=_seconds, default=None, metavar="S",
+                   help="seconds (or '10s'); default: the graph's")
     p.add_argument("--quiet", action="store_true", help="no live view and no summary table")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON on stdout")
-    p.add_argument("--progress-interval", type=_positive_seconds, default=0.5, help="live view period (s)")
+    p.add_argument("--progress-interval", type=_positive_seconds, default=0.5, metavar="S",
+                   help="live view period: seconds (or '500ms'); default 0.5")
     p.add_argument("--record", metavar="FILE.mcap", default=None, help="record every port to an MCAP file")
     p.add_argument("--record-images", choices=("png", "jpeg"), default="png",
                    help="image compression in the recording: png (lossless, ~17 ms/frame) or jpeg (~1 ms/frame)")
@@ -387,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     calp = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")
     cal = calp.add_subparsers(dest="calibrate_command", metavar="WHAT")
-    calp.set_defaults(func=lambda a: (calp.print_help(sys.stderr), EXIT_USAGE)[1], _calibrate=cal)
+    calp.set_defaults(func=lambda a: _what_missing(calp, cal), _calibrate=cal)
 
     p = sub.add_parser("devices", help="list connected supported hardware",
                        description="List the supported hardware connected to this machine, one row per device, "
@@ -399,6 +410,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="the rows as strict JSON (no NaN: a missing number is null)")
     p.set_defaults(func=cmd_devices)
     return parser
+
+
+def _what_missing(parser: argparse.ArgumentParser, what: argparse._SubParsersAction) -> int:
+    """`teletouch calibrate` without WHAT: its help and, as the top level says of a missing COMMAND, what is
+    missing (a usage error)."""
+    parser.print_help(sys.stderr)
+    choices = " or ".join(what.choices) or "none installed"
+    print(f"\n{parser.prog}: error: WHAT is required ({choices})", file=sys.stderr)
+    return EXIT_USAGE
 
 
 def _blocked_from(argv: Sequence[str] | None) -> list[str]:
@@ -434,6 +454,19 @@ def add_plugin_commands(reg: Registry, sub: argparse._SubParsersAction, cal: arg
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command line; returns the exit status (argparse's usage errors exit 2 themselves). A Ctrl-C anywhere,
+    also while the plugins are imported, ends with "teletouch: interrupted" and 130 (SIGTERM during `run`: 143)."""
+    try:
+        return _main(argv)
+    except Terminated:
+        print("teletouch: terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
+    except KeyboardInterrupt:
+        print("teletouch: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     cal = sub.choices["calibrate"].get_default("_calibrate")
@@ -459,12 +492,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TeletouchError as exc:
         print(f"teletouch: error: {exc}", file=sys.stderr)
         return EXIT_INVALID
-    except Terminated:
-        print("teletouch: terminated (SIGTERM)", file=sys.stderr)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
-        print("teletouch: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
     except BrokenPipeError:   # `teletouch schema | head`: the reader left; say nothing more, like git (141 = SIGPIPE)
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -14,7 +14,17 @@ def output_problem(path: str | os.PathLike, folder: bool = False) -> str | None:
     can. Leaves nothing behind: folders missing below the nearest existing one are made when the output is written,
     and the nearest existing folder is probed by creating and removing a temporary file in it (permission bits do not
     tell for root, a read-only file system or a pseudo file system such as /proc)."""
-    p = Path(path)
+    text = os.fspath(path)
+    try:
+        problem = _problem(Path(text), folder)
+    except OSError as exc:   # e.g. a name too long for the file system, met on stat()
+        return f"{exc.strerror or exc}"
+    if problem is None and not folder and text.endswith(("/", os.sep)):   # (Path drops the separator)
+        return "ends in a separator, so it names a folder; expected a file name"
+    return problem
+
+
+def _problem(p: Path, folder: bool) -> str | None:
     if folder and p.exists() and not p.is_dir():
         return "exists and is not a folder"
     if not folder and p.is_dir():
@@ -26,6 +36,9 @@ def output_problem(path: str | os.PathLike, folder: bool = False) -> str | None:
         d = d.parent
     if not d.is_dir():
         return f"{d} is a file, not a folder"
+    too_long = _name_too_long(d, p.relative_to(d).parts if p != d else ())
+    if too_long:
+        return too_long
     if not os.access(d, os.W_OK | os.X_OK):
         return f"the folder {d} is not writable"
     try:
@@ -34,4 +47,17 @@ def output_problem(path: str | os.PathLike, folder: bool = False) -> str | None:
         return f"cannot write in the folder {d}: {exc.strerror or exc}"
     os.close(fd)
     os.unlink(probe)
+    return None
+
+
+def _name_too_long(existing: Path, missing: tuple[str, ...]) -> str | None:
+    """Why one of the ``missing`` names (folders to make, then the file) cannot be made in the folder ``existing``:
+    longer than its file system allows (the probe, a short name in ``existing``, does not tell)."""
+    try:
+        limit = os.pathconf(existing, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    for name in missing:
+        if len(os.fsencode(name)) > limit:
+            return f"the name {name[:24]}... is too long ({len(os.fsencode(name))} bytes; at most {limit} here)"
     return None

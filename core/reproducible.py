@@ -12,6 +12,9 @@ import time
 
 __all__ = ["source_date_epoch", "build_time"]
 
+#: 9999-12-31T23:59:59Z: a later time is no date a file can record (datetime's and ISO 8601's four-digit year)
+MAX_SOURCE_DATE_EPOCH = 253402300799
+
 
 def source_date_epoch() -> int | None:
     """The environment's SOURCE_DATE_EPOCH (whole seconds since 1970-01-01 UTC), or None when unset or empty.
@@ -20,10 +23,14 @@ def source_date_epoch() -> int | None:
     text = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
     if not text:
         return None
-    if not text.isdigit():
+    if not (text.isascii() and text.isdigit()):
         raise ValueError(f"SOURCE_DATE_EPOCH {text!r}: expected a whole number of seconds since 1970-01-01 UTC, e.g. "
                          f"$(git log -1 --format=%ct) (reproducible builds), or leave it unset")
-    return int(text)
+    value = int(text)
+    if value > MAX_SOURCE_DATE_EPOCH:
+        raise ValueError(f"SOURCE_DATE_EPOCH {text}: after 9999-12-31T23:59:59Z ({MAX_SOURCE_DATE_EPOCH}), the last "
+                         f"time an output file can record as a date")
+    return value
 
 
 def build_time() -> float:

@@ -33,6 +33,10 @@ _UNITS: dict[str, tuple[str, float]] = {
 }
 
 _QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*|1/\S.*)?\s*$")
+#: inf, nan (what float() takes for a number that is not finite), with or without a unit after them
+_NON_FINITE = re.compile(r"^\s*[-+]?(?:inf(?:inity)?|nan)(?![a-z])", re.IGNORECASE)
+#: GREEK SMALL LETTER MU, what Greek keyboards type and NFKC makes of the table's MICRO SIGN: the same prefix
+_GREEK_MU, _MICRO = "\u03bc", "\u00b5"
 
 #: what an example quantity of each SI unit looks like in a message
 _EXAMPLES: dict[str | None, str] = {
@@ -74,20 +78,34 @@ def parse_quantity(text: Any, unit: str | None = None) -> float:
     if not isinstance(text, str):
         raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
     m = _QTY.match(text)
+    if not m and _NON_FINITE.match(text):
+        raise ValueError(f"expected a finite number{_in(unit)}, got {text!r}")
     if not m:
         raise ValueError(f"expected a number{_in(unit)} such as {_EXAMPLES.get(unit, repr('1.5'))}, got {text!r}")
     value = float(m.group(1))
     if not math.isfinite(value):
         raise ValueError(f"{text!r} is too large for a number{_in(unit)}")
-    sym = (m.group(2) or "").strip()
+    sym = (m.group(2) or "").strip().replace(_GREEK_MU, _MICRO)
     if not sym:
         return value
     if sym not in _UNITS:
-        raise ValueError(f"unknown unit {sym!r} in {text!r}; known: {', '.join(sorted(_UNITS))}")
+        raise ValueError(_unknown_unit(sym, text, unit))
     si, factor = _UNITS[sym]
     if unit is not None and si != unit:
         raise ValueError(f"{text!r} is in {si}, expected a quantity in {unit}")
     return value * factor
+
+
+def _unknown_unit(sym: str, text: str, unit: str | None) -> str:
+    """Why ``sym`` in ``text`` is refused: the units a quantity in ``unit`` may be written in (every unit when any
+    goes), and the spelling meant when only the case is wrong. That is not guessed: 'mpa' may be milli- or
+    megapascal."""
+    fits = [s for s, (si, _) in _UNITS.items() if unit is None or si == unit]
+    near = [s for s in fits if s.lower() == sym.lower()]
+    msg = f"unknown unit {sym!r} in {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+    if unit is None:
+        return f"{msg}; known: {', '.join(sorted(_UNITS))}"
+    return f"{msg}; expected a quantity in {unit} ({', '.join(fits) if fits else 'a plain number'})"
 
 
 def _in(unit: str | None) -> str:
