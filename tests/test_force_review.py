@@ -248,3 +248,21 @@ def test_fit_samples_names_the_sample_of_the_list_given_not_of_the_samples_kept(
     rows[9]["x_m"] = math.nan
     with pytest.raises(CalibrationError, match=r"^sample 9: contact centroid \[nan, -0\.002\] m is not finite"):
         fit_samples(rows, 3, position_degree=1)
+
+
+@pytest.mark.parametrize("opt", ["-o", "--plot"])
+def test_cli_an_output_ending_in_a_separator_is_refused_before_the_fit(tmp_path, capsys, monkeypatch, opt):
+    # before: Path() dropped the trailing "/", so "-o models/" (not there yet) passed the check and the calibration
+    # was written as a file named "models"
+    from teletouch.cli import main
+    from teletouch.plugins.estimators import force_calibration
+
+    monkeypatch.setattr(force_calibration, "fit_samples", _no_work)
+    csv = tmp_path / "pairs.csv"
+    csv.write_text("depth_m,force_n\n0.0001,0.1\n")
+    folder = tmp_path / "models"
+    args = ["-o", f"{folder}/"] if opt == "-o" else ["-o", str(tmp_path / "cal.force.json"), "--plot", f"{folder}/"]
+    assert main(["calibrate", "force", "--csv", str(csv), "--quiet", *args]) == 2
+    err = capsys.readouterr().err
+    assert f"teletouch: error: {opt}: cannot write" in err and "names a folder" in err
+    assert not folder.exists()

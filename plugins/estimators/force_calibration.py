@@ -905,9 +905,12 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     out = Path(args.output)
     plot = Path(args.plot) if args.plot else out.with_name(_stem(out) + ".png")
     samples_path = Path(args.samples) if args.samples else out.with_name(_stem(out) + ".samples.csv")
-    outputs = [("-o", out), ("--plot", plot)] + ([] if args.csv else [("--samples", samples_path)])
-    for opt, path in outputs:
-        problem = output_problem(path)
+    # the raw strings where given: Path drops a trailing separator ("-o models/" would write a file named models)
+    outputs = [("-o", out, args.output), ("--plot", plot, args.plot or plot)]
+    if not args.csv:
+        outputs.append(("--samples", samples_path, args.samples or samples_path))
+    for opt, path, given in outputs:
+        problem = output_problem(given)
         if problem:
             return usage(f"{opt}: cannot write {str(path)!r}: {problem}")
     if args.csv:
