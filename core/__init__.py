@@ -11,11 +11,12 @@ __version__ = "0.1.0"
 
 from .component import Component, Context, Device, Inputs, Kind, Params, Port, Sample  # noqa: E402
 from .errors import (  # noqa: E402
-    ComponentFault, GraphError, GraphValidationError, HardwareError, ModelFileError, TeletouchError,
+    ComponentFault, GraphError, GraphValidationError, HardwareError, ModelFileError, PluginError, TeletouchError,
 )
 from .hookspecs import hookimpl  # noqa: E402
 
 __all__ = [
     "__version__", "Component", "Context", "Device", "Inputs", "Kind", "Params", "Port", "Sample", "hookimpl",
-    "ComponentFault", "GraphError", "GraphValidationError", "HardwareError", "ModelFileError", "TeletouchError",
+    "ComponentFault", "GraphError", "GraphValidationError", "HardwareError", "ModelFileError", "PluginError",
+    "TeletouchError",
 ]
