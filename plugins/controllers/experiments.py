@@ -562,6 +562,24 @@ def dumps(result: dict[str, Any], **kw: Any) -> str:
     return json.dumps(finite_json(result), allow_nan=False, **kw)
 
 
+def check_run(res: Any, what: str) -> None:
+    """Raise unless the run ``res`` (a RunResult) ended ok or stopped: KeyboardInterrupt where a Ctrl-C ended it (an
+    interruption, exit 130 on the command line, not a fault), RuntimeError naming ``what`` otherwise."""
+    if res.status == "interrupted":
+        raise KeyboardInterrupt(f"{what}: {res.message}")
+    if res.status not in ("ok", "stopped"):
+        raise RuntimeError(f"{what} ended with {res.status}: {res.message}")
+
+
+def out_dir_problem(out: str | Path) -> str | None:
+    """None if ``out`` is (or could be made) a folder for the results; else what is wrong, before anything runs."""
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"{out}: cannot make a folder there ({exc.strerror or exc})"
+    return None
+
+
 def save_outputs(out: str | Path, name: str, result: dict[str, Any], plot: Any = None) -> None:
     """Write an experiment's metrics to ``out/<name>.json`` and, when ``plot`` is given, its figure by
     ``plot(out/<name>.png)``; the paths go into ``result["files"]``."""
@@ -584,7 +602,8 @@ CONTACT_KEYS = ["leader.gripper_opening", "leader.intended_opening", "gripper.op
 def run_contact_once(feedback: bool | str, *, sensor: str = "image", duration: float = 6.0, registry: Any = None,
                      settle: float = 0.0) -> tuple[dict[str, Any], Recorder]:
     """One run of the rigid-object contact experiment. ``feedback``: True (position-force), False (no-feedback)
-    or a controller plugin name. Returns (metrics, recorder)."""
+    or a controller plugin name. Returns (metrics, recorder); a run that faults raises RuntimeError, one ended by
+    Ctrl-C KeyboardInterrupt (:func:`check_run`)."""
     import numpy as np
 
     hold = max(0.5, duration - 0.5 - 2.0 - 2.0)
@@ -598,9 +617,8 @@ def run_contact_once(feedback: bool | str, *, sensor: str = "image", duration: f
     w0 = time.perf_counter()
     res = rt.run()
     wall = time.perf_counter() - w0
-    if res.status not in ("ok", "stopped"):
-        raise RuntimeError(f"contact run ({'with' if feedback else 'without'} feedback) ended with "
-                           f"{res.status}: {res.message}")
+    label = feedback if isinstance(feedback, str) else "with feedback" if feedback else "without feedback"
+    check_run(res, f"contact run ({label})")
     tl, xl = rec.series("leader.gripper_opening")
     tf, xf = rec.series("gripper.opening")
     tc, c = rec.series("gripper.contact")
@@ -701,6 +719,9 @@ def experiment_contact(duration: float = 6.0, sensor: str = "image", out: str | 
         raise ValueError(f"duration: {problem}")
     if sensor not in SENSORS:
         raise ValueError(f"sensor: expected one of {', '.join(SENSORS)}, got {sensor!r}")
+    problem = None if out is None else out_dir_problem(out)
+    if problem:
+        raise ValueError(f"out: {problem}")
     with_m, with_r = run_contact_once(True, sensor=sensor, duration=duration, registry=registry)
     without_m, without_r = run_contact_once(False, sensor=sensor, duration=duration, registry=registry)
     e_with, e_without = with_m["mean_error_m"], without_m["mean_error_m"]
@@ -736,7 +757,8 @@ def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_li
                     registry: Any = None, operator: dict[str, Any] | None = None,
                     pivot: dict[str, Any] | None = None, record: bool = False) -> dict[str, Any]:
     """One pivoting trial. Success: the operator finishes within the time limit with the object at rest within the
-    tolerance of the target angle (true angle), not dropped."""
+    tolerance of the target angle (true angle), not dropped. A trial that faults raises RuntimeError, one ended by
+    Ctrl-C KeyboardInterrupt (:func:`check_run`)."""
     op_params = {"strategy": "force" if feedback else "position", "seed": seed, **(operator or {})}
     extra = [
         {"id": "pivot", "plugin": "sim-pivot", "rate": 1000, "params": dict(pivot or {}),
@@ -757,8 +779,7 @@ def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_li
     if rec is not None:
         rt.add_tap(rec)
     res = rt.run()
-    if res.status not in ("ok", "stopped"):
-        raise RuntimeError(f"pivot trial {seed} ended with {res.status}: {res.message}")
+    check_run(res, f"pivot trial {seed}")
     op = rt.component("operator")
     pv = rt.component("pivot")
     target, tol = op.params.target_angle, op.params.tolerance
@@ -846,6 +867,9 @@ def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float 
         raise ValueError(f"time_limit: expected a positive, finite number of seconds, got {time_limit!r}")
     if sensor not in SENSORS:
         raise ValueError(f"sensor: expected one of {', '.join(SENSORS)}, got {sensor!r}")
+    problem = None if out is None else out_dir_problem(out)
+    if problem:
+        raise ValueError(f"out: {problem}")
     res: dict[str, Any] = {"experiment": "pivot", "sensor": sensor, "time_limit_s": time_limit, "first_seed": seed}
     per: dict[str, list[dict[str, Any]]] = {"visual_force": [], "visual_only": []}
     w0 = time.perf_counter()
@@ -871,16 +895,6 @@ def experiment_pivot(trials: int = 15, sensor: str = "ideal", time_limit: float 
 
 
 # ================================================================================================ CLI
-def _out_dir_problem(out: str) -> str | None:
-    """None if ``out`` is (or could be made) a folder for the results; else what is wrong, before anything runs."""
-    try:
-        Path(out).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        return f"--out {out}: cannot make a folder there ({exc.strerror or exc})"
-    return None
-
-
-
 def _cmd_contact(args: argparse.Namespace) -> int:
     from teletouch.units import parse_quantity
 
@@ -892,9 +906,9 @@ def _cmd_contact(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"teletouch experiment contact: --duration: {exc}", file=sys.stderr)
         return 2
-    problem = _out_dir_problem(args.out)
+    problem = out_dir_problem(args.out)
     if problem:
-        print(f"teletouch experiment contact: {problem}", file=sys.stderr)
+        print(f"teletouch experiment contact: --out {problem}", file=sys.stderr)
         return 2
     try:
         res = experiment_contact(duration=duration, sensor=args.sensor, out=args.out, baselines=args.baselines)
@@ -931,9 +945,9 @@ def _cmd_pivot(args: argparse.Namespace) -> int:
     if args.trials < 1:
         print(f"teletouch experiment pivot: --trials: expected at least 1, got {args.trials}", file=sys.stderr)
         return 2
-    problem = _out_dir_problem(args.out)
+    problem = out_dir_problem(args.out)
     if problem:
-        print(f"teletouch experiment pivot: {problem}", file=sys.stderr)
+        print(f"teletouch experiment pivot: --out {problem}", file=sys.stderr)
         return 2
     try:
         res = experiment_pivot(trials=args.trials, sensor=args.sensor, time_limit=time_limit,

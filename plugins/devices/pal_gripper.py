@@ -74,7 +74,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import HardwareError, hookimpl
-from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds
+from teletouch.units import Meters, MetersPerSecond, Newtons, Seconds, millimetres_in_metres
 
 from .. import ros_names, ros_qos
 from .follower_common import FollowerBase, FollowerParams, Reading, clamp
@@ -251,6 +251,12 @@ class PalGripper(FollowerBase):
         @model_validator(mode="after")
         def _joint_range(self) -> "PalGripper.Params":
             lo, hi = self.finger_lower, self.finger_upper
+            # a finger limit in millimetres (45 for 0.045) would let /joint_states in millimetres through the range
+            # check as metres
+            mm = [m for m in (millimetres_in_metres(name, value) for name, value in
+                              (("finger_lower", lo), ("finger_upper", hi))) if m]
+            if mm:
+                raise ValueError("; ".join(mm))
             if lo >= hi:
                 raise ValueError(f"finger_lower ({lo} m) must be below finger_upper ({hi} m)")
             problems = []
