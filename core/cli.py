@@ -2,13 +2,15 @@
 
 Core commands: plugins, validate, schema, run, devices. Plugins add their own (calibrate, estimate, experiment, ...)
 through the ``teletouch_add_commands`` hook; a plugin whose hook raises (or takes a name already in use) has its
-commands skipped with a warning, and every other command still works.
+commands skipped with a warning, a command that sets no ``func`` is left out with a warning naming it, and every
+other command still works.
 
 Global option ``--block NAME[,NAME]`` (repeatable) blocks plugins, adding to the environment's ``TELETOUCH_BLOCK``.
 Exit codes are those of :mod:`teletouch.runtime` (0 ok, 1 invalid input, 2 usage, 3 fault, 4 start-up failure, 130
 interrupted by Ctrl-C), and 143 (128 + SIGTERM) for a run ended by SIGTERM, after the same safe stop as Ctrl-C;
-`teletouch plugins` exits 1 when a plugin failed to load, a component name is refused for a conflict, or a blocked
-name matches nothing (a block itself changes no exit status).
+`teletouch plugins` exits 1 when a plugin failed to load, a component name is refused for a conflict, a plugin's
+commands were skipped or left out, or a blocked name matches nothing (a block itself changes no exit status, nor
+does ``TELETOUCH_DISABLE_PLUGIN_AUTOLOAD``, which the listing mentions).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from typing import Any, Sequence
 
 from . import __version__
 from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
-from .registry import Registry, default_registry
+from .registry import ENV_PLUGINS, Registry, default_registry
 from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime
 
 EXIT_TERMINATED = 128 + signal.SIGTERM   # 143: the shell's code for a process ended by SIGTERM (130 is Ctrl-C)
@@ -78,8 +80,13 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     rows = reg.describe()
     problems = reg.problems() + list(getattr(args, "command_errors", []))
     status = EXIT_INVALID if problems else EXIT_OK
+    off = reg.autoload_off_why()
+    # autoload off is a choice (not a problem, exit status unchanged); said, so an empty list is not read as none
+    note = f"installed plugins are not loaded ({off}); only the modules named in {ENV_PLUGINS} are listed"
     if args.json:
         print(json.dumps(rows, indent=2, default=str))
+        if off:   # stdout stays JSON
+            print(f"teletouch: {note}", file=sys.stderr)
         return status
     for r in rows:
         if r.get("blocked"):
@@ -109,6 +116,8 @@ def cmd_plugins(args: argparse.Namespace) -> int:
               for p in reg.plugins.values() if not (p.components or p.error or p.blocked)]
     if others:
         print("plugins without components: " + ", ".join(others))
+    if off:
+        print(note)
     if problems:   # each is in the list above or was warned about on stderr
         print(f"teletouch: {len(problems)} plugin problem(s); exit status {status}", file=sys.stderr)
     return status
@@ -128,7 +137,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
     rates = ", ".join(f"{n.id}@{n.rate:g}Hz" for n in spec.order())
     count = len(spec.warnings)
     note = f"; {count} warning{'s' if count > 1 else ''}" if count else ""
-    print(f"{args.graph}: OK ({len(spec.nodes)} nodes: {rates}; clock {spec.clock}{note})")
+    nodes = len(spec.nodes)
+    print(f"{args.graph}: OK ({nodes} node{'s' if nodes != 1 else ''}: {rates}; clock {spec.clock}{note})")
     return EXIT_OK
 
 
@@ -165,12 +175,13 @@ class _Progress:
         self.drawn = 0   # rows of the block on screen (terminal)
 
     def rows(self, rt: Runtime, t: float) -> list[str]:
-        elapsed = max(t, 1e-9)
         overruns = sum(n.overruns for n in rt.nodes)
         width = max((len(n.id) for n in rt.nodes), default=4)
         rows = [f"t={t:8.2f} s  overruns {overruns}"]
         for n in rt.nodes:
-            rows.append(f"  {n.id:<{width}} {n.steps / elapsed:7.1f} Hz  {self._status_text(n.comp)}".rstrip())
+            rate = n.achieved_rate()
+            rate_text = "-" if rate is None else f"{rate:.1f}"
+            rows.append(f"  {n.id:<{width}} {rate_text:>7} Hz  {self._status_text(n.comp)}".rstrip())
         return rows
 
     def _status_text(self, comp: Any) -> str:
@@ -413,11 +424,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _what_missing(parser: argparse.ArgumentParser, what: argparse._SubParsersAction) -> int:
-    """`teletouch calibrate` without WHAT: its help and, as the top level says of a missing COMMAND, what is
-    missing (a usage error)."""
+    """`teletouch calibrate` without WHAT (or a plugin's group of commands without one of them): its help and, as
+    the top level says of a missing COMMAND, what is missing (a usage error)."""
     parser.print_help(sys.stderr)
     choices = " or ".join(what.choices) or "none installed"
-    print(f"\n{parser.prog}: error: WHAT is required ({choices})", file=sys.stderr)
+    print(f"\n{parser.prog}: error: {what.metavar or 'COMMAND'} is required ({choices})", file=sys.stderr)
     return EXIT_USAGE
 
 
@@ -434,11 +445,14 @@ def _blocked_from(argv: Sequence[str] | None) -> list[str]:
 
 def add_plugin_commands(reg: Registry, sub: argparse._SubParsersAction, cal: argparse._SubParsersAction) -> list[str]:
     """Let each plugin add its commands. One whose hook raises (or reuses a taken name) is skipped, with what it had
-    added removed; returns one line per skipped plugin."""
+    added removed; a command that sets no ``func`` is removed (see :func:`_drop_funcless`). Returns one line per
+    skipped plugin and per removed command."""
     errors = []
     kwargs = {"subparsers": sub, "calibrate": cal}
     for impl in reversed(reg.pm.hook.teletouch_add_commands.get_hookimpls()):   # registration order
         before = [(a, dict(a._name_parser_map), list(a._choices_actions)) for a in (sub, cal)]
+        rec = reg.plugins.get(impl.plugin_name)
+        who = f"plugin '{impl.plugin_name}'" + (f" ({rec.origin})" if rec is not None else "")
         try:
             impl.function(*[kwargs[name] for name in impl.argnames])
         except (Exception, SystemExit) as exc:
@@ -446,11 +460,39 @@ def add_plugin_commands(reg: Registry, sub: argparse._SubParsersAction, cal: arg
                 action._name_parser_map.clear()
                 action._name_parser_map.update(names)
                 action._choices_actions[:] = choices
-            rec = reg.plugins.get(impl.plugin_name)
-            origin = f" ({rec.origin})" if rec is not None else ""
-            errors.append(f"plugin '{impl.plugin_name}'{origin}: its commands are skipped: "
-                          f"teletouch_add_commands raised {exception_line(exc)}")
+            errors.append(f"{who}: its commands are skipped: teletouch_add_commands raised {exception_line(exc)}")
+            continue
+        for action, names, _ in before:
+            prefix = "calibrate " if action is cal else ""
+            errors += [f"{who}: {line}" for line in _drop_funcless(action, set(names), prefix)]
     return errors
+
+
+def _drop_funcless(action: argparse._SubParsersAction, kept: set[str], prefix: str) -> list[str]:
+    """Remove from ``action`` each sub-parser added since (not named in ``kept``) that sets no ``func`` default
+    (the hook's contract): argparse would accept its command and then find nothing to run, and the user read "a
+    COMMAND is required" after giving one. A group of sub-commands without a func keeps those of its commands that
+    set one (checked the same way) and, given none of them, says which are missing. Returns one line per command
+    removed; ``prefix`` is the words before the command's name (``calibrate ``)."""
+    added: dict[int, tuple[str, argparse.ArgumentParser]] = {}
+    for name, parser in action._name_parser_map.items():
+        if name not in kept:
+            added.setdefault(id(parser), (name, parser))   # its first name: the one its aliases follow
+    lines = []
+    for name, parser in added.values():
+        if callable(parser.get_default("func")):
+            continue
+        group = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if group is not None:
+            lines += _drop_funcless(group, set(), f"{prefix}{name} ")
+            if group._name_parser_map:
+                parser.set_defaults(func=lambda a, p=parser, g=group: _what_missing(p, g))
+                continue
+        for alias in [n for n, p in action._name_parser_map.items() if p is parser]:
+            del action._name_parser_map[alias]
+        action._choices_actions[:] = [c for c in action._choices_actions if c.dest != name]
+        lines.append(f"command '{prefix}{name}' sets no func=callable(args) -> int; it is not added")
+    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -45,6 +45,8 @@ ENV_BLOCK = "TELETOUCH_BLOCK"
 ENV_BLOCK_OLD = "TELETOUCH_BLOCK_PLUGINS"   # the earlier name of ENV_BLOCK, still read
 ENV_PLUGINS = "TELETOUCH_PLUGINS"
 PLUGIN_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+#: the keys every ``teletouch_discover_devices`` entry has (see :mod:`teletouch.hookspecs`)
+DEVICE_KEYS = ("kind", "id", "path")
 
 
 @dataclass
@@ -62,8 +64,10 @@ class PluginRecord:
 
     @property
     def origin(self) -> str:
-        """``distribution version`` as a person reads it."""
-        return f"{self.distribution} {self.version}".strip()
+        """``distribution version`` as a person reads it, for messages to put in parentheses: a stand-in name that
+        has its own (``(TELETOUCH_PLUGINS)``, ``(registered)``) loses them there."""
+        text = f"{self.distribution} {self.version}".strip()
+        return text[1:-1] if text.startswith("(") and text.endswith(")") else text
 
 
 @dataclass(frozen=True)
@@ -344,6 +348,11 @@ class Registry:
             msg += f"; installed plugins are not loaded ({self._no_autoload_why})"
         return msg
 
+    def autoload_off_why(self) -> str | None:
+        """Why installed plugins (entry points) are not loaded, e.g. "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD is set";
+        None when they are."""
+        return None if self.autoload else self._no_autoload_why
+
     def errors(self) -> list[PluginRecord]:
         return [p for p in self.plugins.values() if p.error]
 
@@ -415,10 +424,27 @@ class Registry:
                     continue
                 if not (isinstance(got, (list, tuple)) and all(isinstance(d, dict) for d in got)):
                     raise PluginError(f"teletouch_discover_devices() must return a list of dicts, got {_short(got)}")
-                found.extend(got)
             except (Exception, SystemExit) as exc:
-                found.append({"kind": impl.plugin_name, "id": "", "path": "", "error": _error_line(exc)})
+                found.append(_discovery_error(impl.plugin_name, _error_line(exc)))
+                continue
+            found.extend(_checked_entry(impl.plugin_name, i, entry) for i, entry in enumerate(got, 1))
         return found
+
+
+def _checked_entry(plugin: str, i: int, entry: dict[str, Any]) -> dict[str, Any]:
+    """``entry``, the ``i``-th (from 1) that ``plugin``'s discovery returned, or, where it lacks a key every entry
+    has, an error row naming the plugin and the missing keys (it is not a device to list)."""
+    missing = [k for k in DEVICE_KEYS if k not in entry]
+    if not missing:
+        return entry
+    return _discovery_error(plugin, f"teletouch_discover_devices() entry {i} has no "
+                                    f"{', '.join(repr(k) for k in missing)} (every entry needs "
+                                    f"{', '.join(DEVICE_KEYS)}): {_short(entry)}")
+
+
+def _discovery_error(plugin: str, message: str) -> dict[str, Any]:
+    """The row that stands for what ``plugin``'s discovery could not give, in the hook's error-entry form."""
+    return {"kind": plugin, "id": "", "path": "", "error": message}
 
 
 def _short(obj: Any) -> str:

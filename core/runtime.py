@@ -72,7 +72,9 @@ class NodeStats:
     plugin: str
     rate: float
     steps: int
-    achieved_rate: float | None   # steps per second of graph time; None when the run was shorter than one period
+    #: steps per second over the steps' own span, (steps - 1) / (time of the last step - time of the first); None
+    #: with fewer than two steps
+    achieved_rate: float | None
     overruns: int
     mean_step_s: float
     max_step_s: float
@@ -144,7 +146,8 @@ class RunResult:
 class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
-                 "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark")
+                 "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark",
+                 "first_t", "last_t")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -177,6 +180,14 @@ class _Node:
         self.checks = {p: value_checker(port) for p, port in spec.cls.outputs.items()}
         self.acts = 0          # step() calls begun
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
+        self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
+        self.last_t = 0.0
+
+    def achieved_rate(self) -> float | None:
+        """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
+        (steps / elapsed counted one too many: 101 Hz for a 100 Hz node over 1 s). None before two steps."""
+        span = self.last_t - self.first_t
+        return (self.steps - 1) / span if self.steps >= 2 and span > 0 else None
 
 
 class _StopEvent:
@@ -702,7 +713,6 @@ class Runtime:
 
     def stats(self) -> list[NodeStats]:
         out = []
-        elapsed = max(self._now, 1e-12)
         for n in self.nodes:
             jit = None
             if n.nstarts > 10:
@@ -710,9 +720,8 @@ class Runtime:
                 ts = sorted(n.starts[:k])
                 errs = sorted(abs((b - a) - n.period) for a, b in zip(ts, ts[1:]))
                 jit = errs[min(len(errs) - 1, int(0.99 * len(errs)))]
-            # a run shorter than one period (a fault at t = 0) has no rate to show: 1 step / 1e-12 s read 1e12 Hz
-            achieved = n.steps / elapsed if self._now >= n.period else None
-            out.append(NodeStats(n.id, n.spec.plugin, n.rate, n.steps, achieved, n.overruns,
+            # a node with fewer than two steps (a fault at t = 0) has no rate to show: 1 step / 1e-12 s read 1e12 Hz
+            out.append(NodeStats(n.id, n.spec.plugin, n.rate, n.steps, n.achieved_rate(), n.overruns,
                                  n.busy / n.steps if n.steps else 0.0, n.max_step, n.faulted, jit))
         return out
 
@@ -754,6 +763,9 @@ class Runtime:
                 node.busy += dt
                 if dt > node.max_step:
                     node.max_step = dt
+            if not node.steps:
+                node.first_t = t
+            node.last_t = t
             node.steps += 1
             if stop.is_set():
                 break
@@ -927,6 +939,9 @@ class Runtime:
                     if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it
                         self._fault(node, "exception", exception_line(exc), t)    # has reported the node's fault
                 node.in_step = False
+                if not node.steps:
+                    node.first_t = t
+                node.last_t = t
                 node.steps += 1
                 dt = perf() - t1
                 node.busy += dt

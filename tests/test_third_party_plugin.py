@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -16,8 +17,20 @@ REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "teletouch-plugin-example"
 
 
+def _tree(root: Path) -> dict[str, int]:
+    """Every file under ``root`` (byte-compiled caches aside) -> its modification time in ns."""
+    return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*")
+            if p.is_file() and "__pycache__" not in p.parts}
+
+
 @pytest.fixture(scope="module")
-def venv(tmp_path_factory):
+def example_before() -> dict[str, int]:
+    """The example's source folder as it was before anything here installed it."""
+    return _tree(EXAMPLE)
+
+
+@pytest.fixture(scope="module")
+def venv(tmp_path_factory, example_before):
     root = tmp_path_factory.mktemp("venv") / "env"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(root)], check=True, timeout=120)
     py = root / "bin" / "python"
@@ -26,11 +39,21 @@ def venv(tmp_path_factory):
     # the fresh environment sees this one's packages (teletouch and its dependencies) without copying them
     (Path(site) / "parent_env.pth").write_text(
         f"import site; site.addsitedir({sysconfig.get_paths()['purelib']!r})\n")
+    # pip builds in the folder it installs from: a copy, so that the checkout gets no build/ or *.egg-info and
+    # runs at the same time do not share one
+    src = tmp_path_factory.mktemp("src") / EXAMPLE.name
+    shutil.copytree(EXAMPLE, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     r = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps",
-                        "--no-build-isolation", "--no-index", "-q", str(EXAMPLE)],
+                        "--no-build-isolation", "--no-index", "-q", str(src)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     return py
+
+
+def test_installing_the_example_leaves_its_source_folder_as_it_was(venv, example_before):
+    # before: pip built in the source folder, leaving build/ and *.egg-info in the checkout (gitignored), where two
+    # test runs at once raced on them
+    assert _tree(EXAMPLE) == example_before
 
 
 def test_example_plugin_is_small():
