@@ -66,6 +66,23 @@ def emit(obj: Any) -> None:
     print(line, flush=True)
 
 
+def min_samples(q: float) -> int:
+    """The fewest samples over which the ``q``-th percentile (0 < q < 100) is more than the maximum or the minimum:
+    100 / (100 - q), at least 2 (a p99 needs 100, a p90 10, a median 2)."""
+    return max(2, math.ceil(100.0 / (100.0 - q) - 1e-9))
+
+
+def percentile_ms(xs: Any, q: float) -> float:
+    """The ``q``-th percentile of the times ``xs`` (s) in ms; NaN (null in the JSON) over fewer than
+    :func:`min_samples` of them, where it would only be the largest."""
+    xs = [float(x) for x in xs]
+    if len(xs) < min_samples(q):
+        return float("nan")
+    import numpy as np
+
+    return float(np.percentile(xs, q)) * 1e3
+
+
 positive_int = int_at_least(1)
 nonnegative_int = int_at_least(0)
 positive_float = number(float, "a finite number > 0", lo=0.0, lo_open=True)

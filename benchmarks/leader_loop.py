@@ -3,7 +3,8 @@
 For each rate (1 kHz, 4 kHz) it runs a graph `force source -> omega7` on the core runtime with the wall clock and
 reports the achieved rate, the p99 period jitter and the overruns, next to the same graph with `sim-omega7` (pure
 Python physics) as a reference. It also times the raw ctypes calls of one driver cycle (3 reads + button + one force
-write) and one full driver step() outside the runtime. Each loop runs under normal scheduling and again under
+write) and one full driver step() outside the runtime, each side by side with its reference (the bare ctypes calls,
+sim-omega7's step) in alternating rounds. Each loop runs under normal scheduling and again under
 SCHED_FIFO (``--realtime-priority``, default 20; 0: not); where the process may not use SCHED_FIFO the runs say so
 (``sched_fifo_applied: false``) and ran with normal scheduling.
 
@@ -76,6 +77,24 @@ def run_graph(plugin: str, params: str, rate: float, duration: float, prio: int 
     return out
 
 
+#: rounds of the side-by-side timings: the two alternate (A B, then B A) so that load on the shared machine hits both
+ROUNDS = 10
+
+
+def interleaved(cases: dict, cycles: int, rounds: int = ROUNDS) -> dict:
+    """Seconds per cycle of each of ``cases`` (name -> ``run(n)``, which does n cycles), timed side by side: ``rounds``
+    rounds of ``cycles // rounds`` cycles each, the order reversed every other round."""
+    per = max(1, cycles // rounds)
+    spent = dict.fromkeys(cases, 0.0)
+    names = list(cases)
+    for r in range(rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            t0 = time.perf_counter()
+            cases[name](per)
+            spent[name] += time.perf_counter() - t0
+    return {name: v / (per * rounds) for name, v in spent.items()}
+
+
 def raw_calls(lib_path: Path, cycles: int) -> dict:
     from teletouch.plugins.devices import dhd
 
@@ -83,37 +102,40 @@ def raw_calls(lib_path: Path, cycles: int) -> dict:
     d.open()
     d.enable_force(True)
     d.set_brakes(False)
-    perf = time.perf_counter
-    # one driver cycle through the binding
-    t0 = perf()
-    for _ in range(cycles):
-        d.position()
-        d.gripper_gap()
-        d.gripper_velocity()
-        d.button(0)
-        d.set_forces(0.0, 0.0, 0.0, 1.0)
-    binding = (perf() - t0) / cycles
+
+    def binding(n: int) -> None:   # one driver cycle through the binding
+        for _ in range(n):
+            d.position()
+            d.gripper_gap()
+            d.gripper_velocity()
+            d.button(0)
+            d.set_forces(0.0, 0.0, 0.0, 1.0)
+
     # the same five calls on the bare ctypes functions (no Python wrapper, no error check)
     lib, i = d.lib, d.id
     px, py, pz, pg, pv = d._px, d._py, d._pz, d._pg, d._pv
     gp, gg, gv, gb, sf = (lib.dhdGetPosition, lib.dhdGetGripperGap, lib.dhdGetGripperLinearVelocity,
                           lib.dhdGetButton, lib.dhdSetForceAndGripperForce)
-    t0 = perf()
-    for _ in range(cycles):
-        gp(px, py, pz, i)
-        gg(pg, i)
-        gv(pv, i)
-        gb(0, i)
-        sf(0.0, 0.0, 0.0, 1.0, i)
-    bare = (perf() - t0) / cycles
+
+    def bare(n: int) -> None:
+        for _ in range(n):
+            gp(px, py, pz, i)
+            gg(pg, i)
+            gv(pv, i)
+            gb(0, i)
+            sf(0.0, 0.0, 0.0, 1.0, i)
+
+    per = interleaved({"binding": binding, "bare": bare}, cycles)
     d.set_forces(0.0, 0.0, 0.0, 0.0)
     d.enable_force(False)
     d.close()
-    return {"cycles": cycles, "binding_cycle_us": round(binding * 1e6, 3), "bare_ctypes_cycle_us":
-            round(bare * 1e6, 3), "binding_overhead_ratio": round(binding / bare, 2)}
+    return {"cycles": cycles, "rounds": ROUNDS, "binding_cycle_us": round(per["binding"] * 1e6, 3),
+            "bare_ctypes_cycle_us": round(per["bare"] * 1e6, 3),
+            "binding_overhead_ratio": round(per["binding"] / per["bare"], 2)}
 
 
 def driver_step(sdk: Path, cycles: int) -> dict:
+    """One step() of omega7 (on the stand-in SDK) and of sim-omega7, side by side (:func:`interleaved`)."""
     import numpy as np
 
     from teletouch import Sample
@@ -121,19 +143,25 @@ def driver_step(sdk: Path, cycles: int) -> dict:
     from teletouch.plugins.devices.sim_omega7 import SimOmega7
     from teletouch.testing import Harness
 
-    out = {}
-    for name, cls, params in (("omega7", Omega7, {"sdk_path": str(sdk)}), ("sim_omega7", SimOmega7, {})):
-        with Harness(cls, params) as h:
-            comp, inputs, slots = h.comp, h.inputs, h.slots
-            zero3 = np.zeros(3)
-            perf = time.perf_counter
-            t0 = perf()
-            for k in range(cycles):
-                t = k * 1e-3  # 1 kHz steps: sim-omega7 does 4 substeps of 0.25 ms
+    zero3 = np.zeros(3)
+
+    def stepper(h):
+        comp, inputs, slots = h.comp, h.inputs, h.slots
+        k = [0]
+
+        def run(n: int) -> None:
+            for _ in range(n):
+                t = k[0] * 1e-3  # 1 kHz steps: sim-omega7 does 4 substeps of 0.25 ms
+                k[0] += 1
                 slots["gripper_force"].sample = Sample(1.0, t)
                 slots["force"].sample = Sample(zero3, t)
                 comp.step(t, inputs)
-            out[f"{name}_step_us"] = round((perf() - t0) / cycles * 1e6, 3)
+        return run
+
+    with Harness(Omega7, {"sdk_path": str(sdk)}) as ho, Harness(SimOmega7, {}) as hs:
+        per = interleaved({"omega7": stepper(ho), "sim_omega7": stepper(hs)}, cycles)
+    out = {f"{name}_step_us": round(v * 1e6, 3) for name, v in per.items()}
+    out["rounds"] = ROUNDS
     out["omega7_vs_sim_step_ratio"] = round(out["omega7_step_us"] / out["sim_omega7_step_us"], 3)
     return out
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -81,14 +82,29 @@ def run_one(force_scale: float, modulus: float, mode: str, sensor: str, duration
             "status": res.status}
 
 
+def out_problem(path: Path) -> str | None:
+    """Why the JSON cannot be written to ``path`` (None if it can): its folder missing or not writable, or the path
+    itself a folder."""
+    folder = path.resolve().parent
+    if path.is_dir():
+        return "is a folder (give a file name, e.g. sweep.json)"
+    if not folder.is_dir():
+        return f"the folder {folder} does not exist"
+    if not os.access(folder, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        return f"cannot write there ({path if path.exists() else folder} is not writable)"
+    return None
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a 2 x 2 grid (k_f 1, 4; E 0.41, 1 MPa)")
     ap.add_argument("--out", default=None, help="also write the JSON to this file")
     ap.add_argument("--sensor", choices=("ideal", "image"), default="ideal")
     args = ap.parse_args()
-    if args.out and not Path(args.out).resolve().parent.is_dir():   # refused now, not after the sweep
-        ap.error(f"--out {args.out}: the folder {Path(args.out).resolve().parent} does not exist")
+    if args.out:   # refused now, not after the sweep
+        problem = out_problem(Path(args.out))
+        if problem:
+            ap.error(f"--out {args.out}: {problem}")
     if args.quick:
         scales, moduli, duration = [1.0, 4.0], [0.41e6, 1.0e6], 5.0
     else:

@@ -27,6 +27,9 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   figures (the median over ``--repeat`` runs) meet the targets (``meets_targets``; jitter and the latency over all
   frames and over new frames) and in how many runs they did (``runs_meeting_targets``); ``paper_wall_config`` names
   examples/paper.yaml's scheduling (``rt-est``: what a lab runs) and ``configs_meeting_targets`` lists them all.
+  A percentile over too few samples to be one (a p99 over fewer than 100 is the maximum) is null (``--quick``'s
+  3 s runs have ~55 new frames: no new-frame p99, so they cannot meet that target); the sample counts are given.
+  A run that ends in a fault is named (``faulted_runs``) and the exit status is 1.
 
     python benchmarks/teleop_loop.py [--quick] [--steps] [--sensor image|gt|ideal] [--wall-configs plain,rt,...]
                                      [--repeat N]
@@ -48,7 +51,7 @@ import numpy as np
 
 from teletouch.plugins.controllers.experiments import build_runtime, sim_graph
 from machine import cpu_times, machine_noise
-from bench_common import emit, positive_int, sched_fifo_refused, warn_if_no_sched_fifo
+from bench_common import emit, percentile_ms, positive_int, sched_fifo_refused, warn_if_no_sched_fifo
 
 
 def sim_speed(sensor: str, duration: float, noise: float = 0.0) -> dict:
@@ -75,6 +78,7 @@ def sim_speed(sensor: str, duration: float, noise: float = 0.0) -> dict:
     return {"sensor": sensor, "noise": noise, "sim_time_s": res.sim_time, "wall_time_s": res.wall_time,
             "realtime_factor": res.realtime_factor, "realtime_factor_steady": steady,
             "realtime_factor_steady_cpu": steady_cpu, "cpu_time_s": cend - c0, "status": res.status,
+            "message": res.message,
             "controller_mean_step_us": ctl.mean_step_s * 1e6,
             "mean_step_us": {n.id: n.mean_step_s * 1e6 for n in res.nodes},
             "wall_share_per_sim_s": {n.id: n.mean_step_s * n.steps / res.sim_time for n in res.nodes}}
@@ -106,9 +110,11 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
     frame_ready = [None]                          # graph time the latest frame came out of the sensor
     frame_new = [True]                            # whether it differs from the frame before (not a repeat)
     prev_image = [None]
-    force_frame: dict[float, tuple[float, float, bool]] = {}   # force stamp -> (frame ready, estimate ready, new)
+    # force stamp (in whole ns: the controller's latency gives it back to within rounding) -> (frame ready,
+    # estimate ready, new)
+    force_frame: dict[int, tuple[float, float, bool]] = {}
     first_use: list[tuple[float, float, float, bool]] = []   # (frame ready, estimate ready, controller end, new)
-    last_seen = [None]
+    used = [0]                                    # the controller's first uses of an estimate seen so far
     sensor_node = "force" if sensor == "ideal" else "digit"
 
     def tap(node: str, t: float, out: dict) -> None:
@@ -123,13 +129,15 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
             s = rt.latest("force", "force")
             if s is not None and frame_ready[0] is not None:
                 with lock:
-                    force_frame[s.stamp] = (frame_ready[0], rt.now(), frame_new[0])
+                    force_frame[round(s.stamp * 1e9)] = (frame_ready[0], rt.now(), frame_new[0])
         if node == "controller":
-            st = ctl.last_stamp
-            if st is not None and st != last_seen[0]:
-                last_seen[0] = st
+            # the controller's public record of each new estimate's first use (its step time - the estimate's
+            # stamp): this step used an estimate for the first time when it grew
+            lats = ctl.latencies
+            if len(lats) > used[0]:
+                used[0] = len(lats)
                 with lock:
-                    fr = force_frame.get(st)
+                    fr = force_frame.get(round((t - lats[-1]) * 1e9))
                 if fr is not None:
                     first_use.append((fr[0], fr[1], rt.now(), fr[2]))
 
@@ -138,30 +146,30 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
     res = rt.run()
     noise = machine_noise(before, cpu_times())
     ctl_stats = next(n for n in res.nodes if n.id == "controller")
-    lat = np.array([c - a for a, b, c, _ in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
-    new = [c - a for a, b, c, fresh in first_use[5:] if fresh]
-    lat_new = np.array(new) if len(new) > 1 else np.array([np.nan])
-    est = [b - a for a, b, c, fresh in first_use[5:] if fresh]   # a new frame's estimators alone
-    est_new = np.array(est) if len(est) > 1 else np.array([np.nan])
-    pick = np.array([c - b for a, b, c, _ in first_use[5:]]) if len(first_use) > 6 else np.array([np.nan])
+    used = first_use[5:]                          # past the start-up
+    lat = [c - a for a, b, c, _ in used]
+    lat_new = [c - a for a, b, c, fresh in used if fresh]
+    est_new = [b - a for a, b, c, fresh in used if fresh]   # a new frame's estimators alone
+    pick = [c - b for a, b, c, _ in used]
     return {
         "sensor": sensor, "realtime_priority": realtime_priority, "estimator_thread_priority": estimator_priority,
         "sched_fifo_applied": (realtime_priority > 0 or estimator_priority > 0)
         and sched_fifo_refused(max(realtime_priority, estimator_priority)) is None,
-        "isolated": sorted(n for n in isolate if n in present), "status": res.status, "duration_s": res.sim_time,
+        "isolated": sorted(n for n in isolate if n in present), "status": res.status, "message": res.message,
+        "duration_s": res.sim_time,
         "controller_rate_hz": ctl_stats.achieved_rate, "controller_overruns": ctl_stats.overruns,
         "controller_jitter_p99_ms": (ctl_stats.period_jitter_p99_s or float("nan")) * 1e3,
-        "latency_samples": int(lat.size),
-        "frame_to_leader_force_p50_ms": float(np.nanpercentile(lat, 50) * 1e3),
-        "frame_to_leader_force_p99_ms": float(np.nanpercentile(lat, 99) * 1e3),
-        "frame_to_leader_force_max_ms": float(np.nanmax(lat) * 1e3),
-        "new_frames": int(np.isfinite(lat_new).sum()),
-        "new_frame_to_leader_force_p50_ms": float(np.nanpercentile(lat_new, 50) * 1e3),
-        "new_frame_to_leader_force_p99_ms": float(np.nanpercentile(lat_new, 99) * 1e3),
-        "new_frame_to_estimate_p50_ms": float(np.nanpercentile(est_new, 50) * 1e3),
-        "new_frame_to_estimate_p99_ms": float(np.nanpercentile(est_new, 99) * 1e3),
-        "estimate_to_leader_force_p50_ms": float(np.nanpercentile(pick, 50) * 1e3),
-        "estimate_to_leader_force_p99_ms": float(np.nanpercentile(pick, 99) * 1e3),
+        "latency_samples": len(lat),
+        "frame_to_leader_force_p50_ms": percentile_ms(lat, 50),
+        "frame_to_leader_force_p99_ms": percentile_ms(lat, 99),
+        "frame_to_leader_force_max_ms": max(lat) * 1e3 if lat else float("nan"),
+        "new_frames": len(lat_new),
+        "new_frame_to_leader_force_p50_ms": percentile_ms(lat_new, 50),
+        "new_frame_to_leader_force_p99_ms": percentile_ms(lat_new, 99),
+        "new_frame_to_estimate_p50_ms": percentile_ms(est_new, 50),
+        "new_frame_to_estimate_p99_ms": percentile_ms(est_new, 99),
+        "estimate_to_leader_force_p50_ms": percentile_ms(pick, 50),
+        "estimate_to_leader_force_p99_ms": percentile_ms(pick, 99),
         "smoothing_ramp_ms": ctl.params.smoothing_time * 1e3,
         "nodes": {n.id: {"achieved_hz": n.achieved_rate, "overruns": n.overruns, "mean_step_ms": n.mean_step_s * 1e3,
                          "max_step_ms": n.max_step_s * 1e3,
@@ -338,6 +346,14 @@ def main() -> int:
     solo = wall_controller_only(dur) if configs else None
     if solo:
         print(f"wall clock, controller alone: jitter p99 {solo['controller_jitter_p99_ms']:.3f} ms", file=sys.stderr)
+    # a run that ended in a fault (or was stopped) has no figures: named here, and the benchmark fails
+    faulted = [{"config": c, "run": i, "status": r["status"], "message": r["message"]}
+               for c, rs in runs.items() for i, r in enumerate(rs) if r["status"] != "ok"]
+    faulted += [{"config": f"sim clock, {r['sensor']}" + (f", noise {r['noise']:g}" if r["noise"] else ""), "run": 0,
+                 "status": r["status"], "message": r["message"]}
+                for r in (sim, sim_noisy, sim_ref) if r is not None and r["status"] != "ok"]
+    for f in faulted:
+        print(f"wall clock, {f['config']} run {f['run']}: ended {f['status']}: {f['message']}", file=sys.stderr)
     try:
         load = list(os.getloadavg())
     except OSError:
@@ -369,13 +385,14 @@ def main() -> int:
         "paper_config_runs_meeting_targets": (f"{wall[PAPER_CONFIG]['runs_meeting_targets']} of "
                                               f"{wall[PAPER_CONFIG]['runs']}") if PAPER_CONFIG in wall else None,
         "configs_meeting_targets": [c for c, w in wall.items() if w["meets_targets"]],
+        "faulted_runs": faulted,
         "controller_alone_jitter_p99_ms": solo["controller_jitter_p99_ms"] if solo else None,
         "load_average": load, "cpus": os.cpu_count(), "sched_fifo_refused": fifo_refused,
         "sim": sim, "sim_noise": sim_noisy, "sim_ideal": sim_ref, "wall_runs": runs, "wall_controller_only": solo,
         "wall_time_s": time.perf_counter() - w0,
     }
     emit(out)
-    return 0
+    return 1 if faulted else 0
 
 
 if __name__ == "__main__":

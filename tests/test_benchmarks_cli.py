@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.util
 import io
+import os
 import json
 import math
 import subprocess
@@ -42,8 +43,8 @@ def bench_common(monkeypatch):
     return _load(BENCH / "bench_common.py", "bench_common_under_test")
 
 
-def _run(args: list[str], timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+def _run(args: list[str], timeout: float = 120, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=timeout, env=env)
 
 
 # --- the last line: strict JSON --------------------------------------------------------------------------------------
@@ -93,6 +94,8 @@ def test_a_quick_benchmark_ends_with_one_strict_json_object():
     (["teleop_loop.py", "--quick", "--repeat", "0"], ["--repeat", ">= 1"]),
     (["depth_speed.py", "--quick", "--device", "no-such-device"], ["--device", "not a torch device"]),
     (["stability_sweep.py", "--quick", "--out", "/no/such/folder/sweep.json"], ["--out", "does not exist"]),
+    # a folder passed the check and the sweep ran, to die writing its result
+    (["stability_sweep.py", "--quick", "--out", "benchmarks"], ["--out benchmarks", "is a folder"]),
 ])
 def test_bad_arguments_are_refused_before_any_measurement(args, words):
     r = _run([str(BENCH / args[0]), *args[1:]])
@@ -217,3 +220,104 @@ def test_runtime_benchmark_says_when_sched_fifo_was_refused(monkeypatch):
     assert "not permitted" in res["sched_fifo_refused"]
     plain = mod.jitter(0.3, 1.0, priority=0)
     assert plain["sched_fifo_applied"] is False and plain["sched_fifo_refused"] is None
+
+
+# --- teleop_loop: the wall-clock runs measure, and a run that faults is not reported as a measurement --------------
+
+@pytest.fixture()
+def teleop_bench(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    return _load(BENCH / "teleop_loop.py", "teleop_loop_under_test")
+
+
+def test_teleop_wall_run_measures_the_frame_to_force_latency(teleop_bench):
+    """The tap read the controller's `last_stamp`, which position-force no longer has: every wall-clock run faulted
+    in its first controller step, and the benchmark printed nulls with exit status 0."""
+    r = teleop_bench.wall_timing("image", 1.5)
+    assert r["status"] == "ok", r.get("message")
+    assert r["latency_samples"] >= 30
+    assert 0.0 < r["frame_to_leader_force_p50_ms"] < 1000.0 and math.isfinite(r["controller_jitter_p99_ms"])
+    # the pick-up (estimate -> controller step that used it) is part of the frame's latency
+    assert 0.0 <= r["estimate_to_leader_force_p50_ms"] <= r["frame_to_leader_force_p50_ms"]
+    # 1.5 s at 60 Hz: under 100 frames, so no p99 (it would be the largest), and the counts say so
+    assert r["latency_samples"] < 100 and math.isnan(r["frame_to_leader_force_p99_ms"])
+    assert r["new_frames"] < 100 and math.isnan(r["new_frame_to_leader_force_p99_ms"])
+    assert not teleop_bench.meets_targets(r)
+
+
+def test_a_percentile_needs_the_samples_to_be_one(bench_common):
+    """teleop_loop's --quick runs have ~55 new frames: their 'p99' was the largest of them."""
+    assert math.isnan(bench_common.percentile_ms(np.arange(99) * 1e-3, 99))
+    assert bench_common.percentile_ms(np.arange(100) * 1e-3, 99) == pytest.approx(98.01)
+    assert math.isnan(bench_common.percentile_ms(np.arange(9) * 1e-3, 90))
+    assert bench_common.percentile_ms([0.001, 0.003], 50) == pytest.approx(2.0)
+    assert math.isnan(bench_common.percentile_ms([], 50)) and math.isnan(bench_common.percentile_ms([0.001], 50))
+
+
+def test_teleop_a_faulted_wall_run_fails_the_benchmark(teleop_bench, monkeypatch, capsys):
+    """A run that ends in a fault has no figures: the benchmark says which and why, and exits non-zero (its JSON
+    still comes, naming the run)."""
+    keys = {k: math.nan for k in teleop_bench.KEYS}
+    faulted = dict(keys, status="fault", message="node 'controller' exception: boom", machine={})
+    monkeypatch.setattr(teleop_bench, "step_costs", lambda n: {"x": 1.0})
+    monkeypatch.setattr(teleop_bench, "sim_speed", lambda sensor, dur, noise=0.0: {
+        "sensor": sensor, "noise": noise, "status": "ok", "message": "ran 3 s", "realtime_factor": 1.0,
+        "realtime_factor_steady": 1.0, "realtime_factor_steady_cpu": 1.0, "wall_share_per_sim_s": {}})
+    monkeypatch.setattr(teleop_bench, "wall_timing", lambda *a, **k: dict(faulted))
+    monkeypatch.setattr(teleop_bench, "wall_controller_only", lambda d: {"controller_jitter_p99_ms": 0.1})
+    monkeypatch.setattr(sys, "argv", ["teleop_loop.py", "--quick", "--wall-configs", "plain"])
+    assert teleop_bench.main() != 0
+    out, err = capsys.readouterr()
+    got = _strict_last_line(out)
+    assert got["faulted_runs"] == [{"config": "plain", "run": 0, "status": "fault",
+                                    "message": "node 'controller' exception: boom"}]
+    assert "plain" in err and "boom" in err
+
+
+# --- an optional part missing: the other measurements still come, in one JSON line ---------------------------------
+
+@pytest.fixture()
+def without_ros2(tmp_path):
+    """The environment of an install without teletouch[ros2]: `import rclpy` fails as it does there (a stand-in first
+    on the path; the child processes inherit it)."""
+    pkg = tmp_path / "no-ros2" / "rclpy"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'rclpy'\", name='rclpy')\n")
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(pkg.parent), os.environ.get("PYTHONPATH"))
+                                                        if p))
+
+
+def test_follower_latency_without_ros2_reports_the_other_transports(without_ros2):
+    """The PAL case's emulator could not start without rclpy: the benchmark died with a traceback after measuring
+    the other transports, and printed no result."""
+    r = _run([str(BENCH / "follower_latency.py"), "--quick"], env=without_ros2, timeout=180)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    got = _strict_last_line(r.stdout)
+    pal = got["results"]["pal-ros2-loopback"]
+    assert "rclpy" in pal["skipped"] and "teletouch[ros2]" in pal["skipped"]
+    assert got["results"]["dynamixel-1000000"]["round_trips"] > 0 and got["results"]["canopen-virtual"]["round_trips"]
+    assert got["round_trip_p50_ratio_to_dynamixel_1mbaud"]["pal-ros2-loopback"] is None
+    assert got["round_trip_p50_ratio_to_dynamixel_1mbaud"]["dynamixel-1000000"] == 1.0
+
+
+# --- a ratio compares the two side by side: interleaved in rounds over the same inputs ------------------------------
+
+def test_leader_loop_step_ratio_interleaves_the_two_drivers(monkeypatch, tmp_path):
+    """omega7_vs_sim_step_ratio timed every omega7 step, then every sim-omega7 step: a burst of load on the shared
+    machine during either block moved the ratio. The two now alternate in rounds."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    mod = _load(BENCH / "leader_loop.py", "leader_loop_under_test")
+    from teletouch.plugins.devices.omega7 import Omega7
+    from teletouch.plugins.devices.sim_omega7 import SimOmega7
+
+    order: list[str] = []
+    for cls in (Omega7, SimOmega7):
+        def spy(self, t, inputs, _step=cls.step, _name=cls.name):
+            order.append(_name)
+            return _step(self, t, inputs)
+        monkeypatch.setattr(cls, "step", spy)
+    mod.build(tmp_path)
+    out = mod.driver_step(tmp_path, 400)
+    switches = sum(a != b for a, b in zip(order, order[1:]))
+    assert order.count("omega7") == order.count("sim-omega7") >= 400 and switches >= 9, switches
+    assert out["omega7_step_us"] > 0 and out["omega7_vs_sim_step_ratio"] > 0
