@@ -300,6 +300,18 @@ def _drain(fd: int) -> None:
         pass
 
 
+def _status_of(comp: Any) -> dict[str, Any]:
+    """In the child: ``comp.status()`` for the parent's live view, or {} when it raises or cannot cross the pipe. As
+    inline, where the live view shows nothing for such a status: a plugin's bug there does not stop the run (it
+    made every step of the isolated node a fault)."""
+    try:
+        status = comp.status()
+        ForkingPickler.dumps(status)
+    except Exception:
+        return {}
+    return status
+
+
 def _child_signals(parent_pid: int) -> None:
     """In the child: Ctrl-C (SIGINT to the whole process group) and SIGTERM are for the parent, which ends the child
     through the pipe once its devices are safe; a child that died first would be a fault of its own and never
@@ -386,7 +398,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
                 out = comp.step(t, inputs) or {}  # type: ignore[union-attr]
                 packed = {k: (("S", lanes.pack(k, v.value), v.stamp) if isinstance(v, Sample)
                               else ("V", lanes.pack(k, v))) for k, v in out.items()}
-                reply = (seq, "out", packed, comp.status(), stop_reason[:], logs[:])  # type: ignore[union-attr]
+                reply = (seq, "out", packed, _status_of(comp), stop_reason[:], logs[:])
                 _send(conn, reply, packed, "output", "the parent process")
                 stop_reason.clear()
                 logs.clear()

@@ -18,9 +18,10 @@ from typing import Any, Callable, Iterable
 
 from .component import Component, Context, Device, Inputs, Sample, _Slot, step_samples, value_checker
 from .errors import PluginError
-from .graph import GraphSpec, load_graph_text
+from .graph import MAX_RATE, GraphSpec, load_graph_text
 from .registry import Registry, check_component
 from .runtime import RunResult, Runtime
+from .units import parse_quantity
 
 __all__ = ["Harness", "make_registry", "load_text", "run_yaml", "safe_states"]
 
@@ -98,6 +99,28 @@ def safe_states(rt: Runtime) -> dict[str, list[float]]:
         raise ValueError("safe_states() knows only the runtimes that run_yaml() built") from None
 
 
+def _node_rate(cls: type[Component], rate: Any) -> float:
+    """``Harness(..., rate=)`` as a graph takes a node's ``rate:``: Hz, a number or a quantity (``"1kHz"``), positive,
+    finite and at most MAX_RATE; otherwise ValueError naming the class and what was expected (the graph refuses
+    such a rate: run() looped for ever above 1 GHz, and a negative one froze a speed limit counted from it)."""
+    try:
+        hz = parse_quantity(rate, "Hz")
+        if not (hz > 0 and math.isfinite(hz)):
+            raise ValueError(f"must be a positive number of Hz, got {rate!r}")
+        if hz > MAX_RATE:
+            raise ValueError(f"at most {MAX_RATE:.0f} Hz (as in a graph: the simulated clock counts whole "
+                             f"nanoseconds), got {rate!r}")
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"Harness({cls.__qualname__}): rate: {exc}") from None
+    return hz
+
+
+def _tick_ns(k: int, rate: float) -> int:
+    """Graph time (ns) of a node's k-th step on the simulated clock, as the runtime counts it (Runtime._run_sim):
+    k periods rounded once, not k rounded periods (7 Hz: 1.000000001 s for the step at 1 s)."""
+    return int(round(k * 1e9 / rate))
+
+
 class Harness:
     """Drive one component by hand: set inputs, call step, read outputs; what the runtime would refuse is refused.
 
@@ -109,7 +132,9 @@ class Harness:
       The outputs are checked against their ports as the runtime checks them (dtype and shape, output names,
       stamps): what would fault the node in a graph raises :class:`ComponentFault` with the runtime's message.
     - ``h.run(until, **inputs)`` steps on a simulated clock at the node's rate (``rate=`` or the class's
-      ``default_rate``) from the next tick up to ``until``; an input given as a function is called with ``t``.
+      ``default_rate``) from the next tick up to ``until``, on the ticks of a graph's simulated clock; an input given
+      as a function is called with ``t``. A ``rate=`` that a graph refuses is refused (ValueError); one with its unit
+      (``"1kHz"``) is taken as a graph takes it.
     - Devices: ``h.safe_state()`` calls the device's safe state, and leaving the ``with`` block calls it too (as the
       runtime does at the end of every run, and after a fault: also when the block raised) before ``deactivate()``
       and ``close()``; ``h.safe_calls`` counts the calls made through the harness.
@@ -120,7 +145,7 @@ class Harness:
         check_component(cls)
         self.cls = cls
         self.t = 0.0
-        self.rate = rate if rate is not None else cls.default_rate
+        self.rate = cls.default_rate if rate is None else _node_rate(cls, rate)
         self.ctx = Context(now=lambda: self.t, clock_kind="sim", request_stop=self._stop,
                            log=lambda m: None, from_monotonic=lambda m: self.t, rate=self.rate)
         self.comp = cls(params, node_id=cls.name, ctx=self.ctx, **kw)
@@ -193,13 +218,20 @@ class Harness:
         """Step at the node's rate on a simulated clock, from the next tick after the harness time (from 0.0 if it
         has not stepped yet) up to and including ``until`` (s); returns ``[(t, outputs), ...]``. Each input value is
         set before every step (stamped with that step's time); a function is called with ``t`` for its value."""
-        if not self.rate or not math.isfinite(self.rate) or self.rate <= 0:
+        rate = self.rate
+        if not rate or not math.isfinite(rate) or rate <= 0:
             raise ValueError(f"{self.cls.__qualname__} has no default_rate: give Harness(..., rate=HZ)")
-        period_ns = round(1e9 / self.rate)
-        tick = 0 if self._steps == 0 else math.floor(round(self.t * 1e9) / period_ns) + 1
+        tick = 0
+        if self._steps:   # the first tick after the harness time
+            now_ns = round(self.t * 1e9)
+            tick = max(0, math.floor(now_ns * rate / 1e9))
+            while tick > 0 and _tick_ns(tick - 1, rate) > now_ns:
+                tick -= 1
+            while _tick_ns(tick, rate) <= now_ns:
+                tick += 1
         result = []
-        while tick * period_ns <= round(until * 1e9):
-            t = tick * period_ns / 1e9
+        while _tick_ns(tick, rate) <= round(until * 1e9):
+            t = _tick_ns(tick, rate) / 1e9
             self.t = t
             now = {k: (v(t) if callable(v) else v) for k, v in values.items()}
             result.append((t, self.step(t, **now)))

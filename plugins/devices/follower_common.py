@@ -12,8 +12,9 @@ hardware does not report it, watchdog on reads) lives here once.
 
 Holding: whenever there is no usable command (none yet, stale, NaN) and in the ``hold`` safe state, the setpoint goes
 to the measured opening (taken once, when the hold starts). The setpoint itself starts at the measured opening, at
-configure and at every activate, and only ever moves at ``max_speed`` (over at most two nominal periods per step), so
-a gripper resting outside [min_opening, max_opening] is walked into the range rather than jumped there.
+configure and at every activate (when activate cannot read the state: at the first reading after it, and nothing is
+sent before), and only ever moves at ``max_speed`` (over at most two nominal periods per step), so a gripper resting
+outside [min_opening, max_opening] is walked into the range rather than jumped there.
 """
 
 from __future__ import annotations
@@ -210,7 +211,11 @@ class FollowerBase(Device):
             self._last_reading = r
             self._setpoint = r.opening
             self._resync = False
-        else:  # no state right now: the first step takes the setpoint from its reading
+        else:  # no state right now: the first step with a reading takes the setpoint from it
+            # the reading and the set-point of before are not where the fingers are now (moved while inactive):
+            # nothing is sent, held or reported from them (see command_target and safe_state)
+            self._last_reading = None
+            self._setpoint = math.nan
             self._resync = True
 
     def close(self) -> None:
@@ -220,6 +225,7 @@ class FollowerBase(Device):
 
     # step ------------------------------------------------------------------------------------------------------
     def _measured(self) -> float:
+        """The last measured opening; NaN when there is none since activate() (and no set-point either)."""
         r = self._last_reading
         return r.opening if r is not None and math.isfinite(r.opening) else self._setpoint
 
@@ -233,14 +239,17 @@ class FollowerBase(Device):
         return new
 
     def command_target(self, t: float, inputs: Any) -> float:
-        """The setpoint for this step: the command (clamped, rate limited) or the hold / safe target."""
+        """The setpoint for this step: the command (clamped, rate limited) or the hold / safe target; NaN (nothing to
+        send) while no state has been read since activate()."""
         p = self.params
         # the speed limit counts at most two nominal periods: after a late step the setpoint does not jump
         dt = 0.0 if self._last_t is None else min(t - self._last_t, self._max_dt)
         self._last_t = t
         if self._resync or not math.isfinite(self._setpoint):
-            self._resync = False
             self._setpoint = self._measured()
+            if not math.isfinite(self._setpoint):   # where the fingers are is not known yet: nothing to start from
+                return self._setpoint
+            self._resync = False
         if self._safe:
             target = self._hold_at
         else:
@@ -284,14 +293,16 @@ class FollowerBase(Device):
         self._command_stamp = s.stamp
         return cmd
 
-    def read_state(self, t: float) -> Reading:
+    def read_state(self, t: float) -> Reading | None:
+        """This step's reading; the last one when this read failed (None: none since activate()); raises after
+        ``read_timeout`` without a valid one."""
         r = self._hw_read()
         now = time.monotonic()
         if r is None or not math.isfinite(r.opening):
             if now - self._last_good > self.params.read_timeout:
                 raise HardwareError(f"{self.name}: no valid state for {now - self._last_good:.3f} s "
                                     f"(read_timeout {self.params.read_timeout} s); check the connection")
-            return self._last_reading  # type: ignore[return-value]
+            return self._last_reading
         self._last_good = now
         self._last_reading = r
         return r
@@ -299,8 +310,10 @@ class FollowerBase(Device):
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         r = self.read_state(t)
         with self._command_guard():
-            self._hw_write(self.command_target(t, inputs))
-        return self.outputs_from(r, t)
+            target = self.command_target(t, inputs)
+            if math.isfinite(target):   # NaN: no state since activate(), nothing to send
+                self._hw_write(target)
+        return None if r is None else self.outputs_from(r, t)
 
     def _command_guard(self) -> Any:
         """Held while a step works out and sends its set-point: a driver whose safe_state() may come from another
@@ -324,7 +337,8 @@ class FollowerBase(Device):
     # safe state ------------------------------------------------------------------------------------------------
     def safe_target(self) -> float:
         """``open``: max_opening; ``hold``: the measured opening, not clamped (later steps walk a gripper resting
-        outside the range into it at max_speed instead of jumping)."""
+        outside the range into it at max_speed instead of jumping); NaN when nothing was measured since activate()
+        (the opening of before is not where the fingers are now: nothing is sent)."""
         p = self.params
         if p.safe_mode == "open":
             return p.max_opening
@@ -338,7 +352,10 @@ class FollowerBase(Device):
             self._hold_at = self.safe_target()
             if math.isfinite(self._hold_at):
                 self._setpoint = self._hold_at
-            self._hw_write(self._setpoint)
+            if math.isfinite(self._setpoint):
+                self._hw_write(self._setpoint)
+            else:   # no state since activate(): where to hold is not known; the hardware keeps what it does
+                self.ctx.log("safe_state: no state read since activation, so no opening to hold: nothing sent")
         except Exception as exc:  # never raise from the safe state; the hardware's own limits take over
             try:
                 self.ctx.log(f"safe_state could not command the gripper: {exc}")
