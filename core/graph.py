@@ -201,8 +201,10 @@ def _merge_nodes(base: list, over: list) -> LList:
                 del index[nid]   # a later entry with this id is a new node
                 continue
             merged = _merge(out[i], node)
-            if node.get("plugin") not in (None, out[i].get("plugin")) and "params" not in node:
-                merged["params"] = LDict(where=where)  # a new plugin does not inherit the old one's params
+            if node.get("plugin") not in (None, out[i].get("plugin")):
+                # a new plugin does not inherit the old one's params: its own, if given, are all it has (merged
+                # into the old ones, a swap with params of its own failed on the old plugin's "unknown param")
+                merged["params"] = node["params"] if "params" in node else LDict(where=where)
             over_in, ins = node.get("inputs"), merged.get("inputs")
             if isinstance(over_in, dict) and isinstance(ins, dict):
                 base_in = out[i].get("inputs")
