@@ -18,13 +18,13 @@ bool / str scalar                       std_msgs/msg/Bool / String
 1-D or N-D float array                  std_msgs/msg/Float64MultiArray (layout keeps the shape)
 uint8 image (rows, cols, 3) BGR         sensor_msgs/msg/CompressedImage, PNG (lossless) or JPEG
 uint8 (rows, cols) / bool mask          sensor_msgs/msg/CompressedImage, PNG mono8 (mask: 0/255)
-float32 / float64 (rows, cols)          sensor_msgs/msg/Image, 32FC1 / 64FC1 (depth maps, m)
+float32 / float64 / uint16 (rows, cols) sensor_msgs/msg/Image, 32FC1 / 64FC1 / 16UC1 (depth maps, m)
 anything else                           JSON (schemaless), {"value": ...}
 ======================================  ==============================================================
 
 Times: the MCAP ``publish_time`` and every ``header.stamp`` are the sample's own stamp (a camera's capture time),
 ``log_time`` is the graph time of the step that produced it; both as Unix-epoch nanoseconds, ``epoch + graph time``,
-where ``epoch`` (metadata record ``teletouch``, key ``graph_epoch_ns``) is the Unix time of graph time 0. The
+where ``epoch`` (metadata record ``teletouch.time``, key ``graph_epoch_ns``) is the Unix time of graph time 0. The
 readers give graph time back in seconds.
 """
 
