@@ -164,7 +164,7 @@ def test_the_live_view_shows_no_rate_before_a_node_has_two_steps():
     spec = load_graph(GRAPH, duration=1.0)
     rt = Runtime(spec)
     rows = cli._Progress(io.StringIO()).rows(rt, 0.0)   # nothing stepped yet
-    assert all(r.split()[1:3] == ["-", "Hz"] for r in rows[1:]), rows
+    assert [r.split() for r in rows[1:]] == [[n.id, "-", "Hz"] for n in spec.nodes], rows   # a row per node
 
 
 # --- 4. the origin of a plugin loaded through TELETOUCH_PLUGINS ------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
+from pydantic import ValidationError
 
 from teletouch import Sample
 from teletouch.plugins.controllers.position_force import (
@@ -123,10 +124,10 @@ def test_no_feedback_baseline_sends_no_force():
 
 
 def test_params_are_validated():
-    with pytest.raises(Exception, match="opening_min"):
+    with pytest.raises(ValidationError, match=r"opening_min \(0.05 m\) must be below opening_max \(0.01 m\)"):
         PositionForce.Params(opening_min=0.05, opening_max=0.01)
     assert PositionForce.Params(deadband="50mN").deadband == pytest.approx(0.05)
-    with pytest.raises(Exception):
+    with pytest.raises(ValidationError, match=r"force_sign\s+Input should be 1"):
         PositionForce.Params(force_sign=2)
 
 
@@ -141,7 +142,7 @@ def test_constant_leader_damping_option():
 def test_a_sign_that_pulls_the_fingers_closed_is_refused():
     # gripper_force is positive when it pushes the operator's fingers apart (docs/ports.md), and every leader driver
     # keeps to that: force_sign -1 rendered a sensed grip as a pull closing the fingers into the object (-2 N here)
-    with pytest.raises(Exception, match=r"force_sign[\s\S]*pull"):
+    with pytest.raises(ValidationError, match=r"force_sign[\s\S]*pull"):
         PositionForce.Params(force_sign=-1)
     assert PositionForce.Params(force_sign=1).force_sign == 1
     with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "smoothing_time": 0.0}) as h:
@@ -158,7 +159,7 @@ def test_a_sign_that_pulls_the_fingers_closed_is_refused():
 def test_constant_damping_beyond_what_the_leader_renders_is_refused(cls, params, names):
     # max_damping is the most damping the leader renders stably (Omega.7: 40 N*s/m); the constant damping must fit
     # in it (the passivity damping gets what is left)
-    with pytest.raises(Exception) as e:
+    with pytest.raises(ValidationError) as e:
         cls.Params(**params)
     assert all(n in str(e.value) for n in names), str(e.value)
     cls.Params(**dict(params, max_damping=60.0))

@@ -159,7 +159,11 @@ def test_bad_clock_duration_and_faults(reg):
 def test_validation_reports_all_errors_at_once(reg):
     bad = GOOD.replace("mock-gain", "mock-gian").replace("rate: 1kHz", "rate: -5").replace(
         "signal: step", "signal: 7")
-    assert len(errors_of(bad, reg)) >= 3
+    errs = errors_of(bad, reg)
+    assert len(errs) == 3, errs   # one per mistake, each with its line and node
+    assert any(e.startswith("g.yaml:8: node 'source': param 'signal' = 7") for e in errs), errs
+    assert any(e.startswith("g.yaml:10: node 'gain': unknown plugin 'mock-gian'") for e in errs), errs
+    assert any(e.startswith("g.yaml:16: node 'dev': rate: must be a positive number of Hz") for e in errs), errs
 
 
 def test_include_override_and_set(tmp_path, reg):
@@ -345,11 +349,14 @@ def test_units_of_every_declared_parameter_are_known():
     from teletouch.registry import default_registry
     from teletouch.units import parse_quantity
 
+    checked = set()
     for row in default_registry().describe():
         for prm in row.get("params", []):
             unit = prm.get("unit")
             if unit and unit not in ("", "1"):
                 assert parse_quantity(f"1 {unit}", unit) == 1.0, (row["name"], prm["name"], unit)
+                checked.add(unit)
+    assert {"m", "s", "N", "Hz", "m/s", "N/m", "N*s/m"} <= checked, checked   # the built-ins' units were seen
 
 
 def test_a_malformed_quantity_gets_an_example_in_its_own_unit():

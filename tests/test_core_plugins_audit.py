@@ -11,7 +11,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.plugin_dists import make_dist  # noqa: E402
 
-from teletouch.errors import DuplicateComponentError
+from teletouch.errors import DuplicateComponentError, GraphValidationError
 from teletouch.registry import Registry
 from teletouch.testing import load_text
 
@@ -118,7 +118,7 @@ def test_component_that_cannot_run_is_refused_at_load(site, change, expected):
 def test_default_rate_refused_before_a_graph_can_use_it(site):
     """A negative default rate passed validation ('a@-5Hz') and the run never ended."""
     reg = one(site, GOOD.replace("kind = Kind.ESTIMATOR", "kind = Kind.ESTIMATOR\n    default_rate = -5"))
-    with pytest.raises(Exception, match="failed to load: C.default_rate"):
+    with pytest.raises(GraphValidationError, match="failed to load: C.default_rate"):
         load_text("clock: sim\nduration: 0.1\nnodes:\n  - {id: a, plugin: acme-c}\n", reg)
 
 
@@ -138,7 +138,7 @@ def test_component_name_taken_from_a_builtin_is_refused_naming_both_not_fatal(si
     msg = str(ei.value)
     assert "plugin 'acme' (acme-dist 1.0)" in msg and "plugin 'mock' (teletouch " in msg
     assert "TELETOUCH_BLOCK=acme" in msg and "TELETOUCH_BLOCK=mock" in msg
-    with pytest.raises(Exception) as ei:
+    with pytest.raises(GraphValidationError) as ei:
         load_text("clock: sim\nduration: 1\nnodes:\n  - {id: s, plugin: mock-sensor}\n", reg)
     assert "<test>:4: node 's': component 'mock-sensor' is provided by both" in str(ei.value)
     row = next(r for r in reg.describe() if r["name"] == "mock-sensor")

@@ -84,6 +84,7 @@ def test_routine_runs_all_steps_and_stops(full_run):
 def test_routine_records_the_steady_state_device_force(full_run):
     _, rt, _ = full_run
     r = rt.component("routine")
+    assert len(r.samples) == 26   # 13 steps in each of the 2 cycles: the checks below are not over an empty list
     for s in r.samples:
         assert abs(s["displacement_m"] - s["target_displacement_m"]) <= r.params.settle_tolerance + 1e-9
         # at rest the command balances the gel: device force == ground-truth gel force

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import pytest
+from pydantic import ValidationError
 
 from teletouch import ComponentFault, Sample
 from teletouch.plugins.controllers.position_force import NoFeedback, PositionForce
@@ -145,5 +146,5 @@ def test_a_short_loss_is_no_fault():
 
 
 def test_fault_after_lost_shorter_than_the_fade_is_refused():
-    with pytest.raises(Exception, match="fault_after_lost .* must be at least fade_time"):
+    with pytest.raises(ValidationError, match="fault_after_lost .* must be at least fade_time"):
         PositionForce.Params(fault_after_lost=0.1, fade_time=0.2)

@@ -113,5 +113,5 @@ def test_no_wait_by_default_and_bad_counts_are_refused_naming_the_field():
     with pytest.raises(ValidationError) as err:
         Ros2Publish.Params(wait_for_subscribers=-1)
     assert "expected a count of subscribers >= 0" in str(err.value)
-    with pytest.raises(ValidationError):
+    with pytest.raises(ValidationError, match=r"wait_timeout\s+Input should be greater than 0"):
         Ros2Publish.Params(wait_timeout=0)

@@ -441,6 +441,7 @@ def test_fuzz_wrong_frames_fault_cleanly_and_other_layouts_read_the_same(renders
 def test_fuzz_integrate_gives_finite_depth_or_a_clear_error():
     rng = random.Random(7)
     specials = [math.nan, math.inf, -math.inf, 3e38, -3e38, 1e30, 1e308, 5e-324, -0.0]
+    solved = {"integrate": 0, "window": 0}
     for case in range(300):
         n, m = rng.randrange(2, 40), rng.randrange(2, 40)
         dtype = rng.choice([np.float32, np.float64])
@@ -471,12 +472,15 @@ def test_fuzz_integrate_gives_finite_depth_or_a_clear_error():
                     assert not (0 <= r0 <= r1 <= n and 0 <= c0 <= c1 <= m), (box, msg)
                 continue
             assert z.shape == (n, m) and np.isfinite(z).all(), (case, fn, injected, box)
+            solved[fn] += 1
             if fn == "window":
                 r0, r1, c0, c1 = box
                 assert 0 <= r0 <= r1 <= n and 0 <= c0 <= c1 <= m, f"box {box} taken for {n}x{m} gradients"
                 outside = np.ones((n, m), bool)
                 outside[r0:r1, c0:c1] = False
                 assert not z[outside].any()
+    # most cases are solved (184 and 51 of the 300 with this seed): a solver that refused everything would pass above
+    assert solved["integrate"] >= 150 and solved["window"] >= 40, solved
 
 
 def test_fuzz_contact_summary_is_consistent_or_refuses():
@@ -601,7 +605,7 @@ def test_normals_that_are_not_finite_fault_the_depth_node(renders, mode):
 def test_pipeline_max_depth_refuses_depth_that_is_not_finite(renders):
     pipe = DepthPipeline(MODEL)
     pipe._layers[-1][0][0, 0] = math.nan
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="NaN or inf|not finite"):
         pipe.max_depth(renders[0])
 
 

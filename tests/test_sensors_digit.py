@@ -136,11 +136,11 @@ def test_led_value_and_params():
     assert led_value((1, 2, 3)) == 0x123
     assert led_command((1, 2, 3), 203) == 0x123 and led_command(15, None) == 0xFFF
     assert led_command(15, 101) == 255 and led_command((1, 7, 3), 105) == 7 * 17  # old firmware: one 0..255 level
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="LED intensity must be 0..15 per channel, got 16"):
         led_value(16)
     with pytest.raises(ValueError, match="0..15"):
         Digit.Params(led_intensity=[1, 2, 99])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"stream\s+Input should be 'qvga60', 'qvga30', 'vga30' or 'vga15'"):
         Digit.Params(stream="vga60")
 
 

@@ -158,7 +158,7 @@ def test_replay_path_errors(tmp_path, shared_data):
     with pytest.raises(ModelFileError, match="single image"):
         with Harness(Replay, {"path": str(shared_data / "digit-presses-qvga" / "0000.png")}):
             pass
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"path\s+Field required"):
         Replay.Params()  # path is required
 
 

@@ -50,10 +50,14 @@ def test_out_of_range_params_are_refused(field, value, words):
 
 
 def test_the_largest_drift_renders():
+    means = []
     with Harness(SimDigit, {"drift": 255, "drift_period": 1.0, "indentation": 0.001}) as h:
         for t in np.linspace(0, 1, 9):
             img = h.step(float(t))["image"]
             assert img.dtype == np.uint8
+            means.append(float(img.mean()))
+    # over one period the +-255 offset takes the image to black and to white (clipped, never wrapped around)
+    assert min(means) < 20.0 and max(means) > 235.0, means
 
 
 def test_tilt_input_beyond_45_degrees_is_an_error():
