@@ -149,3 +149,17 @@ def test_fields_of_one_measurement_sent_in_two_messages_all_come_out():
         pub.deactivate()
         pub.close()
         sub.close()
+
+
+@pytest.mark.parametrize("cls", [Ros2Publish, Ros2Subscribe])
+def test_without_the_ros2_message_packages_configure_names_the_extra(monkeypatch, cls):
+    # before: a bare ModuleNotFoundError ("No module named 'geometry_msgs'") that named no extra to install
+    import sys
+
+    from teletouch import ComponentFault
+    from teletouch.testing import Harness
+
+    monkeypatch.setitem(sys.modules, "geometry_msgs.msg", None)   # what an environment without the extra gives
+    with pytest.raises(ComponentFault, match=r"pip install 'teletouch\[ros2\]'"):
+        with Harness(cls, {"topics": ["force"]}):
+            pass

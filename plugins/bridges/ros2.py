@@ -160,6 +160,19 @@ def _type_name(mtype: Any) -> str:
     return f"{mtype.__module__.split('.')[0]}/msg/{mtype.__name__}"
 
 
+def _message_types() -> tuple[Any, Any, Any, Any]:
+    """WrenchStamped, Image, JointState and Float64; without the ROS 2 message packages a ComponentFault that names
+    the extra to install (a bare ModuleNotFoundError named none)."""
+    try:
+        from geometry_msgs.msg import WrenchStamped
+        from sensor_msgs.msg import Image, JointState
+        from std_msgs.msg import Float64
+    except ImportError as exc:
+        raise ComponentFault(f"the ROS 2 bridge needs the ROS 2 message packages: pip install 'teletouch[ros2]' "
+                             f"({exc})") from exc
+    return WrenchStamped, Image, JointState, Float64
+
+
 class _Ros:
     """One rclpy Context + node + executor thread (never the global default context, never signal handlers).
 
@@ -419,9 +432,7 @@ class Ros2Publish(Component):
         return _unlisted(inputs, list(params.topics), "input", "add {topic} to topics")
 
     def configure(self) -> None:
-        from geometry_msgs.msg import WrenchStamped
-        from sensor_msgs.msg import Image, JointState
-        from std_msgs.msg import Float64
+        WrenchStamped, Image, JointState, Float64 = _message_types()
 
         p = self.params
         types = {"force": WrenchStamped, "image": Image, "depth": Image, "joint_states": JointState,
@@ -623,9 +634,7 @@ class Ros2Subscribe(Component):
         return _unlisted(outputs, list(params.topics), "output", "add {topic} to topics, or read another output")
 
     def configure(self) -> None:
-        from geometry_msgs.msg import WrenchStamped
-        from sensor_msgs.msg import Image, JointState
-        from std_msgs.msg import Float64
+        WrenchStamped, Image, JointState, Float64 = _message_types()
 
         p = self.params
         self._lock = threading.Lock()
