@@ -5,7 +5,10 @@ Renders ball presses (6 mm ball, random positions over the sensor, indentations 
 background frame, then runs the very command a user runs on real presses:
 
     teletouch calibrate depth --images DIR --ball-diameter 6mm --px-per-mm 17.15 --labels DIR/labels.csv \
-        --background DIR/background.png --features diffxy -o plugins/estimators/data/sim-digit-qvga.model
+        --background DIR/background.png --holdout 4 --epochs 40 --seed 0 --features diffxy \
+        -o plugins/estimators/data/sim-digit-qvga.model
+
+(``--epochs``, ``--seed``, ``--features`` and ``--hidden`` pass the script's own options through.)
 
     python scripts/make_sim_depth_model.py [--presses 40] [--seed 0] [--epochs 40] [--keep DIR] [-o FILE]
 

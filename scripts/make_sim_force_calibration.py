@@ -1,20 +1,25 @@
 #!/usr/bin/env python
 """Make the packaged force calibration of the simulated DIGIT (plugins/estimators/data/sim-digit-qvga.force.json).
 
-It runs exactly the user's command on the example graph:
+It runs exactly the user's command on the example graph (it prints it, the press points written out):
 
     teletouch calibrate force --graph examples/calibrate-force-sim.yaml \
-        -o plugins/estimators/data/sim-digit-qvga.force.json --plot docs/force-calibration-sim.png
+        -o plugins/estimators/data/sim-digit-qvga.force.json --plot docs/force-calibration-sim.png \
+        --sensor-model-id sim-digit-qvga --position-degree 4 --duration 1120s --set routine.cycles=25 \
+        --set "routine.positions=[[-2mm, -4mm], [-1mm, -4mm], ..., [2mm, 4mm]]"
 
 i.e. sim-omega7 + sim-press-rig + sim-digit + the depth estimator (model sim-digit-qvga) + press-routine, 0.1 mm
 steps to 2 mm, once at each point of a 5 x 5 grid over +-2 x +-4 mm (``--grid``), fitted with position terms of degree
 4 (``--position-degree``: the curve follows the contact centroid, which evens out the depth estimator's variation
-over the sensor). ``--single-point`` runs the paper's protocol instead: 3 cycles at the centre, one curve.
+over the sensor; degree p needs a grid of at least (p + 1) x (p + 1), checked before the run).
+``--single-point`` runs the paper's protocol instead: 3 cycles at the centre, one curve (with neither ``--grid`` nor
+``--position-degree``).
 ``--depth-source gt`` uses sim-digit's ground-truth max depth instead of the depth estimator (for development before
 a depth model exists; the file then records depth_source sensor.gt_max_depth).
-``--quick`` runs 0.25 mm steps on a 3 x 3 grid with position degree 2 (a smoke test: it is refused unless ``-o``
-points away from the packaged file). The plot goes to docs/force-calibration-sim.png only with the packaged output;
-with ``-o DIR/x.force.json`` it goes to DIR/x.force.png (``--plot`` to choose):
+``--quick`` runs 0.25 mm steps on a 3 x 3 grid with position degree 2 (a smoke test, with neither ``--grid`` nor
+``--position-degree``: it is refused unless ``-o`` points away from the packaged file). The plot goes to
+docs/force-calibration-sim.png only with the packaged output; with ``-o DIR/x.force.json`` it goes to
+DIR/x.force.png (``--plot`` to choose):
 
     python scripts/make_sim_force_calibration.py --quick -o /tmp/quick.force.json
 
@@ -36,6 +41,7 @@ import json
 import math
 import os
 import re
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -210,14 +216,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="a smoke test: needs -o away from the packaged file")
     ap.add_argument("--single-point", action="store_true", help="the paper's protocol: 3 cycles at the centre, "
                     "no position terms")
-    ap.add_argument("--grid", type=grid, default=(5, 5),
+    ap.add_argument("--grid", type=grid, default=None,
                     help="press points, COLUMNSxROWS (default 5x5), over +-2 mm (x) by +-4 mm (y)")
-    ap.add_argument("--position-degree", type=degree, default=4)
+    ap.add_argument("--position-degree", type=degree, default=None,
+                    help="degree of the position terms (default 4; 0: none); needs a grid of at least "
+                    "(degree + 1) x (degree + 1)")
     ap.add_argument("--depth-model", default=None, help="depth model file (default: the packaged sim-digit-qvga)")
     ap.add_argument("--check", action="store_true",
                     help="write nothing: run the calibration in a temporary folder and compare it with the -o file "
                     "(default: the packaged one); exit 0 when every number is within tolerance, 1 when not")
     args = ap.parse_args(argv)
+    press_settings(args, ap)
     check_ref: dict[str, Any] | None = None
     env = dict(os.environ)
     if args.check:
@@ -228,6 +237,7 @@ def main(argv: list[str] | None = None) -> int:
         args.output = str(Path(work.name) / "check.force.json")
         if args.plot is None:
             args.plot = str(Path(work.name) / "check.force.png")
+    check_grid(args, ap)   # after --check's comparison of the settings with the file, which says more
     if args.plot is None:
         args.plot = default_plot(args.output)
     # the calibration runs in the repository (cwd=REPO): relative paths are the caller's, made absolute here
@@ -258,9 +268,6 @@ def main(argv: list[str] | None = None) -> int:
         cmd += ["--set", f"depth.model={Path(args.depth_model).resolve()}"]
     if args.quick:
         cmd += ["--set", "routine.step=0.25mm"]
-        # degree 2: with degree 1 the fit's R^2 was 0.979 on these presses (refused below 0.99: the smoke test wrote
-        # nothing and benchmarks/force_accuracy.py --recalibrate --quick failed); degree 2 reads 0.997
-        args.grid, args.position_degree = (3, 3), 2
     if not args.single_point:
         nx, ny = args.grid
         xs = [-2.0 + 4.0 * i / (nx - 1) if nx > 1 else 0.0 for i in range(nx)]
@@ -268,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         pts = "[" + ", ".join(f"[{x:g}mm, {y:g}mm]" for y in ys for x in xs) + "]"
         cmd += ["--set", f"routine.positions={pts}", "--set", f"routine.cycles={nx * ny}",
                 "--position-degree", str(args.position_degree), "--duration", f"{120 + 40 * nx * ny}s"]
-    print("$ " + " ".join(cmd), file=sys.stderr)
+    print("$ " + shlex.join(cmd), file=sys.stderr)
     env.setdefault("OMP_NUM_THREADS", "1")  # the graph runs one frame at a time: one torch thread is fastest
     rc = subprocess.call(cmd, cwd=REPO, env=env)
     tmp.cleanup()
@@ -281,6 +288,34 @@ def main(argv: list[str] | None = None) -> int:
         return report_check(ref_path, Path(args.output))
     finally:
         work.cleanup()
+
+
+#: --grid and --position-degree without --quick, and with it (a smoke test). Quick's degree 2: with degree 1 the fit's
+#: R^2 was 0.979 on its presses (refused below 0.99: the smoke test wrote nothing and
+#: benchmarks/force_accuracy.py --recalibrate --quick failed); degree 2 reads 0.997
+DEFAULT_PRESSES = {False: ((5, 5), 4), True: ((3, 3), 2)}
+
+
+def press_settings(args: argparse.Namespace, ap: argparse.ArgumentParser) -> None:
+    """Fill in --grid and --position-degree; refused (exit 2) where --single-point or --quick would ignore them."""
+    given = [opt for opt, v in (("--grid", args.grid), ("--position-degree", args.position_degree)) if v is not None]
+    if given and args.single_point:
+        ap.error(f"--single-point presses at the centre only (3 cycles, no position terms): drop {' and '.join(given)}")
+    if given and args.quick:
+        ap.error(f"--quick sets --grid 3x3 and --position-degree 2 (a smoke test): drop {' and '.join(given)}")
+    grid_, degree_ = DEFAULT_PRESSES[bool(args.quick)]
+    args.grid = grid_ if args.grid is None else args.grid
+    args.position_degree = degree_ if args.position_degree is None else args.position_degree
+
+
+def check_grid(args: argparse.Namespace, ap: argparse.ArgumentParser) -> None:
+    """Refused (exit 2) before the press run: a grid that cannot determine position terms of the degree asked for
+    (u^a over n distinct columns is a combination of the lower powers for a >= n, likewise v^b over the rows)."""
+    (nx, ny), p = args.grid, args.position_degree
+    if not args.single_point and p and min(nx, ny) < p + 1:
+        ap.error(f"--position-degree {p} needs a grid of at least {p + 1}x{p + 1} press points, got --grid {nx}x{ny} "
+                 f"(fewer columns or rows do not determine the position terms): press at more points or lower "
+                 f"--position-degree")
 
 
 def _check_reference(args: argparse.Namespace, ap: argparse.ArgumentParser) -> dict[str, Any]:
