@@ -414,13 +414,8 @@ class CanopenGripper(FollowerBase):
                 self._send_setpoint(counts)
                 self._target = counts
 
-    def safe_state(self) -> None:
-        lock = getattr(self, "_io_lock", None)
-        if lock is None:  # never opened
-            return super().safe_state()
-        with lock:  # waits for a step's command and send in progress; none can interleave with the hold's
-            self._target = None  # always (re)send the hold set-point, whatever was sent before
-            super().safe_state()
+    def _forget_sent(self) -> None:
+        self._target = None  # always (re)send the hold set-point, whatever was sent before
 
     def _hw_close(self) -> None:
         net = getattr(self, "network", None)

@@ -592,12 +592,6 @@ class DynamixelGripper(FollowerBase):
             return self._setpoint
         return super().safe_target()
 
-    def safe_state(self) -> None:
-        lock = getattr(self, "_io_lock", None)
-        if lock is None:  # never opened
-            return super().safe_state()
-        with lock:  # waits for a transaction, or a step's goal and send, in progress: the hold goes out last
-            super().safe_state()
 
     def _hw_close(self) -> None:
         if getattr(self, "_port_open", False):

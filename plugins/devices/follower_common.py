@@ -344,9 +344,20 @@ class FollowerBase(Device):
             return p.max_opening
         return self._measured()
 
+    def _forget_sent(self) -> None:
+        """Before the safe state's hold: a driver that skips re-sending an unchanged set-point forgets what it sent,
+        so the hold always goes out (default: nothing to forget)."""
+
     def safe_state(self) -> None:
         if not getattr(self, "_ready", False):
             return
+        # under the driver's command lock (see _command_guard): a step's command and send in progress on another
+        # thread finishes first, and the hold goes out last
+        with self._command_guard():
+            self._forget_sent()
+            self._send_hold()
+
+    def _send_hold(self) -> None:
         try:
             self._safe = True
             self._hold_at = self.safe_target()

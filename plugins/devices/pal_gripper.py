@@ -619,13 +619,8 @@ class PalGripper(FollowerBase):
                 return self._setpoint
         return super().safe_target()
 
-    def safe_state(self) -> None:
-        lock = getattr(self, "_io_lock", None)
-        if lock is None:  # never opened
-            return super().safe_state()
-        with lock:  # waits for a step's command and send in progress; its hold goes out last
-            self._sent = None  # always (re)send the hold, whatever was sent before
-            super().safe_state()
+    def _forget_sent(self) -> None:
+        self._sent = None  # always (re)send the hold, whatever was sent before
 
     def status(self) -> dict[str, Any]:
         d = super().status()
