@@ -4,7 +4,6 @@ docstrings, and the example graphs' comments."""
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import os
 import pty
 import re
@@ -18,14 +17,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.test_repro_scripts import _load
+
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"{name}_packaging_review", REPO / "scripts" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture(scope="module")
