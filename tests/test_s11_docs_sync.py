@@ -432,7 +432,7 @@ def _shape(text: str):
 
 
 def test_port_tables_match_the_components_ports(registry):
-    known_units = {"", "m", "m/s", "N", "J", "m^2", "N*s/m", "rad", "s"}
+    known_units = {"", "m", "m/s", "N", "J", "m^2", "N*s/m", "N/m", "rad", "rad/s", "s", "Hz"}
     problems, checked = [], 0
     for page, header, rows, plugins in _plugin_tables("port", "dir", registry):
         for row in rows:
