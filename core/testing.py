@@ -137,7 +137,8 @@ class Harness:
       (``"1kHz"``) is taken as a graph takes it.
     - Devices: ``h.safe_state()`` calls the device's safe state, and leaving the ``with`` block calls it too (as the
       runtime does at the end of every run, and after a fault: also when the block raised) before ``deactivate()``
-      and ``close()``; ``h.safe_calls`` counts the calls made through the harness.
+      and ``close()``, which are still called when it raises (its error goes on after them, as the runtime reports
+      it and still shuts the node down); ``h.safe_calls`` counts the calls made through the harness.
     - ``h.stopped`` is the reason given to ``ctx.request_stop()`` (None if not called).
     """
 
@@ -178,10 +179,15 @@ class Harness:
         return self
 
     def __exit__(self, *exc: Any) -> None:
+        """safe_state() (a device), deactivate() and close(), as the runtime ends a run: each is called also when
+        the one before it raised (a driver whose safe state failed is still stopped and its port closed), and the
+        error goes on after close() (an error of a later call goes on instead, the earlier one as its context)."""
         try:
-            if isinstance(self.comp, Device):
-                self.safe_state()
-            self.comp.deactivate()
+            try:
+                if isinstance(self.comp, Device):
+                    self.safe_state()
+            finally:
+                self.comp.deactivate()
         finally:
             self.comp.close()
 

@@ -428,6 +428,11 @@ class DynamixelGripper(FollowerBase):
             raise HardwareError(f"max_effort {p.max_effort} N is below one Goal_Current unit of {self._where()} "
                                 f"({t.current_unit * p.newtons_per_amp:.4f} N with newtons_per_amp "
                                 f"{p.newtons_per_amp})")
+        if limit < 1:   # Goal_Current is capped by it: 0 leaves the servo no torque, the gripper could not grip
+            raise HardwareError(f"Current_Limit of {self._where()} is {limit}: Goal_Current (the grip force cap) "
+                                f"would be 0 and the gripper cannot grip at all; set Current_Limit (address "
+                                f"{t.current_limit[0]}) in the servo's EEPROM with the Dynamixel Wizard, to at least "
+                                f"{want} for max_effort {p.max_effort} N")
         self.goal_current = min(want, limit)
         if want > limit:
             self.ctx.log(f"max_effort {p.max_effort} N needs Goal_Current {want} > Current_Limit {limit}; "

@@ -206,6 +206,8 @@ class DepthPipeline:
         if mode not in ("sparse", "dense"):
             raise ValueError(f"mode must be 'auto', 'sparse' or 'dense', got {mode!r}")
         self.mode = mode
+        # the dense path's solve: torch.fft where the tensors are (a GPU), else scipy.fft (:meth:`_solve_dense`)
+        self._torch_solve = self.device.type != "cpu"
         self.change_threshold = float(model.change_threshold if change_threshold is None else change_threshold)
         self.depth_gain = float(model.depth_gain)
         self.dilate = int(dilate)
@@ -402,17 +404,21 @@ class DepthPipeline:
             self._offset = self._offsets[0].float().cpu().numpy()
             self._changed = bool(core.any())
             gx, gy = self._dense_gradients(x, d, core)
-            if self.device.type != "cpu":
-                z = poisson.integrate_torch(gx, gy)[0]
-            else:
-                z = torch.from_numpy(poisson.integrate(gx[0].numpy(), gy[0].numpy(), self.workers))
-            z = z * self.m_per_cell
+            z = self._solve_dense(gx[0], gy[0]) * self.m_per_cell
             if self.baseline == "plane":
                 z = self._baseline_torch(z[None].double(), m)[0]
             z = z * m[0]
             if self.clamp_negative:
                 z = z.clamp_min(0.0)
             return z.float().cpu().numpy(), None
+
+    def _solve_dense(self, gx: Any, gy: Any) -> Any:
+        """The dense path's whole-grid solve of one frame's slopes (gr, gc) -> depth in cells: torch.fft on the
+        tensors' device, or scipy.fft on CPU (see ``_torch_solve``). Both raise :func:`poisson.integrate`'s
+        ValueError for slopes that are not finite or a depth that overflows (the batched solve gives NaN then)."""
+        if self._torch_solve:
+            return poisson.integrate_torch_strict(gx, gy)
+        return self.torch.from_numpy(poisson.integrate(gx.numpy(), gy.numpy(), self.workers))
 
     def _sparse_depth(self, frame: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int] | None]:
         """CPU fast path: OpenCV block means and morphology (measured several times faster than the same torch ops

@@ -13,7 +13,8 @@ The unknowns are the image pixels themselves; the zero boundary lies just outsid
 see :func:`integrate_window`). The domain is padded with zeros to the next size whose FFT is fast (DST-I of length n
 is an FFT of length 2(n + 1): 240 columns would give 482 = 2 x 241, a prime); eigenvalues are cached per size.
 
-Pure functions: numpy/scipy for the CPU, and a torch version (:func:`integrate_torch`) for any torch device.
+Pure functions: numpy/scipy for the CPU, and a torch version (:func:`integrate_torch`; one frame that must be
+valid: :func:`integrate_torch_strict`) for any torch device.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 
 __all__ = [
     "divergence", "fast_size", "eigenvalues", "dst1_matrix", "MATMUL_MAX", "solve_poisson", "integrate",
-    "integrate_window", "integrate_torch", "dst1_torch",
+    "integrate_window", "integrate_torch", "integrate_torch_strict", "dst1_torch",
 ]
 
 _DEFAULT_WORKERS = 1  # small transforms: one thread is fastest (more only pays for full VGA frames)
@@ -236,10 +237,22 @@ def divergence_torch(gx: Any, gy: Any) -> Any:
     return 0.5 * ((px[..., :, 2:] - px[..., :, :-2]) + (py[..., 2:, :] - py[..., :-2, :]))
 
 
+def _check_shapes_torch(gx: Any, gy: Any) -> None:
+    """ValueError unless gx and gy have one shape (..., rows, cols) of at least 2 x 2, as :func:`integrate` refuses
+    them (torch would broadcast a (rows, 1) map, or one map against a batch, without a word)."""
+    if tuple(gx.shape) != tuple(gy.shape):
+        raise ValueError(f"gx and gy: expected gradient maps of one shape, got {tuple(gx.shape)} and "
+                         f"{tuple(gy.shape)}")
+    if gx.ndim < 2 or min(gx.shape[-2:]) < 2:
+        raise ValueError(f"gx: expected (..., rows, cols) gradient maps of at least 2 x 2, got shape "
+                         f"{tuple(gx.shape)}")
+
+
 def integrate_torch(gx: Any, gy: Any) -> Any:
     """Torch version of :func:`integrate` for (..., rows, cols) tensors on any device (batched).
 
-    Each frame (one index of the leading dimensions) is solved on its own, and where :func:`integrate` raises a
+    gx and gy of different shapes, or under 2 x 2, are refused (ValueError), as :func:`integrate` refuses them. Each
+    frame (one index of the leading dimensions) is solved on its own, and where :func:`integrate` raises a
     ValueError this gives that frame NaN everywhere: gradients that are not all finite, or so large that the depth
     overflows. The other frames of the batch are the same as without it. (Unchecked, the DST spread a bad cell over
     its frame, in part only: a single gradient of 1e38 on a 40 x 30 grid left a row of finite, meaningless depth
@@ -247,6 +260,7 @@ def integrate_torch(gx: Any, gy: Any) -> Any:
     import torch
     import torch.nn.functional as F
 
+    _check_shapes_torch(gx, gy)
     f = divergence_torch(gx, gy)
     n, m = f.shape[-2:]
     pn, pm = fast_size(n), fast_size(m)
@@ -258,3 +272,21 @@ def integrate_torch(gx: Any, gy: Any) -> Any:
     # a non-finite gradient anywhere in a frame, or an overflow in its solve, makes this sum non-finite somewhere
     ok = torch.isfinite(z + gx + gy).flatten(-2).all(dim=-1)
     return z.masked_fill(~ok[..., None, None], math.nan)
+
+
+def integrate_torch_strict(gx: Any, gy: Any) -> Any:
+    """:func:`integrate_torch` for gradients that must give a depth (one frame, or a batch that is refused as a
+    whole): where it would give NaN, the ValueError :func:`integrate` raises for the same gradients (the first bad
+    frame's; gradients that are not finite, named by row and column, or a depth that overflows). Costs one isfinite
+    reduction and a host synchronisation (reading the depth back costs that anyway); only a refused solve copies
+    the gradients to the host, to name the cause."""
+    import torch
+
+    z = integrate_torch(gx, gy)
+    if bool(torch.isfinite(z).all()):
+        return z
+    bad = (~torch.isfinite(z)).flatten(-2).any(dim=-1).nonzero()[0].tolist() if z.ndim > 2 else []
+    fx, fy = (g[tuple(bad)].detach().cpu().numpy() for g in (gx, gy))
+    _check_finite(fx, fy)
+    _finite_depth(z[tuple(bad)].detach().cpu().numpy(), fx, fy)   # finite gradients: the overflow is named
+    raise AssertionError("unreachable: _finite_depth raises for a depth that is not finite")
