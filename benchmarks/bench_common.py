@@ -12,6 +12,7 @@ import math
 import os
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -169,3 +170,50 @@ def warn_if_no_sched_fifo(priority: int) -> str | None:
               f"scheduling and say so (sched_fifo_applied: false); grant CAP_SYS_NICE or an rtprio limit",
               file=sys.stderr)
     return why
+
+
+#: rounds of a side-by-side timing (:func:`interleaved`)
+ROUNDS = 10
+
+
+def interleaved_clocks(cases: dict[str, Callable[[int], Any]], cycles: int | dict[str, int],
+                       rounds: int = ROUNDS) -> dict[str, dict[str, float]]:
+    """Each of ``cases`` (name -> ``run(n)``, which does the next n cycles) timed side by side, so that a change of
+    load on the shared machine hits them alike: ``rounds`` rounds, each running every case for its share of
+    ``cycles`` (one count for all, or name -> count), the order reversed every other round. Per case: wall and CPU
+    (this process) seconds per cycle, and the cycles run."""
+    names = list(cases)
+    counts = cycles if isinstance(cycles, dict) else dict.fromkeys(names, cycles)
+    per = {name: max(1, counts[name] // rounds) for name in names}
+    wall = dict.fromkeys(names, 0.0)
+    cpu = dict.fromkeys(names, 0.0)
+    for r in range(rounds):
+        for name in names if r % 2 == 0 else names[::-1]:
+            t0, c0 = time.perf_counter(), time.process_time()
+            cases[name](per[name])
+            wall[name] += time.perf_counter() - t0
+            cpu[name] += time.process_time() - c0
+    return {name: {"wall_s": wall[name] / (per[name] * rounds), "cpu_s": cpu[name] / (per[name] * rounds),
+                   "cycles": per[name] * rounds} for name in names}
+
+
+def interleaved(cases: dict[str, Callable[[int], Any]], cycles: int | dict[str, int],
+                rounds: int = ROUNDS) -> dict[str, float]:
+    """Wall seconds per cycle of each of ``cases``, timed side by side (:func:`interleaved_clocks`)."""
+    return {name: v["wall_s"] for name, v in interleaved_clocks(cases, cycles, rounds).items()}
+
+
+def alternating(names: list[str], rounds: int) -> list[str]:
+    """The order in which ``rounds`` rounds of ``names`` run side by side: each round runs every name once, the
+    order reversed every other round (A B, B A, ...)."""
+    return [name for r in range(rounds) for name in (names if r % 2 == 0 else names[::-1])]
+
+
+def missing_data(name: str, base: Path | None = None) -> str | None:
+    """Why ``base``/``name`` cannot be read as a data folder (None if it can): the message of :func:`data_folder`,
+    for a benchmark that refuses a bad ``--data`` as a usage error."""
+    folder = (DATA if base is None else Path(base)) / name
+    if folder.is_dir():
+        return None
+    return (f"{folder}: no such folder: the real DIGIT images are expected in ../shared/data next to the checkout "
+            f"(set TELETOUCH_SHARED_DATA to their folder)")

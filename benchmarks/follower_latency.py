@@ -22,6 +22,12 @@ process id as the tests choose theirs, so that two runs at once do not see each 
 
 Without ROS 2 (the optional extra teletouch[ros2]) the PAL case is skipped, with the reason under its key.
 
+The Dynamixel (both baud rates) and CANopen round trips run side by side: the three drivers open at once, ``rounds``
+rounds of a tenth of the round trips each, the order reversed every other round, so that a change of load on the
+shared machine hits them alike; their update rates follow one after the other. PAL's run on their own, after: its
+emulator publishes /joint_states at 1 kHz from another process and its driver spins an executor thread, a load that
+would weigh on the others' round trips if it ran beside them (its ratio is from a block of its own: context).
+
 Prints one JSON object as its last line. Absolute times depend on the machine (a shared 2-core box here); compare the
 ratios between transports measured in the same run.
 """
@@ -55,7 +61,7 @@ from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
 
 from teletouch.component import Context, Inputs, Sample, _Slot  # noqa: E402
 from teletouch.plugins.ros_names import MAX_DOMAIN_ID, domain_id  # noqa: E402
-from bench_common import emit, number  # noqa: E402
+from bench_common import ROUNDS, alternating, emit, number  # noqa: E402
 
 
 class PalProcess:
@@ -143,31 +149,78 @@ def update_rate(comp, slot, inputs, seconds, yield_s=20e-6):
             "step_ms_p50": percentile(durations, 0.5) * 1e3, "step_ms_p99": percentile(durations, 0.99) * 1e3}
 
 
-def bench(name, cls, params, n, seconds, setup=None, round_trip=True):
-    emu = setup() if setup else None
-    comp, slot, inputs = make(cls, params(emu) if callable(params) else params)
-    try:
-        comp.configure()
-        comp.activate()
-        rts, failures = round_trips(comp, n) if round_trip else ([], 0)
-        res = {"round_trip_ms_p50": percentile(rts, 0.5) * 1e3 if rts else None,
-               "round_trip_ms_p90": percentile(rts, 0.9) * 1e3 if rts else None,
-               "round_trip_ms_max": max(rts) * 1e3 if rts else None,
-               "round_trip_mean_ms": statistics.fmean(rts) * 1e3 if rts else None,
-               "round_trips": len(rts), "round_trip_timeouts": failures}
-        res.update(update_rate(comp, slot, inputs, seconds, 20e-6 if round_trip else 0.0))
-    finally:
+class Case:
+    """One driver configured and active against its emulator (started by ``setup``), until :meth:`close`."""
+
+    def __init__(self, name, cls, params, setup=None):
+        self.name = name
+        self.emu = setup() if setup else None
+        self.comp, self.slot, self.inputs = make(cls, params(self.emu) if callable(params) else params)
         try:
-            comp.safe_state()
-            comp.deactivate()
+            self.comp.configure()
+            self.comp.activate()
+        except BaseException:
+            self.close()
+            raise
+        self.rts: list[float] = []
+        self.failures = 0
+
+    def round_trips(self, n):
+        """``n`` more round trips (:func:`round_trips`), kept."""
+        rts, failures = round_trips(self.comp, n)
+        self.rts += rts
+        self.failures += failures
+
+    def close(self):
+        try:
+            self.comp.safe_state()
+            self.comp.deactivate()
         finally:
-            comp.close()
-            if emu is not None:
-                emu.stop()
+            self.comp.close()
+            if self.emu is not None:
+                self.emu.stop()
+
+
+def measure(case, n, seconds, round_trip=True, rounds_done=False):
+    """Round trips (unless ``rounds_done``: taken already, side by side) then the update rate of ``case``."""
+    if round_trip and not rounds_done:
+        case.round_trips(n)
+    rts, failures = case.rts, case.failures
+    res = {"round_trip_ms_p50": percentile(rts, 0.5) * 1e3 if rts else None,
+           "round_trip_ms_p90": percentile(rts, 0.9) * 1e3 if rts else None,
+           "round_trip_ms_max": max(rts) * 1e3 if rts else None,
+           "round_trip_mean_ms": statistics.fmean(rts) * 1e3 if rts else None,
+           "round_trips": len(rts), "round_trip_timeouts": failures}
+    res.update(update_rate(case.comp, case.slot, case.inputs, seconds, 20e-6 if round_trip else 0.0))
     rt = "n/a" if not rts else f"p50 {res['round_trip_ms_p50']:.3f} ms, p90 {res['round_trip_ms_p90']:.3f} ms"
-    print(f"{name:>22}: round trip {rt}; update {res['update_rate_hz']:.0f} Hz "
+    print(f"{case.name:>22}: round trip {rt}; update {res['update_rate_hz']:.0f} Hz "
           f"(fresh state {res['fresh_state_hz']:.0f} Hz), {failures} timeouts", file=sys.stderr)
     return res
+
+
+def bench(name, cls, params, n, seconds, setup=None, round_trip=True):
+    case = Case(name, cls, params, setup)
+    try:
+        return measure(case, n, seconds, round_trip)
+    finally:
+        case.close()
+
+
+def side_by_side(specs, n, seconds, rounds=ROUNDS):
+    """:func:`bench` of each of ``specs`` (key -> (name, cls, params, setup)), their round trips side by side: all
+    open at once, ``rounds`` rounds of ``n // rounds`` round trips each, the order reversed every other round, so
+    that a change of load on the shared machine hits them alike; then each one's update rate in turn."""
+    cases = {}
+    try:
+        for key, (name, cls, params, setup) in specs.items():
+            cases[key] = Case(name, cls, params, setup)
+        per = max(1, n // rounds)
+        for key in alternating(list(cases), rounds):
+            cases[key].round_trips(per)
+        return {key: dict(measure(c, n, seconds, rounds_done=True), rounds=rounds) for key, c in cases.items()}
+    finally:
+        for c in cases.values():
+            c.close()
 
 
 def ros2_missing() -> str | None:
@@ -217,15 +270,16 @@ def main(argv=None) -> int:
     # in-process model: no transport, so no round trip; its step rate is the reference for the drivers' overhead
     results["sim-gripper"] = bench("sim-gripper", SimGripper, dict(fast, object_width=None, bandwidth=1e6),
                                    n, seconds, round_trip=False)
-    for baud in (57600, 1000000):
-        results[f"dynamixel-{baud}"] = bench(
-            f"dynamixel @ {baud}", DynamixelGripper,
-            lambda emu, baud=baud: dict(fast, port=emu.port, baudrate=baud),
-            n, seconds, setup=lambda: DynamixelEmulator(15, position=1024, speed=1e9).start())
+    # the transports whose emulators idle between commands: their round trips side by side, in alternating rounds
     ch = f"bench-{uuid.uuid4().hex[:8]}"
-    results["canopen-virtual"] = bench(
-        "canopen (virtual CAN)", CanopenGripper, dict(fast, interface="virtual", channel=ch, node_id=4),
-        n, seconds, setup=lambda: Cia402Drive(4, ch, position=0).start())
+    specs = {f"dynamixel-{baud}": (f"dynamixel @ {baud}", DynamixelGripper,
+                                   lambda emu, baud=baud: dict(fast, port=emu.port, baudrate=baud),
+                                   lambda: DynamixelEmulator(15, position=1024, speed=1e9).start())
+             for baud in (57600, 1000000)}
+    specs["canopen-virtual"] = ("canopen (virtual CAN)", CanopenGripper,
+                                dict(fast, interface="virtual", channel=ch, node_id=4),
+                                lambda: Cia402Drive(4, ch, position=0).start())
+    results.update(side_by_side(specs, n, seconds))
     missing = ros2_missing()
     if missing:   # the other transports are measured all the same; the JSON says why this one was not
         print(f"{'pal (ROS 2 loopback)':>22}: skipped: {missing}", file=sys.stderr)
@@ -243,6 +297,8 @@ def main(argv=None) -> int:
            "ros_domain_from": source, "round_trips_per_driver": n,
            "rate_seconds": seconds, "results": results,
            "round_trip_p50_ratio_to_dynamixel_1mbaud": ratios,
+           # the Dynamixel and CANopen round trips alternate in rounds; PAL's run on their own (see the docstring)
+           "rounds": {"interleaved": list(specs), "rounds": ROUNDS, "alone": ["sim-gripper", "pal-ros2-loopback"]},
            "note": "emulators on this machine; absolute ms are context, compare ratios"}
     emit(out)
     return 0

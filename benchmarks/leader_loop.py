@@ -20,10 +20,11 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from bench_common import emit, nonnegative_int, positive_float, rate_list, sched_fifo_refused, warn_if_no_sched_fifo
+from bench_common import (
+    ROUNDS, emit, interleaved, nonnegative_int, positive_float, rate_list, sched_fifo_refused, warn_if_no_sched_fifo,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 SRC = REPO / "tests" / "fakes" / "dhd_standin.c"
@@ -75,24 +76,6 @@ def run_graph(plugin: str, params: str, rate: float, duration: float, prio: int 
         st = rt.component("leader").status() if hasattr(rt.component("leader"), "guard") else {}
         out["timeguards"] = st.get("timeguards")
     return out
-
-
-#: rounds of the side-by-side timings: the two alternate (A B, then B A) so that load on the shared machine hits both
-ROUNDS = 10
-
-
-def interleaved(cases: dict, cycles: int, rounds: int = ROUNDS) -> dict:
-    """Seconds per cycle of each of ``cases`` (name -> ``run(n)``, which does n cycles), timed side by side: ``rounds``
-    rounds of ``cycles // rounds`` cycles each, the order reversed every other round."""
-    per = max(1, cycles // rounds)
-    spent = dict.fromkeys(cases, 0.0)
-    names = list(cases)
-    for r in range(rounds):
-        for name in names if r % 2 == 0 else names[::-1]:
-            t0 = time.perf_counter()
-            cases[name](per)
-            spent[name] += time.perf_counter() - t0
-    return {name: v / (per * rounds) for name, v in spent.items()}
 
 
 def raw_calls(lib_path: Path, cycles: int) -> dict:

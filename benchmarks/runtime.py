@@ -5,7 +5,11 @@
 Prints one JSON object as its last line. Targets (issue 2): <= 5 us scheduler overhead per node step; >= 50x real
 time for a 6-node graph on the simulated clock; p99 |period error| <= 0.25 ms for a 1 kHz node while a 60 Hz node
 burns 8 ms of CPU per step in numpy; the same under SCHED_FIFO 50 for the 1 kHz thread (``sched_fifo_applied``
-says whether the process was allowed it), and with a pure-Python burn inline and in an isolated process.
+says whether the process was allowed it), and with a pure-Python burn inline and in an isolated process. The last two
+run side by side for ``isolation_p99_ratio_inline_over_isolated``: ``isolation_rounds`` runs of each, a quarter of the
+duration each, alternating (inline, isolated, isolated, inline, ...), their period errors pooled per case (each run's
+figures under ``runs``), so that a change of load on the shared machine hits both alike. A run that ends in a fault
+(or is stopped) is named on stderr and in ``faulted_runs``, and the exit status is 1.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from teletouch import Component, Kind, Port, hookimpl
 from teletouch.testing import load_text, make_registry
 from teletouch.runtime import Runtime
 from machine import cpu_times, machine_noise
-from bench_common import emit, sched_fifo_refused, warn_if_no_sched_fifo
+from bench_common import alternating, emit, sched_fifo_refused, warn_if_no_sched_fifo
 
 
 class Trivial(Component):
@@ -95,7 +99,8 @@ def overhead(steps_target: int) -> dict:
             f(t, inp)
     bare = time.perf_counter() - t0
     per = res.wall_time / steps
-    return {"steps": steps, "per_step_us": per * 1e6, "bare_call_us": bare / steps * 1e6,
+    return {"status": res.status, "message": res.message,
+            "steps": steps, "per_step_us": per * 1e6, "bare_call_us": bare / steps * 1e6,
             "overhead_vs_bare_call_us": (res.wall_time - bare) / steps * 1e6, "target_us": 5.0,
             "pass": per * 1e6 <= 5.0}
 
@@ -115,12 +120,15 @@ nodes:
 def sim_speed(duration: float) -> dict:
     rt = Runtime(load_text(SIX, REG), log=lambda m: None)
     res = rt.run(duration)
-    return {"sim_seconds": duration, "wall_seconds": res.wall_time, "realtime_factor": res.realtime_factor,
+    return {"status": res.status, "message": res.message,
+            "sim_seconds": duration, "wall_seconds": res.wall_time, "realtime_factor": res.realtime_factor,
             "steps": sum(n.steps for n in res.nodes), "target_factor": 50.0, "pass": res.realtime_factor >= 50.0}
 
 
-def jitter(duration: float, burn_ms: float, priority: int = 0, python_burn: bool = False,
-           isolate: bool = False) -> dict:
+def _jitter_run(duration: float, burn_ms: float, priority: int = 0, python_burn: bool = False,
+                isolate: bool = False) -> tuple[dict, np.ndarray]:
+    """One wall-clock run of the 1 kHz node beside the burn: its figures, and the |period error| (ms) of each of its
+    periods after the warm-up."""
     burn = (f"{{id: burn, plugin: mock-burn, rate: 60, params: {{burn: {burn_ms}ms}}"
             + (", isolate: process}" if isolate else "}")) if python_burn else \
         f"{{id: burn, plugin: bench-burn, rate: 60, params: {{ms: {burn_ms}}}}}"
@@ -143,19 +151,76 @@ nodes:
     # the burn node's step times as the runtime measured them (the same for the numpy and the Python burn)
     burn_node = next(n for n in res.nodes if n.id == "burn")
     return {"burn": ("python (holds the GIL)" if python_burn else "numpy") + (", isolated process" if isolate else ""),
-            "duration_s": duration, "steps": int(len(starts)), "period_error_ms": {
-        "p50": float(np.percentile(err, 50)), "p99": float(np.percentile(err, 99)), "max": float(err.max())},
-        "mean_period_ms": float(periods.mean() * 1e3), "burn_ms_mean": burn_node.mean_step_s * 1e3,
-        "burn_steps": burn_node.steps, "overruns": {n.id: n.overruns for n in res.nodes},
-        "realtime_priority": priority, "sched_fifo_applied": priority > 0 and refused is None,
-        "sched_fifo_refused": refused, "machine_noise": noise, "target_p99_ms": 0.25,
-        "pass": float(np.percentile(err, 99)) <= 0.25}
+            "status": res.status, "message": res.message,
+            "duration_s": duration, "steps": int(len(starts)),
+            "mean_period_ms": float(periods.mean() * 1e3) if len(periods) else float("nan"),
+            "burn_ms_mean": burn_node.mean_step_s * 1e3,
+            "burn_steps": burn_node.steps, "overruns": {n.id: n.overruns for n in res.nodes},
+            "realtime_priority": priority, "sched_fifo_applied": priority > 0 and refused is None,
+            "sched_fifo_refused": refused, "machine_noise": noise}, err
 
 
-def main() -> None:
+def _period_error(err: np.ndarray) -> dict:
+    """p50, p99 and max of the |period errors| ``err`` (ms); NaN (null in the JSON) without any."""
+    if not len(err):
+        return dict.fromkeys(("p50", "p99", "max"), float("nan"))
+    return {"p50": float(np.percentile(err, 50)), "p99": float(np.percentile(err, 99)), "max": float(err.max())}
+
+
+def jitter(duration: float, burn_ms: float, priority: int = 0, python_burn: bool = False,
+           isolate: bool = False) -> dict:
+    """The 1 kHz node's |period error| over one wall-clock run beside the burn (:func:`_jitter_run`)."""
+    run, err = _jitter_run(duration, burn_ms, priority, python_burn, isolate)
+    p = _period_error(err)
+    return dict(run, period_error_ms=p, target_p99_ms=0.25, **{"pass": bool(p["p99"] <= 0.25)})
+
+
+def jitter_side_by_side(cases: dict[str, dict], duration: float, rounds: int, burn_ms: float = 8.0) -> dict:
+    """:func:`jitter` of each of ``cases`` (name -> its keyword arguments), side by side: ``rounds`` runs of each,
+    of ``duration / rounds`` seconds, alternating (A B, B A, ...), so that a change of load on the shared machine
+    hits them alike; the period errors of a case's runs are pooled. Per case: the pooled figures, and each run's
+    figures under ``runs``."""
+    runs: dict[str, list[dict]] = {name: [] for name in cases}
+    errs: dict[str, list[np.ndarray]] = {name: [] for name in cases}
+    for name in alternating(list(cases), rounds):
+        run, err = _jitter_run(duration / rounds, burn_ms, **cases[name])
+        runs[name].append(dict(run, period_error_ms=_period_error(err)))
+        errs[name].append(err)
+    out = {}
+    for name, rs in runs.items():
+        pooled = np.concatenate(errs[name]) if errs[name] else np.zeros(0)
+        p = _period_error(pooled)
+        first = rs[0]
+        out[name] = {"burn": first["burn"], "duration_s": duration, "rounds": rounds,
+                     "status": "ok" if all(r["status"] == "ok" for r in rs) else
+                     next(r["status"] for r in rs if r["status"] != "ok"),
+                     "steps": sum(r["steps"] for r in rs), "period_error_ms": p,
+                     "realtime_priority": first["realtime_priority"], "sched_fifo_applied": first["sched_fifo_applied"],
+                     "sched_fifo_refused": first["sched_fifo_refused"], "target_p99_ms": 0.25,
+                     "pass": bool(p["p99"] <= 0.25), "runs": rs}
+    return out
+
+
+def faulted_runs(out: dict) -> list[dict]:
+    """The runs of ``out`` (the benchmark's sections) that did not end ``ok``: section, run, status and message."""
+    bad = []
+    for key, sec in out.items():
+        if not isinstance(sec, dict) or "status" not in sec:
+            continue
+        for i, r in enumerate(sec.get("runs", [sec])):
+            if r["status"] != "ok":
+                bad.append({"section": key, "run": i, "status": r["status"], "message": r["message"]})
+    return bad
+
+
+#: runs of each of the two Python-burn cases (inline, isolated), alternating: their p99 ratio compares like with like
+ISOLATION_ROUNDS = 4
+
+
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="shorter runs (CI smoke)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     out = {"benchmark": "runtime", "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}}
     out["sched_fifo_refused"] = warn_if_no_sched_fifo(50)
     out["scheduler_overhead"] = overhead(50_000 if args.quick else 300_000)
@@ -169,16 +234,26 @@ def main() -> None:
     out["wall_clock_jitter_sched_fifo"] = jitter(dur, 8.0, priority=50)
     print(f"jitter p99 (SCHED_FIFO): {out['wall_clock_jitter_sched_fifo']['period_error_ms']['p99']:.3f} ms",
           file=sys.stderr)
-    # an estimator that holds the GIL (pure Python) in the same process, and the same isolated in a process
-    for key, iso in (("python_burn_inline", False), ("python_burn_isolated", True)):
-        out[f"wall_clock_jitter_{key}"] = jitter(dur, 8.0, priority=50, python_burn=True, isolate=iso)
-        print(f"jitter p99 ({key}, SCHED_FIFO): "
-              f"{out[f'wall_clock_jitter_{key}']['period_error_ms']['p99']:.3f} ms", file=sys.stderr)
+    # an estimator that holds the GIL (pure Python) in the same process, and the same isolated in a process: side
+    # by side, in alternating runs
+    pair = jitter_side_by_side({"python_burn_inline": {"priority": 50, "python_burn": True, "isolate": False},
+                                "python_burn_isolated": {"priority": 50, "python_burn": True, "isolate": True}},
+                               dur, ISOLATION_ROUNDS)
+    for key, r in pair.items():
+        out[f"wall_clock_jitter_{key}"] = r
+        print(f"jitter p99 ({key}, SCHED_FIFO, {r['rounds']} alternating runs): "
+              f"{r['period_error_ms']['p99']:.3f} ms", file=sys.stderr)
     a = out["wall_clock_jitter_python_burn_inline"]["period_error_ms"]["p99"]
     b = out["wall_clock_jitter_python_burn_isolated"]["period_error_ms"]["p99"]
     out["isolation_p99_ratio_inline_over_isolated"] = a / b if b > 0 else None
+    out["isolation_rounds"] = ISOLATION_ROUNDS
+    # a run that ended in a fault (or was stopped) has no figures: named here, and the benchmark fails
+    out["faulted_runs"] = faulted = faulted_runs(out)
+    for f in faulted:
+        print(f"{f['section']} run {f['run']}: ended {f['status']}: {f['message']}", file=sys.stderr)
     emit(out)
+    return 1 if faulted else 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

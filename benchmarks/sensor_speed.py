@@ -3,9 +3,12 @@
 1. sim-digit: simulated frames per second of CPU time (target >= 300 QVGA frames/s on one core, so a simulated DIGIT at
    60 Hz costs < 20 % of a core). Each frame has a new pose (indentation ramp and a moving centre, the worst case:
    nothing cached); also a resting indenter (cached render + noise), the generic 2-D renderer, full-resolution shading
-   (stride 1) and VGA, side by side in one run. The component's step() is timed, ground truth included.
+   (stride 1) and VGA, side by side in one run: every case is stepped in ``sim_rounds`` rounds of its share of the
+   frames, the order of the cases reversed every other round, so that load on the shared machine hits them alike and
+   the ``speedup_*`` ratios compare like with like. The component's step() is timed, ground truth included.
 2. digit driver: capture overhead per frame against a video source: the driver's capture thread (read + rotation
-   to portrait + newest-frame hand-over) and step() against a bare cv2.VideoCapture.read() loop on the same file.
+   to portrait + newest-frame hand-over) and step() against a bare cv2.VideoCapture.read() loop on the same file,
+   in alternating rounds (``reps``: one whole pass over the file each; the order reversed every other round).
 
     python benchmarks/sensor_speed.py [--quick]
 
@@ -22,30 +25,59 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_common import emit
+from bench_common import ROUNDS, alternating, emit, interleaved_clocks
 
 
-def _sim_fps(params: dict, n: int, moving: bool = True, fast: bool = True, stride: int | None = None
-             ) -> tuple[float, float]:
-    """(frames per CPU second of this process, frames per wall second). The machine is shared, so CPU time is the
-    measure of cost; wall time is given as context."""
-    from teletouch.plugins.sensors.sim_digit import SimDigit
-    from teletouch.testing import Harness
+class _SimCase:
+    """One sim-digit configuration, stepped ``n`` frames at a time over its own sequence of poses (the same in every
+    run): the cases are timed side by side in rounds (:func:`bench_common.interleaved_clocks`)."""
 
-    with Harness(SimDigit, params) as h:
-        h.comp.sim.fast = fast
-        if stride is not None:
-            h.comp.sim.stride = stride
-        poses = [(0.0003 + 0.0012 * (k % 97) / 97, np.array([0.002 * np.sin(k / 13), 0.003 * np.cos(k / 17)]))
-                 for k in range(n)]
-        h.step(0.0, indentation=0.001, position=poses[0][1])  # warm-up
-        t0, c0 = time.perf_counter(), time.process_time()
-        for k in range(n):
-            d, pos = poses[k] if moving else (0.001, poses[0][1])
-            out = h.step(k / 60.0, indentation=d, position=pos)
-        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+    def __init__(self, params: dict, moving: bool = True, fast: bool = True, stride: int | None = None):
+        from teletouch.plugins.sensors.sim_digit import SimDigit
+        from teletouch.testing import Harness
+
+        self.h = Harness(SimDigit, params)
+        self.h.__enter__()
+        self.moving = moving
+        self.k = 0
+        try:
+            self.h.comp.sim.fast = fast
+            if stride is not None:
+                self.h.comp.sim.stride = stride
+            self.h.step(0.0, indentation=0.001, position=self._pose(0)[1])  # warm-up
+        except BaseException:
+            self.close()
+            raise
+
+    @staticmethod
+    def _pose(k: int) -> tuple[float, np.ndarray]:
+        """Each frame a new pose (indentation ramp and a moving centre: nothing cached)."""
+        return 0.0003 + 0.0012 * (k % 97) / 97, np.array([0.002 * np.sin(k / 13), 0.003 * np.cos(k / 17)])
+
+    def __call__(self, n: int) -> None:
+        for _ in range(n):
+            d, pos = self._pose(self.k) if self.moving else (0.001, self._pose(0)[1])
+            out = self.h.step(self.k / 60.0, indentation=d, position=pos)
+            self.k += 1
         assert out["image"].dtype == np.uint8
-    return n / max(dc, 1e-9), n / dt
+
+    def close(self) -> None:
+        self.h.__exit__(None, None, None)
+
+
+def _sim_fps(cases: dict[str, tuple[dict, int, dict]], rounds: int = ROUNDS) -> dict[str, tuple[float, float]]:
+    """name -> (frames per CPU second of this process, frames per wall second) of each case (params, frames,
+    options), all timed side by side in ``rounds`` rounds on the same poses. The machine is shared, so CPU time is
+    the measure of cost; wall time is given as context."""
+    sims: dict[str, _SimCase] = {}
+    try:
+        for name, (params, _, kw) in cases.items():
+            sims[name] = _SimCase(params, **kw)
+        t = interleaved_clocks(sims, {name: count for name, (_, count, _) in cases.items()}, rounds)
+    finally:
+        for sim in sims.values():
+            sim.close()
+    return {name: (1.0 / max(v["cpu_s"], 1e-12), 1.0 / max(v["wall_s"], 1e-12)) for name, v in t.items()}
 
 
 def _raw_read(path: Path) -> float:
@@ -90,11 +122,14 @@ def _driver_read(path: Path) -> tuple[float, float, dict]:
 
 
 def _capture(path: Path, reps: int = 3) -> dict:
-    """Bare cv2 reads and the driver on the same file, interleaved ``reps`` times; medians."""
+    """Bare cv2 reads and the driver on the same file, side by side in ``reps`` rounds (the order reversed every
+    other round); medians."""
     raw, drv, step = [], [], []
     info: dict = {}
-    for _ in range(reps):
-        raw.append(_raw_read(path))
+    for which in alternating(["raw", "driver"], reps):
+        if which == "raw":
+            raw.append(_raw_read(path))
+            continue
         d, s, info = _driver_read(path)
         drv.append(d)
         step.append(s)
@@ -122,8 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         "qvga_probe": (dict(q, indenter="probe"), n // 2, {}),
         "vga_moving": ({"resolution": "vga"}, n // 3, {}),
     }
-    for name, (params, count, kw) in cases.items():
-        cpu, wall = _sim_fps(params, count, **kw)
+    res["sim_rounds"] = ROUNDS
+    for name, (cpu, wall) in _sim_fps(cases).items():
         res[f"sim_{name}_fps"] = round(cpu, 1)
         res[f"sim_{name}_fps_wall"] = round(wall, 1)
     res["sim_qvga_core_fraction_at_60hz"] = round(60.0 / res["sim_qvga_moving_fps"], 3)

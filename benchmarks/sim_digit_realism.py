@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench_common import DATA, data_folder, emit, quantity
+from bench_common import DATA, emit, missing_data, quantity
 
 
 
@@ -41,7 +41,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="ball radius in m or with a unit (6 mm ball: 0.003 or 3mm)")
     args = ap.parse_args(argv)
     for ds in ("digit-presses-vga", "digit-presses-qvga"):
-        if not (data_folder(ds, Path(args.data)) / "labels.csv").is_file():
+        missing = missing_data(ds, Path(args.data))
+        if missing:   # a usage error (exit status 2), as a missing labels.csv is
+            ap.error(f"--data {args.data}: {missing}")
+        if not (Path(args.data) / ds / "labels.csv").is_file():
             ap.error(f"--data {args.data}: {ds}/labels.csv is missing")
 
     from teletouch.plugins.sensors import gel

@@ -15,7 +15,8 @@ the sweep runs in seconds; ``--sensor image`` uses the real estimators instead.
 
     python benchmarks/stability_sweep.py [--quick] [--sensor ideal|image]
 
-Prints one JSON object as its last line.
+Prints one JSON object as its last line. A run that ends in a fault (or is stopped) is named on stderr and in
+``faulted_runs``, counts neither as oscillating nor as not (``oscillates``: null) and makes the exit status 1.
 """
 
 from __future__ import annotations
@@ -78,8 +79,9 @@ def run_one(force_scale: float, modulus: float, mode: str, sensor: str, duration
             "mean_leader_force_n": float(np.mean(f[win])) if win.any() else float("nan"),
             "mean_contact_force_n": float(np.mean(fg[tg >= w0])) if (tg >= w0).any() else float("nan"),
             "force_scale_gain_final": float(rt.component("controller").gain),
-            "oscillates": bool(p2p_gt > THRESHOLD_N), "max_damping_used": float(np.max(d)) if len(d) else 0.0,
-            "status": res.status}
+            # a run that did not end ok (a fault, a stop) has no steady contact to judge: neither oscillating nor not
+            "oscillates": bool(p2p_gt > THRESHOLD_N) if res.status == "ok" else None,
+            "max_damping_used": float(np.max(d)) if len(d) else 0.0, "status": res.status, "message": res.message}
 
 
 def out_problem(path: Path) -> str | None:
@@ -95,12 +97,12 @@ def out_problem(path: Path) -> str | None:
     return None
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a 2 x 2 grid (k_f 1, 4; E 0.41, 1 MPa)")
     ap.add_argument("--out", default=None, help="also write the JSON to this file")
     ap.add_argument("--sensor", choices=("ideal", "image"), default="ideal")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.out:   # refused now, not after the sweep
         problem = out_problem(Path(args.out))
         if problem:
@@ -118,7 +120,14 @@ def main() -> int:
                 rows.append(r)
                 print(f"k_f={k:4.1f} E={e / 1e6:4.2f} MPa {mode:<21}: p2p leader "
                       f"{r['p2p_leader_force_n']:.3f} N, contact {r['p2p_contact_force_n']:.3f} N"
-                      + ("  OSCILLATES" if r["oscillates"] else ""), file=sys.stderr)
+                      + ("  OSCILLATES" if r["oscillates"] else "")
+                      + (f"  ended {r['status']}: {r['message']}" if r["status"] != "ok" else ""), file=sys.stderr)
+    # a run that ended in a fault (or was stopped) has no figures: named here, and the benchmark fails
+    faulted = [{"force_scale": r["force_scale"], "gel_modulus_pa": r["gel_modulus_pa"], "mode": r["mode"],
+                "status": r["status"], "message": r["message"]} for r in rows if r["status"] != "ok"]
+    for f in faulted:
+        print(f"k_f={f['force_scale']:g} E={f['gel_modulus_pa'] / 1e6:g} MPa {f['mode']}: ended {f['status']}: "
+              f"{f['message']}", file=sys.stderr)
     by = {m: {(r["force_scale"], r["gel_modulus_pa"]): r for r in rows if r["mode"] == m} for m in MODES}
     osc = {m: [list(key) for key, r in by[m].items() if r["oscillates"]] for m in MODES}
     n_off = len(osc["off"])
@@ -129,12 +138,13 @@ def main() -> int:
         "grid": {"force_scale": scales, "gel_modulus_pa": moduli},
         "oscillating": osc,
         "oscillating_cases": {m: len(v) for m, v in osc.items()},
-        "removed_by": {m: sum(1 for key in osc["off"] if not by[m][tuple(key)]["oscillates"])
+        "removed_by": {m: sum(1 for key in osc["off"] if by[m][tuple(key)]["oscillates"] is False)
                        for m in MODES if m != "off"},
-        "fraction_removed": {m: (sum(1 for key in osc["off"] if not by[m][tuple(key)]["oscillates"]) / n_off
+        "fraction_removed": {m: (sum(1 for key in osc["off"] if by[m][tuple(key)]["oscillates"] is False) / n_off
                                  if n_off else None) for m in MODES if m != "off"},
         "median_p2p_contact_n": {m: float(np.median([r["p2p_contact_force_n"] for r in by[m].values()]))
                                  for m in MODES},
+        "faulted_runs": faulted,
         "rows": rows,
         "wall_time_s": time.perf_counter() - w0,
     }
@@ -142,7 +152,7 @@ def main() -> int:
         with open(args.out, "w", encoding="utf-8") as fh:
             json.dump(strict(summary), fh, indent=2, allow_nan=False)
     emit(summary)
-    return 0
+    return 1 if faulted else 0
 
 
 if __name__ == "__main__":

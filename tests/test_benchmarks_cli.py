@@ -321,3 +321,146 @@ def test_leader_loop_step_ratio_interleaves_the_two_drivers(monkeypatch, tmp_pat
     switches = sum(a != b for a, b in zip(order, order[1:]))
     assert order.count("omega7") == order.count("sim-omega7") >= 400 and switches >= 9, switches
     assert out["omega7_step_us"] > 0 and out["omega7_vs_sim_step_ratio"] > 0
+
+
+def test_a_missing_data_folder_is_a_usage_error(tmp_path):
+    """--data naming no folder exited 1 (bench_common.data_folder's sys.exit), not 2 as other bad arguments do."""
+    r = _run([str(BENCH / "sim_digit_realism.py"), "--data", str(tmp_path / "nowhere")])
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert r.stdout == "" and "--data" in r.stderr and "TELETOUCH_SHARED_DATA" in r.stderr
+    assert str(tmp_path / "nowhere" / "digit-presses-vga") in r.stderr
+
+
+def test_sensor_speed_ratios_interleave_the_sim_digit_cases(monkeypatch, capsys):
+    """speedup_radial_vs_generic and speedup_stride2_vs_stride1 divided the frame rates of cases run one after the
+    other: load on the shared machine during either block moved the ratio. The cases now alternate in rounds."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    mod = _load(BENCH / "sensor_speed.py", "sensor_speed_under_test")
+    from teletouch.plugins.sensors.sim_digit import SimDigit
+
+    order: list[int] = []
+
+    def spy(self, t, inputs, _step=SimDigit.step):
+        order.append(id(self))
+        return _step(self, t, inputs)
+    monkeypatch.setattr(SimDigit, "step", spy)
+    assert mod.main(["--quick"]) == 0
+    got = _strict_last_line(capsys.readouterr().out)
+    switches = sum(a != b for a, b in zip(order, order[1:]))
+    assert len(set(order)) == 7 and switches >= 9 * 7, switches
+    assert got["sim_rounds"] == 10 and got["speedup_radial_vs_generic"] > 0 and got["speedup_stride2_vs_stride1"] > 0
+
+
+@pytest.fixture()
+def runtime_bench(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    return _load(BENCH / "runtime.py", "runtime_bench_under_test")
+
+
+def test_runtime_jitter_says_when_its_run_faulted(runtime_bench, monkeypatch):
+    """The jitter run's status was not looked at: a run whose burn node faulted reported its figures as a
+    measurement."""
+    def boom(self, t, inputs):
+        raise RuntimeError("boom")
+    monkeypatch.setattr(runtime_bench.Burn, "step", boom)
+    res = runtime_bench.jitter(0.3, 1.0)
+    assert res["status"] == "fault" and "boom" in res["message"]
+
+
+def test_runtime_isolation_ratio_alternates_and_a_faulted_run_fails(runtime_bench, monkeypatch, capsys):
+    """isolation_p99_ratio_inline_over_isolated divided the p99 of a whole inline run by that of a whole isolated
+    run after it; and a run that faulted was not named and the exit status was 0."""
+    calls: list[bool] = []
+
+    def fake_run(duration, burn_ms, priority=0, python_burn=False, isolate=False):
+        if python_burn:
+            calls.append(isolate)
+        bad = python_burn and isolate and calls.count(True) == 2
+        return ({"burn": "x", "status": "fault" if bad else "ok", "message": "node 'burn' exception: boom" if bad
+                 else "ran", "steps": 10, "realtime_priority": priority, "sched_fifo_applied": False,
+                 "sched_fifo_refused": None}, np.full(200, 0.2 if isolate else 0.6))
+    monkeypatch.setattr(runtime_bench, "_jitter_run", fake_run)
+    monkeypatch.setattr(runtime_bench, "overhead", lambda n: {"status": "ok", "message": "", "per_step_us": 1.0})
+    monkeypatch.setattr(runtime_bench, "sim_speed", lambda d: {"status": "ok", "message": "", "realtime_factor": 99.0})
+    assert runtime_bench.main(["--quick"]) == 1
+    out, err = capsys.readouterr()
+    got = _strict_last_line(out)
+    assert calls == [False, True, True, False, False, True, True, False]
+    assert got["isolation_rounds"] == 4 and got["isolation_p99_ratio_inline_over_isolated"] == pytest.approx(3.0)
+    assert got["faulted_runs"] == [{"section": "wall_clock_jitter_python_burn_isolated", "run": 1,
+                                    "status": "fault", "message": "node 'burn' exception: boom"}]
+    assert "python_burn_isolated run 1" in err and "boom" in err
+
+
+@pytest.fixture()
+def sweep_bench(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    return _load(BENCH / "stability_sweep.py", "stability_sweep_under_test")
+
+
+def test_stability_run_that_faults_is_not_judged(sweep_bench, monkeypatch):
+    """A faulted run has no steady contact: its NaN peak-to-peak read as 'does not oscillate'."""
+    build = sweep_bench.build_runtime
+
+    def boom(t, inputs):
+        raise RuntimeError("boom")
+
+    def faulting(doc):
+        rt = build(doc)
+        next(n for n in rt.nodes if n.id == "controller").step = boom   # the runtime's node calls this
+        return rt
+    monkeypatch.setattr(sweep_bench, "build_runtime", faulting)
+    r = sweep_bench.run_one(1.0, 0.41e6, "off", "ideal", 2.0)
+    assert r["status"] == "fault" and "boom" in r["message"] and r["oscillates"] is None
+
+
+def test_stability_sweep_names_a_faulted_run_and_fails(sweep_bench, monkeypatch, capsys):
+    """The sweep never looked at a run's status: a faulted run counted as removing the oscillation, was not named,
+    and the exit status was 0."""
+    def fake(k, e, mode, sensor, duration):
+        bad = mode == "default" and k == 4.0 and e == 1.0e6
+        return {"force_scale": k, "gel_modulus_pa": e, "mode": mode, "p2p_leader_force_n": 0.1,
+                "p2p_contact_force_n": math.nan if bad else (0.5 if mode == "off" else 0.05),
+                "oscillates": None if bad else mode == "off", "status": "fault" if bad else "ok",
+                "message": "node 'controller' exception: boom" if bad else "ran 5 s"}
+    monkeypatch.setattr(sweep_bench, "run_one", fake)
+    assert sweep_bench.main(["--quick"]) == 1
+    out, err = capsys.readouterr()
+    got = _strict_last_line(out)
+    assert got["faulted_runs"] == [{"force_scale": 4.0, "gel_modulus_pa": 1.0e6, "mode": "default",
+                                    "status": "fault", "message": "node 'controller' exception: boom"}]
+    assert got["removed_by"]["default"] == 3 and got["removed_by"]["tdpa-force"] == 4
+    assert "default" in err and "boom" in err
+
+
+def test_follower_round_trips_interleave_the_transports(monkeypatch):
+    """round_trip_p50_ratio_to_dynamixel_1mbaud divided the round trips of one driver, timed in a block of its own,
+    by those of another timed later. The Dynamixel and CANopen round trips now alternate in rounds."""
+    for var in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):   # the import sets them: put back after
+        monkeypatch.setenv(var, os.environ.get(var, ""))
+    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    mod = _load(BENCH / "follower_latency.py", "follower_latency_under_test")
+    from fakes.canopen_drive import Cia402Drive
+    from fakes.dynamixel_emulator import DynamixelEmulator
+    from teletouch.plugins.devices.canopen_gripper import CanopenGripper
+    from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
+
+    order: list[int] = []
+    for cls in (DynamixelGripper, CanopenGripper):
+        def spy(self, target, _w=cls._hw_write):
+            order.append(id(self))
+            return _w(self, target)
+        monkeypatch.setattr(cls, "_hw_write", spy)
+    specs = {f"dynamixel-{baud}": (f"dynamixel @ {baud}", DynamixelGripper,
+                                   lambda emu, baud=baud: dict(mod.FAST, port=emu.port, baudrate=baud),
+                                   lambda: DynamixelEmulator(15, position=1024, speed=1e9).start())
+             for baud in (57600, 1000000)}
+    specs["canopen-virtual"] = ("canopen", CanopenGripper, dict(mod.FAST, interface="virtual", channel="bench-t",
+                                                               node_id=4),
+                                lambda: Cia402Drive(4, "bench-t", position=0).start())
+    res = mod.side_by_side(specs, 40, 0.05)
+    # the round trips' commands (then the update-rate runs', one block each): 2 switches a round, 10 rounds
+    switches = sum(a != b for a, b in zip(order, order[1:]))
+    assert len(set(order)) == 3 and switches >= 20, switches
+    assert all(r["round_trips"] == 40 and r["rounds"] == 10 for r in res.values()), res
