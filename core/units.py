@@ -59,6 +59,15 @@ def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_
             f"metre field? write {value / 1e3:g} or \"{value:g}mm\"")
 
 
+def plausible_opening(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> float:
+    """``value`` if it is a plausible gripper opening (:func:`millimetres_in_metres`), else a ValueError with its
+    message: for validators that refuse such a value (``opening: 15`` held 15 m)."""
+    problem = millimetres_in_metres(name, value, limit)
+    if problem:
+        raise ValueError(problem)
+    return value
+
+
 def parse_quantity(text: Any, unit: str | None = None) -> float:
     """Parse ``text`` (a number or a string like ``"6mm"``) into a float in the SI unit ``unit``.
 

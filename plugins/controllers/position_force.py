@@ -65,6 +65,7 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import (
     MAX_PLAUSIBLE_OPENING, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
+    plausible_opening,
 )
 
 from .passivity import (
@@ -331,9 +332,7 @@ class _CommonParams(Params):
     @model_validator(mode="after")
     def _check(self) -> "_CommonParams":
         for name in ("opening_min", "opening_max", "offset"):
-            problem = millimetres_in_metres(name, getattr(self, name))
-            if problem:
-                raise ValueError(problem)
+            plausible_opening(name, getattr(self, name))
         if self.opening_min >= self.opening_max:
             raise ValueError(f"opening_min ({self.opening_min} m) must be below opening_max ({self.opening_max} m)")
         if self.fault_after_lost is not None and self.fault_after_lost < self.fade_time:

@@ -29,7 +29,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
-from teletouch.units import MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, millimetres_in_metres
+from teletouch.units import MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, plausible_opening
 
 __all__ = ["FollowerParams", "FollowerBase", "Reading", "OpeningMap", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS",
            "clamp", "command_value", "shape_setpoint"]
@@ -91,9 +91,7 @@ class OpeningMap:
         calibration opening beyond any gripper's (millimetres typed in the metre field) is refused, naming the field:
         ``75`` was taken as 75 m and the limits lay within it."""
         for field, value in ((open_field, self.opening_open), (closed_field, self.opening_closed)):
-            problem = millimetres_in_metres(field, value)
-            if problem:
-                raise ValueError(problem)
+            plausible_opening(field, value)
         lo, hi = sorted((self.opening_open, self.opening_closed))
         for name, value in (("min_opening", params.min_opening), ("max_opening", params.max_opening)):
             if not lo - 1e-9 <= value <= hi + 1e-9:
@@ -133,9 +131,7 @@ class FollowerParams(Params):
     @model_validator(mode="after")
     def _range(self) -> "FollowerParams":
         for name in ("min_opening", "max_opening"):
-            problem = millimetres_in_metres(name, getattr(self, name))
-            if problem:
-                raise ValueError(problem)
+            plausible_opening(name, getattr(self, name))
         if self.min_opening >= self.max_opening:
             raise ValueError(f"min_opening ({self.min_opening} m) must be below max_opening ({self.max_opening} m)")
         return self

@@ -42,7 +42,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Sample, hookimpl
 from teletouch.plugins.sensors import discovery  # the device-node checks shared with `teletouch devices`
-from teletouch.units import Meters, MetersPerSecond, Seconds, millimetres_in_metres
+from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening
 
 from .omega7 import LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE
 
@@ -433,10 +433,7 @@ class HidLeader(Device):
         @field_validator("min_opening", "max_opening")
         @classmethod
         def _plausible(cls, v: float, info: Any) -> float:
-            problem = millimetres_in_metres(info.field_name, v)
-            if problem:
-                raise ValueError(problem)
-            return v
+            return plausible_opening(info.field_name, v)
 
         @field_validator("max_opening")
         @classmethod

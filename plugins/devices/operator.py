@@ -38,11 +38,11 @@ from typing import Any, Callable, ClassVar, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from teletouch.units import Meters, MetersPerSecond, Seconds, millimetres_in_metres
+from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening
 
 __all__ = [
     "OperatorState", "Intent", "IntentParams", "register_intent", "intent_names", "make_intent", "validate_intent",
-    "HandImpedance", "NoneIntent", "HoldIntent", "CloseAndHoldIntent", "TrajectoryIntent", "plausible_opening",
+    "HandImpedance", "NoneIntent", "HoldIntent", "CloseAndHoldIntent", "TrajectoryIntent",
 ]
 
 
@@ -72,15 +72,6 @@ class IntentParams(BaseModel):
     time would pass ``ge=0`` and make the hand push with its full force or never move)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-def plausible_opening(name: str, value: float) -> float:
-    """``value`` (m) if it is a plausible gripper opening; ValueError naming ``name`` otherwise (millimetres typed
-    in a metre field: ``opening: 15`` held 15 m, the hand pushing the gripper into its end stop with all its force)."""
-    problem = millimetres_in_metres(name, value)
-    if problem:
-        raise ValueError(problem)
-    return value
 
 
 _INTENTS: dict[str, type] = {}

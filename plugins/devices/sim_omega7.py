@@ -28,7 +28,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import (
-    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
+    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, plausible_opening,
 )
 
 from .omega7 import (
@@ -142,9 +142,7 @@ class SimOmega7(Device):
 
         @model_validator(mode="after")
         def _start_inside(self) -> "SimOmega7.Params":
-            problem = millimetres_in_metres("max_opening", self.max_opening)
-            if problem:
-                raise ValueError(problem)
+            plausible_opening("max_opening", self.max_opening)
             if self.initial_opening is not None and self.initial_opening > self.max_opening:
                 raise ValueError(f"initial_opening ({self.initial_opening * 1e3:g} mm) is beyond max_opening "
                                  f"({self.max_opening * 1e3:g} mm, the gripper's end stop): expected 0 to "
