@@ -368,8 +368,6 @@ class CanopenGripper(FollowerBase):
     def _check_heartbeat(self) -> None:
         """The drive's heartbeat: none for more than three periods is noted, for more than read_timeout a fault; one
         saying the drive left NMT OPERATIONAL (reset, or another master) is a fault at once: its PDOs stopped."""
-        from canopen.nmt import NMT_STATES
-
         p = self.params
         age = time.monotonic() - self._hb_seen
         if age > 3 * p.heartbeat_period:
@@ -378,6 +376,8 @@ class CanopenGripper(FollowerBase):
                 raise HardwareError(f"{self._where()}: {self.last_error}; the drive is gone (power, cable)")
         state = self._nmt_state
         if state is not None and state != NMT_OPERATIONAL:
+            from canopen.nmt import NMT_STATES   # (the state's name, on this error path only: the check runs each step)
+
             raise HardwareError(f"{self._where()} left NMT OPERATIONAL (heartbeat: {NMT_STATES.get(state, state)}): "
                                 f"it sends and takes no PDOs; the drive was reset (power, watchdog) or another master "
                                 f"changed its NMT state")
