@@ -6,6 +6,10 @@ fingers penetrate it by ``p = w - x``. The penetration is shared, in series, by 
 
     p = n * d + F / k,      F = gel(d)          (the same force passes through every element in series)
 
+A compliant object has a solid core: its compression stops at ``c_max`` (its width less its core's), where it
+becomes rigid, so ``p = n * d + min(F / k, c_max)`` and the fingers stop at the core as on a rigid object of the
+core's width (a linear spring alone let a soft object be squeezed to nothing, and the fingers close through it).
+
 ``gel`` is the fingertip gel's force-indentation law: sim-digit's ``gel_force`` so that the simulated sensor and
 the simulated gripper agree on what a given squeeze looks like and how hard it is.
 
@@ -129,13 +133,25 @@ def _solve(gel: GelLaw, a: float, b: float, c: float, hi: float) -> float:
     return brentq(lambda d: a * float(gel(d)) + b * d - c, 0.0, hi, xtol=XTOL)
 
 
-def split_penetration(p: float, gel: GelLaw, n_gel: int = 1, k_object: float | None = None) -> tuple[float, float]:
-    """Indentation of each gel ``d`` (m) and the contact force ``F`` (N) for a total penetration ``p`` (m)."""
+def _rigid(k_object: float | None) -> bool:
+    return k_object is None or math.isinf(k_object)
+
+
+def split_penetration(p: float, gel: GelLaw, n_gel: int = 1, k_object: float | None = None,
+                      max_compression: float | None = None) -> tuple[float, float]:
+    """Indentation of each gel ``d`` (m) and the contact force ``F`` (N) for a total penetration ``p`` (m).
+    ``max_compression`` (m, None: none): the compliant object's compression stops there (its solid core)."""
     if p <= 0:
         return 0.0, 0.0
-    if k_object is None or math.isinf(k_object):
+    if _rigid(k_object):
         d = p / n_gel
         return d, float(gel(d))
+    if max_compression is not None and p > max_compression:
+        # the object squeezed down to its core: the gels take the rest, if their force holds it there
+        d = (p - max_compression) / n_gel
+        f = float(gel(d))
+        if f >= k_object * max_compression:
+            return d, f
     hi = p / n_gel
     # n d + gel(d) / k = p
     if n_gel * hi + float(gel(hi)) / k_object - p <= 0:  # numerically no compliance left for the object
@@ -145,11 +161,24 @@ def split_penetration(p: float, gel: GelLaw, n_gel: int = 1, k_object: float | N
 
 
 def blocked_opening(width: float, target: float, kp: float, fmax: float, gel: GelLaw, n_gel: int = 1,
-                    k_object: float | None = None) -> float:
-    """The opening at which a servo commanded to ``target`` (< width) balances the contact force."""
+                    k_object: float | None = None, max_compression: float | None = None) -> float:
+    """The opening at which a servo commanded to ``target`` (< width) balances the contact force.
+    ``max_compression`` (m, None: none): the compliant object's compression stops there (its solid core); where
+    the balance needs more, the fingers stop as on a rigid object of the core's width."""
+    x, force = _blocked(width, target, kp, fmax, gel, n_gel, k_object)
+    if max_compression is None or _rigid(k_object) or force <= k_object * max_compression:
+        return x
+    # the balance is monotonic in the indentation: where the spring's own balance compresses the object past its
+    # core, the true balance is on the core, as for a rigid object of the core's width
+    return _blocked(width - max_compression, target, kp, fmax, gel, n_gel, None)[0]
+
+
+def _blocked(width: float, target: float, kp: float, fmax: float, gel: GelLaw, n_gel: int,
+             k_object: float | None) -> tuple[float, float]:
+    """The blocked opening (m) without a compression limit, and the contact force there (N)."""
     if target >= width:
-        return width
-    comp = 0.0 if k_object is None or math.isinf(k_object) else 1.0 / k_object
+        return width, 0.0
+    comp = 0.0 if _rigid(k_object) else 1.0 / k_object
     hi = (width - target) / n_gel
     # h(d) = F - min(fmax, kp (x(d) - target)), x(d) = width - n d - F comp: increasing in d, negative at 0
     f_hi = float(gel(hi))
@@ -166,4 +195,4 @@ def blocked_opening(width: float, target: float, kp: float, fmax: float, gel: Ge
             # spring: F = kp (width - n d - F comp - target)  <=>  (1 + kp comp) F + kp n d = kp (width - target)
             d = _solve(gel, 1.0 + kp * comp, kp * n_gel, kp * (width - target), hi)
     force = float(gel(d))
-    return width - n_gel * d - force * comp
+    return width - n_gel * d - force * comp, force

@@ -2,8 +2,9 @@
 
 The servo tracks the (clamped, speed-limited) opening setpoint with a first-order response of the given bandwidth;
 it pushes with the force ``min(max_effort, servo_stiffness * (opening - setpoint))`` when blocked. Between the
-fingers sits an object of ``object_width``, rigid or compliant (``object_stiffness``). The penetration of the
-fingers into the object is shared in series by the fingertip gel(s) and the object; the gel's force-indentation law
+fingers sits an object of ``object_width``, rigid or compliant (``object_stiffness``) down to its solid core
+(``object_core_width``, rigid from there). The penetration of the fingers into the object is shared in series by the
+fingertip gel(s) and the object; the gel's force-indentation law
 is sim-digit's (``teletouch.plugins.sensors.gel.gel_force``), so ``indentation`` wired into sim-digit makes the
 simulated DIGIT see exactly the squeeze whose force the gripper reports. Deterministic under the sim clock.
 The hold and the safe state (which command the measured opening) keep the fingers where they are and the grip as it
@@ -81,6 +82,10 @@ class SimGripper(FollowerBase):
         object_stiffness: NewtonsPerMeter | None = Field(None, gt=0, description="object compliance in series "
                                                          "with the gel (None: rigid)",
                                                          json_schema_extra={"unit": "N/m"})
+        object_core_width: Meters | None = Field(None, gt=0, description="width a compliant object cannot be "
+                                                 "squeezed below (its solid core: rigid from there; None: half of "
+                                                 "object_width); at most object_width",
+                                                 json_schema_extra={"unit": "m"})
         # the gel, named and defaulted as sim-digit's parameters so that both nodes can share the same values
         indenter: Literal["sphere", "probe", "flat"] = Field("sphere", description="shape of the object's surface "
                                                              "where it presses into the gel (sim-digit's indenter)")
@@ -112,19 +117,35 @@ class SimGripper(FollowerBase):
                 raise ValueError(f"object_width ({w * 1e3:g} mm) is not wider than min_opening "
                                  f"({self.min_opening * 1e3:g} mm): the fingers could never touch it; expected an "
                                  f"object_width above min_opening (null: no object)")
+            core = self.object_core_width
+            if core is not None and w is None:
+                raise ValueError(f"object_core_width ({core * 1e3:g} mm) is set without an object (object_width "
+                                 f"is null): expected object_core_width null, or an object_width")
+            if core is not None and core > w:
+                raise ValueError(f"object_core_width ({core * 1e3:g} mm) is wider than object_width "
+                                 f"({w * 1e3:g} mm): expected the object's solid core inside it, at most "
+                                 f"object_width")
             return self
+
+        def max_compression(self) -> float | None:
+            """How far (m) a compliant object can be squeezed before its core stops it (None: no object)."""
+            w = self.object_width
+            if w is None:
+                return None
+            return w - (0.5 * w if self.object_core_width is None else self.object_core_width)
 
     # hardware hooks: the simulated servo ----------------------------------------------------------------------
     def _hw_open(self) -> None:
         p = self.params
         self.gel, self.indenter = load_gel_law(p)
+        self.max_compression = p.max_compression()
         x0 = p.max_opening if p.initial_opening is None else p.initial_opening
         self.target = x0
         if p.object_width is not None and x0 < p.object_width:
             # starting inside the object: the fingers rest where a servo commanded to initial_opening balances
             # the contact force (never more than max_effort), as they would after closing there
             x0 = blocked_opening(p.object_width, x0, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
-                                 p.object_stiffness)
+                                 p.object_stiffness, self.max_compression)
         self.x = x0
         self.v = 0.0
         self.t_sim: float | None = None
@@ -154,7 +175,8 @@ class SimGripper(FollowerBase):
         p = self.params
         pen = (p.object_width - x) if p.object_width is not None else 0.0
         if pen > 0:
-            self.indentation, self.force = split_penetration(pen, self.gel, p.gel_fingers, p.object_stiffness)
+            self.indentation, self.force = split_penetration(pen, self.gel, p.gel_fingers, p.object_stiffness,
+                                                             self.max_compression)
         else:
             self.indentation, self.force = 0.0, 0.0
 
@@ -207,7 +229,7 @@ class SimGripper(FollowerBase):
         w = p.object_width
         if w is not None and x_free < w:
             x_block = blocked_opening(w, target, p.servo_stiffness, p.max_effort, self.gel, p.gel_fingers,
-                                      p.object_stiffness)
+                                      p.object_stiffness, self.max_compression)
             # quasi-static contact: the fingers go no further into the object than where the servo's force
             # balances the contact force (and are pushed back out to there if they are further in; with the
             # target outside the object, out to its surface: nothing holds them in)
