@@ -125,7 +125,8 @@ def test_pivot_experiment_cli_reduced(tmp_path):
     assert res["paper"]["visual_force"]["success_rate"] == 0.867
     full = json.loads((tmp_path / "pivot.json").read_text())
     trial = full["visual_force"]["per_trial"][0]
-    assert trial["outcome"] in ("success", "overshoot", "undershoot", "dropped", "timeout")
+    assert trial["outcome"] in ("success", "overshoot", "undershoot", "moving", "dropped", "timeout")
+    assert trial["at_rest"] is (abs(trial["final_angular_velocity_rad_s"]) < math.radians(1.0))
     for key in ("visual_force", "visual_only"):   # to the microsecond (a sum of 1 ms steps gave 8.860000000000001)
         for t in full[key]["completion_times_s"]:
             assert t == round(t, 6)

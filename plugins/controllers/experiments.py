@@ -752,13 +752,19 @@ def experiment_contact(duration: float = 6.0, sensor: str = "image", out: str | 
 
 PIVOT_KEYS = ["pivot.angle", "pivot.dropped", "gripper.contact_force", "controller.gripper_force"]
 
+#: rad/s: the object is at rest when the operator finishes if it turns slower than this (1 deg/s: over the operator's
+#: 1 s settle time, a fifth of the 5 deg tolerance); sim-pivot's object stuck in the grip turns at exactly 0
+PIVOT_REST_SPEED = math.radians(1.0)
+
 
 def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_limit: float = 30.0,
                     registry: Any = None, operator: dict[str, Any] | None = None,
                     pivot: dict[str, Any] | None = None, record: bool = False) -> dict[str, Any]:
-    """One pivoting trial. Success: the operator finishes within the time limit with the object at rest within the
-    tolerance of the target angle (true angle), not dropped. A trial that faults raises RuntimeError, one ended by
-    Ctrl-C KeyboardInterrupt (:func:`check_run`)."""
+    """One pivoting trial. Success: the operator finishes within the time limit with the object at rest (true
+    angular velocity below PIVOT_REST_SPEED) within the tolerance of the target angle (true angle), not dropped.
+    Outcomes: success, dropped, timeout, overshoot or undershoot (the angle outside the tolerance, moving or not),
+    moving (within the tolerance, not at rest). A trial that faults raises RuntimeError, one ended by Ctrl-C
+    KeyboardInterrupt (:func:`check_run`)."""
     op_params = {"strategy": "force" if feedback else "position", "seed": seed, **(operator or {})}
     extra = [
         {"id": "pivot", "plugin": "sim-pivot", "rate": 1000, "params": dict(pivot or {}),
@@ -783,15 +789,19 @@ def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_li
     op = rt.component("operator")
     pv = rt.component("pivot")
     target, tol = op.params.target_angle, op.params.tolerance
-    angle = pv.theta
+    angle, omega = pv.theta, pv.omega
     done = op.done_at is not None
-    success = bool(done and not pv.dropped and abs(angle - target) <= tol)
+    on_target = abs(angle - target) <= tol
+    at_rest = abs(omega) < PIVOT_REST_SPEED
+    success = bool(done and not pv.dropped and on_target and at_rest)
     if pv.dropped:
         outcome = "dropped"
     elif not done:
         outcome = "timeout"
     elif success:
         outcome = "success"
+    elif on_target:
+        outcome = "moving"
     else:
         outcome = "overshoot" if angle > target else "undershoot"
     trial = {"seed": seed, "success": success, "outcome": outcome,
@@ -799,7 +809,8 @@ def run_pivot_trial(feedback: bool, seed: int, *, sensor: str = "ideal", time_li
              "completion_time_s": round(op.done_at, 6) if done else None,
              "final_angle_rad": float(angle), "target_rad": float(target), "tolerance_rad": float(tol),
              "final_angle_deg": math.degrees(angle), "target_deg": math.degrees(target),
-             "tolerance_deg": math.degrees(tol), "dropped": pv.dropped}
+             "tolerance_deg": math.degrees(tol), "final_angular_velocity_rad_s": float(omega), "at_rest": at_rest,
+             "dropped": pv.dropped}
     if rec is not None:
         trial["_recorder"] = rec
     return trial
