@@ -7,14 +7,19 @@ import argparse
 import math
 from typing import Any, Callable
 
+from .units import UNDERSCORE
+
 __all__ = ["number", "int_at_least"]
 
 
 def number(kind: type, what: str, lo: float | None = None, lo_open: bool = False,
            hi: float | None = None) -> Callable[[str], Any]:
     """A parser of ``kind`` (int or float) within ``lo`` (excluded if ``lo_open``) and ``hi`` (included), finite;
-    else 'expected WHAT, got TEXT' (the text quoted when it is not a number at all)."""
+    else 'expected WHAT, got TEXT' (the text quoted when it is not a number at all: also '1_0', which int() and
+    float() would read as 10)."""
     def parse(text: str) -> Any:
+        if "_" in text:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} ({UNDERSCORE})")
         try:
             v = kind(text)
         except ValueError:

@@ -61,15 +61,14 @@ def _seconds(text: str) -> float:
 
 def _positive_seconds(text: str) -> float:
     """argparse type of ``--progress-interval``: a positive, finite time ('0.5', '500ms'), as ``--duration``."""
-    try:
-        value = float(text)
-    except ValueError:
-        from .units import parse_quantity
+    from .units import parse_quantity
 
-        try:
-            value = parse_quantity(text, "s")
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
+    try:
+        value = parse_quantity(text, "s")   # a plain number is seconds; an underscore is refused as a typo
+    except ValueError as exc:
+        if text.strip().lower().lstrip("+-") in ("inf", "infinity", "nan"):
+            raise argparse.ArgumentTypeError(f"must be a positive, finite number of seconds, got {text!r}") from None
+        raise argparse.ArgumentTypeError(str(exc)) from None
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a positive, finite number of seconds, got {text!r}")
     return value

@@ -45,6 +45,9 @@ _EXAMPLES: dict[str | None, str] = {
     None: "'6mm' or '0.006'",
 }
 
+#: why a number with an underscore is refused (Python's float() and int() take '1_0' for 10)
+UNDERSCORE = "an underscore in a number is taken for a typo, not for a digit separator"
+
 #: no gripper opens wider than this (the PAL gripper: 0.09 m); a larger opening, offset or limit in a metre field
 #: is millimetres typed there
 MAX_PLAUSIBLE_OPENING = 1.0        # m
@@ -86,11 +89,13 @@ def parse_quantity(text: Any, unit: str | None = None) -> float:
         return value
     if not isinstance(text, str):
         raise ValueError(f"expected a number{_in(unit)}, got {text!r}")
+    if "_" in text:   # float() reads '1_0' as 10; no unit has one either
+        raise ValueError(f"expected a number{_in(unit)} such as {_example(unit)}, got {text!r} ({UNDERSCORE})")
     m = _QTY.match(text)
     if not m and _NON_FINITE.match(text):
         raise ValueError(f"expected a finite number{_in(unit)}, got {text!r}")
     if not m:
-        raise ValueError(f"expected a number{_in(unit)} such as {_EXAMPLES.get(unit, repr('1.5'))}, got {text!r}")
+        raise ValueError(f"expected a number{_in(unit)} such as {_example(unit)}, got {text!r}")
     value = float(m.group(1))
     if not math.isfinite(value):
         raise ValueError(f"{text!r} is too large for a number{_in(unit)}")
@@ -115,6 +120,10 @@ def _unknown_unit(sym: str, text: str, unit: str | None) -> str:
     if unit is None:
         return f"{msg}; known: {', '.join(sorted(_UNITS))}"
     return f"{msg}; expected a quantity in {unit} ({', '.join(fits) if fits else 'a plain number'})"
+
+
+def _example(unit: str | None) -> str:
+    return _EXAMPLES.get(unit, repr("1.5"))
 
 
 def _in(unit: str | None) -> str:

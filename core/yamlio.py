@@ -38,6 +38,9 @@ class LList(list):
         return self.item_where[i] if i < len(self.item_where) else self.where
 
 
+_NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+
+
 def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor",
              active: set[int] | None = None) -> Any:
     where = Location(file, node.start_mark.line + 1)
@@ -51,6 +54,10 @@ def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeCons
             return _convert_collection(node, file, constructor, active, where)
         finally:
             active.discard(id(node))
+    if node.tag in _NUMBER_TAGS and "_" in str(node.value):
+        # YAML 1.1 reads 1_0 as 10: a number a person typed with an underscore is taken for a typo, as units refuse it
+        raise GraphError(f"{node.value!r}: an underscore in a number is taken for a typo, not for a digit separator; "
+                         f"expected a number without one", where)
     try:
         return constructor.construct_object(node, deep=True)
     except yaml.constructor.ConstructorError:
