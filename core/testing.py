@@ -20,7 +20,7 @@ from .component import Component, Context, Device, Inputs, Sample, _Slot, step_s
 from .errors import PluginError
 from .graph import MAX_RATE, GraphSpec, load_graph_text
 from .registry import Registry, check_component
-from .runtime import RunResult, Runtime
+from .runtime import RunResult, Runtime, graph_time
 from .units import parse_quantity
 
 __all__ = ["Harness", "make_registry", "load_text", "run_yaml", "safe_states"]
@@ -237,7 +237,7 @@ class Harness:
                 tick += 1
         result = []
         while _tick_ns(tick, rate) <= round(until * 1e9):
-            t = _tick_ns(tick, rate) / 1e9
+            t = graph_time(_tick_ns(tick, rate))
             self.t = t
             now = {k: (v(t) if callable(v) else v) for k, v in values.items()}
             result.append((t, self.step(t, **now)))
