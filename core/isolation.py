@@ -7,11 +7,12 @@ for the outputs with the lock released, so the fast loop never waits for it.
 
 Large arrays (images, depth maps: >= 16 kB) do not go through the pipe: each side writes them into shared-memory
 blocks of its own, one per port, and sends only their names, shapes and types; the receiver copies them out at once
-(the protocol is request/reply, so a block is never rewritten before it has been read). Pickled through the pipe, a
-QVGA frame and its depth map cost the parent ~2.5 ms per step and held its interpreter lock while unpickling. A
-block's pages are reserved when it is made, so a full /dev/shm is a fault of the node, not a SIGBUS of the process
-that writes into it. Every block of a node is named ``teletouch_<token>_...``; when the node is closed the parent
-removes all of them, also those of a child that was killed before it could say their names.
+(the protocol is request/reply, so a block is never rewritten before it has been read; after a call timed out, while the
+child has not answered since, each step's inputs go into fresh blocks: a request still queued reads its own). Pickled
+through the pipe, a QVGA frame and its depth map cost the parent ~2.5 ms per step and held its interpreter lock while
+unpickling. A block's pages are reserved when it is made, so a full /dev/shm is a fault of the node, not a SIGBUS of the
+process that writes into it. Every block of a node is named ``teletouch_<token>_...``; when the node is closed the
+parent removes all of them, also those of a child that was killed before it could say their names.
 
 The child is started with the ``spawn`` method (no fork of a threaded process). The component class is sent by
 reference (its module must be importable; a failed import in the child is a start-up failure with its reason), its
@@ -128,11 +129,16 @@ class ArrayLanes:
     step after step would otherwise pile up mappings and file descriptors). ``close(unlink_peer=True)`` also unlinks
     the blocks read from the other side (when it may have died without doing so). ``prefix``: names of this side's
     blocks (``prefix`` + a number); empty: random names.
+
+    ``retire()``: this side's blocks are not written again (the next ``pack`` of each key makes a fresh one) but kept,
+    for a reader that may still have to read them: requests that name them wait unread in the pipe. They are unlinked
+    by ``release_retired()`` (the reader has answered a later request: it has read them all) or ``close``.
     """
 
     def __init__(self, prefix: str = "") -> None:
         self._own: dict[str, shared_memory.SharedMemory] = {}
         self._peer: dict[str, shared_memory.SharedMemory] = {}
+        self._retired: list[shared_memory.SharedMemory] = []
         self._prefix = prefix
         self._made = 0
 
@@ -171,7 +177,17 @@ class ArrayLanes:
             blk = self._peer[key] = _attach(value.name)
         return np.ndarray(value.shape, np.dtype(value.dtype), buffer=blk.buf).copy()
 
+    def retire(self) -> None:
+        self._retired.extend(self._own.values())
+        self._own.clear()
+
+    def release_retired(self) -> None:
+        retired, self._retired = self._retired, []
+        for blk in retired:
+            _release(blk, unlink=True)
+
     def close(self, unlink_peer: bool = False) -> None:
+        self.release_retired()
         for blk in self._own.values():
             _release(blk, unlink=True)
         for blk in self._peer.values():
@@ -521,6 +537,7 @@ class ProcessProxy(Component):
         except (EOFError, OSError):
             raise self._died(op) from None
         self._stuck = False
+        self._lanes.release_retired()   # the child has read every request before this one: their blocks may go
         if reply[1] == "exc":
             raise ComponentFault(f"in isolated process: {reply[2]}")
         return reply
@@ -625,6 +642,11 @@ class ProcessProxy(Component):
         try:
             if not self._started():
                 raise ComponentFault("isolated process not running")
+            if self._stuck:
+                # a call timed out or was abandoned and the child has not answered since: a request sent since may
+                # still wait unread in the pipe, naming the input blocks. They are kept as they are for it, and this
+                # step writes into fresh ones (before, a queued step read this step's array, or half of it, as its own)
+                self._lanes.retire()
             held = self._held
             sent: dict[str, Sample | None] = {}
             ins = {}
