@@ -9,7 +9,9 @@
 - the parameter tables (`| param | default | ... |`), the follower limits table, the intents table and the inline
   "`field` (default X)" figures equal the components' `Params` defaults;
 - the port tables (`| port | dir | ... |`) name ports that exist with that direction, optionality, dtype, shape
-  and unit;
+  and unit (every unit cell compared: one the check cannot read is a failure);
+- docs/ports.md documents every port of every built-in plugin in that plugin's section, in a table row or in its
+  prose (`` `port` (unit, ...) ``), with the code's unit;
 - every relative link (and its #anchor) resolves, and every examples/ path named on the pages exists.
 
 tests/test_newcomer_docs.py runs docs/writing-a-plugin.md's snippets and tests/test_examples.py validates every
@@ -431,38 +433,246 @@ def _shape(text: str):
     return tuple(int(p) if p.isdigit() else None for p in parts)
 
 
-def test_port_tables_match_the_components_ports(registry):
-    known_units = {"", "m", "m/s", "N", "J", "m^2", "N*s/m", "N/m", "rad", "rad/s", "s", "Hz"}
+#: dtype words written in a unit cell or a port's parenthesis: a value that has no unit ("bool", "bool map")
+DTYPE_WORDS = {"bool", "str", "uint8", "uint16", "int64", "float32", "float64"}
+
+
+def _unit_words(registry) -> set[str]:
+    """Every unit symbol a page may write: the unit parser's (SI and scaled) and every port's own ("rad/s", "any")."""
+    from teletouch.units import _UNITS
+
+    words = set(_UNITS) | {si for si, _ in _UNITS.values()}
+    for info in registry.components.values():
+        words |= {p.unit for p in (*info.cls.inputs.values(), *info.cls.outputs.values())}
+    return words - {""}
+
+
+def _cell_unit(cell: str, words: set[str]) -> str | None:
+    """The unit a port table's unit cell gives ('N, (3,)' -> 'N'; '""', an empty cell or a dtype such as 'bool' or
+    'bool map' -> '': no unit), None when the cell holds nothing the check can read as a unit (one of ``words``)."""
+    first = cell.split(",")[0].strip().strip("`").strip()
+    if first in ('""', ""):
+        return ""
+    if first.split()[0] in DTYPE_WORDS:
+        return ""
+    return first if first in words else None
+
+
+def _unit_problem(documented: str | None, cell: str, code: str) -> str | None:
+    if documented is None:
+        return f"unit {cell!r} is not a unit the check can compare (write the code's unit {code!r}, or \"\" for none)"
+    return None if documented == code else f"unit {cell!r}, code {code!r}"
+
+
+def _port_table_problems(pages: list[tuple[str, str]], registry) -> tuple[list[str], int]:
+    """(problems, rows checked) of the port tables of ``pages`` ((name, text) each)."""
     problems, checked = [], 0
-    for page, header, rows, plugins in _plugin_tables("port", "dir", registry):
-        for row in rows:
-            cell = dict(zip(header, row))
-            port = cell["port"].strip("` ")
-            direction = cell["dir"].split()[0].strip(",")
-            optional = "optional" in cell["dir"]
-            for plugin in plugins:
-                cls = registry.components[plugin].cls
-                ports = cls.inputs if direction == "in" else cls.outputs
-                checked += 1
-                where = f"{_rel(page)}: {plugin} {direction}put {port!r}"
-                if port not in ports:
-                    problems.append(f"{where}: no such port ({sorted(ports)})")
-                    continue
-                p = ports[port]
-                if direction == "in" and optional == p.required:
-                    problems.append(f"{where}: documented {'optional' if optional else 'required'}, "
-                                    f"code required={p.required}")
-                if "dtype" in cell and cell["dtype"].strip("` ") != p.dtype:
-                    problems.append(f"{where}: dtype {cell['dtype']!r}, code {p.dtype!r}")
-                if "shape" in cell and _shape(cell["shape"]) not in ("?", p.shape):
-                    problems.append(f"{where}: shape {cell['shape']!r}, code {p.shape!r}")
-                if "unit" in cell:
-                    unit = cell["unit"].split(",")[0].strip().strip("`")
-                    unit = "" if unit == '""' else unit
-                    if unit in known_units and unit != p.unit:
-                        problems.append(f"{where}: unit {unit!r}, code {p.unit!r}")
+    words = _unit_words(registry)
+    for name, text in pages:
+        for heading, header, rows in _tables(_prose(text)):
+            if not header or header[0] != "port" or "dir" not in header:
+                continue
+            plugins = _plugins_named(heading, registry)
+            assert plugins, f"{name}: a port table under {heading!r} names no plugin in its heading"
+            for row in rows:
+                cell = dict(zip(header, row))
+                port = cell["port"].strip("` ")
+                direction = cell["dir"].split()[0].strip(",")
+                optional = "optional" in cell["dir"]
+                for plugin in plugins:
+                    cls = registry.components[plugin].cls
+                    ports = cls.inputs if direction == "in" else cls.outputs
+                    checked += 1
+                    where = f"{name}: {plugin} {direction}put {port!r}"
+                    if port not in ports:
+                        problems.append(f"{where}: no such port ({sorted(ports)})")
+                        continue
+                    p = ports[port]
+                    if direction == "in" and optional == p.required:
+                        problems.append(f"{where}: documented {'optional' if optional else 'required'}, "
+                                        f"code required={p.required}")
+                    if "dtype" in cell and cell["dtype"].strip("` ") != p.dtype:
+                        problems.append(f"{where}: dtype {cell['dtype']!r}, code {p.dtype!r}")
+                    if "shape" in cell and _shape(cell["shape"]) not in ("?", p.shape):
+                        problems.append(f"{where}: shape {cell['shape']!r}, code {p.shape!r}")
+                    if "unit" in cell:
+                        why = _unit_problem(_cell_unit(cell["unit"], words), cell["unit"], p.unit)
+                        if why:
+                            problems.append(f"{where}: {why}")
+    return problems, checked
+
+
+def test_port_tables_match_the_components_ports(registry):
+    problems, checked = _port_table_problems([(_rel(page), page.read_text()) for page in PAGES], registry)
     assert not problems, "\n".join(problems)
     assert checked >= 40, checked
+
+
+def _builtin(registry) -> dict[str, type]:
+    """The components of teletouch's own plugins (the mocks are for tests: not documented in ports.md)."""
+    return {name: info.cls for name, info in registry.components.items()
+            if info.distribution == "teletouch" and info.plugin != "mock"}
+
+
+def _sections(text: str) -> list[tuple[str, str]]:
+    """(heading, body) of each `## ` section of a page, fenced code left out."""
+    parts = re.split(r"(?m)^(## .*)$", _prose(text))
+    return list(zip(parts[1::2], parts[2::2]))
+
+
+def _heading_plugins(heading: str, registry) -> set[str]:
+    """The components a section's heading names: by their name, or by their plugin's (`position-force`: its
+    baselines too, 'the same plugin family')."""
+    out = set()
+    for name in re.findall(r"`([a-z0-9-]+)`", heading):
+        out |= {c for c, info in registry.components.items() if c == name or info.plugin == name}
+    return out
+
+
+def _parenthesis(text: str, at: int) -> str | None:
+    """The text of the parenthesis that opens at ``text[at:]`` (after blanks), its own parentheses kept; None if none
+    opens there."""
+    m = re.match(r"[ \t]*\(", text[at:])
+    if not m:
+        return None
+    depth, start = 0, at + m.end() - 1
+    for i in range(start, len(text)):
+        depth += {"(": 1, ")": -1}.get(text[i], 0)
+        if depth == 0:
+            return text[start + 1:i]
+    return None
+
+
+def _top_level_parts(text: str) -> list[str]:
+    """``text`` split at its commas, semicolons and colons outside parentheses, each part stripped."""
+    parts, depth, cur = [], 0, ""
+    for ch in text:
+        depth += {"(": 1, ")": -1}.get(ch, 0)
+        if ch in ",;:" and depth == 0:
+            parts.append(cur.strip())
+            cur = ""
+        else:
+            cur += ch
+    return parts + [cur.strip()]
+
+
+def _documented_ports(text: str, registry) -> dict[str, dict[str, list[tuple[str, str | None]]]]:
+    """component -> port -> how ports.md documents it in that component's section: ('in'|'out', unit cell) of each
+    table row, ('prose', parenthesis or None) of each `` `port` `` in a paragraph about it. A table belongs to the
+    components its section's heading names; a paragraph that starts with a component's name (`` `sim-digit` also
+    has ... ``, `` `depth`: in ... ``) to that component alone, any other paragraph to the heading's components."""
+    docs: dict[str, dict[str, list[tuple[str, str | None]]]] = {}
+    for heading, body in _sections(text):
+        named = _heading_plugins(heading, registry)
+        for _, header, rows in _tables(body):
+            if not header or header[0] != "port" or "dir" not in header:
+                continue
+            for row in rows:
+                cell = dict(zip(header, row))
+                for comp in named:
+                    docs.setdefault(comp, {}).setdefault(cell["port"].strip("` "), []).append(
+                        (cell["dir"].split()[0].strip(","), cell.get("unit")))
+        for para in re.split(r"\n\s*\n", body):
+            para = "\n".join(line for line in para.splitlines() if not line.startswith("|"))
+            first = re.match(r"\s*`([a-z0-9-]+)`", para)
+            owners = {first.group(1)} if first and first.group(1) in registry.components else named
+            for m in re.finditer(r"`([a-z][a-z0-9_]*)`", para):
+                for comp in owners:
+                    docs.setdefault(comp, {}).setdefault(m.group(1), []).append(("prose", _parenthesis(para, m.end())))
+    return docs
+
+
+def _prose_unit_problem(mentions: list[str | None], code: str, words: set[str]) -> str | None:
+    """Why the parentheses after a port's mentions in prose do not give its unit ``code``: every unit they name must
+    be it, and a port with a unit ('m', not '' or 'any') needs one mention that names it."""
+    named = []
+    for par in mentions:
+        units = [part for part in _top_level_parts(par or "") if part in words]
+        if units:
+            named.append(units[0])
+    wrong = [u for u in named if u != code]
+    if wrong:
+        return f"documented in {wrong[0]!r}, code {code!r}"
+    if code not in ("", "any") and not named:
+        return f"mentioned without its unit (code {code!r}): write `port` ({code}, ...)"
+    return None
+
+
+def _port_doc_problems(text: str, registry) -> tuple[list[str], int]:
+    """(problems, ports checked): every input and output port of every built-in component documented in its section
+    of ``text`` (docs/ports.md), with the code's unit."""
+    docs = _documented_ports(text, registry)
+    words = _unit_words(registry)
+    problems, checked = [], 0
+    for comp, cls in sorted(_builtin(registry).items()):
+        for direction, ports in (("in", cls.inputs), ("out", cls.outputs)):
+            for port, p in ports.items():
+                checked += 1
+                where = f"docs/ports.md: {comp} {direction}put {port!r} ({p.unit or 'no unit'})"
+                got = docs.get(comp, {}).get(port, [])
+                rows = [cell for kind, cell in got if kind == direction]
+                if rows:   # a table row
+                    whys = [_unit_problem(_cell_unit(cell, words), cell, p.unit) if cell is not None else
+                            None if p.unit in ("", "any") else "its table row has no unit column" for cell in rows]
+                    problems += [f"{where}: {why}" for why in whys if why]
+                    continue
+                prose = [par for kind, par in got if kind == "prose"]
+                if not prose:
+                    problems.append(f"{where}: not documented in {comp}'s section (a table row, or `{port}` "
+                                    f"({p.unit or 'no unit'}) in its prose)")
+                    continue
+                why = _prose_unit_problem(prose, p.unit, words)
+                if why:
+                    problems.append(f"{where}: {why}")
+    return problems, checked
+
+
+def test_ports_md_documents_every_port_of_every_built_in_plugin_with_its_unit(registry):
+    problems, checked = _port_doc_problems((REPO / "docs" / "ports.md").read_text(), registry)
+    assert not problems, "\n".join(problems)
+    assert checked >= 100, checked
+
+
+PORTS_PAGE = """
+## Leaders (`omega7`)
+| port | dir | dtype | shape | unit | meaning |
+|---|---|---|---|---|---|
+| gripper_force | in (optional) | float64 | () | N | f |
+| force | in (optional) | float64 | (3,) | mm | f |
+| gripper_opening | out | float64 | () | metres | g |
+| gripper_velocity | out | float64 | () | m/s | v |
+| button | out | bool | () | "" | b |
+
+`omega7` also has `position` (N, the handle).
+
+## Estimators
+`depth`: in `image`; out `depth` (float32 (rows, cols), m), `max_depth` (m), `contact_mask` (bool (rows, cols)),
+`contact_area`, `centroid` ((2,), m).
+"""
+
+
+def test_the_port_checks_can_fail(registry):
+    """A missing port, a wrong unit (table or prose), a unit cell the check cannot read, a unit left out."""
+    table, _ = _port_table_problems([("page", PORTS_PAGE)], registry)
+    assert "page: omega7 input 'force': unit 'mm', code 'N'" in table, table
+    assert any(p.startswith("page: omega7 output 'gripper_opening': unit 'metres' is not a unit the check can "
+                            "compare") for p in table), table
+    assert len(table) == 2, table
+    docs, _ = _port_doc_problems(PORTS_PAGE, registry)
+    mine = [p for p in docs if p.startswith(("docs/ports.md: omega7 ", "docs/ports.md: depth "))]
+    assert mine == [
+        "docs/ports.md: depth output 'contact_area' (m^2): mentioned without its unit (code 'm^2'): write `port` "
+        "(m^2, ...)",
+        "docs/ports.md: omega7 input 'force' (N): unit 'mm', code 'N'",
+        "docs/ports.md: omega7 output 'gripper_opening' (m): unit 'metres' is not a unit the check can compare "
+        "(write the code's unit 'm', or \"\" for none)",
+        "docs/ports.md: omega7 output 'position' (m): documented in 'N', code 'm'",
+    ], mine
+    assert any(p.startswith("docs/ports.md: sim-gripper output 'contact'") and "not documented" in p
+               for p in docs), docs
+    words = _unit_words(registry)
+    assert _cell_unit("N, (3,)", words) == "N" and _cell_unit("bool map", words) == "" and _cell_unit("", words) == ""
+    assert _cell_unit("see below", words) is None and _cell_unit("rad/s", words) == "rad/s"
 
 
 # ---- links and paths ----------------------------------------------------------------------------------------------
