@@ -153,6 +153,7 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
         send_force(0.0, 2.0)
         assert _wait(lambda: got["force"][-1].value == 2.0, every=collect)
         got.clear()
+        time.sleep(0.25)   # the next stamp (0.2 s old) must be newer than the marker's: an older one is dropped
         before = ctx.now()
         send_force(0.2, 3.0)
         after = ctx.now()

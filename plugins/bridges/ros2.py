@@ -29,7 +29,10 @@ old on arrival is kept and reported (``late``, ``lag_s``); a zero stamp (the sen
 refused. A value with the stamp of the last one taken for its port is a repeat, not a new measurement
 (``duplicates`` when a message has nothing else): it is not output again, so a sender re-sending its last message
 cannot keep a force fresh (per port: a JointState's fields of one measurement may come in two messages); the
-publisher sends each measurement once (by stamp, also under ``isolate: process``).
+publisher sends each measurement once (by stamp, also under ``isolate: process``). A value whose stamp is older than
+that of the last one taken for its port (a second publisher on the topic, messages out of order) is dropped, counted
+(``out_of_order``) and logged once, with either ``stamps`` mode (a stamp clamped as in the future is not compared
+with); a port's output stamps never go back (a clamped one is put just after the port's last one where it is not).
 
 Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it
 (a non-finite JointState field is left out, the others go on); the subscriber also refuses a JointState whose
@@ -121,7 +124,7 @@ class _BridgeParams(QosParams):
         return v
 
     @model_validator(mode="after")
-    def _distinct_topics(self) -> "_BridgeParams":
+    def _full_topic_names(self) -> "_BridgeParams":
         seen: dict[str, str] = {}
         problems = []
         for f in TOPIC_FIELDS:
@@ -130,9 +133,33 @@ class _BridgeParams(QosParams):
                 problems.append(f"{f}: '{full}' is also {seen[full]}'s topic: each port needs a topic of its own")
             else:
                 seen[full] = f
+        # a private name's length needs the node name: here when node_name is set, else at configure
+        problems += _too_long(self, self.node_name)
         if problems:
             raise ValueError("\n".join(problems))
         return self
+
+
+def _too_long(p: _BridgeParams, node: str | None) -> list[str]:
+    """'FIELD: why' for each topic param whose expanded name rcl would refuse as too long (a private one only when
+    ``node``, the ROS node name, is known)."""
+    out = []
+    for f in TOPIC_FIELDS:
+        topic = getattr(p, f)
+        full = ros_names.expand_topic(topic, p.namespace, node)
+        remedy = ("shorten the topic, the namespace or node_name (default the graph node id)" if topic.startswith("~")
+                  else "shorten the topic or the namespace")
+        if full is not None and (why := ros_names.too_long(full, remedy)):
+            out.append(f"{f}: {why}")
+    return out
+
+
+def _check_lengths(p: _BridgeParams, node_id: str) -> None:
+    """Before any ROS node is made: a private topic too long with the node name the node gets (the graph node id
+    when node_name is not set, which the params do not know) is a fault naming the param."""
+    problems = _too_long(p, _ros_name(p.node_name or node_id))
+    if problems:
+        raise ComponentFault("; ".join(problems))
 
 
 def _unlisted(ports: Any, topics: list[str], side: str, remedy: str) -> dict[str, str]:
@@ -445,6 +472,7 @@ class Ros2Publish(Component):
         self.bad = 0
         self._log_once = _LogOnce(self.ctx)
         self._clock = _Clock(self.ctx)
+        _check_lengths(p, self.id)
         self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id, self._log_once)
         self._qos = qos_profile(p)
         # every publisher now: DDS discovery (a new writer found by the subscribers, tens of ms and more across
@@ -642,17 +670,21 @@ class Ros2Subscribe(Component):
         # that arrived before the graph clock started (while other nodes were starting) keeps its age
         self._pending: dict[str, tuple[Any, float]] = {}
         self._last_raw: dict[str, int] = {}   # port -> header.stamp (ns) of the last value taken
+        self._last_order: dict[str, int] = {}   # port -> the same, of the last value whose stamp was not clamped
+        self._last_out: dict[str, float] = {}   # port -> graph stamp of the last sample output
         self.received = 0
         self.skewed = 0
         self.bad = 0
         self.unstamped = 0
         self.duplicates = 0
+        self.out_of_order = 0
         self.late = 0
         self.off_axis = 0
         self.lag: float | None = None   # arrival - header.stamp of the last message taken (s)
         self._last_rx: float | None = None   # time.monotonic() of the last message taken
         self._log_once = _LogOnce(self.ctx)
         self._clock = _Clock(self.ctx)
+        _check_lengths(p, self.id)
         self._ros = _Ros(p.node_name or self.id, p.namespace, p.domain_id, self._log_once)
         qos = qos_profile(p)
         handlers = {"force": (WrenchStamped, p.force_topic, self._on_force),
@@ -667,6 +699,7 @@ class Ros2Subscribe(Component):
 
     def activate(self) -> None:
         self._clock = _Clock(self.ctx)
+        self._last_out = {}   # graph stamps: the graph clock starts now
 
     # callbacks run in the executor thread -----------------------------------------------------------------------
     def _guard(self, key: str, cb: Any) -> Any:
@@ -709,10 +742,15 @@ class Ros2Subscribe(Component):
                 if not values:
                     self.duplicates += 1
                     return
+                values = self._not_older(key, raw, values)
+                if not values:
+                    return
+            clamped = False
             if p.stamps == "message":
                 stamp = sec + nsec * 1e-9
                 lag = arrival - stamp
                 if lag < -p.max_clock_skew:
+                    clamped = True
                     self.skewed += 1
                     self._log_once(("skewed", key), f"{key} topic: header.stamp {-lag:.3f} s ahead of this "
                                                     f"machine's clock: clamped to the arrival time (synchronise "
@@ -726,11 +764,31 @@ class Ros2Subscribe(Component):
                                                   f"keep their stamps and look stale")
                 self.lag = lag
             self._last_raw.update(dict.fromkeys(values, raw))
+            if not clamped:   # a stamp in the future is no reference for the order of the next ones
+                self._last_order.update(dict.fromkeys(values, raw))
         with self._lock:
             for port, v in values.items():
                 self._pending[port] = (v, stamp)
             self._last_rx = time.monotonic()
             self.received += 1
+
+    def _not_older(self, key: str, raw: int, values: dict[str, Any]) -> dict[str, Any]:
+        """``values`` less the ports whose last value taken has a newer header.stamp than ``raw`` (ns): an older
+        measurement (a second publisher on the topic, messages out of order) would push the port back in time, or,
+        stamped on arrival, pass for the newest one. Counted (``out_of_order``) and logged once. The sender's
+        stamps are compared, with either ``stamps`` mode, but not one clamped as too far in the future (a single
+        wrong stamp would silence the port until the sender's clock reached it); a sender whose clock steps back
+        is not heard until its stamps pass the last one taken."""
+        older = {port: last for port in values if (last := self._last_order.get(port, raw)) > raw}
+        if not older:
+            return values
+        self.out_of_order += 1
+        port, last = max(older.items(), key=lambda kv: kv[1])
+        self._log_once(("older", key), f"{key} topic: header.stamp {(last - raw) * 1e-9:.3f} s older than the last "
+                                       f"one taken for '{port}': dropped, a port's stamps never go back (a second "
+                                       f"publisher on this topic, messages out of order, or the sender's clock "
+                                       f"stepped back)")
+        return {port: v for port, v in values.items() if port not in older}
 
     @staticmethod
     def _finite(what: str, v: float) -> float:
@@ -828,14 +886,25 @@ class Ros2Subscribe(Component):
                 return None
             pending, self._pending = self._pending, {}
         off = self._clock.offset_now()
-        return {port: Sample(v, stamp - off) for port, (v, stamp) in pending.items()}
+        return {port: Sample(v, self._after_last(port, stamp - off)) for port, (v, stamp) in pending.items()}
+
+    def _after_last(self, port: str, stamp: float) -> float:
+        """``stamp`` (graph time), or just after the port's last one where it is not after it: a stamp clamped to
+        its arrival time may be before the last one kept (which was up to max_clock_skew ahead), and the Unix to
+        graph offset is measured anew at each step. A port's stamps never go back, and a new value never has the
+        stamp of the last (a consumer would take it for a repeat)."""
+        last = self._last_out.get(port)
+        if last is not None and stamp <= last:
+            stamp = math.nextafter(last, math.inf)
+        self._last_out[port] = stamp
+        return stamp
 
     def status(self):
         rx = getattr(self, "_last_rx", None)
         problems = {"bad": getattr(self, "bad", 0), "unstamped": getattr(self, "unstamped", 0),
                     "skewed": getattr(self, "skewed", 0), "late": getattr(self, "late", 0),
                     "off_axis": getattr(self, "off_axis", 0), "duplicates": getattr(self, "duplicates", 0),
-                    **_ros_status(self)}
+                    "out_of_order": getattr(self, "out_of_order", 0), **_ros_status(self)}
         lag = getattr(self, "lag", None)
         return {"received": getattr(self, "received", 0),
                 "since_last_s": (time.monotonic() - rx) if rx is not None else math.inf,
