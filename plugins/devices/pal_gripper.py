@@ -270,6 +270,19 @@ class PalGripper(FollowerBase):
                 raise ValueError("; ".join(problems))
             return self
 
+        @model_validator(mode="after")
+        def _topic_lengths(self) -> "PalGripper.Params":
+            # rclpy would refuse a name too long only when the node makes its publisher or subscription
+            command = f"{self.namespace}/{self.controller}/joint_trajectory"
+            state = ros_names.expand_topic(self.joint_states_topic, self.namespace, None)
+            problems = [f"{field}: {why}" for field, full, remedy in (
+                ("controller", command, "shorten the namespace or the controller name"),
+                ("joint_states_topic", state, "shorten the topic or the namespace"))
+                if full is not None and (why := ros_names.too_long(full, remedy))]
+            if problems:
+                raise ValueError("; ".join(problems))
+            return self
+
     # ------------------------------------------------------------------------------------------------------------
     @property
     def command_topic(self) -> str:
