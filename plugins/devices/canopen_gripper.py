@@ -3,11 +3,12 @@
 Start-up (all through the canopen library): connect the bus; check the node answers SDO and is a CiA 402 device
 (0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060,
 asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078
-+ velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, checked in
-0x6061); profile velocity 0x6081 from ``max_speed`` (rounded down); max current 0x6073 from ``max_effort``; target :=
-actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's BaseNode402), starting from
-the statusword of the drive's first TPDO1 (a drive found enabled stays enabled; one found in FAULT is logged with its
-error code, then reset).
++ velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, then 0x6061
+read until it shows it: a drive switches in its own time; not within ``mode_timeout``, an error naming the requested
+and the displayed mode); profile velocity 0x6081 from ``max_speed`` (rounded down); max current 0x6073 from
+``max_effort``; target := actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's
+BaseNode402, with SYNCs every 5 ms from a thread of the driver), starting from the statusword of the drive's first
+TPDO1 (a drive found enabled stays enabled; one found in FAULT is logged with its error code, then reset).
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
@@ -16,12 +17,15 @@ command and send one unit, so a safe_state() from another thread waits for it an
 set-point goes out while the last statusword is not OPERATION ENABLED: RPDO1's controlword would enable a drive in
 quick stop or switched on again (the drive's own stop holds it). Max current 0x6073 is rounded down, so the current
 cap never exceeds ``max_effort``. Each step then transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
-triggers. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat, a heartbeat saying the drive left
-NMT OPERATIONAL, or missing TPDOs end in a HardwareError naming the cause. Heartbeats and TPDOs are timed and counted
-as they arrive, on the local monotonic clock: a received frame's timestamp is on whatever clock the python-can
-interface uses (epoch on socketcan; monotonic, a device counter or none on others). Scaling (counts <-> opening,
-per-mille current <-> newtons) is configuration; an EDS file is optional (without one, the standard CiA 301/402
-objects above are assumed).
+triggers. TPDOs carry no SYNC number, so the answers are counted: a frame answers this step's SYNC only after the
+answers to every earlier SYNC (a step that timed out, the state walk's) arrived, which are waited for (up to
+``pdo_timeout``) before the SYNC goes out, and written off as lost, the step without a state, when they do not come;
+frames beyond the SYNCs sent (another SYNC producer) are forgotten. A drive in FAULT (statusword; reported with its
+EMCY), a lost heartbeat, a heartbeat saying the drive left NMT OPERATIONAL, or missing TPDOs end in a HardwareError
+naming the cause. Heartbeats and TPDOs are timed and counted as they arrive, on the local monotonic clock: a received
+frame's timestamp is on whatever clock the python-can interface uses (epoch on socketcan; monotonic, a device counter or
+none on others). Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS file is optional
+(without one, the standard CiA 301/402 objects above are assumed).
 """
 
 from __future__ import annotations
@@ -40,6 +44,12 @@ from teletouch.units import Meters, Newtons, Seconds
 from .follower_common import FollowerBase, FollowerParams, OpeningMap, Reading
 
 PROFILE_POSITION = 1
+#: CiA 402 modes of operation (0x6060 / 0x6061), for messages; negative values are manufacturer-specific
+MODE_NAMES = {0: "no mode", 1: "profile position", 3: "profile velocity", 4: "profile torque", 6: "homing",
+              7: "interpolated position", 8: "cyclic synchronous position", 9: "cyclic synchronous velocity",
+              10: "cyclic synchronous torque"}
+MODE_POLL = 0.005  # s between two reads of the modes of operation display 0x6061 while the drive switches
+WALK_SYNC_PERIOD = 0.005  # s between the SYNCs that drive the TPDOs (the statusword) while the state machine is walked
 NMT_OPERATIONAL = 5  # the NMT state in a heartbeat (CiA 301)
 CW_ENABLE = 0x000F
 CW_NEW_SETPOINT = 0x0010
@@ -120,6 +130,9 @@ class CanopenGripper(FollowerBase):
         sdo_timeout: Seconds = Field(0.3, gt=0, description="SDO response timeout", json_schema_extra={"unit": "s"})
         pdo_timeout: Seconds = Field(0.05, gt=0, description="wait this long for the TPDOs after each SYNC",
                                      json_schema_extra={"unit": "s"})
+        mode_timeout: Seconds = Field(0.5, gt=0, description="wait this long for the modes of operation display "
+                                      "0x6061 to show profile position after 0x6060 was written",
+                                      json_schema_extra={"unit": "s"})
         heartbeat_period: Seconds = Field(0.1, ge=0, description="drive heartbeat period (0: off); three missed "
                                           "heartbeats are a fault", json_schema_extra={"unit": "s"})
 
@@ -203,10 +216,7 @@ class CanopenGripper(FollowerBase):
         if p.heartbeat_period > 0:
             self._sdo("writing heartbeat 0x1017", lambda: setattr(node.sdo[0x1017], "raw",
                                                                    int(round(p.heartbeat_period * 1000))))
-        self._sdo("writing mode 0x6060", lambda: setattr(node.sdo[0x6060], "raw", PROFILE_POSITION))
-        mode = self._sdo("reading mode display 0x6061", lambda: node.sdo[0x6061].raw)
-        if mode != PROFILE_POSITION:
-            raise HardwareError(f"{self._where()} did not enter profile position mode (0x6061 = {mode})")
+        self._enter_mode(PROFILE_POSITION)
         self.profile_velocity = self._profile_velocity()
         self._sdo("writing profile velocity 0x6081", lambda: setattr(node.sdo[0x6081], "raw", self.profile_velocity))
         self.rated_ma = self._sdo("reading rated current 0x6075", lambda: node.sdo[0x6075].raw)
@@ -220,8 +230,12 @@ class CanopenGripper(FollowerBase):
         self._target = actual
         node.nmt.state = "OPERATIONAL"
         node.setup_402_state_machine(read_pdos=False)
-        # SYNC drives the TPDOs that carry the statusword while the state machine is walked
-        self.network.sync.start(0.005)
+        # SYNC drives the TPDOs that carry the statusword while the state machine is walked: sent (and counted, so the
+        # first state read waits out their answers still on their way) by a thread of ours
+        walked = threading.Event()
+        syncs = threading.Thread(target=self._walk_syncs, args=(walked,), daemon=True,
+                                 name=f"canopen-sync-node{p.node_id}")
+        syncs.start()
         try:
             # the walk starts from the drive's own statusword: from canopen's default (0, none received yet) its
             # first controlword was "disable voltage", switching off a drive found enabled (and holding)
@@ -234,9 +248,28 @@ class CanopenGripper(FollowerBase):
             raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
                                 f"0x{node.statusword:04X}, {self._emcy_text()})") from exc
         finally:
-            self.network.sync.stop()
+            walked.set()
+            syncs.join()
         self._hb_seen = time.monotonic()
         self._nmt_state = None  # heartbeats from here on (the ones before said PRE-OPERATIONAL)
+
+    def _enter_mode(self, mode: int) -> None:
+        """Write modes of operation 0x6060, then read the display 0x6061 (every MODE_POLL) until it shows ``mode``:
+        a CiA 402 drive switches in its own time, and the display follows the request when it has (read once, at
+        once, a drive still switching was refused). Not within ``mode_timeout``: a HardwareError naming both."""
+        node, p = self.node, self.params
+        self._sdo("writing mode 0x6060", lambda: setattr(node.sdo[0x6060], "raw", mode))
+        deadline = time.monotonic() + p.mode_timeout
+        while True:
+            shown = self._sdo("reading mode display 0x6061", lambda: node.sdo[0x6061].raw)
+            if shown == mode:
+                return
+            if time.monotonic() >= deadline:
+                raise HardwareError(f"{self._where()} did not switch to the requested mode {mode_text(mode)} within "
+                                    f"mode_timeout {p.mode_timeout:g} s: modes of operation display 0x6061 still "
+                                    f"shows {mode_text(shown)} (check that supported drive modes 0x6502 has it; a "
+                                    f"drive that switches slowly needs a longer mode_timeout)")
+            time.sleep(MODE_POLL)
 
     def _profile_velocity(self) -> int:
         """Profile velocity 0x6081 (counts/s) for ``max_speed``, rounded down in exact decimal arithmetic: the drive's
@@ -292,7 +325,8 @@ class CanopenGripper(FollowerBase):
 
         self._sdo("mapping PDOs", configure)
         self.tp1, self.tp2, self.rp1 = n.tpdo[1], n.tpdo[2], n.rpdo[1]
-        self._arrivals = {id(self.tp1): 0, id(self.tp2): 0}
+        self._arrivals = {id(self.tp1): 0, id(self.tp2): 0}   # frames received, per TPDO
+        self._owed = {id(self.tp1): 0, id(self.tp2): 0}       # the count that answers every SYNC sent so far
         for m in (self.tp1, self.tp2):
             m.add_callback(self._on_tpdo)
 
@@ -326,25 +360,62 @@ class CanopenGripper(FollowerBase):
         e = self.emcys[-1]
         return f"last EMCY {e}"
 
-    def _wait_tpdo(self, pdo: Any, before: int, deadline: float) -> bool:
-        """Whether a frame of ``pdo`` arrived after the first ``before`` ones, waiting until ``deadline``."""
-        with pdo.receive_condition:
-            while self._arrivals[id(pdo)] == before:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                pdo.receive_condition.wait(left)
+    def _sync(self) -> None:
+        """Transmit SYNC: TPDO1 and TPDO2 (transmission type 1) each owe one more answer."""
+        self.network.sync.transmit()
+        for key in self._owed:
+            self._owed[key] += 1
+
+    def _walk_syncs(self, walked: threading.Event) -> None:
+        while not walked.wait(WALK_SYNC_PERIOD):
+            try:
+                self._sync()
+            except Exception:   # (a full transmit queue: the next one is tried; the walk times out if none goes out)
+                pass
+
+    def _still_owed(self) -> str:
+        """The answers to earlier SYNCs that have not arrived ("" when none), after forgetting extra frames (a SYNC
+        of another producer on the bus, an answer written off that came after all): a frame answers a SYNC only
+        after every earlier SYNC's answer."""
+        owed = []
+        for pdo in (self.tp1, self.tp2):
+            key = id(pdo)
+            got = self._arrivals[key]
+            if got > self._owed[key]:
+                self._owed[key] = got
+            elif got < self._owed[key]:
+                owed.append(f"{self._owed[key] - got} of TPDO{1 if pdo is self.tp1 else 2}")
+        return ", ".join(owed)
+
+    def _answered(self, deadline: float) -> bool:
+        """Whether every SYNC sent so far has its TPDO1 and TPDO2, waiting until ``deadline``."""
+        for pdo in (self.tp1, self.tp2):
+            key = id(pdo)
+            with pdo.receive_condition:
+                while self._arrivals[key] < self._owed[key]:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    pdo.receive_condition.wait(left)
         return True
 
     def _hw_read(self) -> Reading | None:
         p = self.params
         if p.heartbeat_period > 0:
             self._check_heartbeat()
-        b1, b2 = self._arrivals[id(self.tp1)], self._arrivals[id(self.tp2)]
+        # TPDOs carry no SYNC number: each SYNC's answer is counted. The answers to earlier SYNCs (a step that timed
+        # out, the state walk's) arrive first, in order: waited for before this step's SYNC, so that none of them is
+        # taken for its answer; not there within pdo_timeout, they are written off as lost and the step has no state
+        owed = self._still_owed()
+        if owed and not self._answered(time.monotonic() + p.pdo_timeout):
+            for key in self._owed:
+                self._owed[key] = self._arrivals[key]
+            self.last_error = (f"the TPDOs answering earlier SYNCs ({owed}) did not come within another "
+                               f"{p.pdo_timeout * 1e3:.0f} ms: written off as lost")
+            return None
         t0 = time.monotonic()
-        self.network.sync.transmit()
-        deadline = t0 + p.pdo_timeout
-        ok = self._wait_tpdo(self.tp1, b1, deadline) and self._wait_tpdo(self.tp2, b2, deadline)
+        self._sync()
+        ok = self._answered(t0 + p.pdo_timeout)
         t1 = time.monotonic()
         if not ok:
             self.last_error = f"no TPDO within {p.pdo_timeout * 1e3:.0f} ms of SYNC"
@@ -436,6 +507,12 @@ class CanopenGripper(FollowerBase):
         d["emcy"] = len(getattr(self, "emcys", []))
         return d
 
+
+
+def mode_text(mode: int) -> str:
+    """A CiA 402 mode of operation with its name: "1 (profile position)"."""
+    name = MODE_NAMES.get(mode, "manufacturer-specific" if mode < 0 else "reserved")
+    return f"{mode} ({name})"
 
 
 @hookimpl

@@ -23,7 +23,8 @@ timed out (a late answer) looks like the answer to the next request. Every answe
 number of data bytes the request asked for; other packets are dropped and counted in ``stale_answers``), and after a
 request without a valid answer the next one is preceded by a PING whose answer is waited for: the servo answers in
 order, so whatever arrives before that PING's answer is a late answer to an earlier request and is dropped. A late
-answer of the right length can therefore never be taken for a newer request's.
+answer of the right length can therefore never be taken for a newer request's. A reading is stamped from the read
+that produced it (the midpoint of its request going out and its answer), never from before that PING.
 
 Waiting for answers: dynamixel-sdk polls the port in a Python loop (pyserial timeout 0) until the status packet's
 bytes or its packet timeout; the driver's port (:func:`port_handler_class`) waits in select() for the port to become
@@ -297,6 +298,7 @@ class DynamixelGripper(FollowerBase):
             return self._request(n, send, *args)
 
     def _request(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
+        self._sent_at = time.monotonic()   # when this request went out (after any resync PING): a reading's stamp
         result = send(*args)
         if result != self._sdk.COMM_SUCCESS:
             self._desync = True  # what went out is unknown: an answer may still come
@@ -386,6 +388,7 @@ class DynamixelGripper(FollowerBase):
         self._io_lock = threading.RLock()
         self.table = p.table()
         self._desync = False
+        self._sent_at = 0.0   # monotonic time the last request went out
         self.stale_answers = 0
         self.last_stale = ""
         self.resyncs = 0
@@ -525,8 +528,8 @@ class DynamixelGripper(FollowerBase):
             self._last_check = now
             self._poll_shutdown()
         # the SYNC_READ goes out with the group; its answer is taken (and checked) here, with its error byte
-        # (GroupSyncRead.txRxPacket() would drop it)
-        t0 = time.monotonic()
+        # (GroupSyncRead.txRxPacket() would drop it). The sample is stamped from that read alone: from when it went
+        # out (after the PING that resynchronises the bus after a lost answer) to its answer
         data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
         t1 = time.monotonic()
         if not self._started:   # the first state read is part of the start-up: retried, and its failure says so
@@ -535,7 +538,6 @@ class DynamixelGripper(FollowerBase):
                     break
                 self.startup_retries += 1
                 self.port.clearPort()
-                t0 = time.monotonic()
                 data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
                 t1 = time.monotonic()
             self._check("reading the state (SYNC_READ)", result, error & 0x80)
@@ -559,7 +561,7 @@ class DynamixelGripper(FollowerBase):
         vel_ticks = get(t.present_velocity) * t.velocity_unit_rpm / 60.0 * t.ticks_per_rev
         amps = get(t.present_current) * t.current_unit
         return Reading(self.opening_for(ticks), vel_ticks * self.map.scale, abs(amps) * p.newtons_per_amp,
-                       0.5 * (t0 + t1))
+                       0.5 * (self._sent_at + t1))
 
     def read_state(self, t: float) -> Reading:
         try:

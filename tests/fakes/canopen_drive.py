@@ -9,13 +9,18 @@ profile velocity 0x6081 (counts/s). An object at ``block_at`` counts (approached
 it, and the current rises to ``min(max current 0x6073, current_gain * |target - block_at|)`` (per mille of the rated
 current 0x6075). Entering OPERATION ENABLED holds the actual position (the position demand starts there, as on a
 real drive): only a new set-point moves the axis. ``go_silent()`` makes the node vanish from the bus (no SDO, PDO or
-heartbeat); ``inject_fault()`` sends an EMCY and enters FAULT. ``stamp`` (a clock, or None for the interface's own)
-stamps every frame the drive sends, as the receiving interface would: python-can interfaces differ (socketcan: epoch
-kernel stamps; others monotonic, device counters or none at all), so the driver must not trust the stamp's clock.
+heartbeat); ``inject_fault()`` sends an EMCY and enters FAULT. ``mode_delay`` is how long the drive takes to
+switch modes: the modes of operation display 0x6061 shows a mode written to 0x6060 that many seconds later (None:
+never, a mode the drive does not enter). ``latency`` delays every SYNC's TPDOs, ``answer_late()`` those of the next
+SYNCs (or loses them), each with the state sampled at its SYNC and never before an earlier answer; ``set_position()``
+puts the axis somewhere (by hand). ``stamp`` (a clock, or None for the interface's own) stamps every frame the drive
+sends, as the receiving interface would: python-can interfaces differ (socketcan: epoch kernel stamps; others
+monotonic, device counters or none at all), so the driver must not trust the stamp's clock.
 """
 
 from __future__ import annotations
 
+import collections
 import struct
 import threading
 import time
@@ -92,7 +97,8 @@ class Cia402Drive:
 
     def __init__(self, node_id: int = 5, channel: str = "teletouch-vcan", *, position: int = 0,
                  block_at: int | None = None, closing: int = 1, current_gain: float = 0.5,
-                 device_type: int = DEVICE_TYPE_402, stamp: Callable[[], float] | None = None):
+                 device_type: int = DEVICE_TYPE_402, stamp: Callable[[], float] | None = None,
+                 mode_delay: float | None = 0.0, latency: float = 0.0):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id)
@@ -106,6 +112,8 @@ class Cia402Drive:
         self.silent = False
         self.syncs = 0
         self.stamp = stamp
+        self.mode_delay = mode_delay
+        self.latency = latency   # s from a SYNC to its TPDOs (answer_late overrides it for the next SYNCs)
         self.latched = int(round(self.pos))  # the position demand: where the axis is, until a new set-point
         self.rpdo_frames = 0
         self._cw = 0
@@ -114,6 +122,12 @@ class Cia402Drive:
         self._hooked: set[int] = set()
         self._lock = threading.RLock()
         self._last = None
+        self._late: collections.deque[float | None] = collections.deque()  # answer_late's delays, one per SYNC
+        self._outbox: collections.deque[tuple[float, list[tuple[int, bytes]]]] = collections.deque()
+        self._out_cv = threading.Condition()
+        self._last_due = 0.0
+        self._sender: threading.Thread | None = None
+        self._closed = False
         self.network = canopen.Network()
         self.node = canopen.LocalNode(node_id, self.od)
 
@@ -149,6 +163,11 @@ class Cia402Drive:
             self.node.nmt.stop_heartbeat()
         except Exception:
             pass
+        with self._out_cv:
+            self._closed = True
+            self._out_cv.notify_all()
+        if self._sender is not None:
+            self._sender.join(2.0)
         self.network.disconnect()
 
     def __enter__(self) -> "Cia402Drive":
@@ -163,6 +182,20 @@ class Cia402Drive:
         self.silent = True
         self.node.nmt.stop_heartbeat()
         self.network.unsubscribe(self.node.sdo.rx_cobid)
+
+    def answer_late(self, *delays: float | None) -> None:
+        """The TPDOs answering the next ``len(delays)`` SYNCs go out that many seconds after their SYNC (None: never,
+        an answer lost), each with the state sampled at its SYNC, and never before an earlier answer (the drive keeps
+        their order, as a CAN bus does); the drive takes its other frames meanwhile."""
+        with self._lock:
+            self._late.extend(delays)
+
+    def set_position(self, counts: int) -> None:
+        """The axis is put at ``counts`` (by hand, with the drive enabled) and holds there: position demand and actual
+        position both ``counts`` from the next SYNC on."""
+        with self._lock:
+            self.pos = float(counts)
+            self.latched = int(counts)
 
     def inject_fault(self, code: int = 0x2310, register: int = 0x02) -> None:
         """A drive fault (default 0x2310: continuous over-current): EMCY, FAULT state, 0x603F set."""
@@ -201,9 +234,20 @@ class Cia402Drive:
             self._pdo_dirty = True
         elif index == 0x6060:
             (mode,) = struct.unpack("<b", data)
-            self._put(0x6061, mode)
+            self._switch_mode(mode)
         elif index == 0x6040 and not self._batch:
             self._controlword(struct.unpack("<H", data)[0])
+
+    def _switch_mode(self, mode: int) -> None:
+        """Modes of operation 0x6060 written: the display 0x6061 follows after ``mode_delay`` s (None: never)."""
+        if self.mode_delay is None:
+            return
+        if self.mode_delay <= 0 or self.get(0x6061) == mode:
+            self._put(0x6061, mode)
+            return
+        timer = threading.Timer(self.mode_delay, self._put, (0x6061, mode))
+        timer.daemon = True
+        timer.start()
 
     def _controlword(self, cw: int) -> None:
         with self._lock:
@@ -308,8 +352,42 @@ class Cia402Drive:
             if self._pdo_dirty:
                 self._reload_pdos()
             self._physics()
+            frames = []
             for m in self.node.tpdo.map.values():
                 if m.enabled and m.trans_type is not None and 1 <= m.trans_type <= 240:
                     for var in m:
                         var.set_data(self.node.get_data(var.index, var.subindex))
-                    m.transmit()
+                    frames.append((m.cob_id, bytes(m.data)))
+            delay = self._late.popleft() if self._late else self.latency
+        if delay is not None:   # None: this SYNC's answer is lost
+            self._answer(frames, delay)
+
+    def _answer(self, frames: list[tuple[int, bytes]], delay: float) -> None:
+        """Send a SYNC's TPDOs ``delay`` s from now, after every answer still waiting (their order kept)."""
+        with self._out_cv:
+            if delay <= 0 and not self._outbox:
+                for cob_id, data in frames:
+                    self.network.send_message(cob_id, data)
+                return
+            self._last_due = max(time.monotonic() + delay, self._last_due)
+            self._outbox.append((self._last_due, frames))
+            if self._sender is None:
+                self._sender = threading.Thread(target=self._send_late, name="cia402-late-tpdos", daemon=True)
+                self._sender.start()
+            self._out_cv.notify_all()
+
+    def _send_late(self) -> None:
+        with self._out_cv:
+            while not self._closed:
+                if not self._outbox:
+                    self._out_cv.wait()
+                    continue
+                due, frames = self._outbox[0]
+                left = due - time.monotonic()
+                if left > 0:
+                    self._out_cv.wait(left)
+                    continue
+                self._outbox.popleft()
+                if not self.silent:
+                    for cob_id, data in frames:
+                        self.network.send_message(cob_id, data)

@@ -6,7 +6,8 @@ stuffing) and answers with status packets like the servo's firmware: PING, READ,
 REBOOT; CRC, access, range and instruction errors in the status packet's error byte; a hardware-error alert bit;
 and it can be told to stop answering, to lose a given number of answers (``drop``), to corrupt its answers, or to
 answer late; ``refuse_reads`` (address -> error byte) refuses, and ``drop_reads`` (addresses) loses, the answers to
-READs that start at given addresses (one item of a poll refused or lost while the others are answered).
+READs that start at given addresses (one item of a poll refused or lost while the others are answered);
+``ping_delay`` answers a PING that many seconds late (a busy servo: a resync PING that takes a while).
 
 Models (``MODELS``): an XM430-W350 (X-series table) and the ROBOTIS RH-P12-RN gripper with either firmware: the
 RH-P12-RN(A) firmware (model number 35074, DYNAMIXEL-P-like table) and the old RH-P12-RN firmware (35073,
@@ -239,6 +240,7 @@ class DynamixelEmulator:
         self._held: tuple[int, int, bytes] | None = None
         self.refuse_reads: dict[int, int] = {}  # READ start address -> error byte answered instead of the data
         self.drop_reads: set[int] = set()        # READ start addresses whose answers are lost (kept in ``dropped``)
+        self.ping_delay = 0.0        # answer a PING this long (s) after it arrived (busy: the requests after it queue)
         # observation
         self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
         self.trace: list[tuple[float, float]] = []  # (monotonic, position in ticks) at every physics update
@@ -400,6 +402,8 @@ class DynamixelEmulator:
                 held, self._held = self._held, None
                 self._reply(*held)
             if inst == INST_PING:
+                if self.ping_delay > 0:
+                    time.sleep(self.ping_delay)
                 self._reply(len(pkt), 0, struct.pack("<HB", self.table.model_number, self.table.firmware))
             elif inst == INST_READ:
                 if len(params) != 4:
