@@ -69,7 +69,7 @@ class ForceGuard:
     ``timeout`` seconds (or stamped more than that ahead, or with a NaN stamp) gives zero force (no fault: the
     runtime's ``max_age`` turns staleness into a fault where the graph asks for it). A command that was stale and is
     fresh again is faded in from zero over ``fade_in`` seconds of graph time, never stepped onto the hand. Counts
-    clamped, stale and faded-in commands for status().
+    clamped, stale, invalid and faded-in commands for status() (from zero again after :meth:`clear_counts`).
     """
 
     def __init__(self, max_gripper_force: float, max_force: float, timeout: float | None,
@@ -88,6 +88,10 @@ class ForceGuard:
     def reset(self) -> None:
         """Forget which ports were stale (at activation: the device starts from zero force anyway)."""
         self._back = {}
+
+    def clear_counts(self) -> None:
+        """The counters from zero (omega7: at each activation, so that status() is of one activation)."""
+        self.clamped = self.stale = self.invalid = self.faded_in = 0
 
     def _fade(self, port: str, t: float) -> float:
         """Scale (0..1) of a fresh command on ``port``: rising over ``fade_in`` from its first fresh step after it
@@ -220,8 +224,6 @@ class Omega7(Device):
         self.active = False
         self.sign = 1.0
         self._new_session()
-        self.timeguards = 0
-        self.saturated = 0
         self.faults = 0
         self.safe_errors = 0
         self.g_sent = 0.0
@@ -234,7 +236,6 @@ class Omega7(Device):
         self._wd_set = False
         self._last_cmd = 0.0
         self._first_write = True
-        self.watchdog_trips = 0
         self._fade_until = 0.0    # monotonic time until which forces fade back in after a watchdog trip
         self._off_cause: int | None = None
         rate = self.ctx.rate
@@ -289,11 +290,17 @@ class Omega7(Device):
             self.active = True
 
     def _new_session(self) -> None:
-        """What status() reports of one activation: the device's loss and the SDK's communication rate (read at the
-        first step, whatever the graph time: it starts from 0 again in a new run)."""
+        """What status() reports of one activation, from afresh: the device's loss, another failure of a step, the
+        SDK's communication rate (read at the first step, whatever the graph time: it starts from 0 again in a new
+        run) and the counters (the guard's, time guards, saturations, watchdog trips)."""
         self.lost: str | None = None
+        self.error: str | None = None
         self.com_freq_hz = math.nan
         self._next_freq = -math.inf
+        self.timeguards = 0
+        self.saturated = 0
+        self.watchdog_trips = 0
+        self.guard.clear_counts()
 
     def _after_late_gap(self, d: Any, sent: float) -> bool:
         """Before a write that comes later than the firmware watchdog (under the lock). If the watchdog switched the
@@ -338,6 +345,7 @@ class Omega7(Device):
         g, f, problem = self.guard.apply(t, inputs)
         if problem is not None:
             self.faults += 1
+            self.error = problem
             self.safe_state()
             raise ComponentFault(problem, self.id)
         d = self.dhd
@@ -369,8 +377,7 @@ class Omega7(Device):
                     self._next_freq = t + self.params.com_freq_interval
                     self.com_freq_hz = d.com_freq()
         except Exception as exc:
-            self.lost = str(exc)
-            self.active = False
+            self._step_failed(exc)
             raise
         if rc == 1:
             self.timeguards += 1
@@ -383,6 +390,23 @@ class Omega7(Device):
         self.g_sent, self.f_sent = g, f
         return {"gripper_opening": gap, "gripper_velocity": self.sign * gvel,
                 "position": np.array((x, y, z)), "button": button}
+
+    def _step_failed(self, exc: Exception) -> None:
+        """A call of the step raised (outside the lock; the step raises it on, faulting the node). A device that
+        stopped answering (DeviceLostError: the SDK's communication error or timeout) is ``lost``: nothing can be
+        set on it (its firmware switches the forces off on a USB disconnection; the runtime's safe_state() still
+        tries). Any other failure (an SDK error of a device that still answers, a bug in this driver) is an
+        ``error``, named with its type, and the device is made safe at once (zero force, brakes), not left with the
+        step before's force until the runtime's safe_state()."""
+        from .dhd import DeviceLostError
+
+        self.faults += 1
+        if isinstance(exc, DeviceLostError):
+            self.lost = str(exc)
+            self.active = False
+            return
+        self.error = f"{type(exc).__name__}: {exc}"
+        self.safe_state()
 
     def safe_state(self) -> None:
         """Zero force, then the brakes (if configured). Each call is tried on its own; never raises."""
@@ -479,7 +503,8 @@ class Omega7(Device):
                 "force_norm": float(np.linalg.norm(self.f_sent)), "timeguards": self.timeguards,
                 "saturated": self.saturated, "clamped": self.guard.clamped, "stale_commands": self.guard.stale,
                 "faded_in": self.guard.faded_in, "left_handed": self.sign < 0, "lost": self.lost or "",
-                "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0, "watchdog_trips": self.watchdog_trips}
+                "error": self.error or "", "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0,
+                "watchdog_trips": self.watchdog_trips}
 
 
 @hookimpl
