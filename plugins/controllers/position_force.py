@@ -8,11 +8,14 @@ All three have the ports of docs/ports.md (Controller):
   fingers apart), ``energy`` (J, passivity observer), and ``damping`` (N*s/m, what the passivity controller added).
 
 Every input is taken in stamp order: a sample stamped before the newest fresh one already taken (out of order) is
-ignored, so an older measurement never replaces a newer one. An opening (leader or follower) that is not finite or
-beyond 1 m either way (``MAX_PLAUSIBLE_OPENING``: no gripper opens wider) is invalid input, like NaN: counted, never
-differentiated into a velocity. A bad sample is counted once, not on every step while it stays the latest. No
-velocity is differentiated across a gap of more than ``leader_stale_after`` between two openings (a loss): the
-estimate restarts at zero.
+ignored, so an older measurement never replaces a newer one. A sample is fresh while it is at most its input's
+``stale_after`` (``leader_stale_after``) old and at most ``max_clock_skew`` (50 ms, never more than that stale_after)
+ahead of the graph clock: a stamp further ahead is a clock fault (clocks that disagree), not a fresh sample: it is not
+used, counted (``future_stamps``, ``invalid_inputs``) and named in the fault of a loss that lasts. An opening
+(leader or follower) that is not finite or beyond 1 m either way (``MAX_PLAUSIBLE_OPENING``: no gripper opens wider)
+is invalid input, like NaN: counted, never differentiated into a velocity. A bad sample is counted once, not on
+every step while it stays the latest. No velocity is differentiated across a gap of more than ``leader_stale_after``
+between two openings (a loss): the estimate restarts at zero.
 
 The control law of ``position-force`` (each step, at >= 1 kHz):
 
@@ -254,6 +257,10 @@ class _CommonParams(Params):
                                         "follower and fades the force", json_schema_extra={"unit": "s"})
     fade_time: Seconds = Field(0.2, gt=0, description="time to fade the force to zero when its source is lost",
                                json_schema_extra={"unit": "s"})
+    max_clock_skew: Seconds = Field(0.05, ge=0, description="an input stamped further ahead of the graph clock "
+                                    "(never more than its stale_after) is a clock fault, not a fresh sample: not "
+                                    "used, counted; as the ROS 2 subscriber's and poly-force's max_clock_skew",
+                                    json_schema_extra={"unit": "s"})
     fault_after_lost: Seconds | None = Field(0.5, gt=0, description="a leader opening (stale or not finite) or, "
                                              "for position-force, a force estimate (stale or not finite) lost "
                                              "for longer than this is a fault: step() raises and the runtime "
@@ -395,12 +402,14 @@ class _Bilateral(Component):
         self.x_f = math.nan
         self.out_force = 0.0                     # last leader force sent (N)
         self.pas = PassivityState()
+        self.damping = 0.0                       # the damping output of the last step (N*s/m)
         # openings more than leader_stale_after apart have a loss between them: no velocity across it
         self.vel_l = Differentiator(p.velocity_cutoff, p.leader_stale_after)
         self.vel_f = Differentiator(p.velocity_cutoff, p.leader_stale_after)
         self.leader_ok = False
         self.state = "waiting"                   # waiting | ok | stale-force | bad-force | stale-leader
         self.invalid_inputs = 0
+        self.future_stamps = 0                   # samples stamped more than max_clock_skew ahead (see _fresh)
         self.force_held = 0.0
         self.fading = False
         self.leader_fade_rate: float | None = None
@@ -432,9 +441,32 @@ class _Bilateral(Component):
             return last
         if last is not None and s.stamp < last.stamp:
             return last
-        if s.is_fresh(t, max_age):
+        if self._fresh(s, t, max_age):
             self._taken[name] = s
         return s
+
+    def _fresh(self, s: Sample, t: float, max_age: float) -> bool:
+        """Whether ``s`` may be used at ``t``: at most ``max_age`` old and at most ``max_clock_skew`` (never more
+        than ``max_age``) ahead of the graph clock; False for a NaN stamp. (Sample.is_fresh took up to ``max_age``
+        ahead: a force stamped 80 ms in the future was fresh for 180 ms, and the tolerance grew with stale_after.)"""
+        return -min(self.params.max_clock_skew, max_age) <= t - s.stamp <= max_age
+
+    def _not_fresh(self, name: str, s: Sample, t: float, max_age: float, limit: str, first: bool | None = None
+                   ) -> str:
+        """Why ``s``, not fresh at ``t``, is not (for the fault of a loss that lasts); a stamp ahead of the clock is
+        counted once per sample (``future_stamps``, ``invalid_inputs``). ``limit``: the name of ``max_age``;
+        ``first``: whether ``s`` is looked at for the first time (None: asked here, see :meth:`_first_look`)."""
+        ahead = s.stamp - t
+        if math.isnan(ahead):
+            return f"stamp {s.stamp!r}"
+        if ahead <= 0.0:
+            return f"stale (older than {limit} {max_age:g} s)"
+        if self._first_look(name, s) if first is None else first:
+            self.future_stamps += 1
+            self.invalid_inputs += 1
+        return (f"stamped {ahead:.3f} s ahead of the graph clock, more than max_clock_skew "
+                f"{min(self.params.max_clock_skew, max_age):g} s: the clocks disagree; synchronise them (chrony, "
+                f"PTP), or stamp on arrival (stamps: arrival on a ROS 2 subscriber)")
 
     def _first_look(self, name: str, s: Sample) -> bool:
         """Whether ``s`` is looked at for the first time on input ``name``: not the sample of the last look (it
@@ -450,9 +482,9 @@ class _Bilateral(Component):
     def _leader(self, t: float, inputs: Any) -> bool:
         p = self.params
         s = self._ordered("leader_opening", inputs["leader_opening"], t, p.leader_stale_after)
-        if s is None or not s.is_fresh(t, p.leader_stale_after):
-            self.leader_problem = (f"stale (older than leader_stale_after {p.leader_stale_after:g} s)" if s is not None
-                                   else "nothing received")
+        if s is None or not self._fresh(s, t, p.leader_stale_after):
+            self.leader_problem = ("nothing received" if s is None else
+                                   self._not_fresh("leader_opening", s, t, p.leader_stale_after, "leader_stale_after"))
             return False
         x = opening_or_nan(s.value)
         if not math.isfinite(x):
@@ -463,7 +495,9 @@ class _Bilateral(Component):
         self.x_l = x
         v_raw = self._ordered("leader_velocity", inputs.get("leader_velocity"), t, p.leader_stale_after)
         v = math.nan
-        if v_raw is not None and v_raw.is_fresh(t, p.leader_stale_after):
+        if v_raw is not None and not self._fresh(v_raw, t, p.leader_stale_after):
+            self._not_fresh("leader_velocity", v_raw, t, p.leader_stale_after, "leader_stale_after")   # (counted)
+        elif v_raw is not None:
             v = finite_or(v_raw.value, math.nan)
             if not abs(v) <= p.max_leader_velocity:          # NaN, inf, or a glitch the opening never made
                 if self._first_look("leader_velocity", v_raw):
@@ -474,8 +508,12 @@ class _Bilateral(Component):
         return True
 
     def _follower(self, t: float, inputs: Any) -> bool:
-        s = self._ordered("follower_opening", inputs.get("follower_opening"), t, self.params.leader_stale_after)
-        if s is None or not s.is_fresh(t, self.params.leader_stale_after):
+        max_age = self.params.leader_stale_after
+        s = self._ordered("follower_opening", inputs.get("follower_opening"), t, max_age)
+        if s is None:
+            return False
+        if not self._fresh(s, t, max_age):
+            self._not_fresh("follower_opening", s, t, max_age, "leader_stale_after")     # (a future stamp counted)
             return False
         x = opening_or_nan(s.value)
         if not math.isfinite(x):
@@ -552,6 +590,7 @@ class _Bilateral(Component):
             f_fb -= p.leader_damping * v
         alpha = 0.0
         cut = False                              # the passivity controller had to cut the force this step
+        stopped = False                          # ... or stopped it at zero (passivity_no_reversal)
         if p.passivity and p.passivity_gain_adaptation:
             f_fb *= self.gain
         f_des = f_fb
@@ -562,6 +601,8 @@ class _Bilateral(Component):
             f_des, alpha = passivity_force(self.pas, f_fb, v, dt, self._damping_cap, p.energy_leak_time,
                                            reduce_force=False)
             f_capped = f_des                       # with the capped damping at once (what the cut may count on)
+            if p.passivity_controller == "force" and p.passivity_no_reversal and opposite_signs(f_capped, f_fb):
+                f_capped = 0.0                     # it stops the force at zero: the cut never counts on a pull
             if dt <= 0.0:                          # a repeated time is no step: the damping stays (it dropped
                 alpha = self.pas.alpha             # to 0 with damping_release 0, then rose: a surge of the force)
             elif p.damping_smoothing > 0.0 and alpha > self.pas.alpha:
@@ -579,6 +620,7 @@ class _Bilateral(Component):
                     f_des, alpha = f_fb, 0.0
                 elif p.passivity_no_reversal and opposite_signs(f_des, f_fb):   # (a product may underflow)
                     f_des = 0.0                    # the damping may take the feedback force away, not reverse it
+                    stopped = True
             if ((p.passivity_force_reduction or p.passivity_controller == "force") and dt > 0
                     and same_sign(f_des, v) and abs(v) >= p.reduction_min_velocity):
                 # cut only what even the capped damping would leave: a deficit that the damping's smooth rise
@@ -621,10 +663,13 @@ class _Bilateral(Component):
             if not math.isfinite(self.pas.energy):
                 self.pas = PassivityState()
         self.out_force = f
-        if cut and v != 0.0:
-            alpha = (f_fb - f_des) / v               # the equivalent damping of damping + cut, for the output
+        if (cut or stopped) and v != 0.0:
+            # the equivalent damping of damping + cut, for the output; stopped at zero, the damping the hand got (the
+            # whole feedback force), not the larger one that would have pulled
+            alpha = (f_fb - f_des) / v
         if not math.isfinite(alpha):
             alpha = 0.0
+        self.damping = alpha
         out: dict[str, float] = {"gripper_force": f, "energy": self.pas.energy, "damping": alpha}
         if self.command is not None:
             out["opening_command"] = self.command
@@ -637,7 +682,7 @@ class _Bilateral(Component):
             "follower_mm": round(self.x_f * 1e3, 2) if math.isfinite(self.x_f) else None,
             "energy_mJ": round(self.pas.energy * 1e3, 3),
             "feedback_N": round(self.out_force, 3),
-            "damping": round(self.pas.alpha, 2),
+            "damping": round(self.damping, 2),
             "state": self.state,
         }
 
@@ -716,7 +761,7 @@ class PositionForce(_Bilateral):
             f_s = finite_or(s.value, math.nan)
             if math.isfinite(f_s):
                 self.force_held = f_s
-                if s.is_fresh(t, p.stale_after):      # (False for a NaN stamp, which has no latency to count)
+                if self._fresh(s, t, p.stale_after):      # (False for a NaN stamp, which has no latency to count)
                     if len(self.latencies) < 100_000:
                         self.latencies.append(t - s.stamp)
                     f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
@@ -731,6 +776,7 @@ class PositionForce(_Bilateral):
                         self.pas.follower_energy += e_f
                 else:
                     self.fport.forget()
+                    self._not_fresh("force", s, t, p.stale_after, "stale_after", True)   # (a future stamp counted)
             else:
                 self.fport.forget()
                 self.bad_force += 1
@@ -740,7 +786,9 @@ class PositionForce(_Bilateral):
                 self._fade(t)
         if s is None:
             self.state = "waiting" if self.state == "waiting" else self.state
-        elif not s.is_fresh(t, p.stale_after) and self.state != "bad-force":
+        elif not self._fresh(s, t, p.stale_after) and self.state != "bad-force":
+            if not self.fading:                       # why, for the fault of a loss that lasts
+                self.force_problem = self._not_fresh("force", s, t, p.stale_after, "stale_after", False)
             self.state = "stale-force"
             self._fade(t)
         self.force_state = self.state
@@ -818,8 +866,8 @@ class PositionForce(_Bilateral):
     def _fade(self, t: float) -> None:
         if not self.fading:
             self.fading = True
-            self.force_problem = ("not finite" if self.state == "bad-force"
-                                  else f"stale: older than stale_after {self.params.stale_after:g} s")
+            if self.state == "bad-force":             # (a stale one: its force_problem is set by feedback())
+                self.force_problem = "not finite"
             self.hold.set(t, 0.0, self.params.fade_time)
 
     def force_lost(self) -> bool:
