@@ -19,6 +19,7 @@ import argparse
 import contextlib
 import json
 import math
+import numbers
 import os
 import shutil
 import signal
@@ -184,11 +185,12 @@ class _Progress:
         return rows
 
     def _status_text(self, comp: Any) -> str:
-        """The first ``status()`` numbers as ``key=value``; nothing when status() raises, is not a mapping or holds
-        a value that cannot be printed (a plugin's bug there must not stop the run: the live view raising does)."""
+        """The first ``status()`` numbers as ``key=value``, a number under a unit suffix in a person's unit
+        (:func:`_status_item`); nothing when status() raises, is not a mapping or holds a value that cannot be
+        printed (a plugin's bug there must not stop the run: the live view raising does)."""
         try:
             items = list(comp.status().items())[:self.MAX_STATUS]
-            return " ".join(f"{k}={_fmt(v)}" for k, v in items)
+            return " ".join(_status_item(k, v) for k, v in items)
         except Exception:
             return ""
 
@@ -217,6 +219,39 @@ def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     return str(v)
+
+
+def _time_text(v: float) -> str:
+    return f"{v * 1e3:.1f}ms" if abs(v) < 1.0 else f"{v:.2f}s"
+
+
+#: the unit suffixes of status() keys (docs/writing-a-plugin.md), longest first, and how the live view shows a value
+#: (SI) under each for a person: lengths in mm, energies in mJ, times below 1 s in ms
+STATUS_UNITS: tuple[tuple[str, Any], ...] = (
+    ("_n_s_per_m", lambda v: f"{v:.2f}N*s/m"),
+    ("_n_per_m", lambda v: f"{v:.0f}N/m"),
+    ("_m_per_s", lambda v: f"{v:.4g}m/s"),
+    ("_m2", lambda v: f"{v * 1e6:.2f}mm^2"),
+    ("_hz", lambda v: f"{v:.1f}Hz"),
+    ("_rad", lambda v: f"{v:.3f}rad"),
+    ("_m", lambda v: f"{v * 1e3:.2f}mm"),
+    ("_n", lambda v: f"{v:.2f}N"),
+    ("_j", lambda v: f"{v * 1e3:.3f}mJ"),
+    ("_s", _time_text),
+)
+
+
+def _status_item(key: Any, value: Any) -> str:
+    """One status() item for the live view: a finite number under a key with a unit suffix (STATUS_UNITS) without
+    the suffix, in a person's unit (``opening_m=0.0123`` -> ``opening=12.30mm``); anything else as ``key=value``."""
+    name = str(key)
+    number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    for suffix, show in STATUS_UNITS:
+        if name.endswith(suffix) and len(name) > len(suffix):
+            if number and math.isfinite(value):
+                return f"{name[:-len(suffix)]}={show(float(value))}"
+            return f"{name[:-len(suffix)]}={_fmt(value)}"
+    return f"{name}={_fmt(value)}"
 
 
 def cmd_run(args: argparse.Namespace) -> int:

@@ -499,7 +499,8 @@ class Component:
         """Release everything; called once, even after a failed configure."""
 
     def status(self) -> dict[str, Any]:
-        """A few numbers for the live view (SI units)."""
+        """A few figures for the live view (the first six) and tests: SI, a key with a unit ending in it (``opening_m``,
+        ``force_n``; counts, flags and text without; docs/writing-a-plugin.md)."""
         return {}
 
     # introspection ---------------------------------------------------------------------------------------------

@@ -86,7 +86,7 @@ def test_position_force_follows_leader_and_renders_scaled_force():
                          leader=lambda t: 0.02 - 0.01 * t)
     assert outs[-1]["opening_command"] == pytest.approx(0.02 - 0.01 * 0.299 + 0.001)
     assert outs[-1]["gripper_force"] == pytest.approx(3.0)      # k_f * f_s, positive pushes fingers apart
-    assert comp.status()["leader_mm"] == pytest.approx((0.02 - 0.01 * 0.299) * 1e3, abs=0.01)
+    assert comp.status()["leader_m"] == pytest.approx(0.02 - 0.01 * 0.299, abs=1e-9)
 
 
 def test_camera_rate_estimate_is_smoothed_never_a_jump():
@@ -120,7 +120,7 @@ def test_no_feedback_baseline_sends_no_force():
         for k in range(50):
             out = h.step(k * 1e-3, leader_opening=0.015, force=5.0, leader_velocity=-0.01)
     assert out["gripper_force"] == 0.0 and out["opening_command"] == pytest.approx(0.015)
-    assert h.comp.status()["force_N"] == 5.0
+    assert h.comp.status()["force_n"] == 5.0
 
 
 def test_params_are_validated():

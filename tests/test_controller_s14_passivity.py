@@ -57,4 +57,4 @@ def test_the_reported_damping_is_what_the_hand_got_when_the_force_stops_at_zero(
         assert stopped, [o["gripper_force"] for o in outs]
         for o in stopped:
             assert o["damping"] == pytest.approx(F / V)      # 20 N*s/m: all of the 2 N, none of the pull
-        assert h.comp.status()["damping"] == pytest.approx(F / V)
+        assert h.comp.status()["damping_n_s_per_m"] == pytest.approx(F / V)

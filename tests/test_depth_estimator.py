@@ -134,7 +134,7 @@ def test_component_ports_stamps_and_errors(sim, monkeypatch):
         assert out["centroid"].dtype == np.float64 and out["centroid"].shape == (2,)
         assert isinstance(out["max_depth"], float) and out["max_depth"] > 0.3e-3
         assert out["contact_area"] > 0
-        assert h.comp.status()["max_depth_mm"] == pytest.approx(out["max_depth"] * 1e3)
+        assert h.comp.status()["max_depth_m"] == pytest.approx(out["max_depth"])
         with pytest.raises(ComponentFault, match="expected a uint8 BGR image of 320x240x3"):
             h.step(0.6, image=np.zeros((640, 480, 3), np.uint8))
     with pytest.raises(ModelFileError, match="no such model file"):

@@ -136,7 +136,7 @@ def test_reactivation_starts_from_the_measured_opening():
         h.comp.x = h.comp.target = 0.02  # moved by someone else while inactive
         h.comp.activate()
         assert h.comp._setpoint == pytest.approx(0.02)
-        assert h.comp.status()["opening"] == pytest.approx(0.02)  # the last reading is refreshed
+        assert h.comp.status()["opening_m"] == pytest.approx(0.02)  # the last reading is refreshed
         # the operator's command matches where the gripper is now: nothing moves
         sp, o, t = steps(h, t + 1.0, 200, 0.02)
         assert all(s == pytest.approx(0.02) for s in sp)

@@ -552,7 +552,9 @@ def test_spacemouse_that_goes_silent_while_deflected_stops_the_opening_and_fault
         msg = str(exc)
         assert "SpaceMouse Wireless (receiver) (256f:c62f) sent no report for 0.50" in msg
         assert "while its cap was deflected" in msg and "report_timeout 0.5 s" in msg
-        assert h.comp.status()["gripper_opening"] == x
+        st = h.comp.status()
+        assert st["gripper_opening_m"] == x and st["report_timeout_s"] == 0.5
+        assert st["last_report_at_s"] == pytest.approx(last_report)   # graph time, s
         # it had moved at max_speed from the first report to the last
         assert last_report == pytest.approx(0.192) and x == pytest.approx(0.025 - 0.020 * 0.192)
         fake_hid.reports.append(PULL)  # back after the long silence: nothing was integrated over it

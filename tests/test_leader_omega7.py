@@ -587,12 +587,12 @@ def test_safe_state_during_a_hanging_step_is_never_undone(sdk_dir, standin):
     # that step must not send its force (decided before safe_state) to the device
     with harness(sdk_dir) as h:
         h.step(0.0, gripper_force=3.0)
-        assert h.comp.status()["gripper_force"] == pytest.approx(3.0)
+        assert h.comp.status()["gripper_force_n"] == pytest.approx(3.0)
         stepper = start_hanging_step(h, standin, 0.001, gripper_force=3.0)
         guard = threading.Thread(target=h.comp.safe_state, daemon=True)
         guard.start()
         try:
-            assert wait_for(lambda: h.comp.status()["gripper_force"] == 0.0)  # safe_state() has begun
+            assert wait_for(lambda: h.comp.status()["gripper_force_n"] == 0.0)  # safe_state() has begun
             standin.mark()
         finally:
             standin.release()

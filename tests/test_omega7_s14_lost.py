@@ -56,7 +56,7 @@ def test_a_failure_that_is_not_a_lost_device_is_reported_as_what_it_is_and_made_
             h.step(0.001, gripper_force=3.0)
         st = h.comp.status()
         assert st["lost"] == "", st
-        assert pytest.approx(0.0) == st["gripper_force"]
+        assert pytest.approx(0.0) == st["gripper_force_n"]
         assert re.search(text, st["error"]), st["error"]
         # made safe by the step itself, before the fault reaches the runtime: no force on the hand, brakes on
         assert standin.forces()[0] == [0.0] * 4 and standin.flags()["brakes"]

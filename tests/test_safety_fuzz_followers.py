@@ -305,7 +305,7 @@ def run_case(case: Case, rig_cls: Callable[[Case], Any]) -> None:
         h = rig.h
         comp = h.comp
         oracle = SetpointOracle(comp.params, float(h.ctx.rate))
-        oracle.activate(comp.status()["opening"])
+        oracle.activate(comp.status()["opening_m"])
         checker = WriteChecker(rig, oracle)
         # (step, set-point or measured opening, speed-limit step, what): "activate" entries send nothing
         expected: list[tuple[int, float, float, str]] = [(0, oracle.sp, 0.0, "activate")]
@@ -317,7 +317,7 @@ def run_case(case: Case, rig_cls: Callable[[Case], Any]) -> None:
                 if ev["activate"] is not None:
                     rig.move(ev["activate"])
                 comp.activate()
-                oracle.activate(comp.status()["opening"])
+                oracle.activate(comp.status()["opening_m"])
                 expected.append((i, oracle.sp, 0.0, "activate"))
             e = ev.get("cmd")
             if e == "repeat":
@@ -330,7 +330,7 @@ def run_case(case: Case, rig_cls: Callable[[Case], Any]) -> None:
                 s = slot.sample
             slot.sample = s
             last = s if s is not None else last
-            measured = comp.status()["opening"]
+            measured = comp.status()["opening_m"]
             try:
                 out = comp.step(t, h.inputs) or {}
             except Exception as exc:
@@ -341,7 +341,7 @@ def run_case(case: Case, rig_cls: Callable[[Case], Any]) -> None:
             expected.append((i, sp, dt, "step"))
             if ev.get("safe"):
                 comp.safe_state()
-                expected.append((i, oracle.safe_state(comp.status()["opening"]), -1.0, "safe_state"))
+                expected.append((i, oracle.safe_state(comp.status()["opening_m"]), -1.0, "safe_state"))
             if rig.check_each_step:
                 checker.check(expected)
         checker.check(expected, final=True)

@@ -140,7 +140,7 @@ def check_hand_force(o: Observed, case: Case, tf: float, p: dict[str, float]) ->
                       f"t={late[-1][0]:.3f} s (expected 0 from t={due:.3f} s)")
     calls = [(t, g) for d, t, g in o.safe_calls if d == "leader"]
     assert calls, "the leader's safe_state() was never called"
-    assert calls[-1][1] == 0.0 and o.leader_end["gripper_force"] == 0.0 and o.leader_end["safe"], \
+    assert calls[-1][1] == 0.0 and o.leader_end["gripper_force_n"] == 0.0 and o.leader_end["safe"], \
         f"the leader ended with {o.leader_end}"
     after = [t for t, *_ in o.leader if t > calls[-1][0]]
     assert not after, f"the leader was stepped at t={after[0]:.3f} s after its last safe_state()"
@@ -156,8 +156,8 @@ def check_follower_holds(o: Observed, case: Case, band: float = BAND) -> None:
             f"(grip force {f:.2f} N; band {band * 1e3:g} mm)")
     end = o.follower_end
     assert end["safe"], f"the follower did not end in its safe state: {end}"
-    assert abs(end["setpoint"] - o.x_fault) <= band, \
-        f"the follower's safe set-point is {end['setpoint'] * 1e3:.3f} mm (at the fault: {o.x_fault * 1e3:.3f} mm)"
+    assert abs(end["setpoint_m"] - o.x_fault) <= band, \
+        f"the follower's safe set-point is {end['setpoint_m'] * 1e3:.3f} mm (at the fault: {o.x_fault * 1e3:.3f} mm)"
 
 
 def check_status(o: Observed, case: Case, tf: float) -> None:

@@ -200,6 +200,7 @@ def test_capture_path_on_a_video_file(video):
         assert 0.7 / 120 < per_frame < 5 / 120  # paced (never faster), slower only on a loaded machine
         st = h.comp.status()
         assert st["frames"] == 10 and st["captured"] >= 10
+        assert 0 < st["frame_rate_hz"] < 1000   # of the frames passed on, Hz (was "fps")
 
 
 def test_slow_consumer_gets_newest_frame_and_counts_drops(video):

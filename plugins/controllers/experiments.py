@@ -204,8 +204,8 @@ class SimPivot(Component):
                 "dropped": self.dropped}
 
     def status(self) -> dict[str, Any]:
-        return {"angle_deg": round(math.degrees(getattr(self, "theta", 0.0)), 2),
-                "slipping": getattr(self, "slipping", False), "dropped": getattr(self, "dropped", False)}
+        return {"angle_rad": getattr(self, "theta", 0.0), "slipping": getattr(self, "slipping", False),
+                "dropped": getattr(self, "dropped", False)}
 
 
 class PivotOperator(Component):
@@ -418,8 +418,8 @@ class PivotOperator(Component):
         return {"intent_opening": self.u + self.tremor + self.drift}
 
     def status(self) -> dict[str, Any]:
-        return {"phase": getattr(self, "phase", ""), "seen_deg": round(math.degrees(getattr(self, "theta_p", 0.0)), 1),
-                "target_N": round(getattr(self, "f_target", 0.0), 2)}
+        return {"phase": getattr(self, "phase", ""), "seen_angle_rad": getattr(self, "theta_p", 0.0),
+                "target_force_n": getattr(self, "f_target", 0.0)}
 
 
 @hookimpl

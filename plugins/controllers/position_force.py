@@ -676,14 +676,15 @@ class _Bilateral(Component):
         return out
 
     def status(self) -> dict[str, Any]:
+        """SI, the unit in each key (docs/writing-a-plugin.md); the live view shows the first six."""
         return {
-            "force_N": round(self.force_held, 3),
-            "leader_mm": round(self.x_l * 1e3, 2) if math.isfinite(self.x_l) else None,
-            "follower_mm": round(self.x_f * 1e3, 2) if math.isfinite(self.x_f) else None,
-            "energy_mJ": round(self.pas.energy * 1e3, 3),
-            "feedback_N": round(self.out_force, 3),
-            "damping": round(self.damping, 2),
+            "force_n": self.force_held,
+            "leader_m": self.x_l if math.isfinite(self.x_l) else None,
+            "follower_m": self.x_f if math.isfinite(self.x_f) else None,
+            "feedback_n": self.out_force,
+            "energy_j": self.pas.energy,
             "state": self.state,
+            "damping_n_s_per_m": self.damping,
         }
 
 
@@ -860,7 +861,7 @@ class PositionForce(_Bilateral):
 
     def status(self) -> dict[str, Any]:
         d = super().status()
-        d["contact_stiffness"] = round(getattr(self, "k_hat", 0.0), 1)     # N/m, learnt by the prediction
+        d["contact_stiffness_n_per_m"] = getattr(self, "k_hat", 0.0)     # learnt by the prediction
         return d
 
     def _fade(self, t: float) -> None:

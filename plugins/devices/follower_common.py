@@ -371,7 +371,7 @@ class FollowerBase(Device):
 
     def status(self) -> dict[str, Any]:
         r = getattr(self, "_last_reading", None)
-        return {"opening": None if r is None else r.opening, "setpoint": getattr(self, "_setpoint", None),
-                "effort": None if r is None else r.effort, "safe": getattr(self, "_safe", False),
+        return {"opening_m": None if r is None else r.opening, "setpoint_m": getattr(self, "_setpoint", None),
+                "effort_n": None if r is None else r.effort, "safe": getattr(self, "_safe", False),
                 "holding": getattr(self, "_holding", None), "stale_commands": getattr(self, "_stale_commands", 0),
                 "bad_commands": getattr(self, "_bad_commands", 0)}

@@ -632,8 +632,8 @@ class HidLeader(Device):
     def status(self) -> dict[str, Any]:
         if not hasattr(self, "dev"):
             return {}
-        return {"device": self.info.get("name", ""), "profile": self.profile, "gripper_opening": self.opening,
-                "reports": self.reports, "report_timeout": self.report_timeout, "last_report_t": self.last_report_t}
+        return {"gripper_opening_m": self.opening, "reports": self.reports, "last_report_at_s": self.last_report_t,
+                "report_timeout_s": self.report_timeout, "profile": self.profile, "device": self.info.get("name", "")}
 
 
 @hookimpl

@@ -499,8 +499,8 @@ class Omega7(Device):
     def status(self) -> dict[str, Any]:
         if not hasattr(self, "guard"):
             return {}
-        return {"com_freq_hz": self.com_freq_hz, "gripper_force": self.g_sent,
-                "force_norm": float(np.linalg.norm(self.f_sent)), "timeguards": self.timeguards,
+        return {"com_freq_hz": self.com_freq_hz, "gripper_force_n": self.g_sent,
+                "force_norm_n": float(np.linalg.norm(self.f_sent)), "timeguards": self.timeguards,
                 "saturated": self.saturated, "clamped": self.guard.clamped, "stale_commands": self.guard.stale,
                 "faded_in": self.guard.faded_in, "left_handed": self.sign < 0, "lost": self.lost or "",
                 "error": self.error or "", "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0,

@@ -255,7 +255,7 @@ class SimGripper(FollowerBase):
 
     def status(self) -> dict[str, Any]:
         d = super().status()
-        d.update(indentation=getattr(self, "indentation", None), contact_force=getattr(self, "force", None))
+        d.update(indentation_m=getattr(self, "indentation", None), contact_force_n=getattr(self, "force", None))
         return d
 
 

@@ -192,11 +192,12 @@ class SimOmega7(Device):
     def activate(self) -> None:
         """Start (again) from zero force with the operator afresh: the intent's optional ``reset()`` is called, and
         nothing perceived in an earlier activation (the cue, the rate of intent_opening) is carried over; the graph's
-        clock may start again from zero."""
+        clock may start again from zero. The guard's counters in status() start from zero again (as omega7's)."""
         self.enabled = True
         self.safe = False
         self.last_t = None
         self.guard.reset()
+        self.guard.clear_counts()   # status() is of one activation, as omega7's
         self.state.extra.clear()
         self._io_prev = None
         self._io_vel = 0.0
@@ -414,9 +415,9 @@ class SimOmega7(Device):
     def status(self) -> dict[str, Any]:
         if not hasattr(self, "guard"):
             return {}
-        return {"gripper_opening": self.x, "gripper_force": self.g_applied, "hand_force": self.f_hand,
-                "intent": self.intent_name, "intended_opening": self.x_intent,
-                "force_norm": float(np.linalg.norm(self.f_applied)), "clamped": self.guard.clamped,
+        return {"gripper_opening_m": self.x, "gripper_force_n": self.g_applied, "hand_force_n": self.f_hand,
+                "intended_opening_m": self.x_intent, "intent": self.intent_name,
+                "force_norm_n": float(np.linalg.norm(self.f_applied)), "clamped": self.guard.clamped,
                 "stale_commands": self.guard.stale, "faded_in": self.guard.faded_in, "faults": self.faults,
                 "safe": self.safe}
 

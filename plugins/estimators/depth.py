@@ -148,7 +148,7 @@ class DepthEstimator(Component):
         self._ref_bg = (bg if bg is not None else model.background).astype(np.float32)   # the configured one
         self._adapt_limit = (p.adapt_limit if p.adapt_limit is not None else self.pipe.change_threshold / 3.0)
         self._last: dict[str, float] = {}
-        self._ms = math.nan
+        self._step_s = math.nan
         self.reused = 0
         self.bad_frames = 0      # implausible frames (outputs NaN), in all
         self.last_problem = ""   # why the last of them was
@@ -215,9 +215,9 @@ class DepthEstimator(Component):
             elif p.reuse_unchanged:
                 self._prev = (frame.copy(), res, s.stamp)
         self._bad_run = 0
-        self._ms = (time.perf_counter() - t0) * 1e3
-        self._last = {"max_depth_mm": res.max_depth * 1e3, "contact_area_mm2": res.contact_area * 1e6,
-                      "ms": self._ms, "bad_frames": self.bad_frames, "repeated_frames": self._repeat_run}
+        self._step_s = time.perf_counter() - t0
+        self._last = {"max_depth_m": float(res.max_depth), "contact_area_m2": float(res.contact_area),
+                      "step_s": self._step_s, "bad_frames": self.bad_frames, "repeated_frames": self._repeat_run}
         st = s.stamp
         return {"depth": Sample(res.depth, st), "max_depth": Sample(float(res.max_depth), st),
                 "contact_mask": Sample(res.contact_mask, st), "contact_area": Sample(float(res.contact_area), st),
@@ -254,8 +254,8 @@ class DepthEstimator(Component):
         if n and self._bad_run >= n:
             raise ComponentFault(f"{self._bad_run} implausible frames in a row (fault_after_bad {n}); the last: "
                                  f"{problem}", self.id)
-        self._ms = (time.perf_counter() - t0) * 1e3
-        self._last = {"max_depth_mm": math.nan, "contact_area_mm2": math.nan, "ms": self._ms,
+        self._step_s = time.perf_counter() - t0
+        self._last = {"max_depth_m": math.nan, "contact_area_m2": math.nan, "step_s": self._step_s,
                       "bad_frames": self.bad_frames, "repeated_frames": 0}
         rows, cols = self.model.shape
         nan = math.nan

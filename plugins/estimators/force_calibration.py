@@ -694,7 +694,7 @@ class SimPressRig(Device):
         self.safe = True  # the gel is passive: nothing to drive
 
     def status(self) -> dict[str, Any]:
-        return {"indentation_mm": getattr(self, "d", 0.0) * 1e3, "gel_force_n": getattr(self, "f", 0.0)}
+        return {"indentation_m": getattr(self, "d", 0.0), "gel_force_n": getattr(self, "f", 0.0)}
 
 
 # ================================================================================================ fitting + CLI

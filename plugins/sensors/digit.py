@@ -555,7 +555,7 @@ class Digit(Component):
         span = (self._last_frame_mono - self._t_first) if self._t_first is not None else 0.0
         return {"frames": self.frames, "captured": g.seq, "dropped": g.dropped,
                 "before_start": self.before_start,
-                "fps": (self.frames - 1) / span if span > 0 else 0.0}
+                "frame_rate_hz": (self.frames - 1) / span if span > 0 else 0.0}
 
 
 def _is_char_device(path: str) -> bool:
