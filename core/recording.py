@@ -22,10 +22,15 @@ float32 / float64 / uint16 (rows, cols) sensor_msgs/msg/Image, 32FC1 / 64FC1 / 1
 anything else                           JSON (schemaless), {"value": ...}
 ======================================  ==============================================================
 
+A 2-D float/uint16 array is a depth map only if each side is at least :data:`MIN_IMAGE_SIDE` (the port's declared
+size, a free one counting as long enough, else the value's): (N, 2) points or a (3, 3) matrix are arrays.
+
 Times: the MCAP ``publish_time`` and every ``header.stamp`` are the sample's own stamp (a camera's capture time),
 ``log_time`` is the graph time of the step that produced it; both as Unix-epoch nanoseconds, ``epoch + graph time``,
 where ``epoch`` (metadata record ``teletouch.time``, key ``graph_epoch_ns``) is the Unix time of graph time 0. The
-readers give graph time back in seconds.
+readers give graph time back in seconds (another tool's recording: from its first message's publish time). Samples
+dropped on a wall clock (a writer behind) are counted in the metadata record ``teletouch.drops``
+(:attr:`Recording.dropped`).
 """
 
 from __future__ import annotations
@@ -477,7 +482,10 @@ class _Json(_Codec):
         if isinstance(v, dict) and "png" in v:
             import cv2
 
-            return cv2.imdecode(np.frombuffer(base64.b64decode(v["png"]), np.uint8), cv2.IMREAD_UNCHANGED)
+            a = cv2.imdecode(np.frombuffer(base64.b64decode(v["png"]), np.uint8), cv2.IMREAD_UNCHANGED)
+            if a is None:
+                raise ValueError("the base64 PNG cannot be decoded")
+            return a
         if isinstance(v, list) and meta.get("dtype") not in (None, "any"):
             try:
                 return np.asarray(v, dtype=meta["dtype"])
@@ -525,15 +533,30 @@ _CODECS: dict[str, type[_Codec]] = {c.kind: c for c in (_Wrench, _Float64, _Bool
                                                           _Compressed, _Raw, _Json, _JsonImage)}
 
 
-def _choose_codec(value: Any, unit: str, ros: bool, opts: dict[str, Any]) -> _Codec:
+#: a 2-D float/uint16 array is a depth-map image only if each side is at least this long (declared or, where the
+#: port leaves it free or is not known, the value's); shorter sides are a matrix or a list of points: an array
+MIN_IMAGE_SIDE = 8
+
+
+def _image_sized(value: Any, port: Any) -> bool:
+    """Whether a 2-D array is recorded as an image (sensor_msgs/Image): by the port's declared 2-D shape where it
+    has one ((None, None) is an image, (None, 2) or (3, 3) is not), else by the value's shape."""
+    shape = getattr(port, "shape", None)
+    if shape is None or len(shape) != 2:
+        shape = getattr(value, "shape", ())
+    return all(d is None or d >= MIN_IMAGE_SIDE for d in shape)
+
+
+def _choose_codec(value: Any, port: Any, ros: bool, opts: dict[str, Any]) -> _Codec:
+    """The codec of a channel, from its first value and the port's declaration (``port``: None when not known)."""
     if not ros:
         return _JsonImage(opts) if _JsonImage().accepts(value) else _Json(opts)
     if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "fiub":
         value = value.item()
     order: list[type[_Codec]] = [_Bool, _String]
-    if unit == "N":
+    if getattr(port, "unit", "") == "N":
         order.append(_Wrench)
-    order += [_Float64, _Compressed, _Raw, _Array]
+    order += [_Float64, _Compressed] + ([_Raw] if _image_sized(value, port) else []) + [_Array]
     for cls in order:
         c = cls(opts)
         if c.accepts(value):
@@ -572,9 +595,10 @@ class Recorder:
     ``flush_interval`` seconds between flushes (at most this much plus the writer's backlog is lost on a crash);
     ``ros_encoding`` False writes JSON everywhere (also the fallback when the ROS 2 message packages are missing);
     ``max_queue`` items (or ``max_queue_bytes`` of arrays) waiting for the writer before new ones are dropped
-    (counted, reported at close; 0: no limit) on a wall clock; on a simulated clock the tap waits for the writer
-    instead (nothing is lost, the simulation slows down; a sample larger than ``max_queue_bytes`` waits until no
-    array is queued);
+    (counted, reported at close and kept in the file's ``teletouch.drops`` metadata; 0: no limit) on a wall clock;
+    on a simulated clock the tap waits for the writer instead (nothing is lost, the simulation slows down); a
+    sample larger than ``max_queue_bytes`` goes in when no array is queued (on a wall clock it is dropped while
+    one is, on a simulated clock it waits until none is);
     ``encode_threads`` threads compress images in parallel (cv2 releases the GIL; capped at the CPU count).
     """
 
@@ -636,7 +660,9 @@ class Recorder:
         self._closed = False
         self.messages = 0
         self.dropped = 0
-        self._dropped_items = self._dropped_bytes = False  # which limit dropped samples (for the report)
+        self._dropped_items = self._dropped_bytes = 0  # samples dropped at max_queue / at max_queue_bytes
+        self._dropped_nodes: dict[str, int] = {}  # samples dropped, by node
+        self._drops_written = 0  # the drop count in the file's last teletouch.drops record
         self._last_t: float | None = None  # graph time of the last message handed to the writer
         self._flushed = (0, None)  # (messages, graph time of the last one) at the last successful flush
         self.max_backlog = 0  # most items seen waiting for the writer (the one a tap just queued included)
@@ -667,9 +693,10 @@ class Recorder:
                 n = self._q.qsize()
                 full = bool(self.max_queue) and n >= self.max_queue
                 over = bool(self.max_queue) and nbytes > 0 and self._queued_bytes + nbytes > self.max_queue_bytes
-                if over and self.clock == "sim" and self._queued_bytes == 0:
-                    # a sample larger than the whole byte budget: no room can ever be made for it, so on the
-                    # simulated clock it waits for the arrays before it to be written, not forever
+                if over and self._queued_bytes == 0:
+                    # a sample larger than the whole byte budget: no room can ever be made for it, so it goes in
+                    # when no array waits (on a wall clock it was always dropped, on the simulated clock the tap
+                    # waited forever); the memory held stays one such sample, and the tap never waits for it
                     over = False
                 if not (full or over):
                     self._queued_bytes += nbytes
@@ -680,12 +707,14 @@ class Recorder:
                 if n > self.max_backlog:
                     self.max_backlog = n
                 if self.clock != "sim" or not self._thread.is_alive():
-                    # real time: never block the node's thread; the sample is dropped and counted
+                    # real time: never block the node's thread; the samples are dropped and counted (by limit and
+                    # by node: the file's teletouch.drops record says what is missing)
                     self.dropped += k
                     if full:
-                        self._dropped_items = True
+                        self._dropped_items += k
                     else:
-                        self._dropped_bytes = True
+                        self._dropped_bytes += k
+                    self._dropped_nodes[node_id] = self._dropped_nodes.get(node_id, 0) + k
                     return
             time.sleep(0.001)  # simulated clock: wait (without the lock) for the writer, record everything
 
@@ -714,6 +743,7 @@ class Recorder:
                 raise RecordingError(f"recording {self.path} stopped early: {self.fatal}")
         try:
             if self.fatal is None:
+                self._writer.add_metadata("teletouch.drops", self._drops_record())  # also "none dropped"
                 self._writer.finish()
         except Exception as exc:  # the summary could not be written (disk full...): the data before it stays
             self._fail(exc, "writing the summary at close")
@@ -727,7 +757,8 @@ class Recorder:
             limits = " and ".join(x for x, hit in (
                 (f"max_queue {self.max_queue} items", self._dropped_items),
                 (f"max_queue_bytes {self.max_queue_bytes} bytes", self._dropped_bytes)) if hit)
-            self.log(f"{self.dropped} samples dropped: the writer fell behind ({limits})")
+            self.log(f"{self.dropped} samples dropped: the writer fell behind ({limits}); the count is in the "
+                     f"file (metadata teletouch.drops)")
         for e in self.errors[:5]:
             self.log(e)
         if len(self.errors) > 5:
@@ -752,6 +783,15 @@ class Recorder:
             for pname, port in (getattr(cls, "outputs", None) or {}).items():
                 table[(n.id, pname)] = port
         return table
+
+    def _drops_record(self) -> dict[str, str]:
+        """The ``teletouch.drops`` metadata record: samples dropped on a wall clock, in all, at each limit and by
+        node (JSON), with the limits. Written at close (0: nothing dropped) and at a flush after new drops, so that
+        a file cut short by a crash keeps the count up to its last flush."""
+        with self._q_lock:
+            return {"dropped": str(self.dropped), "dropped_queue_full": str(self._dropped_items),
+                    "dropped_queue_bytes": str(self._dropped_bytes), "max_queue": str(self.max_queue),
+                    "max_queue_bytes": str(self.max_queue_bytes), "nodes": json.dumps(self._dropped_nodes)}
 
     def _set_epoch(self, t: float) -> None:
         with self._epoch_lock:
@@ -786,7 +826,7 @@ class Recorder:
         ch = self._chans.get((node, port))
         if ch is None:
             p = self._ports.get((node, port))
-            codec = _choose_codec(value, p.unit if p is not None else "", self.ros, self.opts)
+            codec = _choose_codec(value, p, self.ros, self.opts)
             ch = _Chan(self._register(node, port, codec), codec)
             self._chans[(node, port)] = ch
         return ch
@@ -897,6 +937,9 @@ class Recorder:
             self._emit(wait=False)
             if time.monotonic() >= next_flush:
                 self._emit(wait=True)
+                if self.dropped != self._drops_written:  # (before the flush: the file then keeps it)
+                    self._drops_written = self.dropped
+                    self._writer.add_metadata("teletouch.drops", self._drops_record())
                 self._writer.flush()  # closes the chunk in progress and flushes the file
                 self._flushed = (self.messages, self._last_t)
                 next_flush = time.monotonic() + self.flush_interval
@@ -925,6 +968,8 @@ class Recording:
     epoch_ns: int | None = None
     problem: str = ""  # why, when truncated: where the file is cut short or corrupt
     messages: int = 0  # messages read
+    first_ns: int | None = None  # publish time of the file's first message: graph time 0 of another tool's file
+    dropped: int | None = None  # samples the recorder dropped (teletouch.drops); None: the file does not say
 
     def graph_time(self, ns: int) -> float:
         return (ns - (self.epoch_ns or 0)) * 1e-9
@@ -932,6 +977,24 @@ class Recording:
     def note(self) -> str:
         """When truncated: where the reader stopped and how much it read, for a warning or an error."""
         return f"{self.problem}; {self.messages} messages read before it" if self.truncated else ""
+
+    def drop_note(self) -> str:
+        """When the recorder dropped samples (a writer behind a wall-clock run): how many, of which nodes and at
+        which limit, for a warning; "" when none were dropped or the file does not say (another tool's file, one
+        written before teletouch kept the count, or a run cut short before its first drop record)."""
+        if not self.dropped:
+            return ""
+        d = self.metadata.get("teletouch.drops", {})
+        try:
+            nodes = ", ".join(f"{n} {c}" for n, c in sorted(json.loads(d.get("nodes") or "{}").items()))
+        except (ValueError, AttributeError):
+            nodes = ""
+        limits = ", ".join(f"{d[key]} at {limit} {d.get(limit, '?')} {unit}" for key, limit, unit in (
+            ("dropped_queue_full", "max_queue", "items"), ("dropped_queue_bytes", "max_queue_bytes", "bytes"))
+            if d.get(key, "0") != "0")
+        why = "; ".join(x for x in (nodes, f"the writer fell behind: {limits}" if limits else "") if x)
+        return (f"{self.dropped} samples were dropped while recording" + (f" ({why})" if why else "")
+                + ": the recording is incomplete")
 
 
 def _codec_for(ch: ChannelInfo, path: str) -> _Codec:
@@ -1033,8 +1096,15 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                 rec.metadata[r.name] = dict(r.metadata)
                 if r.name == "teletouch.time" and "graph_epoch_ns" in r.metadata:
                     rec.epoch_ns = int(r.metadata["graph_epoch_ns"])
+                elif r.name == "teletouch.drops":
+                    try:
+                        rec.dropped = int(r.metadata["dropped"])
+                    except (KeyError, ValueError):  # not as teletouch writes it: the count stays unknown
+                        pass
             elif isinstance(r, Message):
                 rec.messages += 1
+                if rec.first_ns is None:
+                    rec.first_ns = r.publish_time
                 ch = rec.channels.get(r.channel_id)
                 if ch is not None:
                     ch.count += 1
@@ -1058,7 +1128,6 @@ def _read(path: str, want: Callable[[ChannelInfo], bool] | None, decode: bool = 
     out = []
     codecs: dict[int, _Codec] = {}
     wanted: dict[int, bool] = {}
-    first_ns = None
     for ch, msg in _iter_raw(path, rec):
         if want is not None:
             take = wanted.get(ch.id)
@@ -1066,20 +1135,23 @@ def _read(path: str, want: Callable[[ChannelInfo], bool] | None, decode: bool = 
                 take = wanted[ch.id] = bool(want(ch))
             if not take:
                 continue
-        if first_ns is None:
-            first_ns = msg.publish_time
         if decode:
             c = codecs.get(ch.id)
             if c is None:
                 c = codecs[ch.id] = _codec_for(ch, path)
-            value = _decode(path, c, ch, msg, rec.epoch_ns if rec.epoch_ns is not None else first_ns)
+            value = _decode(path, c, ch, msg, _epoch(rec))
         else:
             value = msg.data
         out.append((ch.key, msg.publish_time, msg.log_time, value))
-    if rec.epoch_ns is None:  # not a teletouch recording: times from its first message
-        rec.epoch_ns = first_ns or 0
+    rec.epoch_ns = _epoch(rec)
     e = rec.epoch_ns
     return rec, [(k, (p - e) * 1e-9, (lt - e) * 1e-9, v) for k, p, lt, v in out]
+
+
+def _epoch(rec: Recording) -> int:
+    """Graph time 0 in Unix-epoch ns: teletouch's ``graph_epoch_ns``; for another tool's recording the publish
+    time of the file's first message (whichever channels are read: every reader gives the same times)."""
+    return rec.epoch_ns if rec.epoch_ns is not None else (rec.first_ns or 0)
 
 
 def _is_image(ch: ChannelInfo) -> bool:
@@ -1131,11 +1203,15 @@ def _stack(vs: list[Any]) -> Any:
 
 
 def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[[str], None] | None = None,
+                on_damaged: Callable[[float, RecordingError], None] | None = None,
                 ) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (stamp_s, BGR uint8 image) for the colour images of a recording, in recorded order; stamps are the
-    capture times on the recording's graph clock. ``port``: "node.port", a port name or a topic; None: the only
-    colour-image channel (an error names the choices if there are several). A recording cut short (a crashed run)
-    gives the images it holds, after a warning to ``log`` (if given).
+    capture times on the recording's graph clock (another tool's recording: from its first message, as the other
+    readers give them). ``port``: "node.port", a port name or a topic; None: the only colour-image channel (an
+    error names the choices if there are several). A recording cut short (a crashed run), or one whose recorder
+    dropped samples, gives the images it holds, after a warning to ``log`` (if given). An image message that
+    cannot be decoded raises a RecordingError naming the file, the channel and its time; with ``on_damaged`` it is
+    handed to it instead, with its stamp, and skipped.
 
     The file is read twice, on purpose: a first pass decodes nothing and learns every channel (a channel's record
     may come after images of another one), so that an unknown or ambiguous ``port`` is refused and a cut file is
@@ -1167,15 +1243,23 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
         raise RecordingError(f"{path}: the recording has no images{note}")
     if rec.truncated and log is not None:
         log(f"warning: {path}: {rec.note()}")
+    if rec.dropped and log is not None:
+        log(f"warning: {path}: {rec.drop_note()}")
     ids = {c.id for c in chosen}
     rec2 = Recording(path)
     codecs: dict[int, _Codec] = {}
+    epoch = _epoch(rec)
     for ch, msg in _iter_raw(path, rec2):
         if ch.id not in ids:
             continue
         c = codecs.get(ch.id) or codecs.setdefault(ch.id, _codec_for(ch, path))
-        epoch = rec.epoch_ns if rec.epoch_ns is not None else 0
-        img = _decode(path, c, ch, msg, epoch)
+        try:
+            img = _decode(path, c, ch, msg, epoch)
+        except RecordingError as exc:
+            if on_damaged is None:
+                raise
+            on_damaged((msg.publish_time - epoch) * 1e-9, exc)
+            continue
         if img.ndim == 2:
             import cv2
 
@@ -1224,6 +1308,8 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
                              + not_drawn + there + (f": {rec.note()}" if rec.truncated else ""))
     if rec.truncated:
         log(f"warning: {path}: {rec.note()}; plotting those")
+    if rec.dropped:
+        log(f"warning: {path}: {rec.drop_note()}")
     if skipped:
         log(f"note: {path}: not drawn (only 1-D signals and vectors are): {', '.join(skipped)}")
     if outdir.exists() and not outdir.is_dir():

@@ -21,10 +21,28 @@ class _SlowLen(dict):
         return super().__len__()
 
 
+class _Stuck:
+    """A value whose encoding (the JSON codec's repr) holds the writer thread until released."""
+
+    def __init__(self):
+        self.entered, self.release = threading.Event(), threading.Event()
+
+    def __repr__(self) -> str:
+        if threading.current_thread().name != "teletouch-recorder":   # (pytest's report of a failed assert)
+            return "stuck"
+        self.entered.set()
+        assert self.release.wait(10.0), "never released"
+        return "stuck"
+
+
 def test_drop_counts_are_exact_when_several_node_threads_drop_at_once(tmp_path):
-    # every tap is dropped (max_queue_bytes 1 B: no array fits), from 8 threads at once, as on a wall clock where
-    # every node's thread taps
+    # every tap is dropped (max_queue_bytes 1 B and an array waits behind a held writer: no array fits), from 8
+    # threads at once, as on a wall clock where every node's thread taps
     rec = Recorder(tmp_path / "drops.mcap", None, max_queue_bytes=1, log=lambda m: None)
+    stuck = _Stuck()
+    rec.tap("slow", 0.0, {"obj": stuck})
+    assert stuck.entered.wait(10.0)
+    rec.tap("first", 0.0, {"a": np.zeros(4)})   # larger than max_queue_bytes, nothing waits: it goes in
     threads_n, taps_n = 8, 25
     go = threading.Barrier(threads_n)
 
@@ -38,8 +56,9 @@ def test_drop_counts_are_exact_when_several_node_threads_drop_at_once(tmp_path):
         th.start()
     for th in threads:
         th.join()
+    stuck.release.set()
     rec.close()
-    assert rec.messages == 0
+    assert rec.messages == 2   # the held one and the first array
     assert rec.dropped == threads_n * taps_n * 2
 
 
