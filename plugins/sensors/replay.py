@@ -10,7 +10,11 @@ a recorded stamp that goes backwards counts as the one before it, so stamps neve
 unreadable or vanished frame is reported with its file name (and frame number) when it is due, and why (a read error
 such as permission denied, or cannot be decoded): logged and skipped, once however often a loop meets it
 (``on_corrupt: report``), or a fault (``on_corrupt: fault``); its slot stays empty. In a video, the frames after a
-corrupt one are played; undecodable frames up to the end are a video cut short: one report, and the end.
+corrupt one are played; undecodable frames up to the end are a video cut short: one report, and the end (without a
+frame count, :data:`UNCOUNTED_GAP` failed frames in a row are the end, without a report). In a recording, an image
+message that cannot be decoded is reported (file, channel, time) and skipped, its recorded slot kept. A video's
+frames that the rate skips are only grabbed, not decoded (cv2 grab without retrieve), where the container's count
+says a later frame follows.
 """
 
 from __future__ import annotations
@@ -112,6 +116,31 @@ class _Folder(_Source):
                 yield f.name, got, None
 
 
+#: without a frame count (raw streams, some containers), this many undecodable frames in a row are the end of the
+#: video; a good frame after fewer makes them corrupt frames (a read past the end fails at once: ~1 us each)
+UNCOUNTED_GAP = 100
+
+
+class _Grabbed:
+    """A video frame read from the file (cv2 grab) but not yet turned into an image: :meth:`image` does that (cv2
+    retrieve), and only until the next frame is grabbed. A replay whose rate skips the frame leaves it so.
+    ``skippable``: the container's count says a later frame follows (the last two are always decoded: some
+    containers count one frame too many, and a last frame left undecoded could not be published at the end; a
+    later frame that turns out corrupt leaves that step without a new frame, its slot empty).
+    ``next_due``: when the next frame is due (set by the replay; inf: never skipped)."""
+
+    def __init__(self, cap: Any, corrupt: CorruptFrame, skippable: bool):
+        self.cap, self.corrupt, self.skippable = cap, corrupt, skippable
+        self.valid = True
+        self.next_due = math.inf
+
+    def image(self) -> np.ndarray | CorruptFrame:
+        """The frame as an image, or ``corrupt`` (what to report) if it cannot be decoded."""
+        assert self.valid, "a grabbed frame is decoded before the next one is grabbed"
+        ok, img = self.cap.retrieve()
+        return img if ok and img is not None else self.corrupt
+
+
 class _Video(_Source):
     kind = "video"
 
@@ -129,7 +158,8 @@ class _Video(_Source):
             raise ModelFileError(f"{path}: cannot open the video (corrupt or unsupported codec)")
         fps = cap.get(cv2.CAP_PROP_FPS)
         self.native_rate = fps if fps and math.isfinite(fps) and fps > 0 else None
-        self.count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        count = cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        self.count = int(count) if count and math.isfinite(count) and count > 0 else 0   # 0: not known
         # fail at configure time, as a folder or a recording does, if not one frame can be decoded
         ok, img = cap.read()
         cap.release()
@@ -137,9 +167,11 @@ class _Video(_Source):
             raise ModelFileError(f"{path}: no frame can be decoded (an empty, truncated or corrupt video)")
 
     def frames(self):
-        """Frame k as the k-th item (its stamp is k / fps). A frame that cannot be decoded, with good ones after it,
-        is one CorruptFrame each (OpenCV's next read goes on after it); undecodable frames up to the end that the
-        container counts are the video cut short: one CorruptFrame at the first of them, and the end."""
+        """Frame k as the k-th item (its stamp is k / fps), a :class:`_Grabbed` (decoded only if the replay uses
+        it). A frame that cannot be decoded, with good ones after it, is one CorruptFrame each (OpenCV's next grab
+        goes on after it); undecodable frames up to the end that the container counts are the video cut short: one
+        CorruptFrame at the first of them, and the end. Without a count, the end is :data:`UNCOUNTED_GAP` failed
+        frames in a row (undecodable frames up to it cannot be told from the end: no report)."""
         import cv2
 
         cap = cv2.VideoCapture(str(self.path))
@@ -147,18 +179,17 @@ class _Video(_Source):
             k = 0
             failed_from: int | None = None   # the first of a run of undecodable frames, not yet reported
             while True:
-                ok, img = cap.read()
-                if ok and img is not None:
+                if cap.grab():
                     for j in range(k if failed_from is None else failed_from, k):
-                        yield (f"{self.path.name}#{j}",
-                               CorruptFrame(f"{self.path}#frame{j}", f"cannot decode frame {j} of {self.count} "
-                                                                     f"(a corrupt frame)"), None)
+                        yield f"{self.path.name}#{j}", self._corrupt(j), None
                     failed_from = None
-                    yield f"{self.path.name}#{k}", img, None
-                elif self.count > 0 and k < self.count - 1:   # (some containers count one frame too many)
+                    frame = _Grabbed(cap, self._corrupt(k), skippable=0 < self.count and k < self.count - 2)
+                    yield f"{self.path.name}#{k}", frame, None
+                    frame.valid = False
+                elif self._more_may_follow(k, failed_from):
                     failed_from = k if failed_from is None else failed_from
                 else:
-                    if failed_from is not None:
+                    if failed_from is not None and self.count:
                         yield (f"{self.path.name}#{failed_from}",
                                CorruptFrame(f"{self.path}#frame{failed_from}",
                                             f"cannot decode frame {failed_from} of {self.count} nor any after it: "
@@ -167,6 +198,17 @@ class _Video(_Source):
                 k += 1
         finally:
             cap.release()
+
+    def _corrupt(self, k: int) -> CorruptFrame:
+        of = f" of {self.count}" if self.count else ""
+        return CorruptFrame(f"{self.path}#frame{k}", f"cannot decode frame {k}{of} (a corrupt frame)")
+
+    def _more_may_follow(self, k: int, failed_from: int | None) -> bool:
+        """Whether frame ``k``, which failed, may have good frames after it: before the last the container counts
+        (some count one frame too many), or without a count fewer than :data:`UNCOUNTED_GAP` failures in a row."""
+        if self.count:
+            return k < self.count - 1
+        return k - (k if failed_from is None else failed_from) < UNCOUNTED_GAP - 1
 
 
 class _Recording(_Source):
@@ -180,15 +222,20 @@ class _Recording(_Source):
         self.iter_images = iter_images
         self.path = path
         self.port = port
-        # fail at configure time on a wrong port or an empty recording; warn about one cut short (a crashed run)
+        # fail at configure time on a wrong port or a recording without one image that can be decoded (damaged ones
+        # before the first good one are reported when they are due); warn about one cut short (a crashed run) or
+        # whose recorder dropped samples
         warnings: list[str] = []
+        damaged: list[Exception] = []
         try:
-            next(iter(iter_images(path, port=port, log=warnings.append)))
+            next(iter(iter_images(path, port=port, log=warnings.append, on_damaged=lambda s, e: damaged.append(e))))
         except StopIteration:
-            raise ModelFileError(f"{path}: the recording has no images"
-                                 + (f" on channel '{port}'" if port else "")
-                                 + "".join(f"; {w.removeprefix(f'warning: {path}: ')}" for w in warnings)
-                                 ) from None
+            raise ModelFileError(f"{path}: " + (
+                f"not one image can be decoded ({len(damaged)} damaged, e.g. "
+                f"{str(damaged[0]).removeprefix(f'{path}: ')})" if damaged else "the recording has no images")
+                + (f" on channel '{port}'" if port else "")
+                + "".join(f"; {w.removeprefix(f'warning: {path}: ')}" for w in warnings)
+            ) from None
         except Exception as e:
             raise ModelFileError(str(e) if str(path) in str(e) else f"{path}: {e}") from None
         if log is not None:
@@ -196,18 +243,34 @@ class _Recording(_Source):
                 log(f"replay: {w}")
 
     def frames(self):
-        it = iter(self.iter_images(self.path, port=self.port))
+        """The recording's images with their recorded stamps. An image message that cannot be decoded is a
+        CorruptFrame with its stamp (its slot is kept), named by the file, the channel and its time; the images
+        after it are played. Any other error (the file itself) ends the replay there, after one CorruptFrame."""
+        damaged: list[tuple[float, Exception]] = []
+        it = iter(self.iter_images(self.path, port=self.port, on_damaged=lambda s, e: damaged.append((s, e))))
         k = 0
         while True:
             try:
-                stamp, img = next(it)
+                got = next(it)
             except StopIteration:
-                return
-            except Exception as e:  # a damaged message: iteration cannot go on reliably
+                got = None
+            except Exception as e:  # the file, not one message: iteration cannot go on reliably
+                yield from self._damaged(damaged, k)
+                k += len(damaged)
                 yield f"{self.path.name}#{k}", CorruptFrame(f"{self.path}#message{k}", str(e)), None
                 return
-            yield f"{self.path.name}#{k}", img, float(stamp)
+            yield from self._damaged(damaged, k)   # the messages before this image that could not be decoded
+            k += len(damaged)
+            damaged.clear()
+            if got is None:
+                return
+            yield f"{self.path.name}#{k}", got[1], float(got[0])
             k += 1
+
+    def _damaged(self, damaged: list[tuple[float, Exception]], k: int) -> Iterator[tuple[str, CorruptFrame, float]]:
+        for j, (stamp, e) in enumerate(damaged):   # the error names the file first: named once
+            yield (f"{self.path.name}#{k + j}", CorruptFrame(str(self.path), str(e).removeprefix(f"{self.path}: ")),
+                   float(stamp))
 
 
 def _port_only_for_mcap(port: str, why: str) -> str:
@@ -269,13 +332,14 @@ class Replay(Component):
     def activate(self) -> None:
         self._it = self._frames()
         self._t0: float | None = None
-        self._pending: tuple[str, np.ndarray | CorruptFrame, float] | None = None
+        self._pending: tuple[str, np.ndarray | CorruptFrame | _Grabbed, float] | None = None
         self._done = False
 
-    def _frames(self) -> Iterator[tuple[str, np.ndarray | CorruptFrame, float]]:
-        """(name, image or CorruptFrame, due time relative to the start; NaN: one per step) for every frame, across
-        loops. A corrupt frame is reported by :meth:`step` when it is due, not here: the step that publishes frame k
-        reads frame k + 1 ahead."""
+    def _frames(self) -> Iterator[tuple[str, np.ndarray | CorruptFrame | _Grabbed, float]]:
+        """(name, frame, due time relative to the start; NaN: one per step) for every frame, across loops; a frame
+        is an image, a CorruptFrame or a video's :class:`_Grabbed` frame. A corrupt frame is reported by
+        :meth:`step` when it is due, not here: the step that publishes frame k reads frame k + 1 ahead (a grabbed
+        frame k is decoded, or left undecoded, before that)."""
         p = self.params
         offset = 0.0
         while True:
@@ -295,9 +359,12 @@ class Replay(Component):
                 else:
                     due = None  # one per step
                 # a corrupt frame keeps its slot (empty), also the last one: the next pass starts one period after
-                # it (recorded stamps: a damaged message has none)
+                # it (recorded stamps: a damaged message keeps its own)
                 last_due = due if due is not None else last_due
-                if not isinstance(img, CorruptFrame):
+                if isinstance(img, _Grabbed):   # decoded when due, if no newer frame is (the next one's due time)
+                    rate = p.rate or self.source.native_rate
+                    img.next_due = offset + (k + 1) / rate if due is not None and rate else math.inf
+                elif not isinstance(img, CorruptFrame):
                     img = self._orient(name, img)
                 any_good = any_good or not isinstance(img, CorruptFrame)
                 yield name, img, (offset + due) if due is not None else math.nan
@@ -330,6 +397,10 @@ class Replay(Component):
                                       f"{self._shape[0]}x{self._shape[1]}")
         return img
 
+    def _decoded(self, name: str, frame: _Grabbed) -> np.ndarray | CorruptFrame:
+        img = frame.image()
+        return img if isinstance(img, CorruptFrame) else self._orient(name, img)
+
     def _report(self, err: CorruptFrame) -> None:
         """A corrupt frame: a fault, or logged and counted once (a loop meets it again on every pass; a file that
         changes, e.g. is removed, is a new report)."""
@@ -359,6 +430,11 @@ class Replay(Component):
             if not math.isnan(due) and due > rel + 1e-9:
                 break
             self._pending = None
+            if isinstance(img, _Grabbed):
+                if img.skippable and img.next_due <= rel + 1e-9:   # a newer frame is due too: never decoded
+                    self.skipped += 1
+                    continue
+                img = self._decoded(name, img)
             if isinstance(img, CorruptFrame):   # due now: reported (or a fault), and the next one is looked at
                 self._report(img)
                 continue
