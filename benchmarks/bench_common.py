@@ -217,3 +217,79 @@ def missing_data(name: str, base: Path | None = None) -> str | None:
         return None
     return (f"{folder}: no such folder: the real DIGIT images are expected in ../shared/data next to the checkout "
             f"(set TELETOUCH_SHARED_DATA to their folder)")
+
+
+def in_turns(runs: dict[str, Callable[[Callable[[float], None]], Any]], marks: list[float],
+             ready: Callable[[], Any] | None = None, clock: Callable[[], float] | None = None,
+             cpu: Callable[[], float] | None = None) -> tuple[dict[str, Any], dict[str, list[dict]]]:
+    """Whole runs that cannot be cut into short ones (a simulated run is one scenario from its start to its end)
+    timed side by side all the same. Each of ``runs`` (name -> ``run(checkpoint)``: runs to its end, calling
+    ``checkpoint(p)`` every so often with its progress ``p``, e.g. simulated seconds, and returns its result) runs in
+    a thread of its own, and only one of them at a time: a run's checkpoint at or past the next of ``marks`` pauses
+    it and hands over to the next run. Every run is first taken to ``marks[0]`` (its start-up, not timed), one after
+    the other; then ``ready()``; then ``len(marks) - 1`` rounds, each taking every run to its next mark, the order
+    reversed every other round (:func:`alternating`), so that a change of load on the shared machine hits them
+    alike; then every run to its end (not timed). Returns each run's result, and per run its turns: round, wall and
+    CPU (this process: only the run in its turn is working) seconds, progress made, and ``ended`` (the run ended
+    inside the turn, before its mark: that turn's time includes its shut-down). ``clock`` and ``cpu``: the wall and
+    CPU clocks (default time.perf_counter, time.process_time)."""
+    clock = clock or time.perf_counter
+    cpu = cpu or time.process_time
+    names = list(runs)
+    turns: dict[str, list[dict]] = {name: [] for name in names}
+    results: dict[str, Any] = {}
+    errors: dict[str, BaseException] = {}
+    go = {name: threading.Semaphore(0) for name in names}
+    back = {name: threading.Semaphore(0) for name in names}
+    at = dict.fromkeys(names, 0.0)          # each run's progress at its last hand-over
+    due = dict.fromkeys(names, 0)           # the index in marks of each run's next stop
+    done = dict.fromkeys(names, False)
+
+    def worker(name: str) -> None:
+        def checkpoint(p: float) -> None:
+            if due[name] < len(marks) and p >= marks[due[name]]:
+                while due[name] < len(marks) and p >= marks[due[name]]:   # past several marks: one turn
+                    due[name] += 1
+                at[name] = p
+                back[name].release()
+                go[name].acquire()
+
+        go[name].acquire()
+        try:
+            results[name] = runs[name](checkpoint)
+        except BaseException as exc:   # said by the caller's thread, after the others have ended
+            errors[name] = exc
+        finally:
+            done[name] = True
+            back[name].release()
+
+    def turn(name: str) -> None:
+        go[name].release()
+        back[name].acquire()
+
+    threads = [threading.Thread(target=worker, args=(name,), name=f"in-turns-{name}", daemon=True) for name in names]
+    for th in threads:
+        th.start()
+    try:
+        for name in names:
+            turn(name)
+        if ready is not None:
+            ready()
+        for k, name in enumerate(alternating(names, len(marks) - 1)):
+            if done[name]:
+                continue
+            p0, t0, c0 = at[name], clock(), cpu()
+            turn(name)
+            wall, used = clock() - t0, cpu() - c0
+            turns[name].append({"round": k // len(names), "wall_s": wall, "cpu_s": used,
+                                "progress": at[name] - p0, "ended": done[name]})
+    finally:
+        for name in names:
+            while not done[name]:
+                turn(name)
+        for th in threads:
+            th.join()
+    if errors:
+        name, exc = next(iter(errors.items()))
+        raise RuntimeError(f"run {name!r} (timed in turns) raised {type(exc).__name__}: {exc}") from exc
+    return results, turns

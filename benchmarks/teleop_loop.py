@@ -8,7 +8,13 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   on a core of its own; this machine is shared), with each node's share of the wall time per simulated second; side
   by side with the same loop with pixel noise on sim-digit (2 levels, ``sim_noise``: no frame repeats, so the image
   chain runs on every frame) and on the ``ideal`` camera-rate sensor (no image pipeline), so the ratios show what
-  the image chain costs;
+  the image chain costs. Each chain's own figures come from a whole run of its own, one after the other; the ratios
+  (``image_chain_cost_ratio``, ``sim_rounds``) from the three runs again, side by side: in threads, one stepping at
+  a time, in alternating turns of equal simulated time (4 rounds under ``--quick``, 10 otherwise) from 0.5 s to
+  0.5 s before the end (start-up and shut-down not timed), so that a change of load on the shared machine hits the
+  chains alike; a ratio is of the chains' simulated seconds per wall second over all their turns, and its spread
+  round by round (``image_chain_cost_ratio_rounds``: min, median, max) mixes the scenario's phases (free motion,
+  then contact: the image chain costs more in contact) with the machine's noise;
 - wall clock: the controller's period jitter p99 (target <= 0.25 ms, RunResult.nodes[i].period_jitter_p99_s) and the
   sensor-to-leader-force latency: from the moment a frame is out of sim-digit to the end of the first controller
   step that uses the force estimated from it (target p99 <= 5 ms; it includes the estimators' own time), over all
@@ -51,22 +57,22 @@ import numpy as np
 
 from teletouch.plugins.controllers.experiments import build_runtime, sim_graph
 from machine import cpu_times, machine_noise
-from bench_common import emit, percentile_ms, positive_int, sched_fifo_refused, warn_if_no_sched_fifo
+from bench_common import (ROUNDS, emit, in_turns, percentile_ms, positive_int, sched_fifo_refused,
+                          warn_if_no_sched_fifo)
+
+
+#: the simulated runs' start-up, left out of the steady factors (model loading, caches, the first 0.5 s)
+STEADY_FROM = 0.5
 
 
 def sim_speed(sensor: str, duration: float, noise: float = 0.0) -> dict:
     """Graph seconds per wall second; ``steady`` excludes start-up (model loading, caches, the first 0.5 s).
     ``noise``: sim-digit's pixel noise (levels): every frame then differs, so depth computes every frame."""
-    graph = sim_graph(sensor=sensor, duration=duration)
-    if noise:
-        for node in graph["nodes"]:
-            if node["plugin"] == "sim-digit":
-                node["params"]["noise"] = noise
-    rt = build_runtime(graph)
+    rt = build_runtime(_sim_doc(sensor, duration, noise))
     mark: list[tuple[float, float, float]] = []
 
     def progress(_rt, t: float) -> None:
-        if not mark and t >= 0.5:
+        if not mark and t >= STEADY_FROM:
             mark.append((time.perf_counter(), time.process_time(), t))
 
     c0 = time.process_time()
@@ -82,6 +88,78 @@ def sim_speed(sensor: str, duration: float, noise: float = 0.0) -> dict:
             "controller_mean_step_us": ctl.mean_step_s * 1e6,
             "mean_step_us": {n.id: n.mean_step_s * 1e6 for n in res.nodes},
             "wall_share_per_sim_s": {n.id: n.mean_step_s * n.steps / res.sim_time for n in res.nodes}}
+
+
+def _sim_doc(sensor: str, duration: float, noise: float = 0.0) -> dict:
+    """The simulated loop's graph with the ``sensor`` chain; ``noise``: sim-digit's pixel noise (levels)."""
+    graph = sim_graph(sensor=sensor, duration=duration)
+    if noise:
+        for node in graph["nodes"]:
+            if node["plugin"] == "sim-digit":
+                node["params"]["noise"] = noise
+    return graph
+
+
+def sim_chains(sensor: str) -> dict[str, tuple[str, float]]:
+    """The chains compared for ``--sensor`` (image or gt; ``ideal`` has nothing to be compared with: none), name ->
+    (sensor, noise): it, it with pixel noise, and ``ideal``."""
+    if sensor == "ideal":
+        return {}
+    return {sensor: (sensor, 0.0), "noise": (sensor, 2.0), "ideal": ("ideal", 0.0)}
+
+
+def sim_chain_rounds(chains: dict[str, tuple[str, float]], duration: float, rounds: int) -> dict:
+    """The simulated runs of ``chains`` (name -> (sensor, noise)), whole runs of ``duration`` each (the same scenario
+    from its start), timed side by side: in threads, one stepping at a time (:func:`bench_common.in_turns`), each
+    taken from STEADY_FROM to 0.5 s before its end in ``rounds`` turns of equal simulated time, alternating, so that
+    a change of load on the shared machine hits every chain alike. Start-up and the last 0.5 s are not timed (the
+    run's progress is only seen every 1024 steps: the last mark is reached before the end). The start-up objects of
+    all the runs are frozen out of the garbage collector's scans, as the runtime does for one run's. Per chain: the
+    simulated seconds per wall and per CPU second over its turns and in each turn (:func:`round_factors`)."""
+    import gc
+
+    def run(sensor: str, noise: float):
+        rt = build_runtime(_sim_doc(sensor, duration, noise))
+        return lambda checkpoint: rt.run(progress=lambda _rt, t: checkpoint(t), progress_interval=0.0)
+
+    stop = max(STEADY_FROM, duration - 0.5)
+    marks = [STEADY_FROM + (stop - STEADY_FROM) * k / rounds for k in range(rounds + 1)]
+    try:
+        results, turns = in_turns({name: run(*chain) for name, chain in chains.items()}, marks, ready=gc.freeze)
+    finally:
+        gc.unfreeze()   # as after one run (the runtime unfreezes only what it froze itself)
+    out = {}
+    for name, (sensor, noise) in chains.items():
+        res = results[name]
+        out[name] = dict(round_factors(turns[name]), sensor=sensor, noise=noise, status=res.status,
+                         message=res.message, sim_time_s=res.sim_time)
+    return out
+
+
+def round_factors(turns: list[dict]) -> dict:
+    """Simulated seconds per wall second and per CPU second over ``turns`` (:func:`bench_common.in_turns`'s, a
+    turn that ended with its run left out: its time includes the shut-down), and per turn."""
+    kept = [t for t in turns if not t["ended"] and t["wall_s"] > 0]
+    sim, wall, cpu = (sum(t[k] for t in kept) for k in ("progress", "wall_s", "cpu_s"))
+    return {"realtime_factor_steady": sim / wall if wall else float("nan"),
+            "realtime_factor_steady_cpu": sim / cpu if cpu else float("nan"),
+            "timed_sim_s": sim, "turns": len(kept),
+            "per_round": {t["round"]: t["progress"] / t["wall_s"] for t in kept}}
+
+
+def round_ratio(num: dict, den: dict) -> dict:
+    """``num``'s steady factor over ``den``'s (:func:`round_factors`: both timed in the same rounds), and the spread
+    of the same ratio round by round (min, median, max over the rounds both have)."""
+    per = [num["per_round"][r] / den["per_round"][r] for r in num["per_round"] if r in den["per_round"]]
+    total = (num["realtime_factor_steady"] / den["realtime_factor_steady"]
+             if den["realtime_factor_steady"] else float("nan"))
+    return {"ratio": total, "rounds": len(per), "min": min(per) if per else float("nan"),
+            "median": float(np.median(per)) if per else float("nan"), "max": max(per) if per else float("nan")}
+
+
+#: rounds of the chains' side-by-side simulated runs under --quick (3 s runs: a turn is at least one 1024-step
+#: progress report, ~0.3 simulated s)
+QUICK_SIM_ROUNDS = 4
 
 
 #: wall-clock configurations compared side by side: (realtime_priority, nodes run with isolate: process, SCHED_FIFO
@@ -317,6 +395,16 @@ def main() -> int:
     if sim_ref:
         print(f"sim clock, ideal: {sim_ref['realtime_factor']:.2f}x real time "
               f"({sim_ref['realtime_factor_steady']:.2f}x after start-up)", file=sys.stderr)
+    # the ratios: the chains' runs again, side by side in alternating turns (the runs above, one after the other,
+    # give each chain's own figures)
+    chain_rounds = QUICK_SIM_ROUNDS if args.quick else ROUNDS
+    rounds = sim_chain_rounds(sim_chains(args.sensor), dur, chain_rounds) if args.sensor != "ideal" else {}
+    image_chain = round_ratio(rounds["ideal"], rounds[args.sensor]) if rounds else None
+    if image_chain:
+        print(f"sim clock, side by side in {chain_rounds} rounds: "
+              + ", ".join(f"{k} {r['realtime_factor_steady']:.2f}x" for k, r in rounds.items())
+              + f"; image chain cost ratio {image_chain['ratio']:.2f} (rounds {image_chain['min']:.2f}-"
+              f"{image_chain['max']:.2f})", file=sys.stderr)
     runs: dict[str, list[dict]] = {c: [] for c in configs}
     for _ in range(args.repeat):
         for c in configs:
@@ -349,9 +437,10 @@ def main() -> int:
     # a run that ended in a fault (or was stopped) has no figures: named here, and the benchmark fails
     faulted = [{"config": c, "run": i, "status": r["status"], "message": r["message"]}
                for c, rs in runs.items() for i, r in enumerate(rs) if r["status"] != "ok"]
-    faulted += [{"config": f"sim clock, {r['sensor']}" + (f", noise {r['noise']:g}" if r["noise"] else ""), "run": 0,
-                 "status": r["status"], "message": r["message"]}
-                for r in (sim, sim_noisy, sim_ref) if r is not None and r["status"] != "ok"]
+    faulted += [{"config": f"sim clock{label}, {r['sensor']}" + (f", noise {r['noise']:g}" if r["noise"] else ""),
+                 "run": 0, "status": r["status"], "message": r["message"]}
+                for label, rs in (("", (sim, sim_noisy, sim_ref)), (" side by side", rounds.values())) for r in rs
+                if r is not None and r["status"] != "ok"]
     for f in faulted:
         print(f"wall clock, {f['config']} run {f['run']}: ended {f['status']}: {f['message']}", file=sys.stderr)
     try:
@@ -368,8 +457,12 @@ def main() -> int:
         "sim_realtime_factor_steady_cpu": sim["realtime_factor_steady_cpu"],
         "sim_realtime_factor_steady_noise": sim_noisy["realtime_factor_steady"] if sim_noisy else None,
         "sim_realtime_factor_ideal_sensor": sim_ref["realtime_factor_steady"] if sim_ref else None,
-        "image_chain_cost_ratio": (sim_ref["realtime_factor_steady"] / sim["realtime_factor_steady"])
-        if sim_ref else None,
+        # from the chains' runs side by side (sim_rounds), not from the runs above
+        "image_chain_cost_ratio": image_chain["ratio"] if image_chain else None,
+        "image_chain_cost_ratio_rounds": image_chain,
+        "sim_rounds": {"rounds": chain_rounds, "timed_from_s": STEADY_FROM, "timed_to_s": max(STEADY_FROM, dur - 0.5),
+                       "chains": rounds, "noise_cost_ratio": round_ratio(rounds[args.sensor], rounds["noise"])}
+        if rounds else None,
         "sim_wall_share_per_node": sim["wall_share_per_sim_s"],
         "step_cpu_us": steps,
         "wall": wall,

@@ -263,6 +263,9 @@ def test_teleop_a_faulted_wall_run_fails_the_benchmark(teleop_bench, monkeypatch
     monkeypatch.setattr(teleop_bench, "sim_speed", lambda sensor, dur, noise=0.0: {
         "sensor": sensor, "noise": noise, "status": "ok", "message": "ran 3 s", "realtime_factor": 1.0,
         "realtime_factor_steady": 1.0, "realtime_factor_steady_cpu": 1.0, "wall_share_per_sim_s": {}})
+    monkeypatch.setattr(teleop_bench, "sim_chain_rounds", lambda chains, dur, rounds: {
+        name: {"sensor": sensor, "noise": noise, "status": "ok", "message": "ran 3 s", "realtime_factor_steady": 1.0,
+               "per_round": {0: 1.0}} for name, (sensor, noise) in chains.items()})
     monkeypatch.setattr(teleop_bench, "wall_timing", lambda *a, **k: dict(faulted))
     monkeypatch.setattr(teleop_bench, "wall_controller_only", lambda d: {"controller_jitter_p99_ms": 0.1})
     monkeypatch.setattr(sys, "argv", ["teleop_loop.py", "--quick", "--wall-configs", "plain"])

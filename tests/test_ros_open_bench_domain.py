@@ -25,6 +25,11 @@ def bench(name, cls, params, n, seconds, setup=None, round_trip=True):
     given[name] = params
     return {{"round_trip_ms_p50": 1.0}}
 f.bench = bench
+def side_by_side(specs, n, seconds, rounds=10):
+    for key, (name, cls, params, setup) in specs.items():
+        given[name] = params
+    return {{key: {{"round_trip_ms_p50": 1.0}} for key in specs}}
+f.side_by_side = side_by_side
 f.main(sys.argv[1:])
 pal = given["pal (ROS 2 loopback)"]
 print(json.dumps({{"domain_id": pal["domain_id"], "namespace": pal["namespace"], "pid": os.getpid(),
