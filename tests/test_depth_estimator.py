@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -137,7 +138,7 @@ def test_component_ports_stamps_and_errors(sim, monkeypatch):
         assert h.comp.status()["max_depth_m"] == pytest.approx(out["max_depth"])
         with pytest.raises(ComponentFault, match="expected a uint8 BGR image of 320x240x3"):
             h.step(0.6, image=np.zeros((640, 480, 3), np.uint8))
-    with pytest.raises(ModelFileError, match="no such model file"):
+    with pytest.raises(ValueError, match="no such model file"):   # refused with the params (a graph's validation)
         Harness(DepthEstimator, {"model": "/nonexistent/x.model"}).comp.configure()
     # a machine without a CUDA GPU (torch says so, here on every machine; a GPU machine raised the error itself)
     import torch
@@ -424,8 +425,17 @@ def test_configuration_errors_name_the_parameter(tmp_path):
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((10, 10, 3), np.uint8))
     with pytest.raises(ModelFileError, match=r"^background: .*small.png: background frame is 10x10"):
         Harness(DepthEstimator, {"background": str(tmp_path / "small.png")}).comp.configure()
-    with pytest.raises(ModelFileError, match=r"^model: .*no such model file"):
-        Harness(DepthEstimator, {"model": str(tmp_path / "x.model")}).comp.configure()
+    with pytest.raises(ValueError, match=r"model\n  Value error, .*x\.model: no such model file"):   # validation
+        Harness(DepthEstimator, {"model": str(tmp_path / "x.model")})
+    import shutil
+
+    from teletouch.plugins.estimators.normal_model import packaged_model_path
+
+    gone = shutil.copy(packaged_model_path("sim-digit-qvga"), tmp_path / "gone.model")
+    h = Harness(DepthEstimator, {"model": str(gone)})
+    Path(gone).unlink()   # removed after the graph was validated: configure names the parameter
+    with pytest.raises(ModelFileError, match=r"^model: .*gone\.model: no such model file"):
+        h.comp.configure()
     for field, value in (("adapt_background", 0.7), ("adapt_limit", 0.0), ("max_global_change", -1.0),
                          ("fault_after_bad", -1), ("fault_after_repeats", -1), ("contact_depth", "-1mm")):
         with pytest.raises(ValueError, match=field):

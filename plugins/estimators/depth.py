@@ -84,8 +84,9 @@ class DepthEstimator(Component):
                                          "the background (per-channel median, 0-255 levels) exceeds this is not "
                                          "a plausible DIGIT frame (LEDs off or changing, saturated, exposure "
                                          "changed): its outputs are NaN, it is never blended into the background")
-        max_background_mismatch: float = Field(6.0, ge=0, le=255, description="the first frames (10) must match "
-                                               "the background: the median over the image of |frame - background| "
+        max_background_mismatch: float = Field(6.0, ge=0, le=255, description="the closest of the first frames "
+                                               "(10; a contact in some of them is no mismatch) must match the "
+                                               "background: the median over the image of |frame - background| "
                                                "in block means (8 x 8 px at QVGA: pixel noise averages out) after "
                                                "the global offset, mean over B, G, R, at most this many levels (a "
                                                "sensor's own frames: 1-2, sim-digit at its maximum noise 32: 3-4; "
@@ -111,6 +112,19 @@ class DepthEstimator(Component):
                                       "simulated sensor at rest without noise; a camera's noise never repeats) "
                                       "gives the previous result again, stamped with the new frame's time, "
                                       "without recomputing it")
+
+        @field_validator("model")
+        @classmethod
+        def _model_file(cls, v: str) -> str:
+            """The model file's header when the graph is validated (a missing file, a JSON or text file, another
+            format or version): before, `teletouch validate` said OK and the run failed at start-up."""
+            from .normal_model import check_model_file
+
+            try:
+                check_model_file(v)
+            except ModelFileError as exc:
+                raise ValueError(str(exc)) from None
+            return v
 
         @field_validator("contact_depth")
         @classmethod
@@ -229,17 +243,19 @@ class DepthEstimator(Component):
     def _check_match(self, frame: np.ndarray) -> None:
         """The first MATCH_FRAMES plausible frames against the background: a model (or background) of another
         sensor reads another unit's pattern of colours as contacts (0.1-2 mm and a force from nothing), and the
-        packaged model is the simulated sensor's."""
+        packaged model is the simulated sensor's. The level is the least of the frames' (:func:`match_level`): a
+        contact among them, however deep, cannot make a sensor's own frames read as another's."""
         self._mismatch.append(background_mismatch(frame, self._ref_bg))
         if len(self._mismatch) == MATCH_FRAMES:
-            level = float(np.median(self._mismatch))
+            level = match_level(self._mismatch)
             self.background_mismatch = level
             limit = self.params.max_background_mismatch
             if level > limit:
                 raise ComponentFault(
                     f"the camera's frames do not match the depth model's background: they differ by {level:.1f} "
-                    f"levels (median over the image in block means, after the global offset; a sensor's own "
-                    f"frames: 1-2, another DIGIT unit's: 9-20; max_background_mismatch {limit:g}): model "
+                    f"levels (the closest of the first {MATCH_FRAMES}; median over the image in block means, after "
+                    f"the global offset; a sensor's own frames: 1-2, another DIGIT unit's: 9-20; "
+                    f"max_background_mismatch {limit:g}): model "
                     f"{self.params.model!r} was made for another sensor (the packaged one is the simulated sensor's). "
                     f"Calibrate this sensor "
                     f"(`teletouch calibrate depth`), or give background: a no-contact frame of it", self.id)
@@ -287,6 +303,15 @@ class DepthEstimator(Component):
 
 #: how many plausible frames at start-up are compared with the background (max_background_mismatch)
 MATCH_FRAMES = 10
+
+
+def match_level(levels: list[float]) -> float:
+    """The node's background mismatch from its first frames' :func:`background_mismatch`: the least of them. A
+    contact changes a frame's colours over much of the image (a 5 mm probe 1.7 mm deep in sim-digit: 10 levels, all
+    of the frame), so the median of 10 frames of a fast squeeze read as another sensor's; another unit's colour
+    pattern is in every frame (9-20 levels each), while a sensor's own frames need only one untouched or lightly
+    touched frame among them (1-2 levels)."""
+    return float(min(levels))
 
 
 def background_mismatch(frame: np.ndarray, background: np.ndarray) -> float:
@@ -348,19 +373,38 @@ def _check_device(device: str) -> str:
 
 
 def _read_image(path: str | Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    """The image at ``path`` (uint8 BGR), else FileNotFoundError naming it once: no such file, a folder, not a
+    readable image. Checked before OpenCV reads it, which warns on stderr about a path it cannot open."""
+    img, why = _try_read_image(path)
     if img is None:
-        raise FileNotFoundError(f"{path}: not a readable image file")
+        raise FileNotFoundError(f"{path}: {why}")
     return img
 
 
+def _try_read_image(path: str | Path) -> tuple[np.ndarray | None, str]:
+    """(the image, '') or (None, why it cannot be read, without the path)."""
+    import cv2
+
+    p = Path(path)
+    if p.is_dir():
+        return None, "a folder, expected an image file"
+    if not p.is_file():
+        return None, "no such file" if not p.exists() else "not a regular file, expected an image file"
+    img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    if img is None:
+        return None, "not a readable image file (expected PNG or JPEG)"
+    return img, ""
+
+
 def _check_output(path: str | Path, what: str, folder: bool = False) -> None:
-    """Refuse an output path that cannot be written with a ValueError naming the option (before any long work)."""
+    """Refuse an output path that cannot be written with a ValueError naming the option (before any long work):
+    also one whose folder does not exist (a file's folder; a folder's parent), which writing it made silently."""
     problem = output_problem(path, folder)
     if problem:
         raise ValueError(f"{what} {path}: {problem}")
+    parent = Path(path).parent
+    if not parent.is_dir():
+        raise ValueError(f"{what} {path}: the folder {parent} does not exist (create it first)")
 
 
 # ------------------------------------------------------------------------------------------------------------ CLI
@@ -606,6 +650,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         if args.background:
             bg, what = _background_for_model(args.background, model)
             print(f"teletouch estimate: background: {what}", file=sys.stderr)
+        force = _force_calibration(args.force_calibration, args.model) if args.force_calibration else None
         if save is not None:
             _check_output(save, "--save-depth", folder=True)
             try:
@@ -617,27 +662,21 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         return 2
     pipe = DepthPipeline(model, device=_check_device(args.device), background=bg)
     pipe.warm_up()   # lazy imports and FFT set-up here, so that each image's "ms" is its own computation
-    force = None
-    if args.force_calibration:
-        try:
-            from teletouch.plugins.estimators.poly_force import ForceCalibration
-        except ImportError as exc:  # pragma: no cover - poly_force ships with teletouch
-            print(f"teletouch estimate: error: force calibration support is missing: {exc}", file=sys.stderr)
-            return 2
-        force = ForceCalibration.load(args.force_calibration)
     rc = 0
     for path in args.images:
-        try:
-            frame = _read_image(path)
-            pipe.check_frame(frame)
-        except (FileNotFoundError, ValueError) as exc:
-            print(f"teletouch estimate: error: {path}: {exc}", file=sys.stderr)
+        frame, why = _estimate_input(path, pipe)
+        if frame is None:
+            # every image given has its row: an unreadable one too, as an implausible one (exit code 2 all the same)
+            print(f"teletouch estimate: error: {path}: {why}", file=sys.stderr)
             rc = 2
+            if args.json:
+                print(json.dumps({"image": str(path), "valid": False, "problem": why, "max_depth_m": None,
+                                  "contact_area_m2": None, "centroid_m": [None, None], "ms": None}))
             continue
         t0 = time.perf_counter()
         res = pipe(frame)
         ms = (time.perf_counter() - t0) * 1e3
-        problem = frame_problem(res, args.max_global_change)
+        problem = frame_problem(res, args.max_global_change) or _colour_problem(frame)
         mismatch = background_mismatch(frame, bg if bg is not None else model.background)
         if not problem and args.max_background_mismatch and mismatch > args.max_background_mismatch:
             problem = (f"the frame differs from the model's background by {mismatch:.1f} levels (median over the "
@@ -673,6 +712,47 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             print(f"{path}: max depth {res.max_depth * 1e3:.3f} mm  contact area {res.contact_area * 1e6:.2f} mm^2"
                   f"{f}")
     return rc
+
+
+def _colour_problem(frame: np.ndarray) -> str:
+    """`estimate`: why an image of plausible brightness is no camera frame ('' if it is): a grayscale image (before:
+    read as another sensor's, 22 levels from the background). Asked after the global change, which names a black
+    frame (LEDs off; its channels are equal too) as such."""
+    from .depth_calibration import is_grayscale
+
+    if is_grayscale(frame):
+        return ("a grayscale image (its three colour channels are equal); expected a colour BGR frame of the DIGIT "
+                "as its camera delivers it (the depth model reads the colours)")
+    return ""
+
+
+def _estimate_input(path: str, pipe: Any) -> tuple[np.ndarray | None, str]:
+    """(the frame, '') or (None, why `estimate` cannot read it, without the path): no such file, a folder, not an
+    image, another size than the model's."""
+    frame, why = _try_read_image(path)
+    if frame is None:
+        return None, why
+    try:
+        pipe.check_frame(frame)
+    except ValueError as exc:
+        return None, str(exc)
+    return frame, ""
+
+
+def _force_calibration(path: str, model: str) -> Any:
+    """`estimate --force-calibration`: the calibration, refused (ValueError) when it was made for another depth
+    model than ``--model``, as poly-force refuses it with ``depth_model`` set: a calibration is per sensor and per
+    depth model, and another model's depths give another force."""
+    from teletouch.plugins.estimators.poly_force import ForceCalibration, _model_name
+
+    cal = ForceCalibration.load(path)
+    if _model_name(model) != _model_name(cal.sensor_model_id):
+        made_for = repr(cal.sensor_model_id) if cal.sensor_model_id else "an unnamed depth model"
+        raise ValueError(f"--force-calibration {path}: the calibration {cal.path} was made for {made_for}, not for "
+                         f"the depth model {model!r} (--model): calibrate the force with this depth model "
+                         f"(`teletouch calibrate force --set depth.model=...`) or give --sensor-model-id when "
+                         f"fitting a CSV")
+    return cal
 
 
 def _save_depth_png(path: Path, depth: np.ndarray) -> None:

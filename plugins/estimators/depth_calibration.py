@@ -15,6 +15,7 @@ import hashlib
 import io
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -246,7 +247,8 @@ def load_background(paths: Sequence[str | os.PathLike[str]],
     frames: list[np.ndarray] = []
     seen: dict[bytes, int] = {}
     for i, f in enumerate(files):
-        img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+        # not read when it is no file: OpenCV warns on stderr about a path it cannot open
+        img = cv2.imread(str(f), cv2.IMREAD_COLOR) if f.is_file() else None
         if img is None:
             why = "" if f.is_file() else " (no such file or folder)"
             raise FileNotFoundError(f"{f}: not a readable image file{why}; expected a no-contact frame "
@@ -778,11 +780,14 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
     n = Xn.shape[0]
     it: Iterable[int] = range(epochs)
     bar = None
-    if progress:
+    lines = None
+    if progress and _stderr_is_terminal():
         from tqdm import tqdm
 
         bar = tqdm(it, desc="training", unit="epoch", leave=False)
         it = bar
+    elif progress:
+        lines = _ProgressLines(epochs)
     loss_v = float("nan")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)       # small batches: one thread is fastest and does not fight other processes
@@ -804,6 +809,8 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
                                  f"{lr:g}); no model written; try a smaller learning rate")
             if bar is not None:
                 bar.set_postfix(loss=f"{loss_v:.5f}")
+            if lines is not None:
+                lines.epoch_done(epoch + 1, loss_v)
     finally:
         torch.set_num_threads(threads)
         if bar is not None:
@@ -861,6 +868,33 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
                 f"{100 * model.validation['median_abs_cap_error']:.1f}%, sphere radius "
                 f"{1000 * model.validation['median_sphere_radius_m']:.2f} mm")
     return model
+
+
+#: seconds between the plain progress lines of a training whose stderr is not a terminal (a log file, CI)
+PROGRESS_LINE_S = 10.0
+
+
+def _stderr_is_terminal() -> bool:
+    try:
+        return bool(sys.stderr.isatty())
+    except (AttributeError, ValueError):   # no stderr, or a closed one
+        return False
+
+
+class _ProgressLines:
+    """Training progress for a log: a plain line every PROGRESS_LINE_S seconds (none for a training shorter than
+    that), where tqdm's bar on a terminal wrote ~80 carriage-return updates on one line of the log."""
+
+    def __init__(self, epochs: int) -> None:
+        self.epochs = epochs
+        self.t0 = self.last = time.monotonic()
+
+    def epoch_done(self, epoch: int, loss: float) -> None:
+        now = time.monotonic()
+        if now - self.last >= PROGRESS_LINE_S and epoch < self.epochs:
+            self.last = now
+            print(f"training: epoch {epoch}/{self.epochs}, loss {loss:.5f}, {now - self.t0:.0f} s", file=sys.stderr,
+                  flush=True)
 
 
 def check_training_params(*, epochs: Any, lr: Any, batch: Any, dropout: Any, seed: Any, hidden: Any,

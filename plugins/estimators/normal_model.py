@@ -40,7 +40,7 @@ from teletouch.errors import ModelFileError
 __all__ = [
     "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
     "features", "uses_xy", "context_cells", "feature_count", "NormalModel", "load_model", "packaged_model_path",
-    "resolve_model", "atomic_write",
+    "resolve_model", "check_model_file", "atomic_write",
 ]
 
 FORMAT = "teletouch-depth-model"
@@ -317,6 +317,8 @@ def resolve_model(spec: str | os.PathLike[str]) -> Path:
     p = Path(s).expanduser()
     if p.is_file():
         return p
+    if p.is_dir():
+        raise ModelFileError(f"{s}: a folder, expected a model file (.model from `teletouch calibrate depth`)")
     if os.sep not in s and not s.endswith(".model"):
         q = packaged_model_path(s)
         if q is not None:
@@ -362,25 +364,37 @@ def max_stride(shape: tuple[int, int]) -> int:
     return max(1, min(shape) // 8)
 
 
-def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | None = None) -> NormalModel:
-    """Read a model file; ModelFileError naming the file and what was expected on any problem."""
-    p = resolve_model(path)
-    name = str(p)
-    expected = "expected a .npz archive written by `teletouch calibrate depth`"
+_EXPECTED = "expected a .npz archive written by `teletouch calibrate depth`"
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")   # a zip archive (an .npz): with entries, empty
+_NPY_MAGIC = b"\x93NUMPY"
+
+
+def _check_archive(p: Path) -> None:
+    """ModelFileError unless the file starts as a zip archive (an .npz) does. np.load reads any other file (JSON,
+    text, a PNG) as pickled data and refuses it with a hint to load it unsafely: nothing here is pickled."""
     try:
-        z = np.load(p, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise ModelFileError(f"{name}: a single NumPy array, not a teletouch depth model ({expected})")
-        with z:
-            files = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError) as exc:
-        # zlib.error: a damaged compressed entry (not a subclass of any of the others)
-        raise ModelFileError(f"{name}: not a readable teletouch depth model ({expected}): {exc}") from None
-    if "meta" not in files:
-        raise ModelFileError(f"{name}: no 'meta' entry; expected a {FORMAT} file written by `teletouch calibrate "
-                             f"depth`")
+        with open(p, "rb") as fh:
+            head = fh.read(6)
+    except OSError as exc:
+        raise ModelFileError(f"{p}: cannot read the model file: {exc.strerror or exc}") from None
+    if head == _NPY_MAGIC:
+        raise ModelFileError(f"{p}: a single NumPy array, not a teletouch depth model ({_EXPECTED})")
+    if head[:4] not in _ZIP_MAGIC:
+        raise ModelFileError(f"{p}: not a teletouch depth model ({_EXPECTED})")
+
+
+def _why(exc: BaseException) -> str:
+    """An error reading the archive, without numpy's advice to load pickled data unsafely (an entry holding
+    Python objects: no model file written here has one)."""
+    if "allow_pickle" in str(exc):
+        return "an entry holds pickled Python objects, which a model file never does"
+    return str(exc)
+
+
+def _check_meta(name: str, entry: Any) -> dict[str, Any]:
+    """The 'meta' entry as a dict of a model file of this format and version, else ModelFileError."""
     try:
-        meta = json.loads(str(files["meta"]))
+        meta = json.loads(str(entry))
     except json.JSONDecodeError as exc:
         raise ModelFileError(f"{name}: the 'meta' entry is not valid JSON: {exc}") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
@@ -389,6 +403,43 @@ def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | Non
     if meta.get("version") != VERSION:
         raise ModelFileError(f"{name}: model file version {meta.get('version')!r}, this teletouch reads version "
                              f"{VERSION}; recalibrate with `teletouch calibrate depth`")
+    return meta
+
+
+def check_model_file(spec: str | os.PathLike[str]) -> Path:
+    """The model file of ``spec`` (a path or a packaged model's name) if it is a model file of this format and
+    version, read from its header (the 'meta' entry only: no weights, no network), else ModelFileError naming the
+    file and what was expected. What a graph's validation checks; :func:`load_model` checks the rest."""
+    p = resolve_model(spec)
+    _check_archive(p)
+    try:
+        with zipfile.ZipFile(p) as zf:
+            if "meta.npy" not in zf.namelist():
+                raise ModelFileError(f"{p}: no 'meta' entry; expected a {FORMAT} file written by `teletouch "
+                                     f"calibrate depth`")
+            with zf.open("meta.npy") as fh:
+                entry = np.lib.format.read_array(fh, allow_pickle=False)
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
+        raise ModelFileError(f"{p}: not a readable teletouch depth model ({_EXPECTED}): {_why(exc)}") from None
+    _check_meta(str(p), entry)
+    return p
+
+
+def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | None = None) -> NormalModel:
+    """Read a model file; ModelFileError naming the file and what was expected on any problem."""
+    p = resolve_model(path)
+    name = str(p)
+    _check_archive(p)
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            files = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError, KeyError) as exc:
+        # zlib.error: a damaged compressed entry (not a subclass of any of the others)
+        raise ModelFileError(f"{name}: not a readable teletouch depth model ({_EXPECTED}): {_why(exc)}") from None
+    if "meta" not in files:
+        raise ModelFileError(f"{name}: no 'meta' entry; expected a {FORMAT} file written by `teletouch calibrate "
+                             f"depth`")
+    meta = _check_meta(name, files["meta"])
     need = ["feature_set", "hidden", "rows", "cols", "px_per_m", "orientation"]
     missing = [k for k in need if k not in meta]
     if missing:
