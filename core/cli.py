@@ -37,12 +37,17 @@ EXIT_TERMINATED = 128 + signal.SIGTERM   # 143: the shell's code for a process e
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM during `teletouch run`: raised where Ctrl-C raises KeyboardInterrupt, so the runtime makes the same
-    safe stop; the command then exits :data:`EXIT_TERMINATED` instead of 130."""
+    safe stop (and names the signal, ``signum``, in its result); the command then exits :data:`EXIT_TERMINATED`
+    instead of 130."""
+
+    signum = signal.SIGTERM
 
 
 def _add_graph_args(p: argparse.ArgumentParser) -> None:
+    from .graph import set_argument
+
     p.add_argument("graph", help="graph file (YAML)")
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE", type=set_argument,
                    help="override a parameter, the plugin or the rate of a node (repeatable)")
     p.add_argument("--clock", choices=("sim", "wall"), default=None, help="override the graph's clock")
 
@@ -316,8 +321,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.json:   # exit_code: what the shell sees
         print(json.dumps(dict(result.as_dict(), exit_code=code,
                               recording_error=None if record_error is None else str(record_error)), default=str))
-    by = " by SIGTERM" if code == EXIT_TERMINATED else ""
-    print(f"teletouch: {result.status}{by}: {result.message}", file=sys.stderr)
+    # an interrupted run's message says it and which signal came ("interrupted (SIGTERM): ..."): said once
+    said = result.message if result.status == "interrupted" else f"{result.status}: {result.message}"
+    print(f"teletouch: {said}", file=sys.stderr)
     return code
 
 
@@ -530,15 +536,16 @@ def _drop_funcless(action: argparse._SubParsersAction, kept: set[str], prefix: s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """The command line; returns the exit status (argparse's usage errors exit 2 themselves). A Ctrl-C anywhere,
-    also while the plugins are imported, ends with "teletouch: interrupted" and 130 (SIGTERM during `run`: 143)."""
+    """The command line; returns the exit status (argparse's usage errors, a malformed --set among them, exit 2
+    themselves). A Ctrl-C anywhere, also while the plugins are imported, ends with "teletouch: interrupted (Ctrl-C)"
+    and 130 (SIGTERM during `run`: "teletouch: interrupted (SIGTERM)" and 143)."""
     try:
         return _main(argv)
     except Terminated:
-        print("teletouch: terminated (SIGTERM)", file=sys.stderr)
+        print("teletouch: interrupted (SIGTERM)", file=sys.stderr)
         return EXIT_TERMINATED
     except KeyboardInterrupt:
-        print("teletouch: interrupted", file=sys.stderr)
+        print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 

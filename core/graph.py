@@ -278,31 +278,84 @@ def _overlay(base: LDict, over: LDict) -> LDict:
     return out
 
 
+#: the --set fields that are not parameters
+SET_FIELDS = ("plugin", "rate", "on_fault", "priority", "isolate")
+
+
+def set_problem(item: str) -> str | None:
+    """None if ``item`` has the form of a ``--set`` (NODE.FIELD=VALUE, NODE.PARAM.KEY=VALUE for a value inside a
+    parameter, NODE.params.NAME=VALUE); else what is wrong with it. The form alone: what it names is checked against
+    the graph (:func:`apply_sets`)."""
+    lhs, eq, _ = item.partition("=")
+    parts = lhs.strip().split(".")
+    if not eq or len(parts) < 2 or not all(p.strip() for p in parts):
+        return (f"expected NODE.FIELD=VALUE (FIELD: {', '.join(SET_FIELDS)} or a parameter, nested with dots), e.g. "
+                f"gripper.plugin=sim-gripper or force.out_of_range=extrapolate")
+    if parts[1] == "params" and len(parts) == 2:
+        return "expected NODE.params.NAME=VALUE (or NODE.NAME=VALUE) for a parameter"
+    return None
+
+
+def set_argument(text: str) -> str:
+    """argparse ``type=`` of ``--set``: a malformed one is a usage error (exit 2) naming it and the form expected."""
+    import argparse
+
+    problem = set_problem(text)
+    if problem:
+        raise argparse.ArgumentTypeError(f"{text!r}: {problem}")
+    return text
+
+
+class _NestedSets:
+    """The ``--set``s of values inside one parameter (NODE.PARAM.KEY=VALUE) and the parameter's value before the first
+    of them (``_MISSING`` where the file gave none): an error in the parameter is laid on the --set that made it, or
+    on the file where its own value is refused (:func:`_blame_sets`)."""
+
+    def __init__(self, original: Any):
+        self.original = original
+        self.items: list[tuple[list[str], str, Any]] = []   # (keys inside the parameter, the --set as given, value)
+
+
+_MISSING = object()
+
+
+def _nested_sets(params: dict, name: str) -> _NestedSets:
+    """The record of the --sets inside parameter ``name`` of a node's ``params`` (kept on the mapping, as
+    ``nested_sets``), made with the parameter's value before the first of them."""
+    records = getattr(params, "nested_sets", None)
+    if records is None:
+        records = {}
+        if isinstance(params, LDict):
+            params.nested_sets = records   # type: ignore[attr-defined]
+    if name not in records:
+        records[name] = _NestedSets(copy.deepcopy(_plain(params[name])) if name in params else _MISSING)
+    return records[name]
+
+
 def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
     """Apply ``--set NODE.FIELD=VALUE`` overrides (FIELD: plugin, rate, on_fault, priority, isolate or a parameter;
-    nested with dots)."""
-    where = Location("--set", None)
+    nested with dots). Every error is led by the --set (``--set NODE.FIELD=VALUE: ...``)."""
     for item in sets:
-        if "=" not in item:
-            raise GraphError(f"'{item}': expected NODE.FIELD=VALUE, e.g. gripper.plugin=sim-gripper", where)
+        setw = Location("--set " + item, None)
+        problem = set_problem(item)
+        if problem:
+            raise GraphError(problem, setw)
         lhs, rhs = item.split("=", 1)
-        parts = lhs.strip().split(".")
-        if len(parts) < 2:
-            raise GraphError(f"'{item}': expected NODE.FIELD=VALUE, e.g. force.out_of_range=extrapolate", where)
-        value = load_yaml_text(rhs, "--set") if rhs.strip() else ""
+        parts = [p.strip() for p in lhs.strip().split(".")]
+        try:
+            value = load_yaml_text(rhs, "--set") if rhs.strip() else ""
+        except GraphError as exc:
+            raise GraphError(exc.message, setw) from None
         if isinstance(value, (LDict, LList)):
             value = _plain(value)
         nodes = doc.get("nodes")
         if not isinstance(nodes, list):
-            raise GraphError(f"'{item}': the graph has no nodes", where)
+            raise GraphError("the graph has no nodes", setw)
         node = next((n for n in nodes if isinstance(n, dict) and n.get("id") == parts[0]), None)
         if node is None:
             ids = [n.get("id") for n in nodes if isinstance(n, dict)]
-            raise GraphError(f"'{item}': no node '{parts[0]}'{_suggest(parts[0], ids)}", where)
-        setw = Location("--set " + item, None)
-        if parts[1] == "params" and len(parts) == 2:
-            raise GraphError(f"'{item}': expected NODE.params.NAME=VALUE (or NODE.NAME=VALUE) for a parameter", where)
-        if parts[1] in ("plugin", "rate", "on_fault", "priority", "isolate") and len(parts) == 2:
+            raise GraphError(f"no node '{parts[0]}'{_suggest(parts[0], ids)}", setw)
+        if parts[1] in SET_FIELDS and len(parts) == 2:
             if parts[1] == "plugin" and value != node.get("plugin"):
                 node["params"] = LDict(where=setw)
             node[parts[1]] = value
@@ -314,6 +367,8 @@ def apply_sets(doc: LDict, sets: Iterable[str]) -> LDict:
         if not isinstance(params, dict):
             params = LDict(where=setw)
             node["params"] = params
+        if len(parts) > 2:   # a value inside a parameter: remember the parameter's value before it
+            _nested_sets(params, parts[1]).items.append((parts[2:], item, value))
         target = params
         for p in parts[1:-1]:
             nxt = target.get(p)
@@ -449,6 +504,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             err(f"{key}: expected text, got {doc[key]!r}", doc.loc(key))
 
     seen_ids: dict[str, Location] = {}
+    miswired: set[tuple[str, str]] = set()   # (node, input) with a wire already reported: not also "not wired"
     for i, nd in enumerate(nodes_doc):
         nwhere = nodes_doc.loc(i) if isinstance(nodes_doc, LList) else doc.loc("nodes")
         if not isinstance(nd, dict):
@@ -526,6 +582,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             params = {}
         pwhere = {k: params.loc(k) for k in params} if isinstance(params, LDict) else {}
         pwhere_default = ld.loc("params") if "params" in ld else ld.where
+        nested = getattr(params, "nested_sets", {})
         spec = NodeSpec(id=nid, plugin=plugin if isinstance(plugin, str) else "", rate=rate,
                         params=_plain(params), inputs={}, on_fault=on_fault, where=ld.where, param_where=pwhere,
                         isolate=isolate, priority=priority, plugin_where=ld.loc("plugin"))
@@ -565,7 +622,13 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                         msg = e["msg"]
                         if msg.startswith("Value error, "):
                             msg = msg[len("Value error, "):]
-                        err(f"node '{nid}': param '{fname}' = {e.get('input')!r}: {msg}", w)
+                        blamed = (_blame_sets(cls, spec.params, loc[0], nested[loc[0]])
+                                  if loc and loc[0] in nested else [])
+                        if blamed:   # a --set inside the parameter made the error: it is named, not the file
+                            err(_set_error(nid, loc[0], spec.params.get(loc[0]), blamed, msg),
+                                Location(" and ".join(f"--set {b[1]}" for b in blamed), None))
+                        else:
+                            err(f"node '{nid}': param '{fname}' = {e.get('input')!r}: {msg}", w)
             if clock_v == "sim" and cls.requires_wall_clock:
                 err(f"node '{nid}': {plugin} needs the wall clock (real hardware or other processes in real time) "
                     f"and cannot run on the simulated clock; use --clock wall or a simulated plugin",
@@ -595,6 +658,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 hint = (" (null unwires an input only in an override of an included graph's node; here, leave the "
                         "input out)" if src is None else "")
                 err(f"node '{nid}': input '{port}': expected 'node.port', got {src!r}{hint}", iw)
+                miswired.add((nid, str(port)))
                 continue
             snode, sport = src.split(".")
             spec.inputs[str(port)] = WireSpec(str(port), snode, sport, max_age, iw)
@@ -638,7 +702,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             if w.max_age is None:
                 w.max_age = n.cls.inputs[port].max_age
         for port, p in n.cls.inputs.items():
-            if p.required and port not in n.inputs:
+            if p.required and port not in n.inputs and (n.id, port) not in miswired:
                 err(f"node '{n.id}': required input '{port}' ({p.describe()}) of {n.plugin} is not wired", n.where)
 
     # each component's own wiring rules (Component.wiring_problems), e.g. a bridge port its topics do not carry
@@ -665,6 +729,48 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
     return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
                      duration=dur, faults=faults, description=str(doc.get("description") or ""),
                      realtime_priority=rt_prio, warnings=_isolation_warnings(nodes, clock_v, file))
+
+
+def _blame_sets(cls: type[Component], params: dict[str, Any], name: str,
+                nested: _NestedSets) -> list[tuple[list[str], str, Any]]:
+    """The --sets inside parameter ``name`` that make it refused: none where the file's own value
+    (``nested.original``) is refused too (the error is the file's); else those refused on their own, each applied to
+    the file's value, or all of them where only together they are."""
+    def refused(value: Any) -> bool:
+        trial = {k: v for k, v in params.items() if k != name}
+        if value is not _MISSING:
+            trial[name] = value
+        try:
+            cls.Params.model_validate(trial)
+        except ValidationError as exc:
+            return any(tuple(e["loc"][:1]) == (name,) for e in exc.errors())
+        return False
+
+    if refused(nested.original):
+        return []
+    return [s for s in nested.items if refused(_with_set(nested.original, s[0], s[2]))] or list(nested.items)
+
+
+def _with_set(original: Any, keys: list[str], value: Any) -> dict[str, Any]:
+    """``original`` (a parameter's value) with ``value`` set at ``keys`` inside it, as :func:`apply_sets` sets it
+    (a value that is not a mapping is replaced by one)."""
+    out = copy.deepcopy(original) if isinstance(original, dict) else {}
+    target = out
+    for k in keys[:-1]:
+        if not isinstance(target.get(k), dict):
+            target[k] = {}
+        target = target[k]
+    target[keys[-1]] = value
+    return out
+
+
+def _set_error(nid: str, name: str, current: Any, blamed: list[tuple[list[str], str, Any]], msg: str) -> str:
+    """The message of an error in parameter ``name`` laid on the --sets ``blamed``: the value the --set gave (and
+    where in the parameter), or the parameter's whole value where several --sets made it together."""
+    if len(blamed) == 1:
+        keys, _, value = blamed[0]
+        return f"node '{nid}': param '{'.'.join([name, *keys])}' = {value!r}: {msg}"
+    return f"node '{nid}': param '{name}' = {current!r}: {msg}"
 
 
 def _isolation_warnings(nodes: list[NodeSpec], clock: str, file: str) -> list[str]:

@@ -126,7 +126,7 @@ class RunResult:
         """The summary `teletouch run` prints at the end: status, clock and one row per node, with the period
         jitter p99 (ms; '-' where not measured: the simulated clock, or too few steps) next to the rates, as
         :meth:`as_dict` gives it in ``period_jitter_p99_s``."""
-        lines = [f"{self.status}: {self.message}",
+        lines = [self.message if self.status == "interrupted" else f"{self.status}: {self.message}",
                  f"clock {self.clock}: {self.sim_time:.3f} s graph time in {self.wall_time - self.startup_time:.3f} s "
                  f"wall after {self.startup_time:.3f} s start-up ({self.run_realtime_factor:.1f}x real time)",
                  f"  {'node':<16}{'plugin':<20}{'rate Hz':>9}{'achieved':>10}{'jitter p99 ms':>15}{'steps':>9}"
@@ -638,6 +638,7 @@ class Runtime:
         error: StartupError | None = None
         startup = 0.0
         interrupted = False
+        signum: int | None = None   # the signal that interrupted the run (SIGINT: Ctrl-C)
         late_signal: int | None = None
         fault_first: tuple[str, int, str] | None = None   # a fault that stopped the run before the interrupt
         # Start-up (importing torch, loading models) makes hundreds of thousands of long-lived objects. The cyclic
@@ -664,8 +665,9 @@ class Runtime:
                 self._run_sim(duration, progress, progress_interval)
             else:
                 self._run_wall(duration, progress, progress_interval)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:   # Ctrl-C, or a caller's SIGTERM handler raising one with its signum
             interrupted, fault_first = True, self._fault_reason()
+            signum = getattr(exc, "signum", None)
             self._stop_evt.set()
         finally:
             with _signals_deferred() as late:
@@ -673,17 +675,17 @@ class Runtime:
                 self._shutdown()
             if late and not interrupted:
                 interrupted, fault_first = True, self._fault_reason()
-                late_signal = late[0]
+                late_signal = signum = late[0]
             if gc_frozen:
                 gc.unfreeze()
         wall = time.perf_counter() - wall0
         if status is None and interrupted:
             # a fault that had already stopped the run stays its result (the operator's Ctrl-C after it, even during
             # the shutdown, must not hide why the run stopped)
-            status = ((fault_first[0], fault_first[1], fault_first[2] + "; then interrupted (Ctrl-C or SIGTERM)")
+            by = _signal_text(signum)
+            status = ((fault_first[0], fault_first[1], fault_first[2] + f"; then interrupted ({by})")
                       if fault_first else
-                      ("interrupted", EXIT_INTERRUPTED, "interrupted (Ctrl-C or SIGTERM): devices driven to their "
-                                                        "safe state"))
+                      ("interrupted", EXIT_INTERRUPTED, f"interrupted ({by}): devices driven to their safe state"))
         if status is None:
             status = self._stop_reason or ("ok", EXIT_OK, f"ran {self._now:.3f} s")
             degraded = [f for f in self.faults if f.action == "degrade"]
@@ -995,6 +997,19 @@ class Runtime:
                     th.join(timeout=1.0)
                 except RuntimeError:   # never started: a Ctrl-C while the threads were being started (its
                     pass               # KeyboardInterrupt, not this, is what ends the run)
+
+
+def _signal_text(signum: int | None) -> str:
+    """How a person knows the signal that interrupted a run: Ctrl-C for SIGINT (and for a KeyboardInterrupt that
+    names none), else its name (SIGTERM)."""
+    import signal
+
+    if signum is None or signum == signal.SIGINT:
+        return "Ctrl-C"
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
 
 
 @contextlib.contextmanager

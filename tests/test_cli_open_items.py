@@ -147,8 +147,8 @@ CLI_WITH_SIGINT = ("import signal, sys; signal.signal(signal.SIGINT, signal.defa
                    "from teletouch.cli import main; sys.exit(main())")
 
 
-@pytest.mark.parametrize("sig, code, last", [(signal.SIGTERM, 143, "teletouch: interrupted by SIGTERM: "),
-                                             (signal.SIGINT, 130, "teletouch: interrupted: ")])
+@pytest.mark.parametrize("sig, code, last", [(signal.SIGTERM, 143, "teletouch: interrupted (SIGTERM): "),
+                                             (signal.SIGINT, 130, "teletouch: interrupted (Ctrl-C): ")])
 def test_sigterm_ends_a_run_with_143_after_the_safe_stop_and_prints_the_summary(tmp_path, sig, code, last):
     """SIGTERM was turned into Ctrl-C's KeyboardInterrupt and the command exited 130; the convention is 143 (128 +
     15). Ctrl-C stays 130. Both make the same safe stop and print the summary."""
@@ -174,7 +174,8 @@ def test_sigterm_ends_a_run_with_143_after_the_safe_stop_and_prints_the_summary(
     err = "".join(seen)
     assert got == code, err
     assert "Traceback" not in err
-    assert "interrupted: interrupted (Ctrl-C or SIGTERM): devices driven to their safe state" in err   # summary
+    name = "SIGTERM" if sig == signal.SIGTERM else "Ctrl-C"
+    assert f"\ninterrupted ({name}): devices driven to their safe state\n" in err   # the summary's first line
     assert "  node            plugin" in err and "  device          mock-device" in err
     assert err.rstrip().splitlines()[-1].startswith(last)
     result = json.loads(out.strip().splitlines()[-1])
@@ -250,4 +251,4 @@ def test_a_sigterm_during_the_safe_shutdown_exits_143_too(tmp_path, monkeypatch,
     assert main(["run", str(graph), "--quiet", "--json"]) == 143
     cap = capsys.readouterr()
     assert json.loads(cap.out.strip().splitlines()[-1])["exit_code"] == 143
-    assert "teletouch: interrupted by SIGTERM: " in cap.err
+    assert "teletouch: interrupted (SIGTERM): " in cap.err

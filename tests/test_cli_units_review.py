@@ -113,7 +113,7 @@ def test_ctrl_c_while_the_plugins_load_exits_130_without_a_traceback(tmp_path):
     site = _install(tmp_path / "site", "slow", "raise KeyboardInterrupt  # Ctrl-C during this import\n")
     r = _cli("plugins", site=site)
     assert r.returncode == 130, (r.returncode, r.stderr[-2000:])
-    assert "Traceback" not in r.stderr and r.stderr.strip().endswith("teletouch: interrupted")
+    assert "Traceback" not in r.stderr and r.stderr.strip().endswith("teletouch: interrupted (Ctrl-C)")
 
 
 def test_calibrate_without_what_says_what_is_missing(capsys):

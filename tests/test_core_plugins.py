@@ -174,9 +174,8 @@ def test_signal_stops_wall_clock_run_with_safe_devices(tmp_path, sig):
     p.send_signal(getattr(signal, sig))
     _, err = p.communicate(timeout=60)
     assert p.returncode == {"SIGINT": 130, "SIGTERM": 143}[sig], err   # 128 + the signal's number, as a shell
-    by = " by SIGTERM" if sig == "SIGTERM" else ""
-    assert err.strip().splitlines()[-1] == (f"teletouch: interrupted{by}: interrupted (Ctrl-C or SIGTERM): devices "
-                                            "driven to their safe state")
+    by = "SIGTERM" if sig == "SIGTERM" else "Ctrl-C"
+    assert err.strip().splitlines()[-1] == f"teletouch: interrupted ({by}): devices driven to their safe state"
 
 
 def test_cli_calibrate_without_what_shows_its_own_usage():

@@ -979,6 +979,8 @@ def teletouch_components():
 
 @hookimpl
 def teletouch_add_commands(calibrate: Any) -> None:
+    from teletouch.graph import set_argument   # a malformed --set is a usage error, as for `teletouch run`
+
     p = calibrate.add_parser("force", help="force calibration: run a press routine graph, or fit a CSV of "
                                            "(depth, force) pairs",
                              description="Fit max depth (m) -> force (N) with a least-squares polynomial. "
@@ -1006,7 +1008,7 @@ def teletouch_add_commands(calibrate: Any) -> None:
                    help=f"refuse (and write nothing for) a fit whose R^2 is below this (default {DEFAULT_MIN_R2:g}; "
                         f"0: no limit)")
     p.add_argument("--sensor-model-id", default=None, help="recorded in the file (default: the depth model)")
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE",
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="NODE.FIELD=VALUE", type=set_argument,
                    help="override a graph parameter (repeatable)")
     p.add_argument("--clock", choices=("sim", "wall"), default=None, help="override the graph's clock")
     p.add_argument("--duration", default=None, help="longest run (s); default: the graph's, or 1 h simulated")
