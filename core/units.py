@@ -71,6 +71,52 @@ def plausible_opening(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPEN
     return value
 
 
+#: no parallel gripper closes, nor does a person's pinch move, faster than this (the PAL gripper: 0.1 m/s; a quick
+#: pinch: well below 1 m/s); a faster gripper or intent speed in a m/s field is millimetres per second typed there
+MAX_PLAUSIBLE_SPEED = 2.0          # m/s
+
+#: no haptic device renders more on a hand than this (the Omega.7's grip: 8 N, its translations: 12 N; larger
+#: desktop devices: some tens of N): a larger limit of the force sent to a person's hand is millinewtons typed in the
+#: newton field, or a typo, and would let a controller's error through to the hand unchecked
+MAX_PLAUSIBLE_HAND_FORCE = 50.0    # N
+
+
+def too_fast(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> str | None:
+    """None if ``|value|`` (m/s) is a plausible gripper or hand speed; else why ``name`` looks like mm/s typed in a
+    m/s field (``max_speed: 100`` meant 100 mm/s and was taken as 100 m/s)."""
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} m/s) is faster than any gripper closes or a hand pinches ({limit:g} m/s at most): "
+            f"mm/s in the m/s field? write e.g. '{value:g}mm/s' ({value / 1e3:g} m/s)")
+
+
+def plausible_speed(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> float:
+    """``value`` if it is a plausible gripper or hand speed (:func:`too_fast`), else a ValueError with its message:
+    for validators of speed fields."""
+    problem = too_fast(name, value, limit)
+    if problem:
+        raise ValueError(problem)
+    return value
+
+
+def too_strong_for_a_hand(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> str | None:
+    """None if ``|value|`` (N) is a force a haptic device may render on a person's hand; else why ``name`` looks like
+    millinewtons typed in the newton field (``max_force: 8000`` meant 8000 mN)."""
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} N) is beyond what a haptic device renders on a hand ({limit:g} N at most; the "
+            f"Omega.7's grip: 8 N): mN in the N field? write e.g. '{value:g}mN' ({value / 1e3:g} N)")
+
+
+def plausible_hand_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> float:
+    """``value`` if it is a force a haptic device may render on a hand (:func:`too_strong_for_a_hand`), else a
+    ValueError with its message: for validators of the limits of the force sent to a person's hand."""
+    problem = too_strong_for_a_hand(name, value, limit)
+    if problem:
+        raise ValueError(problem)
+    return value
+
+
 def parse_quantity(text: Any, unit: str | None = None) -> float:
     """Parse ``text`` (a number or a string like ``"6mm"``) into a float in the SI unit ``unit``.
 

@@ -68,7 +68,7 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import (
     MAX_PLAUSIBLE_OPENING, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
-    plausible_opening,
+    plausible_hand_force, plausible_opening, plausible_speed,
 )
 
 from .passivity import (
@@ -335,6 +335,11 @@ class _CommonParams(Params):
     damping_release: Seconds = Field(0.05, ge=0, description="time constant of the passivity damping's decay "
                                      "(no step in the hand when the deficit is paid; dissipates a little more)",
                                      json_schema_extra={"unit": "s"})
+
+    @field_validator("max_force")
+    @classmethod
+    def _hand_force(cls, v: float, info: Any) -> float:
+        return plausible_hand_force(info.field_name, v)   # a force on a person's hand: 8000 meant 8000 mN
 
     @model_validator(mode="after")
     def _check(self) -> "_CommonParams":
@@ -723,6 +728,11 @@ class PositionForce(_Bilateral):
         resume_speed: float = Field(0.02, gt=0, description="when a fresh estimate returns after a hold, the "
                                     "follower command moves from the held value to the leader's mapped opening "
                                     "at no more than this speed (never a jump)", json_schema_extra={"unit": "m/s"})
+
+        @field_validator("resume_speed")
+        @classmethod
+        def _speed(cls, v: float, info: Any) -> float:
+            return plausible_speed(info.field_name, v)
 
         @field_validator("force_sign", mode="before")
         @classmethod

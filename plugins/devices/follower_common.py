@@ -26,10 +26,12 @@ import time
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
-from teletouch.units import MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, plausible_opening
+from teletouch.units import (
+    MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, plausible_opening, plausible_speed,
+)
 
 __all__ = ["FollowerParams", "FollowerBase", "Reading", "OpeningMap", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS",
            "clamp", "command_value", "shape_setpoint"]
@@ -127,6 +129,11 @@ class FollowerParams(Params):
     command_timeout: Seconds = Field(0.2, gt=0, le=2.0, description="an opening_command older than this (or stamped "
                                      "more than this ahead, or with a NaN stamp) is stale: the gripper holds its "
                                      "measured opening", json_schema_extra={"unit": "s"})
+
+    @field_validator("max_speed")
+    @classmethod
+    def _speed(cls, v: float, info: Any) -> float:
+        return plausible_speed(info.field_name, v)   # 100 meant 100 mm/s: no gripper closes at 100 m/s
 
     @model_validator(mode="after")
     def _range(self) -> "FollowerParams":

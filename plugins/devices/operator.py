@@ -38,7 +38,7 @@ from typing import Any, Callable, ClassVar, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening
+from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening, plausible_speed
 
 __all__ = [
     "OperatorState", "Intent", "IntentParams", "register_intent", "intent_names", "make_intent", "validate_intent",
@@ -136,7 +136,8 @@ def validate_intent(spec: Any) -> dict[str, Any]:
         try:
             p = pcls(**spec)
         except ValidationError as exc:
-            errs = "; ".join(f"intent.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+            errs = "; ".join(f"intent.{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}"
+                             for e in exc.errors())
             raise ValueError(f"intent '{type_name}': {errs}") from None
         return {"type": type_name, **p.model_dump()}
     return {"type": type_name, **spec}
@@ -213,6 +214,11 @@ class CloseAndHoldIntent:
         @classmethod
         def _plausible(cls, v: float, info: Any) -> float:
             return plausible_opening(info.field_name, v)
+
+        @field_validator("speed")
+        @classmethod
+        def _plausible_speed(cls, v: float, info: Any) -> float:
+            return plausible_speed(info.field_name, v)
 
     def __init__(self, params: "CloseAndHoldIntent.Params"):
         p = self.params = params
