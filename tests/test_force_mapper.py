@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -346,12 +347,15 @@ def test_median_rejects_outlier_and_lowpass_lags(cal_file):
         assert h.step(2 / 60, max_depth=0.0)["force"] == 0.0  # release: exactly zero at once
 
 
-def test_component_bad_calibration_refuses_to_configure(tmp_path):
+def test_component_bad_calibration_refuses_to_configure(tmp_path, cal_file):
     p = tmp_path / "broken.force.json"
+    p.write_text(Path(cal_file).read_text())
+    params = PolyForce.Params(calibration=str(p))   # (a valid file, broken after the graph was validated)
     p.write_text("not json")
-    h = Harness(PolyForce, {"calibration": str(p)})
     with pytest.raises(ModelFileError, match="broken.force.json"):
-        h.comp.configure()
+        PolyForce(params).configure()
+    with pytest.raises(ValueError, match="broken.force.json: not a force calibration"):   # and when validated
+        Harness(PolyForce, {"calibration": str(p)})
 
 
 def test_component_in_a_graph(cal_file):

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Literal, Sequence
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, ModelFileError, Params, Port, Sample, TeletouchError, hookimpl
 from teletouch.errors import ComponentFault
@@ -48,8 +48,8 @@ from teletouch.reproducible import build_time
 from teletouch.units import Hertz, Meters, Newtons, Seconds
 
 __all__ = ["ForceCalibration", "CalibrationError", "PolyForce", "read_pairs_csv", "write_pairs_csv",
-           "packaged_calibrations", "resolve_calibration", "depth_levels", "FORMAT", "VERSION", "DEFAULT_MIN_R2",
-           "DEPTH_LEVEL_TOLERANCE_M", "MAX_DEGREE", "MAX_POSITION_DEGREE", "MAX_DEPTH_M"]
+           "packaged_calibrations", "resolve_calibration", "check_calibration_file", "depth_levels", "FORMAT",
+           "VERSION", "DEFAULT_MIN_R2", "DEPTH_LEVEL_TOLERANCE_M", "MAX_DEGREE", "MAX_POSITION_DEGREE", "MAX_DEPTH_M"]
 
 FORMAT = "teletouch-force-calibration"
 VERSION = 1
@@ -755,18 +755,7 @@ class ForceCalibration:
         """Read a calibration file (or a packaged one by name, e.g. ``sim-digit-qvga``). Raises ModelFileError
         naming the file and the field for any problem."""
         path = resolve_calibration(str(path))
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise ModelFileError(f"{path}: force calibration file not found") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ModelFileError(f"{path}: cannot read the force calibration file: {exc}") from None
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ModelFileError(f"{path}: not a force calibration file (corrupt JSON at line {exc.lineno}, "
-                                 f"column {exc.colno}: {exc.msg})") from None
-        cal = cls.from_dict(doc, str(path))
+        cal = cls.from_dict(_read_document(path), str(path))
         cal.path = str(path)
         return cal
 
@@ -776,14 +765,7 @@ class ForceCalibration:
             tail = "" if got is ... else f", got {got!r}"[:200]
             return ModelFileError(f"{where}: field '{field}': expected {expected}{tail}")
 
-        if not isinstance(doc, dict):
-            raise bad("(top level)", "a JSON object", type(doc).__name__)
-        if doc.get("format") != FORMAT:
-            raise bad("format", f"'{FORMAT}' (is this a force calibration file?)", doc.get("format"))
-        ver = doc.get("version")
-        if ver != VERSION or not isinstance(ver, int) or isinstance(ver, bool):   # `true` == 1 in Python
-            raise ModelFileError(f"{where}: field 'version': file version {ver!r}, this teletouch reads version "
-                                 f"{VERSION}; recalibrate with `teletouch calibrate force` or update teletouch")
+        _check_header(doc, where)
         model = doc.get("model")
         if not isinstance(model, dict):
             raise bad("model", "an object")
@@ -1149,6 +1131,55 @@ def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]], par
     return path
 
 
+# ------------------------------------------------------------------------------------------------ reading files
+#: what a file given as a force calibration must be
+EXPECTED_FILE = "expected the JSON written by `teletouch calibrate force`"
+
+
+def _read_document(path: Path) -> Any:
+    """The JSON document of the calibration file ``path``; ModelFileError naming the file when it cannot be read or
+    is no JSON text (a depth model, a CSV or an image given as the calibration)."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise ModelFileError(f"{path}: force calibration file not found") from None
+    except UnicodeDecodeError:   # a binary file (a depth model is a zip archive)
+        raise ModelFileError(f"{path}: not a force calibration ({EXPECTED_FILE})") from None
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the force calibration file: {exc.strerror or exc}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        if not text.lstrip().startswith(("{", "[")):   # no JSON at all
+            raise ModelFileError(f"{path}: not a force calibration ({EXPECTED_FILE})") from None
+        raise ModelFileError(f"{path}: not a force calibration file (corrupt JSON at line {exc.lineno}, "
+                             f"column {exc.colno}: {exc.msg})") from None
+
+
+def _check_header(doc: Any, where: str) -> None:
+    """ModelFileError unless ``doc`` is a JSON object of this format and version."""
+    if not isinstance(doc, dict):
+        raise ModelFileError(f"{where}: not a force calibration ({EXPECTED_FILE}: an object; this JSON is a "
+                             f"{type(doc).__name__})")
+    if doc.get("format") != FORMAT:
+        raise ModelFileError(f"{where}: field 'format': expected '{FORMAT}' (is this a force calibration file?), "
+                             f"got {repr(doc.get('format'))[:200]}")
+    ver = doc.get("version")
+    if ver != VERSION or not isinstance(ver, int) or isinstance(ver, bool):   # `true` == 1 in Python
+        raise ModelFileError(f"{where}: field 'version': file version {ver!r}, this teletouch reads version "
+                             f"{VERSION}; recalibrate with `teletouch calibrate force` or update teletouch")
+
+
+def check_calibration_file(spec: str) -> dict[str, Any]:
+    """The document of the calibration ``spec`` (a file or a packaged name) if it is a force calibration of this
+    format and version, else ModelFileError naming the file and what was expected: the cheap check a graph's
+    validation makes (no curve, no limits: :meth:`ForceCalibration.load` checks every field at start-up)."""
+    path = resolve_calibration(spec)
+    doc = _read_document(path)
+    _check_header(doc, str(path))
+    return doc
+
+
 # ------------------------------------------------------------------------------------------------ finding files
 def packaged_calibrations() -> list[str]:
     """Names of the calibrations shipped with teletouch (data/<name>.force.json)."""
@@ -1171,6 +1202,30 @@ def resolve_calibration(name_or_path: str) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------ the component
+def _deepest(doc: dict[str, Any]) -> float | None:
+    """The deepest calibrated depth (m) a calibration's document records, or None where it holds none that is valid
+    (loading the file at start-up says what is wrong with it)."""
+    model = doc.get("model")
+    dr = model.get("depth_range_m") if isinstance(model, dict) else None
+    return float(dr[1]) if isinstance(dr, list) and len(dr) == 2 and _finite(dr[1]) else None
+
+
+def _use_problem(p: Any, path: str, deepest: float | None, made_for_id: Any) -> str | None:
+    """Why poly-force's params ``p`` cannot use the calibration ``path`` (its deepest depth, m, and the depth model it
+    was made for), or None: a depth_limit inside the calibrated depths, a depth_model it was not made for. The same
+    words when a graph is validated and at start-up."""
+    if deepest is not None and p.depth_limit <= deepest:
+        return (f"depth_limit ({p.depth_limit * 1e3:.3f} mm) must be deeper than the calibration's deepest depth "
+                f"({deepest * 1e3:.3f} mm, {path}): calibrated depths would be invalid input")
+    made_for_id = made_for_id if isinstance(made_for_id, str) else ""
+    if p.depth_model is not None and _model_name(p.depth_model) != _model_name(made_for_id):
+        made_for = made_for_id or "an unnamed depth model"
+        return (f"depth_model: the calibration {path} was made for {made_for!r}, not for {p.depth_model!r}: "
+                f"calibrate the force with this depth model (`teletouch calibrate force --set depth.model=...`) or "
+                f"give --sensor-model-id when fitting a CSV")
+    return None
+
+
 STATUS_VALUES = ("ok", "no-contact", "clamped", "extrapolated", "invalid-input", "no-centroid")
 
 
@@ -1236,19 +1291,34 @@ class PolyForce(Component):
                                         "is invalid (a clock fault): no output, counted as invalid",
                                         json_schema_extra={"unit": "s"})
 
+        @field_validator("calibration")
+        @classmethod
+        def _calibration_file(cls, v: str) -> str:
+            """The file's header when the graph is validated (missing, no calibration, another format or version):
+            before, `teletouch validate` said OK and the run failed at start-up."""
+            try:
+                check_calibration_file(v)
+            except ModelFileError as exc:
+                raise ValueError(str(exc)) from None
+            return v
+
+        @model_validator(mode="after")
+        def _fits_the_calibration(self) -> "PolyForce.Params":
+            """What configure refuses of the calibration's use (depth_limit, depth_model), read from its file."""
+            doc = check_calibration_file(self.calibration)
+            problem = _use_problem(self, str(resolve_calibration(self.calibration)), _deepest(doc),
+                                   doc.get("sensor_model_id"))
+            if problem:
+                raise ValueError(problem)
+            return self
+
     def configure(self) -> None:
         p = self.params
         self.cal = ForceCalibration.load(resolve_calibration(p.calibration))
-        deepest = self.cal.depth_range[1]
-        if p.depth_limit <= deepest:
-            raise ValueError(f"depth_limit ({p.depth_limit * 1e3:.3f} mm) must be deeper than the calibration's "
-                             f"deepest depth ({deepest * 1e3:.3f} mm, {self.cal.path}): calibrated depths would be "
-                             f"invalid input")
+        problem = _use_problem(p, self.cal.path, self.cal.depth_range[1], self.cal.sensor_model_id)
+        if problem:
+            raise ValueError(problem)
         made_for = self.cal.sensor_model_id or "an unnamed depth model"
-        if p.depth_model is not None and _model_name(p.depth_model) != _model_name(self.cal.sensor_model_id):
-            raise ValueError(f"depth_model: the calibration {self.cal.path} was made for {made_for!r}, not for "
-                             f"{p.depth_model!r}: calibrate the force with this depth model (`teletouch calibrate "
-                             f"force --set depth.model=...`) or give --sensor-model-id when fitting a CSV")
         self.ctx.log(f"force calibration {self.cal.path} (depth model {made_for}, depth "
                      f"{self.cal.depth_range[0] * 1e3:.3f}..{self.cal.depth_range[1] * 1e3:.3f} mm)")
         self.force_limit = self.cal.largest_force(p.out_of_range, p.depth_limit)
