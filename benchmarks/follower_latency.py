@@ -8,8 +8,10 @@ dynamixel-gripper over a pseudo-terminal at 57600 and 1000000 baud (the emulated
 canopen-gripper on python-can's virtual bus (SYNC -> TPDO), and sim-gripper as the in-process reference.
 
 - round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware
-  path (``_hw_write``), then reads state (``_hw_read``) back to back until a state reflects it (the emulated
-  actuators move instantly here); the time in between, per command.
+  path (``_hw_write``), then reads state (``_hw_read``) back to back until a state reflects it; the time in between,
+  per command. The drivers set their actuators' profile speed from ``max_speed`` (Dynamixel Profile_Velocity, CANopen
+  0x6081, PAL's trajectory time), at most 2 m/s (a 30 mm step: ~15 ms of motion): the emulators here reach each goal
+  at once instead (their ``instant`` knob, :func:`transport_specs`), so that the round trip is the transport's.
 - update rate: full ``step()`` calls (read state + send command) back to back (a 20 us yield between, none for the
   thread-less sim-gripper) for a while;
   ``fresh_state_hz`` counts only steps that got a new measurement (ROS 2 state arrives asynchronously at the
@@ -66,6 +68,7 @@ from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
 
 from teletouch.component import Context, Inputs, Sample, _Slot  # noqa: E402
 from teletouch.plugins.ros_names import MAX_DOMAIN_ID, domain_id  # noqa: E402
+from teletouch.units import MAX_PLAUSIBLE_SPEED  # noqa: E402
 from bench_common import ROUNDS, alternating, emit, number  # noqa: E402
 
 
@@ -75,17 +78,18 @@ RESUME_SETTLE_S, RESUME_SETTLE_SHARE = 0.05, 0.25
 
 
 class PalProcess:
-    """The simulated PAL gripper in its own process (as the robot is another machine): no GIL shared with the driver.
-    Between its case's turns it is stopped (SIGSTOP: its 1 kHz /joint_states cannot load the other cases' turns) and
-    continued for the next (:meth:`resume`)."""
+    """The simulated PAL gripper in its own process (as the robot is another machine): no GIL shared with the driver;
+    it commands each trajectory's end point at once (``--instant``) and moves the fingers there within a control cycle
+    (``--velocity-limit 1000``, m/s). Between its case's turns it is stopped (SIGSTOP: its 1 kHz /joint_states cannot
+    load the other cases' turns) and continued for the next (:meth:`resume`)."""
 
     def __init__(self, domain: int, rate: float, namespace: str = ""):
         import subprocess
 
         self.proc = subprocess.Popen(
             [sys.executable, str(ROOT / "tests" / "fakes" / "pal_gripper_node.py"), "--domain-id", str(domain),
-             "--namespace", namespace, "--rate", str(rate), "--velocity-limit", "1000"], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, text=True)
+             "--namespace", namespace, "--rate", str(rate), "--velocity-limit", "1000", "--instant"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.paused_at: float | None = None
         if self.proc.stdout.readline().strip() != "ready":
             self.stop()
@@ -116,9 +120,12 @@ class PalProcess:
             self.proc.kill()
 
 
-#: every driver's parameters here: the speed limit off (the emulated actuators move at once) and max_opening inside
-#: each driver's default calibrated range (Dynamixel: 0-75 mm, refused beyond it); commands stay within 30-60 mm
-FAST = {"max_speed": 100.0, "max_opening": 0.07}
+#: every driver's parameters here: the fastest max_speed the drivers accept (MAX_PLAUSIBLE_SPEED, 2 m/s: a faster one
+#: is refused as mm/s typed in the m/s field) and max_opening inside each driver's default calibrated range
+#: (Dynamixel: 0-75 mm, refused beyond it); commands stay within 30-60 mm. The profile speed the drivers set from
+#: max_speed would still make a 30 mm step ~15 ms of motion: the emulators reach each goal at once (``instant``, see
+#: :func:`transport_specs`), so that a round trip measures the transport
+FAST = {"max_speed": MAX_PLAUSIBLE_SPEED, "max_opening": 0.07}
 
 
 def percentile(xs, q):
@@ -278,6 +285,31 @@ def side_by_side(specs, n, seconds, rounds=ROUNDS):
             c.close()
 
 
+def transport_specs(channel: str, domain: int | None = None) -> dict:
+    """The transports' cases for :func:`side_by_side` (key -> (name, driver class, params, emulator setup)): the
+    Dynamixel servo on a pty at 57600 and 1000000 baud, the CANopen drive on the virtual bus ``channel``, and the PAL
+    gripper over ROS 2 on ``domain`` (None: left out). Every driver gets :data:`FAST`; every emulator reaches each goal
+    at once (``instant``: the Dynamixel servo at its next packet, the CANopen drive at its next SYNC, the PAL controller
+    commands the trajectory's end point in its next cycle), whatever profile speed the driver set from max_speed."""
+    from teletouch.plugins.devices.canopen_gripper import CanopenGripper
+    from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
+    from teletouch.plugins.devices.pal_gripper import PalGripper
+
+    specs = {f"dynamixel-{baud}": (f"dynamixel @ {baud}", DynamixelGripper,
+                                   lambda emu, baud=baud: dict(FAST, port=emu.port, baudrate=baud),
+                                   lambda: DynamixelEmulator(15, position=1024, instant=True).start())
+             for baud in (57600, 1000000)}
+    specs["canopen-virtual"] = ("canopen (virtual CAN)", CanopenGripper,
+                                dict(FAST, interface="virtual", channel=channel, node_id=4),
+                                lambda: Cia402Drive(4, channel, position=0, instant=True).start())
+    if domain is not None:   # its emulator stopped between its turns (PalProcess.pause)
+        specs["pal-ros2-loopback"] = ("pal (ROS 2 loopback)", PalGripper,
+                                      dict(FAST, domain_id=domain, namespace=NAMESPACE, time_from_start=0.001,
+                                           connect_timeout=10.0),
+                                      lambda: PalProcess(domain, 1000.0, NAMESPACE))
+    return specs
+
+
 def ros2_missing() -> str | None:
     """Why the PAL case cannot run here (ROS 2 is the optional extra teletouch[ros2]: the driver and its emulator
     need rclpy and the messages), or None."""
@@ -315,31 +347,15 @@ def main(argv=None) -> int:
           file=sys.stderr)
     n, seconds = (40, 0.5) if args.quick else (200, 2.0)
 
-    from teletouch.plugins.devices.canopen_gripper import CanopenGripper
-    from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
-    from teletouch.plugins.devices.pal_gripper import PalGripper
     from teletouch.plugins.devices.sim_gripper import SimGripper
 
-    fast = FAST
     results = {}
     # in-process model: no transport, so no round trip; its step rate is the reference for the drivers' overhead
-    results["sim-gripper"] = bench("sim-gripper", SimGripper, dict(fast, object_width=None, bandwidth=1e6),
+    results["sim-gripper"] = bench("sim-gripper", SimGripper, dict(FAST, object_width=None, bandwidth=1e6),
                                    n, seconds, round_trip=False)
-    # the transports whose emulators idle between commands: their round trips side by side, in alternating rounds
-    ch = f"bench-{uuid.uuid4().hex[:8]}"
-    specs = {f"dynamixel-{baud}": (f"dynamixel @ {baud}", DynamixelGripper,
-                                   lambda emu, baud=baud: dict(fast, port=emu.port, baudrate=baud),
-                                   lambda: DynamixelEmulator(15, position=1024, speed=1e9).start())
-             for baud in (57600, 1000000)}
-    specs["canopen-virtual"] = ("canopen (virtual CAN)", CanopenGripper,
-                                dict(fast, interface="virtual", channel=ch, node_id=4),
-                                lambda: Cia402Drive(4, ch, position=0).start())
+    # the transports: their round trips side by side, in alternating rounds
     missing = ros2_missing()
-    if not missing:   # its emulator stopped between its turns (PalProcess.pause)
-        specs["pal-ros2-loopback"] = ("pal (ROS 2 loopback)", PalGripper,
-                                      dict(fast, domain_id=domain, namespace=NAMESPACE, time_from_start=0.001,
-                                           connect_timeout=10.0),
-                                      lambda: PalProcess(domain, 1000.0, NAMESPACE))
+    specs = transport_specs(f"bench-{uuid.uuid4().hex[:8]}", None if missing else domain)
     results.update(side_by_side(specs, n, seconds))
     if missing:   # the other transports are measured all the same; the JSON says why this one was not
         print(f"{'pal (ROS 2 loopback)':>22}: skipped: {missing}", file=sys.stderr)

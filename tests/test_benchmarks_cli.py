@@ -444,8 +444,6 @@ def test_follower_round_trips_interleave_the_transports(monkeypatch):
     monkeypatch.syspath_prepend(str(BENCH))
     monkeypatch.setattr(sys, "path", list(sys.path))
     mod = _load(BENCH / "follower_latency.py", "follower_latency_under_test")
-    from fakes.canopen_drive import Cia402Drive
-    from fakes.dynamixel_emulator import DynamixelEmulator
     from teletouch.plugins.devices.canopen_gripper import CanopenGripper
     from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
 
@@ -455,13 +453,8 @@ def test_follower_round_trips_interleave_the_transports(monkeypatch):
             order.append(id(self))
             return _w(self, target)
         monkeypatch.setattr(cls, "_hw_write", spy)
-    specs = {f"dynamixel-{baud}": (f"dynamixel @ {baud}", DynamixelGripper,
-                                   lambda emu, baud=baud: dict(mod.FAST, port=emu.port, baudrate=baud),
-                                   lambda: DynamixelEmulator(15, position=1024, speed=1e9).start())
-             for baud in (57600, 1000000)}
-    specs["canopen-virtual"] = ("canopen", CanopenGripper, dict(mod.FAST, interface="virtual", channel="bench-t",
-                                                               node_id=4),
-                                lambda: Cia402Drive(4, "bench-t", position=0).start())
+    specs = mod.transport_specs("bench-t")   # the benchmark's own cases (without PAL: no domain)
+    assert list(specs) == ["dynamixel-57600", "dynamixel-1000000", "canopen-virtual"]
     res = mod.side_by_side(specs, 40, 0.05)
     # the round trips' commands (then the update-rate runs', one block each): 2 switches a round, 10 rounds
     switches = sum(a != b for a, b in zip(order, order[1:]))

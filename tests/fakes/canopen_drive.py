@@ -15,7 +15,9 @@ never, a mode the drive does not enter). ``latency`` delays every SYNC's TPDOs, 
 SYNCs (or loses them), each with the state sampled at its SYNC and never before an earlier answer; ``set_position()``
 puts the axis somewhere (by hand). ``stamp`` (a clock, or None for the interface's own) stamps every frame the drive
 sends, as the receiving interface would: python-can interfaces differ (socketcan: epoch kernel stamps; others
-monotonic, device counters or none at all), so the driver must not trust the stamp's clock.
+monotonic, device counters or none at all), so the driver must not trust the stamp's clock. ``instant`` (for
+benchmarks/follower_latency.py, which times the transport, not the motion): the axis is at the latched set-point at
+the next SYNC, whatever the profile velocity; an object still stops it.
 """
 
 from __future__ import annotations
@@ -98,7 +100,7 @@ class Cia402Drive:
     def __init__(self, node_id: int = 5, channel: str = "teletouch-vcan", *, position: int = 0,
                  block_at: int | None = None, closing: int = 1, current_gain: float = 0.5,
                  device_type: int = DEVICE_TYPE_402, stamp: Callable[[], float] | None = None,
-                 mode_delay: float | None = 0.0, latency: float = 0.0):
+                 mode_delay: float | None = 0.0, latency: float = 0.0, instant: bool = False):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id)
@@ -114,6 +116,7 @@ class Cia402Drive:
         self.stamp = stamp
         self.mode_delay = mode_delay
         self.latency = latency   # s from a SYNC to its TPDOs (answer_late overrides it for the next SYNCs)
+        self.instant = instant   # at the set-point at the next SYNC, no profile velocity (benchmarks only)
         self.latched = int(round(self.pos))  # the position demand: where the axis is, until a new set-point
         self.rpdo_frames = 0
         self._cw = 0
@@ -324,7 +327,7 @@ class Cia402Drive:
         if self.state == "OPERATION ENABLED":
             target = float(self.latched)
             v = float(self.get(0x6081))
-            new = old + max(-v * dt, min(v * dt, target - old))
+            new = target if self.instant else old + max(-v * dt, min(v * dt, target - old))
             if self.block_at is not None:
                 c = self.closing
                 if (new - self.block_at) * c > 0:

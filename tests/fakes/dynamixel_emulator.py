@@ -29,8 +29,10 @@ servo's top speed), or at Profile_Velocity where that is set (non-zero; 0 means 
 (``block_at`` ticks, approached in the ``closing`` direction) stops it there, and the current rises to
 ``min(Goal_Current, current_gain * |goal - block_at|)``. ``trace`` records (monotonic, position in ticks) at every
 physics update, so a test can measure the speed the horn actually moved at; ``poll()`` advances the physics without a
-packet. In hardware-error shutdown (``inject_hardware_error``) the torque is off and every status packet carries the
-alert bit (0x80) in its error byte, as on the firmware.
+packet. ``instant`` (for benchmarks/follower_latency.py, which times the transport, not the motion): the horn is at
+Goal_Position at the next physics update (the next packet), whatever Profile_Velocity and ``speed`` say; an object
+still stops it. In hardware-error shutdown (``inject_hardware_error``) the torque is off and every status packet
+carries the alert bit (0x80) in its error byte, as on the firmware.
 """
 
 from __future__ import annotations
@@ -201,7 +203,7 @@ class DynamixelEmulator:
 
     def __init__(self, dxl_id: int = 15, model: str = "xm430-w350", *, position: int = 2048,
                  speed: float = 3000.0, block_at: int | None = None, closing: int = 1, current_gain: float = 2.0,
-                 wire_timing: bool = True, return_delay: int = 0):
+                 wire_timing: bool = True, return_delay: int = 0, instant: bool = False):
         self.table = MODELS[model]
         self.id = dxl_id
         self.mem = bytearray(self.table.size)
@@ -224,6 +226,7 @@ class DynamixelEmulator:
         self.closing = closing
         self.current_gain = current_gain
         self.wire_timing = wire_timing
+        self.instant = instant       # at the goal at the next update, no profile speed (benchmarks only)
         # fault injection
         self.silent = False          # stop answering (cable pulled, servo dead)
         self.drop_answers = 0        # lose this many answers (noise on the bus) ...
@@ -331,8 +334,7 @@ class DynamixelEmulator:
         if torque:
             err = goal - self.pos
             v = self.max_speed_ticks()
-            step = max(-v * dt, min(v * dt, err))
-            new = self.pos + step
+            new = float(goal) if self.instant else self.pos + max(-v * dt, min(v * dt, err))
             if self.block_at is not None:
                 c = self.closing
                 if (new - self.block_at) * c > 0:  # would move into the object

@@ -14,7 +14,9 @@ this one: 10 ms setpoints arriving just before each cycle lag by over 100 ms, wh
 An object of ``object_width`` between the fingers blocks them: each finger then pushes with ``min(16, stiffness *
 (contact - goal))`` (negative effort: closing). When a goal stays farther than ``goal_tolerance`` from the position
 ``goal_time`` after the trajectory's end, the goal is aborted as the real controller does: the gripper holds where
-it is (counted in ``aborted``).
+it is (counted in ``aborted``). ``instant`` (``--instant``; for benchmarks/follower_latency.py, which times the
+transport, not the motion): the cycle that takes a trajectory up commands its end point at once, whatever its
+``time_from_start`` (the fingers still move at most ``velocity_limit``).
 
 Runs in its own thread with its own rclpy Context (its own DDS participant); ``publishing = False`` stops it
 publishing; ``drop_controller()`` destroys the trajectory subscription (the controller unloaded or crashed) while
@@ -34,7 +36,8 @@ JOINTS = ("gripper_left_finger_joint", "gripper_right_finger_joint")
 class PalGripperNode:
     def __init__(self, namespace: str = "", *, domain_id: int = 0, rate: float = 100.0, opening: float = 0.09,
                  object_width: float | None = None, stiffness: float = 2000.0, effort_limit: float = 16.0,
-                 velocity_limit: float = 0.05, goal_tolerance: float = 0.002, goal_time: float = 0.5):
+                 velocity_limit: float = 0.05, goal_tolerance: float = 0.002, goal_time: float = 0.5,
+                 instant: bool = False):
         self.ns = namespace.rstrip("/")
         self.domain_id = domain_id
         self.rate = rate
@@ -47,6 +50,7 @@ class PalGripperNode:
         self.velocity_limit = velocity_limit
         self.goal_tolerance = goal_tolerance
         self.goal_time = goal_time
+        self.instant = instant  # a trajectory's end point commanded at once, its timing ignored (benchmarks only)
         self.lower, self.upper = 0.0, 0.045
         self.received = 0
         self.rejected = 0
@@ -157,7 +161,7 @@ class PalGripperNode:
         tr = self._traj
         if not tr:
             return list(self.pos)
-        if now >= tr[-1][0]:
+        if now >= tr[-1][0] or self.instant:
             return tr[-1][1]
         for (t0, q0), (t1, q1) in zip(tr, tr[1:]):
             if t0 <= now < t1:
@@ -223,9 +227,10 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=100.0)
     ap.add_argument("--velocity-limit", type=float, default=0.05)
     ap.add_argument("--opening", type=float, default=0.09)
+    ap.add_argument("--instant", action="store_true", help="command each trajectory's end point at once")
     a = ap.parse_args(argv)
     node = PalGripperNode(a.namespace, domain_id=a.domain_id, rate=a.rate, velocity_limit=a.velocity_limit,
-                          opening=a.opening).start()
+                          opening=a.opening, instant=a.instant).start()
     print("ready", flush=True)
     try:
         sys.stdin.read()
