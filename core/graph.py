@@ -46,7 +46,7 @@ from typing import Any, Iterable
 
 from pydantic import ValidationError
 
-from .component import Component, Device
+from .component import Component, Device, _field_unit
 from .errors import GraphError, GraphValidationError, Location
 from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
@@ -622,6 +622,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                         msg = e["msg"]
                         if msg.startswith("Value error, "):
                             msg = msg[len("Value error, "):]
+                        msg += _bound_unit(cls, loc, e["type"])
                         blamed = (_blame_sets(cls, spec.params, loc[0], nested[loc[0]])
                                   if loc and loc[0] in nested else [])
                         if blamed:   # a --set inside the parameter made the error: it is named, not the file
@@ -749,6 +750,16 @@ def _blame_sets(cls: type[Component], params: dict[str, Any], name: str,
     if refused(nested.original):
         return []
     return [s for s in nested.items if refused(_with_set(nested.original, s[0], s[2]))] or list(nested.items)
+
+
+def _bound_unit(cls: type, loc: list[str], kind: str) -> str:
+    """" N" after pydantic's "Input should be less than or equal to 8" for a top-level field with a unit: a bound
+    is in SI, and the person who typed the value may have thought in another unit."""
+    if kind not in ("less_than", "less_than_equal", "greater_than", "greater_than_equal") or len(loc) != 1:
+        return ""
+    f = cls.Params.model_fields.get(loc[0])
+    unit = _field_unit(f) if f is not None else None
+    return f" {unit}" if unit else ""
 
 
 def _with_set(original: Any, keys: list[str], value: Any) -> dict[str, Any]:
