@@ -6,7 +6,6 @@ without it, it moves at the profile speed as before."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import sys
 import time
@@ -16,12 +15,13 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-BENCH = REPO / "benchmarks"
 sys.path.insert(0, str(REPO / "tests"))
 
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
+from fakes.ros2_peer import own_domain  # noqa: E402
+from helpers_scripts import load_follower_bench  # noqa: E402
 
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
@@ -134,21 +134,14 @@ def test_pal_node_takes_instant_on_its_command_line(monkeypatch):
 
 @pytest.fixture()
 def follower_bench(monkeypatch):
-    for var in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):   # the import sets them: put back after
-        monkeypatch.setenv(var, os.environ.get(var, ""))
-    monkeypatch.syspath_prepend(str(BENCH))
-    monkeypatch.setattr(sys, "path", list(sys.path))
-    spec = importlib.util.spec_from_file_location("follower_latency_instant", BENCH / "follower_latency.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_follower_bench(monkeypatch, "follower_latency_instant")
 
 
 def test_follower_benchmark_round_trips_are_not_the_motion(follower_bench):
     """The benchmark's drivers get a max_speed they accept (at most 2 m/s), and its emulators reach each goal at once:
     every transport's round-trip median is well below the ~15 ms that a 30 mm step takes at 2 m/s."""
     assert 0 < follower_bench.FAST["max_speed"] <= SPEED
-    domain = 120 + (os.getpid() * 7 + 41) % 90
+    domain = own_domain(41)
     specs = follower_bench.transport_specs(f"bench-{uuid.uuid4().hex[:8]}", domain)
     assert list(specs) == ["dynamixel-57600", "dynamixel-1000000", "canopen-virtual", "pal-ros2-loopback"]
     res = follower_bench.side_by_side(specs, 20, 0.05, rounds=2)

@@ -4,28 +4,18 @@ that the fake work advances): the interleaving and the arithmetic are tested, ne
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-BENCH = REPO / "benchmarks"
-
-
-def _load(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from helpers_scripts import load_bench, load_follower_bench
 
 
 @pytest.fixture()
 def bench_common(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "bench_common.py", "bench_common_s14")
+    return load_bench(monkeypatch, "bench_common.py", "bench_common_s14")
 
 
 class FakeClock:
@@ -123,8 +113,7 @@ class FakeRuntime:
 
 @pytest.fixture()
 def teleop_bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "teleop_loop.py", "teleop_loop_s14")
+    return load_bench(monkeypatch, "teleop_loop.py", "teleop_loop_s14")
 
 
 def test_teleop_image_chain_cost_ratio_times_the_chains_side_by_side(teleop_bench, monkeypatch, capsys):
@@ -181,8 +170,7 @@ def test_teleop_round_factors_leave_out_a_turn_that_ended_its_run(teleop_bench):
 def ros2_bench(monkeypatch):
     for var in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):   # main sets them
         monkeypatch.setenv(var, "0")
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "ros2_latency.py", "ros2_latency_s14")
+    return load_bench(monkeypatch, "ros2_latency.py", "ros2_latency_s14")
 
 
 def _fake_round(rate: float, latency: float, seconds: float, keep_every: int = 1) -> dict:
@@ -244,13 +232,7 @@ def test_ros2_case_figures_pool_rate_and_losses_over_the_rounds(ros2_bench):
 
 @pytest.fixture()
 def follower_bench(monkeypatch):
-    import os
-
-    for var in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):   # the import sets them: put back after
-        monkeypatch.setenv(var, os.environ.get(var, ""))
-    monkeypatch.syspath_prepend(str(BENCH))
-    monkeypatch.setattr(sys, "path", list(sys.path))
-    return _load(BENCH / "follower_latency.py", "follower_latency_s14")
+    return load_follower_bench(monkeypatch, "follower_latency_s14")
 
 
 class FakeEmulator:

@@ -7,7 +7,6 @@ the scripts in-process with their subprocess call replaced, so nothing is calibr
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import os
 import json
@@ -20,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers_scripts import SCRIPTS, load_bench, load_file, load_follower_bench
+
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "benchmarks"
 
@@ -30,17 +31,9 @@ def _strict_last_line(text: str):
     return json.loads(text.strip().splitlines()[-1], parse_constant=refuse)
 
 
-def _load(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture()
 def bench_common(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "bench_common.py", "bench_common_under_test")
+    return load_bench(monkeypatch, "bench_common.py", "bench_common_under_test")
 
 
 def _run(args: list[str], timeout: float = 120, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -138,7 +131,7 @@ print("ok")
 
 @pytest.fixture()
 def force_script(monkeypatch):
-    mod = _load(REPO / "scripts" / "make_sim_force_calibration.py", "make_sim_force_calibration_under_test")
+    mod = load_file(SCRIPTS / "make_sim_force_calibration.py", "make_sim_force_calibration_under_test")
     calls: list[list[str]] = []
 
     def fake_call(cmd, *a, **kw):
@@ -193,7 +186,7 @@ def test_force_script_bad_grid_is_an_argument_error(force_script, capsys):
 
 def test_depth_script_refuses_zero_presses_before_rendering(monkeypatch, tmp_path, capsys):
     """--presses 0 died in the renderer with a ZeroDivisionError."""
-    mod = _load(REPO / "scripts" / "make_sim_depth_model.py", "make_sim_depth_model_under_test")
+    mod = load_file(SCRIPTS / "make_sim_depth_model.py", "make_sim_depth_model_under_test")
     monkeypatch.setattr(sys, "argv", ["make_sim_depth_model.py", "--presses", "0", "--keep", str(tmp_path / "p"),
                                       "-o", str(tmp_path / "m.model")])
     with pytest.raises(SystemExit) as e:
@@ -212,8 +205,7 @@ def test_runtime_benchmark_says_when_sched_fifo_was_refused(monkeypatch):
     def refuse(*a, **kw):
         raise PermissionError(1, "Operation not permitted")
 
-    monkeypatch.syspath_prepend(str(BENCH))
-    mod = _load(BENCH / "runtime.py", "runtime_benchmark_under_test")
+    mod = load_bench(monkeypatch, "runtime.py", "runtime_benchmark_under_test")
     monkeypatch.setattr(os, "sched_setscheduler", refuse)
     res = mod.jitter(0.3, 1.0, priority=50)
     assert res["realtime_priority"] == 50 and res["sched_fifo_applied"] is False
@@ -226,8 +218,7 @@ def test_runtime_benchmark_says_when_sched_fifo_was_refused(monkeypatch):
 
 @pytest.fixture()
 def teleop_bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "teleop_loop.py", "teleop_loop_under_test")
+    return load_bench(monkeypatch, "teleop_loop.py", "teleop_loop_under_test")
 
 
 def test_teleop_wall_run_measures_the_frame_to_force_latency(teleop_bench):
@@ -308,8 +299,7 @@ def test_follower_latency_without_ros2_reports_the_other_transports(without_ros2
 def test_leader_loop_step_ratio_interleaves_the_two_drivers(monkeypatch, tmp_path):
     """omega7_vs_sim_step_ratio timed every omega7 step, then every sim-omega7 step: a burst of load on the shared
     machine during either block moved the ratio. The two now alternate in rounds."""
-    monkeypatch.syspath_prepend(str(BENCH))
-    mod = _load(BENCH / "leader_loop.py", "leader_loop_under_test")
+    mod = load_bench(monkeypatch, "leader_loop.py", "leader_loop_under_test")
     from teletouch.plugins.devices.omega7 import Omega7
     from teletouch.plugins.devices.sim_omega7 import SimOmega7
 
@@ -337,8 +327,7 @@ def test_a_missing_data_folder_is_a_usage_error(tmp_path):
 def test_sensor_speed_ratios_interleave_the_sim_digit_cases(monkeypatch, capsys):
     """speedup_radial_vs_generic and speedup_stride2_vs_stride1 divided the frame rates of cases run one after the
     other: load on the shared machine during either block moved the ratio. The cases now alternate in rounds."""
-    monkeypatch.syspath_prepend(str(BENCH))
-    mod = _load(BENCH / "sensor_speed.py", "sensor_speed_under_test")
+    mod = load_bench(monkeypatch, "sensor_speed.py", "sensor_speed_under_test")
     from teletouch.plugins.sensors.sim_digit import SimDigit
 
     order: list[int] = []
@@ -356,8 +345,7 @@ def test_sensor_speed_ratios_interleave_the_sim_digit_cases(monkeypatch, capsys)
 
 @pytest.fixture()
 def runtime_bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "runtime.py", "runtime_bench_under_test")
+    return load_bench(monkeypatch, "runtime.py", "runtime_bench_under_test")
 
 
 def test_runtime_jitter_says_when_its_run_faulted(runtime_bench, monkeypatch):
@@ -397,8 +385,7 @@ def test_runtime_isolation_ratio_alternates_and_a_faulted_run_fails(runtime_benc
 
 @pytest.fixture()
 def sweep_bench(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCH))
-    return _load(BENCH / "stability_sweep.py", "stability_sweep_under_test")
+    return load_bench(monkeypatch, "stability_sweep.py", "stability_sweep_under_test")
 
 
 def test_stability_run_that_faults_is_not_judged(sweep_bench, monkeypatch):
@@ -439,11 +426,7 @@ def test_stability_sweep_names_a_faulted_run_and_fails(sweep_bench, monkeypatch,
 def test_follower_round_trips_interleave_the_transports(monkeypatch):
     """round_trip_p50_ratio_to_dynamixel_1mbaud divided the round trips of one driver, timed in a block of its own,
     by those of another timed later. The Dynamixel and CANopen round trips now alternate in rounds."""
-    for var in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):   # the import sets them: put back after
-        monkeypatch.setenv(var, os.environ.get(var, ""))
-    monkeypatch.syspath_prepend(str(BENCH))
-    monkeypatch.setattr(sys, "path", list(sys.path))
-    mod = _load(BENCH / "follower_latency.py", "follower_latency_under_test")
+    mod = load_follower_bench(monkeypatch, "follower_latency_under_test")
     from teletouch.plugins.devices.canopen_gripper import CanopenGripper
     from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
 

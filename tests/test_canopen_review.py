@@ -7,7 +7,6 @@ from __future__ import annotations
 import re
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import pytest
@@ -15,12 +14,11 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
+from fakes.followers import canopen_harness, channel_fixture  # noqa: E402
 from fakes.realtime import WAIT, drive_until  # noqa: E402
 from fakes.realtime import drive as drive_for  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
-from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
-from teletouch.testing import Harness  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -37,15 +35,8 @@ CLOCKS = {
 }
 
 
-@pytest.fixture
-def channel():
-    return f"tt-{uuid.uuid4().hex[:8]}"
-
-
-def harness(channel, **params):
-    h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5}, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+channel = channel_fixture()
+harness = canopen_harness
 
 
 @pytest.mark.parametrize("clock", list(CLOCKS), ids=list(CLOCKS))

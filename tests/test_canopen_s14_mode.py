@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import pytest
@@ -15,23 +14,16 @@ from pydantic import ValidationError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
+from fakes.followers import canopen_harness, channel_fixture  # noqa: E402
 from fakes.realtime import configure_fails  # noqa: E402
 
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
-from teletouch.testing import Harness  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture
-def channel():
-    return f"tt-{uuid.uuid4().hex[:8]}"
-
-
-def harness(channel, **params):
-    h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5}, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+channel = channel_fixture()
+harness = canopen_harness
 
 
 def test_a_drive_that_switches_mode_after_a_while_is_waited_for(channel):

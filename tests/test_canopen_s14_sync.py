@@ -6,18 +6,14 @@ from __future__ import annotations
 
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.canopen_drive import Cia402Drive  # noqa: E402
+from fakes.followers import canopen_harness, channel_fixture, drive_fixture  # noqa: E402
 from fakes.realtime import wait_for  # noqa: E402
-
-from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
-from teletouch.testing import Harness  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -25,24 +21,12 @@ pytestmark = pytest.mark.timeout(60)
 P = 0.4
 
 
-@pytest.fixture
-def channel():
-    return f"tt-{uuid.uuid4().hex[:8]}"
-
-
-@pytest.fixture
-def drive(channel):
-    d = Cia402Drive(5, channel, position=0)
-    d.start()
-    yield d
-    d.stop()
+channel = channel_fixture()
+drive = drive_fixture(position=0)
 
 
 def harness(channel, **params):
-    h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5, "pdo_timeout": P},
-                                     **params))
-    h.ctx.clock_kind = "wall"
-    return h
+    return canopen_harness(channel, **dict({"pdo_timeout": P}, **params))
 
 
 def counts_of(h, reading):

@@ -11,7 +11,6 @@ code before its fix.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import sys
 import threading
@@ -22,13 +21,12 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.dynamixel_emulator import DynamixelEmulator, slow_adapter  # noqa: E402
+from fakes.followers import dynamixel, goal_positions  # noqa: E402
 from fakes.realtime import drive, wait_for  # noqa: E402
 
 from teletouch import Component, Kind, Port, hookimpl  # noqa: E402
 from teletouch.mock import MockSensor  # noqa: E402
 from teletouch.testing import Harness, make_registry, run_yaml  # noqa: E402
-from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 from teletouch.plugins.devices.follower_common import FollowerBase, Reading  # noqa: E402
 
 
@@ -107,23 +105,6 @@ def test_open_safe_state_after_a_reactivation_without_a_reading_still_opens():
         assert h.comp.sent == [pytest.approx(0.08)]
 
 
-@contextlib.contextmanager
-def dynamixel(**params):
-    emu = DynamixelEmulator(15, position=1024).start()
-    try:
-        h = Harness(DynamixelGripper, {"port": emu.port, "baudrate": 1000000, **params})
-        h.ctx.clock_kind = "wall"
-        with slow_adapter(), h:
-            yield emu, h
-    finally:
-        emu.stop()
-
-
-def _goals(emu, since: float) -> list[int]:
-    return [int.from_bytes(p[5:9], "little", signed=True) for (t, _i, inst, p) in emu.rx_packets
-            if inst == 0x83 and t >= since]
-
-
 def test_dynamixel_reactivation_with_lost_answers_does_not_drive_back():
     """Another program moved the servo while the node was inactive; the answers to the state reads of the
     re-activation and of the next steps are lost (the goals, which need none, still reach the servo)."""
@@ -132,7 +113,7 @@ def test_dynamixel_reactivation_with_lost_answers_does_not_drive_back():
         drive(h, 0.07, 0.3, trace=trace)
         old = h.comp.map.counts(0.07)
         h.comp.deactivate()
-        assert wait_for(lambda: len(_goals(emu, t_on)) >= len(trace))
+        assert wait_for(lambda: len(goal_positions(emu, t_on)) >= len(trace))
         with emu._lock:
             emu._put(emu.table.goal_position, 1400)
 
@@ -148,13 +129,13 @@ def test_dynamixel_reactivation_with_lost_answers_does_not_drive_back():
         for _ in range(5):
             h.step(time.monotonic() - t0, opening_command=None)
         time.sleep(0.05)
-        assert not any(abs(g - old) <= 3 for g in _goals(emu, t0))   # not sent back towards 0.07 m
+        assert not any(abs(g - old) <= 3 for g in goal_positions(emu, t0))   # not sent back towards 0.07 m
         with emu._lock:
             emu._update()
             assert abs(emu.get(emu.table.present_position) - 1400) <= 2
         emu.silent = False
         drive(h, None, 0.1)
-        gp = _goals(emu, t0)
+        gp = goal_positions(emu, t0)
     assert gp and all(abs(g - 1400) <= 3 for g in gp)
 
 

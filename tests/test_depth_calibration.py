@@ -11,13 +11,10 @@ from teletouch import ModelFileError
 from teletouch.plugins.estimators import depth_calibration as C
 from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
 
+from helpers_depth import qvga_fixture
 
-@pytest.fixture(scope="module")
-def qvga(shared_data):
-    folder = shared_data / "digit-presses-qvga"
-    ims = C.load_images(folder)
-    labs = C.read_labels(folder / "labels.csv")
-    return ims, labs, C.median_background([im for _, im in ims])
+
+qvga = qvga_fixture()
 
 
 @pytest.fixture(scope="module")

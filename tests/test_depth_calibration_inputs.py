@@ -15,15 +15,12 @@ from teletouch import ModelFileError
 from teletouch.plugins.estimators import depth_calibration as C
 from teletouch.plugins.estimators import normal_model as NM
 
+from helpers_depth import qvga_fixture
+
 HEADER = "image,center_x,center_y,radius_px"
 
 
-@pytest.fixture(scope="module")
-def qvga(shared_data):
-    folder = shared_data / "digit-presses-qvga"
-    ims = C.load_images(folder)
-    labs = C.read_labels(folder / "labels.csv")
-    return ims, labs, C.median_background([im for _, im in ims])
+qvga = qvga_fixture()
 
 
 def _csv(tmp_path, text, name="l.csv"):

@@ -13,22 +13,13 @@ import pytest
 from teletouch.cli import main
 from teletouch.plugins.estimators.normal_model import load_model
 
+from helpers_depth import presses_fixture
+
 REPO = Path(__file__).resolve().parents[1]
 FORCE_JSON = REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.force.json"
 
 
-@pytest.fixture(scope="module")
-def sim_presses(tmp_path_factory):
-    import sys
-
-    sys.path.insert(0, str(REPO / "scripts"))
-    try:
-        from make_sim_depth_model import render_presses
-    finally:
-        sys.path.pop(0)
-    folder = tmp_path_factory.mktemp("presses")
-    render_presses(folder, 6, seed=11)
-    return folder
+sim_presses = presses_fixture(6, seed=11)
 
 
 def _json_lines(text: str):

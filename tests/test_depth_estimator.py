@@ -11,21 +11,15 @@ import pytest
 from teletouch import ComponentFault, ModelFileError
 from teletouch.plugins.estimators.depth import DepthEstimator
 from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
-from teletouch.plugins.estimators.normal_model import load_model
 from teletouch.plugins.sensors import gel
 from teletouch.plugins.sensors.sim_digit import DigitSimulator
 from teletouch.testing import Harness, make_registry, run_yaml
 
-
-@pytest.fixture(scope="module")
-def model():
-    return load_model("sim-digit-qvga")
+from helpers_depth import model_fixture, sim_fixture
 
 
-@pytest.fixture(scope="module")
-def sim():
-    # another seed than the one the packaged model was trained with
-    return DigitSimulator("qvga", noise=2.0, seed=99)
+model = model_fixture()
+sim = sim_fixture()   # another seed than the one the packaged model was trained with
 
 
 @pytest.mark.parametrize("pos,d", [((0.0, 0.0), 0.8e-3), ((-2.5e-3, -4e-3), 0.5e-3), ((2.5e-3, 3.5e-3), 1.0e-3)])

@@ -11,14 +11,12 @@ from pydantic import ValidationError
 
 from teletouch import ComponentFault, Sample
 from teletouch.plugins.estimators.depth import DepthEstimator
-from teletouch.plugins.estimators.normal_model import load_model
 from teletouch.plugins.sensors.sim_digit import DigitSimulator, SimDigit
 from teletouch.testing import Harness
 
+from helpers_depth import model_fixture
 
-@pytest.fixture(scope="module")
-def model():
-    return load_model("sim-digit-qvga")
+model = model_fixture()
 
 
 # --- sim-digit --------------------------------------------------------------------------------------------------

@@ -14,15 +14,11 @@ from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
 from teletouch.plugins.estimators.normal_model import load_model
 from teletouch.plugins.sensors.sim_digit import DigitSimulator
 
-
-@pytest.fixture(scope="module")
-def model():
-    return load_model("sim-digit-qvga")
+from helpers_depth import model_fixture, presses_fixture, sim_fixture
 
 
-@pytest.fixture(scope="module")
-def sim():
-    return DigitSimulator("qvga", noise=2.0, seed=99)
+model = model_fixture()
+sim = sim_fixture()
 
 
 # --- 1. non-finite gradients and frames on the batched paths -------------------------------------------------------
@@ -176,20 +172,7 @@ def test_a_noisy_simulated_sensor_passes_the_background_check_another_unit_does_
 
 # --- 4. reproducible model files ------------------------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def presses(tmp_path_factory):
-    import sys
-    from pathlib import Path
-
-    scripts = Path(__file__).resolve().parents[1] / "scripts"
-    sys.path.insert(0, str(scripts))
-    try:
-        from make_sim_depth_model import render_presses
-    finally:
-        sys.path.pop(0)
-    folder = tmp_path_factory.mktemp("presses")
-    render_presses(folder, 4, seed=5)
-    return folder
+presses = presses_fixture(4, seed=5)
 
 
 def _calibrate(folder, out) -> int:

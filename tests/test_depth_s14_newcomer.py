@@ -18,22 +18,13 @@ from teletouch.plugins.estimators.depth import DepthEstimator
 from teletouch.plugins.estimators.normal_model import load_model, packaged_model_path
 from teletouch.testing import Harness
 
+from helpers_depth import presses_fixture
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGED = packaged_model_path("sim-digit-qvga")
 
 
-@pytest.fixture(scope="module")
-def sim_presses(tmp_path_factory):
-    import sys
-
-    sys.path.insert(0, str(REPO / "scripts"))
-    try:
-        from make_sim_depth_model import render_presses
-    finally:
-        sys.path.pop(0)
-    folder = tmp_path_factory.mktemp("presses")
-    render_presses(folder, 4, seed=5)
-    return folder
+sim_presses = presses_fixture(4, seed=5)
 
 
 def _json_rows(text: str) -> list[dict]:

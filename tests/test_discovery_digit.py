@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -19,6 +18,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes import digit_sysfs  # noqa: E402
+from helpers_permissions import without_dac  # noqa: E402
 
 from teletouch import HardwareError
 from teletouch.plugins.sensors import discovery
@@ -41,19 +41,10 @@ def tree(tmp_path):
     return root, dev
 
 
-def _without_dac(cmd: list[str]) -> list[str]:
-    """Run ``cmd`` so that file permissions apply: as root, drop the capabilities that bypass them."""
-    if os.geteuid() != 0:
-        return cmd
-    setpriv = shutil.which("setpriv")
-    assert setpriv, "running the tests as root needs util-linux's setpriv"
-    return [setpriv, "--inh-caps=-all", "--bounding-set=-dac_override,-dac_read_search"] + cmd
-
-
 def _devices_json(root: Path, dev: Path, *, drop_dac: bool = False) -> tuple[int, list[dict], str]:
     env = dict(os.environ, TELETOUCH_SYSFS_ROOT=str(root), TELETOUCH_DEV_ROOT=str(dev))
     cmd = [sys.executable, "-m", "teletouch", "devices", "--json"]
-    r = subprocess.run(_without_dac(cmd) if drop_dac else cmd, capture_output=True, text=True, env=env, timeout=120)
+    r = subprocess.run(without_dac(cmd) if drop_dac else cmd, capture_output=True, text=True, env=env, timeout=120)
     rows = json.loads(r.stdout, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
     return r.returncode, rows, r.stderr
 
@@ -170,7 +161,7 @@ def test_unreadable_sysfs_is_a_hardware_error_naming_the_folder(tree):
         print("ROWS:", json.dumps([r.get("error", r["id"]) for r in rows]))
     """)
     try:
-        out = subprocess.run(_without_dac([sys.executable, "-c", code]), capture_output=True, text=True, timeout=60)
+        out = subprocess.run(without_dac([sys.executable, "-c", code]), capture_output=True, text=True, timeout=60)
     finally:
         os.chmod(cls, 0o755)
     assert f"HARDWARE: cannot list {cls}" in out.stdout, out.stdout + out.stderr

@@ -12,16 +12,14 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.dynamixel_emulator import ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator, slow_adapter  # noqa: E402
+from fakes.dynamixel_emulator import ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator  # noqa: E402
+from fakes.followers import dynamixel_harness, packet_timeout_fixture  # noqa: E402
 from fakes.realtime import drive, drive_until, wait_for  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
-from teletouch.testing import Harness  # noqa: E402
-from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
-FAST = {"baudrate": 1000000}
 # the RH-P12-RN with its old firmware: Torque_Enable (562) and Hardware_Error_Status (892) lie far apart, so the
 # shutdown poll reads them with one READ each
 RH_P12_OLD = {"model": "rh-p12-rn", "dxl_id": 1, "ticks_open": 0, "ticks_closed": 740, "opening_at_ticks_open": 0.106,
@@ -32,16 +30,8 @@ TORQUE_ENABLE, HW_ERROR_STATUS = 562, 892
 WITHIN = 2.0
 
 
-@pytest.fixture(autouse=True)
-def packet_timeout():
-    with slow_adapter() as timeout:
-        yield timeout
-
-
-def harness(emu, **params):
-    h = Harness(DynamixelGripper, dict(FAST, port=emu.port, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+packet_timeout = packet_timeout_fixture()
+harness = dynamixel_harness   # at 1 Mbaud
 
 
 def near(x, abs):

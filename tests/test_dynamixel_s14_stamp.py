@@ -11,10 +11,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.dynamixel_emulator import INST_PING, INST_SYNC_READ, DynamixelEmulator, slow_adapter  # noqa: E402
-
-from teletouch.testing import Harness  # noqa: E402
-from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
+from fakes.dynamixel_emulator import INST_PING, INST_SYNC_READ  # noqa: E402
+from fakes.followers import dynamixel_fixture, dynamixel_harness, packet_timeout_fixture  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -23,24 +21,12 @@ pytestmark = pytest.mark.timeout(60)
 PING_DELAY = 0.05
 
 
-@pytest.fixture(autouse=True)
-def packet_timeout():
-    with slow_adapter() as timeout:   # the emulator's slower adapter for a loaded machine
-        yield timeout
-
-
-@pytest.fixture
-def emu():
-    e = DynamixelEmulator(15, position=1024)
-    e.start()
-    yield e
-    e.stop()
+packet_timeout = packet_timeout_fixture()   # the emulator's slower adapter for a loaded machine
+emu = dynamixel_fixture(15, position=1024)
 
 
 def harness(emu, **params):
-    h = Harness(DynamixelGripper, dict(baudrate=1000000, port=emu.port, error_check_period=30.0, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+    return dynamixel_harness(emu, error_check_period=30.0, **params)
 
 
 def test_a_reading_after_a_resync_ping_is_stamped_from_its_own_read(emu):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import pytest
@@ -13,6 +12,7 @@ from pydantic import ValidationError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
+from fakes.followers import canopen_harness, channel_fixture, drive_fixture  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from fakes.realtime import WAIT, configure_fails, drive_until, wait_for  # noqa: E402
@@ -23,23 +23,9 @@ from teletouch.plugins.devices.canopen_gripper import CW_NEW_SETPOINT, CanopenGr
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture
-def channel():
-    return f"tt-{uuid.uuid4().hex[:8]}"
-
-
-@pytest.fixture
-def drive(channel):
-    d = Cia402Drive(5, channel, position=0, block_at=60000)
-    d.start()
-    yield d
-    d.stop()
-
-
-def harness(channel, **params):
-    h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5}, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+channel = channel_fixture()
+drive = drive_fixture(position=0, block_at=60000)
+harness = canopen_harness
 
 
 # The drive moves in real time and the set-point moves at max_speed over at most two nominal periods per step: on a

@@ -7,7 +7,6 @@ matters, through dynamixel-gripper against its emulated servo (tests/fakes/dynam
 
 from __future__ import annotations
 
-import contextlib
 import math
 import sys
 import time
@@ -18,7 +17,7 @@ from pydantic import ValidationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.dynamixel_emulator import DynamixelEmulator, slow_adapter  # noqa: E402
+from fakes.followers import dynamixel, goal_positions  # noqa: E402
 from fakes.realtime import drive, drive_until, wait_for  # noqa: E402
 
 from teletouch import Sample  # noqa: E402
@@ -26,25 +25,6 @@ from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 from teletouch.plugins.devices.follower_common import FollowerParams  # noqa: E402
 from teletouch.plugins.devices.sim_gripper import SimGripper  # noqa: E402
-
-
-@contextlib.contextmanager
-def dynamixel(**params):
-    """A Dynamixel gripper (wall clock) on the emulator, the servo resting fully open (1024 ticks)."""
-    emu = DynamixelEmulator(15, position=1024).start()
-    try:
-        h = Harness(DynamixelGripper, {"port": emu.port, "baudrate": 1000000, **params})
-        h.ctx.clock_kind = "wall"
-        with slow_adapter(), h:   # the emulator's adapter for a loaded machine (fakes/dynamixel_emulator.py)
-            yield emu, h
-    finally:
-        emu.stop()
-
-
-def goal_positions(emu, since: float) -> list[int]:
-    """The Goal_Position ticks the driver sent (SYNC_WRITE packets) since ``since`` (time.monotonic())."""
-    return [int.from_bytes(p[5:9], "little", signed=True) for (t, _i, inst, p) in emu.rx_packets
-            if inst == 0x83 and t >= since]
 
 FREE = {"object_width": None, "max_speed": 0.05}
 DT = 1e-3  # sim-gripper's default rate: 1 kHz

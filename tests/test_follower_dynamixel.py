@@ -12,8 +12,9 @@ from pydantic import ValidationError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.dynamixel_emulator import (  # noqa: E402
-    ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator, crc16, packet, slow_adapter, stuff, unstuff,
+    ERR_ACCESS, HW_OVERLOAD, DynamixelEmulator, crc16, packet, stuff, unstuff,
 )
+from fakes.followers import dynamixel_fixture, dynamixel_harness, packet_timeout_fixture  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from fakes.realtime import WAIT, configure_fails, drive, drive_until, wait_for  # noqa: E402
@@ -28,29 +29,11 @@ def near(x, abs):
     waits for that, not for a fixed time: on a loaded machine the steps come late and the set-point lags)."""
     return lambda o: o["opening"] == pytest.approx(x, abs=abs)
 
-FAST = {"baudrate": 1000000}
-
-
-@pytest.fixture(autouse=True)
-def packet_timeout():
-    """The SDK's packet timeout (s) of a short answer, with the slower adapter the emulator needs on a loaded
-    machine (fakes/dynamixel_emulator.py, ADAPTER_LATENCY_MS)."""
-    with slow_adapter() as timeout:
-        yield timeout
-
-
-@pytest.fixture
-def emu():
-    e = DynamixelEmulator(15, position=1024, block_at=1800, closing=1)
-    e.start()
-    yield e
-    e.stop()
-
-
-def harness(emu, **params):
-    h = Harness(DynamixelGripper, dict(FAST, port=emu.port, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+#: the SDK's packet timeout (s) of a short answer, with the slower adapter the emulator needs on a loaded machine
+#: (fakes/dynamixel_emulator.py, ADAPTER_LATENCY_MS)
+packet_timeout = packet_timeout_fixture()
+emu = dynamixel_fixture(15, position=1024, block_at=1800, closing=1)
+harness = dynamixel_harness   # at 1 Mbaud
 
 
 def _trace_speeds(emu, n0: int, seconds: float, m_per_tick: float) -> list[float]:

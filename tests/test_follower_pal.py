@@ -18,19 +18,16 @@ from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
 from teletouch import HardwareError  # noqa: E402
 from fakes import realtime  # noqa: E402
 from fakes.realtime import configure_fails  # noqa: E402
-from fakes.ros2_peer import localhost_domain  # noqa: E402
+from fakes.ros2_peer import domain_fixture, own_domain  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
 
-DOMAIN = 20 + (os.getpid() * 7 + 3) % 90  # own ROS_DOMAIN_ID, differs per test run
+DOMAIN = own_domain(3, base=20)  # own ROS_DOMAIN_ID, differs per test run
 
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture(autouse=True)
-def _localhost_ros():
-    with localhost_domain(DOMAIN):
-        yield
+_localhost_ros = domain_fixture(DOMAIN, scope="function")
 
 
 @pytest.fixture

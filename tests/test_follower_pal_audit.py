@@ -25,22 +25,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes import realtime  # noqa: E402
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
 from fakes.realtime import configure_fails  # noqa: E402
-from fakes.ros2_peer import Peer, localhost_domain  # noqa: E402
+from fakes.ros2_peer import Peer, domain_fixture, own_domain  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import JOINTS, PalGripper  # noqa: E402
 
-DOMAIN = 20 + (os.getpid() * 7 + 5) % 90  # this module's own ROS_DOMAIN_ID, different per test run
+DOMAIN = own_domain(5, base=20)  # this module's own ROS_DOMAIN_ID, different per test run
 COMMAND = "/tiago/gripper_controller/joint_trajectory"
 
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture(autouse=True)
-def _localhost_ros():
-    with localhost_domain(DOMAIN):
-        yield
+_localhost_ros = domain_fixture(DOMAIN, scope="function")
 
 
 def harness(**params):

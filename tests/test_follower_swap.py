@@ -7,7 +7,6 @@ wall clock because the emulated hardware moves in real time.
 from __future__ import annotations
 
 import math
-import os
 import sys
 import uuid
 from pathlib import Path
@@ -19,11 +18,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.canopen_drive import Cia402Drive  # noqa: E402
 from fakes.dynamixel_emulator import DynamixelEmulator, slow_adapter  # noqa: E402
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
-from fakes.ros2_peer import localhost_domain  # noqa: E402
+from fakes.ros2_peer import localhost_domain, own_domain  # noqa: E402
 
 from teletouch.testing import make_registry, run_yaml  # noqa: E402
 
-DOMAIN = 20 + (os.getpid() * 7 + 4) % 90  # this module's own ROS_DOMAIN_ID, different per test run
+DOMAIN = own_domain(4, base=20)  # this module's own ROS_DOMAIN_ID, different per test run
 PLUGINS = ["sim-gripper", "dynamixel-gripper", "canopen-gripper", "pal-gripper"]
 MODULES = [f"teletouch.plugins.devices.{p.replace('-', '_')}" for p in PLUGINS]
 

@@ -5,32 +5,17 @@ from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from teletouch.plugins.devices import dhd
-from tests.test_leader_omega7 import StandIn, build_standin, harness
+from tests.test_leader_omega7 import harness
 
+from fakes.dhd_standin import sdk_dir_fixture, standin_fixture
 
-@pytest.fixture(scope="module")
-def sdk_dir(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("fdsdk-review")
-    (d / "lib").mkdir()
-    build_standin(d / "lib")
-    return d
-
-
-@pytest.fixture
-def standin(sdk_dir, monkeypatch) -> StandIn:
-    """The stand-in with its firmware's clock frozen (moved only by standin.advance_clock), as in
-    tests/test_leader_omega7.py; its failure switches are cleared again after the test."""
-    monkeypatch.delenv("FORCEDIM_SDK", raising=False)
-    s = StandIn(sdk_dir / "lib" / "libdhd.so")
-    s.freeze_clock()
-    yield s
-    s.lib.standin_reset()
+sdk_dir = sdk_dir_fixture("fdsdk-review")
+standin = standin_fixture()   # its firmware's clock frozen (moved only by standin.advance_clock)
 
 
 # ------------------------------------------------------------------------------ forces that cannot be switched off

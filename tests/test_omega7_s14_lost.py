@@ -6,30 +6,17 @@ status() is of the current activation. Against the C stand-in of libdhd, as test
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import pytest
 
 from teletouch import Sample
 from teletouch.plugins.devices import dhd
-from tests.test_leader_omega7 import StandIn, build_standin, harness
+from tests.test_leader_omega7 import harness
 
+from fakes.dhd_standin import sdk_dir_fixture, standin_fixture
 
-@pytest.fixture(scope="module")
-def sdk_dir(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("fdsdk-s14")
-    (d / "lib").mkdir()
-    build_standin(d / "lib")
-    return d
-
-
-@pytest.fixture
-def standin(sdk_dir, monkeypatch) -> StandIn:
-    monkeypatch.delenv("FORCEDIM_SDK", raising=False)
-    s = StandIn(sdk_dir / "lib" / "libdhd.so")
-    s.freeze_clock()
-    yield s
-    s.lib.standin_reset()
+sdk_dir = sdk_dir_fixture("fdsdk-s14")
+standin = standin_fixture()
 
 
 def _write_fails(h, standin):

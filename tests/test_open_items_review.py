@@ -15,14 +15,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.dynamixel_emulator import DynamixelEmulator, slow_adapter  # noqa: E402
+from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
+from fakes.followers import packet_timeout_fixture  # noqa: E402
+from helpers_depth import model_fixture, sim_fixture  # noqa: E402
 
 from teletouch import Device, HardwareError, Port  # noqa: E402
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 from teletouch.plugins.estimators import poisson  # noqa: E402
 from teletouch.plugins.estimators.depth_pipeline import DepthPipeline  # noqa: E402
-from teletouch.plugins.estimators.normal_model import load_model  # noqa: E402
-from teletouch.plugins.sensors.sim_digit import DigitSimulator  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 
 
@@ -69,14 +69,8 @@ def re_shape(shape) -> str:
 
 # --- 2. the dense path's torch solve refuses a depth that is not finite ---------------------------------------------
 
-@pytest.fixture(scope="module")
-def model():
-    return load_model("sim-digit-qvga")
-
-
-@pytest.fixture(scope="module")
-def sim():
-    return DigitSimulator("qvga", noise=2.0, seed=99)
+model = model_fixture()
+sim = sim_fixture()
 
 
 class _BadNormals(torch.nn.Module):
@@ -213,10 +207,7 @@ def test_harness_exit_without_errors_is_unchanged():
 
 # --- 4. dynamixel-gripper: Current_Limit 0 -----------------------------------------------------------------------
 
-@pytest.fixture
-def packet_timeout():
-    with slow_adapter() as timeout:
-        yield timeout
+packet_timeout = packet_timeout_fixture(autouse=False)
 
 
 @pytest.mark.timeout(60)

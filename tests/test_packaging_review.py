@@ -17,19 +17,12 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.test_repro_scripts import _load
+from helpers_scripts import script_fixture
 
 REPO = Path(__file__).resolve().parents[1]
 
-
-@pytest.fixture(scope="module")
-def depth_script():
-    return _load("make_sim_depth_model")
-
-
-@pytest.fixture(scope="module")
-def force_script():
-    return _load("make_sim_force_calibration")
+depth_script = script_fixture("make_sim_depth_model")
+force_script = script_fixture("make_sim_force_calibration")
 
 
 # --- the dev script -----------------------------------------------------------------------------------------------

@@ -9,7 +9,6 @@ subscription), other participants play the other commanders."""
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 
@@ -21,22 +20,19 @@ from trajectory_msgs.msg import JointTrajectory
 
 from fakes import realtime
 from fakes.realtime import configure_fails
-from fakes.ros2_peer import Peer, localhost_domain
+from fakes.ros2_peer import Peer, domain_fixture, own_domain
 
 from teletouch import HardwareError
 from teletouch.plugins.devices.pal_gripper import JOINTS, PalGripper
 from teletouch.testing import Harness
 
-DOMAIN = 20 + (os.getpid() * 7 + 1) % 90   # this module's own ROS_DOMAIN_ID, different per test run
+DOMAIN = own_domain(1, base=20)   # this module's own ROS_DOMAIN_ID, different per test run
 COMMAND = "/tiago/gripper_controller/joint_trajectory"
 
 pytestmark = pytest.mark.timeout(90)
 
 
-@pytest.fixture(autouse=True)
-def _localhost_ros():
-    with localhost_domain(DOMAIN):
-        yield
+_localhost_ros = domain_fixture(DOMAIN, scope="function")
 
 
 class Robot:

@@ -9,19 +9,13 @@ import numpy as np
 import pytest
 
 from teletouch.plugins.estimators.depth_pipeline import DepthPipeline, contact_summary
-from teletouch.plugins.estimators.normal_model import load_model
 from teletouch.plugins.sensors import gel
-from teletouch.plugins.sensors.sim_digit import DigitSimulator
+
+from helpers_depth import model_fixture, sim_fixture
 
 
-@pytest.fixture(scope="module")
-def model():
-    return load_model("sim-digit-qvga")
-
-
-@pytest.fixture(scope="module")
-def sim():
-    return DigitSimulator("qvga", noise=2.0, seed=99)
+model = model_fixture()
+sim = sim_fixture()
 
 
 # --- the sparse path against the dense (whole-grid) reference --------------------------------------------------------

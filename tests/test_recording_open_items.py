@@ -11,6 +11,8 @@ import numpy as np
 from teletouch import recording
 from teletouch.recording import Recorder, plot_recording, read_signals
 
+from fakes.mcap_files import hold_writer
+
 
 class _SlowLen(dict):
     """An outputs dict whose len() lets the other threads run (as a thread switch can at any moment): it widens the
@@ -21,27 +23,11 @@ class _SlowLen(dict):
         return super().__len__()
 
 
-class _Stuck:
-    """A value whose encoding (the JSON codec's repr) holds the writer thread until released."""
-
-    def __init__(self):
-        self.entered, self.release = threading.Event(), threading.Event()
-
-    def __repr__(self) -> str:
-        if threading.current_thread().name != "teletouch-recorder":   # (pytest's report of a failed assert)
-            return "stuck"
-        self.entered.set()
-        assert self.release.wait(10.0), "never released"
-        return "stuck"
-
-
 def test_drop_counts_are_exact_when_several_node_threads_drop_at_once(tmp_path):
     # every tap is dropped (max_queue_bytes 1 B and an array waits behind a held writer: no array fits), from 8
     # threads at once, as on a wall clock where every node's thread taps
     rec = Recorder(tmp_path / "drops.mcap", None, max_queue_bytes=1, log=lambda m: None)
-    stuck = _Stuck()
-    rec.tap("slow", 0.0, {"obj": stuck})
-    assert stuck.entered.wait(10.0)
+    stuck = hold_writer(rec)
     rec.tap("first", 0.0, {"a": np.zeros(4)})   # larger than max_queue_bytes, nothing waits: it goes in
     threads_n, taps_n = 8, 25
     go = threading.Barrier(threads_n)

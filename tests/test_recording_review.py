@@ -18,6 +18,8 @@ from mcap.writer import Writer
 from teletouch.cli import main as cli_main
 from teletouch.recording import Recorder, RecordingError, iter_images, open_recording, read_signals
 
+from fakes.mcap_files import damage_png, write_image_recording
+
 pytestmark = pytest.mark.timeout(120)
 
 GUARD = 10.0   # s: only a broken recorder makes a test wait this long
@@ -122,22 +124,11 @@ def test_a_message_that_cannot_be_decoded_is_an_error_naming_the_file_and_channe
 def test_an_image_that_cannot_be_decoded_is_an_error_naming_the_file_and_channel(tmp_path):
     """A CompressedImage whose PNG bytes are damaged (the record itself intact) stopped a replay with
     "could not decode a CompressedImage (bgr8; png compressed bgr8)", naming neither the file nor the channel."""
-    from teletouch.recording import _Compressed, ros2msg_definition
+    from teletouch.recording import _Compressed
 
-    data = _Compressed().encode(np.full((4, 6, 3), 9, np.uint8), 0, "cam")
-    at = data.index(b"\x89PNG")
-    data = data[:at] + b"\x00" * 8 + data[at + 8:]
+    data = damage_png(_Compressed().encode(np.full((4, 6, 3), 9, np.uint8), 0, "cam"))
     path = tmp_path / "img.mcap"
-    with open(path, "wb") as fh:
-        w = Writer(fh)
-        w.start(profile="ros2", library="teletouch")
-        w.add_metadata("teletouch.time", {"graph_epoch_ns": "0"})
-        sid = w.register_schema("sensor_msgs/msg/CompressedImage", "ros2msg",
-                                ros2msg_definition("sensor_msgs/msg/CompressedImage").encode())
-        cid = w.register_channel("/cam/image", "cdr", sid, {"node": "cam", "port": "image", "codec": "compressed",
-                                                              "dtype": "uint8", "shape": "[null, null, 3]"})
-        w.add_message(cid, log_time=10**8, publish_time=10**8, data=data)
-        w.finish()
+    write_image_recording(path, [(10**8, data)])
     why = (f"{path}: channel /cam/image: message 1 (at 0.100 s) cannot be decoded (expected a CDR "
            f"sensor_msgs/msg/CompressedImage): RecordingError: could not decode a CompressedImage")
     for read in (lambda p: list(iter_images(p)), lambda p: read_signals(p, images=True)):

@@ -4,7 +4,6 @@ teletouch."""
 
 from __future__ import annotations
 
-import threading
 import types
 from pathlib import Path
 
@@ -16,38 +15,17 @@ from teletouch.component import Port
 from teletouch.recording import (Recorder, _Compressed, iter_images, open_recording, plot_recording, read_signals,
                                  ros2msg_definition)
 
+from fakes.mcap_files import hold_writer
+
 pytestmark = pytest.mark.timeout(120)
 
 GUARD = 10.0   # s: only a broken recorder makes a test wait this long
 
 
-class _Stuck:
-    """A value whose encoding (the JSON codec's repr) holds the writer thread until released: what is tapped
-    meanwhile waits in the queue, as behind a slow disk."""
-
-    def __init__(self):
-        self.entered, self.release = threading.Event(), threading.Event()
-
-    def __repr__(self) -> str:
-        if threading.current_thread().name != "teletouch-recorder":   # (pytest's report of a failed assert)
-            return "stuck"
-        self.entered.set()
-        assert self.release.wait(GUARD), "never released"
-        return "stuck"
-
-
-def _stuck_writer(rec: Recorder) -> _Stuck:
-    """Tap a value that holds the writer; return once the writer holds it (the queue is then empty)."""
-    stuck = _Stuck()
-    rec.tap("slow", 0.0, {"obj": stuck})
-    assert stuck.entered.wait(GUARD), "the writer never took the first sample"
-    return stuck
-
-
 def _drops(path: Path) -> Path:
     """A wall-clock recording that drops 3 samples at max_queue (2 items) and 1 at max_queue_bytes (150 bytes)."""
     rec = Recorder(path, None, max_queue=2, max_queue_bytes=150, log=lambda m: None)
-    stuck = _stuck_writer(rec)
+    stuck = hold_writer(rec, GUARD)
     try:
         img = np.zeros((10, 10), np.uint8)            # 100 bytes
         rec.tap("cam", 0.01, {"mask": img})           # queued (no array waiting)
@@ -83,7 +61,7 @@ def test_a_run_cut_short_keeps_the_drop_count_of_its_last_flush(tmp_path):
 
     path = tmp_path / "live.mcap"
     rec = Recorder(path, None, max_queue=2, flush_interval=0.05, log=lambda m: None)
-    stuck = _stuck_writer(rec)
+    stuck = hold_writer(rec, GUARD)
     try:
         for k in range(5):   # 2 queued, 3 dropped
             rec.tap("est", 0.01 * (k + 1), {"force": float(k)})
@@ -132,7 +110,7 @@ def test_a_sample_larger_than_max_queue_bytes_on_a_wall_clock_is_recorded_when_n
     rec = Recorder(tmp_path / "wall.mcap", None, max_queue_bytes=1000, log=lambda m: None)
     depth = np.full((40, 40), 1e-4, np.float32)   # 6400 bytes
     rec.tap("cam", 0.0, {"depth": depth})         # nothing queued: recorded
-    stuck = _stuck_writer(rec)
+    stuck = hold_writer(rec, GUARD)
     try:
         rec.tap("cam", 0.1, {"depth": depth})         # queued: no array waits
         rec.tap("cam", 0.2, {"depth": depth})         # dropped: 6400 bytes already wait

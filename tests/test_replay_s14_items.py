@@ -4,17 +4,17 @@ and the frames a rate skips are not decoded."""
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.writer import Writer
 
 from teletouch import ComponentFault
 from teletouch.plugins.sensors.replay import Replay, list_images
-from teletouch.recording import Recorder, _Compressed, ros2msg_definition
+from teletouch.recording import Recorder, _Compressed
 from teletouch.testing import Harness
+
+from fakes.mcap_files import damage_png, hold_writer, write_image_recording
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -39,24 +39,10 @@ def _play(params: dict, steps: int, rate: float = 100.0) -> tuple[Harness, list,
 
 
 # ------------------------------------------------------------------------------------ a recording with drops
-class _Stuck:
-    def __init__(self):
-        self.entered, self.release = threading.Event(), threading.Event()
-
-    def __repr__(self) -> str:
-        if threading.current_thread().name != "teletouch-recorder":   # (pytest's report of a failed assert)
-            return "stuck"
-        self.entered.set()
-        assert self.release.wait(GUARD)
-        return "stuck"
-
-
 def test_replay_of_a_recording_with_drops_warns_when_it_starts(tmp_path):
     path = tmp_path / "drops.mcap"
     rec = Recorder(path, None, max_queue=2, log=lambda m: None)
-    stuck = _Stuck()
-    rec.tap("slow", 0.0, {"obj": stuck})
-    assert stuck.entered.wait(GUARD)
+    stuck = hold_writer(rec, GUARD)
     try:
         for k in range(5):   # two wait for the writer, the 3 others are dropped (max_queue 2)
             rec.tap("cam", 0.1 * k, {"image": np.full((8, 6, 3), 10 * k, np.uint8)})
@@ -74,22 +60,12 @@ def _recording_with_a_damaged_image(path: Path, bad: int, n: int = 5) -> list[np
     """A teletouch-style recording of ``n`` images at 0.1 s whose image ``bad`` has damaged PNG bytes (the MCAP
     record itself intact); returns the images."""
     imgs = [np.full((8, 6, 3), 20 * k, np.uint8) for k in range(n)]
-    with open(path, "wb") as fh:
-        w = Writer(fh)
-        w.start(profile="ros2", library="teletouch")
-        w.add_metadata("teletouch.time", {"graph_epoch_ns": "0"})
-        sid = w.register_schema("sensor_msgs/msg/CompressedImage", "ros2msg",
-                                ros2msg_definition("sensor_msgs/msg/CompressedImage").encode())
-        cid = w.register_channel("/cam/image", "cdr", sid, {"node": "cam", "port": "image", "codec": "compressed",
-                                                              "dtype": "uint8", "shape": "[null, null, 3]"})
-        for k, img in enumerate(imgs):
-            t = (k + 1) * 10**8
-            data = _Compressed().encode(img, t, "cam")
-            if k == bad:
-                at = data.index(b"\x89PNG")
-                data = data[:at] + b"\x00" * 8 + data[at + 8:]
-            w.add_message(cid, log_time=t, publish_time=t, data=data)
-        w.finish()
+    messages = []
+    for k, img in enumerate(imgs):
+        t = (k + 1) * 10**8
+        data = _Compressed().encode(img, t, "cam")
+        messages.append((t, damage_png(data) if k == bad else data))
+    write_image_recording(path, messages)
     return imgs
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import datetime as dt
-import importlib.util
 import io
 import json
 import os
@@ -25,27 +24,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers_scripts import script_fixture
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGED_MODEL = REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.model"
 PACKAGED_FORCE = REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.force.json"
 SMALL = ["--presses", "6", "--epochs", "1"]      # 2 training presses, 4 held out: ~7 s of CPU
 
 
-def _load(name: str):
-    spec = importlib.util.spec_from_file_location(f"{name}_repro_under_test", REPO / "scripts" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-@pytest.fixture(scope="module")
-def depth_script():
-    return _load("make_sim_depth_model")
-
-
-@pytest.fixture(scope="module")
-def force_script():
-    return _load("make_sim_force_calibration")
+depth_script = script_fixture("make_sim_depth_model")
+force_script = script_fixture("make_sim_force_calibration")
 
 
 def _run(mod, *argv: str) -> tuple[int, str]:

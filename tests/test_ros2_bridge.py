@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -21,18 +20,13 @@ from teletouch.recording import image_msg, ros_time
 from teletouch.testing import load_text, make_registry
 
 from fakes.ros2_peer import Peer as _Peer
-from fakes.ros2_peer import localhost_domain, wait_until
+from fakes.ros2_peer import domain_fixture, own_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
 # a domain of our own: other engineers run ROS 2 tests on this machine at the same time
-DOMAIN = 120 + (os.getpid() * 7 + 1) % 90
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
+DOMAIN = own_domain(1)
+ros_env = domain_fixture(DOMAIN)
 
 
 class Peer(_Peer):

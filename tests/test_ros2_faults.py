@@ -28,23 +28,18 @@ from std_msgs.msg import Float64
 
 from teletouch import Component, Context, GraphValidationError, Inputs, Kind, Sample, hookimpl
 from teletouch.component import _Slot
-from teletouch.plugins.bridges.ros2 import Ros2Publish, Ros2Subscribe
+from teletouch.plugins.bridges.ros2 import Ros2Publish
 from teletouch.recording import image_msg, ros_time
 from teletouch.runtime import Runtime
 from teletouch.testing import load_text, make_registry
 
 from fakes.ros2_peer import Peer as _Peer
-from fakes.ros2_peer import localhost_domain, wait_until
+from fakes.ros2_peer import SubscribeNode, domain_fixture, own_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
-DOMAIN = 120 + (os.getpid() * 7 + 3) % 90
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
+DOMAIN = own_domain(3)
+ros_env = domain_fixture(DOMAIN)
 
 
 class Peer(_Peer):
@@ -57,15 +52,11 @@ class Peer(_Peer):
 _wait = wait_until
 
 
-class Sub:
-    """A ros2-subscribe node stepped by hand on a wall clock, collecting what it outputs."""
+class Sub(SubscribeNode):
+    """A ros2-subscribe node on this module's domain, collecting what it outputs."""
 
     def __init__(self, ns: str, **params):
-        self.logs: list[str] = []
-        self.ctx = Context(clock_kind="wall", log=self.logs.append)
-        self.comp = Ros2Subscribe(dict({"domain_id": DOMAIN, "namespace": ns}, **params), node_id="sub", ctx=self.ctx)
-        self.comp.configure()
-        self.comp.activate()
+        super().__init__(DOMAIN, ns, **params)
         self.out: list[tuple[float, str, Sample]] = []   # (step time, port, sample)
 
     def collect(self):
@@ -75,11 +66,6 @@ class Sub:
 
     def values(self, port):
         return [s.value for _, k, s in self.out if k == port]
-
-    def handled(self) -> int:
-        """Messages the subscription callbacks have dealt with, taken or refused."""
-        st = self.comp.status()
-        return sum(st.get(k, 0) for k in ("received", "bad", "unstamped", "duplicates", "out_of_order"))
 
     def matched(self, pub) -> bool:
         """Whether DDS has matched ``pub`` and this node's subscription to its topic, both ends (DDS matches them
@@ -97,10 +83,6 @@ class Sub:
         n = len(self.out)
         self.collect()
         return {k: s.value for _, k, s in self.out[n:]}
-
-    def close(self):
-        self.comp.deactivate()
-        self.comp.close()
 
 
 def _force(value, stamp, axis="z"):

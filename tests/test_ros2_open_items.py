@@ -4,8 +4,6 @@ own."""
 
 from __future__ import annotations
 
-import os
-
 import pytest
 from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import Image, JointState
@@ -14,17 +12,12 @@ from teletouch import ComponentFault, Context, Inputs, Sample
 from teletouch.component import _Slot
 from teletouch.plugins.bridges.ros2 import Ros2Publish, Ros2Subscribe
 
-from fakes.ros2_peer import Peer, localhost_domain, wait_until
+from fakes.ros2_peer import Peer, domain_fixture, own_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
-DOMAIN = 120 + (os.getpid() * 7 + 5) % 90
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
+DOMAIN = own_domain(5)
+ros_env = domain_fixture(DOMAIN)
 
 
 def _publisher(ns: str, **params) -> tuple[Ros2Publish, Context, dict[str, _Slot], Inputs]:

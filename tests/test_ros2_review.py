@@ -4,7 +4,6 @@ rclpy messages between independent participants (loopback only, a ROS_DOMAIN_ID 
 from __future__ import annotations
 
 import math
-import os
 import time
 
 import pytest
@@ -17,29 +16,19 @@ from teletouch.component import _Slot
 from teletouch.plugins.bridges.ros2 import Ros2Publish, Ros2Subscribe
 from teletouch.recording import ros_time
 
-from fakes.ros2_peer import Peer, localhost_domain, wait_until
+from fakes.ros2_peer import Peer, SubscribeNode, domain_fixture, own_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
-DOMAIN = 120 + (os.getpid() * 7 + 13) % 90
+DOMAIN = own_domain(13)
+ros_env = domain_fixture(DOMAIN)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
-
-
-class _Sub:
-    """A ros2-subscribe node on joint_states, stepped by hand on a wall clock, collecting what it outputs."""
+class _Sub(SubscribeNode):
+    """A ros2-subscribe node on joint_states on this module's domain, collecting what it outputs."""
 
     def __init__(self, ns: str, **params):
-        self.logs: list[str] = []
-        self.ctx = Context(clock_kind="wall", log=self.logs.append)
-        self.comp = Ros2Subscribe(dict({"domain_id": DOMAIN, "namespace": ns, "topics": ["joint_states"]}, **params),
-                                  node_id="sub", ctx=self.ctx)
-        self.comp.configure()
-        self.comp.activate()
+        super().__init__(DOMAIN, ns, **dict({"topics": ["joint_states"]}, **params))
         self.out: list[dict[str, Sample]] = []
 
     def collect(self) -> dict[str, float]:
@@ -54,10 +43,6 @@ class _Sub:
     def matched(self, topic: str, count_publisher) -> bool:
         sub = next(s for s in self.comp._subs if s.topic_name == topic)
         return count_publisher() >= 1 and sub.get_publisher_count() >= 1
-
-    def close(self) -> None:
-        self.comp.deactivate()
-        self.comp.close()
 
 
 def _joints(stamp: float, **fields) -> JointState:

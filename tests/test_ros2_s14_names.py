@@ -4,8 +4,6 @@ starts. Real rclpy for the longest name allowed, loopback only, a ROS_DOMAIN_ID 
 
 from __future__ import annotations
 
-import os
-
 import pytest
 from pydantic import ValidationError
 
@@ -15,17 +13,12 @@ from teletouch.plugins.bridges import ros2
 from teletouch.plugins.bridges.ros2 import Ros2Publish, Ros2Subscribe
 from teletouch.testing import load_text, make_registry
 
-from fakes.ros2_peer import localhost_domain
+from fakes.ros2_peer import domain_fixture, own_domain
 
 pytestmark = pytest.mark.timeout(120)
 
-DOMAIN = 120 + (os.getpid() * 7 + 31) % 90
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
+DOMAIN = own_domain(31)
+ros_env = domain_fixture(DOMAIN)
 
 
 def _no_ros(monkeypatch) -> None:

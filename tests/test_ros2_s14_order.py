@@ -5,7 +5,6 @@ own."""
 
 from __future__ import annotations
 
-import os
 import time
 
 import pytest
@@ -14,37 +13,23 @@ from rclpy.qos import QoSProfile
 from geometry_msgs.msg import WrenchStamped
 from sensor_msgs.msg import JointState
 
-from teletouch import Context, Inputs, Sample
-from teletouch.plugins.bridges.ros2 import Ros2Subscribe
+from teletouch import Inputs, Sample
 from teletouch.recording import ros_time
 
-from fakes.ros2_peer import Peer, localhost_domain, wait_until
+from fakes.ros2_peer import Peer, SubscribeNode, domain_fixture, own_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
-DOMAIN = 120 + (os.getpid() * 7 + 29) % 90
+DOMAIN = own_domain(29)
+ros_env = domain_fixture(DOMAIN)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
-
-
-class _Sub:
-    """A ros2-subscribe node stepped by hand on a wall clock, keeping what it outputs."""
+class _Sub(SubscribeNode):
+    """A ros2-subscribe node on this module's domain, keeping what it outputs."""
 
     def __init__(self, ns: str, **params):
-        self.logs: list[str] = []
-        self.ctx = Context(clock_kind="wall", log=self.logs.append)
-        self.comp = Ros2Subscribe(dict({"domain_id": DOMAIN, "namespace": ns}, **params), node_id="sub", ctx=self.ctx)
-        self.comp.configure()
-        self.comp.activate()
+        super().__init__(DOMAIN, ns, **params)
         self.out: list[tuple[str, Sample]] = []
-
-    def handled(self) -> int:
-        st = self.comp.status()
-        return sum(st.get(k, 0) for k in ("received", "bad", "unstamped", "duplicates", "out_of_order"))
 
     def deliver(self, pub, msg) -> None:
         """Publish one message (once both ends are matched) and wait until the node has dealt with it; no step."""
@@ -66,10 +51,6 @@ class _Sub:
 
     def stamps(self, port: str) -> list[float]:
         return [s.stamp for k, s in self.out if k == port]
-
-    def close(self) -> None:
-        self.comp.deactivate()
-        self.comp.close()
 
 
 def _force(value: float, unix: float) -> WrenchStamped:

@@ -18,9 +18,11 @@ import pytest
 
 from teletouch.recording import open_recording
 
+from fakes.ros2_peer import own_domain
+
 pytestmark = pytest.mark.timeout(150)
 
-DOMAIN = 120 + (os.getpid() * 7 + 2) % 90
+DOMAIN = own_domain(2)
 
 SENSOR = f"""
 name: split-sensor-test

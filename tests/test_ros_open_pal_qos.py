@@ -8,7 +8,6 @@ sensor_msgs/JointState and a joint_trajectory_controller subscription, each with
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 
@@ -20,12 +19,12 @@ from trajectory_msgs.msg import JointTrajectory
 
 from fakes import realtime
 from fakes.realtime import configure_fails
-from fakes.ros2_peer import Peer, localhost_domain
+from fakes.ros2_peer import Peer, domain_fixture, own_domain
 
 from teletouch.plugins.devices.pal_gripper import JOINTS, PalGripper
 from teletouch.testing import Harness
 
-DOMAIN = 20 + (os.getpid() * 7 + 6) % 90   # this module's own ROS_DOMAIN_ID, different per test run
+DOMAIN = own_domain(6, base=20)   # this module's own ROS_DOMAIN_ID, different per test run
 COMMAND = "/tiago/gripper_controller/joint_trajectory"
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -34,10 +33,7 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 pytestmark = pytest.mark.timeout(60)
 
 
-@pytest.fixture(autouse=True)
-def _localhost_ros():
-    with localhost_domain(DOMAIN):
-        yield
+_localhost_ros = domain_fixture(DOMAIN, scope="function")
 
 
 #: connect_timeout of the start-ups that must fail: what such a test waits, long enough for DDS to discover the robot

@@ -5,8 +5,6 @@ Real DDS over loopback, a domain of this module's own."""
 
 from __future__ import annotations
 
-import os
-
 import pytest
 from geometry_msgs.msg import WrenchStamped
 from pydantic import ValidationError
@@ -16,17 +14,12 @@ from teletouch import ComponentFault, Context, Inputs, Sample
 from teletouch.component import _Slot
 from teletouch.plugins.bridges.ros2 import Ros2Publish
 
-from fakes.ros2_peer import Peer, localhost_domain, wait_until
+from fakes.ros2_peer import Peer, domain_fixture, own_domain, wait_until
 
 pytestmark = pytest.mark.timeout(120)
 
-DOMAIN = 120 + (os.getpid() * 7 + 6) % 90
-
-
-@pytest.fixture(scope="module", autouse=True)
-def ros_env():
-    with localhost_domain(DOMAIN):
-        yield
+DOMAIN = own_domain(6)
+ros_env = domain_fixture(DOMAIN)
 
 
 def _publisher(ns: str, **params) -> tuple[Ros2Publish, Context, dict[str, _Slot], Inputs, list[str]]:

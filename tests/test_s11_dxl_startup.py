@@ -10,14 +10,11 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.dynamixel_emulator import (  # noqa: E402
-    ERR_ACCESS, INST_PING, INST_SYNC_READ, INST_SYNC_WRITE, INST_WRITE, DynamixelEmulator, slow_adapter,
-)
+from fakes.dynamixel_emulator import ERR_ACCESS, INST_PING, INST_SYNC_READ, INST_SYNC_WRITE, INST_WRITE  # noqa: E402
+from fakes.followers import dynamixel_fixture, dynamixel_harness, packet_timeout_fixture  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
-from teletouch.testing import Harness  # noqa: E402
 from teletouch.plugins.devices import dynamixel_gripper as dg  # noqa: E402
-from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -28,24 +25,9 @@ STARTUP_ANSWERS = 10
 STARTUP_TRIES = 3
 
 
-@pytest.fixture(autouse=True)
-def packet_timeout():
-    with slow_adapter() as timeout:   # the emulator's slower adapter for a loaded machine
-        yield timeout
-
-
-@pytest.fixture
-def emu():
-    e = DynamixelEmulator(15, position=1024)
-    e.start()
-    yield e
-    e.stop()
-
-
-def harness(emu, **params):
-    h = Harness(DynamixelGripper, dict(baudrate=1000000, port=emu.port, **params))
-    h.ctx.clock_kind = "wall"
-    return h
+packet_timeout = packet_timeout_fixture()   # the emulator's slower adapter for a loaded machine
+emu = dynamixel_fixture(15, position=1024)
+harness = dynamixel_harness
 
 
 def instructions(emu, inst):

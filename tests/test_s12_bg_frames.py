@@ -18,6 +18,8 @@ import pytest
 from teletouch.cli import main
 from teletouch.plugins.estimators import depth_calibration as C
 
+from helpers_depth import render_presses
+
 
 def _frames(n: int, shape=(6, 5, 3), seed=0) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
@@ -145,16 +147,8 @@ NOISE = 4.0
 @pytest.fixture(scope="module")
 def sim(tmp_path_factory):
     """6 rendered presses (noise 4, their labels) and 10 no-contact frames of the same simulated sensor."""
-    import sys
-
     from teletouch.plugins.sensors.sim_digit import DigitSimulator
 
-    repo = Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(repo / "scripts"))
-    try:
-        from make_sim_depth_model import render_presses
-    finally:
-        sys.path.pop(0)
     root = tmp_path_factory.mktemp("s12bg")
     render_presses(root / "presses", 6, seed=11, noise=NOISE)
     (root / "presses" / "background.png").unlink()

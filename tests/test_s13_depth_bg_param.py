@@ -9,13 +9,11 @@ import pytest
 
 from teletouch.errors import ModelFileError
 from teletouch.plugins.estimators.depth import DepthEstimator
-from teletouch.plugins.estimators.normal_model import load_model
 from teletouch.testing import Harness
 
+from helpers_depth import model_fixture
 
-@pytest.fixture(scope="module")
-def model():
-    return load_model("sim-digit-qvga")
+model = model_fixture()
 
 
 def _frames(model, tmp_path, n=3, seed=0):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -18,6 +17,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes import digit_sysfs  # noqa: E402
+from helpers_permissions import without_dac  # noqa: E402
 
 from teletouch import Context, GraphValidationError, HardwareError
 from teletouch.plugins.sensors import discovery
@@ -123,10 +123,7 @@ def test_digit_permission_denied_names_the_udev_rule(fake_sys):
     if os.geteuid() == 0:
         # root opens anything: run the driver without the capabilities that bypass file permissions
         os.chmod(node, 0o000)
-        setpriv = shutil.which("setpriv")
-        assert setpriv, "running the tests as root needs util-linux's setpriv"
-        cmd = [setpriv, "--inh-caps=-all", "--bounding-set=-dac_override,-dac_read_search"] + cmd
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    out = subprocess.run(without_dac(cmd), capture_output=True, text=True, timeout=60)
     assert "permission denied on" in out.stdout, out.stdout + out.stderr
     assert 'ATTRS{idVendor}=="2833"' in out.stdout and "50-DIGIT.rules" in out.stdout
 

@@ -18,6 +18,8 @@ from teletouch import ComponentFault
 from teletouch.plugins.sensors.replay import Replay, list_images
 from teletouch.testing import Harness
 
+from helpers_permissions import without_dac
+
 FPS = 20.0
 
 
@@ -107,15 +109,6 @@ def test_truncated_video_is_one_report_at_the_cut(shared_data, tmp_path):
 
 
 # ------------------------------------------------------------------------------------- unreadable (permission)
-def _without_dac(cmd: list[str]) -> list[str]:
-    """Run ``cmd`` so that file permissions apply: as root, drop the capabilities that bypass them."""
-    if os.geteuid() != 0:
-        return cmd
-    setpriv = shutil.which("setpriv")
-    assert setpriv, "running the tests as root needs util-linux's setpriv"
-    return [setpriv, "--inh-caps=-all", "--bounding-set=-dac_override,-dac_read_search"] + cmd
-
-
 _PROBE = textwrap.dedent("""
     import json, sys
     from teletouch.plugins.sensors.replay import Replay
@@ -156,7 +149,7 @@ def test_unreadable_frames_and_paths_say_permission_denied_not_corrupt(shared_da
     os.chmod(video, 0)
     os.chmod(listless, 0o300)   # can be entered, not listed
     try:
-        r = subprocess.run(_without_dac([sys.executable, "-c", _PROBE, json.dumps({k: str(v) for k, v in
+        r = subprocess.run(without_dac([sys.executable, "-c", _PROBE, json.dumps({k: str(v) for k, v in
                                                                                    paths.items()})]),
                            capture_output=True, text=True, timeout=120)
     finally:

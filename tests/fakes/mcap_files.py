@@ -1,8 +1,11 @@
 """MCAP files as a crashed run leaves them: written by the real Recorder in two flushes, so a test can cut the file
-inside the records of the second flush (the first still readable)."""
+inside the records of the second flush (the first still readable). Also: disks that fill up or stall, a value that
+holds the Recorder's writer thread (a slow disk: what is tapped meanwhile waits in the queue), and a teletouch-style
+recording of camera images, one of which can be damaged."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -132,3 +135,56 @@ class StalledDisk(FullDisk):
 
         raw.write = write
         return fh
+
+
+class StuckValue:
+    """A value whose encoding (the JSON codec's repr) holds the Recorder's writer thread until ``release`` is set:
+    what is tapped meanwhile waits in the queue, as behind a slow disk. ``entered`` is set once the writer holds it;
+    it waits ``guard`` s at most for ``release``."""
+
+    def __init__(self, guard: float = 10.0):
+        self.entered, self.release = threading.Event(), threading.Event()
+        self.guard = guard
+
+    def __repr__(self) -> str:
+        if threading.current_thread().name != "teletouch-recorder":   # (pytest's report of a failed assert)
+            return "stuck"
+        self.entered.set()
+        assert self.release.wait(self.guard), "never released"
+        return "stuck"
+
+
+def hold_writer(rec: Any, guard: float = 10.0) -> StuckValue:
+    """Tap a StuckValue into the Recorder ``rec`` (node "slow", port "obj", at 0 s) and return it once the writer
+    holds it (the queue is then empty); set its ``release`` to let the writer go on."""
+    stuck = StuckValue(guard)
+    rec.tap("slow", 0.0, {"obj": stuck})
+    assert stuck.entered.wait(guard), "the writer never took the first sample"
+    return stuck
+
+
+def damage_png(data: bytes) -> bytes:
+    """The CDR bytes of a CompressedImage message with its PNG signature overwritten: the message itself is intact,
+    its image cannot be decoded."""
+    at = data.index(b"\x89PNG")
+    return data[:at] + b"\x00" * 8 + data[at + 8:]
+
+
+def write_image_recording(path: Path, messages: list[tuple[int, bytes]]) -> None:
+    """A teletouch-style recording (graph epoch 0) of CDR sensor_msgs/msg/CompressedImage messages on the channel
+    /cam/image (node cam, port image): each message is (log time in ns, data)."""
+    from mcap.writer import Writer
+
+    from teletouch.recording import ros2msg_definition
+
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="teletouch")
+        w.add_metadata("teletouch.time", {"graph_epoch_ns": "0"})
+        sid = w.register_schema("sensor_msgs/msg/CompressedImage", "ros2msg",
+                                ros2msg_definition("sensor_msgs/msg/CompressedImage").encode())
+        cid = w.register_channel("/cam/image", "cdr", sid, {"node": "cam", "port": "image", "codec": "compressed",
+                                                              "dtype": "uint8", "shape": "[null, null, 3]"})
+        for t, data in messages:
+            w.add_message(cid, log_time=t, publish_time=t, data=data)
+        w.finish()
