@@ -75,3 +75,22 @@ def test_max_clock_skew_is_a_parameter_of_every_controller_and_not_negative():
         assert cls.Params().max_clock_skew == pytest.approx(0.05)
         with pytest.raises(ValidationError, match="max_clock_skew"):
             cls.Params(max_clock_skew=-0.01)
+
+
+@pytest.mark.parametrize("ahead", [0.055, 0.066])
+def test_a_sample_refused_as_ahead_never_locks_out_the_good_ones_after_it(ahead):
+    """An estimate at 62.5 Hz stamped just beyond max_clock_skew stays the latest input until the next one comes;
+    when the clock caught up with its stamp meanwhile it was taken as the newest fresh sample, and the good estimates
+    after it (stamped earlier) were ignored as out of order: the force faded until the clock passed its stamp."""
+    with Harness(PositionForce, {**P, "fault_after_lost": None}) as h:
+        latest, out = None, []
+        for k in range(400):
+            t = k * 1e-3
+            if k % 16 == 0:
+                latest = Sample(1.0, t + ahead if k == 192 else t)
+            r = h.step(t, leader_opening=0.02, force=latest)
+            out.append((t, r["gripper_force"], h.comp.state))
+        assert h.comp.future_stamps == 1
+        after = [(t, f, st) for t, f, st in out if t >= 0.208]   # from the first good estimate after it
+        assert all(st == "ok" and f == pytest.approx(1.0) for t, f, st in after), after[:5]
+        assert max(f for _, f, _ in out) <= 1.0 + 1e-9   # the refused one is never rendered

@@ -427,6 +427,7 @@ class _Bilateral(Component):
         rate = self.ctx.rate or self.default_rate or 1000.0
         self._max_dt = 2.0 / float(rate)        # longest step the force rate limit counts (see step)
         self._taken: dict[str, Sample] = {}     # the newest fresh sample taken per input (see _ordered)
+        self._ahead: dict[str, Sample] = {}     # the last sample refused as stamped ahead, per input (see _usable)
         self._looked: dict[str, Sample] = {}    # the sample looked at last per input (see _first_look)
         # passivity damping cap: what the constant damping leaves of what the leader renders stably
         self._damping_cap = max(0.0, p.max_damping - p.constant_damping())
@@ -439,16 +440,31 @@ class _Bilateral(Component):
     def _ordered(self, name: str, s: Sample | None, t: float, max_age: float) -> Sample | None:
         """The sample of input ``name`` to use: ``s``, unless it is stamped before the newest fresh sample already
         taken (it arrived out of order), then that one, so that an older measurement never replaces a newer one.
-        Only fresh samples are taken, so a sample stamped in the future (or NaN) cannot lock out the ones after it;
-        it is stale, as it always was."""
+        Only usable samples are taken (:meth:`_usable`), so a sample stamped in the future (or NaN) cannot lock out
+        the ones after it, also once the clock has caught up with its stamp."""
         last = self._taken.get(name)
         if s is None:
             return last
         if last is not None and s.stamp < last.stamp:
             return last
-        if self._fresh(s, t, max_age):
+        if self._usable(name, s, t, max_age):
             self._taken[name] = s
         return s
+
+    def _usable(self, name: str, s: Sample, t: float, max_age: float) -> bool:
+        """Whether sample ``s`` of input ``name`` may be used at ``t``: fresh (:meth:`_fresh`), and not refused
+        before as stamped ahead. A sample refused as ahead of the clock stays refused when the clock catches up
+        with its stamp (it stays the latest input for several steps): taken then, it would be used late and its
+        stamp would lock out the good samples after it as out of order (an estimate 55 ms ahead faded the force
+        for 64 ms)."""
+        a = self._ahead.get(name)
+        if a is not None and (a is s or a.stamp == s.stamp):
+            return False
+        if self._fresh(s, t, max_age):
+            return True
+        if s.stamp > t:   # (not for a NaN stamp: it is refused as such on every look)
+            self._ahead[name] = s
+        return False
 
     def _fresh(self, s: Sample, t: float, max_age: float) -> bool:
         """Whether ``s`` may be used at ``t``: at most ``max_age`` old and at most ``max_clock_skew`` (never more
@@ -464,11 +480,17 @@ class _Bilateral(Component):
         ahead = s.stamp - t
         if math.isnan(ahead):
             return f"stamp {s.stamp!r}"
-        if ahead <= 0.0:
+        a = self._ahead.get(name)
+        refused = a is not None and (a is s or a.stamp == s.stamp)
+        if ahead <= 0.0 and not refused:
             return f"stale (older than {limit} {max_age:g} s)"
         if self._first_look(name, s) if first is None else first:
             self.future_stamps += 1
             self.invalid_inputs += 1
+        if ahead <= 0.0:   # refused when it came, and still the latest
+            return (f"stamped more than max_clock_skew {min(self.params.max_clock_skew, max_age):g} s ahead of the "
+                    f"graph clock when it came: the clocks disagree; synchronise them (chrony, PTP), or stamp on "
+                    f"arrival (stamps: arrival on a ROS 2 subscriber)")
         return (f"stamped {ahead:.3f} s ahead of the graph clock, more than max_clock_skew "
                 f"{min(self.params.max_clock_skew, max_age):g} s: the clocks disagree; synchronise them (chrony, "
                 f"PTP), or stamp on arrival (stamps: arrival on a ROS 2 subscriber)")
@@ -487,7 +509,7 @@ class _Bilateral(Component):
     def _leader(self, t: float, inputs: Any) -> bool:
         p = self.params
         s = self._ordered("leader_opening", inputs["leader_opening"], t, p.leader_stale_after)
-        if s is None or not self._fresh(s, t, p.leader_stale_after):
+        if s is None or not self._usable("leader_opening", s, t, p.leader_stale_after):
             self.leader_problem = ("nothing received" if s is None else
                                    self._not_fresh("leader_opening", s, t, p.leader_stale_after, "leader_stale_after"))
             return False
@@ -500,7 +522,7 @@ class _Bilateral(Component):
         self.x_l = x
         v_raw = self._ordered("leader_velocity", inputs.get("leader_velocity"), t, p.leader_stale_after)
         v = math.nan
-        if v_raw is not None and not self._fresh(v_raw, t, p.leader_stale_after):
+        if v_raw is not None and not self._usable("leader_velocity", v_raw, t, p.leader_stale_after):
             self._not_fresh("leader_velocity", v_raw, t, p.leader_stale_after, "leader_stale_after")   # (counted)
         elif v_raw is not None:
             v = finite_or(v_raw.value, math.nan)
@@ -517,7 +539,7 @@ class _Bilateral(Component):
         s = self._ordered("follower_opening", inputs.get("follower_opening"), t, max_age)
         if s is None:
             return False
-        if not self._fresh(s, t, max_age):
+        if not self._usable("follower_opening", s, t, max_age):
             self._not_fresh("follower_opening", s, t, max_age, "leader_stale_after")     # (a future stamp counted)
             return False
         x = opening_or_nan(s.value)
@@ -772,7 +794,7 @@ class PositionForce(_Bilateral):
             f_s = finite_or(s.value, math.nan)
             if math.isfinite(f_s):
                 self.force_held = f_s
-                if self._fresh(s, t, p.stale_after):      # (False for a NaN stamp, which has no latency to count)
+                if self._usable("force", s, t, p.stale_after):   # (False for a NaN stamp: no latency to count)
                     if len(self.latencies) < 100_000:
                         self.latencies.append(t - s.stamp)
                     f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
@@ -797,7 +819,7 @@ class PositionForce(_Bilateral):
                 self._fade(t)
         if s is None:
             self.state = "waiting" if self.state == "waiting" else self.state
-        elif not self._fresh(s, t, p.stale_after) and self.state != "bad-force":
+        elif not self._usable("force", s, t, p.stale_after) and self.state != "bad-force":
             if not self.fading:                       # why, for the fault of a loss that lasts
                 self.force_problem = self._not_fresh("force", s, t, p.stale_after, "stale_after", False)
             self.state = "stale-force"
