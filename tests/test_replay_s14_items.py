@@ -179,7 +179,7 @@ def _avi(path: Path, frames: list[np.ndarray], fps: float = 20.0) -> None:
     vw.release()
 
 
-def test_the_frames_a_rate_skips_are_grabbed_not_decoded(shared_data, tmp_path, monkeypatch):
+def test_the_frames_a_rate_skips_are_grabbed_not_retrieved(shared_data, tmp_path, monkeypatch):
     """Every frame of a video was decoded into an image (cap.read) also when the replay's rate skipped it: played
     at 20 fps by a 10 Hz node, every other frame was converted to BGR for nothing."""
     frames = _presses(shared_data)

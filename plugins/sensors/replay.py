@@ -13,8 +13,9 @@ such as permission denied, or cannot be decoded): logged and skipped, once howev
 corrupt one are played; undecodable frames up to the end are a video cut short: one report, and the end (without a
 frame count, :data:`UNCOUNTED_GAP` failed frames in a row are the end, without a report). In a recording, an image
 message that cannot be decoded is reported (file, channel, time) and skipped, its recorded slot kept. A video's
-frames that the rate skips are only grabbed, not decoded (cv2 grab without retrieve), where the container's count
-says a later frame follows.
+frames that the rate skips are only grabbed, not retrieved (cv2 grab without retrieve: with OpenCV's FFmpeg backend
+grab decodes, and only the conversion to BGR is saved, ~5-25% of a read), where the container's count says a later
+frame follows.
 """
 
 from __future__ import annotations
