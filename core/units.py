@@ -59,7 +59,7 @@ def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_
     if abs(value) <= limit:
         return None
     return (f"{name} ({value:g} m) is beyond any gripper's opening ({limit:g} m at most): millimetres in the "
-            f"metre field? write {value / 1e3:g} or \"{value:g}mm\"")
+            f"metre field? a bare number is metres: for {value:g} mm write {value / 1e3:g} or \"{value:g}mm\"")
 
 
 def plausible_opening(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> float:
@@ -87,7 +87,8 @@ def too_fast(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> str
     if abs(value) <= limit:
         return None
     return (f"{name} ({value:g} m/s) is faster than any gripper closes or a hand pinches ({limit:g} m/s at most): "
-            f"mm/s in the m/s field? write e.g. '{value:g}mm/s' ({value / 1e3:g} m/s)")
+            f"mm/s in the m/s field? a bare number is m/s: for {value:g} mm/s write '{value:g}mm/s' "
+            f"({value / 1e3:g} m/s)")
 
 
 def plausible_speed(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> float:
@@ -105,7 +106,8 @@ def too_strong_for_a_hand(name: str, value: float, limit: float = MAX_PLAUSIBLE_
     if abs(value) <= limit:
         return None
     return (f"{name} ({value:g} N) is beyond what a haptic device renders on a hand ({limit:g} N at most; the "
-            f"Omega.7's grip: 8 N): mN in the N field? write e.g. '{value:g}mN' ({value / 1e3:g} N)")
+            f"Omega.7's grip: 8 N): mN in the N field? a bare number is N: for {value:g} mN write '{value:g}mN' "
+            f"({value / 1e3:g} N)")
 
 
 def plausible_hand_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> float:

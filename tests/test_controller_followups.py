@@ -23,8 +23,8 @@ def test_millimetres_typed_in_a_metre_field_are_refused(cls, field, value, hint)
     # `opening_max: 90` (mm meant) was taken as 90 m: the controller's limit was none (only the follower
     # driver's own clamp held)
     with pytest.raises(ValidationError, match=rf"{field} \({value:g} m\) is beyond any gripper's opening \(1 m at "
-                                              rf"most\): millimetres in the metre field\? write {hint} or "
-                                              rf"\"{value:g}mm\""):
+                                              rf"most\): millimetres in the metre field\? a bare number is metres: "
+                                              rf"for {value:g} mm write {hint} or \"{value:g}mm\""):
         cls.Params(**{field: value})
     # the plausible values and the mm spelling are accepted
     assert cls.Params(opening_max="90mm").opening_max == pytest.approx(0.09)

@@ -178,7 +178,8 @@ def test_millimetres_typed_in_an_opening_limit_are_refused(field, value):
     """``max_opening: 90`` meant 90 mm; taken as 90 m, the open safe state drove the fingers to their end stop."""
     other = {"max_opening": 100.0} if field == "min_opening" else {}
     with pytest.raises(ValidationError, match=rf"{field} \({value:g} m\) is beyond any gripper's opening .*"
-                                              rf"millimetres in the metre field\? write {value / 1e3:g}"):
+                                              rf"millimetres in the metre field\? a bare number is metres: for "
+                                              rf"{value:g} mm write {value / 1e3:g}"):
         FollowerParams(**{field: value, **other})
     assert FollowerParams(max_opening="90mm").max_opening == pytest.approx(0.09)
 

@@ -25,14 +25,14 @@ def test_the_shared_checks_pass_what_hardware_does_and_say_which_unit_was_meant(
     assert plausible_speed("max_speed", 0.1) == 0.1
     why = too_fast("max_speed", 100)
     assert why.startswith("max_speed (100 m/s) is faster than any gripper closes or a hand pinches (2 m/s at most)")
-    assert "mm/s in the m/s field? write e.g. '100mm/s' (0.1 m/s)" in why
+    assert "mm/s in the m/s field? a bare number is m/s: for 100 mm/s write '100mm/s' (0.1 m/s)" in why
     with pytest.raises(ValueError, match=r"speed \(5 m/s\)"):
         plausible_speed("speed", 5.0)
     assert too_strong_for_a_hand("max_force", MAX_PLAUSIBLE_HAND_FORCE) is None
     assert plausible_hand_force("max_force", 8.0) == 8.0
     why = too_strong_for_a_hand("max_force", 8000)
     assert why.startswith("max_force (8000 N) is beyond what a haptic device renders on a hand (50 N at most")
-    assert "mN in the N field? write e.g. '8000mN' (8 N)" in why
+    assert "mN in the N field? a bare number is N: for 8000 mN write '8000mN' (8 N)" in why
     with pytest.raises(ValueError, match=r"max_force \(51 N\)"):
         plausible_hand_force("max_force", 51.0)
 
@@ -93,3 +93,13 @@ def test_the_examples_and_defaults_still_validate(graph):
     # calibrate-force.yaml names the reader's own depth model (my-digit.model): the packaged one stands in for it
     sets = ["depth.model=sim-digit-qvga"] if graph == "calibrate-force.yaml" else []
     assert load_graph(EXAMPLES / graph, sets=sets).nodes
+
+
+def test_the_hint_is_conditional_on_a_bare_number():
+    # before: "2000mm" (typed with its unit, refused as 2 m) was told to "write 0.002 or "2mm"", as if it were a typo
+    from teletouch.units import millimetres_in_metres
+
+    why = millimetres_in_metres("max_opening", 2.0)
+    assert "a bare number is metres: for 2 mm write 0.002" in why, why
+    assert "a bare number is m/s: for 3 mm/s" in too_fast("max_speed", 3.0)
+    assert "a bare number is N: for 60 mN" in too_strong_for_a_hand("max_force", 60.0)
