@@ -538,15 +538,31 @@ def _drop_funcless(action: argparse._SubParsersAction, kept: set[str], prefix: s
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; returns the exit status (argparse's usage errors, a malformed --set among them, exit 2
     themselves). A Ctrl-C anywhere, also while the plugins are imported, ends with "teletouch: interrupted (Ctrl-C)"
-    and 130 (SIGTERM during `run`: "teletouch: interrupted (SIGTERM)" and 143)."""
+    and 130; SIGTERM, during any command, the same safe stop with "teletouch: interrupted (SIGTERM)" and 143."""
+    # SIGTERM (a service manager, `kill`) stops every command as Ctrl-C does, so a calibration or an experiment
+    # drives its devices to their safe state too (it ended the process at once: no safe stop, no samples file);
+    # `teletouch run` installs its own for its run
+    in_main = threading.current_thread() is threading.main_thread()
+    terminated: list[int] = []
+
+    def _term(signum: int, frame: Any) -> None:
+        terminated.append(signum)
+        raise Terminated
+
+    old = signal.signal(signal.SIGTERM, _term) if in_main else None
     try:
-        return _main(argv)
-    except Terminated:
-        print("teletouch: interrupted (SIGTERM)", file=sys.stderr)
-        return EXIT_TERMINATED
-    except KeyboardInterrupt:
+        code = _main(argv)
+    except KeyboardInterrupt as exc:
+        if terminated or isinstance(exc, Terminated):
+            print("teletouch: interrupted (SIGTERM)", file=sys.stderr)
+            return EXIT_TERMINATED
         print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        if in_main:
+            signal.signal(signal.SIGTERM, old)
+    # a command that handled the interrupt itself (its own message, exit 130) was ended by SIGTERM: the shell's code
+    return EXIT_TERMINATED if terminated and code == EXIT_INTERRUPTED else code
 
 
 def _main(argv: Sequence[str] | None) -> int:

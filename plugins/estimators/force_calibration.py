@@ -947,9 +947,9 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
                   + (" (marked partial: the run did not finish)" if partial else ""), file=sys.stderr)
         if routine.state != "done":
             why = routine.abort_reason or result.message
-            print(f"teletouch: press routine did not finish (routine state {routine.state!r}, run {result.status}: "
-                  f"{why}); no calibration written",
-                  file=sys.stderr)
+            run = why if result.status == "interrupted" else f"run {result.status}: {why}"   # (says it already)
+            print(f"teletouch: press routine did not finish (routine state {routine.state!r}, {run}); no calibration "
+                  f"written", file=sys.stderr)
             return result.exit_code or 3
         model_id, depth_src = _sensor_model_id(spec)
         cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
