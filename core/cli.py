@@ -210,7 +210,7 @@ class _Progress:
         if self.tty:
             width = max(self._width() - 1, 20)
             up = f"\x1b[{self.drawn}F" if self.drawn else ""   # to the first row of the block drawn last time
-            self.stream.write(up + "".join(f"\x1b[2K{r[:width]}\n" for r in rows))
+            self.stream.write(up + "".join(f"\x1b[2K{_fit(r, width)}\n" for r in rows))
             self.drawn = len(rows)
         else:
             self.stream.write(rows[0] + " | " + " | ".join(r.strip() for r in rows[1:]) + "\n")
@@ -218,6 +218,15 @@ class _Progress:
 
     def done(self) -> None:
         self.drawn = 0   # the block stays on screen above what follows
+
+
+def _fit(row: str, width: int) -> str:
+    """``row`` cut to ``width`` columns between two items, never inside one: a number cut short reads as another
+    number (``feedback=1`` of ``feedback=1.18N``)."""
+    if len(row) <= width:
+        return row
+    cut = row.rfind(" ", 0, width + 1)
+    return row[:cut].rstrip() if cut > 0 else row[:width]
 
 
 def _fmt(v: Any) -> str:

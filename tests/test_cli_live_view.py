@@ -92,3 +92,12 @@ def test_a_value_that_is_no_finite_number_and_a_key_without_a_unit_are_shown_as_
     st = {"leader_m": None, "lag_s": math.nan, "since_last_s": math.inf, "safe": True, "state": "ok", "ratio": 0.123456}
     assert _text(st) == "leader=None lag=nan since_last=inf safe=True state=ok ratio=0.1235"
     assert _text({"flag_n": True, 3: 0.5, "_m": 1.0}) == "flag=True 3=0.5 _m=1"
+
+
+def test_a_row_is_cut_between_items_never_inside_a_number():
+    # before: cut at the width, `feedback=1.18N` showed as `feedback=1`, another number
+    row = "  controller  1000.0 Hz  force=1.18N leader=14.53mm follower=14.65mm feedback=1.18N"
+    cut = cli._fit(row, row.index("feedback=") + 10)
+    assert cut.endswith("follower=14.65mm") and "feedback" not in cut
+    assert cli._fit(row, len(row)) == row and cli._fit(row, 200) == row
+    assert cli._fit("x" * 30, 10) == "x" * 10   # one item wider than the line: cut (nothing else fits)

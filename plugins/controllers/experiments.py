@@ -1002,7 +1002,8 @@ def teletouch_add_commands(subparsers: Any) -> None:
     q.add_argument("--time-limit", default="30", help="time limit of a trial, s (default 30)")
     q.add_argument("--seed", type=int, default=0, help="first seed (trial i uses seed + i, in both conditions)")
     q.add_argument("--sensor", choices=("image", "gt", "ideal"), default="ideal",
-                   help="ideal: camera-rate ground truth (default, fast); image: the full estimator chain")
+                   help="ideal: camera-rate ground truth (default, fast); gt: sim-digit's true max depth + "
+                        "poly-force; image: the full estimator chain (sim-digit + depth + poly-force)")
     q.add_argument("--out", default="teletouch-experiments", help="folder for pivot.json and pivot.png")
     q.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     q.set_defaults(func=_cmd_pivot)

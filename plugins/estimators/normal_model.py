@@ -314,6 +314,9 @@ def packaged_model_path(name: str) -> Path | None:
 def resolve_model(spec: str | os.PathLike[str]) -> Path:
     """A packaged model name (``sim-digit-qvga``) or a path -> an existing file, else ModelFileError."""
     s = str(spec)
+    if not s.strip():
+        raise ModelFileError("empty: expected a model file (.model from `teletouch calibrate depth`) or a packaged "
+                             "model's name")
     p = Path(s).expanduser()
     if p.is_file():
         return p

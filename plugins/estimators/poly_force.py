@@ -1190,9 +1190,15 @@ def packaged_calibrations() -> list[str]:
 
 def resolve_calibration(name_or_path: str) -> Path:
     """A path to an existing file, or the name of a packaged calibration (e.g. 'sim-digit-qvga')."""
+    if not str(name_or_path).strip():
+        raise ModelFileError("empty: expected a force calibration file (.force.json from `teletouch calibrate "
+                             "force`) or a packaged calibration's name")
     p = Path(os.path.expanduser(str(name_or_path)))
     if p.is_file():
         return p
+    if p.is_dir():
+        raise ModelFileError(f"{name_or_path}: a folder, expected a force calibration file (.force.json from "
+                             f"`teletouch calibrate force`)")
     packaged = DATA_DIR / (str(name_or_path) + SUFFIX)
     if packaged.is_file():
         return packaged
