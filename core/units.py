@@ -62,13 +62,17 @@ def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_
             f"metre field? a bare number is metres: for {value:g} mm write {value / 1e3:g} or \"{value:g}mm\"")
 
 
-def plausible_opening(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> float:
-    """``value`` if it is a plausible gripper opening (:func:`millimetres_in_metres`), else a ValueError with its
-    message: for validators that refuse such a value (``opening: 15`` held 15 m)."""
-    problem = millimetres_in_metres(name, value, limit)
+def _refused(problem: str | None, value: float) -> float:
+    """``value`` when ``problem`` is None or empty, else a ValueError with it (for validators)."""
     if problem:
         raise ValueError(problem)
     return value
+
+
+def plausible_opening(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> float:
+    """``value`` if it is a plausible gripper opening (:func:`millimetres_in_metres`), else a ValueError with its
+    message: for validators that refuse such a value (``opening: 15`` held 15 m)."""
+    return _refused(millimetres_in_metres(name, value, limit), value)
 
 
 #: no parallel gripper closes, nor does a person's pinch move, faster than this (the PAL gripper: 0.1 m/s; a quick
@@ -81,42 +85,39 @@ MAX_PLAUSIBLE_SPEED = 2.0          # m/s
 MAX_PLAUSIBLE_HAND_FORCE = 50.0    # N
 
 
+def _thousandths(name: str, value: float, limit: float, unit: str, small: str, beyond: str,
+                 note: str = "") -> str | None:
+    """None if ``|value|`` (``unit``) is at most ``limit``; else why ``name`` looks like thousandths (``small``,
+    e.g. mm/s) typed in the ``unit`` field: it is ``beyond`` what is plausible (``note``: said with the limit)."""
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} {unit}) is {beyond} ({limit:g} {unit} at most{note}): {small} in the {unit} field? a "
+            f"bare number is {unit}: for {value:g} {small} write '{value:g}{small}' ({value / 1e3:g} {unit})")
+
+
 def too_fast(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> str | None:
     """None if ``|value|`` (m/s) is a plausible gripper or hand speed; else why ``name`` looks like mm/s typed in a
     m/s field (``max_speed: 100`` meant 100 mm/s and was taken as 100 m/s)."""
-    if abs(value) <= limit:
-        return None
-    return (f"{name} ({value:g} m/s) is faster than any gripper closes or a hand pinches ({limit:g} m/s at most): "
-            f"mm/s in the m/s field? a bare number is m/s: for {value:g} mm/s write '{value:g}mm/s' "
-            f"({value / 1e3:g} m/s)")
+    return _thousandths(name, value, limit, "m/s", "mm/s", "faster than any gripper closes or a hand pinches")
 
 
 def plausible_speed(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> float:
     """``value`` if it is a plausible gripper or hand speed (:func:`too_fast`), else a ValueError with its message:
     for validators of speed fields."""
-    problem = too_fast(name, value, limit)
-    if problem:
-        raise ValueError(problem)
-    return value
+    return _refused(too_fast(name, value, limit), value)
 
 
 def too_strong_for_a_hand(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> str | None:
     """None if ``|value|`` (N) is a force a haptic device may render on a person's hand; else why ``name`` looks like
     millinewtons typed in the newton field (``max_force: 8000`` meant 8000 mN)."""
-    if abs(value) <= limit:
-        return None
-    return (f"{name} ({value:g} N) is beyond what a haptic device renders on a hand ({limit:g} N at most; the "
-            f"Omega.7's grip: 8 N): mN in the N field? a bare number is N: for {value:g} mN write '{value:g}mN' "
-            f"({value / 1e3:g} N)")
+    return _thousandths(name, value, limit, "N", "mN", "beyond what a haptic device renders on a hand",
+                        "; the Omega.7's grip: 8 N")
 
 
 def plausible_hand_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> float:
     """``value`` if it is a force a haptic device may render on a hand (:func:`too_strong_for_a_hand`), else a
     ValueError with its message: for validators of the limits of the force sent to a person's hand."""
-    problem = too_strong_for_a_hand(name, value, limit)
-    if problem:
-        raise ValueError(problem)
-    return value
+    return _refused(too_strong_for_a_hand(name, value, limit), value)
 
 
 def parse_quantity(text: Any, unit: str | None = None) -> float:
