@@ -5,6 +5,7 @@ that the fake work advances): the interleaving and the arithmetic are tested, ne
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -343,8 +344,14 @@ def test_follower_pal_process_is_stopped_and_continued(follower_bench, monkeypat
     """The pause is a real SIGSTOP (the process's state T), undone by resume and before the stop."""
     import subprocess
 
-    def state(pid: int) -> str:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    def state(pid: int, stopped: bool = True) -> str:
+        # the signal is delivered asynchronously: wait (up to 5 s) for the state it brings
+        deadline = time.monotonic() + 5
+        while True:
+            st = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+            if (st == "T") == stopped or time.monotonic() > deadline:
+                return st
+            time.sleep(0.005)
 
     monkeypatch.setattr(follower_bench, "RESUME_SETTLE_S", 0.0)
     pal = object.__new__(follower_bench.PalProcess)
@@ -356,7 +363,7 @@ def test_follower_pal_process_is_stopped_and_continued(follower_bench, monkeypat
         assert state(pal.proc.pid) == "T"
         pal.pause()   # twice: still one pause
         pal.resume()
-        assert state(pal.proc.pid) != "T" and pal.paused_at is None
+        assert state(pal.proc.pid, stopped=False) != "T" and pal.paused_at is None
         pal.pause()
         pal.stop()   # continued first, then its stdin closed: it ends by itself
         assert pal.proc.returncode == 0
