@@ -25,7 +25,7 @@ import shutil
 import signal
 import sys
 import threading
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 from . import __version__
 from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
@@ -294,23 +294,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         recorder = Recorder(args.record, spec, image_format=args.record_images)
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
-    in_main = threading.current_thread() is threading.main_thread()   # only the main thread may set handlers
-    old = signal.getsignal(signal.SIGTERM) if in_main else None
-
-    terminated: list[int] = []
-
-    def _term(signum: int, frame: Any) -> None:
-        terminated.append(signum)
-        raise Terminated
-
-    if in_main:
-        signal.signal(signal.SIGTERM, _term)
     record_error = None
     try:
-        result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
+        with _sigterm_interrupts() as terminated:
+            result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
     finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, old)
         if progress is not None:
             progress.done()
         if recorder is not None:
@@ -544,32 +532,43 @@ def _drop_funcless(action: argparse._SubParsersAction, kept: set[str], prefix: s
     return lines
 
 
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[list[int]]:
+    """Inside the block SIGTERM raises :class:`Terminated` (a KeyboardInterrupt: the same safe stop as Ctrl-C) and is
+    recorded in the yielded list; the previous handler is restored after. Only the main thread may set handlers:
+    elsewhere nothing is changed."""
+    terminated: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield terminated
+        return
+
+    def _term(signum: int, frame: Any) -> None:
+        terminated.append(signum)
+        raise Terminated
+
+    old = signal.signal(signal.SIGTERM, _term)
+    try:
+        yield terminated
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; returns the exit status (argparse's usage errors, a malformed --set among them, exit 2
     themselves). A Ctrl-C anywhere, also while the plugins are imported, ends with "teletouch: interrupted (Ctrl-C)"
     and 130; SIGTERM, during any command, the same safe stop with "teletouch: interrupted (SIGTERM)" and 143."""
     # SIGTERM (a service manager, `kill`) stops every command as Ctrl-C does, so a calibration or an experiment
     # drives its devices to their safe state too (it ended the process at once: no safe stop, no samples file);
-    # `teletouch run` installs its own for its run
-    in_main = threading.current_thread() is threading.main_thread()
-    terminated: list[int] = []
-
-    def _term(signum: int, frame: Any) -> None:
-        terminated.append(signum)
-        raise Terminated
-
-    old = signal.signal(signal.SIGTERM, _term) if in_main else None
+    # `teletouch run` also notes it for its own run (its summary's exit code)
     try:
-        code = _main(argv)
+        with _sigterm_interrupts() as terminated:
+            code = _main(argv)
     except KeyboardInterrupt as exc:
         if terminated or isinstance(exc, Terminated):
             print("teletouch: interrupted (SIGTERM)", file=sys.stderr)
             return EXIT_TERMINATED
         print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, old)
     # a command that handled the interrupt itself (its own message, exit 130) was ended by SIGTERM: the shell's code
     return EXIT_TERMINATED if terminated and code == EXIT_INTERRUPTED else code
 

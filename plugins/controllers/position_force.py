@@ -457,14 +457,18 @@ class _Bilateral(Component):
         with its stamp (it stays the latest input for several steps): taken then, it would be used late and its
         stamp would lock out the good samples after it as out of order (an estimate 55 ms ahead faded the force
         for 64 ms)."""
-        a = self._ahead.get(name)
-        if a is not None and (a is s or a.stamp == s.stamp):
+        if self._refused_ahead(name, s):
             return False
         if self._fresh(s, t, max_age):
             return True
         if s.stamp > t:   # (not for a NaN stamp: it is refused as such on every look)
             self._ahead[name] = s
         return False
+
+    def _refused_ahead(self, name: str, s: Sample) -> bool:
+        """Whether ``s`` (or a copy of it: the same stamp) is the sample of input ``name`` refused as stamped ahead."""
+        a = self._ahead.get(name)
+        return a is not None and (a is s or a.stamp == s.stamp)
 
     def _fresh(self, s: Sample, t: float, max_age: float) -> bool:
         """Whether ``s`` may be used at ``t``: at most ``max_age`` old and at most ``max_clock_skew`` (never more
@@ -480,8 +484,7 @@ class _Bilateral(Component):
         ahead = s.stamp - t
         if math.isnan(ahead):
             return f"stamp {s.stamp!r}"
-        a = self._ahead.get(name)
-        refused = a is not None and (a is s or a.stamp == s.stamp)
+        refused = self._refused_ahead(name, s)
         if ahead <= 0.0 and not refused:
             return f"stale (older than {limit} {max_age:g} s)"
         if self._first_look(name, s) if first is None else first:
