@@ -9,11 +9,12 @@ from pathlib import Path
 __all__ = ["output_problem"]
 
 
-def output_problem(path: str | os.PathLike, folder: bool = False) -> str | None:
+def output_problem(path: str | os.PathLike, folder: bool = False, make_folders: bool = True) -> str | None:
     """Why nothing can be written at ``path`` (a file; with ``folder`` a folder to write files into), or None if it
-    can. Leaves nothing behind: folders missing below the nearest existing one are made when the output is written,
-    and the nearest existing folder is probed by creating and removing a temporary file in it (permission bits do not
-    tell for root, a read-only file system or a pseudo file system such as /proc)."""
+    can. Leaves nothing behind: folders missing below the nearest existing one are made when the output is written
+    (``make_folders`` False: the file's folder, or the folder's parent, must exist: a typo in a path would make
+    folders silently), and the nearest existing folder is probed by creating and removing a temporary file in it
+    (permission bits do not tell for root, a read-only file system or a pseudo file system such as /proc)."""
     text = os.fspath(path)
     try:
         problem = _problem(Path(text), folder)
@@ -21,6 +22,8 @@ def output_problem(path: str | os.PathLike, folder: bool = False) -> str | None:
         return f"{exc.strerror or exc}"
     if problem is None and not folder and text.endswith(("/", os.sep)):   # (Path drops the separator)
         return "ends in a separator, so it names a folder; expected a file name"
+    if problem is None and not make_folders and not Path(text).parent.is_dir():
+        return f"the folder {Path(text).parent} does not exist (create it first)"
     return problem
 
 

@@ -399,12 +399,9 @@ def _try_read_image(path: str | Path) -> tuple[np.ndarray | None, str]:
 def _check_output(path: str | Path, what: str, folder: bool = False) -> None:
     """Refuse an output path that cannot be written with a ValueError naming the option (before any long work):
     also one whose folder does not exist (a file's folder; a folder's parent), which writing it made silently."""
-    problem = output_problem(path, folder)
+    problem = output_problem(path, folder, make_folders=False)
     if problem:
         raise ValueError(f"{what} {path}: {problem}")
-    parent = Path(path).parent
-    if not parent.is_dir():
-        raise ValueError(f"{what} {path}: the folder {parent} does not exist (create it first)")
 
 
 # ------------------------------------------------------------------------------------------------------------ CLI
