@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from importlib.resources import files
 
 import numpy as np
 import pytest
@@ -191,13 +192,18 @@ def test_an_aborted_runs_samples_are_marked_partial_and_a_fit_of_them_refused(tm
     assert "--allow-partial: only with --csv" in capsys.readouterr().err
 
 
-def test_the_depth_model_the_calibration_was_made_for_is_checked_when_named(cal_file):
+def test_the_depth_model_the_calibration_was_made_for_is_checked_when_named(cal_file, tmp_path):
     # before: no way to say which depth model feeds the mapper; the simulated sensor's calibration ran silently
-    # behind a real DIGIT's model
+    # behind a real DIGIT's model (the depth models named must exist: a missing one is named as missing)
+    src = files("teletouch.plugins.estimators") / "data" / "sim-digit-qvga.model"
+    (tmp_path / "models").mkdir()
+    for name in ("my-digit.model", "models/unit-test.model"):
+        (tmp_path / name).write_bytes(src.read_bytes())
+    mine, same = str(tmp_path / "my-digit.model"), str(tmp_path / "models" / "unit-test.model")
     with pytest.raises(ValueError, match=r"depth_model: the calibration .*u\.force\.json was made for 'unit-test', "
-                                         r"not for 'my-digit\.model'"):
-        Harness(PolyForce, {"calibration": cal_file, "depth_model": "my-digit.model"}).comp.configure()
-    with Harness(PolyForce, {"calibration": cal_file, "depth_model": "models/unit-test.model"}) as h:
+                                         r"not for '.*my-digit\.model'"):
+        Harness(PolyForce, {"calibration": cal_file, "depth_model": mine}).comp.configure()
+    with Harness(PolyForce, {"calibration": cal_file, "depth_model": same}) as h:
         assert h.step(0.1, max_depth=1e-3)["status"] == "ok"
     with Harness(PolyForce, {"depth_model": "sim-digit-qvga"}) as h:   # the packaged pair
         assert h.comp.cal.sensor_model_id == "sim-digit-qvga"

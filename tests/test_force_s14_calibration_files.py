@@ -5,6 +5,7 @@ or no calibration of this version, a `depth_model` it was not made for, a `depth
 from __future__ import annotations
 
 import json
+from importlib.resources import files
 from pathlib import Path
 
 import pytest
@@ -97,11 +98,18 @@ def test_validate_refuses_a_missing_calibration(tmp_path):
     assert "force calibration '" in line and "not found" in line, line
 
 
-def test_validate_refuses_a_depth_model_the_calibration_was_not_made_for():
-    (line,) = _validate_errors(["force.depth_model=my-digit.model"])
-    assert line.startswith("--set force.depth_model=my-digit.model: node 'force': "), line
-    assert "was made for 'sim-digit-qvga', not for 'my-digit.model'" in line
-    assert load_graph(PAPER_SIM, sets=["force.depth_model=models/sim-digit-qvga.model"]).nodes   # the same model
+def test_validate_refuses_a_depth_model_the_calibration_was_not_made_for(tmp_path):
+    # (the depth models named must exist: a missing one is named as missing)
+    src = files("teletouch.plugins.estimators") / "data" / "sim-digit-qvga.model"
+    (tmp_path / "models").mkdir()
+    for name in ("my-digit.model", "models/sim-digit-qvga.model"):
+        (tmp_path / name).write_bytes(src.read_bytes())
+    mine = tmp_path / "my-digit.model"
+    (line,) = _validate_errors([f"force.depth_model={mine}"])
+    assert line.startswith(f"--set force.depth_model={mine}: node 'force': "), line
+    assert f"was made for 'sim-digit-qvga', not for '{mine}'" in line
+    same = tmp_path / "models" / "sim-digit-qvga.model"
+    assert load_graph(PAPER_SIM, sets=[f"force.depth_model={same}"]).nodes   # the same model
 
 
 def test_validate_refuses_a_depth_limit_inside_the_calibrated_range():

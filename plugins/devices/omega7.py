@@ -224,7 +224,6 @@ class Omega7(Device):
         self.active = False
         self.sign = 1.0
         self._new_session()
-        self.faults = 0
         self.safe_errors = 0
         self.g_sent = 0.0
         self.f_sent = np.zeros(3)
@@ -292,9 +291,10 @@ class Omega7(Device):
     def _new_session(self) -> None:
         """What status() reports of one activation, from afresh: the device's loss, another failure of a step, the
         SDK's communication rate (read at the first step, whatever the graph time: it starts from 0 again in a new
-        run) and the counters (the guard's, time guards, saturations, watchdog trips)."""
+        run) and the counters (the guard's, time guards, saturations, watchdog trips, faults of a step)."""
         self.lost: str | None = None
         self.error: str | None = None
+        self.faults = 0
         self.com_freq_hz = math.nan
         self._next_freq = -math.inf
         self.timeguards = 0
@@ -504,7 +504,7 @@ class Omega7(Device):
                 "saturated": self.saturated, "clamped": self.guard.clamped, "stale_commands": self.guard.stale,
                 "faded_in": self.guard.faded_in, "left_handed": self.sign < 0, "lost": self.lost or "",
                 "error": self.error or "", "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0,
-                "watchdog_trips": self.watchdog_trips}
+                "watchdog_trips": self.watchdog_trips, "faults": self.faults}
 
 
 @hookimpl

@@ -43,6 +43,10 @@ from .operator import HandImpedance, OperatorState, make_intent, validate_intent
 INTENT_BOUND = 1e3
 
 
+#: no person pinches harder than this (adults' key pinch: about 80-120 N, Mathiowetz et al. 1985): a larger
+#: ``hand_max_force`` is millinewtons typed in the newton field (40000 meant 40000 mN, 40 N)
+MAX_PLAUSIBLE_PINCH_FORCE = 200.0   # N
+
 #: explicit (semi-implicit Euler) substeps are used while h*c/m and h^2*k/m stay below this; above it, implicit
 STIFF_LIMIT = 0.5
 
@@ -132,6 +136,16 @@ class SimOmega7(Device):
         def _intent(cls, v: Any) -> dict[str, Any]:
             return validate_intent(v)
 
+        @field_validator("hand_max_force")
+        @classmethod
+        def _plausible_pinch(cls, v: float, info: Any) -> float:
+            limit = MAX_PLAUSIBLE_PINCH_FORCE
+            if v > limit:   # in the words of the other hand-force checks (teletouch.units)
+                raise ValueError(f"{info.field_name} ({v:g} N) is beyond any person's pinch ({limit:g} N at most): "
+                                 f"mN in the N field? a bare number is N: for {v:g} mN write '{v:g}mN' "
+                                 f"({v / 1e3:g} N)")
+            return v
+
         @field_validator("button_intervals")
         @classmethod
         def _intervals(cls, v: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -192,12 +206,14 @@ class SimOmega7(Device):
     def activate(self) -> None:
         """Start (again) from zero force with the operator afresh: the intent's optional ``reset()`` is called, and
         nothing perceived in an earlier activation (the cue, the rate of intent_opening) is carried over; the graph's
-        clock may start again from zero. The guard's counters in status() start from zero again (as omega7's)."""
+        clock may start again from zero. The counters in status() (the guard's, faults) start from zero again (as
+        omega7's)."""
         self.enabled = True
         self.safe = False
         self.last_t = None
         self.guard.reset()
         self.guard.clear_counts()   # status() is of one activation, as omega7's
+        self.faults = 0
         self.state.extra.clear()
         self._io_prev = None
         self._io_vel = 0.0

@@ -1216,6 +1216,27 @@ def _deepest(doc: dict[str, Any]) -> float | None:
     return float(dr[1]) if isinstance(dr, list) and len(dr) == 2 and _finite(dr[1]) else None
 
 
+#: what poly-force's ``depth_model`` must name
+EXPECTED_DEPTH_MODEL = ("depth_model must name the depth node's `model`: an existing depth model file or a packaged "
+                        "model's name")
+
+
+def _depth_model_problem(spec: str | None) -> str | None:
+    """Why ``depth_model`` names no depth model (no such file, a folder, an unreadable file, no depth model: read from
+    its header), or None (also when it is not given). Checked before its name is compared with the calibration's
+    record, so that a typo in the path does not read as a calibration made for another model, nor a missing file of
+    the recorded name as the model it was made for."""
+    if spec is None:
+        return None
+    from .normal_model import check_model_file
+
+    try:
+        check_model_file(spec)
+    except ModelFileError as exc:
+        return f"{exc}; {EXPECTED_DEPTH_MODEL}"
+    return None
+
+
 def _use_problem(p: Any, path: str, deepest: float | None, made_for_id: Any) -> str | None:
     """Why poly-force's params ``p`` cannot use the calibration ``path`` (its deepest depth, m, and the depth model it
     was made for), or None: a depth_limit inside the calibrated depths, a depth_model it was not made for. The same
@@ -1308,6 +1329,14 @@ class PolyForce(Component):
                 raise ValueError(str(exc)) from None
             return v
 
+        @field_validator("depth_model")
+        @classmethod
+        def _depth_model_file(cls, v: str | None) -> str | None:
+            problem = _depth_model_problem(v)
+            if problem:
+                raise ValueError(problem)
+            return v
+
         @model_validator(mode="after")
         def _fits_the_calibration(self) -> "PolyForce.Params":
             """What configure refuses of the calibration's use (depth_limit, depth_model), read from its file."""
@@ -1321,7 +1350,8 @@ class PolyForce(Component):
     def configure(self) -> None:
         p = self.params
         self.cal = ForceCalibration.load(resolve_calibration(p.calibration))
-        problem = _use_problem(p, self.cal.path, self.cal.depth_range[1], self.cal.sensor_model_id)
+        problem = (_depth_model_problem(p.depth_model)   # (the file may have gone since the graph was validated)
+                   or _use_problem(p, self.cal.path, self.cal.depth_range[1], self.cal.sensor_model_id))
         if problem:
             raise ValueError(problem)
         made_for = self.cal.sensor_model_id or "an unnamed depth model"
