@@ -792,7 +792,8 @@ def _negative_force_problem(samples: list[dict[str, Any]], keep: list[dict[str, 
 
 
 def _sensor_model_id(spec: Any) -> tuple[str, str]:
-    """(sensor model id, depth source) guessed from the graph: the depth node's model, else the sensor node."""
+    """(sensor model id, depth source) guessed from the graph: the depth node's model (its default where the graph
+    does not set it), else the sensor node."""
     sensor = ""
     for n in spec.nodes:
         if n.plugin in ("sim-digit", "digit", "replay"):
@@ -806,6 +807,9 @@ def _sensor_model_id(spec: Any) -> tuple[str, str]:
                 src = spec.node(w.node)
                 depth = f"{w.node}.{w.source_port} ({src.plugin})"
                 model = (src.params or {}).get("model")
+                fields = getattr(getattr(src.cls, "Params", None), "model_fields", {})
+                if not model and "model" in fields:   # the depth node's default model
+                    model = fields["model"].default
                 if model:
                     return Path(str(model)).name, depth
     return sensor, depth
