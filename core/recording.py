@@ -15,15 +15,19 @@ value                                   message
 float, unit N (scalar or 3-vector)      geometry_msgs/msg/WrenchStamped (scalar on force.z)
 other float or int scalar               std_msgs/msg/Float64 (an int is exact up to 2**53)
 bool / str scalar                       std_msgs/msg/Bool / String
-1-D or N-D float array                  std_msgs/msg/Float64MultiArray (layout keeps the shape)
+1-D or N-D number or bool array         std_msgs/msg/Float64MultiArray (layout keeps the shape, read back in
+                                        the port's dtype or, undeclared, its first value's)
 uint8 image (rows, cols, 3) BGR         sensor_msgs/msg/CompressedImage, PNG (lossless) or JPEG
 uint8 (rows, cols) / bool mask          sensor_msgs/msg/CompressedImage, PNG mono8 (mask: 0/255)
-float32 / float64 / uint16 (rows, cols) sensor_msgs/msg/Image, 32FC1 / 64FC1 / 16UC1 (depth maps, m)
+float32 / float64 / uint16 (rows, cols) sensor_msgs/msg/Image, 32FC1 / 64FC1 / 16UC1 (depth maps, m; uint16
+                                        read back as written: only another tool's 16UC1 is depth in mm)
 anything else                           JSON (schemaless), {"value": ...}
 ======================================  ==============================================================
 
-A 2-D float/uint16 array is a depth map only if each side is at least :data:`MIN_IMAGE_SIDE` (the port's declared
-size, a free one counting as long enough, else the value's): (N, 2) points or a (3, 3) matrix are arrays.
+A 2-D array (uint8, bool, float, uint16) is an image only if each side is at least :data:`MIN_IMAGE_SIDE` (the
+port's declared size, a free one counting as long enough, else the value's): (N, 2) points, a (3, 3) matrix, a 4x4
+lookup or a mask of a few cells are arrays, read back exactly. A (rows, cols, 3) uint8 array is a colour frame unless
+its port declares fewer rows or columns. ``teletouch plot`` draws lengths in mm and energies in mJ (the file is SI).
 
 Times: the MCAP ``publish_time`` and every ``header.stamp`` are the sample's own stamp (a camera's capture time),
 ``log_time`` is the graph time of the step that produced it; both as Unix-epoch nanoseconds, ``epoch + graph time``,
@@ -118,6 +122,11 @@ def image_msg(array: np.ndarray, stamp_s: float, frame_id: str = "", stamp_ns: i
 def image_from_msg(msg: Any) -> np.ndarray:
     """The array of a sensor_msgs/Image: bgr8/rgb8/bgra8 -> BGR uint8 (rows, cols, 3); mono8 -> uint8 (rows, cols);
     32FC1/64FC1 -> float (rows, cols); 16UC1 (depth in mm, the ROS convention) -> float32 metres."""
+    return _image_array(msg, mm_to_m=True)
+
+
+def _image_array(msg: Any, mm_to_m: bool) -> np.ndarray:
+    """:func:`image_from_msg`; ``mm_to_m=False`` gives a 16UC1/mono16 image as the uint16 array it holds."""
     enc = msg.encoding.lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     buf = np.frombuffer(msg.data, dtype=np.uint8)
@@ -137,7 +146,7 @@ def image_from_msg(msg: Any) -> np.ndarray:
         dt = {"32fc1": "f4", "64fc1": "f8", "16uc1": "u2", "mono16": "u2"}[enc]
         dt = np.dtype((">" if big else "<") + dt)
         a = rows[:, : w * dt.itemsize].copy().view(dt).reshape(h, w)
-        if enc == "16uc1":
+        if enc == "16uc1" and mm_to_m:
             return a.astype(np.float32) * np.float32(1e-3)
         return a.astype(a.dtype.newbyteorder("="))
     raise ValueError(f"sensor_msgs/Image encoding '{msg.encoding}' is not supported "
@@ -402,7 +411,7 @@ class _Array(_Codec):
         shape = tuple(int(d.size) for d in msg.layout.dim)
         a = np.asarray(msg.data, dtype=np.float64)
         a = a.reshape(shape) if shape else a
-        return a.astype(bool) if meta.get("dtype") == "bool" else a
+        return _as_recorded(a, meta)
 
 
 class _Compressed(_Codec):
@@ -442,7 +451,7 @@ class _Compressed(_Codec):
         a = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
         if a is None:
             raise RecordingError(f"could not decode a CompressedImage ({msg.format})")
-        return a > 127 if meta.get("dtype") == "bool" else a
+        return a > 127 if _recorded_bool(meta) else a
 
 
 class _Raw(_Codec):
@@ -466,7 +475,9 @@ class _Raw(_Codec):
         return bytes(buf)
 
     def unpack(self, msg, meta):
-        return image_from_msg(msg)
+        # a 16UC1 image teletouch wrote is the uint16 array it was given (not a depth map in mm: teletouch's depth
+        # maps are float metres); another tool's 16UC1 is the ROS convention, depth in mm, given in metres
+        return _image_array(msg, mm_to_m=meta.get("codec") != self.kind)
 
 
 class _Json(_Codec):
@@ -479,18 +490,17 @@ class _Json(_Codec):
 
     def decode(self, data, meta):
         v = _unjson(json.loads(data)["value"])
-        if isinstance(v, dict) and "png" in v:
-            import cv2
-
-            a = cv2.imdecode(np.frombuffer(base64.b64decode(v["png"]), np.uint8), cv2.IMREAD_UNCHANGED)
-            if a is None:
-                raise ValueError("the base64 PNG cannot be decoded")
-            return a
         if isinstance(v, list) and meta.get("dtype") not in (None, "any"):
             try:
                 return np.asarray(v, dtype=meta["dtype"])
             except (TypeError, ValueError):
                 return v
+        if isinstance(v, list) and meta.get("value_dtype"):  # a port not declared: as its first value was
+            try:
+                a = np.asarray(v)
+            except (TypeError, ValueError):
+                return v
+            return _as_recorded(a, meta) if a.dtype.kind in "biuf" else v
         return v
 
 
@@ -503,6 +513,38 @@ def _unjson(v: Any) -> Any:
     if isinstance(v, dict):
         return {k: _unjson(x) for k, x in v.items()}
     return v
+
+
+def _recorded_dtype(meta: dict[str, str]) -> np.dtype | None:
+    """The dtype of a channel's arrays as recorded: the port's declared one, else (a port not declared) its first
+    value's (metadata ``value_dtype``); None where neither is a number or bool dtype."""
+    for name in (meta.get("dtype"), meta.get("value_dtype")):
+        if name and name != "any":
+            try:
+                dt = np.dtype(name)
+            except TypeError:
+                continue
+            if dt.kind in "biuf":
+                return dt
+    return None
+
+
+def _recorded_bool(meta: dict[str, str]) -> bool:
+    """Whether a channel's arrays were bool (a mask: recorded as a 0/255 image where it is one)."""
+    dt = _recorded_dtype(meta)
+    return dt is not None and dt.kind == "b"
+
+
+def _as_recorded(a: np.ndarray, meta: dict[str, str]) -> np.ndarray:
+    """A decoded array (Float64MultiArray: float64) in the dtype it was recorded with, where that gives the same
+    values (a later value of another dtype, or one not exact in it, stays as decoded)."""
+    dt = _recorded_dtype(meta)
+    if dt is None or dt == a.dtype:
+        return a
+    with np.errstate(invalid="ignore", over="ignore"):
+        b = a.astype(dt)
+        same = np.array_equal(b.astype(a.dtype), a, equal_nan=a.dtype.kind == "f")
+    return b if same else a
 
 
 class _JsonImage(_Json):
@@ -525,38 +567,53 @@ class _JsonImage(_Json):
         return json.dumps({"value": {"png": base64.b64encode(buf.tobytes()).decode()}}).encode()
 
     def decode(self, data, meta):
-        a = super().decode(data, meta)
-        return a > 127 if meta.get("dtype") == "bool" else a
+        import cv2
+
+        v = json.loads(data)["value"]
+        png = v.get("png") if isinstance(v, dict) else None
+        if not isinstance(png, str):
+            raise ValueError('no {"png": base64 PNG} value')
+        a = cv2.imdecode(np.frombuffer(base64.b64decode(png), np.uint8), cv2.IMREAD_UNCHANGED)
+        if a is None:
+            raise ValueError("the base64 PNG cannot be decoded")
+        return a > 127 if _recorded_bool(meta) else a
 
 
 _CODECS: dict[str, type[_Codec]] = {c.kind: c for c in (_Wrench, _Float64, _Bool, _Int64, _String, _Array,
                                                           _Compressed, _Raw, _Json, _JsonImage)}
 
 
-#: a 2-D float/uint16 array is a depth-map image only if each side is at least this long (declared or, where the
-#: port leaves it free or is not known, the value's); shorter sides are a matrix or a list of points: an array
+#: a 2-D array (uint8, bool, float, uint16) is an image only if its rows and columns are each at least this many
+#: (declared or, where the port leaves them free or is not known, the value's); fewer are a matrix, a list of points,
+#: a lookup or a mask of a few cells: an array, recorded exactly. A (rows, cols, 3) uint8 array is a colour frame at
+#: any size, unless its port declares fewer rows or columns.
 MIN_IMAGE_SIDE = 8
 
 
 def _image_sized(value: Any, port: Any) -> bool:
-    """Whether a 2-D array is recorded as an image (sensor_msgs/Image): by the port's declared 2-D shape where it
-    has one ((None, None) is an image, (None, 2) or (3, 3) is not), else by the value's shape."""
+    """Whether an array is recorded as an image (CompressedImage, Image): by the port's declared shape where it has
+    the value's dimensions ((None, None) or (None, None, 3) is an image, (None, 2), (3, 3) or (4, 4) is not; only
+    rows and columns count), else a (rows, cols, 3) array is (a colour frame) and a 2-D one by the value's shape."""
+    vshape = getattr(value, "shape", ())
     shape = getattr(port, "shape", None)
-    if shape is None or len(shape) != 2:
-        shape = getattr(value, "shape", ())
-    return all(d is None or d >= MIN_IMAGE_SIDE for d in shape)
+    if shape is None or len(shape) != len(vshape):
+        if len(vshape) == 3:
+            return True
+        shape = vshape
+    return all(d is None or d >= MIN_IMAGE_SIDE for d in shape[:2])
 
 
 def _choose_codec(value: Any, port: Any, ros: bool, opts: dict[str, Any]) -> _Codec:
     """The codec of a channel, from its first value and the port's declaration (``port``: None when not known)."""
+    image = _image_sized(value, port)
     if not ros:
-        return _JsonImage(opts) if _JsonImage().accepts(value) else _Json(opts)
+        return _JsonImage(opts) if image and _JsonImage().accepts(value) else _Json(opts)
     if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "fiub":
         value = value.item()
     order: list[type[_Codec]] = [_Bool, _String]
     if getattr(port, "unit", "") == "N":
         order.append(_Wrench)
-    order += [_Float64, _Compressed] + ([_Raw] if _image_sized(value, port) else []) + [_Array]
+    order += [_Float64] + ([_Compressed, _Raw] if image else []) + [_Array]
     for cls in order:
         c = cls(opts)
         if c.accepts(value):
@@ -811,7 +868,7 @@ class Recorder:
             self._schemas[ros_type] = sid
         return sid
 
-    def _register(self, node: str, port: str, codec: _Codec, suffix: str = "") -> int:
+    def _register(self, node: str, port: str, codec: _Codec, value: Any, suffix: str = "") -> int:
         p = self._ports.get((node, port))
         topic = "/" + re.sub(r"[^A-Za-z0-9_/]", "_", f"{node}/{port}") + suffix
         meta = {"node": node, "port": port, "codec": codec.kind,
@@ -819,6 +876,8 @@ class Recorder:
                 "unit": p.unit if p is not None else "any",
                 "shape": json.dumps(list(p.shape)) if p is not None and p.shape is not None else "null",
                 "description": p.description if p is not None else ""}
+        if isinstance(value, np.ndarray):  # what a reader gives back where the message does not keep the dtype
+            meta["value_dtype"] = value.dtype.name
         return self._writer.register_channel(topic, "cdr" if codec.ros_type else "json",
                                              self._schema(codec.ros_type), meta)
 
@@ -827,7 +886,7 @@ class Recorder:
         if ch is None:
             p = self._ports.get((node, port))
             codec = _choose_codec(value, p, self.ros, self.opts)
-            ch = _Chan(self._register(node, port, codec), codec)
+            ch = _Chan(self._register(node, port, codec, value), codec)
             self._chans[(node, port)] = ch
         return ch
 
@@ -846,7 +905,7 @@ class Recorder:
             v = v.item()
         if not codec.accepts(v):
             if ch.fallback is None:
-                ch.fallback = self._register(node, port, _Json(), suffix="/json")
+                ch.fallback = self._register(node, port, _Json(), v, suffix="/json")
             codec, cid = _Json(), ch.fallback
         what = f"{node}.{port} at t={t:.3f}"
         if codec.kind in ("compressed", "json-image") and self._pool is not None:
@@ -1164,7 +1223,7 @@ def _is_colour(ch: ChannelInfo) -> bool:
     if ch.metadata.get("codec") not in ("compressed", "json-image") and not ch.schema_name.endswith(
             "CompressedImage"):
         return False
-    if ch.metadata.get("dtype") == "bool":
+    if _recorded_bool(ch.metadata):
         return False
     shape = json.loads(ch.metadata.get("shape", "null") or "null")
     return shape is None or len(shape) == 3
@@ -1268,10 +1327,21 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
 
 
 # --------------------------------------------------------------------------------------------- plotting
+#: the unit a plot shows a signal of each SI unit in, for a person to read (a gripper opening of 12.3 mm, not
+#: 0.0123 m), and the factor from SI; the recording and what the readers give stay SI; other units are drawn as
+#: recorded (N, rad, N*s/m...), and so is a signal whose unit the recording does not say
+PLOT_UNITS: dict[str, tuple[str, float]] = {"m": ("mm", 1e3), "m/s": ("mm/s", 1e3), "m/s^2": ("mm/s^2", 1e3),
+                                            "m^2": ("mm^2", 1e6), "J": ("mJ", 1e3)}
+
+#: dtype kinds drawn as lines: float, bool, int (a recorded int array comes back as ints)
+_DRAWN_KINDS = "fbiu"
+
+
 def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = None,
                    select: str | None = None, log: Callable[[str], None] | None = None) -> list[Path]:
-    """One PNG per node (a subplot per signal) of every numeric signal; returns the files written. A recording cut
-    short (a crashed run) is plotted as far as it can be read, with a warning to ``log`` (default: stderr)."""
+    """One PNG per node (a subplot per signal) of every numeric signal; returns the files written. Lengths are drawn
+    in mm, energies in mJ (:data:`PLOT_UNITS`), the unit in the axis label. A recording cut short (a crashed run) is
+    plotted as far as it can be read, with a warning to ``log`` (default: stderr)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1294,9 +1364,10 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
             continue
         if _drawable(ts, vs):
             groups.setdefault(key.split(".")[0], []).append(key)
-        elif isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and len(ts):
+        elif isinstance(vs, np.ndarray) and vs.dtype.kind in _DRAWN_KINDS and len(ts):
             skipped.append(f"{key} ({'x'.join(map(str, vs.shape[1:]))} arrays)")
-        elif isinstance(vs, list) and vs and all(isinstance(v, np.ndarray) and v.dtype.kind in "fb" for v in vs):
+        elif isinstance(vs, list) and vs and all(isinstance(v, np.ndarray) and v.dtype.kind in _DRAWN_KINDS
+                                                 for v in vs):
             shapes = sorted({v.shape for v in vs}, key=lambda sh: (len(sh), sh))
             what = ", ".join("x".join(map(str, sh)) or "scalar" for sh in shapes[:4])
             skipped.append(f"{key} ({what} arrays)" if len(shapes) == 1 else
@@ -1323,7 +1394,8 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
         fig, axes = plt.subplots(len(keys), 1, figsize=(9, 2.2 * len(keys) + 0.6), sharex=True, squeeze=False)
         for ax, key in zip(axes[:, 0], keys):
             ts, vs = sig[key]
-            vals = vs.astype(float)
+            unit, scale = _plot_unit(units.get(key, ""))
+            vals = vs.astype(float) * scale
             cols = vals.reshape(len(ts), -1)
             # a line needs two neighbouring finite points: a single sample (or one between NaNs) gets a marker
             finite = np.isfinite(cols)
@@ -1342,8 +1414,7 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
                 ax.text(0.01, 0.95, f"{gaps} of {cols.size} values not drawn"
                         + (" (no finite value)" if not finite.any() else ""), transform=ax.transAxes,
                         fontsize=8, va="top", color="tab:red")
-            unit = units.get(key, "")
-            ax.set_ylabel(f"{key.split('.', 1)[-1]}" + (f" [{unit}]" if unit and unit != "any" else ""), fontsize=8)
+            ax.set_ylabel(f"{key.split('.', 1)[-1]}" + (f" [{unit}]" if unit else ""), fontsize=8)
             ax.grid(alpha=0.3)
         axes[-1, 0].set_xlabel("graph time [s]")
         fig.suptitle(f"{path.name}: {node}", fontsize=10)
@@ -1357,9 +1428,17 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
     return written
 
 
+def _plot_unit(unit: str) -> tuple[str, float]:
+    """The unit a plot shows a signal of recorded ``unit`` in, and the factor from it ("" for none: dimensionless,
+    "any" or not said)."""
+    if unit == "any":
+        return "", 1.0
+    return PLOT_UNITS.get(unit, (unit, 1.0))
+
+
 def _drawable(ts: np.ndarray, vs: Any) -> bool:
     """Whether a signal is drawn as lines: numbers or bools, scalars or vectors, at least one sample."""
-    return isinstance(vs, np.ndarray) and vs.dtype.kind in "fb" and vs.ndim in (1, 2) and len(ts) > 0
+    return isinstance(vs, np.ndarray) and vs.dtype.kind in _DRAWN_KINDS and vs.ndim in (1, 2) and len(ts) > 0
 
 
 def _save_png(fig: Any, out: Path) -> None:
