@@ -25,8 +25,10 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   (smoothing_time, 1/60 s) comes on top of that by design and is reported separately. Compared side by side in one
   run (``--wall-configs``): ``plain`` (normal scheduling), ``rt`` (``realtime_priority: 50``: SCHED_FIFO for the
   1 kHz thread), ``rt-isolate`` (also ``isolate: process`` on depth), ``rt-isolate2`` (on depth and sim-digit),
-  ``rt-est`` (``rt``, and ``priority: 40`` on the 60 Hz nodes: their thread under SCHED_FIFO 40) and
-  ``rt-isolate2-est`` (``rt-isolate2`` with ``priority: 40``: the isolated processes under SCHED_FIFO 40), each with
+  ``rt-est`` (``rt``, and ``priority: 40`` on the 60 Hz nodes: their thread under SCHED_FIFO 40), ``rt-est-cold``
+  (``rt-est`` with depth's ``warm: false``: no rehearsal of the last frame 1 ms before each step, so the two show
+  what the warm-up gains) and ``rt-isolate2-est`` (``rt-isolate2`` with ``priority: 40``: the isolated processes
+  under SCHED_FIFO 40; an isolated node is not warmed), each with
   the machine's noise over its run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``;
   and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
   Overruns do not fault these runs (``max_overruns: 0``): they are counted. Each configuration says whether its
@@ -163,14 +165,15 @@ QUICK_SIM_ROUNDS = 4
 
 
 #: wall-clock configurations compared side by side: (realtime_priority, nodes run with isolate: process, SCHED_FIFO
-#: priority of the 60 Hz camera/estimator thread through the nodes' `priority:` key, 0 = none)
-WALL_CONFIGS = {"plain": (0, (), 0), "rt": (50, (), 0), "rt-isolate": (50, ("depth",), 0),
-                "rt-isolate2": (50, ("depth", "digit"), 0), "rt-est": (50, (), 40),
-                "rt-isolate2-est": (50, ("depth", "digit"), 40)}
+#: priority of the 60 Hz camera/estimator thread through the nodes' `priority:` key, 0 = none, depth's `warm`:
+#: its rehearsal of the last frame 1 ms before each step; ``rt-est-cold`` is ``rt-est`` without it)
+WALL_CONFIGS = {"plain": (0, (), 0, True), "rt": (50, (), 0, True), "rt-isolate": (50, ("depth",), 0, True),
+                "rt-isolate2": (50, ("depth", "digit"), 0, True), "rt-est": (50, (), 40, True),
+                "rt-est-cold": (50, (), 40, False), "rt-isolate2-est": (50, ("depth", "digit"), 40, True)}
 
 
 def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolate: tuple[str, ...] = (),
-                estimator_priority: int = 0) -> dict:
+                estimator_priority: int = 0, warm: bool = True) -> dict:
     doc = sim_graph(sensor=sensor, duration=duration)
     doc["clock"] = "wall"
     doc["faults"] = {"max_overruns": 0}  # count overruns, do not stop the measurement on them
@@ -182,6 +185,8 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
             n["isolate"] = "process"
         if estimator_priority and n.get("rate", 0) < 200:
             n["priority"] = estimator_priority
+        if n["plugin"] == "depth":
+            n.setdefault("params", {})["warm"] = warm
     rt = build_runtime(doc)
     ctl = rt.component("controller")
     lock = threading.Lock()
@@ -233,7 +238,8 @@ def wall_timing(sensor: str, duration: float, realtime_priority: int = 0, isolat
         "sensor": sensor, "realtime_priority": realtime_priority, "estimator_thread_priority": estimator_priority,
         "sched_fifo_applied": (realtime_priority > 0 or estimator_priority > 0)
         and sched_fifo_refused(max(realtime_priority, estimator_priority)) is None,
-        "isolated": sorted(n for n in isolate if n in present), "status": res.status, "message": res.message,
+        "isolated": sorted(n for n in isolate if n in present), "depth_warm": warm, "status": res.status,
+        "message": res.message,
         "duration_s": res.sim_time,
         "controller_rate_hz": ctl_stats.achieved_rate, "controller_overruns": ctl_stats.overruns,
         "controller_jitter_p99_ms": (ctl_stats.period_jitter_p99_s or float("nan")) * 1e3,
@@ -361,7 +367,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="3 s runs instead of 10 s")
     ap.add_argument("--realtime", action="store_true", help="(kept for old command lines: the realtime "
                     "configurations are in --wall-configs by default)")
-    ap.add_argument("--wall-configs", default="plain,rt,rt-isolate,rt-isolate2,rt-est,rt-isolate2-est",
+    ap.add_argument("--wall-configs", default="plain,rt,rt-isolate,rt-isolate2,rt-est,rt-est-cold,rt-isolate2-est",
                     help=f"comma-separated, of {', '.join(WALL_CONFIGS)} (empty: no wall-clock runs)")
     ap.add_argument("--repeat", type=positive_int, default=1, help="run the wall-clock configurations this many times, "
                     "interleaved; each configuration reports the median over its runs")
@@ -408,8 +414,8 @@ def main() -> int:
     runs: dict[str, list[dict]] = {c: [] for c in configs}
     for _ in range(args.repeat):
         for c in configs:
-            prio, iso, est = WALL_CONFIGS[c]
-            r = wall_timing(args.sensor, dur, prio, iso, est)
+            prio, iso, est, warm = WALL_CONFIGS[c]
+            r = wall_timing(args.sensor, dur, prio, iso, est, warm)
             runs[c].append(r)
             print(f"wall clock, {c}: controller jitter p99 {r['controller_jitter_p99_ms']:.3f} ms, frame->leader "
                   f"force p50 {r['frame_to_leader_force_p50_ms']:.2f} ms p99 {r['frame_to_leader_force_p99_ms']:.2f} "

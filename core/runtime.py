@@ -147,7 +147,7 @@ class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
                  "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark",
-                 "first_t", "last_t")
+                 "first_t", "last_t", "warm")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -182,6 +182,10 @@ class _Node:
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
         self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
         self.last_t = 0.0
+        # wall clock: its Component.warm(), called WARM_LEAD before each step; None where it has none (the base
+        # class's), for a device (a warm-up must never command it) and for an isolated node (its proxy has none)
+        overridden = type(comp).warm is not Component.warm
+        self.warm = comp.warm if overridden and not self.is_device else None
 
     def achieved_rate(self) -> float | None:
         """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
@@ -245,6 +249,11 @@ class Runtime:
     #: p99 median 0.25-0.28 -> 0.17-0.23 ms against 0.1 (100 us), the frame-to-force latency p99 not consistently
     #: moved (within the run-to-run spread)
     SWITCH_FRACTION = 0.02
+    #: under the wall clock a node's Component.warm() is called this long before its step (s), in a rate group
+    #: whose period is at least 5 times as long (a 60 Hz estimator's; not a 1 kHz loop's). The caches stay warm for
+    #: a few milliseconds: the depth pipeline's step after a 16 ms pause took 1.6-1.8 ms of CPU time, after a
+    #: rehearsal of it 1 ms before 0.9-1.0 ms, 4 ms before 1.1-1.2 ms (docs/depth.md, `warm`)
+    WARM_LEAD = 1e-3
 
     def __init__(self, spec: GraphSpec, registry: Any = None, *, clock: str | None = None,
                  log: Callable[[str], None] | None = None):
@@ -912,8 +921,14 @@ class Runtime:
         k = 0
         late = 0   # consecutive late cycles of the group
         lock = self._lock
+        warmers = [n for n in members if n.warm is not None] if period >= 5 * self.WARM_LEAD else []
         while not stop.is_set():
             deadline = t0 + k * period
+            if warmers:
+                rem = deadline - self.WARM_LEAD - perf()
+                if rem > 0:   # (a group running late steps at once)
+                    sleep(rem)
+                    self._warm(warmers, perf() - t0, stop)
             rem = deadline - perf()
             if rem > spin:
                 sleep(rem - spin)
@@ -976,6 +991,21 @@ class Runtime:
                     node.consec_overruns = 0
             if all(n.faulted for n in members):
                 return
+
+    def _warm(self, warmers: list[_Node], t: float, stop: _StopEvent) -> None:
+        """Each node's Component.warm() before its step (:attr:`WARM_LEAD`): an exception faults the node as one in
+        its step does; the watchdog sees it as in its step (``in_step``), so a warm-up that hangs is blamed as a step
+        that hangs."""
+        for node in warmers:
+            if node.faulted or stop.is_set():
+                continue
+            node.in_step = True
+            try:
+                node.warm()
+            except BaseException as exc:   # (as a step's: also SystemExit or KeyboardInterrupt raised in it)
+                node.in_step = False
+                self._fault(node, "exception", f"warm(): {exception_line(exc)}", t)
+            node.in_step = False
 
     def _group_died(self, members: list[_Node], exc: BaseException) -> None:
         """A rate group's loop ended by an error outside the steps (in a tap or a fault handler): none of its nodes

@@ -112,6 +112,10 @@ class DepthEstimator(Component):
                                       "simulated sensor at rest without noise; a camera's noise never repeats) "
                                       "gives the previous result again, stamped with the new frame's time, "
                                       "without recomputing it")
+        warm: bool = Field(True, description="under the wall clock, run the last new frame through the pipeline "
+                           "again 1 ms before each step and throw the result away, so that the step finds the "
+                           "pipeline in the CPU's caches (on a shared machine a step after the 16 ms pause took up "
+                           "to twice its time; docs/depth.md); costs that frame's CPU time once more per step")
 
         @field_validator("model")
         @classmethod
@@ -179,6 +183,21 @@ class DepthEstimator(Component):
         self._mismatch: list[float] = []   # background_mismatch() of the first MATCH_FRAMES plausible frames
         # the last input sample handled and its outputs: the port's sample read again is no new frame
         self._handled: tuple[Sample, dict[str, Any]] | None = None
+        self._rehearse: np.ndarray | None = None   # the last frame computed anew: what warm() runs again
+
+    def warm(self) -> None:
+        """Run the last frame computed anew through the pipeline again, the result thrown away (``warm``): the
+        runtime calls this 1 ms before each step under the wall clock. The pipeline's per-frame state (the frame's
+        colour offset, whether it changed) is put back, so the outputs are the same as without it."""
+        frame = self._rehearse
+        if frame is None or not self.params.warm:
+            return
+        pipe = self.pipe
+        kept = (pipe._offset, pipe._changed)
+        try:
+            pipe(frame)
+        finally:
+            pipe._offset, pipe._changed = kept
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["image"]
@@ -221,6 +240,7 @@ class DepthEstimator(Component):
             if problem:
                 self._prev = None
                 return self._bad(problem, s.stamp, t0)
+            self._rehearse = frame
             if p.max_background_mismatch and len(self._mismatch) < MATCH_FRAMES:
                 self._check_match(frame)
             if p.adapt_background > 0 and not res.changed and res.contact_area == 0.0:
