@@ -119,7 +119,7 @@ def test_estimate_refuses_an_implausible_frame_instead_of_a_confident_depth(sim_
 
 def test_estimate_errors(tmp_path, capsys):
     rc = main(["estimate", "--model", str(tmp_path / "missing.model"), "x.png"])
-    assert rc == 1 and "missing.model: no such model file" in capsys.readouterr().err
+    assert rc == 2 and "missing.model: no such model file" in capsys.readouterr().err
     big = tmp_path / "big.png"
     cv2.imwrite(str(big), np.zeros((640, 480, 3), np.uint8))
     rc = main(["estimate", "--model", "sim-digit-qvga", str(big), "--json"])

@@ -138,7 +138,7 @@ def test_a_foreign_file_as_model_names_it_without_numpys_pickle_advice(tmp_path,
     fake.write_bytes(content)
     rc = main(["estimate", "--model", str(fake), str(tmp_path / "img.png")])
     err = capsys.readouterr().err
-    assert rc == 1 and f"{fake}: not a teletouch depth model (expected a .npz archive written by `teletouch " \
+    assert rc == 2 and f"{fake}: not a teletouch depth model (expected a .npz archive written by `teletouch " \
                        "calibrate depth`)" in err
     assert "pickle" not in err
     with pytest.raises(ModelFileError) as exc:   # the graph path (configure) and validation

@@ -660,9 +660,12 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from .depth_pipeline import DepthPipeline
     from .normal_model import load_model
 
-    model = load_model(args.model)
     save = Path(args.save_depth) if args.save_depth else None
     try:
+        try:
+            model = load_model(args.model)
+        except ModelFileError as exc:   # an input error as the others: the command's prefix and exit code
+            raise ValueError(f"--model {exc}") from None
         bg = None
         if args.background:
             bg, what = _background_for_model(args.background, model)
