@@ -27,7 +27,9 @@ Values other than numbers, numeric arrays and text cross pickled one by one, so 
 (its class is not importable there) is a fault of the node that names the plugin and the input; the child lives on.
 
 Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
-dropped, never taken for a later call's. A step in flight can be abandoned from another thread
+dropped, never taken for a later call's. The child answers every request once, in order, so a reply without its number
+(to a request the child could not unpickle, or one the parent cannot unpickle) answers the oldest request not answered
+yet: a late one is dropped, not taken for the call in progress. A step in flight can be abandoned from another thread
 (:meth:`ProcessProxy.abandon_step`: the runtime's watchdog, when the node's rate group has devices that the step keeps
 from being stepped): the node's thread stops waiting at once and its step raises :class:`StepAbandoned`; the child's
 late answer is dropped as a timed-out one's. One call at a time: the runtime's shutdown (main thread) waits for a step
@@ -49,6 +51,7 @@ import signal
 import sys
 import threading
 import time
+from collections import deque
 from multiprocessing import resource_tracker, shared_memory
 from multiprocessing.reduction import ForkingPickler
 from typing import Any, NamedTuple
@@ -68,8 +71,8 @@ SHARED_MIN_BYTES = 16384
 BLOCK_PREFIX = "teletouch_"
 _SHM_DIR = "/dev/shm"
 _TERMINAL_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-#: the number of the child's reply to a request it could not unpickle (its number unknown): taken as the answer
-#: to the call in progress (one call at a time)
+#: the number of the child's reply to a request it could not unpickle (its number unknown): the answer to the oldest
+#: request not answered yet (the child answers each request once, in order)
 _UNREADABLE = -1
 
 
@@ -472,6 +475,7 @@ class ProcessProxy(Component):
         self._proc: Any = None
         self._lock = threading.Lock()
         self._seq = 0          # number of the latest request; the child's reply repeats it
+        self._unanswered: deque[int] = deque()   # numbers of the requests sent and not answered yet, oldest first
         self._stuck = False    # a call timed out and the child has not answered anything since
         self._prefix = f"{BLOCK_PREFIX}{secrets.token_hex(4)}_"   # names of this node's blocks, both sides
         self._lanes = ArrayLanes(self._prefix + "p")
@@ -510,6 +514,7 @@ class ProcessProxy(Component):
         poller = self._poller if abandonable else None   # watches the pipe and the wake-up pipe
         try:
             _send(conn, (seq, op, *args), values or {}, "input", "the isolated process")
+            self._unanswered.append(seq)
             while True:
                 left = deadline - time.monotonic()
                 if poller is None:
@@ -528,11 +533,15 @@ class ProcessProxy(Component):
                 except (EOFError, OSError):
                     raise
                 except Exception as exc:
-                    raise ComponentFault(f"a reply of the isolated process ({self.name}) to '{op}' cannot be "
-                                         f"unpickled here: {type(exc).__name__}: {exc}") from None
+                    why = f"cannot be unpickled here: {type(exc).__name__}: {exc}"
+                    if self._answers(_UNREADABLE) == seq:
+                        raise ComponentFault(f"a reply of the isolated process ({self.name}) to '{op}' {why}") \
+                            from None
+                    self.ctx.log(f"a late reply of the isolated process ({self.name}) dropped: it {why}")
+                    continue
                 for line in reply[-1]:
                     self.ctx.log(line)
-                if reply[0] == seq or reply[0] == _UNREADABLE:
+                if self._answers(reply[0]) == seq:
                     break
         except (EOFError, OSError):
             raise self._died(op) from None
@@ -541,6 +550,16 @@ class ProcessProxy(Component):
         if reply[1] == "exc":
             raise ComponentFault(f"in isolated process: {reply[2]}")
         return reply
+
+    def _answers(self, number: int) -> int | None:
+        """The number of the request a reply with ``number`` answers (an :data:`_UNREADABLE` one: the oldest request
+        not answered yet), forgotten with every request before it."""
+        pending = self._unanswered
+        if number == _UNREADABLE:
+            return pending.popleft() if pending else None
+        while pending and pending[0] <= number:
+            pending.popleft()
+        return number
 
     def _answered(self, events: list[tuple[int, int]], sent: float) -> bool:
         """The events of a step's wait on the pipe and the wake-up pipe: True when the pipe has something, False
@@ -601,6 +620,7 @@ class ProcessProxy(Component):
                                  f"{self.target.__qualname__}: {type(exc).__name__}: {exc}") from None
         mpctx = mp.get_context("spawn")
         self._held.clear()   # a new child holds no input yet
+        self._unanswered.clear()
         parent, child = mpctx.Pipe()
         self._conn = parent
         if self._wake is None:

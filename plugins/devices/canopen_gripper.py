@@ -20,7 +20,9 @@ cap never exceeds ``max_effort``. Each step then transmits SYNC and waits (``pdo
 triggers. TPDOs carry no SYNC number, so the answers are counted: a frame answers this step's SYNC only after the
 answers to every earlier SYNC (a step that timed out, the state walk's) arrived, which are waited for (up to
 ``pdo_timeout``) before the SYNC goes out, and written off as lost, the step without a state, when they do not come;
-frames beyond the SYNCs sent (another SYNC producer) are forgotten. A drive in FAULT (statusword; reported with its
+frames beyond the SYNCs sent (another SYNC producer) are forgotten. Answers written off are remembered: one that comes
+after all arrives before the next SYNC's, so that read waits (within its ``pdo_timeout``) for them too; not there, they
+are lost, and the frame received after its SYNC is its answer. A drive in FAULT (statusword; reported with its
 EMCY), a lost heartbeat, a heartbeat saying the drive left NMT OPERATIONAL, or missing TPDOs end in a HardwareError
 naming the cause. Heartbeats and TPDOs are timed and counted as they arrive, on the local monotonic clock: a received
 frame's timestamp is on whatever clock the python-can interface uses (epoch on socketcan; monotonic, a device counter or
@@ -327,6 +329,8 @@ class CanopenGripper(FollowerBase):
         self.tp1, self.tp2, self.rp1 = n.tpdo[1], n.tpdo[2], n.rpdo[1]
         self._arrivals = {id(self.tp1): 0, id(self.tp2): 0}   # frames received, per TPDO
         self._owed = {id(self.tp1): 0, id(self.tp2): 0}       # the count that answers every SYNC sent so far
+        self._late = {id(self.tp1): 0, id(self.tp2): 0}       # answers written off that may still come
+        self._arrived_at = {id(self.tp1): -math.inf, id(self.tp2): -math.inf}   # monotonic time of the last frame
         for m in (self.tp1, self.tp2):
             m.add_callback(self._on_tpdo)
 
@@ -339,7 +343,9 @@ class CanopenGripper(FollowerBase):
         self._nmt_state = state
 
     def _on_tpdo(self, pdo: Any) -> None:
-        # counted on arrival (under pdo.receive_condition): msg.timestamp need not change from frame to frame
+        # counted and timed on arrival (under pdo.receive_condition): msg.timestamp need not change from frame to
+        # frame, and its clock is the interface's
+        self._arrived_at[id(pdo)] = time.monotonic()
         self._arrivals[id(pdo)] += 1
 
     def _send_setpoint(self, counts: int, toggle: bool = True) -> None:
@@ -374,29 +380,37 @@ class CanopenGripper(FollowerBase):
                 pass
 
     def _still_owed(self) -> str:
-        """The answers to earlier SYNCs that have not arrived ("" when none), after forgetting extra frames (a SYNC
-        of another producer on the bus, an answer written off that came after all): a frame answers a SYNC only
+        """The answers to earlier SYNCs that have not arrived ("" when none), after forgetting extra frames (an
+        answer written off that came after all, a SYNC of another producer on the bus): a frame answers a SYNC only
         after every earlier SYNC's answer."""
         owed = []
         for pdo in (self.tp1, self.tp2):
             key = id(pdo)
             got = self._arrivals[key]
             if got > self._owed[key]:
+                self._late[key] = max(0, self._late[key] - (got - self._owed[key]))
                 self._owed[key] = got
             elif got < self._owed[key]:
                 owed.append(f"{self._owed[key] - got} of TPDO{1 if pdo is self.tp1 else 2}")
         return ", ".join(owed)
 
-    def _answered(self, deadline: float) -> bool:
-        """Whether every SYNC sent so far has its TPDO1 and TPDO2, waiting until ``deadline``."""
+    def _answered(self, deadline: float, since: float = -math.inf) -> bool:
+        """Whether every SYNC sent so far has its TPDO1 and TPDO2, the last of them received after ``since`` (the
+        last SYNC's time), waiting until ``deadline``. Answers written off may still come, before any later SYNC's
+        (in order): waited for too, and taken as lost after all at ``deadline`` (then the frame that came after
+        ``since`` is the last SYNC's answer)."""
         for pdo in (self.tp1, self.tp2):
             key = id(pdo)
             with pdo.receive_condition:
-                while self._arrivals[key] < self._owed[key]:
+                while self._arrivals[key] < self._owed[key] + self._late[key] or self._arrived_at[key] < since:
                     left = deadline - time.monotonic()
                     if left <= 0:
-                        return False
+                        break
                     pdo.receive_condition.wait(left)
+                if self._arrivals[key] < self._owed[key] or self._arrived_at[key] < since:
+                    return False
+        for key in self._late:
+            self._late[key] = 0   # come, or lost
         return True
 
     def _hw_read(self) -> Reading | None:
@@ -408,15 +422,16 @@ class CanopenGripper(FollowerBase):
         # taken for its answer; not there within pdo_timeout, they are written off as lost and the step has no state
         owed = self._still_owed()
         if owed and not self._answered(time.monotonic() + p.pdo_timeout):
-            for key in self._owed:
+            for key in self._owed:   # remembered: they may still come, before the next SYNC's answer
+                self._late[key] += max(0, self._owed[key] - self._arrivals[key])
                 self._owed[key] = self._arrivals[key]
             self.last_error = (f"the TPDOs answering earlier SYNCs ({owed}) did not come within another "
                                f"{p.pdo_timeout * 1e3:.0f} ms: written off as lost")
             return None
         t0 = time.monotonic()
         self._sync()
-        ok = self._answered(t0 + p.pdo_timeout)
-        t1 = time.monotonic()
+        ok = self._answered(t0 + p.pdo_timeout, since=t0)
+        t1 = max(self._arrived_at.values())   # the reading is whole (not the end of a wait for written-off answers)
         if not ok:
             self.last_error = f"no TPDO within {p.pdo_timeout * 1e3:.0f} ms of SYNC"
             return None
