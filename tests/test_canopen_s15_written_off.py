@@ -18,25 +18,14 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from fakes.followers import canopen_harness, channel_fixture, drive_fixture  # noqa: E402
+from fakes.followers import SYNC_PDO_TIMEOUT as P, channel_fixture, counts_of, drive_fixture  # noqa: E402
+from fakes.followers import sync_harness as harness  # noqa: E402
 from fakes.realtime import wait_for  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
-#: pdo_timeout of these tests (s): long, so that the timings below keep 0.1-0.2 s margins on a loaded machine
-P = 0.4
-
-
 channel = channel_fixture()
 drive = drive_fixture(position=0)
-
-
-def harness(channel, **params):
-    return canopen_harness(channel, **dict({"pdo_timeout": P}, **params))
-
-
-def counts_of(h, reading):
-    return round(h.comp.map.counts(reading.opening))
 
 
 def write_off(h, drive, *delays):

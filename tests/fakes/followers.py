@@ -92,3 +92,17 @@ def canopen_harness(channel: str, **params: Any) -> Harness:
     h = Harness(CanopenGripper, dict({"interface": "virtual", "channel": channel, "node_id": 5}, **params))
     h.ctx.clock_kind = "wall"
     return h
+
+
+#: pdo_timeout of the SYNC-counting tests (s): long, so that their timings keep 0.1-0.2 s margins on a loaded machine
+SYNC_PDO_TIMEOUT = 0.4
+
+
+def sync_harness(channel: str, **params: Any) -> Harness:
+    """:func:`canopen_harness` with the SYNC-counting tests' ``pdo_timeout`` (:data:`SYNC_PDO_TIMEOUT`)."""
+    return canopen_harness(channel, **dict({"pdo_timeout": SYNC_PDO_TIMEOUT}, **params))
+
+
+def counts_of(h: Harness, reading: Any) -> int:
+    """The drive's position counts of a reading of the canopen-gripper in ``h``."""
+    return round(h.comp.map.counts(reading.opening))
