@@ -30,15 +30,15 @@ from typing import Any, Iterator, Sequence
 from . import __version__
 from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
 from .registry import ENV_PLUGINS, Registry, default_registry
-from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime
+from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime, _signal_text
 
 EXIT_TERMINATED = 128 + signal.SIGTERM   # 143: the shell's code for a process ended by SIGTERM (130 is Ctrl-C)
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM during `teletouch run`: raised where Ctrl-C raises KeyboardInterrupt, so the runtime makes the same
-    safe stop (and names the signal, ``signum``, in its result); the command then exits :data:`EXIT_TERMINATED`
-    instead of 130."""
+    """SIGTERM during a command: raised where Ctrl-C raises KeyboardInterrupt, so the runtime makes the same safe stop
+    (and names the signal, ``signum``, in its result); the command then exits :data:`EXIT_TERMINATED` instead of
+    130."""
 
     signum = signal.SIGTERM
 
@@ -295,22 +295,23 @@ def cmd_run(args: argparse.Namespace) -> int:
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
     record_error = None
-    try:
-        with _sigterm_interrupts() as terminated:
+    with _interrupts() as signals:   # a signal after the first is held until the recording is closed too
+        try:
             result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
-    finally:
-        if progress is not None:
-            progress.done()
-        if recorder is not None:
-            try:
-                recorder.close()
-            except TeletouchError as exc:  # the recording failed (disk full): the run's own result still counts
-                record_error = exc
-                print(f"teletouch: error: {exc}", file=sys.stderr)
+            if result.late_signal is not None and not signals:   # held by the runtime in its safe shutdown: the
+                signals.append(result.late_signal)                 # stop is under way
+        finally:
+            if progress is not None:
+                progress.done()
+            if recorder is not None:
+                try:
+                    recorder.close()
+                except TeletouchError as exc:  # the recording failed (disk full): the run's own result still counts
+                    record_error = exc
+                    print(f"teletouch: error: {exc}", file=sys.stderr)
     code = result.exit_code
-    sigterm = bool(terminated) or result.late_signal == signal.SIGTERM   # (held during the safe shutdown)
-    if sigterm and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had stopped the run before it
-        code = EXIT_TERMINATED
+    if signals and signals[0] == signal.SIGTERM and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had
+        code = EXIT_TERMINATED                                                              # stopped the run before
     if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
         code = EXIT_INVALID
     if not args.quiet:
@@ -532,45 +533,89 @@ def _drop_funcless(action: argparse._SubParsersAction, kept: set[str], prefix: s
     return lines
 
 
+#: the signals of the stop under way, first first: the list of the outermost :func:`_interrupts` block; None outside
+_stop_signals: list[int] | None = None
+
+
 @contextlib.contextmanager
-def _sigterm_interrupts() -> Iterator[list[int]]:
-    """Inside the block SIGTERM raises :class:`Terminated` (a KeyboardInterrupt: the same safe stop as Ctrl-C) and is
-    recorded in the yielded list; the previous handler is restored after. Only the main thread may set handlers:
-    elsewhere nothing is changed."""
-    terminated: list[int] = []
+def _interrupts(program: bool = False) -> Iterator[list[int]]:
+    """Inside the block the first SIGINT or SIGTERM stops the command: it raises KeyboardInterrupt (SIGTERM:
+    :class:`Terminated`, the same safe stop as Ctrl-C). Each one is recorded in the yielded list, first first; one
+    after it (or after a signal the block's user appended: one the runtime held) is said on stderr ("already stopping
+    safely, please wait") and raises nothing: it must not cut the safe stop short (the samples file, the recording)
+    nor change the exit code (it raised again, or ended the process). A block inside another shares its list and
+    handlers. SIGINT is taken over only from Python's own handler (a background job's ignored SIGINT stays ignored).
+    The previous handlers are restored after; with ``program`` (the block is the process's life: it exits next) and a
+    signal seen, those signals are ignored instead, so that one cannot cut the exit short (Python's shutdown, torch's
+    clean-up: ~0.5 s) with a traceback and -2 or -15. Only the main thread may set handlers: elsewhere nothing is
+    changed."""
+    global _stop_signals
+    if _stop_signals is not None:
+        yield _stop_signals
+        return
+    signals: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        yield terminated
+        yield signals
         return
 
-    def _term(signum: int, frame: Any) -> None:
-        terminated.append(signum)
-        raise Terminated
+    def _handler(signum: int, frame: Any) -> None:
+        signals.append(signum)
+        if len(signals) > 1:
+            _say_now(f"teletouch: {_signal_text(signum)}: already stopping safely, please wait\n")
+            return
+        raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
-    old = signal.signal(signal.SIGTERM, _term)
+    old: dict[int, Any] = {}
+    _stop_signals = signals
     try:
-        yield terminated
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            prev = signal.getsignal(sig)
+            if prev is None or (sig == signal.SIGINT and prev is not signal.default_int_handler):
+                continue   # installed from outside Python, or SIGINT ignored or the caller's own: left alone
+            old[sig] = prev
+            signal.signal(sig, _handler)
+        yield signals
     finally:
-        signal.signal(signal.SIGTERM, old)
+        for sig, prev in old.items():
+            signal.signal(sig, signal.SIG_IGN if program and signals else prev)
+        _stop_signals = None
+
+
+def _say_now(text: str) -> None:
+    """``text`` on stderr from a signal handler: straight to the file descriptor (the handler may have cut into a
+    write to ``sys.stderr``, whose buffer refuses a reentrant one), through ``sys.stderr`` where it has none."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):   # (io.UnsupportedOperation: a test's capture)
+        print(text, end="", file=sys.stderr)
+        return
+    with contextlib.suppress(OSError):
+        os.write(fd, text.encode(errors="replace"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line; returns the exit status (argparse's usage errors, a malformed --set among them, exit 2
     themselves). A Ctrl-C anywhere, also while the plugins are imported, ends with "teletouch: interrupted (Ctrl-C)"
-    and 130; SIGTERM, during any command, the same safe stop with "teletouch: interrupted (SIGTERM)" and 143."""
+    and 130; SIGTERM, during any command, the same safe stop with "teletouch: interrupted (SIGTERM)" and 143. A second
+    Ctrl-C or SIGTERM while the command stops is said and held; the exit status is the first's. ``argv`` None: main
+    is the program (the console script, ``python -m teletouch``), which exits on its return: after a signal, Ctrl-C
+    and SIGTERM are then left ignored (see :func:`_interrupts`)."""
     # SIGTERM (a service manager, `kill`) stops every command as Ctrl-C does, so a calibration or an experiment
-    # drives its devices to their safe state too (it ended the process at once: no safe stop, no samples file);
-    # `teletouch run` also notes it for its own run (its summary's exit code)
+    # drives its devices to their safe state too (it ended the process at once: no safe stop, no samples file); a
+    # second signal while the command stops is held (see _interrupts); `teletouch run` also notes them for its own run
+    # (its summary's exit code)
+    signals: list[int] = []
     try:
-        with _sigterm_interrupts() as terminated:
+        with _interrupts(program=argv is None) as signals:   # argv None: the console script, python -m teletouch
             code = _main(argv)
     except KeyboardInterrupt as exc:
-        if terminated or isinstance(exc, Terminated):
+        if (signals[0] if signals else getattr(exc, "signum", signal.SIGINT)) == signal.SIGTERM:
             print("teletouch: interrupted (SIGTERM)", file=sys.stderr)
             return EXIT_TERMINATED
         print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
         return EXIT_INTERRUPTED
     # a command that handled the interrupt itself (its own message, exit 130) was ended by SIGTERM: the shell's code
-    return EXIT_TERMINATED if terminated and code == EXIT_INTERRUPTED else code
+    return EXIT_TERMINATED if signals and signals[0] == signal.SIGTERM and code == EXIT_INTERRUPTED else code
 
 
 def _main(argv: Sequence[str] | None) -> int:

@@ -593,6 +593,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             except ValidationError as exc:
                 fields = list(cls.Params.model_fields)
                 expanded = []
+                hinted: set[str] = set()   # the parameters whose --set error has had its hint (_set_hint)
                 for e in exc.errors():
                     if e["loc"] or e["type"] != "value_error":
                         expanded.append(e)
@@ -626,6 +627,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                         blamed = (_blame_sets(cls, spec.params, loc[0], nested[loc[0]])
                                   if loc and loc[0] in nested else [])
                         if blamed:   # a --set inside the parameter made the error: it is named, not the file
+                            if loc[0] not in hinted:   # once per parameter
+                                hinted.add(loc[0])
+                                msg += _set_hint(cls, spec.params, nid, loc[0], nested[loc[0]])
                             err(_set_error(nid, loc[0], spec.params.get(loc[0]), blamed, msg),
                                 Location(" and ".join(f"--set {b[1]}" for b in blamed), None))
                         else:
@@ -732,24 +736,77 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                      realtime_priority=rt_prio, warnings=_isolation_warnings(nodes, clock_v, file))
 
 
+def _refused(cls: type[Component], params: dict[str, Any], name: str, value: Any) -> bool:
+    """Whether ``cls``'s parameters refuse parameter ``name`` given ``value`` (``_MISSING``: left out), the others as
+    in ``params``; a validator raising what pydantic does not turn into an error (TypeError) refuses it too."""
+    trial = {k: v for k, v in params.items() if k != name}
+    if value is not _MISSING:
+        trial[name] = value
+    try:
+        cls.Params.model_validate(trial)
+    except ValidationError as exc:
+        return any(tuple(e["loc"][:1]) == (name,) for e in exc.errors())
+    except Exception:   # (a plugin's validator raising TypeError on a value it never expected)
+        return True
+    return False
+
+
 def _blame_sets(cls: type[Component], params: dict[str, Any], name: str,
                 nested: _NestedSets) -> list[tuple[list[str], str, Any]]:
     """The --sets inside parameter ``name`` that make it refused: none where the file's own value
     (``nested.original``) is refused too (the error is the file's); else those refused on their own, each applied to
     the file's value, or all of them where only together they are."""
-    def refused(value: Any) -> bool:
-        trial = {k: v for k, v in params.items() if k != name}
-        if value is not _MISSING:
-            trial[name] = value
-        try:
-            cls.Params.model_validate(trial)
-        except ValidationError as exc:
-            return any(tuple(e["loc"][:1]) == (name,) for e in exc.errors())
-        return False
-
-    if refused(nested.original):
+    if _refused(cls, params, name, nested.original):
         return []
-    return [s for s in nested.items if refused(_with_set(nested.original, s[0], s[2]))] or list(nested.items)
+    return [s for s in nested.items
+            if _refused(cls, params, name, _with_set(nested.original, s[0], s[2]))] or list(nested.items)
+
+
+def _set_hint(cls: type[Component], params: dict[str, Any], nid: str, name: str, nested: _NestedSets) -> str:
+    """What to write, after the error of parameter ``name`` that its --sets inside it (``nested``) made, where they
+    did not make what was meant. The value before them is not a mapping (the file's, an earlier --set's or the
+    default, e.g. the intent 'hold'): they made a mapping of only what they give; where the parameter takes that name
+    as ``type`` (``{type: hold}``), it says to give it: ``--set leader.intent.type=hold``; a number or a list: it
+    says what they made. The value before is a mapping whose other keys refuse what the --sets give, which they accept
+    alone (another intent's type and fields): it says to give the whole value in one --set. Else nothing."""
+    made = params.get(name)
+    if not isinstance(made, dict):
+        return ""
+    before = nested.original
+    if isinstance(before, dict):
+        alone: dict[str, Any] = {}
+        for keys, _, value in nested.items:
+            alone = _with_set(alone, keys, value)
+        kept = [str(k) for k in before if k not in alone]
+        if not kept or _refused(cls, params, name, alone):
+            return ""
+        return (f"; the --set changes only what it names in {name}, the others stay ({', '.join(kept)}); give the "
+                f"whole value: --set '{nid}.{name}={_flow(alone)}'")
+    if before is _MISSING:
+        field_info = cls.Params.model_fields.get(name)
+        if field_info is None or field_info.is_required():
+            what = f"{name} is not given in the file"
+        else:
+            before = field_info.get_default(call_default_factory=True)
+            what = f"{name} is not given in the file: its default {before!r} is not a mapping"
+    else:
+        what = f"{name} was {before!r}, not a mapping"
+    hint = f"; {what}, so the --set made it {_flow(made)} alone"
+    if not isinstance(before, str):   # (a number, a list: nothing inside it to set)
+        return hint
+    if "type" not in made and not _refused(cls, params, name, {"type": before}):
+        return hint + f"; give its type with it: --set {nid}.{name}.type={before}"
+    return ""   # a name, and the --sets give the type (or it is no type): the error says it
+
+
+def _flow(value: Any) -> str:
+    """``value`` as a person writes it in a --set: YAML's flow style (``{type: hold, opening: 10mm}``)."""
+    import yaml
+
+    try:
+        return yaml.safe_dump(value, default_flow_style=True, sort_keys=False, width=2**16).strip()
+    except yaml.YAMLError:
+        return repr(value)
 
 
 def _bound_unit(cls: type, loc: list[str], kind: str) -> str:
