@@ -482,6 +482,16 @@ class Component:
         whose parameters leave a wired port without a topic."""
         return {}
 
+    @classmethod
+    def port_shapes(cls, params: Any) -> dict[str, tuple]:
+        """The shapes of ports that the node's validated ``params`` fix where the port leaves them open (an image
+        is declared ``(None, None, 3)``; a camera's resolution or a model file fixes its rows and cols), checked when
+        a graph is validated: {port: (shape, why)} or {port: (shape, why, how)}, ``why`` what fixes it, for a person
+        ("resolution 'qvga'"), ``how`` what changes it ("set resolution: qvga (320x240) or vga (640x480)"). A port
+        name is an input's or an output's. A wire whose two ends fix shapes that differ (``None``: any size) is
+        refused, naming both. Empty when the parameters fix none (the default)."""
+        return {}
+
     # lifecycle hooks -------------------------------------------------------------------------------------------
     def configure(self) -> None:
         """Allocate resources, open connections, load models. May raise; then the run does not start."""

@@ -671,6 +671,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
 
     # wiring checks need every node
     by_id = {n.id: n for n in nodes}
+    matched: list[tuple[NodeSpec, str, WireSpec, NodeSpec]] = []   # wires whose ports fit: their sizes are checked
     for n in nodes:
         if n.cls is None:
             continue
@@ -704,6 +705,8 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             why = n.cls.inputs[port].accepts(src.cls.outputs[w.source_port])
             if why:
                 err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {why}", w.where)
+            else:
+                matched.append((n, port, w, src))
             if w.max_age is None:
                 w.max_age = n.cls.inputs[port].max_age
         for port, p in n.cls.inputs.items():
@@ -729,11 +732,93 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             where = n.inputs[port].where if port in n.inputs else read.get(port, n.where)
             err(f"node '{n.id}': {why}", where)
 
+    # the shapes the nodes' parameters fix (Component.port_shapes), e.g. a camera's image size and a depth model's
+    fixed: dict[str, dict[str, tuple[tuple[int | None, ...], str, str]]] = {}
+    for n in nodes:
+        try:
+            fixed[n.id] = _fixed_shapes(n)
+        except Exception as exc:   # a plugin's check must not hide the graph's other errors
+            err(f"node '{n.id}': the port size check of {n.plugin} failed: {type(exc).__name__}: {exc}", n.where)
+            fixed[n.id] = {}
+    for n, port, w, src in matched:
+        clash = _size_clash(src, w.source_port, fixed[src.id], n, port, fixed[n.id])
+        if clash:
+            err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {clash}", w.where)
+
     if errors:
         raise GraphValidationError(errors)
     return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
                      duration=dur, faults=faults, description=str(doc.get("description") or ""),
                      realtime_priority=rt_prio, warnings=_isolation_warnings(nodes, clock_v, file))
+
+
+def _fixed_shapes(n: NodeSpec) -> dict[str, tuple[tuple[int | None, ...], str, str]]:
+    """Node ``n``'s :meth:`Component.port_shapes` as {port: (shape, why, how)} (``how`` "" where not given); none
+    where its plugin or parameters are unknown. TypeError or ValueError saying what is wrong with what the plugin
+    returned: a name that is no port of it, a shape that is no tuple of sizes or does not fit its port."""
+    check = getattr(n.cls, "port_shapes", None)
+    if n.cls is None or check is None or n.params_obj is None:
+        return {}
+    got = check(n.params_obj)
+    if not isinstance(got, dict):
+        raise TypeError(f"returned {type(got).__name__}, expected a dict of port: (shape, why)")
+    out = {}
+    for port, entry in got.items():
+        declared = n.cls.inputs.get(port) or n.cls.outputs.get(port)
+        if declared is None:
+            ports = [*n.cls.inputs, *n.cls.outputs]
+            raise ValueError(f"'{port}' is not a port of {n.plugin}{_suggest(str(port), ports)}; ports: "
+                             f"{', '.join(ports) or '(none)'}")
+        if (not isinstance(entry, tuple) or len(entry) not in (2, 3)
+                or not all(isinstance(t, str) for t in entry[1:])):
+            raise TypeError(f"port '{port}': expected (shape, why) or (shape, why, how), got {entry!r}")
+        shape = entry[0]
+        if not isinstance(shape, tuple) or not all(
+                d is None or (isinstance(d, int) and not isinstance(d, bool) and d >= 0) for d in shape):
+            raise TypeError(f"port '{port}': shape {shape!r}, expected a tuple of sizes (int >= 0 or None)")
+        if declared.shape is not None and _shapes_differ(declared.shape, shape):
+            raise ValueError(f"port '{port}': shape {shape!r} does not fit the port ({declared.describe()})")
+        out[port] = (shape, entry[1], entry[2] if len(entry) == 3 else "")
+    return out
+
+
+def _shapes_differ(a: tuple[int | None, ...], b: tuple[int | None, ...]) -> bool:
+    """Whether shapes ``a`` and ``b`` cannot be one (``None``: any size)."""
+    return len(a) != len(b) or any(x is not None and y is not None and x != y for x, y in zip(a, b))
+
+
+def _size_text(shape: tuple[int | None, ...], other: tuple[int | None, ...]) -> tuple[str, str]:
+    """``shape`` for a message, against ``other``, and what it counts: ("320x240", "rows x cols") where only the rows
+    and cols differ (an image's), else ("320x240x3", "shape"); "*" for any size."""
+    dims = ["*" if d is None else str(d) for d in shape]
+    if len(shape) >= 2 and len(shape) == len(other) and shape[2:] == other[2:]:
+        return f"{dims[0]}x{dims[1]}", "rows x cols"
+    return "x".join(dims) or "scalar", "shape"
+
+
+def _size_clash(src: NodeSpec, out_port: str, src_fixed: dict[str, tuple], dst: NodeSpec, in_port: str,
+                dst_fixed: dict[str, tuple]) -> str | None:
+    """None if the shapes that the two ends of a wire fix (their parameters' :meth:`Component.port_shapes`, else
+    their ports') can be one; else the error: both nodes, both sizes and what fixes each, and what to do."""
+    if out_port not in src_fixed and in_port not in dst_fixed:
+        return None   # the ports' own shapes: Port.accepts has compared them
+    ends = []
+    for node, fixed, name, port in ((src, src_fixed, out_port, src.cls.outputs[out_port]),
+                                    (dst, dst_fixed, in_port, dst.cls.inputs[in_port])):
+        if name in fixed:
+            ends.append((node, *fixed[name]))
+        elif port.shape is None:
+            return None   # any shape
+        else:
+            ends.append((node, port.shape, "its port", ""))
+    (_, a, a_why, _), (_, b, b_why, _) = ends
+    if not _shapes_differ(a, b):
+        return None
+    (a_size, a_what), (b_size, b_what) = _size_text(a, b), _size_text(b, a)
+    fixes = [f"on node '{node.id}', {how}" for node, _, _, how in (ends[1], ends[0]) if how]
+    todo = "; or ".join(fixes) if fixes else f"change what fixes the size of node '{src.id}' or of node '{dst.id}'"
+    return (f"sizes differ: node '{src.id}' ({src.plugin}) sends {a_size} ({a_what}; fixed by {a_why}) and node "
+            f"'{dst.id}' ({dst.plugin}) takes {b_size} ({b_what}; fixed by {b_why}); to make them match: {todo}")
 
 
 def _refused(cls: type[Component], params: dict[str, Any], name: str, value: Any) -> bool:

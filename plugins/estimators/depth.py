@@ -139,6 +139,19 @@ class DepthEstimator(Component):
                                  f"typed in a metre field? write {v / 1e3:g} or \"{v:g}mm\"")
             return v
 
+    @classmethod
+    def port_shapes(cls, params: Any) -> dict[str, tuple]:
+        """The frames' size is the model's (from its header): a sensor wired to ``image`` whose parameters fix
+        another size is refused when the graph is validated (the run faulted at its first frame); the depth map
+        and the contact mask have it too."""
+        from .normal_model import model_image_shape
+
+        rows, cols = model_image_shape(params.model)
+        why = f"model {params.model!r}, made for {rows}x{cols} frames"
+        how = "use a depth model calibrated on this sensor's frames (`teletouch calibrate depth`)"
+        return {"image": ((rows, cols, 3), why, how), "depth": ((rows, cols), why, how),
+                "contact_mask": ((rows, cols), why, how)}
+
     def configure(self) -> None:
         from .depth_pipeline import DepthPipeline
         from .normal_model import load_model

@@ -40,7 +40,7 @@ from teletouch.errors import ModelFileError
 __all__ = [
     "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
     "features", "uses_xy", "context_cells", "feature_count", "NormalModel", "load_model", "packaged_model_path",
-    "resolve_model", "check_model_file", "atomic_write",
+    "resolve_model", "check_model_file", "model_image_shape", "atomic_write",
 ]
 
 FORMAT = "teletouch-depth-model"
@@ -413,6 +413,21 @@ def check_model_file(spec: str | os.PathLike[str]) -> Path:
     """The model file of ``spec`` (a path or a packaged model's name) if it is a model file of this format and
     version, read from its header (the 'meta' entry only: no weights, no network), else ModelFileError naming the
     file and what was expected. What a graph's validation checks; :func:`load_model` checks the rest."""
+    return _read_header(spec)[0]
+
+
+def model_image_shape(spec: str | os.PathLike[str]) -> tuple[int, int]:
+    """The (rows, cols) of the portrait frames the model file ``spec`` (a path or a packaged model's name) was made
+    for, from its header (the 'meta' entry only: no weights, no network), else ModelFileError naming the file and
+    the field. What a graph's validation compares with the frames of the sensor wired to a ``depth`` node."""
+    p, meta = _read_header(spec)
+    return (_meta_number(str(p), meta, "rows", None, integer=True, low=1),
+            _meta_number(str(p), meta, "cols", None, integer=True, low=1))
+
+
+def _read_header(spec: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]]:
+    """The model file of ``spec`` and its 'meta' entry (this format and version), read without the rest of the
+    archive; else ModelFileError."""
     p = resolve_model(spec)
     _check_archive(p)
     try:
@@ -424,8 +439,7 @@ def check_model_file(spec: str | os.PathLike[str]) -> Path:
                 entry = np.lib.format.read_array(fh, allow_pickle=False)
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
         raise ModelFileError(f"{p}: not a readable teletouch depth model ({_EXPECTED}): {_why(exc)}") from None
-    _check_meta(str(p), entry)
-    return p
+    return p, _check_meta(str(p), entry)
 
 
 def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | None = None) -> NormalModel:

@@ -325,6 +325,20 @@ class Digit(Component):
                                      f"{what} ({fps:g} fps): expected at least {2.0 / fps:.3f} s")
             return self
 
+    @classmethod
+    def port_shapes(cls, params: Any) -> dict[str, tuple]:
+        """A camera (a discovered DIGIT or a /dev node) with ``check_resolution`` gives the stream's size, portrait
+        rows x cols after the driver's turn (the camera's width is the rows): checked against a consumer's (a depth
+        model's) when the graph is validated. A video file or a URL gives its first frame's size: not known here."""
+        if not params.check_resolution or (params.source is not None and not _is_char_device(params.source)):
+            return {}
+        rows, cols, _ = STREAMS[params.stream]
+        sizes: dict[tuple[int, int], list[str]] = {}
+        for name, (w, h, _) in STREAMS.items():
+            sizes.setdefault((w, h), []).append(name)
+        how = "set stream: " + ", ".join(f"{' or '.join(names)} ({w}x{h})" for (w, h), names in sizes.items())
+        return {"image": ((rows, cols, 3), f"stream {params.stream!r}", how)}
+
     def configure(self) -> None:
         import cv2
 

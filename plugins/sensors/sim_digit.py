@@ -422,6 +422,18 @@ class SimDigit(Component):
                                  f"(gel_thickness {h * 1e3:g} mm)")
             return self
 
+    @classmethod
+    def port_shapes(cls, params: Any) -> dict[str, tuple]:
+        """The image and ground-truth maps are ``resolution``'s size (portrait rows x cols): checked against a
+        consumer's (a depth model's) when the graph is validated."""
+        from .optics import RESOLUTIONS
+
+        rows, cols = RESOLUTIONS[params.resolution]
+        why = f"resolution {params.resolution!r}"
+        how = "set resolution: " + " or ".join(f"{k} ({r}x{c})" for k, (r, c) in RESOLUTIONS.items())
+        return {"image": ((rows, cols, 3), why, how), "gt_depth": ((rows, cols), why, how),
+                "gt_contact_mask": ((rows, cols), why, how)}
+
     def configure(self) -> None:
         p = self.params
         self.sim = DigitSimulator(
