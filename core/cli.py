@@ -27,10 +27,10 @@ import sys
 import threading
 from typing import Any, Iterator, Sequence
 
-from . import __version__
+from . import __version__, runtime
 from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
 from .registry import ENV_PLUGINS, Registry, default_registry
-from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime, _signal_text
+from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime, _say_held
 
 EXIT_TERMINATED = 128 + signal.SIGTERM   # 143: the shell's code for a process ended by SIGTERM (130 is Ctrl-C)
 
@@ -295,11 +295,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
     record_error = None
-    with _interrupts() as signals:   # a signal after the first is held until the recording is closed too
+    # a signal after the first is held until the recording is closed too; one the runtime held in its safe shutdown
+    # (the first, also: a run that was ending) it added to `signals` itself
+    with _interrupts() as signals:
         try:
             result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
-            if result.late_signal is not None and not signals:   # held by the runtime in its safe shutdown: the
-                signals.append(result.late_signal)                 # stop is under way
         finally:
             if progress is not None:
                 progress.done()
@@ -533,25 +533,20 @@ def _drop_funcless(action: argparse._SubParsersAction, kept: set[str], prefix: s
     return lines
 
 
-#: the signals of the stop under way, first first: the list of the outermost :func:`_interrupts` block; None outside
-_stop_signals: list[int] | None = None
-
-
 @contextlib.contextmanager
 def _interrupts(program: bool = False) -> Iterator[list[int]]:
     """Inside the block the first SIGINT or SIGTERM stops the command: it raises KeyboardInterrupt (SIGTERM:
-    :class:`Terminated`, the same safe stop as Ctrl-C). Each one is recorded in the yielded list, first first; one
-    after it (or after a signal the block's user appended: one the runtime held) is said on stderr ("already stopping
-    safely, please wait") and raises nothing: it must not cut the safe stop short (the samples file, the recording)
-    nor change the exit code (it raised again, or ended the process). A block inside another shares its list and
-    handlers. SIGINT is taken over only from Python's own handler (a background job's ignored SIGINT stays ignored).
-    The previous handlers are restored after; with ``program`` (the block is the process's life: it exits next) and a
-    signal seen, those signals are ignored instead, so that one cannot cut the exit short (Python's shutdown, torch's
-    clean-up: ~0.5 s) with a traceback and -2 or -15. Only the main thread may set handlers: elsewhere nothing is
-    changed."""
-    global _stop_signals
-    if _stop_signals is not None:
-        yield _stop_signals
+    :class:`Terminated`, the same safe stop as Ctrl-C). Each one is recorded in the yielded list, first first; one after
+    it (or after one the runtime held in its safe shutdown: it adds those to this list, ``runtime._stop_signals``) is
+    said on stderr ("already stopping safely, please wait") and raises nothing: it must not cut the safe stop short (the
+    samples file, the recording) nor change the exit code (it raised again, or ended the process). A block inside
+    another shares its list and handlers. SIGINT is taken over only from Python's own handler (a background job's
+    ignored SIGINT stays ignored). The previous handlers are restored after; with ``program`` (the block is the
+    process's life: it exits next) and a signal seen, those signals are ignored instead, so that one cannot cut the exit
+    short (Python's shutdown, torch's clean-up: ~0.5 s) with a traceback and -2 or -15. Only the main thread may set
+    handlers: elsewhere nothing is changed."""
+    if runtime._stop_signals is not None:
+        yield runtime._stop_signals
         return
     signals: list[int] = []
     if threading.current_thread() is not threading.main_thread():
@@ -561,12 +556,12 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
     def _handler(signum: int, frame: Any) -> None:
         signals.append(signum)
         if len(signals) > 1:
-            _say_now(f"teletouch: {_signal_text(signum)}: already stopping safely, please wait\n")
+            _say_held(signum)
             return
         raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
     old: dict[int, Any] = {}
-    _stop_signals = signals
+    runtime._stop_signals = signals
     try:
         for sig in (signal.SIGINT, signal.SIGTERM):
             prev = signal.getsignal(sig)
@@ -578,19 +573,7 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
     finally:
         for sig, prev in old.items():
             signal.signal(sig, signal.SIG_IGN if program and signals else prev)
-        _stop_signals = None
-
-
-def _say_now(text: str) -> None:
-    """``text`` on stderr from a signal handler: straight to the file descriptor (the handler may have cut into a
-    write to ``sys.stderr``, whose buffer refuses a reentrant one), through ``sys.stderr`` where it has none."""
-    try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):   # (io.UnsupportedOperation: a test's capture)
-        print(text, end="", file=sys.stderr)
-        return
-    with contextlib.suppress(OSError):
-        os.write(fd, text.encode(errors="replace"))
+        runtime._stop_signals = None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1042,24 +1042,57 @@ def _signal_text(signum: int | None) -> str:
         return f"signal {signum}"
 
 
+#: the signals of the stop under way, first first, where the process keeps them (the command line's
+#: :func:`teletouch.cli._interrupts` block sets it); None: none is kept. A signal :func:`_signals_deferred` holds is
+#: added too, so that one landing in the runtime's shutdown of a run that was ending counts as the stop's first: a
+#: later one is held as well (not raised in the command's own code after the run), and the exit code is the first's
+_stop_signals: list[int] | None = None
+
+
+def _say_held(signum: int) -> None:
+    """Say on stderr, from a signal handler, that the signal ``signum`` is held while the stop under way finishes."""
+    _say_now(f"teletouch: {_signal_text(signum)}: already stopping safely, please wait\n")
+
+
+def _say_now(text: str) -> None:
+    """``text`` on stderr from a signal handler: straight to the file descriptor (the handler may have cut into a
+    write to ``sys.stderr``, whose buffer refuses a reentrant one), through ``sys.stderr`` where it has none."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):   # (io.UnsupportedOperation: a test's capture)
+        print(text, end="", file=sys.stderr)
+        return
+    with contextlib.suppress(OSError):
+        os.write(fd, text.encode(errors="replace"))
+
+
 @contextlib.contextmanager
 def _signals_deferred() -> Iterator[list[int]]:
     """SIGINT and SIGTERM that arrive inside the block are recorded in the yielded list instead of raising (a second
-    Ctrl-C must not cut the safe-state sequence short). Only the main thread can set signal handlers: elsewhere the
-    block runs as it is."""
+    Ctrl-C must not cut the safe-state sequence short), said on stderr ("already stopping safely, please wait") and
+    added to :data:`_stop_signals` where the process keeps them. Only the main thread can set signal handlers:
+    elsewhere the block runs as it is."""
     import signal
 
     late: list[int] = []
     if threading.current_thread() is not threading.main_thread():
         yield late
         return
+    stop = _stop_signals
+
+    def _hold(signum: int, _frame: Any) -> None:
+        late.append(signum)
+        if stop is not None:
+            stop.append(signum)
+        _say_held(signum)
+
     old: dict[int, Any] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         prev = signal.getsignal(sig)
         if prev is None:            # installed from outside Python: left alone
             continue
         old[sig] = prev
-        signal.signal(sig, lambda s, _frame: late.append(s))
+        signal.signal(sig, _hold)
     try:
         yield late
     finally:

@@ -207,7 +207,7 @@ def test_trajectory_intent_interpolates_and_validates():
     assert ti.desired(9.0, st) == pytest.approx((0.010, 0.0))
     with pytest.raises(ValueError, match="times must increase"):
         op.validate_intent({"type": "trajectory", "waypoints": [[1, 0.01], [0.5, 0.02]]})
-    with pytest.raises(ValidationError, match="intent.openning: Extra inputs"):
+    with pytest.raises(ValidationError, match="intent 'hold' has no field 'openning'"):
         SimOmega7.Params(intent={"type": "hold", "openning": 0.01})
     with pytest.raises(ValidationError, match="unknown intent type 'wave'"):
         SimOmega7.Params(intent="wave")

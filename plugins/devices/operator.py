@@ -136,11 +136,31 @@ def validate_intent(spec: Any) -> dict[str, Any]:
         try:
             p = pcls(**spec)
         except ValidationError as exc:
-            errs = "; ".join(f"intent.{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}"
-                             for e in exc.errors())
-            raise ValueError(f"intent '{type_name}': {errs}") from None
+            raise ValueError(_params_error(type_name, pcls, exc.errors())) from None
         return {"type": type_name, **p.model_dump()}
     return {"type": type_name, **spec}
+
+
+def _params_error(type_name: str, pcls: type, errors: list[dict[str, Any]]) -> str:
+    """The message of an intent's refused parameters: an unknown field first, with the fields the intent type takes
+    (a misnamed one is the likelier mistake), then each other problem led by its field."""
+    unknown = [str(e["loc"][0]) for e in errors if e["type"] == "extra_forbidden" and len(e["loc"]) == 1]
+    errs = [f"intent.{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}"
+            for e in errors if not (e["type"] == "extra_forbidden" and len(e["loc"]) == 1)]
+    if not unknown:
+        return f"intent '{type_name}': {'; '.join(errs)}"
+    names = ", ".join(f"'{n}'" for n in unknown)
+    head = f"intent '{type_name}' has no field{'s' if len(unknown) > 1 else ''} {names}; {_fields_text(pcls)}"
+    return "; ".join([head, *errs])
+
+
+def _fields_text(pcls: type) -> str:
+    """The fields an intent's ``Params`` take, each with its unit where it has one: "its fields: opening (m), ..."."""
+    fields = []
+    for name, info in getattr(pcls, "model_fields", {}).items():
+        extra = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+        fields.append(f"{name} ({extra['unit']})" if extra.get("unit") else name)
+    return f"its fields: {', '.join(fields)}" if fields else "it takes no fields"
 
 
 def make_intent(spec: Any) -> Intent:
