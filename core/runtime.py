@@ -1089,8 +1089,8 @@ def _signals_deferred() -> Iterator[list[int]]:
     old: dict[int, Any] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         prev = signal.getsignal(sig)
-        if prev is None:            # installed from outside Python: left alone
-            continue
+        if prev is None or prev == signal.SIG_IGN:   # installed from outside Python, or ignored (nohup, a job
+            continue                                  # started with `&`): left alone
         old[sig] = prev
         signal.signal(sig, _hold)
     try:

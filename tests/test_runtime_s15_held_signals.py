@@ -119,3 +119,20 @@ def test_a_signal_the_runtime_holds_during_teletouch_run_is_said_once_and_sets_t
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"teletouch: SIGTERM: {HELD}", f"teletouch: Ctrl-C: {HELD}",
                    "teletouch: interrupted (SIGTERM): devices driven to their safe state"], err
+
+
+def test_an_ignored_signal_stays_ignored_while_the_runtime_holds_signals():
+    # before: the shutdown's hold took over SIGINT also where it was ignored (a job started with nohup or `&`): a
+    # Ctrl-C meant for the shell's foreground job was then said and counted by the background run
+    import signal
+
+    from teletouch.runtime import _signals_deferred
+
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with _signals_deferred():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN   # (held as before)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, old)
