@@ -28,7 +28,7 @@ position-force controller at 1 kHz), built by teletouch.plugins.controllers.expe
   ``rt-est`` (``rt``, and ``priority: 40`` on the 60 Hz nodes: their thread under SCHED_FIFO 40), ``rt-est-cold``
   (``rt-est`` with depth's ``warm: false``: no rehearsal of the last frame 1 ms before each step, so the two show
   what the warm-up gains) and ``rt-isolate2-est`` (``rt-isolate2`` with ``priority: 40``: the isolated processes
-  under SCHED_FIFO 40; an isolated node is not warmed), each with
+  under SCHED_FIFO 40; depth's warm-up runs in its process, 1 ms before each step), each with
   the machine's noise over its run (hypervisor steal, idle share, load: /proc/stat) and its ratios to ``plain``;
   and the controller alone (mock leader, estimate and device: what it costs the 1 kHz thread itself).
   Overruns do not fault these runs (``max_overruns: 0``): they are counted. Each configuration says whether its

@@ -25,6 +25,8 @@ An input whose sample is the same object as the one the child already holds (a c
 since the last step of a faster node) is not sent again: the child's component sees the same Sample, as inline.
 Values other than numbers, numeric arrays and text cross pickled one by one, so a value the child cannot unpickle
 (its class is not importable there) is a fault of the node that names the plugin and the input; the child lives on.
+A component's own warm() (Component.warm: 1 ms before each step) runs in the child, on the inputs it holds; the
+proxy waits for it as for a step. For a class without one, or a device, nothing crosses.
 
 Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
 dropped, never taken for a later call's. The child answers every request once, in order, so a reply without its number
@@ -58,7 +60,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .component import Component, Context, Inputs, Sample, _Slot
+from .component import Component, Context, Device, Inputs, Sample, _Slot
 from .errors import ComponentFault, exception_line
 
 #: seconds a child may take to answer a lifecycle call (configure may load a model)
@@ -429,7 +431,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
                     continue
                 comp = cls(cls.Params.model_validate(params), node_id=node_id, ctx=ctx)
                 comp.configure()
-            elif op in ("activate", "deactivate"):
+            elif op in ("activate", "deactivate", "warm"):   # warm: with the inputs the child holds
                 getattr(comp, op)()
             elif op == "clock":
                 origin[:] = msg[2:]
@@ -485,6 +487,8 @@ class ProcessProxy(Component):
         self._abandon: str | None = None            # why the step in flight (or about to wait) is to be abandoned
         self._wake_lock = threading.Lock()
         self._poller: Any = None                    # select.poll() on the pipe and the wake-up pipe (steps)
+        # whether warm() asks the child: its class has a warm() of its own and is no device (as inline: _Node.warm)
+        self._warms = cls.warm is not Component.warm and not issubclass(cls, Device)
 
     # -------------------------------------------------------------------------------------------------- plumbing
     def _started(self) -> bool:
@@ -526,7 +530,7 @@ class ProcessProxy(Component):
                     if not events:
                         self._stuck = True
                         raise ComponentFault(f"isolated process did not answer '{op}' within {timeout:.3g} s")
-                    if not self._answered(events, sent):   # a wake-up left over from a step that had ended
+                    if not self._answered(events, sent, op):   # a wake-up left over from a call that had ended
                         continue
                 try:
                     reply = conn.recv()
@@ -561,9 +565,9 @@ class ProcessProxy(Component):
             pending.popleft()
         return number
 
-    def _answered(self, events: list[tuple[int, int]], sent: float) -> bool:
-        """The events of a step's wait on the pipe and the wake-up pipe: True when the pipe has something, False
-        after a wake-up that abandons nothing; raises :class:`StepAbandoned` after one that does."""
+    def _answered(self, events: list[tuple[int, int]], sent: float, op: str = "step") -> bool:
+        """The events of a step's (or warm-up's) wait on the pipe and the wake-up pipe: True when the pipe has
+        something, False after a wake-up that abandons nothing; raises :class:`StepAbandoned` after one that does."""
         wake = self._wake[0]   # type: ignore[index]
         answer = False
         for fd, _ in events:
@@ -574,15 +578,16 @@ class ProcessProxy(Component):
             why, self._abandon = self._abandon, None
             if why is not None:
                 self._stuck = True
-                raise StepAbandoned(f"step abandoned after {time.monotonic() - sent:.3f} s without an answer from "
+                what = "step" if op == "step" else f"{op}()"
+                raise StepAbandoned(f"{what} abandoned after {time.monotonic() - sent:.3f} s without an answer from "
                                     f"the isolated process: {why}")
         return answer
 
     def abandon_step(self, why: str) -> None:
-        """From another thread: stop waiting for the step in flight (or the next one to wait: a step that has not
-        reached its wait yet) at once; that step raises :class:`StepAbandoned` with ``why``. For a caller that has
-        reported the node's fault already (the runtime's watchdog: the step keeps the devices of its rate group from
-        being stepped). The child goes on with the step; its late answer is dropped."""
+        """From another thread: stop waiting for the step or warm-up (:meth:`warm`) in flight (or the next one to
+        wait: one that has not reached its wait yet) at once; that call raises :class:`StepAbandoned` with ``why``.
+        For a caller that has reported the node's fault already (the runtime's watchdog: the step keeps the devices of
+        its rate group from being stepped). The child goes on with the call; its late answer is dropped."""
         self._abandon = why
         with self._wake_lock:   # not closed (and its number reused) while this writes to it
             if self._wake is not None:
@@ -691,6 +696,22 @@ class ProcessProxy(Component):
         if stop:
             self.ctx.request_stop(stop[0])
         return out
+
+    def warm(self) -> None:
+        """The component's warm() in the child (the runtime calls this :attr:`Runtime.WARM_LEAD` before each step),
+        waited for as a step is: one call at a time, numbered, timed out after ``step_timeout``, cut short by
+        :meth:`abandon_step`; an exception in it comes back as one in a step does. No input crosses: the child still
+        holds the last step's. Nothing is sent for a class without a warm() of its own or for a device."""
+        if not self._warms:
+            return
+        if not self._lock.acquire(timeout=self._step_timeout):
+            raise ComponentFault(f"warm() not sent: the isolated process is busy after {self._step_timeout:.3g} s")
+        try:
+            if not self._started():
+                raise ComponentFault("isolated process not running")
+            self._exchange("warm", (), self._step_timeout, abandonable=True)
+        finally:
+            self._lock.release()
 
     def deactivate(self) -> None:
         if self._started() and self._proc.is_alive():

@@ -182,10 +182,12 @@ class _Node:
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
         self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
         self.last_t = 0.0
-        # wall clock: its Component.warm(), called WARM_LEAD before each step; None where it has none (the base
-        # class's), for a device (a warm-up must never command it) and for an isolated node (its proxy has none)
-        overridden = type(comp).warm is not Component.warm
-        self.warm = comp.warm if overridden and not self.is_device else None
+        # wall clock: its Component.warm(), called WARM_LEAD before each step; None where its class has none (the base
+        # class's) and for a device (a warm-up must never command it). The class is the spec's: for an isolated node
+        # the one in its child (the proxy's warm() asks the child), not the proxy's
+        cls = spec.cls
+        overridden = cls.warm is not Component.warm
+        self.warm = comp.warm if overridden and not (self.is_device or issubclass(cls, Device)) else None
 
     def achieved_rate(self) -> float | None:
         """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
