@@ -78,7 +78,7 @@ def _kinds(node: str) -> list[str]:
 def test_wall_clock_warms_a_slow_node_shortly_before_each_step(reg):
     text = """
 clock: wall
-faults: {max_overruns: 0}
+faults: {max_overruns: 0, watchdog: 5}
 nodes:
   - {id: est, plugin: warmed, rate: 50}
   - {id: dev, plugin: mock-device, rate: 500}
@@ -107,7 +107,7 @@ nodes:
     assert _kinds("est").count("step") >= 20 and "warm" not in _kinds("est")
     wall = """
 clock: wall
-faults: {max_overruns: 0}
+faults: {max_overruns: 0, watchdog: 5}
 nodes:
   - {id: fast, plugin: warmed, rate: 1000}
   - {id: arm, plugin: warmed-device, rate: 50}
@@ -121,6 +121,7 @@ nodes:
 def test_an_exception_in_warm_faults_the_node_naming_warm(reg):
     text = """
 clock: wall
+faults: {watchdog: 5}
 nodes:
   - {id: est, plugin: warmed, rate: 50, params: {fail: true}}
   - {id: dev, plugin: mock-device, rate: 500}

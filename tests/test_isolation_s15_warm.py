@@ -126,7 +126,7 @@ def requests(monkeypatch):
 
 GRAPH = """
 clock: wall
-faults: {max_overruns: 0}
+faults: {max_overruns: 0, watchdog: 5}
 nodes:
   - {id: src, plugin: s15-ramp, rate: 50}
   - {id: warmed, plugin: s15-warm-echo, rate: 50, inputs: {x: src.x}, isolate: process}
