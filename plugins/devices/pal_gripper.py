@@ -529,7 +529,9 @@ class PalGripper(FollowerBase):
         if gone > self.params.controller_timeout:
             with self._lock:
                 s = self._state
-            if s is not None and now - s[3] > min(gone, self.params.read_timeout):
+            # the states go on where the last one is younger than half that time: one that DDS delivered late, just
+            # after the subscription was seen gone (a loaded machine), is the robot going away as a whole
+            if s is not None and now - s[3] > 0.5 * min(gone, self.params.read_timeout):
                 raise HardwareError(f"no controller is subscribed to {self.command_topic} for {gone:.3f} s "
                                     f"(controller_timeout {self.params.controller_timeout} s) and "
                                     f"{self.state_topic} is silent for {now - s[3]:.3f} s: the robot or the "
