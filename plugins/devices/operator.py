@@ -38,6 +38,7 @@ from typing import Any, Callable, ClassVar, Protocol, runtime_checkable
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from teletouch.graph import _suggest
 from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening, plausible_speed
 
 __all__ = [
@@ -149,7 +150,8 @@ def _params_error(type_name: str, pcls: type, errors: list[dict[str, Any]]) -> s
             for e in errors if not (e["type"] == "extra_forbidden" and len(e["loc"]) == 1)]
     if not unknown:
         return f"intent '{type_name}': {'; '.join(errs)}"
-    names = ", ".join(f"'{n}'" for n in unknown)
+    known = list(getattr(pcls, "model_fields", {}))
+    names = ", ".join(f"'{n}'{_suggest(n, known)}" for n in unknown)
     head = f"intent '{type_name}' has no field{'s' if len(unknown) > 1 else ''} {names}; {_fields_text(pcls)}"
     return "; ".join([head, *errs])
 
