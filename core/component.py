@@ -510,10 +510,11 @@ class Component:
         before each of its steps, so that the step finds its data and code in the CPU's caches. After a pause of
         several milliseconds they are cold again on a shared machine, and a 60 Hz estimator's step takes up to
         twice its time (docs/writing-a-plugin.md). A warm() must not change the outputs or anything a step reads:
-        typically it rehearses the last step's work and throws the result away. It is not called for a device or
-        under the simulated clock, nor when the step is already due; an isolated node's runs in its process (the
-        runtime waits for it as for a step: isolation.ProcessProxy.warm). An exception faults the node as one in
-        step() does."""
+        typically it rehearses the last step's work and throws the result away. It is not called for a device,
+        under the simulated clock, in a group whose period is under 5 ms, when the step is already due, or where its
+        latest warm-up and the group's latest steps took more than half the period (the group would overrun); an
+        isolated node's runs in its process (the runtime waits for it as for a step: isolation.ProcessProxy.warm).
+        An exception faults the node as one in step() does; the watchdog names a warm-up that hangs."""
 
     def close(self) -> None:
         """Release everything; called once, even after a failed configure."""

@@ -147,7 +147,7 @@ class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
                  "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark",
-                 "first_t", "last_t", "warm")
+                 "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -188,6 +188,9 @@ class _Node:
         cls = spec.cls
         overridden = cls.warm is not Component.warm
         self.warm = comp.warm if overridden and not (self.is_device or issubclass(cls, Device)) else None
+        self.warming = False    # its warm() is running (in_step is set too: the watchdog names the warm-up)
+        self.warm_began = 0.0   # graph time its latest warm() began
+        self.warm_dt = 0.0      # how long its latest warm() took (s)
 
     def achieved_rate(self) -> float | None:
         """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
@@ -868,19 +871,21 @@ class Runtime:
         isolated = isinstance(blocker.comp, ProcessProxy)
         what = f"{blocker.spec.plugin}, isolated process" if isolated else blocker.spec.plugin
         blamed = not blocker.faulted
-        began = blocker.starts[(blocker.nstarts - 1) % self.JITTER_RING]
+        warming = blocker.warming   # (read once: the warm-up may end meanwhile)
+        act = "warm()" if warming else "step"
+        began = blocker.warm_began if warming else blocker.starts[(blocker.nstarts - 1) % self.JITTER_RING]
         if blamed and blocker.is_device:   # a device whose own step hangs: its stall, as when it is alone
             self._fault(blocker, "stall", f"not stepped for {now - began:.3f} s (watchdog {limit:g} s): made safe",
                         now)
         elif blamed:
             devices = ", ".join(f"'{m.id}'" for m in members if m.is_device)
-            self._fault(blocker, "timeout", f"({what}) step did not return within {limit:g} s (faults.watchdog; it "
+            self._fault(blocker, "timeout", f"({what}) {act} did not return within {limit:g} s (faults.watchdog; it "
                                             f"began at t={began:.3f} s): the devices at its rate ({devices}) are not "
                                             f"stepped while it runs", now)
         for m in members:   # (one already disabled is skipped: a device wired from it, under degrade)
             if m.is_device and not m.faulted:
                 last = m.starts[(m.nstarts - 1) % self.JITTER_RING] if m.nstarts else 0.0
-                self._fault(m, "stall", f"not stepped for {now - last:.3f} s: its rate group waits for the step of "
+                self._fault(m, "stall", f"not stepped for {now - last:.3f} s: its rate group waits for the {act} of "
                                         f"node '{blocker.id}' ({what}), past the watchdog's {limit:g} s: made safe",
                             now)
         if blamed and isolated:   # after the devices are safe: the group's thread, freed, must not step them first
@@ -924,13 +929,14 @@ class Runtime:
         late = 0   # consecutive late cycles of the group
         lock = self._lock
         warmers = [n for n in members if n.warm is not None] if period >= 5 * self.WARM_LEAD else []
+        cycle = 0.0   # the members' steps' time in the latest cycle (s)
         while not stop.is_set():
             deadline = t0 + k * period
             if warmers:
                 rem = deadline - self.WARM_LEAD - perf()
                 if rem > 0:   # (a group running late steps at once)
                     sleep(rem)
-                    self._warm(warmers, perf() - t0, stop)
+                    self._warm(warmers, period, cycle, stop)
             rem = deadline - perf()
             if rem > spin:
                 sleep(rem - spin)
@@ -938,6 +944,7 @@ class Runtime:
                 pass
             worst: _Node | None = None   # the member whose step took longest in this cycle
             worst_dt = -1.0
+            cycle = 0.0
             for node in members:
                 if node.faulted or stop.is_set():
                     continue
@@ -964,6 +971,7 @@ class Runtime:
                 node.steps += 1
                 dt = perf() - t1
                 node.busy += dt
+                cycle += dt
                 if dt > node.max_step:
                     node.max_step = dt
                 if dt > worst_dt:
@@ -994,20 +1002,28 @@ class Runtime:
             if all(n.faulted for n in members):
                 return
 
-    def _warm(self, warmers: list[_Node], t: float, stop: _StopEvent) -> None:
-        """Each node's Component.warm() before its step (:attr:`WARM_LEAD`): an exception faults the node as one in
-        its step does; the watchdog sees it as in its step (``in_step``), so a warm-up that hangs is blamed as a step
-        that hangs."""
+    def _warm(self, warmers: list[_Node], period: float, cycle: float, stop: _StopEvent) -> None:
+        """Each node's Component.warm() before its step (:attr:`WARM_LEAD`), where its latest warm-up and the group's
+        latest cycle of steps (``cycle``, s) take at most half the ``period`` (a warm-up that would make the group
+        overrun is left out: the overrun would be blamed on a step that fits alone). An exception faults the node as
+        one in its step does; the watchdog sees the warm-up as in its step (``in_step``) and names it (``warming``)."""
+        perf = time.perf_counter
         for node in warmers:
-            if node.faulted or stop.is_set():
+            if node.faulted or stop.is_set() or node.warm_dt + cycle > 0.5 * period:
                 continue
+            t1 = perf()
+            node.warm_began = t1 - self._t0
+            node.warming = True
             node.in_step = True
             try:
                 node.warm()
             except BaseException as exc:   # (as a step's: also SystemExit or KeyboardInterrupt raised in it)
                 node.in_step = False
-                self._fault(node, "exception", f"warm(): {exception_line(exc)}", t)
+                if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it has
+                    self._fault(node, "exception", f"warm(): {exception_line(exc)}", node.warm_began)   # said so
             node.in_step = False
+            node.warming = False
+            node.warm_dt = perf() - t1
 
     def _group_died(self, members: list[_Node], exc: BaseException) -> None:
         """A rate group's loop ended by an error outside the steps (in a tap or a fault handler): none of its nodes

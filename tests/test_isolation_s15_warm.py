@@ -246,8 +246,10 @@ nodes:
     res = rt.run(5.0)
     assert res.exit_code == EXIT_FAULT and res.sim_time < 0.5, res.message
     assert [(f.node, f.kind) for f in res.faults] == [("warmed", "timeout"), ("dev", "stall")], res.faults
-    # the wait for the warm-up was abandoned (not timed out after the step timeout, 1 s): said, not faulted again
-    assert any("warm(): StepAbandoned: warm() abandoned after 0." in m for m in logs), logs
+    assert "warm() did not return within 0.1 s" in res.faults[0].message, res.faults[0].message
+    assert "waits for the warm() of node 'warmed'" in res.faults[1].message, res.faults[1].message
+    # the wait for the warm-up was abandoned (not timed out after the step timeout, 1 s), and not faulted again
+    assert not any("StepAbandoned" in f.message for f in res.faults)
     assert rt.component("dev").safe
 
 
@@ -279,7 +281,8 @@ nodes:
     res, rt = run_yaml(text, reg, duration=1.0, taps=[tap])
     assert res.exit_code == EXIT_OK, res.message
     ops = [op for nid, op in requests if nid == "depth"]
-    assert ops.count("warm") >= ops.count("step") - 2 and ops.count("step") >= 40, ops
+    # (a warm-up is left out where the cycle would not leave it room: a loaded machine's slow cycle)
+    assert ops.count("warm") >= ops.count("step") / 2 and ops.count("step") >= 40, ops
     checked = 0
     with Harness(DepthEstimator, {"warm": False}) as h:
         for o in outs:
