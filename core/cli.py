@@ -314,8 +314,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         code = EXIT_TERMINATED                                                              # stopped the run before
     if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
         code = EXIT_INVALID
-    if not args.quiet:
-        print(result.summary(), file=sys.stderr)
+    if not args.quiet:   # without the summary's first line: how the run ended, said once, last (below)
+        print(result.summary().split("\n", 1)[1], file=sys.stderr)
     if args.json:   # exit_code: what the shell sees
         print(json.dumps(dict(result.as_dict(), exit_code=code,
                               recording_error=None if record_error is None else str(record_error)), default=str))
@@ -553,16 +553,21 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
         yield signals
         return
 
+    closing: list[int] = []   # set once the handlers are being restored; then the first signal if it came there
+
     def _handler(signum: int, frame: Any) -> None:
+        first = not signals   # decided before the append: a second handler nested right after it is not the first
         signals.append(signum)
-        if len(signals) > 1:
+        if not first:
             _say_held(signum)
-            return
-        raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+        elif closing:
+            closing.append(signum)   # raised once the handlers are restored (below)
+        else:
+            raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
     old: dict[int, Any] = {}
-    runtime._stop_signals = signals
     try:
+        runtime._stop_signals = signals
         for sig in (signal.SIGINT, signal.SIGTERM):
             prev = signal.getsignal(sig)
             if prev is None or (sig == signal.SIGINT and prev is not signal.default_int_handler):
