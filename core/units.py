@@ -32,6 +32,9 @@ _UNITS: dict[str, tuple[str, float]] = {
     "N*m*s/rad": ("N*m*s/rad", 1.0), "m/(N*s)": ("m/(N*s)", 1.0), "N/(m*s)": ("N/(m*s)", 1.0),
 }
 
+#: the SI units the table converts to: a field declared in another unit takes only a plain number
+_SI_UNITS: tuple[str, ...] = tuple(dict.fromkeys(si for si, _ in _UNITS.values()))
+
 _QTY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s].*|1/\S.*)?\s*$")
 #: inf, nan (what float() takes for a number that is not finite), with or without a unit after them
 _NON_FINITE = re.compile(r"^\s*[-+]?(?:inf(?:inity)?|nan)(?![a-z])", re.IGNORECASE)
@@ -53,13 +56,57 @@ UNDERSCORE = "an underscore in a number is taken for a typo, not for a digit sep
 MAX_PLAUSIBLE_OPENING = 1.0        # m
 
 
+#: a DIGIT's gel is 4-5 mm thick: no depth into it, nor a threshold, tolerance or margin on one, is larger; a larger
+#: one in a metre field is millimetres typed there (``contact_threshold: 30`` read 30 m and saw no contact at all)
+MAX_PLAUSIBLE_GEL_DEPTH = 5e-3     # m
+#: no limit on a measured depth is set deeper than this, even one beyond the gel for a test rig or a calibration of
+#: a thicker gel (calibrated depths stop below 10 mm); a deeper one is millimetres typed in the metre field
+MAX_PLAUSIBLE_DEPTH_LIMIT = 0.1    # m
+#: a DIGIT's sensing area is about 20 x 16 mm: no contact is larger; a larger area in a m^2 field is mm^2 typed there
+MAX_PLAUSIBLE_CONTACT_AREA = 20e-3 * 16e-3   # m^2
+
+
+def _metres_typed(name: str, value: float, limit: float, beyond: str, note: str = "") -> str | None:
+    """None if ``|value|`` (m) is at most ``limit``; else why ``name`` looks like millimetres typed in a metre field:
+    it is ``beyond`` what is plausible (``note``: said with the limit)."""
+    if abs(value) <= limit:
+        return None
+    return (f"{name} ({value:g} m) is {beyond} ({limit:g} m at most{note}): millimetres in the metre field? a bare "
+            f"number is metres: for {value:g} mm write {value / 1e3:g} or \"{value:g}mm\"")
+
+
 def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> str | None:
     """None if ``|value|`` (m) is a plausible gripper opening; else why ``name`` looks like millimetres typed in a
     metre field (``opening_max: 90`` meant 90 mm and was taken as 90 m)."""
-    if abs(value) <= limit:
-        return None
-    return (f"{name} ({value:g} m) is beyond any gripper's opening ({limit:g} m at most): millimetres in the "
-            f"metre field? a bare number is metres: for {value:g} mm write {value / 1e3:g} or \"{value:g}mm\"")
+    return _metres_typed(name, value, limit, "beyond any gripper's opening")
+
+
+def too_deep(name: str, value: float, limit: float = MAX_PLAUSIBLE_GEL_DEPTH) -> str | None:
+    """None if ``|value|`` (m) is a plausible depth into a DIGIT's gel (or a threshold, tolerance or margin on one);
+    else why ``name`` looks like millimetres typed in a metre field (``contact_threshold: 0.03`` meant 0.03 mm). With
+    ``limit`` beyond the gel (:data:`MAX_PLAUSIBLE_DEPTH_LIMIT`: a limit on the measured depth) it says so."""
+    if limit > MAX_PLAUSIBLE_GEL_DEPTH:
+        return _metres_typed(name, value, limit, "deeper than a gel is pressed, even on a test rig")
+    return _metres_typed(name, value, limit, "more than a DIGIT's gel is thick", "; the gel is 4-5 mm")
+
+
+def plausible_depth(name: str, value: float, limit: float = MAX_PLAUSIBLE_GEL_DEPTH) -> float:
+    """``value`` if it is a plausible depth into the gel (:func:`too_deep`), else a ValueError with its message: for
+    validators of depth fields."""
+    return _refused(too_deep(name, value, limit), value)
+
+
+def too_large_an_area(name: str, value: float, limit: float = MAX_PLAUSIBLE_CONTACT_AREA) -> str | None:
+    """None if ``|value|`` (m^2) is a plausible contact area on a DIGIT; else why ``name`` looks like mm^2 typed in
+    the m^2 field (``min_contact_area: 4`` meant 4 mm^2 and was taken as 4 m^2)."""
+    return _in_smaller_unit(name, value, limit, "m^2", "mm^2", "larger than a DIGIT's sensing area",
+                            "; about 20 x 16 mm", factor=1e-6)
+
+
+def plausible_contact_area(name: str, value: float, limit: float = MAX_PLAUSIBLE_CONTACT_AREA) -> float:
+    """``value`` if it is a plausible contact area (:func:`too_large_an_area`), else a ValueError with its message:
+    for validators of area fields."""
+    return _refused(too_large_an_area(name, value, limit), value)
 
 
 def _refused(problem: str | None, value: float) -> float:
@@ -85,20 +132,21 @@ MAX_PLAUSIBLE_SPEED = 2.0          # m/s
 MAX_PLAUSIBLE_HAND_FORCE = 50.0    # N
 
 
-def _thousandths(name: str, value: float, limit: float, unit: str, small: str, beyond: str,
-                 note: str = "") -> str | None:
-    """None if ``|value|`` (``unit``) is at most ``limit``; else why ``name`` looks like thousandths (``small``,
-    e.g. mm/s) typed in the ``unit`` field: it is ``beyond`` what is plausible (``note``: said with the limit)."""
+def _in_smaller_unit(name: str, value: float, limit: float, unit: str, small: str, beyond: str, note: str = "",
+                     factor: float = 1e-3) -> str | None:
+    """None if ``|value|`` (``unit``) is at most ``limit``; else why ``name`` looks like a smaller unit (``small``,
+    ``factor`` of ``unit``: e.g. mm/s, 1e-3 m/s) typed in the ``unit`` field: it is ``beyond`` what is plausible
+    (``note``: said with the limit)."""
     if abs(value) <= limit:
         return None
     return (f"{name} ({value:g} {unit}) is {beyond} ({limit:g} {unit} at most{note}): {small} in the {unit} field? a "
-            f"bare number is {unit}: for {value:g} {small} write '{value:g}{small}' ({value / 1e3:g} {unit})")
+            f"bare number is {unit}: for {value:g} {small} write '{value:g}{small}' ({value * factor:g} {unit})")
 
 
 def too_fast(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> str | None:
     """None if ``|value|`` (m/s) is a plausible gripper or hand speed; else why ``name`` looks like mm/s typed in a
     m/s field (``max_speed: 100`` meant 100 mm/s and was taken as 100 m/s)."""
-    return _thousandths(name, value, limit, "m/s", "mm/s", "faster than any gripper closes or a hand pinches")
+    return _in_smaller_unit(name, value, limit, "m/s", "mm/s", "faster than any gripper closes or a hand pinches")
 
 
 def plausible_speed(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> float:
@@ -110,8 +158,8 @@ def plausible_speed(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED)
 def too_strong_for_a_hand(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> str | None:
     """None if ``|value|`` (N) is a force a haptic device may render on a person's hand; else why ``name`` looks like
     millinewtons typed in the newton field (``max_force: 8000`` meant 8000 mN)."""
-    return _thousandths(name, value, limit, "N", "mN", "beyond what a haptic device renders on a hand",
-                        "; the Omega.7's grip: 8 N")
+    return _in_smaller_unit(name, value, limit, "N", "mN", "beyond what a haptic device renders on a hand",
+                            "; the Omega.7's grip: 8 N")
 
 
 def plausible_hand_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_HAND_FORCE) -> float:
@@ -151,6 +199,8 @@ def parse_quantity(text: Any, unit: str | None = None) -> float:
     sym = (m.group(2) or "").strip().replace(_GREEK_MU, _MICRO)
     if not sym:
         return value
+    if unit is not None and unit not in _SI_UNITS:   # a plugin's own unit (N/m^3): nothing to convert it from
+        raise ValueError(_not_convertible(sym, text, unit, m.group(1)))
     if sym not in _UNITS:
         raise ValueError(_unknown_unit(sym, text, unit))
     si, factor = _UNITS[sym]
@@ -168,7 +218,14 @@ def _unknown_unit(sym: str, text: str, unit: str | None) -> str:
     msg = f"unknown unit {sym!r} in {text!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
     if unit is None:
         return f"{msg}; known: {', '.join(sorted(_UNITS))}"
-    return f"{msg}; expected a quantity in {unit} ({', '.join(fits) if fits else 'a plain number'})"
+    return f"{msg}; expected a quantity in {unit} ({', '.join(fits)})"
+
+
+def _not_convertible(sym: str, text: str, unit: str, number: str) -> str:
+    """Why ``text`` (``number`` with the unit ``sym``) is refused for a field whose declared ``unit`` is none that
+    teletouch converts (a plugin may declare any SI unit): only a plain number, taken as SI, is taken there."""
+    return (f"{text!r} has a unit ({sym}), but the field's unit {unit} is not a unit teletouch converts (teletouch "
+            f"converts {', '.join(_SI_UNITS)}): write a plain number, in {unit} (SI), e.g. {number}")
 
 
 def _example(unit: str | None) -> str:

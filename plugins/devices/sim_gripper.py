@@ -17,10 +17,10 @@ from __future__ import annotations
 import math
 from typing import Any, Callable, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Port, Sample, hookimpl
-from teletouch.units import Hertz, Meters, NewtonsPerMeter, Pascals
+from teletouch.units import Hertz, Meters, NewtonsPerMeter, Pascals, plausible_opening
 
 from teletouch.plugins.sensors import gel as _gel  # numpy only
 
@@ -100,6 +100,12 @@ class SimGripper(FollowerBase):
                                              "thin-layer correction (None: half space)",
                                              json_schema_extra={"unit": "m"})
         gel_fingers: int = Field(1, ge=1, le=2, description="fingers with a gel pad (1: one DIGIT, the other rigid)")
+
+        @field_validator("initial_opening", "object_width", "object_core_width")
+        @classmethod
+        def _opening(cls, v: float | None, info: Any) -> float | None:
+            # before the range checks below: 20 meant 20 mm, not an opening 20 m wide
+            return v if v is None else plausible_opening(info.field_name, v)
 
         @model_validator(mode="after")
         def _initial(self) -> "SimGripper.Params":

@@ -45,7 +45,9 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import Component, Kind, ModelFileError, Params, Port, Sample, TeletouchError, hookimpl
 from teletouch.errors import ComponentFault
 from teletouch.reproducible import build_time
-from teletouch.units import Hertz, Meters, Newtons, Seconds
+from teletouch.units import (
+    MAX_PLAUSIBLE_DEPTH_LIMIT, Hertz, Meters, Newtons, Seconds, plausible_contact_area, plausible_depth,
+)
 
 __all__ = ["ForceCalibration", "CalibrationError", "PolyForce", "read_pairs_csv", "write_pairs_csv",
            "packaged_calibrations", "resolve_calibration", "check_calibration_file", "depth_levels", "FORMAT",
@@ -1328,6 +1330,22 @@ class PolyForce(Component):
             except ModelFileError as exc:
                 raise ValueError(str(exc)) from None
             return v
+
+        @field_validator("contact_threshold", "negative_tolerance", "centroid_band")
+        @classmethod
+        def _gel_depth(cls, v: float, info: Any) -> float:
+            return plausible_depth(info.field_name, v)   # 0.03 meant 0.03 mm: no gel is 30 mm thick
+
+        @field_validator("depth_limit")
+        @classmethod
+        def _depth_limit(cls, v: float, info: Any) -> float:
+            # beyond the gel is allowed (a test rig, a calibration of a thicker gel), not 5 m: that is 5 mm
+            return plausible_depth(info.field_name, v, MAX_PLAUSIBLE_DEPTH_LIMIT)
+
+        @field_validator("min_contact_area")
+        @classmethod
+        def _contact_area(cls, v: float, info: Any) -> float:
+            return plausible_contact_area(info.field_name, v)   # 4 meant 4 mm^2: no DIGIT senses over 4 m^2
 
         @field_validator("depth_model")
         @classmethod
