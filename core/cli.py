@@ -576,9 +576,16 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
             signal.signal(sig, _handler)
         yield signals
     finally:
-        for sig, prev in old.items():
-            signal.signal(sig, signal.SIG_IGN if program and signals else prev)
-        runtime._stop_signals = None
+        try:
+            closing.append(0)
+        finally:   # (also when a first signal raised just before the line above)
+            try:
+                for sig, prev in old.items():
+                    signal.signal(sig, signal.SIG_IGN if program and signals else prev)
+            finally:
+                runtime._stop_signals = None
+        if len(closing) > 1:   # the first signal came while the handlers were restored: it stops the command, as
+            raise Terminated if closing[1] == signal.SIGTERM else KeyboardInterrupt   # it would have a moment before
 
 
 def main(argv: Sequence[str] | None = None) -> int:
