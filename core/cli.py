@@ -613,6 +613,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     return EXIT_TERMINATED if signals and signals[0] == signal.SIGTERM and code == EXIT_INTERRUPTED else code
 
 
+#: commands that end at once: not told that SIGINT is ignored (every other one, a plugin's too, may run for long)
+QUICK_COMMANDS = ("plugins", "validate", "schema", "devices")
+
+
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -631,6 +635,10 @@ def _main(argv: Sequence[str] | None) -> int:
         print("\nteletouch: error: a COMMAND is required", file=sys.stderr)
         return EXIT_USAGE
     args.command_errors = command_errors
+    if argv is None and args.command not in QUICK_COMMANDS and signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        # kept ignored on purpose (see _interrupts), but `cmd & kill -INT $!` in a script then did nothing, silently
+        print(f"teletouch: SIGINT is ignored (started in the background or with nohup): stop it with SIGTERM "
+              f"(kill {os.getpid()})", file=sys.stderr)
     try:
         return int(args.func(args) or 0)
     except GraphValidationError as exc:

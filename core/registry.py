@@ -122,6 +122,22 @@ def _error_line(exc: BaseException) -> str:
     return _one_line(exception_line(exc))
 
 
+def _import_listed(modname: str) -> Any:
+    """A module named in TELETOUCH_PLUGINS, imported; one Python cannot find (itself or its package: not a missing
+    dependency of a module that was found) is a PluginError saying how to make it findable: the no-install route
+    needs the module's folder on Python's path."""
+    try:
+        return importlib.import_module(modname)
+    except ModuleNotFoundError as exc:
+        if not exc.name or not (modname == exc.name and "." not in modname or modname.startswith(exc.name + ".")):
+            raise
+        what = (f"the package {exc.name}" if "." in modname else
+                f"{modname}.py (or the package {modname})")
+        raise PluginError(f"{type(exc).__name__}: {exc}: {ENV_PLUGINS} imports a module without installing it only "
+                          f"from a folder on Python's path: put the folder that holds {what} on PYTHONPATH "
+                          f"(PYTHONPATH=/path/to/that/folder), or install its package (pip install -e .)") from None
+
+
 def _quiet_stdout() -> Any:
     """While plugins load, what they print goes to stderr: stdout carries `--json` output."""
     return contextlib.redirect_stdout(sys.stderr)
@@ -170,7 +186,7 @@ class Registry:
             self.load_entrypoints()
         for modname in self._extra:
             self.known_names.add(modname)
-            self._load_one(modname, modname, lambda m=modname: importlib.import_module(m), "(TELETOUCH_PLUGINS)", "")
+            self._load_one(modname, modname, lambda m=modname: _import_listed(m), "(TELETOUCH_PLUGINS)", "")
         return self
 
     def load_entrypoints(self) -> None:

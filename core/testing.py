@@ -139,6 +139,7 @@ class Harness:
       runtime does at the end of every run, and after a fault: also when the block raised) before ``deactivate()``
       and ``close()``, which are still called when it raises (its error goes on after them, as the runtime reports
       it and still shuts the node down); ``h.safe_calls`` counts the calls made through the harness.
+    - ``h.warm()`` calls the component's ``warm()`` (not a device's: the runtime never calls that one).
     - ``h.stopped`` is the reason given to ``ctx.request_stop()`` (None if not called).
     """
 
@@ -197,6 +198,14 @@ class Harness:
             raise TypeError(f"{self.cls.__qualname__} is a {self.cls.kind.value}, not a device: it has no safe state")
         self.safe_calls += 1
         self.comp.safe_state()
+
+    def warm(self) -> None:
+        """Call the component's ``warm()`` as the runtime does before a step under the wall clock (its result is
+        thrown away; an exception goes on). A device's is refused (TypeError): the runtime never calls it."""
+        if isinstance(self.comp, Device):
+            raise TypeError(f"{self.cls.__qualname__} is a device: the runtime never calls a device's warm() (a "
+                            f"warm-up must never command it)")
+        self.comp.warm()
 
     def set(self, **values: Any) -> None:
         """Set inputs without stepping: a value is stamped with the harness time, a Sample keeps its stamp, None

@@ -327,8 +327,11 @@ def resolve_model(spec: str | os.PathLike[str]) -> Path:
         if q is not None:
             return q
     shipped = sorted(f.stem for f in DATA_DIR.glob("*.model")) if DATA_DIR.is_dir() else []
-    raise ModelFileError(f"{s}: no such model file (and no packaged model of that name; packaged: "
-                         f"{', '.join(shipped) or 'none'})")
+    # a relative path is the current folder's (a graph's params: not the graph file's folder, as include: is)
+    where = "" if p.is_absolute() else (f" (looked at {Path.cwd() / p}: a relative path is taken from the current "
+                                         f"folder, not the graph file's)")
+    raise ModelFileError(f"{s}: no such model file{where}, and no packaged model of that name (packaged: "
+                         f"{', '.join(shipped) or 'none'}); make one with `teletouch calibrate depth`")
 
 
 def _meta_number(name: str, meta: dict[str, Any], key: str, default: float | None = None, *,
