@@ -1096,10 +1096,14 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
         stray = [n for n in labels if n not in names]
         if stray:   # (a labels file for another folder?)
             log(f"{len(stray)} label(s) name no image in the folder, ignored: {', '.join(stray[:5])}")
-        unc = [n for n, _ in images if n in labels and labels[n].uncertain]
+        unc = [n for n, _ in images if n in labels and labels[n].uncertain and not labels[n].no_contact]
         if unc:
             log(f"{len(unc)} press(es) marked uncertain or without a complete circle, not used: {', '.join(unc[:5])}"
                 f"{' ...' if len(unc) > 5 else ''}")
+    flat = [n for n, _ in images if n in labels and labels[n].no_contact]
+    if flat:
+        log(f"{len(flat)} no-contact frame(s) trained as flat gel: {', '.join(flat[:5])}"
+            f"{' ...' if len(flat) > 5 else ''}")
     usable = [n for n, _ in images if n in labels and labels[n].usable]
     if len(usable) < 2:
         raise ValueError(f"only {len(usable)} usable press(es); record more (the paper used ~40) or fix the labels")
