@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -68,3 +69,11 @@ def pytest_sessionfinish(session, exitstatus):
     if os.environ.get("CI") and _skipped and session.exitstatus == 0:
         print(f"\nCI: {len(_skipped)} test(s) skipped, which CI does not allow: " + ", ".join(_skipped[:10]))
         session.exitstatus = 1
+
+
+@pytest.fixture
+def python_sigint():
+    """Python's Ctrl-C handler for the test (a background job runs with SIGINT ignored), restored after."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)

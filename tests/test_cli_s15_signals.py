@@ -125,14 +125,6 @@ def test_a_second_signal_while_the_process_exits_does_not_end_it(tmp_path, after
 
 
 # --- in this process: `teletouch run` and the runtime's own shutdown --------------------------------------------------
-@pytest.fixture
-def python_sigint():
-    """Python's Ctrl-C handler for the test (a background job runs with SIGINT ignored), restored after."""
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, old)
-
-
 class _Kills(Component):
     """Sends its process ``signal`` at t >= 0.05 s, as a real Ctrl-C or SIGTERM would arrive."""
 

@@ -59,14 +59,6 @@ def test_a_sigterm_the_runtime_held_ends_an_experiment_with_sigterm_s_exit_code(
 
 
 # --- in this process ------------------------------------------------------------------------------------------------
-@pytest.fixture
-def python_sigint():
-    """Python's Ctrl-C handler for the test (a background job runs with SIGINT ignored), restored after."""
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, old)
-
-
 class _SignalsAtSafe(Device):
     """A device whose safe state gets the signals ``signals`` (the operator's Ctrl-C as the devices are made safe)."""
 
