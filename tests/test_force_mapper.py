@@ -195,7 +195,7 @@ def test_corrupt_and_missing_files(tmp_path):
     p.write_text('{"format": "teletouch-force-calibration", "version": 1, "model": {')
     with pytest.raises(ModelFileError, match="corrupt JSON at line 1"):
         ForceCalibration.load(p)
-    with pytest.raises(ModelFileError, match="not found"):
+    with pytest.raises(ModelFileError, match="no such force calibration file"):
         ForceCalibration.load(tmp_path / "nothing.json")
     with pytest.raises(ModelFileError, match="packaged"):
         resolve_calibration("no-such-calibration")

@@ -95,7 +95,7 @@ def test_validate_refuses_a_calibration_of_another_format_or_version(tmp_path, p
 
 def test_validate_refuses_a_missing_calibration(tmp_path):
     (line,) = _validate_errors([f"force.calibration={tmp_path / 'nope.force.json'}"])
-    assert "force calibration '" in line and "not found" in line, line
+    assert "nope.force.json: no such force calibration file" in line, line
 
 
 def test_validate_refuses_a_depth_model_the_calibration_was_not_made_for(tmp_path):

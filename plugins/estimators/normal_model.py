@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from teletouch.errors import ModelFileError
+from teletouch.paths import input_file
 
 __all__ = [
     "FORMAT", "VERSION", "FEATURE_SETS", "DEFAULT_FEATURES", "make_net", "colour_maps", "colour_maps_torch",
@@ -312,26 +313,13 @@ def packaged_model_path(name: str) -> Path | None:
 
 
 def resolve_model(spec: str | os.PathLike[str]) -> Path:
-    """A packaged model name (``sim-digit-qvga``) or a path -> an existing file, else ModelFileError."""
-    s = str(spec)
-    if not s.strip():
-        raise ModelFileError("empty: expected a model file (.model from `teletouch calibrate depth`) or a packaged "
-                             "model's name")
-    p = Path(s).expanduser()
-    if p.is_file():
-        return p
-    if p.is_dir():
-        raise ModelFileError(f"{s}: a folder, expected a model file (.model from `teletouch calibrate depth`)")
-    if os.sep not in s and not s.endswith(".model"):
-        q = packaged_model_path(s)
-        if q is not None:
-            return q
+    """A packaged model name (``sim-digit-qvga``) or a path -> an existing file, else ModelFileError
+    (:func:`teletouch.paths.input_file`)."""
+    def packaged(s: str) -> Path | None:
+        return packaged_model_path(s) if os.sep not in s and not s.endswith(".model") else None
+
     shipped = sorted(f.stem for f in DATA_DIR.glob("*.model")) if DATA_DIR.is_dir() else []
-    # a relative path is the current folder's (a graph's params: not the graph file's folder, as include: is)
-    where = "" if p.is_absolute() else (f" (looked at {Path.cwd() / p}: a relative path is taken from the current "
-                                         f"folder, not the graph file's)")
-    raise ModelFileError(f"{s}: no such model file{where}, and no packaged model of that name (packaged: "
-                         f"{', '.join(shipped) or 'none'}); make one with `teletouch calibrate depth`")
+    return input_file(spec, "model", ".model from `teletouch calibrate depth`", packaged, shipped)
 
 
 def _meta_number(name: str, meta: dict[str, Any], key: str, default: float | None = None, *,

@@ -44,6 +44,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, ModelFileError, Params, Port, Sample, TeletouchError, hookimpl
 from teletouch.errors import ComponentFault
+from teletouch.paths import input_file
 from teletouch.reproducible import build_time
 from teletouch.units import (
     MAX_PLAUSIBLE_DEPTH_LIMIT, Hertz, Meters, Newtons, Seconds, plausible_contact_area, plausible_depth,
@@ -1191,22 +1192,14 @@ def packaged_calibrations() -> list[str]:
 
 
 def resolve_calibration(name_or_path: str) -> Path:
-    """A path to an existing file, or the name of a packaged calibration (e.g. 'sim-digit-qvga')."""
-    if not str(name_or_path).strip():
-        raise ModelFileError("empty: expected a force calibration file (.force.json from `teletouch calibrate "
-                             "force`) or a packaged calibration's name")
-    p = Path(os.path.expanduser(str(name_or_path)))
-    if p.is_file():
-        return p
-    if p.is_dir():
-        raise ModelFileError(f"{name_or_path}: a folder, expected a force calibration file (.force.json from "
-                             f"`teletouch calibrate force`)")
-    packaged = DATA_DIR / (str(name_or_path) + SUFFIX)
-    if packaged.is_file():
-        return packaged
-    known = ", ".join(packaged_calibrations()) or "none"
-    raise ModelFileError(f"force calibration '{name_or_path}' not found: not a file and not a packaged calibration "
-                         f"(packaged: {known}); make one with `teletouch calibrate force`")
+    """A path to an existing file, or the name of a packaged calibration (e.g. 'sim-digit-qvga'), else ModelFileError
+    (:func:`teletouch.paths.input_file`)."""
+    def packaged(s: str) -> Path | None:
+        q = DATA_DIR / (s + SUFFIX)
+        return q if q.is_file() else None
+
+    return input_file(name_or_path, "force calibration", f"{SUFFIX} from `teletouch calibrate force`", packaged,
+                      packaged_calibrations())
 
 
 # ------------------------------------------------------------------------------------------------ the component
