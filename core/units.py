@@ -168,6 +168,30 @@ def plausible_hand_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_H
     return _refused(too_strong_for_a_hand(name, value, limit), value)
 
 
+#: no desktop haptic leader's handle moves farther than this (the Omega.7's workspace: 0.075 m in radius): a larger
+#: workspace, position scale or travel in a metre field is millimetres typed there
+MAX_PLAUSIBLE_WORKSPACE = 1.0       # m
+
+#: the smaller unit a bare number in each SI unit is mistyped in
+_SMALLER = {"m/s": "mm/s", "N": "mN"}
+
+
+def plausible_quantity(name: str, value: float, limit: float, unit: str, beyond: str, note: str = "") -> float:
+    """``value`` if ``|value|`` (``unit``: m, m/s or N) is at most ``limit``, else a ValueError naming ``name``, saying
+    it is ``beyond`` what is plausible (``note``: said with the limit) and how to write the smaller unit (mm, mm/s,
+    mN) meant: for a bound of a plugin's own that this module has no check for."""
+    if unit == "m":
+        return _refused(_metres_typed(name, value, limit, beyond, note), value)
+    return _refused(_in_smaller_unit(name, value, limit, unit, _SMALLER[unit], beyond, note), value)
+
+
+def plausible_travel(name: str, value: float, limit: float = MAX_PLAUSIBLE_WORKSPACE) -> float:
+    """``value`` if it is a plausible length in a haptic leader's workspace (m), else a ValueError: millimetres in
+    the metre field."""
+    return plausible_quantity(name, value, limit, "m", "beyond a haptic leader's workspace",
+                              "; the Omega.7's: 0.075 m in radius")
+
+
 def parse_quantity(text: Any, unit: str | None = None) -> float:
     """Parse ``text`` (a number or a string like ``"6mm"``) into a float in the SI unit ``unit``.
 

@@ -66,7 +66,8 @@ def test_sim_digit_is_deterministic_with_a_seed_and_stamps_its_outputs_with_the_
 def test_depth_refuses_a_contact_depth_deeper_than_the_gel():
     """contact_depth: 0.03 (meant: mm) was taken as 30 mm: no pixel is ever that deep, so every press read as no
     contact (contact area 0, an empty mask) without a word."""
-    with pytest.raises(ValidationError, match=r"contact_depth \(0.03 m\) is deeper than 5 mm.*\"0.03mm\""):
+    with pytest.raises(ValidationError, match=r"contact_depth \(0.03 m\) is more than a DIGIT's gel is thick .*"
+                                              r"\"0.03mm\""):
         DepthEstimator.Params(contact_depth=0.03)
     assert DepthEstimator.Params(contact_depth="0.03mm").contact_depth == pytest.approx(3e-5)
     assert DepthEstimator.Params(contact_depth=5e-3).contact_depth == 5e-3

@@ -60,7 +60,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
-from teletouch.units import Meters, Seconds
+from teletouch.units import MAX_PLAUSIBLE_DEPTH_LIMIT, Meters, Seconds, plausible_depth, plausible_opening
 
 from .. import ros_names, ros_qos
 
@@ -643,6 +643,16 @@ class Ros2Subscribe(Component):
                                     "refused: millimetres in the metre field", json_schema_extra={"unit": "m"})
         max_depth: Meters = Field(0.05, gt=0, description="a depth map with a value larger than this is refused: "
                                   "millimetres in the metre field", json_schema_extra={"unit": "m"})
+
+        @field_validator("max_opening")
+        @classmethod
+        def _plausible_opening(cls, v: float, info: Any) -> float:
+            return plausible_opening(info.field_name, v)   # 90 meant 90 mm: the guard took millimetres as metres
+
+        @field_validator("max_depth")
+        @classmethod
+        def _plausible_depth(cls, v: float, info: Any) -> float:
+            return plausible_depth(info.field_name, v, MAX_PLAUSIBLE_DEPTH_LIMIT)
 
         @field_validator("durability", mode="before")
         @classmethod

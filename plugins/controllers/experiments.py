@@ -31,12 +31,26 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, Params, Port, Sample, hookimpl
-from teletouch.units import Kilograms, Meters, Newtons, Radians, Seconds
+from teletouch.units import (
+    Kilograms, Meters, Newtons, Radians, Seconds, plausible_opening, plausible_quantity, plausible_speed,
+)
 
 G = 9.81
+
+#: no object pivoted between two fingertips is longer than this (the experiment's: 0.12 m): a longer length or centre
+#: of mass offset in the metre field is millimetres typed there
+MAX_PLAUSIBLE_OBJECT = 1.0       # m
+#: no contact patch on a DIGIT's gel is wider than its sensing area (about 20 x 16 mm): a larger friction radius is
+#: millimetres typed in the metre field
+MAX_PLAUSIBLE_PATCH = 0.02       # m
+#: a person's pinch opens no wider than this: a larger squeeze or regrip step in the metre field is millimetres
+MAX_PLAUSIBLE_PINCH_SPAN = 0.2   # m
+#: a hand's tremor and slow drift of its aperture stay well below this (a tremor: well below 1 mm): a larger one in
+#: the metre field is millimetres typed there (tremor: 0.05 meant 0.05 mm)
+MAX_PLAUSIBLE_TREMOR = 0.02      # m
 
 
 def seeded_stream(seed: int, name: str) -> random.Random:
@@ -123,6 +137,18 @@ class SimPivot(Component):
         drop_time: Seconds = Field(0.05, ge=0, description="the object falls out when the grip cannot carry its "
                                    "weight for this long", json_schema_extra={"unit": "s"})
         substep: Seconds = Field(2.5e-4, gt=0, description="largest integration step", json_schema_extra={"unit": "s"})
+
+        @field_validator("length", "com_offset")
+        @classmethod
+        def _object(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_OBJECT, "m",
+                                      "longer than an object pivoted between two fingertips")
+
+        @field_validator("friction_radius")
+        @classmethod
+        def _patch(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_PATCH, "m",
+                                      "larger than a contact patch on a DIGIT", "; its sensing area: about 20 x 16 mm")
 
         @model_validator(mode="after")
         def _friction(self) -> "SimPivot.Params":
@@ -270,6 +296,29 @@ class PivotOperator(Component):
                                      json_schema_extra={"unit": "s"})
         seed: int = Field(0, description="seed of this operator's noise (one trial)")
         stop_when_done: bool = Field(True, description="end the run when the operator is done")
+
+        # a bare number is SI: millimetres (per second) typed in these fields are refused, naming the field
+        @field_validator("start_opening")
+        @classmethod
+        def _opening(cls, v: float, info: Any) -> float:
+            return plausible_opening(info.field_name, v)   # 22 meant 22 mm
+
+        @field_validator("squeeze", "regrip_step")
+        @classmethod
+        def _pinch(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_PINCH_SPAN, "m",
+                                      "wider than a hand's pinch opens")
+
+        @field_validator("tremor", "hand_drift")
+        @classmethod
+        def _tremor(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_TREMOR, "m",
+                                      "more than a hand trembles or drifts", "; a tremor: well below 1 mm")
+
+        @field_validator("hand_speed", "loosen_rate_position")
+        @classmethod
+        def _speed(cls, v: float, info: Any) -> float:
+            return plausible_speed(info.field_name, v)   # 20 meant 20 mm/s
 
     #: the operator's noise streams, each derived from ``seed`` and its name (:func:`seeded_stream`): what the
     #: operator sees and how the hand shakes do not depend on what it feels or does (the felt force's noise and a

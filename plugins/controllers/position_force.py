@@ -67,8 +67,9 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.units import (
-    MAX_PLAUSIBLE_OPENING, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, millimetres_in_metres,
-    plausible_hand_force, plausible_opening, plausible_speed,
+    MAX_PLAUSIBLE_OPENING, MAX_PLAUSIBLE_SPEED, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds,
+    millimetres_in_metres, plausible_depth, plausible_hand_force, plausible_opening, plausible_quantity,
+    plausible_speed,
 )
 
 from .passivity import (
@@ -84,6 +85,12 @@ __all__ = [
 
 OMEGA7_MAX_GRIPPER_FORCE = 8.0     # N (CHAI3D's device table)
 OMEGA7_MAX_DAMPING = 40.0          # N*s/m
+#: a glitch filter on the leader's opening speed wider than this passes anything (a quick pinch: well below 1 m/s):
+#: a larger max_leader_velocity is mm/s typed in the m/s field (2000 meant 2000 mm/s)
+MAX_LEADER_VELOCITY_LIMIT = 100.0  # m/s
+#: no tactile sensor reads grip forces so large that a deadband this wide leaves any to render (the packaged
+#: calibration: 8.6 N at most): a wider deadband is mN typed in the N field (20 meant 20 mN)
+MAX_PLAUSIBLE_DEADBAND = 10.0      # N
 
 
 # ------------------------------------------------------------------------------------------------ pure functions
@@ -340,6 +347,13 @@ class _CommonParams(Params):
     @classmethod
     def _hand_force(cls, v: float, info: Any) -> float:
         return plausible_hand_force(info.field_name, v)   # a force on a person's hand: 8000 meant 8000 mN
+
+    @field_validator("reduction_min_velocity", "max_leader_velocity")
+    @classmethod
+    def _speeds(cls, v: float, info: Any) -> float:
+        # 3 meant 3 mm/s (no force was ever cut); a glitch filter is wider than a hand's speed, yet not 2000 m/s
+        limit = MAX_LEADER_VELOCITY_LIMIT if info.field_name == "max_leader_velocity" else MAX_PLAUSIBLE_SPEED
+        return plausible_speed(info.field_name, v, limit)
 
     @model_validator(mode="after")
     def _check(self) -> "_CommonParams":
@@ -758,6 +772,18 @@ class PositionForce(_Bilateral):
         @classmethod
         def _speed(cls, v: float, info: Any) -> float:
             return plausible_speed(info.field_name, v)
+
+        @field_validator("deadband")
+        @classmethod
+        def _deadband(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_DEADBAND, "N",
+                                      "wider than the grip forces a tactile sensor reads",
+                                      "; nothing below it is rendered")
+
+        @field_validator("prediction_min_motion")
+        @classmethod
+        def _min_motion(cls, v: float, info: Any) -> float:
+            return plausible_depth(info.field_name, v)   # 0.02 meant 0.02 mm: in contact, K would never be learnt
 
         @field_validator("force_sign", mode="before")
         @classmethod

@@ -30,11 +30,24 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
 from teletouch.units import (
-    MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, plausible_opening, plausible_speed,
+    MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, plausible_opening, plausible_quantity,
+    plausible_speed,
 )
 
 __all__ = ["FollowerParams", "FollowerBase", "Reading", "OpeningMap", "FOLLOWER_INPUTS", "FOLLOWER_OUTPUTS",
-           "clamp", "command_value", "shape_setpoint"]
+           "clamp", "command_value", "shape_setpoint", "MAX_PLAUSIBLE_GRIP_FORCE", "plausible_grip_force"]
+
+#: no parallel gripper of the followers' class squeezes harder than this (the PAL gripper: 16 N, an XM430 servo: a
+#: few N, a ROBOTIS RH-P12-RN: 170 N, the strongest electric parallel grippers: a few hundred N): a larger grip force
+#: limit in the newton field is millinewtons typed there (``max_effort: 16000`` was taken as 16 kN)
+MAX_PLAUSIBLE_GRIP_FORCE = 1000.0   # N
+
+def plausible_grip_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_GRIP_FORCE) -> float:
+    """``value`` if it is a plausible grip force limit (N) of a parallel gripper, else a ValueError: mN in the N
+    field."""
+    return plausible_quantity(name, value, limit, "N", "beyond what a parallel gripper squeezes",
+                              "; the PAL gripper: 16 N")
+
 
 FOLLOWER_INPUTS = {
     "opening_command": Port("float64", (), "m", "desired distance between the fingers", required=True),
@@ -134,6 +147,11 @@ class FollowerParams(Params):
     @classmethod
     def _speed(cls, v: float, info: Any) -> float:
         return plausible_speed(info.field_name, v)   # 100 meant 100 mm/s: no gripper closes at 100 m/s
+
+    @field_validator("max_effort")
+    @classmethod
+    def _effort(cls, v: float, info: Any) -> float:
+        return plausible_grip_force(info.field_name, v)   # 16000 meant 16000 mN: no such gripper squeezes 16 kN
 
     @model_validator(mode="after")
     def _range(self) -> "FollowerParams":

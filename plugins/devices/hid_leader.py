@@ -42,7 +42,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Sample, hookimpl
 from teletouch.plugins.sensors import discovery  # the device-node checks shared with `teletouch devices`
-from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening, plausible_speed
+from teletouch.units import Meters, MetersPerSecond, Seconds, plausible_opening, plausible_speed, plausible_travel
 
 from .omega7 import LEADER_INPUTS, LEADER_OUTPUTS, OMEGA7_GRIPPER_RANGE
 
@@ -439,6 +439,11 @@ class HidLeader(Device):
         @classmethod
         def _plausible_speed(cls, v: float, info: Any) -> float:
             return plausible_speed(info.field_name, v)
+
+        @field_validator("position_scale")
+        @classmethod
+        def _plausible_position(cls, v: float, info: Any) -> float:
+            return plausible_travel(info.field_name, v)   # 10 meant 10 mm per full deflection, not 10 m
 
         @field_validator("max_opening")
         @classmethod

@@ -28,7 +28,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import (
-    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, plausible_opening,
+    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, plausible_opening, plausible_travel,
 )
 
 from .omega7 import (
@@ -145,6 +145,11 @@ class SimOmega7(Device):
                                  f"mN in the N field? a bare number is N: for {v:g} mN write '{v:g}mN' "
                                  f"({v / 1e3:g} N)")
             return v
+
+        @field_validator("workspace_radius")
+        @classmethod
+        def _workspace(cls, v: float, info: Any) -> float:
+            return plausible_travel(info.field_name, v)   # 75 meant 75 mm: the handle wandered 75 m
 
         @field_validator("button_intervals")
         @classmethod

@@ -28,7 +28,7 @@ from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, P
 from teletouch.argtypes import int_at_least, number
 from teletouch.paths import output_problem
 from teletouch.reproducible import source_date_epoch
-from teletouch.units import Meters, parse_quantity
+from teletouch.units import Meters, parse_quantity, plausible_depth
 
 from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS, max_stride
 
@@ -132,12 +132,8 @@ class DepthEstimator(Component):
 
         @field_validator("contact_depth")
         @classmethod
-        def _contact_depth(cls, v: float) -> float:
-            if v > MAX_CONTACT_DEPTH:
-                raise ValueError(f"contact_depth ({v:g} m) is deeper than {MAX_CONTACT_DEPTH * 1e3:g} mm, deeper "
-                                 f"than a DIGIT's gel is thick (no pixel would ever be in contact): millimetres "
-                                 f"typed in a metre field? write {v / 1e3:g} or \"{v:g}mm\"")
-            return v
+        def _contact_depth(cls, v: float, info: Any) -> float:
+            return plausible_depth(info.field_name, v, MAX_CONTACT_DEPTH)   # deeper, no pixel is ever in contact
 
     @classmethod
     def port_shapes(cls, params: Any) -> dict[str, tuple]:

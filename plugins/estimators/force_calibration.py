@@ -36,13 +36,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
 from teletouch.paths import output_problem
 from teletouch.reproducible import source_date_epoch
 from teletouch.units import (
-    Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals, Seconds,
+    MAX_PLAUSIBLE_DEPTH_LIMIT, Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals,
+    Seconds, plausible_depth, plausible_hand_force, plausible_quantity, plausible_travel,
 )
 
 from .poly_force import (
@@ -58,6 +59,13 @@ def _u(unit: str) -> dict[str, str]:
 
 
 AXES = {"x": 0, "y": 1, "z": 2}
+
+#: no approach, backoff or tracking error of the probe is longer than this (more than the Omega.7's workspace is
+#: across, 0.15 m): a longer one in a metre field is millimetres typed there (``backoff: 0.5`` meant 0.5 mm)
+MAX_PROBE_TRAVEL = 0.2   # m
+#: no probe is driven towards a gel faster than this (the routine's defaults: 1 and 4 mm/s): a faster approach or move
+#: speed in the m/s field is mm/s typed there
+MAX_PROBE_SPEED = 0.2    # m/s
 
 
 # ================================================================================================ the press routine
@@ -142,6 +150,34 @@ class PressRoutine(Component):
         start_timeout: Seconds = Field(10.0, gt=0, description="fault if no position and depth arrive within "
                                        "this after the start", json_schema_extra=_u("s"))
         samples_csv: str | None = Field(None, description="write the samples here when done (optional)")
+
+        # a bare number is SI: millimetres, mm/s or mN typed in these fields are refused, naming the field (the
+        # routine drives a real device into a gel: max_depth_limit: 3 was 3 m and never aborted a press)
+        @field_validator("touch_depth", "settle_tolerance", "max_overtravel", "step")
+        @classmethod
+        def _into_the_gel(cls, v: float, info: Any) -> float:
+            return plausible_depth(info.field_name, v)   # 0.03 meant 0.03 mm: no gel is 30 mm thick
+
+        @field_validator("max_depth_limit", "max_displacement")
+        @classmethod
+        def _depth_limit(cls, v: float, info: Any) -> float:
+            return plausible_depth(info.field_name, v, MAX_PLAUSIBLE_DEPTH_LIMIT)   # beyond the gel on a test rig
+
+        @field_validator("max_tracking_error", "backoff", "max_approach")
+        @classmethod
+        def _travel(cls, v: float, info: Any) -> float:
+            return plausible_travel(info.field_name, v, MAX_PROBE_TRAVEL)
+
+        @field_validator("approach_speed", "move_speed")
+        @classmethod
+        def _speed(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PROBE_SPEED, "m/s",
+                                      "faster than a probe is driven towards a gel")
+
+        @field_validator("approach_max_force", "max_force")
+        @classmethod
+        def _force(cls, v: float, info: Any) -> float:
+            return plausible_hand_force(info.field_name, v)   # the leader renders it: the Omega.7 12 N at most
 
     SATURATION_TIME = 0.1  # s of a saturated press (or of resistance on the approach) before aborting
     MAX_OFFSET = 0.025  # m: a press point farther than this from the start is off any DIGIT's gel (mm given as m?)
