@@ -71,8 +71,13 @@ def _metres_typed(name: str, value: float, limit: float, beyond: str, note: str 
     it is ``beyond`` what is plausible (``note``: said with the limit)."""
     if abs(value) <= limit:
         return None
-    return (f"{name} ({value:g} m) is {beyond} ({limit:g} m at most{note}): millimetres in the metre field? a bare "
-            f"number is metres: for {value:g} mm write {value / 1e3:g} or \"{value:g}mm\"")
+    head = f"{name} ({value:g} m) is {beyond} ({limit:g} m at most{note})"
+    for small, factor in (("mm", 1e-3), ("um", 1e-6)):   # the unit meant: the first in which the value fits
+        if abs(value) * factor <= limit:
+            what = "millimetres" if small == "mm" else "micrometres"
+            return (f"{head}: {what} in the metre field? a bare number is metres: for {value:g} {small} write "
+                    f"{value * factor:g} or \"{value:g}{small}\"")
+    return f"{head}: a bare number is metres"
 
 
 def millimetres_in_metres(name: str, value: float, limit: float = MAX_PLAUSIBLE_OPENING) -> str | None:
@@ -139,8 +144,11 @@ def _in_smaller_unit(name: str, value: float, limit: float, unit: str, small: st
     (``note``: said with the limit)."""
     if abs(value) <= limit:
         return None
-    return (f"{name} ({value:g} {unit}) is {beyond} ({limit:g} {unit} at most{note}): {small} in the {unit} field? a "
-            f"bare number is {unit}: for {value:g} {small} write '{value:g}{small}' ({value * factor:g} {unit})")
+    head = f"{name} ({value:g} {unit}) is {beyond} ({limit:g} {unit} at most{note})"
+    if abs(value) * factor > limit:   # too large in the smaller unit as well: no value to suggest
+        return f"{head}: a bare number is {unit}"
+    return (f"{head}: {small} in the {unit} field? a bare number is {unit}: for {value:g} {small} write "
+            f"'{value:g}{small}' ({value * factor:g} {unit})")
 
 
 def too_fast(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> str | None:
@@ -182,6 +190,8 @@ def plausible_quantity(name: str, value: float, limit: float, unit: str, beyond:
     mN) meant: for a bound of a plugin's own that this module has no check for."""
     if unit == "m":
         return _refused(_metres_typed(name, value, limit, beyond, note), value)
+    if unit not in _SMALLER:
+        raise ValueError(f"plausible_quantity: unit {unit!r}: expected one of m, {', '.join(_SMALLER)}")
     return _refused(_in_smaller_unit(name, value, limit, unit, _SMALLER[unit], beyond, note), value)
 
 

@@ -39,7 +39,7 @@ def test_the_shared_depth_and_area_checks_name_the_field_the_value_the_bound_and
     assert plausible_depth("contact_threshold", 3e-5) == 3e-5
     why = too_deep("contact_threshold", 30.0)
     assert why.startswith("contact_threshold (30 m) is more than a DIGIT's gel is thick (0.005 m at most"), why
-    assert "millimetres in the metre field? a bare number is metres: for 30 mm write 0.03 or \"30mm\"" in why, why
+    assert "micrometres in the metre field? a bare number is metres: for 30 um write 3e-05 or \"30um\"" in why, why
     with pytest.raises(ValueError, match=r"negative_tolerance \(0\.1 m\)"):
         plausible_depth("negative_tolerance", 0.1)
     assert too_large_an_area("min_contact_area", MAX_PLAUSIBLE_CONTACT_AREA) is None
@@ -51,7 +51,7 @@ def test_the_shared_depth_and_area_checks_name_the_field_the_value_the_bound_and
 
 # ------------------------------------------------------------------------------------------------ 1. poly-force
 @pytest.mark.parametrize("item, field, fix", [
-    ("force.contact_threshold=30", "contact_threshold", "for 30 mm write 0.03 or \"30mm\""),
+    ("force.contact_threshold=30", "contact_threshold", "for 30 um write 3e-05 or \"30um\""),
     ("force.contact_threshold=0.03", "contact_threshold", "for 0.03 mm write 3e-05 or \"0.03mm\""),
     ("force.negative_tolerance=0.1", "negative_tolerance", "for 0.1 mm write 0.0001 or \"0.1mm\""),
     ("force.centroid_band=0.02", "centroid_band", "for 0.02 mm write 2e-05 or \"0.02mm\""),
