@@ -579,8 +579,8 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
         try:
             closing.append(0)
         finally:   # (also when a first signal raised just before the line above)
-            try:
-                for sig, prev in old.items():
+            try:   # SIGINT last: its restored handler (Python's) raises, which must leave nothing unrestored
+                for sig, prev in sorted(old.items(), key=lambda item: item[0] == signal.SIGINT):
                     signal.signal(sig, signal.SIG_IGN if program and signals else prev)
             finally:
                 runtime._stop_signals = None
@@ -637,7 +637,7 @@ def _main(argv: Sequence[str] | None) -> int:
     args.command_errors = command_errors
     if argv is None and args.command not in QUICK_COMMANDS and signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         # kept ignored on purpose (see _interrupts), but `cmd & kill -INT $!` in a script then did nothing, silently
-        print(f"teletouch: SIGINT is ignored (started in the background or with nohup): stop it with SIGTERM "
+        print(f"teletouch: SIGINT is ignored (started in the background by a script): stop it with SIGTERM "
               f"(kill {os.getpid()})", file=sys.stderr)
     try:
         return int(args.func(args) or 0)

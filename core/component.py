@@ -512,9 +512,10 @@ class Component:
         twice its time (docs/writing-a-plugin.md). A warm() must not change the outputs or anything a step reads:
         typically it rehearses the last step's work and throws the result away. It is not called for a device,
         under the simulated clock, in a group whose period is under 5 ms, when the step is already due, or where its
-        latest warm-up and the group's latest steps took more than half the period (the group would overrun); an
-        isolated node's runs in its process (the runtime waits for it as for a step: isolation.ProcessProxy.warm).
-        An exception faults the node as one in step() does; the watchdog names a warm-up that hangs."""
+        latest warm-up and the group's latest steps took more than half the period (the group would overrun; it is
+        tried again a second later); an isolated node's runs in its process (the runtime waits for it as for a step:
+        isolation.ProcessProxy.warm). An exception faults the node as one in step() does; the watchdog names a
+        warm-up that hangs."""
 
     def close(self) -> None:
         """Release everything; called once, even after a failed configure."""

@@ -147,7 +147,7 @@ class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
                  "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark",
-                 "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt")
+                 "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt", "warm_skips")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -191,6 +191,7 @@ class _Node:
         self.warming = False    # its warm() is running (in_step is set too: the watchdog names the warm-up)
         self.warm_began = 0.0   # graph time its latest warm() began
         self.warm_dt = 0.0      # how long its latest warm() took (s)
+        self.warm_skips = 0     # warm-ups left out in a row (the budget): tried again after a second's worth
 
     def achieved_rate(self) -> float | None:
         """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
@@ -1006,11 +1007,19 @@ class Runtime:
         """Each node's Component.warm() before its step (:attr:`WARM_LEAD`), where its latest warm-up and the group's
         latest cycle of steps (``cycle``, s) take at most half the ``period`` (a warm-up that would make the group
         overrun is left out: the overrun would be blamed on a step that fits alone). An exception faults the node as
-        one in its step does; the watchdog sees the warm-up as in its step (``in_step``) and names it (``warming``)."""
+        one in its step does; the watchdog sees the warm-up as in its step (``in_step``) and names it (``warming``).
+        A warm-up left out is tried again after a second's worth of cycles: one slow warm-up (a loaded machine's
+        pause) must not leave the node cold for the rest of the run."""
         perf = time.perf_counter
+        retry = max(1, round(1.0 / period))
         for node in warmers:
-            if node.faulted or stop.is_set() or node.warm_dt + cycle > 0.5 * period:
+            if node.faulted or stop.is_set():
                 continue
+            if node.warm_dt + cycle > 0.5 * period:
+                node.warm_skips += 1
+                if node.warm_skips < retry:
+                    continue
+            node.warm_skips = 0
             t1 = perf()
             node.warm_began = t1 - self._t0
             node.warming = True
@@ -1107,7 +1116,7 @@ def _signals_deferred() -> Iterator[list[int]]:
     old: dict[int, Any] = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         prev = signal.getsignal(sig)
-        if prev is None or prev == signal.SIG_IGN:   # installed from outside Python, or ignored (nohup, a job
+        if prev is None or prev == signal.SIG_IGN:   # installed from outside Python, or ignored (a job
             continue                                  # started with `&`): left alone
         old[sig] = prev
         signal.signal(sig, _hold)

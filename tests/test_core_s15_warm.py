@@ -253,3 +253,42 @@ nodes:
     assert 0.015 < began < 0.05, f.message   # the warm-up 1 ms before the second step (t = 20 ms), not t = 0
     (d,) = [f for f in res.faults if f.node == "arm"]
     assert "waits for the warm() of node 'est'" in d.message, d.message
+
+
+class _Hiccup(Component):
+    """Its first warm-up is slow (a page fault, a loaded machine's pause), the others 0.5 ms; its step 1 ms."""
+    name = "hiccup"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "")}
+
+    def configure(self):
+        self.warms = 0
+
+    def warm(self):
+        self.warms += 1
+        time.sleep(0.012 if self.warms == 1 else 0.0005)
+
+    def step(self, t, inputs):
+        time.sleep(0.001)
+        return {"y": t}
+
+
+class _HiccupPlugin:
+    @hookimpl
+    def teletouch_components(self):
+        return [_Hiccup]
+
+
+def test_one_slow_warm_up_does_not_turn_the_warm_up_off_for_the_rest_of_the_run():
+    # before: the budget read the latest warm-up's time, which a skipped warm-up never renews: one 12 ms warm-up
+    # at 50 Hz left the node cold for the whole run (1 warm-up in 100 steps)
+    reg = make_registry(_HiccupPlugin())
+    text = """
+clock: wall
+faults: {max_overruns: 0, watchdog: 5}
+nodes:
+  - {id: est, plugin: hiccup, rate: 50}
+"""
+    res, rt = run_yaml(text, reg, duration=2.0)
+    assert res.exit_code == EXIT_OK, res.message
+    assert rt.component("est").warms >= 40, rt.component("est").warms   # ~100 steps: warmed again a second later

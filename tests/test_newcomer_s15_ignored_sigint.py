@@ -18,7 +18,7 @@ import pytest
 from teletouch.cli import EXIT_TERMINATED, main
 from teletouch.testing import make_registry
 
-NOTE = "teletouch: SIGINT is ignored (started in the background or with nohup): stop it with SIGTERM (kill {pid})"
+NOTE = "teletouch: SIGINT is ignored (started in the background by a script): stop it with SIGTERM (kill {pid})"
 WALL = """
 clock: wall
 nodes:
