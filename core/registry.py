@@ -129,8 +129,8 @@ def _import_listed(modname: str) -> Any:
     try:
         return importlib.import_module(modname)
     except ModuleNotFoundError as exc:
-        if not exc.name or not (modname == exc.name and "." not in modname or modname.startswith(exc.name + ".")):
-            raise
+        if exc.name != modname.partition(".")[0]:   # (a dependency, or a submodule of a package that was found:
+            raise                                    # not a matter of Python's path)
         what = (f"the package {exc.name}" if "." in modname else
                 f"{modname}.py (or the package {modname})")
         raise PluginError(f"{type(exc).__name__}: {exc}: {ENV_PLUGINS} imports a module without installing it only "

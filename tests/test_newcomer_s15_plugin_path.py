@@ -65,3 +65,13 @@ def test_the_page_says_it_where_the_entry_point_is_explained():
     text = (REPO / "docs" / "writing-a-plugin.md").read_text()
     section = text[text.index("## 2. The entry point"):text.index("## 3. Use it in a graph")]
     assert "TELETOUCH_PLUGINS=" in section and "PYTHONPATH" in section, section
+
+
+def test_a_missing_submodule_of_a_package_that_was_found_is_not_blamed_on_the_path(monkeypatch, tmp_path):
+    # before: "put the folder that holds the package acme_s15_pkg.sub on PYTHONPATH", which cannot help: a
+    # subpackage is found through its parent package, not through Python's path
+    (tmp_path / "acme_s15_pkg").mkdir()
+    (tmp_path / "acme_s15_pkg" / "__init__.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    err = _error(monkeypatch, "acme_s15_pkg.sub.mod")
+    assert "No module named 'acme_s15_pkg.sub'" in err and "PYTHONPATH" not in err, err
