@@ -315,7 +315,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
         code = EXIT_INVALID
     if not args.quiet:   # without the summary's first line: how the run ended, said once, last (below)
-        print(result.summary().split("\n", 1)[1], file=sys.stderr)
+        print(result.summary(header=False), file=sys.stderr)
     if args.json:   # exit_code: what the shell sees
         print(json.dumps(dict(result.as_dict(), exit_code=code,
                               recording_error=None if record_error is None else str(record_error)), default=str))

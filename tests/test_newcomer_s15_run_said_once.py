@@ -44,3 +44,15 @@ def test_a_fault_is_said_once_and_its_rows_stay(monkeypatch, tmp_path, capsys):
 def test_quiet_keeps_the_one_line(monkeypatch, tmp_path, capsys):
     code, err = _run(monkeypatch, tmp_path, capsys, "null", "--quiet")
     assert code == 0 and err == ["teletouch: ok: ran 1.000 s"], err
+
+
+def test_a_status_message_of_several_lines_is_not_split_above_the_table():
+    # before: the summary's first line was cut off by splitting at the first newline, so the rest of a message of
+    # several lines (a plugin's request_stop("done\n  wrote out.json")) stood above the table and was said again
+    from teletouch.runtime import RunResult
+
+    res = RunResult(status="ok", exit_code=0, message="done\n  wrote out.json", nodes=[], faults=[], sim_time=1.0,
+                    wall_time=1.0, startup_time=0.0, clock="sim")
+    body = res.summary(header=False)
+    assert "wrote out.json" not in body and body.startswith("clock sim: 1.000 s graph time"), body
+    assert res.summary().startswith("ok: done\n  wrote out.json\nclock sim")
