@@ -60,3 +60,10 @@ def test_the_depth_abort_switched_off_by_a_typo_is_refused_when_the_graph_is_val
         load_graph(EXAMPLES / "calibrate-force-sim.yaml", sets=["routine.max_depth_limit=3"])
     (line,) = [str(e) for e in exc.value.errors]
     assert "param 'max_depth_limit'" in line and "for 3 mm write 0.003 or \"3mm\"" in line, line
+
+
+def test_the_press_force_message_names_the_omega7_translation_force_not_its_grip():
+    # before: "(50 N at most; the Omega.7's grip: 8 N)": the press pushes with the device's translation (12 N)
+    with pytest.raises(ValueError) as exc:
+        PressRoutine.Params(max_force=8000)
+    assert "the Omega.7: 12 N in translation" in str(exc.value) and "grip" not in str(exc.value), str(exc.value)

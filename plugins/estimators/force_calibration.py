@@ -42,8 +42,8 @@ from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hoo
 from teletouch.paths import output_problem
 from teletouch.reproducible import source_date_epoch
 from teletouch.units import (
-    MAX_PLAUSIBLE_DEPTH_LIMIT, Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Pascals,
-    Seconds, plausible_depth, plausible_hand_force, plausible_quantity, plausible_travel,
+    MAX_PLAUSIBLE_DEPTH_LIMIT, MAX_PLAUSIBLE_HAND_FORCE, Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons,
+    NewtonsPerMeter, Pascals, Seconds, plausible_depth, plausible_quantity, plausible_travel,
 )
 
 from .poly_force import (
@@ -177,7 +177,8 @@ class PressRoutine(Component):
         @field_validator("approach_max_force", "max_force")
         @classmethod
         def _force(cls, v: float, info: Any) -> float:
-            return plausible_hand_force(info.field_name, v)   # the leader renders it: the Omega.7 12 N at most
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_HAND_FORCE, "N",   # the leader renders it
+                                      "beyond what a haptic device renders", "; the Omega.7: 12 N in translation")
 
     SATURATION_TIME = 0.1  # s of a saturated press (or of resistance on the approach) before aborting
     MAX_OFFSET = 0.025  # m: a press point farther than this from the start is off any DIGIT's gel (mm given as m?)
