@@ -257,9 +257,9 @@ def _unknown_unit(sym: str, text: str, unit: str | None) -> str:
 
 def _not_convertible(sym: str, text: str, unit: str, number: str) -> str:
     """Why ``text`` (``number`` with the unit ``sym``) is refused for a field whose declared ``unit`` is none that
-    teletouch converts (a plugin may declare any SI unit): only a plain number, taken as SI, is taken there."""
+    teletouch converts (a plugin may declare any unit): only a plain number, in that unit, is taken there."""
     return (f"{text!r} has a unit ({sym}), but the field's unit {unit} is not a unit teletouch converts (teletouch "
-            f"converts {', '.join(_SI_UNITS)}): write a plain number, in {unit} (SI), e.g. {number}")
+            f"converts {', '.join(_SI_UNITS)}): write a plain number, in {unit} (the field's own unit), e.g. {number}")
 
 
 def _example(unit: str | None) -> str:

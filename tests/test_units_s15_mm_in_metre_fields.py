@@ -110,6 +110,7 @@ def test_a_unit_teletouch_cannot_convert_asks_for_a_plain_number_in_si():
     msg = str(exc.value)
     assert "(a plain number)" not in msg, msg
     assert "N/m^3 is not a unit teletouch converts" in msg and "write a plain number, in N/m^3" in msg, msg
+    assert "(SI)" not in msg, msg   # (the field's own unit need not be SI: it is the plugin's)
     assert "teletouch converts m, N, s," in msg, msg
     assert _Stiff(k="2e6").k == 2e6 and _Stiff(k=3e6).k == 3e6   # such a field still takes numbers
     # a unit teletouch knows, for a quantity in a unit it does not: not a unit mistake it could convert either
