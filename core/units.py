@@ -62,8 +62,9 @@ MAX_PLAUSIBLE_GEL_DEPTH = 5e-3     # m
 #: no limit on a measured depth is set deeper than this, even one beyond the gel for a test rig or a calibration of
 #: a thicker gel (calibrated depths stop below 10 mm); a deeper one is millimetres typed in the metre field
 MAX_PLAUSIBLE_DEPTH_LIMIT = 0.1    # m
-#: a DIGIT's sensing area is about 20 x 16 mm: no contact is larger; a larger area in a m^2 field is mm^2 typed there
-MAX_PLAUSIBLE_CONTACT_AREA = 20e-3 * 16e-3   # m^2
+#: a DIGIT's sensing area is about 15-20 x 20-25 mm: no contact is larger; a larger area in a m^2 field is mm^2 typed
+#: there
+MAX_PLAUSIBLE_CONTACT_AREA = 20e-3 * 25e-3   # m^2
 
 
 def _metres_typed(name: str, value: float, limit: float, beyond: str, note: str = "") -> str | None:
@@ -105,7 +106,7 @@ def too_large_an_area(name: str, value: float, limit: float = MAX_PLAUSIBLE_CONT
     """None if ``|value|`` (m^2) is a plausible contact area on a DIGIT; else why ``name`` looks like mm^2 typed in
     the m^2 field (``min_contact_area: 4`` meant 4 mm^2 and was taken as 4 m^2)."""
     return _in_smaller_unit(name, value, limit, "m^2", "mm^2", "larger than a DIGIT's sensing area",
-                            "; about 20 x 16 mm", factor=1e-6)
+                            "; about 15-20 x 20-25 mm", factor=1e-6)
 
 
 def plausible_contact_area(name: str, value: float, limit: float = MAX_PLAUSIBLE_CONTACT_AREA) -> float:

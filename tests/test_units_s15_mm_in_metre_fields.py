@@ -45,7 +45,7 @@ def test_the_shared_depth_and_area_checks_name_the_field_the_value_the_bound_and
     assert too_large_an_area("min_contact_area", MAX_PLAUSIBLE_CONTACT_AREA) is None
     assert plausible_contact_area("min_contact_area", 1e-6) == 1e-6
     why = too_large_an_area("min_contact_area", 4.0)
-    assert why.startswith("min_contact_area (4 m^2) is larger than a DIGIT's sensing area (0.00032 m^2 at most"), why
+    assert why.startswith("min_contact_area (4 m^2) is larger than a DIGIT's sensing area (0.0005 m^2 at most"), why
     assert "mm^2 in the m^2 field? a bare number is m^2: for 4 mm^2 write '4mm^2' (4e-06 m^2)" in why, why
 
 
@@ -69,8 +69,8 @@ def test_poly_force_keeps_its_defaults_the_packaged_calibration_and_plausible_va
     p = PolyForce.Params()
     assert (p.calibration, p.contact_threshold, p.depth_limit) == ("sim-digit-qvga", 3e-5, 5e-3)
     p = PolyForce.Params(contact_threshold="5mm", negative_tolerance="5mm", centroid_band="1mm",
-                         min_contact_area="320mm^2")
-    assert p.contact_threshold == pytest.approx(5e-3) and p.min_contact_area == pytest.approx(3.2e-4)
+                         min_contact_area="500mm^2")
+    assert p.contact_threshold == pytest.approx(5e-3) and p.min_contact_area == pytest.approx(5e-4)
     # a depth_limit beyond the gel (a test rig, or a calibration deeper than 5 mm) stays possible
     assert PolyForce.Params(depth_limit=0.05).depth_limit == 0.05
     assert load_graph(PAPER_SIM, sets=["force.contact_threshold=0.05mm", "force.min_contact_area=1mm^2"]).nodes

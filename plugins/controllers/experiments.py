@@ -43,8 +43,8 @@ G = 9.81
 #: no object pivoted between two fingertips is longer than this (the experiment's: 0.12 m): a longer length or centre
 #: of mass offset in the metre field is millimetres typed there
 MAX_PLAUSIBLE_OBJECT = 1.0       # m
-#: no contact patch on a DIGIT's gel is wider than its sensing area (about 20 x 16 mm): a larger friction radius is
-#: millimetres typed in the metre field
+#: no contact patch on a DIGIT's gel is wider than its sensing area (about 15-20 x 20-25 mm): a larger friction
+#: radius is millimetres typed in the metre field
 MAX_PLAUSIBLE_PATCH = 0.02       # m
 #: a person's pinch opens no wider than this: a larger squeeze or regrip step in the metre field is millimetres
 MAX_PLAUSIBLE_PINCH_SPAN = 0.2   # m
@@ -147,8 +147,8 @@ class SimPivot(Component):
         @field_validator("friction_radius")
         @classmethod
         def _patch(cls, v: float, info: Any) -> float:
-            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_PATCH, "m",
-                                      "larger than a contact patch on a DIGIT", "; its sensing area: about 20 x 16 mm")
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_PATCH, "m", "larger than a contact patch on a "
+                                      "DIGIT", "; its sensing area: about 15-20 x 20-25 mm")
 
         @model_validator(mode="after")
         def _friction(self) -> "SimPivot.Params":
