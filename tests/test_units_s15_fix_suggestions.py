@@ -23,8 +23,8 @@ def test_a_depth_too_deep_even_in_millimetres_suggests_micrometres():
 
 
 def test_an_area_too_large_even_in_square_millimetres_suggests_no_value():
-    why = too_large_an_area("min_contact_area", 400.0)   # 400 mm^2 > the sensing area too
-    assert "write '400mm^2'" not in why and "a bare number is m^2" in why, why
+    why = too_large_an_area("min_contact_area", 600.0)   # 600 mm^2 > the sensing area too
+    assert "write '600mm^2'" not in why and "a bare number is m^2" in why, why
     assert "for 4 mm^2 write '4mm^2'" in too_large_an_area("min_contact_area", 4.0)
 
 
