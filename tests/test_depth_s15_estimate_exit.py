@@ -24,3 +24,12 @@ def test_a_missing_background_exits_2_as_well(tmp_path, capsys):
     assert main(["estimate", "--model", "sim-digit-qvga", "--background", str(tmp_path / "nobg"),
                  str(tmp_path / "x.png")]) == 2
     assert capsys.readouterr().err.startswith("teletouch estimate: error: "), "prefix"
+
+
+def test_a_missing_force_calibration_exits_2_under_the_commands_prefix(tmp_path, capsys):
+    # before: exit 1 under the generic "teletouch: error:" (the ModelFileError was not caught as --model's is)
+    assert main(["estimate", "--model", "sim-digit-qvga", "--force-calibration", str(tmp_path / "none.force.json"),
+                 str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("teletouch estimate: error: --force-calibration "), err
+    assert "none.force.json: no such force calibration file" in err, err

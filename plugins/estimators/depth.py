@@ -774,7 +774,10 @@ def _force_calibration(path: str, model: str) -> Any:
     depth model, and another model's depths give another force."""
     from teletouch.plugins.estimators.poly_force import ForceCalibration, _model_name
 
-    cal = ForceCalibration.load(path)
+    try:
+        cal = ForceCalibration.load(path)
+    except ModelFileError as exc:   # an input error as the others: the command's prefix and exit code
+        raise ValueError(f"--force-calibration {exc}") from None
     if _model_name(model) != _model_name(cal.sensor_model_id):
         made_for = repr(cal.sensor_model_id) if cal.sensor_model_id else "an unnamed depth model"
         raise ValueError(f"--force-calibration {path}: the calibration {cal.path} was made for {made_for}, not for "
