@@ -67,3 +67,59 @@ def qvga_fixture():
         labs = C.read_labels(folder / "labels.csv")
         return ims, labs, C.median_background([im for _, im in ims])
     return qvga
+
+
+def isolated_depth_graph(rate: int, faults: str = "") -> str:
+    """A wall-clock graph: a pressing sine into sim-digit, whose frames go to a `depth` node run with `isolate:
+    process` (``faults``: the graph's ``faults:`` line, or none)."""
+    return f"""
+clock: wall
+{faults}
+nodes:
+  - {{id: press, plugin: mock-sensor, rate: {rate}, params: {{signal: sine, amplitude: 0.0004, offset: 0.0006,
+      frequency: 2}}}}
+  - {{id: digit, plugin: sim-digit, rate: {rate}, inputs: {{indentation: press.value}}}}
+  - {{id: depth, plugin: depth, rate: {rate}, inputs: {{image: digit.image}}, isolate: process}}
+"""
+
+
+class ImageChainTap:
+    """A runtime tap that keeps sim-digit's frames by stamp (``images``) and depth's outputs (``outs``)."""
+
+    def __init__(self) -> None:
+        self.images: dict[float, Any] = {}
+        self.outs: list[dict] = []
+
+    def __call__(self, node: str, t: float, out: dict) -> None:
+        from teletouch.component import Sample
+
+        if node == "digit":
+            v = out["image"]
+            self.images[v.stamp if isinstance(v, Sample) else t] = v.value if isinstance(v, Sample) else v
+        elif node == "depth":
+            self.outs.append(out)
+
+    def check_inline(self, skip: int = 0) -> int:
+        """Each depth output (after the first ``skip``) equals what the same estimator computes inline on its frame,
+        step by step, without warm-ups (maps bit for bit); returns how many were compared."""
+        import numpy as np
+
+        from teletouch.component import Sample
+        from teletouch.plugins.estimators.depth import DepthEstimator
+        from teletouch.testing import Harness
+
+        checked = 0
+        with Harness(DepthEstimator, {"warm": False}) as h:
+            for o in self.outs[skip:]:
+                d = o["depth"]
+                img = self.images.get(d.stamp)
+                if img is None:
+                    continue
+                h.set(image=Sample(img, d.stamp))
+                ref = h.comp.step(d.stamp, h.inputs)
+                assert d.value.dtype == np.float32 and d.value.shape == ref["depth"].value.shape
+                assert np.array_equal(d.value, ref["depth"].value)
+                assert np.array_equal(o["contact_mask"].value, ref["contact_mask"].value)
+                assert float(o["max_depth"].value) == float(ref["max_depth"].value)
+                checked += 1
+        return checked

@@ -299,55 +299,24 @@ def test_no_shared_memory_is_a_clear_fault(monkeypatch):
 def test_isolated_depth_estimator_gets_images_and_returns_depth_maps_exactly(image_reg):
     """The real image chain, split over two processes: sim-digit's frames go to an isolated `depth` through shared
     memory and its depth maps come back; they equal the maps the same estimator computes inline."""
-    import numpy as np
-
-    from teletouch.component import Sample
-    from teletouch.plugins.estimators.depth import DepthEstimator
-    from teletouch.testing import Harness
-
-    text = """
-clock: wall
-nodes:
-  - {id: press, plugin: mock-sensor, rate: 30, params: {signal: sine, amplitude: 0.0004, offset: 0.0006, frequency: 2}}
-  - {id: digit, plugin: sim-digit, rate: 30, inputs: {indentation: press.value}}
-  - {id: depth, plugin: depth, rate: 30, inputs: {image: digit.image}, isolate: process}
-"""
-    images: dict[float, np.ndarray] = {}
-    outs: list[dict] = []
-
-    def tap(node, t, out):
-        if node == "digit":
-            v = out["image"]
-            images[v.stamp if isinstance(v, Sample) else t] = v.value if isinstance(v, Sample) else v
-        elif node == "depth":
-            outs.append(out)
-            lanes = rt_ref[0].component("depth")._lanes
-            shared.append((len(lanes._own), len(lanes._peer)))   # the image went out, the maps came back shared
-
-    rt_ref: list = []
-    shared: list = []
+    from helpers_depth import ImageChainTap, isolated_depth_graph
     from teletouch.runtime import Runtime
 
-    rt = Runtime(load_text(text, image_reg), log=lambda m: None)
-    rt_ref.append(rt)
+    chain = ImageChainTap()
+    shared: list = []
+
+    def tap(node, t, out):
+        chain(node, t, out)
+        if node == "depth":
+            lanes = rt.component("depth")._lanes
+            shared.append((len(lanes._own), len(lanes._peer)))   # the image went out, the maps came back shared
+
+    rt = Runtime(load_text(isolated_depth_graph(30), image_reg), log=lambda m: None)
     rt.add_tap(tap)
     res = rt.run(1.0)
     assert res.exit_code == EXIT_OK, res.message
     assert rt.component("depth")._proc.exitcode == 0 and not _blocks_of(rt)   # no block left behind
-    checked = 0
-    with Harness(DepthEstimator, {}) as h:
-        for o in outs[3:]:
-            d = o["depth"]
-            img = images.get(d.stamp)
-            if img is None:
-                continue
-            h.set(image=Sample(img, d.stamp))
-            ref = h.comp.step(d.stamp, h.inputs)
-            assert d.value.dtype == np.float32 and d.value.shape == (320, 240)
-            assert np.array_equal(d.value, ref["depth"].value)
-            assert np.array_equal(o["contact_mask"].value, ref["contact_mask"].value)
-            checked += 1
-    assert checked >= 10 and max(float(o["max_depth"].value) for o in outs) > 2e-4
+    assert chain.check_inline(skip=3) >= 10 and max(float(o["max_depth"].value) for o in chain.outs) > 2e-4
     assert shared[-1] == (1, 2)   # image out; depth and contact mask back (max depth, area, centroid: the pipe)
 
 

@@ -193,7 +193,8 @@ def test_warm_false_rehearses_nothing():
 
 
 class _Costly(Component):
-    """Its step and its warm-up each sleep ``step_s`` / ``warm_s`` (a warm-up that hangs: a long ``warm_s``)."""
+    """Its step and its warm-up each sleep ``step_s`` / ``warm_s`` (a warm-up that hangs: a long ``warm_s``; a slow
+    first one only, a page fault or a loaded machine's pause: ``first_warm_s``)."""
     name = "costly"
     kind = Kind.ESTIMATOR
     outputs = {"y": Port("float64", (), "")}
@@ -201,13 +202,15 @@ class _Costly(Component):
     class Params(Component.Params):
         step_s: float = 0.0
         warm_s: float = 0.0
+        first_warm_s: float | None = None
 
     def configure(self):
         self.warms = 0
 
     def warm(self):
         self.warms += 1
-        time.sleep(self.params.warm_s)
+        first = self.params.first_warm_s
+        time.sleep(first if self.warms == 1 and first is not None else self.params.warm_s)
 
     def step(self, t, inputs):
         time.sleep(self.params.step_s)
@@ -255,39 +258,15 @@ nodes:
     assert "waits for the warm() of node 'est'" in d.message, d.message
 
 
-class _Hiccup(Component):
-    """Its first warm-up is slow (a page fault, a loaded machine's pause), the others 0.5 ms; its step 1 ms."""
-    name = "hiccup"
-    kind = Kind.ESTIMATOR
-    outputs = {"y": Port("float64", (), "")}
-
-    def configure(self):
-        self.warms = 0
-
-    def warm(self):
-        self.warms += 1
-        time.sleep(0.012 if self.warms == 1 else 0.0005)
-
-    def step(self, t, inputs):
-        time.sleep(0.001)
-        return {"y": t}
-
-
-class _HiccupPlugin:
-    @hookimpl
-    def teletouch_components(self):
-        return [_Hiccup]
-
-
 def test_one_slow_warm_up_does_not_turn_the_warm_up_off_for_the_rest_of_the_run():
     # before: the budget read the latest warm-up's time, which a skipped warm-up never renews: one 12 ms warm-up
     # at 50 Hz left the node cold for the whole run (1 warm-up in 100 steps)
-    reg = make_registry(_HiccupPlugin())
+    reg = make_registry(_CostlyPlugin())
     text = """
 clock: wall
 faults: {max_overruns: 0, watchdog: 5}
 nodes:
-  - {id: est, plugin: hiccup, rate: 50}
+  - {id: est, plugin: costly, rate: 50, params: {step_s: 0.001, warm_s: 0.0005, first_warm_s: 0.012}}
 """
     res, rt = run_yaml(text, reg, duration=2.0)
     assert res.exit_code == EXIT_OK, res.message

@@ -256,41 +256,13 @@ nodes:
 def test_an_isolated_depth_node_rehearses_in_its_child_and_its_maps_equal_the_inline_ones(requests):
     """The real use: depth's warm() (its last new frame run again, the result thrown away) in the child, 1 ms before
     each step. Its depth maps are those the same estimator computes inline, step by step, without warm-ups."""
-    from teletouch.plugins.estimators.depth import DepthEstimator
-    from teletouch.testing import Harness
+    from helpers_depth import ImageChainTap, isolated_depth_graph
 
-    text = """
-clock: wall
-faults: {max_overruns: 0}
-nodes:
-  - {id: press, plugin: mock-sensor, rate: 50, params: {signal: sine, amplitude: 0.0004, offset: 0.0006, frequency: 2}}
-  - {id: digit, plugin: sim-digit, rate: 50, inputs: {indentation: press.value}}
-  - {id: depth, plugin: depth, rate: 50, inputs: {image: digit.image}, isolate: process}
-"""
-    images: dict[float, np.ndarray] = {}
-    outs: list[dict] = []
-
-    def tap(node, t, out):
-        if node == "digit":
-            v = out["image"]
-            images[v.stamp if isinstance(v, Sample) else t] = v.value if isinstance(v, Sample) else v
-        elif node == "depth":
-            outs.append(out)
-
+    chain = ImageChainTap()
     reg = make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
-    res, rt = run_yaml(text, reg, duration=1.0, taps=[tap])
+    res, rt = run_yaml(isolated_depth_graph(50, "faults: {max_overruns: 0}"), reg, duration=1.0, taps=[chain])
     assert res.exit_code == EXIT_OK, res.message
     ops = [op for nid, op in requests if nid == "depth"]
     # (a warm-up is left out where the cycle would not leave it room: a loaded machine's slow cycle)
     assert ops.count("warm") >= ops.count("step") / 2 and ops.count("step") >= 40, ops
-    checked = 0
-    with Harness(DepthEstimator, {"warm": False}) as h:
-        for o in outs:
-            d = o["depth"]
-            h.set(image=Sample(images[d.stamp], d.stamp))
-            ref = h.comp.step(d.stamp, h.inputs)
-            assert np.array_equal(d.value, ref["depth"].value)
-            assert np.array_equal(o["contact_mask"].value, ref["contact_mask"].value)
-            assert float(o["max_depth"].value) == float(ref["max_depth"].value)
-            checked += 1
-    assert checked >= 40 and max(float(o["max_depth"].value) for o in outs) > 2e-4
+    assert chain.check_inline() >= 40 and max(float(o["max_depth"].value) for o in chain.outs) > 2e-4
