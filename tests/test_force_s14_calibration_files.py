@@ -49,9 +49,10 @@ def test_a_text_file_that_is_no_json_is_not_a_force_calibration(tmp_path):
 
 
 def test_teletouch_estimate_names_the_wrong_calibration_file(binary, capsys):
-    assert main(["estimate", "--model", "sim-digit-qvga", "--force-calibration", str(binary), "none.png"]) == 1
+    assert main(["estimate", "--model", "sim-digit-qvga", "--force-calibration", str(binary), "none.png"]) == 2
     err = capsys.readouterr().err
-    assert f"{binary}: {NOT_ONE}" in err and "codec" not in err, err
+    assert err.startswith(f"teletouch estimate: error: --force-calibration {binary}: {NOT_ONE}"), err   # (exit 2:
+    assert "codec" not in err, err                                                                   # an input error)
 
 
 def _validate_errors(sets) -> list[str]:
