@@ -42,6 +42,18 @@ class Kind(str, enum.Enum):
         return self.value
 
 
+def shapes_differ(a: tuple[int | None, ...], b: tuple[int | None, ...]) -> bool:
+    """Whether shapes ``a`` and ``b`` cannot be one (another number of dimensions, or two sizes that differ; ``None``:
+    any size)."""
+    return len(a) != len(b) or any(x is not None and y is not None and x != y for x, y in zip(a, b))
+
+
+def has_warm_up(cls: type) -> bool:
+    """Whether the runtime calls :meth:`Component.warm` of a node of class ``cls`` (under the wall clock): a warm()
+    of its own, and no device's (a warm-up must never command one). For an isolated node, its class in the child."""
+    return cls.warm is not Component.warm and not issubclass(cls, Device)
+
+
 @dataclass(frozen=True)
 class Port:
     """A typed port.
@@ -75,12 +87,8 @@ class Port:
             return f"type mismatch: {source.dtype} -> {self.dtype}"
         if self.unit != "any" and source.unit != "any" and self.unit != source.unit:
             return f"unit mismatch: '{source.unit or '1'}' -> '{self.unit or '1'}'"
-        if self.shape is not None and source.shape is not None:
-            if len(self.shape) != len(source.shape):
-                return f"shape mismatch: {source.describe()} -> {self.describe()}"
-            for a, b in zip(self.shape, source.shape):
-                if a is not None and b is not None and a != b:
-                    return f"shape mismatch: {source.describe()} -> {self.describe()}"
+        if self.shape is not None and source.shape is not None and shapes_differ(self.shape, source.shape):
+            return f"shape mismatch: {source.describe()} -> {self.describe()}"
         return None
 
     def describe_value(self) -> str:

@@ -46,7 +46,7 @@ from typing import Any, Iterable
 
 from pydantic import ValidationError
 
-from .component import Component, Device, _field_unit
+from .component import Component, Device, _field_unit, shapes_differ
 from .errors import GraphError, GraphValidationError, Location
 from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
@@ -776,15 +776,10 @@ def _fixed_shapes(n: NodeSpec) -> dict[str, tuple[tuple[int | None, ...], str, s
         if not isinstance(shape, tuple) or not all(
                 d is None or (isinstance(d, int) and not isinstance(d, bool) and d >= 0) for d in shape):
             raise TypeError(f"port '{port}': shape {shape!r}, expected a tuple of sizes (int >= 0 or None)")
-        if declared.shape is not None and _shapes_differ(declared.shape, shape):
+        if declared.shape is not None and shapes_differ(declared.shape, shape):
             raise ValueError(f"port '{port}': shape {shape!r} does not fit the port ({declared.describe()})")
         out[port] = (shape, entry[1], entry[2] if len(entry) == 3 else "")
     return out
-
-
-def _shapes_differ(a: tuple[int | None, ...], b: tuple[int | None, ...]) -> bool:
-    """Whether shapes ``a`` and ``b`` cannot be one (``None``: any size)."""
-    return len(a) != len(b) or any(x is not None and y is not None and x != y for x, y in zip(a, b))
 
 
 def _size_text(shape: tuple[int | None, ...], other: tuple[int | None, ...]) -> tuple[str, str]:
@@ -812,7 +807,7 @@ def _size_clash(src: NodeSpec, out_port: str, src_fixed: dict[str, tuple], dst: 
         else:
             ends.append((node, port.shape, "its port", ""))
     (_, a, a_why, _), (_, b, b_why, _) = ends
-    if not _shapes_differ(a, b):
+    if not shapes_differ(a, b):
         return None
     (a_size, a_what), (b_size, b_what) = _size_text(a, b), _size_text(b, a)
     fixes = [f"on node '{node.id}', {how}" for node, _, _, how in (ends[1], ends[0]) if how]

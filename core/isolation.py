@@ -60,7 +60,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot
+from .component import Component, Context, Inputs, Sample, _Slot, has_warm_up
 from .errors import ComponentFault, exception_line
 
 #: seconds a child may take to answer a lifecycle call (configure may load a model)
@@ -487,8 +487,7 @@ class ProcessProxy(Component):
         self._abandon: str | None = None            # why the step in flight (or about to wait) is to be abandoned
         self._wake_lock = threading.Lock()
         self._poller: Any = None                    # select.poll() on the pipe and the wake-up pipe (steps)
-        # whether warm() asks the child: its class has a warm() of its own and is no device (as inline: _Node.warm)
-        self._warms = cls.warm is not Component.warm and not issubclass(cls, Device)
+        self._warms = has_warm_up(cls)   # whether warm() asks the child (as inline: _Node.warm)
 
     # -------------------------------------------------------------------------------------------------- plumbing
     def _started(self) -> bool:

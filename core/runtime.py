@@ -27,7 +27,9 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot, step_location, step_samples, value_checker
+from .component import (
+    Component, Context, Device, Inputs, Sample, _Slot, has_warm_up, step_location, step_samples, value_checker,
+)
 from .errors import ComponentFault, exception_line
 from .graph import GraphSpec
 
@@ -183,12 +185,9 @@ class _Node:
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
         self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
         self.last_t = 0.0
-        # wall clock: its Component.warm(), called WARM_LEAD before each step; None where its class has none (the base
-        # class's) and for a device (a warm-up must never command it). The class is the spec's: for an isolated node
-        # the one in its child (the proxy's warm() asks the child), not the proxy's
-        cls = spec.cls
-        overridden = cls.warm is not Component.warm
-        self.warm = comp.warm if overridden and not (self.is_device or issubclass(cls, Device)) else None
+        # wall clock: its Component.warm(), called WARM_LEAD before each step, or None (component.has_warm_up). The
+        # class is the spec's: for an isolated node the one in its child (the proxy's warm() asks the child)
+        self.warm = comp.warm if has_warm_up(spec.cls) else None
         self.warming = False    # its warm() is running (in_step is set too: the watchdog names the warm-up)
         self.warm_began = 0.0   # graph time its latest warm() began
         self.warm_dt = 0.0      # how long its latest warm() took (s)

@@ -28,7 +28,8 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import (
-    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, plausible_opening, plausible_travel,
+    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, plausible_opening, plausible_quantity,
+    plausible_travel,
 )
 
 from .omega7 import (
@@ -139,12 +140,7 @@ class SimOmega7(Device):
         @field_validator("hand_max_force")
         @classmethod
         def _plausible_pinch(cls, v: float, info: Any) -> float:
-            limit = MAX_PLAUSIBLE_PINCH_FORCE
-            if v > limit:   # in the words of the other hand-force checks (teletouch.units)
-                raise ValueError(f"{info.field_name} ({v:g} N) is beyond any person's pinch ({limit:g} N at most): "
-                                 f"mN in the N field? a bare number is N: for {v:g} mN write '{v:g}mN' "
-                                 f"({v / 1e3:g} N)")
-            return v
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_PINCH_FORCE, "N", "beyond any person's pinch")
 
         @field_validator("workspace_radius")
         @classmethod
