@@ -162,15 +162,15 @@ def test_the_depth_nodes_warm_up_rehearses_the_last_frame_without_changing_any_o
 
 
 class _Counting:
-    """The depth pipeline, its calls counted (what warm() runs)."""
+    """The depth pipeline, its rehearsals counted (what warm() runs)."""
 
     def __init__(self, inner, calls):
         self.inner = inner
         self.calls = calls
 
-    def __call__(self, frame):
+    def rehearse(self, frame):
         self.calls[0] += 1
-        return self.inner(frame)
+        return self.inner.rehearse(frame)
 
     def __getattr__(self, name):
         return getattr(self.inner, name)

@@ -195,18 +195,10 @@ class DepthEstimator(Component):
         self._rehearse: np.ndarray | None = None   # the last frame computed anew: what warm() runs again
 
     def warm(self) -> None:
-        """Run the last frame computed anew through the pipeline again, the result thrown away (``warm``): the
-        runtime calls this 1 ms before each step under the wall clock. The pipeline's per-frame state (the frame's
-        colour offset, whether it changed) is put back, so the outputs are the same as without it."""
-        frame = self._rehearse
-        if frame is None or not self.params.warm:
-            return
-        pipe = self.pipe
-        kept = (pipe._offset, pipe._changed)
-        try:
-            pipe(frame)
-        finally:
-            pipe._offset, pipe._changed = kept
+        """Run the last frame computed anew through the pipeline again, the result thrown away (``warm``,
+        DepthPipeline.rehearse): the runtime calls this 1 ms before each step under the wall clock."""
+        if self._rehearse is not None and self.params.warm:
+            self.pipe.rehearse(self._rehearse)
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         s = inputs["image"]
