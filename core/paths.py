@@ -13,12 +13,13 @@ from .errors import ModelFileError
 __all__ = ["output_problem", "input_file"]
 
 
-def input_file(spec: str | os.PathLike, noun: str, made: str, packaged: Callable[[str], Path | None],
-               shipped: Sequence[str]) -> Path:
+def input_file(spec: str | os.PathLike, noun: str, suffix: str, command: str,
+               packaged: Callable[[str], Path | None], shipped: Sequence[str]) -> Path:
     """The existing file ``spec`` names: a path (``~`` expanded; a relative one from the current folder), else a
     packaged file's name (``packaged(name)``: its path or None). Else ModelFileError naming it as empty, a folder or
-    missing, with what was expected: a ``noun`` file (``made``: its suffix and the command that makes it, e.g. ".model
-    from `teletouch calibrate depth`"), where a relative path was looked for, the ``shipped`` names, how to make one."""
+    missing, with what was expected: a ``noun`` file (its ``suffix``, made by ``command``, e.g. "`teletouch calibrate
+    depth`"), where a relative path was looked for, the ``shipped`` names, how to make one."""
+    made = f"{suffix} from {command}"
     s = str(spec)
     if not s.strip():
         raise ModelFileError(f"empty: expected a {noun} file ({made}) or a packaged {noun}'s name")
@@ -33,7 +34,6 @@ def input_file(spec: str | os.PathLike, noun: str, made: str, packaged: Callable
     # a relative path is the current folder's (a graph's params: not the graph file's folder, as include: is)
     where = "" if p.is_absolute() else (f" (looked at {Path.cwd() / p}: a relative path is taken from the current "
                                          f"folder, not the graph file's)")
-    command = made[made.index("`"):] if "`" in made else made
     raise ModelFileError(f"{s}: no such {noun} file{where}, and no packaged {noun} of that name (packaged: "
                          f"{', '.join(shipped) or 'none'}); make one with {command}")
 

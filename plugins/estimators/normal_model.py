@@ -319,7 +319,7 @@ def resolve_model(spec: str | os.PathLike[str]) -> Path:
         return packaged_model_path(s) if os.sep not in s and not s.endswith(".model") else None
 
     shipped = sorted(f.stem for f in DATA_DIR.glob("*.model")) if DATA_DIR.is_dir() else []
-    return input_file(spec, "model", ".model from `teletouch calibrate depth`", packaged, shipped)
+    return input_file(spec, "model", ".model", "`teletouch calibrate depth`", packaged, shipped)
 
 
 def _meta_number(name: str, meta: dict[str, Any], key: str, default: float | None = None, *,

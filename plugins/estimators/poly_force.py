@@ -1198,7 +1198,7 @@ def resolve_calibration(name_or_path: str) -> Path:
         q = DATA_DIR / (s + SUFFIX)
         return q if q.is_file() else None
 
-    return input_file(name_or_path, "force calibration", f"{SUFFIX} from `teletouch calibrate force`", packaged,
+    return input_file(name_or_path, "force calibration", SUFFIX, "`teletouch calibrate force`", packaged,
                       packaged_calibrations())
 
 
