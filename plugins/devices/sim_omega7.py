@@ -28,8 +28,8 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
 from teletouch.units import (
-    Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds, plausible_opening, plausible_quantity,
-    plausible_travel,
+    MAX_PLAUSIBLE_WORKSPACE, Kilograms, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds,
+    plausible_opening, plausible_quantity, plausible_travel,
 )
 
 from .omega7 import (
@@ -58,6 +58,22 @@ def _u(unit: str) -> dict[str, str]:
 
 def _clip(v: float, bound: float = INTENT_BOUND) -> float:
     return bound if v > bound else (-bound if v < -bound else v)
+
+
+def _outside_workspace(name: str, position: tuple[float, float, float], radius: float) -> str | None:
+    """None if ``position`` (m) lies in the spherical workspace of ``radius`` (m); else why ``name`` is refused. A
+    position beyond any haptic leader's workspace that fits this one as millimetres gets the value to write
+    (``hand_position: [0, 0, 50]`` meant 50 mm and pulled the handle towards a point 50 m away)."""
+    r = math.sqrt(sum(c * c for c in position))
+    if r <= radius * (1 + 1e-12):
+        return None
+    msg = (f"{name} {list(position)} m is {r * 1e3:g} mm from the centre, outside workspace_radius "
+           f"({radius * 1e3:g} mm)")
+    if r <= MAX_PLAUSIBLE_WORKSPACE or r * 1e-3 > radius * (1 + 1e-12):   # metres meant, or no unit fits
+        return msg
+    m = ", ".join(f"{c * 1e-3:g}" for c in position)
+    mm = ", ".join(f'"{c:g}mm"' for c in position)
+    return f"{msg}: millimetres in the metre field? a bare number is metres: write [{m}] or [{mm}]"
 
 
 class SimOmega7(Device):
@@ -162,10 +178,10 @@ class SimOmega7(Device):
                 raise ValueError(f"initial_opening ({self.initial_opening * 1e3:g} mm) is beyond max_opening "
                                  f"({self.max_opening * 1e3:g} mm, the gripper's end stop): expected 0 to "
                                  f"max_opening")
-            r = math.sqrt(sum(c * c for c in self.initial_position))
-            if r > self.workspace_radius * (1 + 1e-12):
-                raise ValueError(f"initial_position {list(self.initial_position)} m is {r * 1e3:g} mm from the "
-                                 f"centre, outside workspace_radius ({self.workspace_radius * 1e3:g} mm)")
+            for name in ("initial_position", "hand_position"):   # the hand holds the handle: both lie in its reach
+                problem = _outside_workspace(name, getattr(self, name), self.workspace_radius)
+                if problem:
+                    raise ValueError(problem)
             return self
 
     # ------------------------------------------------------------------------------------------------ lifecycle
