@@ -66,6 +66,23 @@ MAX_PROBE_TRAVEL = 0.2   # m
 #: no probe is driven towards a gel faster than this (the routine's defaults: 1 and 4 mm/s): a faster approach or move
 #: speed in the m/s field is mm/s typed there
 MAX_PROBE_SPEED = 0.2    # m/s
+#: no rate limit of the press force is set higher than this (the default: 500 N/s): a haptic device's whole +-50 N
+#: swing (:data:`~teletouch.units.MAX_PLAUSIBLE_HAND_FORCE`; the Omega.7: +-12 N) in one 1 ms period of the routine at
+#: its 1 kHz default, beyond which the limit limits nothing; a higher one is mN/s typed in the N/s field
+MAX_PLAUSIBLE_FORCE_RATE = 2 * MAX_PLAUSIBLE_HAND_FORCE / 1e-3   # N/s: 100 kN/s
+
+
+def _too_fast_a_force_change(name: str, value: float, limit: float = MAX_PLAUSIBLE_FORCE_RATE) -> str | None:
+    """None if ``value`` (N/s) is a plausible rate limit of the press force; else why ``name`` looks like mN/s typed
+    in the N/s field (``max_force_rate: 500000`` meant 500000 mN/s), with the bare number meant where it fits (there
+    is no unit mN/s to write)."""
+    if abs(value) <= limit:
+        return None
+    head = (f"{name} ({value:g} N/s) is faster than a press's force needs to change ({limit:g} N/s at most: a haptic "
+            f"device's whole +-{MAX_PLAUSIBLE_HAND_FORCE:g} N in 1 ms)")
+    if abs(value) * 1e-3 > limit:
+        return f"{head}: a bare number is N/s"
+    return f"{head}: mN/s in the N/s field? a bare number is N/s: for {value:g} mN/s write {value * 1e-3:g}"
 
 
 # ================================================================================================ the press routine
@@ -179,6 +196,14 @@ class PressRoutine(Component):
         def _force(cls, v: float, info: Any) -> float:
             return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_HAND_FORCE, "N",   # the leader renders it
                                       "beyond what a haptic device renders", "; the Omega.7: 12 N in translation")
+
+        @field_validator("max_force_rate")
+        @classmethod
+        def _force_rate(cls, v: float, info: Any) -> float:
+            problem = _too_fast_a_force_change(info.field_name, v)   # 500000 meant mN/s: a 500 N step per 1 ms
+            if problem:
+                raise ValueError(problem)
+            return v
 
     SATURATION_TIME = 0.1  # s of a saturated press (or of resistance on the approach) before aborting
     MAX_OFFSET = 0.025  # m: a press point farther than this from the start is off any DIGIT's gel (mm given as m?)
