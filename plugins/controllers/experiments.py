@@ -161,6 +161,14 @@ class SimPivot(Component):
                                  f"turns down from initial_angle to max_angle)")
             return self
 
+        @model_validator(mode="after")
+        def _centre_of_mass_on_the_object(self) -> "SimPivot.Params":
+            if self.com_offset > self.length:
+                raise ValueError(f"com_offset ({self.com_offset * 1e3:g} mm) is longer than length "
+                                 f"({self.length * 1e3:g} mm): expected com_offset <= length (the centre of mass "
+                                 f"lies on the object, the pinch axis too)")
+            return self
+
     def configure(self) -> None:
         p = self.params
         self.weak_since: float | None = None
