@@ -63,9 +63,13 @@ class ComponentFault(TeletouchError):
     #: where a person should look, when that is not where it was raised (an output that does not fit its port is
     #: found by the runtime, but made by the plugin's step): ``exception_line`` gives it instead of the frame
     where: str | None = None
+    #: the input port the fault is about (an input lost for too long), or None: the runtime, which knows the wires,
+    #: adds to the fault the node and port that feed it (a component cannot know its graph)
+    input_port: str | None = None
 
-    def __init__(self, message: str, node: str | None = None):
+    def __init__(self, message: str, node: str | None = None, *, input_port: str | None = None):
         self.node = node
+        self.input_port = input_port
         super().__init__(f"node '{node}': {message}" if node else message)
 
 
@@ -77,11 +81,11 @@ class ModelFileError(TeletouchError):
     """A model or calibration file is missing, corrupt or of the wrong version."""
 
 
-def exception_line(exc: BaseException) -> str:
+def exception_line(exc: BaseException, more: str = "") -> str:
     """One line for a person: ``Type: message (file.py:line)`` of the innermost frame that raised (or the
-    exception's own ``where``, see :class:`ComponentFault`)."""
+    exception's own ``where``, see :class:`ComponentFault`); ``more`` is added to the message, before the place."""
     if getattr(exc, "where", None):
-        return f"{type(exc).__name__}: {exc} ({exc.where})"
+        return f"{type(exc).__name__}: {exc}{more} ({exc.where})"
     tb = traceback.extract_tb(exc.__traceback__)
     where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
-    return f"{type(exc).__name__}: {exc}{where}"
+    return f"{type(exc).__name__}: {exc}{more}{where}"

@@ -341,8 +341,10 @@ class Runtime:
         raise KeyError(node_id)
 
     def add_tap(self, tap: Tap) -> None:
-        """Call ``tap(node_id, t, outputs)`` after every step that produced outputs (recording, experiments).
-        In wall-clock mode it is called from the node's thread: it must be quick and thread-safe."""
+        """Call ``tap(node_id, t, outputs)`` after every step that produced outputs (recording, experiments):
+        ``t`` the step's graph time, ``outputs`` the mapping the step returned, as it returned it (a bare value, or a
+        Sample where the step gave its own stamp; docs/recording.md). In wall-clock mode it is called from the
+        node's thread: it must be quick and thread-safe."""
         self.taps.append(tap)
 
     # ------------------------------------------------------------------------------------------------- clock
@@ -469,6 +471,24 @@ class Runtime:
         with self._lock:
             self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now,
                                      "logged"))
+
+    @staticmethod
+    def _step_error(node: _Node, exc: BaseException) -> str:
+        """The fault's text for an exception from a node's step (or warm-up): :func:`exception_line`, and where the
+        exception is a ComponentFault about one of the node's inputs (``input_port``: a plugin cannot know its
+        graph), which node and port feed that input."""
+        port = getattr(exc, "input_port", None) if isinstance(exc, ComponentFault) else None
+        if not isinstance(port, str):
+            return exception_line(exc)
+        wire = node.spec.inputs.get(port)
+        if wire is not None:
+            more = f"; input '{port}' is fed by node '{wire.node}' port '{wire.source_port}'"
+        elif port in node.spec.cls.inputs:
+            more = f"; input '{port}' is not wired in the graph"
+        else:
+            more = (f"; the fault names input '{port}', which {node.spec.plugin} does not have (inputs: "
+                    f"{', '.join(node.spec.cls.inputs) or '(none)'})")
+        return exception_line(exc, more)
 
     def _check_stale(self, node: _Node, t: float) -> bool:
         if t < self.spec.faults.startup_grace:
@@ -775,7 +795,7 @@ class Runtime:
                 except KeyboardInterrupt:   # Ctrl-C (the main thread steps): ends the run as interrupted
                     raise
                 except BaseException as exc:   # also SystemExit from a plugin: a fault of its node
-                    self._fault(node, "exception", exception_line(exc), t)
+                    self._fault(node, "exception", self._step_error(node, exc), t)
                 dt = perf() - t1
                 node.busy += dt
                 if dt > node.max_step:
@@ -964,7 +984,7 @@ class Runtime:
                 except BaseException as exc:   # also SystemExit or KeyboardInterrupt raised by a plugin in this
                     node.in_step = False       # thread (a signal reaches the main one)
                     if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it
-                        self._fault(node, "exception", exception_line(exc), t)    # has reported the node's fault
+                        self._fault(node, "exception", self._step_error(node, exc), t)   # has reported its fault
                 node.in_step = False
                 if not node.steps:
                     node.first_t = t
@@ -1029,7 +1049,8 @@ class Runtime:
             except BaseException as exc:   # (as a step's: also SystemExit or KeyboardInterrupt raised in it)
                 node.in_step = False
                 if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it has
-                    self._fault(node, "exception", f"warm(): {exception_line(exc)}", node.warm_began)   # said so
+                    self._fault(node, "exception", f"warm(): {self._step_error(node, exc)}",   # said so
+                                node.warm_began)
             node.in_step = False
             node.warming = False
             node.warm_dt = perf() - t1

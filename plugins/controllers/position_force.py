@@ -47,8 +47,9 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller;
 5. a loss that lasts is a fault: a leader opening (once received) or, for position-force, a force estimate lost
    continuously for longer than ``fault_after_lost`` (0.5 s; at least ``fade_time``, so the force has faded out)
-   makes step() raise ComponentFault naming what was lost and for how long; the runtime then drives the devices to
-   their safe states (zero leader force, the follower holds).
+   makes step() raise ComponentFault naming what was lost and for how long (and the input: the runtime adds which
+   node and port feed it); the runtime then drives the devices to their safe states (zero leader force, the follower
+   holds).
 
 ``position-position`` replaces step 2 by a PD on the position error,
 ``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
@@ -382,17 +383,18 @@ class _CommonParams(Params):
         return sum(getattr(self, n) for n in self._constant_damping_fields())
 
 
-def lost_since(since: float | None, lost: bool, t: float, limit: float, what: str, problem: str, fix: str
-               ) -> float | None:
+def lost_since(since: float | None, lost: bool, t: float, limit: float, what: str, problem: str, fix: str,
+               port: str | None = None) -> float | None:
     """When a loss of ``what`` began (None: not lost now), given when it began so far (``since``); ComponentFault
-    once it has lasted longer than ``limit`` s, naming what, for how long, why (``problem``) and what to check."""
+    once it has lasted longer than ``limit`` s, naming what, for how long, why (``problem``) and what to check; it
+    is about input ``port`` (the runtime adds which node feeds it)."""
     if not lost:
         return None
     if since is None:
         return t
     if t - since > limit:
         raise ComponentFault(f"{what} lost for {t - since:.3f} s (since t={since:.3f} s; {problem}), longer than "
-                             f"fault_after_lost {limit:g} s: {fix}")
+                             f"fault_after_lost {limit:g} s: {fix}", input_port=port)
     return since
 
 
@@ -601,9 +603,9 @@ class _Bilateral(Component):
         limit = self.params.fault_after_lost
         self.leader_lost_since = lost_since(self.leader_lost_since, not (self.leader_ok or self.command is None), t,
                                             limit, "leader opening", self.leader_problem,
-                                            "check the leader and its wire")
+                                            "check the leader and its wire", "leader_opening")
         self.force_lost_since = lost_since(self.force_lost_since, self.force_lost(), t, limit, "force estimate",
-                                           self.force_problem, "check the sensor and its estimators")
+                                           self.force_problem, "check the sensor and its estimators", "force")
 
     # -- the step
     def step(self, t: float, inputs: Any) -> dict[str, float]:
