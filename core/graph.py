@@ -40,6 +40,7 @@ import difflib
 import json
 import math
 import re
+import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -848,7 +849,8 @@ def _set_hint(cls: type[Component], params: dict[str, Any], nid: str, name: str,
     default, e.g. the intent 'hold'): they made a mapping of only what they give; where the parameter takes that name
     as ``type`` (``{type: hold}``), it says to give it: ``--set leader.intent.type=hold``; a number or a list: it
     says what they made. The value before is a mapping whose other keys refuse what the --sets give, which they accept
-    alone (another intent's type and fields): it says to give the whole value in one --set. Else nothing."""
+    alone (another intent's type and fields): it says to give the whole value in one --set. Else nothing. A --set
+    it suggests is quoted for a shell (shlex.quote: a value may hold a space or a quote) and pastes as it is."""
     made = params.get(name)
     if not isinstance(made, dict):
         return ""
@@ -861,7 +863,7 @@ def _set_hint(cls: type[Component], params: dict[str, Any], nid: str, name: str,
         if not kept or _refused(cls, params, name, alone):
             return ""
         return (f"; the --set changes only what it names in {name}, the others stay ({', '.join(kept)}); give the "
-                f"whole value: --set '{nid}.{name}={_flow(alone)}'")
+                f"whole value: --set {shlex.quote(f'{nid}.{name}={_flow(alone)}')}")
     if before is _MISSING:
         field_info = cls.Params.model_fields.get(name)
         if field_info is None or field_info.is_required():
@@ -875,7 +877,7 @@ def _set_hint(cls: type[Component], params: dict[str, Any], nid: str, name: str,
     if not isinstance(before, str):   # (a number, a list: nothing inside it to set)
         return hint
     if "type" not in made and not _refused(cls, params, name, {"type": before}):
-        return hint + f"; give its type with it: --set {nid}.{name}.type={before}"
+        return hint + f"; give its type with it: --set {shlex.quote(f'{nid}.{name}.type={before}')}"
     return ""   # a name, and the --sets give the type (or it is no type): the error says it
 
 
