@@ -48,10 +48,14 @@ def shapes_differ(a: tuple[int | None, ...], b: tuple[int | None, ...]) -> bool:
     return len(a) != len(b) or any(x is not None and y is not None and x != y for x, y in zip(a, b))
 
 
-def has_warm_up(cls: type) -> bool:
+def has_warm_up(cls: type, params: Any = None) -> bool:
     """Whether the runtime calls :meth:`Component.warm` of a node of class ``cls`` (under the wall clock): a warm()
-    of its own, and no device's (a warm-up must never command one). For an isolated node, its class in the child."""
-    return cls.warm is not Component.warm and not issubclass(cls, Device)
+    of its own, and no device's (a warm-up must never command one). For an isolated node, its class in the child.
+    With the node's validated ``params``, also whether that node wants it (:meth:`Component.wants_warm_up`): an
+    isolated node's proxy asks its child for nothing when not (isolation.ProcessProxy.warm)."""
+    if cls.warm is Component.warm or issubclass(cls, Device):
+        return False
+    return params is None or bool(cls.wants_warm_up(params))
 
 
 @dataclass(frozen=True)
@@ -524,6 +528,14 @@ class Component:
         tried again a second later); an isolated node's runs in its process (the runtime waits for it as for a step:
         isolation.ProcessProxy.warm). An exception faults the node as one in step() does; the watchdog names a
         warm-up that hangs."""
+
+    @classmethod
+    def wants_warm_up(cls, params: Any) -> bool:
+        """Whether a node with these validated ``params`` wants its :meth:`warm` called (default: True). For a class
+        whose parameters turn its warm-up off (the depth node's ``warm: false``): an isolated node is then never asked
+        (no round trip to its process before each step, :func:`has_warm_up`); an inline node's warm() is called all
+        the same, and should return at once."""
+        return True
 
     def close(self) -> None:
         """Release everything; called once, even after a failed configure."""

@@ -18,15 +18,16 @@ The child is started with the ``spawn`` method (no fork of a threaded process). 
 reference (its module must be importable; a failed import in the child is a start-up failure with its reason), its
 parameters as a plain dict. Graph time is the same in both processes (``time.perf_counter`` and ``time.monotonic``
 are system-wide clocks on Linux and macOS). Exceptions in the child come back as faults of the node, with the original
-type, message and place. Under the simulated clock isolation is ignored: the node runs inline, so runs stay
-deterministic.
+type, message and place, and the input a ComponentFault is about (``input_port``: the runtime adds what feeds it, as
+inline). Under the simulated clock isolation is ignored: the node runs inline, so runs stay deterministic.
 
 An input whose sample is the same object as the one the child already holds (a camera image that has not changed
 since the last step of a faster node) is not sent again: the child's component sees the same Sample, as inline.
 Values other than numbers, numeric arrays and text cross pickled one by one, so a value the child cannot unpickle
 (its class is not importable there) is a fault of the node that names the plugin and the input; the child lives on.
 A component's own warm() (Component.warm: 1 ms before each step) runs in the child, on the inputs it holds; the
-proxy waits for it as for a step. For a class without one, or a device, nothing crosses.
+proxy waits for it as for a step. For a class without one, a device, or a node whose parameters turn it off
+(Component.wants_warm_up: the depth node's ``warm: false``), nothing crosses.
 
 Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
 dropped, never taken for a later call's. The child answers every request once, in order, so a reply without its number
@@ -333,6 +334,31 @@ def _status_of(comp: Any) -> dict[str, Any]:
     return status
 
 
+def _crossing(exc: BaseException) -> tuple[str, dict[str, str]]:
+    """In the child: an exception as it crosses to the parent (as text: its class may not be importable there, nor
+    its arguments picklable): ``Type: message`` and what :func:`exception_line` and the runtime read besides, as far
+    as the exception has it: ``where`` (its own, else the innermost frame that raised: the plugin's line in the
+    child) and ``input_port`` (a :class:`ComponentFault` about one of the node's inputs)."""
+    info: dict[str, str] = {}
+    line = exception_line(exc)   # text + " (where)", where it has one
+    text = f"{type(exc).__name__}: {exc}"
+    if len(line) > len(text) + 3 and line.startswith(f"{text} (") and line.endswith(")"):
+        info["where"] = line[len(text) + 2:-1]
+    port = getattr(exc, "input_port", None) if isinstance(exc, ComponentFault) else None
+    if isinstance(port, str):
+        info["input_port"] = port
+    return text, info
+
+
+def _child_fault(text: str, info: dict[str, str]) -> ComponentFault:
+    """In the parent: the fault of the node for an exception in the child (:func:`_crossing`), with the child's place
+    as its ``where`` (not this module's line) and the input it is about, for the runtime to say what feeds it."""
+    fault = ComponentFault(f"in isolated process: {text}", input_port=info.get("input_port"))
+    if info.get("where"):
+        fault.where = info["where"]
+    return fault
+
+
 def _child_signals(parent_pid: int) -> None:
     """In the child: Ctrl-C (SIGINT to the whole process group) and SIGTERM are for the parent, which ends the child
     through the pipe once its devices are safe; a child that died first would be a fault of its own and never
@@ -397,7 +423,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
             try:
                 conn.send((_UNREADABLE, "exc", f"{cls.name if cls is not None else 'the component'}: a request "
                                                f"from the parent cannot be unpickled in the isolated process: "
-                                               f"{type(exc).__name__}: {exc}", logs[:]))
+                                               f"{type(exc).__name__}: {exc}", {}, logs[:]))
             except OSError:
                 break
             logs.clear()
@@ -426,7 +452,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
                 continue
             if op == "configure":
                 if cls is None:
-                    conn.send((seq, "exc", import_error, logs[:]))
+                    conn.send((seq, "exc", import_error, {}, logs[:]))
                     logs.clear()
                     continue
                 comp = cls(cls.Params.model_validate(params), node_id=node_id, ctx=ctx)
@@ -444,7 +470,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
             logs.clear()
         except BaseException as exc:  # noqa: BLE001 - everything goes back to the parent
             try:
-                conn.send((seq, "exc", exception_line(exc), logs[:]))
+                conn.send((seq, "exc", *_crossing(exc), logs[:]))
             except OSError:
                 break   # the parent is gone
             logs.clear()
@@ -487,7 +513,9 @@ class ProcessProxy(Component):
         self._abandon: str | None = None            # why the step in flight (or about to wait) is to be abandoned
         self._wake_lock = threading.Lock()
         self._poller: Any = None                    # select.poll() on the pipe and the wake-up pipe (steps)
-        self._warms = has_warm_up(cls)   # whether warm() asks the child (as inline: _Node.warm)
+        # whether warm() asks the child (as inline: _Node.warm); at configure, also whether the node's parameters
+        # want it (Component.wants_warm_up)
+        self._warms = has_warm_up(cls)
 
     # -------------------------------------------------------------------------------------------------- plumbing
     def _started(self) -> bool:
@@ -551,7 +579,7 @@ class ProcessProxy(Component):
         self._stuck = False
         self._lanes.release_retired()   # the child has read every request before this one: their blocks may go
         if reply[1] == "exc":
-            raise ComponentFault(f"in isolated process: {reply[2]}")
+            raise _child_fault(reply[2], reply[3])
         return reply
 
     def _answers(self, number: int) -> int | None:
@@ -622,6 +650,7 @@ class ProcessProxy(Component):
             raise ComponentFault(f"isolate: process needs a component class that a new process can import by name "
                                  f"(defined at the top level of a module), not {self.target.__module__}."
                                  f"{self.target.__qualname__}: {type(exc).__name__}: {exc}") from None
+        self._warms = has_warm_up(self.target, self.params)   # this node's parameters may turn its warm-ups off
         mpctx = mp.get_context("spawn")
         self._held.clear()   # a new child holds no input yet
         self._unanswered.clear()
@@ -700,7 +729,8 @@ class ProcessProxy(Component):
         """The component's warm() in the child (the runtime calls this :attr:`Runtime.WARM_LEAD` before each step),
         waited for as a step is: one call at a time, numbered, timed out after ``step_timeout``, cut short by
         :meth:`abandon_step`; an exception in it comes back as one in a step does. No input crosses: the child still
-        holds the last step's. Nothing is sent for a class without a warm() of its own or for a device."""
+        holds the last step's. Nothing is sent for a class without a warm() of its own, for a device, or for a node
+        whose parameters turn its warm-up off (:meth:`Component.wants_warm_up`: the depth node's ``warm: false``)."""
         if not self._warms:
             return
         if not self._lock.acquire(timeout=self._step_timeout):

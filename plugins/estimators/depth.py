@@ -194,6 +194,11 @@ class DepthEstimator(Component):
         self._handled: tuple[Sample, dict[str, Any]] | None = None
         self._rehearse: np.ndarray | None = None   # the last frame computed anew: what warm() runs again
 
+    @classmethod
+    def wants_warm_up(cls, params: Any) -> bool:
+        """``warm: false``: no warm-up (an isolated node's process is not even asked, ProcessProxy.warm)."""
+        return params.warm
+
     def warm(self) -> None:
         """Run the last frame computed anew through the pipeline again, the result thrown away (``warm``,
         DepthPipeline.rehearse): the runtime calls this 1 ms before each step under the wall clock."""
