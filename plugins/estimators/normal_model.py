@@ -416,10 +416,34 @@ def model_image_shape(spec: str | os.PathLike[str]) -> tuple[int, int]:
             _meta_number(str(p), meta, "cols", None, integer=True, low=1))
 
 
+#: headers read (:func:`_read_header`): (resolved path, device, inode, mtime ns, size) -> the 'meta' entry. A graph's
+#: validation reads a depth model's header twice (the ``model`` validator, then port_shapes for the frames' size)
+_HEADERS: dict[tuple, dict[str, Any]] = {}
+_HEADERS_KEPT = 32
+
+
 def _read_header(spec: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]]:
     """The model file of ``spec`` and its 'meta' entry (this format and version), read without the rest of the
-    archive; else ModelFileError."""
+    archive; else ModelFileError. Kept while the file is unchanged (the same path, inode, mtime and size); a file
+    that is not a model is read again each time (its error said again)."""
     p = resolve_model(spec)
+    try:
+        st = p.stat()
+        key: tuple | None = (str(p.resolve()), st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size)
+    except OSError:   # (the read below says why)
+        key = None
+    meta = _HEADERS.get(key) if key is not None else None
+    if meta is None:
+        meta = _read_meta(p)
+        if key is not None:
+            if len(_HEADERS) >= _HEADERS_KEPT:
+                _HEADERS.pop(next(iter(_HEADERS)), None)   # the oldest
+            _HEADERS[key] = meta
+    return p, dict(meta)
+
+
+def _read_meta(p: Path) -> dict[str, Any]:
+    """The 'meta' entry of the model file ``p`` (this format and version); else ModelFileError."""
     _check_archive(p)
     try:
         with zipfile.ZipFile(p) as zf:
@@ -430,7 +454,7 @@ def _read_header(spec: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]]:
                 entry = np.lib.format.read_array(fh, allow_pickle=False)
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
         raise ModelFileError(f"{p}: not a readable teletouch depth model ({_EXPECTED}): {_why(exc)}") from None
-    return p, _check_meta(str(p), entry)
+    return _check_meta(str(p), entry)
 
 
 def load_model(path: str | os.PathLike[str], expect_shape: tuple[int, int] | None = None) -> NormalModel:
