@@ -81,11 +81,17 @@ class ModelFileError(TeletouchError):
     """A model or calibration file is missing, corrupt or of the wrong version."""
 
 
-def exception_line(exc: BaseException, more: str = "") -> str:
-    """One line for a person: ``Type: message (file.py:line)`` of the innermost frame that raised (or the
-    exception's own ``where``, see :class:`ComponentFault`); ``more`` is added to the message, before the place."""
+def exception_place(exc: BaseException) -> str:
+    """Where a person should look for ``exc``: its own ``where`` (see :class:`ComponentFault`), else ``file.py:line``
+    of the innermost frame that raised; "" when it has neither (never raised)."""
     if getattr(exc, "where", None):
-        return f"{type(exc).__name__}: {exc}{more} ({exc.where})"
+        return str(exc.where)
     tb = traceback.extract_tb(exc.__traceback__)
-    where = f" ({tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno})" if tb else ""
-    return f"{type(exc).__name__}: {exc}{more}{where}"
+    return f"{tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno}" if tb else ""
+
+
+def exception_line(exc: BaseException, more: str = "") -> str:
+    """One line for a person: ``Type: message (place)`` (:func:`exception_place`); ``more`` is added to the message,
+    before the place."""
+    place = exception_place(exc)
+    return f"{type(exc).__name__}: {exc}{more}" + (f" ({place})" if place else "")

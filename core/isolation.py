@@ -62,7 +62,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .component import Component, Context, Inputs, Sample, _Slot, has_warm_up
-from .errors import ComponentFault, exception_line
+from .errors import ComponentFault, exception_place
 
 #: seconds a child may take to answer a lifecycle call (configure may load a model)
 LIFECYCLE_TIMEOUT = 120.0
@@ -340,14 +340,13 @@ def _crossing(exc: BaseException) -> tuple[str, dict[str, str]]:
     as the exception has it: ``where`` (its own, else the innermost frame that raised: the plugin's line in the
     child) and ``input_port`` (a :class:`ComponentFault` about one of the node's inputs)."""
     info: dict[str, str] = {}
-    line = exception_line(exc)   # text + " (where)", where it has one
-    text = f"{type(exc).__name__}: {exc}"
-    if len(line) > len(text) + 3 and line.startswith(f"{text} (") and line.endswith(")"):
-        info["where"] = line[len(text) + 2:-1]
+    place = exception_place(exc)
+    if place:
+        info["where"] = place
     port = getattr(exc, "input_port", None) if isinstance(exc, ComponentFault) else None
     if isinstance(port, str):
         info["input_port"] = port
-    return text, info
+    return f"{type(exc).__name__}: {exc}", info
 
 
 def _child_fault(text: str, info: dict[str, str]) -> ComponentFault:
