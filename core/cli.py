@@ -542,9 +542,9 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
     samples file, the recording) nor change the exit code (it raised again, or ended the process). A block inside
     another shares its list and handlers. SIGINT is taken over only from Python's own handler (a background job's
     ignored SIGINT stays ignored). The previous handlers are restored after; with ``program`` (the block is the
-    process's life: it exits next) and a signal seen, those signals are ignored instead, so that one cannot cut the exit
-    short (Python's shutdown, torch's clean-up: ~0.5 s) with a traceback and -2 or -15. Only the main thread may set
-    handlers: elsewhere nothing is changed."""
+    process's life: it exits next) and a signal seen, :func:`_after_stop` handles them instead: the stop is done, so
+    one ends the process at once with the command's exit code (no traceback, no -2 or -15), also where it hangs on its
+    way out. Only the main thread may set handlers: elsewhere nothing is changed."""
     if runtime._stop_signals is not None:
         yield runtime._stop_signals
         return
@@ -581,7 +581,7 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
         finally:   # (also when a first signal raised just before the line above)
             try:   # SIGINT last: its restored handler (Python's) raises, which must leave nothing unrestored
                 for sig, prev in sorted(old.items(), key=lambda item: item[0] == signal.SIGINT):
-                    signal.signal(sig, signal.SIG_IGN if program and signals else prev)
+                    signal.signal(sig, _after_stop if program and signals else prev)
             finally:
                 runtime._stop_signals = None
         if len(closing) > 1:   # the first signal came while the handlers were restored: it stops the command, as
@@ -593,12 +593,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     themselves). A Ctrl-C anywhere, also while the plugins are imported, ends with "teletouch: interrupted (Ctrl-C)"
     and 130; SIGTERM, during any command, the same safe stop with "teletouch: interrupted (SIGTERM)" and 143. A second
     Ctrl-C or SIGTERM while the command stops is said and held; the exit status is the first's. ``argv`` None: main
-    is the program (the console script, ``python -m teletouch``), which exits on its return: after a signal, Ctrl-C
-    and SIGTERM are then left ignored (see :func:`_interrupts`)."""
+    is the program (the console script, ``python -m teletouch``), which exits on its return: after a signal, a Ctrl-C
+    or SIGTERM once the exit status is decided ends the process at once with it (see :func:`_after_stop`)."""
     # SIGTERM (a service manager, `kill`) stops every command as Ctrl-C does, so a calibration or an experiment
     # drives its devices to their safe state too (it ended the process at once: no safe stop, no samples file); a
     # second signal while the command stops is held (see _interrupts); `teletouch run` also notes them for its own run
     # (its summary's exit code)
+    global _exit_code
+    _exit_code = None
     signals: list[int] = []
     try:
         with _interrupts(program=argv is None) as signals:   # argv None: the console script, python -m teletouch
@@ -606,11 +608,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         if (signals[0] if signals else getattr(exc, "signum", signal.SIGINT)) == signal.SIGTERM:
             print("teletouch: interrupted (SIGTERM)", file=sys.stderr)
-            return EXIT_TERMINATED
-        print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    # a command that handled the interrupt itself (its own message, exit 130) was ended by SIGTERM: the shell's code
-    return EXIT_TERMINATED if signals and signals[0] == signal.SIGTERM and code == EXIT_INTERRUPTED else code
+            code = EXIT_TERMINATED
+        else:
+            print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
+            code = EXIT_INTERRUPTED
+    else:   # a command that handled the interrupt itself (its own message, exit 130) was ended by SIGTERM: 143
+        code = EXIT_TERMINATED if signals and signals[0] == signal.SIGTERM and code == EXIT_INTERRUPTED else code
+    if argv is None:
+        _exit_code = code   # the safe stop is done and said: a signal from now on ends the process with it
+    return code
+
+
+#: the program's exit status once main() has decided it (see :func:`_after_stop`); None until then
+_exit_code: int | None = None
+
+
+def _after_stop(signum: int, frame: Any) -> None:
+    """The program's SIGINT and SIGTERM handler once its command has stopped after a signal (see :func:`_interrupts`):
+    one is said and held while main() says how the command ended; after that the process ends at once with main()'s
+    exit status (stdout's buffer written first). Nothing is left to protect then: the devices are safe and the files
+    written, and a process that hangs on its way out (an atexit hook, a plugin's non-daemon thread) must not need
+    SIGKILL. The exit status stays the command's, as for any later signal (the first signal's 130 or 143)."""
+    if _exit_code is None:
+        _say_held(signum)
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):   # (a signal that cut into a write to it: the reentrant flush fails)
+            stream.flush()
+    os._exit(_exit_code)
 
 
 #: commands that end at once: not told that SIGINT is ignored (every other one, a plugin's too, may run for long)
