@@ -705,9 +705,13 @@ class Runtime:
             signum = getattr(exc, "signum", None)
             self._stop_evt.set()
         finally:
-            with _signals_deferred() as late:
-                self._join()
-                self._shutdown()
+            late: list[int] = []   # the signals held while the devices are made safe and the components closed
+            stopped: list[bool] = []
+            while not stopped:   # (again where a signal came before the hold was taken)
+                try:
+                    self._stop_held(late, stopped)
+                except KeyboardInterrupt as exc:   # its handler raised as the hold was taken or given back: held
+                    _held_as_it_came(late, exc)
             if late and not interrupted:
                 interrupted, fault_first = True, self._fault_reason()
                 late_signal = signum = late[0]
@@ -732,6 +736,16 @@ class Runtime:
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
                          startup_time=startup, error=error, late_signal=late_signal)
+
+    def _stop_held(self, late: list[int], stopped: list[bool]) -> None:
+        """The end of every run: :meth:`_join` and :meth:`_shutdown` with SIGINT and SIGTERM held into ``late`` (see
+        :func:`_signals_deferred`); ``stopped`` gets True once they are made. A signal whose handler raised as the
+        hold was taken or given back comes out of here: the caller holds it too and, where the shutdown was not made
+        yet, calls this again (a Ctrl-C there skipped the shutdown: no safe state, no close)."""
+        with _signals_deferred(late):
+            self._join()
+            self._shutdown()
+            stopped.append(True)
 
     def _fault_reason(self) -> tuple[str, int, str] | None:
         with self._lock:
@@ -1114,15 +1128,28 @@ def _say_now(text: str) -> None:
         os.write(fd, text.encode(errors="replace"))
 
 
-@contextlib.contextmanager
-def _signals_deferred() -> Iterator[list[int]]:
-    """SIGINT and SIGTERM that arrive inside the block are recorded in the yielded list instead of raising (a second
-    Ctrl-C must not cut the safe-state sequence short), said on stderr ("already stopping safely, please wait") and
-    added to :data:`_stop_signals` where the process keeps them. Only the main thread can set signal handlers:
-    elsewhere the block runs as it is."""
+def _held_as_it_came(late: list[int], exc: KeyboardInterrupt) -> None:
+    """The signal whose handler raised ``exc`` as the runtime's shutdown hold was taken or given back: held as one
+    inside it is (added to ``late`` and said; the command line's handler, which raised it as a stop's first, has it in
+    :data:`_stop_signals` already)."""
     import signal
 
-    late: list[int] = []
+    signum = getattr(exc, "signum", None) or signal.SIGINT   # (Python's own Ctrl-C names none)
+    late.append(signum)
+    _say_held(signum)
+
+
+@contextlib.contextmanager
+def _signals_deferred(late: list[int] | None = None) -> Iterator[list[int]]:
+    """SIGINT and SIGTERM that arrive inside the block are recorded in the yielded list (``late``, a new one where
+    None) instead of raising (a second Ctrl-C must not cut the safe-state sequence short), said on stderr ("already
+    stopping safely, please wait") and added to :data:`_stop_signals` where the process keeps them. A signal whose
+    handler raises as the handlers are taken or given back leaves none of them taken (SIGINT is given back last, also
+    where SIGTERM's handler raised as it was given back). Only the main thread can set signal handlers: elsewhere the
+    block runs as it is."""
+    import signal
+
+    late = [] if late is None else late
     if threading.current_thread() is not threading.main_thread():
         yield late
         return
@@ -1135,17 +1162,21 @@ def _signals_deferred() -> Iterator[list[int]]:
         _say_held(signum)
 
     old: dict[int, Any] = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        prev = signal.getsignal(sig)
-        if prev is None or prev == signal.SIG_IGN:   # installed from outside Python, or ignored (a job
-            continue                                  # started with `&`): left alone
-        old[sig] = prev
-        signal.signal(sig, _hold)
     try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            prev = signal.getsignal(sig)
+            if prev is None or prev == signal.SIG_IGN:   # installed from outside Python, or ignored (a job
+                continue                                  # started with `&`): left alone
+            old[sig] = prev
+            signal.signal(sig, _hold)
         yield late
     finally:
-        for sig, prev in old.items():
-            signal.signal(sig, prev)
+        try:
+            if signal.SIGTERM in old:
+                signal.signal(signal.SIGTERM, old[signal.SIGTERM])
+        finally:   # SIGINT last: each handler given back may raise at once (the command line's, for a stop's first)
+            if signal.SIGINT in old:
+                signal.signal(signal.SIGINT, old[signal.SIGINT])
 
 
 def graph_time(t_ns: int) -> float:
