@@ -951,6 +951,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return usage(str(exc))
     duration = None
+    interrupted = None   # the result of a press run that a signal ended after its routine had finished
     if args.csv:
         graph_only = [opt for opt, given in (("--duration", args.duration is not None), ("--set", args.sets),
                                              ("--clock", args.clock is not None),
@@ -1017,6 +1018,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             print(f"teletouch: press routine did not finish (routine state {routine.state!r}, {run}); no calibration "
                   f"written", file=sys.stderr)
             return result.exit_code or 3
+        if result.status == "interrupted":   # (held as the run stopped): the calibration is complete, still written
+            interrupted = result
         model_id, depth_src = _sensor_model_id(spec)
         cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
                           position_degree=args.position_degree,
@@ -1027,6 +1030,10 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     cal.save_plot(plot)
     print(cal.summary())
     print(f"wrote {out} and {plot}")
+    if interrupted is not None:   # the signal's exit code, as `teletouch run` gives that run (130; 143 for SIGTERM)
+        print(f"teletouch: {interrupted.message}; the press routine had finished: its calibration is written",
+              file=sys.stderr)
+        return interrupted.exit_code
     return 0
 
 
