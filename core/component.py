@@ -532,9 +532,8 @@ class Component:
     @classmethod
     def wants_warm_up(cls, params: Any) -> bool:
         """Whether a node with these validated ``params`` wants its :meth:`warm` called (default: True). For a class
-        whose parameters turn its warm-up off (the depth node's ``warm: false``): an isolated node is then never asked
-        (no round trip to its process before each step, :func:`has_warm_up`); an inline node's warm() is called all
-        the same, and should return at once."""
+        whose parameters turn its warm-up off (the depth node's ``warm: false``): its warm() is then never called, and
+        an isolated node's process is never asked (no round trip before each step; :func:`has_warm_up`)."""
         return True
 
     def close(self) -> None:

@@ -185,9 +185,10 @@ class _Node:
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
         self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
         self.last_t = 0.0
-        # wall clock: its Component.warm(), called WARM_LEAD before each step, or None (component.has_warm_up). The
-        # class is the spec's: for an isolated node the one in its child (the proxy's warm() asks the child)
-        self.warm = comp.warm if has_warm_up(spec.cls) else None
+        # wall clock: its Component.warm(), called WARM_LEAD before each step, or None (component.has_warm_up, with
+        # the node's parameters where it runs inline). The class is the spec's: for an isolated node the one in its
+        # child (the proxy's warm() asks the child, or nothing where the node's parameters turn warm-ups off)
+        self.warm = comp.warm if has_warm_up(spec.cls, comp.params if isinstance(comp, spec.cls) else None) else None
         self.warming = False    # its warm() is running (in_step is set too: the watchdog names the warm-up)
         self.warm_began = 0.0   # graph time its latest warm() began
         self.warm_dt = 0.0      # how long its latest warm() took (s)

@@ -144,3 +144,17 @@ def test_an_isolated_depth_node_with_warm_false_sends_no_warm_up(requests):
     assert res.exit_code == EXIT_OK, res.message
     ops = [op for nid, op in requests if nid == "depth"]
     assert ops.count("step") >= 20 and "warm" not in ops, ops
+
+
+@pytest.mark.parametrize("warm", ["true", "false"])
+def test_an_inline_node_whose_parameters_turn_warm_ups_off_is_not_warmed(reg, warm):
+    """Inline the runtime asks the same question with the node's parameters: with warm-ups off its warm() is never
+    called (before, it was called before every step, and the warm-up budget counted it)."""
+    res, rt = run_yaml(_graph(warm).replace(", isolate: process", ""), reg, duration=1.0)
+    assert res.exit_code == EXIT_OK, res.message
+    st = rt.component("knob").status()
+    assert st["steps"] >= 20, st
+    if warm == "true":
+        assert st["warm_calls"] >= st["steps"] / 2, st
+    else:
+        assert st["warm_calls"] == 0, st
