@@ -69,6 +69,40 @@ def qvga_fixture():
     return qvga
 
 
+def qvga_and_vga_models_fixture():
+    """A module-scoped fixture that gives {"qvga": path, "vga": path}: the packaged QVGA model saved as a file, and
+    the same model made for VGA frames (its background resized)."""
+    @pytest.fixture(scope="module")
+    def models(tmp_path_factory) -> dict[str, str]:
+        import dataclasses
+
+        import cv2
+
+        folder = tmp_path_factory.mktemp("models")
+        qvga = load_model("sim-digit-qvga")
+        vga = dataclasses.replace(qvga, background=cv2.resize(qvga.background, (480, 640)))
+        return {"qvga": str(qvga.save(folder / "qvga.model")), "vga": str(vga.save(folder / "vga.model"))}
+    return models
+
+
+def proxy_requests_fixture():
+    """A fixture that gives the (node id, op) of every request an isolated node's proxy sends, in order."""
+    @pytest.fixture
+    def requests(monkeypatch):
+        from teletouch.isolation import ProcessProxy
+
+        sent: list[tuple[str, str]] = []
+        exchange = ProcessProxy._exchange
+
+        def spy(self, op, *args, **kw):
+            sent.append((self.id, op))
+            return exchange(self, op, *args, **kw)
+
+        monkeypatch.setattr(ProcessProxy, "_exchange", spy)
+        return sent
+    return requests
+
+
 def isolated_depth_graph(rate: int, faults: str = "") -> str:
     """A wall-clock graph: a pressing sine into sim-digit, whose frames go to a `depth` node run with `isolate:
     process` (``faults``: the graph's ``faults:`` line, or none)."""

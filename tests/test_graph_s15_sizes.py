@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 from pydantic import Field
 
+from helpers_depth import qvga_and_vga_models_fixture
+
 from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.cli import main
 from teletouch.errors import GraphValidationError, ModelFileError
@@ -74,13 +76,7 @@ def reg():
                          "teletouch.plugins.sensors.replay", "teletouch.plugins.estimators.depth", _Plugin())
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory) -> dict[str, str]:
-    """The packaged QVGA model saved as a file, and the same model made for VGA frames (its background resized)."""
-    folder = tmp_path_factory.mktemp("models")
-    qvga = load_model("sim-digit-qvga")
-    vga = dataclasses.replace(qvga, background=cv2.resize(qvga.background, (480, 640)))
-    return {"qvga": str(qvga.save(folder / "qvga.model")), "vga": str(vga.save(folder / "vga.model"))}
+models = qvga_and_vga_models_fixture()
 
 
 def _validate(capsys, graph: str, *sets: str) -> tuple[int, str]:

@@ -13,6 +13,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from helpers_depth import proxy_requests_fixture
+
 from teletouch.component import Component, Context, Device, Inputs, Kind, Params, Port, Sample, _Slot
 from teletouch.errors import ComponentFault
 from teletouch.hookspecs import hookimpl
@@ -110,18 +112,7 @@ def reg():
     return make_registry(sys.modules[__name__])
 
 
-@pytest.fixture
-def requests(monkeypatch):
-    """(node id, op) of every request a proxy sends, in order."""
-    sent: list[tuple[str, str]] = []
-    exchange = ProcessProxy._exchange
-
-    def spy(self, op, *args, **kw):
-        sent.append((self.id, op))
-        return exchange(self, op, *args, **kw)
-
-    monkeypatch.setattr(ProcessProxy, "_exchange", spy)
-    return sent
+requests = proxy_requests_fixture()
 
 
 GRAPH = """

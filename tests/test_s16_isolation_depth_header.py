@@ -4,16 +4,15 @@ again. The header is kept per file (its resolved path, inode, mtime and size): a
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import shutil
 
-import cv2
 import pytest
+
+from helpers_depth import qvga_and_vga_models_fixture
 
 from teletouch.errors import GraphValidationError
 from teletouch.plugins.estimators import normal_model
-from teletouch.plugins.estimators.normal_model import load_model
 from teletouch.testing import load_text, make_registry
 
 
@@ -22,13 +21,7 @@ def reg():
     return make_registry("teletouch.plugins.sensors.sim_digit", "teletouch.plugins.estimators.depth")
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory) -> dict[str, str]:
-    """The packaged QVGA model saved as a file, and the same model made for VGA frames (its background resized)."""
-    folder = tmp_path_factory.mktemp("models")
-    qvga = load_model("sim-digit-qvga")
-    vga = dataclasses.replace(qvga, background=cv2.resize(qvga.background, (480, 640)))
-    return {"qvga": str(qvga.save(folder / "qvga.model")), "vga": str(vga.save(folder / "vga.model"))}
+models = qvga_and_vga_models_fixture()
 
 
 @pytest.fixture

@@ -9,9 +9,10 @@ import sys
 
 import pytest
 
+from helpers_depth import proxy_requests_fixture
+
 from teletouch.component import Component, Device, Kind, Params, Port, has_warm_up
 from teletouch.hookspecs import hookimpl
-from teletouch.isolation import ProcessProxy
 from teletouch.runtime import EXIT_OK
 from teletouch.testing import make_registry, run_yaml
 
@@ -83,18 +84,7 @@ def reg():
     return make_registry(sys.modules[__name__])
 
 
-@pytest.fixture
-def requests(monkeypatch):
-    """(node id, op) of every request a proxy sends, in order."""
-    sent: list[tuple[str, str]] = []
-    exchange = ProcessProxy._exchange
-
-    def spy(self, op, *args, **kw):
-        sent.append((self.id, op))
-        return exchange(self, op, *args, **kw)
-
-    monkeypatch.setattr(ProcessProxy, "_exchange", spy)
-    return sent
+requests = proxy_requests_fixture()
 
 
 def _graph(warm: str) -> str:
