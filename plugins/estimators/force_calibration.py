@@ -951,7 +951,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return usage(str(exc))
     duration = None
-    interrupted = None   # the result of a press run that a signal ended after its routine had finished
+    ended = None   # the result of a press run that did not end ok after its routine had finished
     if args.csv:
         graph_only = [opt for opt, given in (("--duration", args.duration is not None), ("--set", args.sets),
                                              ("--clock", args.clock is not None),
@@ -1007,19 +1007,26 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     else:
         result, routine, spec = run_press_calibration(args.graph, sets=args.sets, clock=args.clock,
                                                       duration=duration, progress=not args.quiet)
+        spoiled = _spoiled_samples(result, routine, spec) if routine.state == "done" else None
         if routine.samples:
-            partial = routine.partial_reason()
+            partial = routine.partial_reason() or spoiled
             write_pairs_csv(samples_path, routine.samples, partial=partial)
             print(f"wrote {len(routine.samples)} samples to {samples_path}"
-                  + (" (marked partial: the run did not finish)" if partial else ""), file=sys.stderr)
+                  + (f" (marked partial: {'a fault may have spoiled them' if spoiled else 'the run did not finish'})"
+                     if partial else ""), file=sys.stderr)
         if routine.state != "done":
             why = routine.abort_reason or result.message
             run = why if result.status == "interrupted" else f"run {result.status}: {why}"   # (says it already)
             print(f"teletouch: press routine did not finish (routine state {routine.state!r}, {run}); no calibration "
                   f"written", file=sys.stderr)
             return result.exit_code or 3
-        if result.status == "interrupted":   # (held as the run stopped): the calibration is complete, still written
-            interrupted = result
+        for f in result.faults:   # each, as `teletouch run`'s summary lists them (the fit below may still refuse)
+            print(f"teletouch: fault: {f.line()} -> {f.action}", file=sys.stderr)
+        if spoiled:
+            print(f"teletouch: {_run_said(result)}; {spoiled}; no calibration written", file=sys.stderr)
+            return result.exit_code or 3
+        if result.exit_code:   # interrupted (held as the run stopped), degraded, fault: the calibration is complete,
+            ended = result     # still written, and the command exits as `teletouch run` does for that run
         model_id, depth_src = _sensor_model_id(spec)
         cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
                           position_degree=args.position_degree,
@@ -1030,11 +1037,46 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     cal.save_plot(plot)
     print(cal.summary())
     print(f"wrote {out} and {plot}")
-    if interrupted is not None:   # the signal's exit code, as `teletouch run` gives that run (130; 143 for SIGTERM)
-        print(f"teletouch: {interrupted.message}; the press routine had finished: its calibration is written",
-              file=sys.stderr)
-        return interrupted.exit_code
+    if ended is not None:   # the run's exit code, as `teletouch run` gives it (3; a signal: 130, 143 for SIGTERM)
+        faulted = any(f.action != "logged" for f in ended.faults)
+        print(f"teletouch: {_run_said(ended)}; the press routine had finished"
+              f"{' and no fault reached its samples' if faulted else ''}: its calibration is written", file=sys.stderr)
+        return ended.exit_code
     return 0
+
+
+def _run_said(result: Any) -> str:
+    """How the run ended, as `teletouch run` says it (an interrupted run's message says so itself)."""
+    return result.message if result.status == "interrupted" else f"{result.status}: {result.message}"
+
+
+def _feeding(spec: Any, node_id: str) -> set[str]:
+    """The nodes whose outputs reach ``node_id`` through the graph's wiring, directly or through other nodes."""
+    seen: set[str] = set()
+    todo = [node_id]
+    while todo:
+        for wire in spec.node(todo.pop()).inputs.values():
+            if wire.node not in seen:
+                seen.add(wire.node)
+                todo.append(wire.node)
+    return seen
+
+
+def _spoiled_samples(result: Any, routine: PressRoutine, spec: Any) -> str | None:
+    """Why samples of a finished press run may be stale, or None. A node that feeds the routine (directly or through
+    other nodes) and was disabled by a fault (stop or degrade) publishes nothing more: the routine's freshness checks
+    see only its own inputs (a filter between steps on with fresh stamps on a stale value; the reference inputs are
+    not checked), so a sample recorded after that fault may hold stale values. A fault logged at the shutdown, after
+    the samples, or of a node the routine does not read cannot reach them."""
+    feeding = _feeding(spec, routine.id)
+    hits = [(f, sum(1 for s in routine.samples if s["time_s"] >= f.time)) for f in result.faults
+            if f.action != "logged" and f.node in feeding]
+    hits = [(f, n) for f, n in hits if n]
+    if not hits:
+        return None
+    f, n = min(hits, key=lambda hit: hit[0].time)
+    return (f"node '{f.node}' ({f.kind} at t={f.time:.3f} s) feeds the press routine and was disabled before {n} of "
+            f"its {len(routine.samples)} samples were recorded: they may hold stale values")
 
 
 def _stem(p: Path) -> str:
