@@ -660,6 +660,15 @@ class Runtime:
     # ------------------------------------------------------------------------------------------------- running
     def run(self, duration: float | None = None, progress: Callable[["Runtime", float], None] | None = None,
             progress_interval: float = 0.5) -> RunResult:
+        """Start the components, run the graph for ``duration`` s (None: the graph's; the simulated clock needs one)
+        or until it stops, drive the devices to their safe state and close everything; the result says how it ended.
+        A Ctrl-C stops the run safely (status "interrupted"); in a program without the command line's handlers a
+        later Ctrl-C during the run is said and held, as under the command line (:func:`_first_ctrl_c_only`)."""
+        with _first_ctrl_c_only():
+            return self._run(duration, progress, progress_interval)
+
+    def _run(self, duration: float | None, progress: Callable[["Runtime", float], None] | None,
+             progress_interval: float) -> RunResult:
         if self._ran:
             raise RuntimeError(f"graph '{self.spec.name}': this Runtime has already run and its components are "
                                f"closed; build a new Runtime for another run")
@@ -1106,7 +1115,7 @@ def _signal_text(signum: int | None) -> str:
 
 
 #: the signals of the stop under way, first first, where the process keeps them (the command line's
-#: :func:`teletouch.cli._interrupts` block sets it); None: none is kept. A signal :func:`_signals_deferred` holds is
+#: :func:`teletouch.cli._interrupts` block sets it, or a run's :func:`_first_ctrl_c_only`); None: none is kept. A signal :func:`_signals_deferred` holds is
 #: added too, so that one landing in the runtime's shutdown of a run that was ending counts as the stop's first: a
 #: later one is held as well (not raised in the command's own code after the run), and the exit code is the first's
 _stop_signals: list[int] | None = None
@@ -1127,6 +1136,41 @@ def _say_now(text: str) -> None:
         return
     with contextlib.suppress(OSError):
         os.write(fd, text.encode(errors="replace"))
+
+
+@contextlib.contextmanager
+def _first_ctrl_c_only() -> Iterator[None]:
+    """A run in a program without the command line's handlers (a script, a notebook, a test: SIGINT is Python's own
+    handler, which raises KeyboardInterrupt on every Ctrl-C): for the run, the first Ctrl-C raises as before and stops
+    the run safely, and a later one is said and held (kept in :data:`_stop_signals`), as the command line does. With
+    Python's handler a second Ctrl-C that landed as the shutdown's hold was taken (or while the first one that landed
+    there was being held) cut the shutdown short: no safe state, no close. Elsewhere (the command line's block, a
+    caller's own handler, another thread) nothing is changed."""
+    import signal
+
+    global _stop_signals
+    if (_stop_signals is not None or threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    seen: list[int] = []
+
+    def _handler(signum: int, frame: Any) -> None:
+        first = not seen   # decided before the append: a handler nested right after it is not the first
+        seen.append(signum)
+        if first:
+            raise KeyboardInterrupt
+        _say_held(signum)
+
+    _stop_signals = seen
+    try:
+        signal.signal(signal.SIGINT, _handler)
+        yield
+    finally:
+        try:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        finally:
+            _stop_signals = None
 
 
 def _held_as_it_came(late: list[int], exc: KeyboardInterrupt) -> None:

@@ -128,3 +128,45 @@ def test_a_signal_as_the_shutdown_s_hold_is_taken_or_given_back_is_held(tmp_path
     if command_line:
         assert signals == [sig]   # counted once: the command line's handler noted it as it raised
     assert capsys.readouterr().err.splitlines() == [f"teletouch: {NAMES[sig]}: {HELD}"]
+
+
+def test_in_a_program_without_the_command_line_a_second_ctrl_c_as_the_first_is_held_is_held_too(
+        tmp_path, monkeypatch, capsys, python_sigint):
+    """Python's own Ctrl-C handler raises on every Ctrl-C: a first one landing as the shutdown's hold is taken is held
+    by run()'s retry, but a second one landing while that first one was being held (said) escaped run(): no safe
+    state, no close. For the run, only the first Ctrl-C raises now (runtime._first_ctrl_c_only)."""
+    path = tmp_path / "g.yaml"
+    path.write_text(GRAPH)
+    monkeypatch.setattr(_Calls, "calls", [])
+    rt = Runtime(load_graph(path, registry=make_registry(_Plugin())))
+    hold = runtime._signals_deferred.__wrapped__.__code__
+    state = {"n": 0}
+
+    def prof(frame, event, arg):   # the first Ctrl-C: its handler runs as the hold begins
+        if event == "call" and frame.f_code is hold and state["n"] == 0:
+            state["n"] = 1
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, frame)
+
+    say = runtime._say_held
+
+    def second_while_saying(signum):   # the second: its handler runs as the first is said
+        if state["n"] == 1:
+            state["n"] = 2
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+        say(signum)
+
+    monkeypatch.setattr(runtime, "_say_held", second_while_saying)
+    escaped = None
+    sys.setprofile(prof)
+    try:
+        result = rt.run(0.2)
+    except KeyboardInterrupt as exc:
+        escaped = exc
+    finally:
+        sys.setprofile(None)
+    assert state["n"] == 2
+    assert escaped is None, f"KeyboardInterrupt out of run(); device calls {_Calls.calls}"
+    assert _Calls.calls == ["safe", "close"]
+    assert (result.status, result.late_signal) == ("interrupted", signal.SIGINT)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # Python's handler is back after the run
+    assert capsys.readouterr().err.count(f"teletouch: Ctrl-C: {HELD}") == 2
