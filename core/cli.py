@@ -612,6 +612,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             print("teletouch: interrupted (Ctrl-C)", file=sys.stderr)
             code = EXIT_INTERRUPTED
+    except BaseException as exc:   # a crash after the stop (a traceback follows) or a command's own sys.exit
+        if argv is None:   # a signal from now on ends the process as that would (else: held for good, see below)
+            _exit_code = _status_of_exit(exc)
+        raise
     else:   # a command that handled the interrupt itself (its own message, exit 130) was ended by SIGTERM: 143
         code = EXIT_TERMINATED if signals and signals[0] == signal.SIGTERM and code == EXIT_INTERRUPTED else code
     if argv is None:
@@ -621,6 +625,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 #: the program's exit status once main() has decided it (see :func:`_after_stop`); None until then
 _exit_code: int | None = None
+
+
+def _status_of_exit(exc: BaseException) -> int:
+    """The exit status Python gives a process that ``exc`` ends: SystemExit's code (None: 0; a message: 1), else 1."""
+    if isinstance(exc, SystemExit):
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    return 1
 
 
 def _after_stop(signum: int, frame: Any) -> None:

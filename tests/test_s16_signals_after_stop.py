@@ -127,3 +127,46 @@ def test_the_docs_say_a_signal_after_the_safe_stop_ends_the_process():
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     start = text.index("A second Ctrl-C or SIGTERM while a command stops")
     assert "ends the process at once" in text[start:start + 800], text[start:start + 800]
+
+
+@pytest.mark.parametrize("ending, code", [("raise RuntimeError('a bug after the safe stop')", 1),
+                                          ("sys.exit(5)", 5)])
+def test_a_signal_after_a_stopped_command_crashed_ends_the_process_with_the_crash_s_status(tmp_path, ending, code):
+    """A command stopped by a signal that then raised (a bug after its safe stop) or exited by itself: main() never
+    decided its code, so every later signal was held ("already stopping safely") and a hang on the way out needed
+    SIGKILL. The status is the one Python gives that exception (found by review)."""
+    program = "\n".join([
+        "import atexit, os, signal, sys, time",
+        "signal.signal(signal.SIGINT, signal.default_int_handler)",
+        "from teletouch import cli",
+        "def command(argv):",
+        "    try:",
+        "        os.kill(os.getpid(), signal.SIGINT)",
+        "        time.sleep(30)",
+        "    except KeyboardInterrupt:",
+        "        pass",   # the command handles its stop itself, as run does, then:
+        f"    {ending}",
+        "cli._main = command",
+        "def hang():",
+        f"    print({MARKER!r}, file=sys.stderr, flush=True)",
+        "    time.sleep(60)",
+        "atexit.register(hang)",
+        "sys.exit(cli.main())"])
+    p = subprocess.Popen([sys.executable, "-c", program], stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    seen: list[str] = []
+    try:
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        while (line := lines.get(timeout=120)) is not None and MARKER not in line:
+            seen.append(line)
+        assert line is not None, "".join(seen)[-3000:]
+        p.send_signal(signal.SIGTERM)
+        try:
+            got = p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            got = None
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=60)
+    assert got == code, (got, "".join(seen)[-3000:])
