@@ -163,10 +163,11 @@ class SimPivot(Component):
 
         @model_validator(mode="after")
         def _centre_of_mass_on_the_object(self) -> "SimPivot.Params":
-            if self.com_offset > self.length:
-                raise ValueError(f"com_offset ({self.com_offset * 1e3:g} mm) is longer than length "
-                                 f"({self.length * 1e3:g} mm): expected com_offset <= length (the centre of mass "
-                                 f"lies on the object, the pinch axis too)")
+            if self.com_offset > self.length / 2:   # a uniform cylinder: its centre of mass is at its middle
+                raise ValueError(f"com_offset ({self.com_offset * 1e3:g} mm) is more than half the length "
+                                 f"({self.length * 1e3:g} mm): expected com_offset <= length / 2 (the object is a "
+                                 f"uniform cylinder, its centre of mass at its middle, and the pinch axis on the "
+                                 f"object)")
             return self
 
     def configure(self) -> None:
