@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from bench_common import DATA, emit
+from bench_common import DATA, data_folder, emit
 
 BALL_RADIUS = 0.003                       # m
 PX_PER_M = {"qvga": 17150.0, "vga": 1.0 / 0.0266e-3}
@@ -174,6 +174,8 @@ def main() -> int:
     def log(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
+    for name in ("digit-presses-qvga", "digit-presses-vga", "digit-optical-model"):
+        data_folder(name)   # (or exit naming where the shared data were looked for)
     result: dict = {"benchmark": "labeller_accuracy"}
     qvga, per_q, *_ = labeller("qvga")
     vga, per_v, auto_v, ims_v, bg_v = labeller("vga")

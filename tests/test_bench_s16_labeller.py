@@ -5,6 +5,7 @@ sets."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -60,3 +61,12 @@ def test_the_quick_benchmark_reports_the_labeller_against_both_label_sets(shared
     for pair in ("labeller_to_labels_px", "fit_to_labels_px", "fit_to_labeller_px"):
         assert 0 < fit["all"][pair]["centre_median_px"] < 8, pair
     json.dumps(got)   # plain JSON all through
+
+
+def test_without_the_shared_data_it_names_where_they_were_looked_for(tmp_path):
+    # before: a FileNotFoundError traceback from load_images (found by review)
+    env = dict(os.environ, TELETOUCH_SHARED_DATA=str(tmp_path / "nowhere"))
+    r = subprocess.run([sys.executable, str(BENCH / "labeller_accuracy.py"), "--quick"], cwd=REPO,
+                       capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode != 0 and "Traceback" not in r.stderr and r.stdout == ""
+    assert str(tmp_path / "nowhere" / "digit-presses-qvga") in r.stderr and "TELETOUCH_SHARED_DATA" in r.stderr
