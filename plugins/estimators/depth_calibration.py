@@ -330,7 +330,8 @@ def auto_label(name: str, image: np.ndarray, background: np.ndarray, ball_radius
     r = math.sqrt(area / math.pi)
     # centre: centroid of the changed pixels themselves (the unclosed map above the threshold, inside the region);
     # the closing's fill can lean to one side where the annulus is weak (measured: closer to both shared label
-    # sets, QVGA 8/10 and VGA 20/47 within 3 px, against 7/10 and 15/47 for the filled region's centroid)
+    # sets, QVGA 8/10 and VGA 20/47 within 3 px, against 7/10 and 15/47 for the filled region's centroid, with the
+    # presses' median as the background; 17/47 with frame_49: benchmarks/labeller_accuracy.py)
     cyy, cxx = np.nonzero((s > level * peak) & (filled > 0))
     if cxx.size >= 10:
         cx, cy = float(cxx.mean()), float(cyy.mean())
