@@ -185,14 +185,19 @@ class _Node:
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
         self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
         self.last_t = 0.0
-        # wall clock: its Component.warm(), called WARM_LEAD before each step, or None (component.has_warm_up, with
-        # the node's parameters where it runs inline). The class is the spec's: for an isolated node the one in its
-        # child (the proxy's warm() asks the child, or nothing where the node's parameters turn warm-ups off)
-        self.warm = comp.warm if has_warm_up(spec.cls, comp.params if isinstance(comp, spec.cls) else None) else None
+        # wall clock: its Component.warm(), called WARM_LEAD before each step, or None (component.has_warm_up with
+        # the node's parameters, decided once it has configured: _startup). The class is the spec's: for an isolated
+        # node the one in its child (the proxy's warm() asks the child)
+        self.warm: Callable[[], None] | None = None
         self.warming = False    # its warm() is running (in_step is set too: the watchdog names the warm-up)
         self.warm_began = 0.0   # graph time its latest warm() began
         self.warm_dt = 0.0      # how long its latest warm() took (s)
         self.warm_skips = 0     # warm-ups left out in a row (the budget): tried again after a second's worth
+
+    def decide_warm(self) -> None:
+        """Whether the runtime warms this node (:attr:`warm`), once it has configured: a warm() of its class's own,
+        not a device's, wanted with its parameters (component.has_warm_up)."""
+        self.warm = self.comp.warm if has_warm_up(self.spec.cls, self.comp.params) else None
 
     def achieved_rate(self) -> float | None:
         """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
@@ -546,6 +551,7 @@ class Runtime:
             try:
                 node.comp.configure()
                 node.state = "inactive"
+                node.decide_warm()   # (a plugin's wants_warm_up that raises: a failure to configure, as isolated)
             except (Exception, SystemExit) as exc:   # a plugin's sys.exit() is its failure, not the process's
                 failed.append((node, exc))
                 self._startup_fault(node, f"failed to configure: {exception_line(exc)}")
@@ -1115,9 +1121,10 @@ def _signal_text(signum: int | None) -> str:
 
 
 #: the signals of the stop under way, first first, where the process keeps them (the command line's
-#: :func:`teletouch.cli._interrupts` block sets it, or a run's :func:`_first_ctrl_c_only`); None: none is kept. A signal :func:`_signals_deferred` holds is
-#: added too, so that one landing in the runtime's shutdown of a run that was ending counts as the stop's first: a
-#: later one is held as well (not raised in the command's own code after the run), and the exit code is the first's
+#: :func:`teletouch.cli._interrupts` block sets it, or a run's :func:`_first_ctrl_c_only`); None: none is kept. A
+#: signal :func:`_signals_deferred` holds is added too, so that one landing in the runtime's shutdown of a run that was
+#: ending counts as the stop's first: a later one is held as well (not raised in the command's own code after the
+#: run), and the exit code is the first's
 _stop_signals: list[int] | None = None
 
 

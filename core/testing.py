@@ -201,10 +201,14 @@ class Harness:
 
     def warm(self) -> None:
         """Call the component's ``warm()`` as the runtime does before a step under the wall clock (its result is
-        thrown away; an exception goes on). A device's is refused (TypeError): the runtime never calls it."""
+        thrown away; an exception goes on). A device's is refused (TypeError): the runtime never calls it; nor where
+        the class's ``wants_warm_up(params)`` says no for these parameters (the depth node's ``warm: false``)."""
         if isinstance(self.comp, Device):
             raise TypeError(f"{self.cls.__qualname__} is a device: the runtime never calls a device's warm() (a "
                             f"warm-up must never command it)")
+        if not self.cls.wants_warm_up(self.comp.params):
+            raise TypeError(f"{self.cls.__qualname__}.wants_warm_up says no for these parameters: the runtime never "
+                            f"calls this node's warm()")
         self.comp.warm()
 
     def set(self, **values: Any) -> None:

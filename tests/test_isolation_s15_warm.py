@@ -159,7 +159,9 @@ def test_the_decision_to_warm_looks_at_the_isolated_class_and_never_at_a_device(
     def node(cls):
         proxy = ProcessProxy(cls, cls.Params(), node_id="n", ctx=ctx, t0_perf=0.0, t0_mono=0.0, step_timeout=1.0)
         spec = SimpleNamespace(id="n", rate=50.0, cls=cls)
-        return _Node(spec, proxy, 0, "stop", {p: _Slot() for p in cls.inputs}, {p: _Slot() for p in cls.outputs})
+        n = _Node(spec, proxy, 0, "stop", {p: _Slot() for p in cls.inputs}, {p: _Slot() for p in cls.outputs})
+        n.decide_warm()   # (the runtime decides once the node has configured)
+        return n
 
     assert node(WarmEcho).warm is not None
     assert node(Echo).warm is None and node(WarmDevice).warm is None

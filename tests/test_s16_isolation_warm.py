@@ -14,7 +14,7 @@ from helpers_depth import proxy_requests_fixture
 from teletouch.component import Component, Device, Kind, Params, Port, has_warm_up
 from teletouch.hookspecs import hookimpl
 from teletouch.runtime import EXIT_OK
-from teletouch.testing import make_registry, run_yaml
+from teletouch.testing import Harness, make_registry, run_yaml
 
 
 # --- a plugin of our own (module level: the child imports it by name, as it does a plugin's) --------------------------
@@ -148,3 +148,36 @@ def test_an_inline_node_whose_parameters_turn_warm_ups_off_is_not_warmed(reg, wa
         assert st["warm_calls"] >= st["steps"] / 2, st
     else:
         assert st["warm_calls"] == 0, st
+
+
+def test_the_harness_refuses_a_warm_up_the_parameters_turn_off():
+    # a review found Harness.warm() calling warm() where the runtime never would (it refused only a device's)
+    with Harness(Knob, {"warm": True}) as h:
+        h.warm()
+        assert h.comp.warm_calls == 1
+    with Harness(Knob, {"warm": False}) as h:
+        with pytest.raises(TypeError, match="wants_warm_up says no for these parameters"):
+            h.warm()
+        assert h.comp.warm_calls == 0
+
+
+class BadWish(Knob):
+    name = "s16-iso-bad-wish"
+
+    @classmethod
+    def wants_warm_up(cls, params):
+        raise RuntimeError("no idea")
+
+
+def test_a_wants_warm_up_that_raises_inline_fails_the_nodes_configure_naming_it():
+    # a review found it raised out of Runtime() (when each node was built): "a component could not be created",
+    # without the node, and the components already built were never closed; isolated, it was a configure failure
+    class _P:
+        @hookimpl
+        def teletouch_components(self):
+            return [BadWish]
+
+    text = _graph("true").replace("s16-iso-knob", "s16-iso-bad-wish").replace(", isolate: process", "")
+    res, _ = run_yaml(text, make_registry(_P()), duration=0.5)
+    assert res.status == "startup-failed", res.message
+    assert "node 'knob' (s16-iso-bad-wish) failed to configure" in res.message and "no idea" in res.message
