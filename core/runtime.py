@@ -743,6 +743,12 @@ class Runtime:
                       ("interrupted", EXIT_INTERRUPTED, f"interrupted ({by}): devices driven to their safe state"))
         if status is None:
             status = self._stop_reason or ("ok", EXIT_OK, f"ran {self._now:.3f} s")
+            # a fault that came after a node had asked the run to stop (a step of another rate group then running)
+            # found the stop's reason set: it is the run's result all the same (it was "stopped", exit 0)
+            late = [f for f in self.faults if f.action == "stop"]
+            if late and status[0] == "stopped":
+                status = ("fault", EXIT_FAULT, f"node '{late[0].node}' {late[0].kind}: {late[0].message} (as the run "
+                                               f"stopped: {status[2]})")
             degraded = [f for f in self.faults if f.action == "degrade"]
             if degraded and status[0] in ("ok", "stopped"):
                 status = ("degraded", EXIT_FAULT, status[2] + "; nodes disabled by faults: " + ", ".join(
