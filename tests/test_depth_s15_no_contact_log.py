@@ -23,3 +23,15 @@ def test_a_no_contact_frame_is_said_to_be_trained_as_flat_gel_not_left_out(qvga)
     assert first in res.model.training["presses"]   # trained on (as flat gel)
     assert not any("not used" in m and first in m for m in logs), logs
     assert any(m.startswith(f"1 no-contact frame(s) trained as flat gel: {first}") for m in logs), logs
+
+
+def test_the_background_s_log_counts_images_not_presses(qvga):
+    # it said "per-pixel median of 10 presses" of a folder whose frames include a no-contact one
+    ims, labs, _ = qvga
+    labels = dict(labs)
+    first = sorted(labels)[0]
+    labels[first] = C.Label(first, None, None, None, "no contact: the gel at rest")
+    logs: list[str] = []
+    C.calibrate(ims, 0.003, 17150.0, labels=labels, epochs=1, progress=False, hidden=(8,), log=logs.append)
+    assert "background: per-pixel median of the folder's 10 images" in logs, logs
+    assert not any("presses" in m for m in logs if m.startswith("background:")), logs
