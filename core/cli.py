@@ -582,6 +582,9 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
             try:   # SIGINT last: its restored handler (Python's) raises, which must leave nothing unrestored
                 for sig, prev in sorted(old.items(), key=lambda item: item[0] == signal.SIGINT):
                     signal.signal(sig, _after_stop if program and signals else prev)
+                if program and signals:   # a first signal between two give-backs: both to _after_stop, none left
+                    for sig in old:       # at its previous handler (SIGTERM's SIG_DFL: -15, not the exit code)
+                        signal.signal(sig, _after_stop)
             finally:
                 runtime._stop_signals = None
         if len(closing) > 1:   # the first signal came while the handlers were restored: it stops the command, as
