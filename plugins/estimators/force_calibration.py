@@ -984,10 +984,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         data = read_pairs_csv(args.csv)
         partial = data.get("partial")
         if partial and not args.allow_partial:
-            raise CalibrationError(f"{args.csv}: partial samples ({partial}): a run that did not finish may lack "
-                                   f"the deeper steps, the unloading or the other press points, so the fit would "
-                                   f"not cover the range it claims; rerun the calibration, or pass --allow-partial "
-                                   f"to fit them anyway")
+            raise CalibrationError(f"{args.csv}: partial samples ({partial}): {_partial_harm(partial)}; rerun the "
+                                   f"calibration, or pass --allow-partial to fit them anyway")
         if partial:
             print(f"teletouch: warning: {args.csv}: fitting partial samples ({partial}) as --allow-partial asks",
                   file=sys.stderr)
@@ -1014,6 +1012,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             print(f"wrote {len(routine.samples)} samples to {samples_path}"
                   + (f" (marked partial: {'a fault may have spoiled them' if spoiled else 'the run did not finish'})"
                      if partial else ""), file=sys.stderr)
+        if spoiled:
+            _mark_own_samples(routine, spoiled)
         if routine.state != "done":
             why = routine.abort_reason or result.message
             run = why if result.status == "interrupted" else f"run {result.status}: {why}"   # (says it already)
@@ -1062,6 +1062,10 @@ def _feeding(spec: Any, node_id: str) -> set[str]:
     return seen
 
 
+#: how :func:`_spoiled_samples`'s reason ends (so `--csv` tells a stale-sample file from an unfinished run's)
+STALE_SAMPLES = "they may hold stale values"
+
+
 def _spoiled_samples(result: Any, routine: PressRoutine, spec: Any) -> str | None:
     """Why samples of a finished press run may be stale, or None. A node that feeds the routine (directly or through
     other nodes) and was disabled by a fault (stop or degrade) publishes nothing more: the routine's freshness checks
@@ -1076,7 +1080,30 @@ def _spoiled_samples(result: Any, routine: PressRoutine, spec: Any) -> str | Non
         return None
     f, n = min(hits, key=lambda hit: hit[0].time)
     return (f"node '{f.node}' ({f.kind} at t={f.time:.3f} s) feeds the press routine and was disabled before {n} of "
-            f"its {len(routine.samples)} samples were recorded: they may hold stale values")
+            f"its {len(routine.samples)} samples were recorded: {STALE_SAMPLES}")
+
+
+def _mark_own_samples(routine: PressRoutine, spoiled: str) -> None:
+    """The routine's own ``samples_csv``, which it wrote unmarked as it finished (it cannot see a fault upstream: see
+    :func:`_spoiled_samples`), written again marked partial with why its samples may be stale, as the command's are."""
+    own = routine.params.samples_csv
+    if not own or not routine._samples_written:
+        return
+    try:
+        write_pairs_csv(own, routine.samples, partial=spoiled)
+    except OSError as exc:
+        print(f"teletouch: warning: {own}: could not mark the routine's samples_csv partial ({exc}): its samples may "
+              f"hold stale values", file=sys.stderr)
+        return
+    print(f"marked the routine's samples_csv {own} partial too (a fault may have spoiled its samples)", file=sys.stderr)
+
+
+def _partial_harm(partial: str) -> str:
+    """What a fit of samples marked partial with ``partial`` (a ``# partial:`` line's reason) would get wrong."""
+    if partial.endswith(STALE_SAMPLES):   # a finished run's samples that a fault upstream may have spoiled
+        return "a fit of them may not be the sensor's force curve"
+    return ("a run that did not finish may lack the deeper steps, the unloading or the other press points, so the fit "
+            "would not cover the range it claims")
 
 
 def _stem(p: Path) -> str:
@@ -1117,7 +1144,8 @@ def teletouch_add_commands(calibrate: Any) -> None:
                         "the area the presses cover; needs presses across the sensor and the centroid: the "
                         "routine's 'centroid' input or x_m, y_m CSV columns). Default 0: the paper's single curve")
     p.add_argument("--allow-partial", action="store_true", help="with --csv: fit samples marked partial (a press "
-                   "run that did not finish) instead of refusing them; the file records it (extra.partial)")
+                   "run that did not finish, or whose samples a fault may have spoiled) instead of refusing them; the "
+                   "file records it (extra.partial)")
     p.add_argument("--min-depth", default="0.03mm", help="samples shallower than this are no contact (left out)")
     p.add_argument("--min-r2", type=float, default=DEFAULT_MIN_R2, metavar="R2",
                    help=f"refuse (and write nothing for) a fit whose R^2 is below this (default {DEFAULT_MIN_R2:g}; "
