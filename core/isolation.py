@@ -54,6 +54,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from multiprocessing import resource_tracker, shared_memory
 from multiprocessing.reduction import ForkingPickler
@@ -380,23 +381,36 @@ def _child_signals(parent_pid: int) -> None:
             os._exit(1)
 
 
+def _import_failure(exc: BaseException, module: str, qualname: str) -> tuple[str, dict[str, str]]:
+    """In the child: the error of a component class that cannot be imported here, as :func:`_crossing` gives one.
+    Its place is the plugin's line that raised as its module was imported (a dependency missing here), else the class
+    by name (its module missing here, or the class not in it): never this module's line, which says nothing."""
+    tb = traceback.extract_tb(exc.__traceback__)
+    where = exception_place(exc) if tb and tb[-1].filename != __file__ else f"class {qualname} of module {module}"
+    return f"cannot import the component class: {type(exc).__name__}: {exc}", {"where": where}
+
+
 def _child_main(conn: Any, cls_ref: bytes, params: dict, node_id: str, t0_perf: float, t0_mono: float,
-                priority: int = 0, rate: float | None = None, prefix: str = "", parent_pid: int = 0) -> None:
+                priority: int = 0, rate: float | None = None, prefix: str = "", parent_pid: int = 0,
+                target: tuple[str, str] = ("?", "?")) -> None:
+    """The isolated process; ``target``: the component class's module and qualified name (said if it cannot be
+    imported here)."""
     _child_signals(parent_pid or os.getppid())
     lanes = ArrayLanes(prefix)
     try:
         try:
             cls, error = pickle.loads(cls_ref), None
         except BaseException as exc:  # noqa: BLE001 - reported as configure's failure
-            cls, error = None, f"cannot import the component class: {type(exc).__name__}: {exc}"
+            cls, error = None, _import_failure(exc, *target)
         _serve(conn, cls, error, params, node_id, t0_perf, t0_mono, priority, lanes, rate)
     finally:
         lanes.close()
         conn.close()
 
 
-def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, params: dict, node_id: str,
-           t0_perf: float, t0_mono: float, priority: int, lanes: ArrayLanes, rate: float | None = None) -> None:
+def _serve(conn: Any, cls: type[Component] | None, import_error: tuple[str, dict[str, str]] | None, params: dict,
+           node_id: str, t0_perf: float, t0_mono: float, priority: int, lanes: ArrayLanes,
+           rate: float | None = None) -> None:
     stop_reason: list[str] = []
     logs: list[str] = []
     if priority:
@@ -419,10 +433,11 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
         except (EOFError, OSError):
             break
         except Exception as exc:  # a request that cannot be unpickled: said, and the child goes on
-            try:
-                conn.send((_UNREADABLE, "exc", f"{cls.name if cls is not None else 'the component'}: a request "
-                                               f"from the parent cannot be unpickled in the isolated process: "
-                                               f"{type(exc).__name__}: {exc}", {}, logs[:]))
+            name = cls.name if cls is not None else "the component"
+            try:   # (only a step's request carries the graph's values: its inputs)
+                conn.send((_UNREADABLE, "exc", f"{name}: a request from the parent cannot be unpickled in the "
+                                               f"isolated process: {type(exc).__name__}: {exc}",
+                           {"where": f"the input values sent to {name}"}, logs[:]))
             except OSError:
                 break
             logs.clear()
@@ -451,7 +466,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: str | None, par
                 continue
             if op == "configure":
                 if cls is None:
-                    conn.send((seq, "exc", import_error, {}, logs[:]))
+                    conn.send((seq, "exc", *import_error, logs[:]))
                     logs.clear()
                     continue
                 comp = cls(cls.Params.model_validate(params), node_id=node_id, ctx=ctx)
@@ -665,7 +680,8 @@ class ProcessProxy(Component):
         self._poller.register(self._wake[0], select.POLLIN)
         self._proc = mpctx.Process(target=_child_main, name=f"teletouch-{self.id}", daemon=True,
                                    args=(child, cls_ref, self.params.model_dump(), self.id, *self._t0,
-                                         self._priority, self.ctx.rate, self._prefix + "c", os.getpid()))
+                                         self._priority, self.ctx.rate, self._prefix + "c", os.getpid(),
+                                         (self.target.__module__, self.target.__qualname__)))
         # SIGINT/SIGTERM blocked in this thread while it spawns: the child inherits the mask and unblocks them once
         # it ignores them. The resource tracker is started first: starting it unblocks both in this thread.
         resource_tracker.ensure_running()
