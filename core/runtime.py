@@ -276,6 +276,7 @@ class Runtime:
         self.faults: list[Fault] = []
         self._now = 0.0
         self._stop_evt = _StopEvent()   # (not a threading.Event: see _StopEvent)
+        self._late: list[int] | None = None   # once run() has reached its shutdown: the signals held there
         self._stop_reason: tuple[str, int, str] | None = None  # (status, exit code, message)
         self._lock = threading.Lock()
         self._t0 = 0.0
@@ -669,8 +670,8 @@ class Runtime:
         """Start the components, run the graph for ``duration`` s (None: the graph's; the simulated clock needs one)
         or until it stops, drive the devices to their safe state and close everything; the result says how it ended.
         A Ctrl-C stops the run safely (status "interrupted"); in a program without the command line's handlers a
-        later Ctrl-C during the run is said and held, as under the command line (:func:`_first_ctrl_c_only`)."""
-        with _first_ctrl_c_only():
+        Ctrl-C once the run is stopping is said and held, as under the command line (:func:`_ctrl_c_until_stopping`)."""
+        with _ctrl_c_until_stopping(self._hold_ctrl_c):
             return self._run(duration, progress, progress_interval)
 
     def _run(self, duration: float | None, progress: Callable[["Runtime", float], None] | None,
@@ -722,6 +723,7 @@ class Runtime:
             self._stop_evt.set()
         finally:
             late: list[int] = []   # the signals held while the devices are made safe and the components closed
+            self._late = late      # (where a Ctrl-C from here on is held, :meth:`_hold_ctrl_c`)
             stopped: list[bool] = []
             while not stopped:   # (again where a signal came before the hold was taken)
                 try:
@@ -758,6 +760,14 @@ class Runtime:
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
                          startup_time=startup, error=error, late_signal=late_signal)
+
+    def _hold_ctrl_c(self, signum: int) -> bool:
+        """Whether a Ctrl-C (:func:`_ctrl_c_until_stopping`) is held: once the run has reached its shutdown, noted
+        among the signals held there (the run ends "interrupted")."""
+        if self._late is None:
+            return False
+        self._late.append(signum)
+        return True
 
     def _stop_held(self, late: list[int], stopped: list[bool]) -> None:
         """The end of every run: :meth:`_join` and :meth:`_shutdown` with SIGINT and SIGTERM held into ``late`` (see
@@ -1127,10 +1137,9 @@ def _signal_text(signum: int | None) -> str:
 
 
 #: the signals of the stop under way, first first, where the process keeps them (the command line's
-#: :func:`teletouch.cli._interrupts` block sets it, or a run's :func:`_first_ctrl_c_only`); None: none is kept. A
-#: signal :func:`_signals_deferred` holds is added too, so that one landing in the runtime's shutdown of a run that was
-#: ending counts as the stop's first: a later one is held as well (not raised in the command's own code after the
-#: run), and the exit code is the first's
+#: :func:`teletouch.cli._interrupts` block sets it); None: none is kept. A signal :func:`_signals_deferred` holds is
+#: added too, so that one landing in the runtime's shutdown of a run that was ending counts as the stop's first: a
+#: later one is held as well (not raised in the command's own code after the run), and the exit code is the first's
 _stop_signals: list[int] | None = None
 
 
@@ -1152,38 +1161,33 @@ def _say_now(text: str) -> None:
 
 
 @contextlib.contextmanager
-def _first_ctrl_c_only() -> Iterator[None]:
+def _ctrl_c_until_stopping(hold: Callable[[int], bool]) -> Iterator[None]:
     """A run in a program without the command line's handlers (a script, a notebook, a test: SIGINT is Python's own
-    handler, which raises KeyboardInterrupt on every Ctrl-C): for the run, the first Ctrl-C raises as before and stops
-    the run safely, and a later one is said and held (kept in :data:`_stop_signals`), as the command line does. With
-    Python's handler a second Ctrl-C that landed as the shutdown's hold was taken (or while the first one that landed
-    there was being held) cut the shutdown short: no safe state, no close. Elsewhere (the command line's block, a
-    caller's own handler, another thread) nothing is changed."""
+    handler, which raises KeyboardInterrupt on every Ctrl-C): for the run, a Ctrl-C raises as before until the run
+    holds it (``hold(signum)``: its shutdown under way, or over), and is said and held from then on, as under the
+    command line.
+    With Python's handler a second Ctrl-C that landed as the shutdown's hold was taken (or while a first one that
+    landed there was being held) cut the shutdown short: no safe state, no close. Python's handler is given back
+    after, unless something else replaced the run's meanwhile. Elsewhere (the command line's block, a caller's own
+    handler, a run inside a run, another thread) nothing is changed."""
     import signal
 
-    global _stop_signals
     if (_stop_signals is not None or threading.current_thread() is not threading.main_thread()
             or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
         yield
         return
-    seen: list[int] = []
 
     def _handler(signum: int, frame: Any) -> None:
-        first = not seen   # decided before the append: a handler nested right after it is not the first
-        seen.append(signum)
-        if first:
+        if not hold(signum):   # (also a Ctrl-C after one that something swallowed: the run still stops for it)
             raise KeyboardInterrupt
         _say_held(signum)
 
-    _stop_signals = seen
     try:
         signal.signal(signal.SIGINT, _handler)
         yield
-    finally:
-        try:
+    finally:   # (a Ctrl-C pending as it is given back runs _handler first: the run is over, so it is held, not raised)
+        if signal.getsignal(signal.SIGINT) is _handler:
             signal.signal(signal.SIGINT, signal.default_int_handler)
-        finally:
-            _stop_signals = None
 
 
 def _held_as_it_came(late: list[int], exc: KeyboardInterrupt) -> None:

@@ -134,7 +134,7 @@ def test_in_a_program_without_the_command_line_a_second_ctrl_c_as_the_first_is_h
         tmp_path, monkeypatch, capsys, python_sigint):
     """Python's own Ctrl-C handler raises on every Ctrl-C: a first one landing as the shutdown's hold is taken is held
     by run()'s retry, but a second one landing while that first one was being held (said) escaped run(): no safe
-    state, no close. For the run, only the first Ctrl-C raises now (runtime._first_ctrl_c_only)."""
+    state, no close. Once the run is stopping a Ctrl-C is held now (runtime._ctrl_c_until_stopping)."""
     path = tmp_path / "g.yaml"
     path.write_text(GRAPH)
     monkeypatch.setattr(_Calls, "calls", [])
