@@ -747,14 +747,16 @@ class Runtime:
             status = self._stop_reason or ("ok", EXIT_OK, f"ran {self._now:.3f} s")
             # a fault that came after a node had asked the run to stop (a step of another rate group then running)
             # found the stop's reason set: it is the run's result all the same (it was "stopped", exit 0)
-            late = [f for f in self.faults if f.action == "stop"]
-            if late and status[0] == "stopped":
-                status = ("fault", EXIT_FAULT, f"node '{late[0].node}' {late[0].kind}: {late[0].message} (as the run "
-                                               f"stopped: {status[2]})")
+            after_stop = [f for f in self.faults if f.action == "stop"]
             degraded = [f for f in self.faults if f.action == "degrade"]
-            if degraded and status[0] in ("ok", "stopped"):
-                status = ("degraded", EXIT_FAULT, status[2] + "; nodes disabled by faults: " + ", ".join(
-                    f"'{f.node}' ({f.kind} at t={f.time:.3f} s)" for f in degraded))
+            disabled = "; nodes disabled by faults: " + ", ".join(
+                f"'{f.node}' ({f.kind} at t={f.time:.3f} s)" for f in degraded) if degraded else ""
+            if after_stop and status[0] == "stopped":
+                f = after_stop[0]
+                what = f"node '{f.node}' {f.kind}" if f.node else f.kind   # (the progress callback has no node)
+                status = ("fault", EXIT_FAULT, f"{what}: {f.message} (as the run stopped: {status[2]}){disabled}")
+            elif degraded and status[0] in ("ok", "stopped"):
+                status = ("degraded", EXIT_FAULT, status[2] + disabled)
         if status[0] == "fault":
             status = (status[0], status[1], status[2] + "; devices driven to their safe state")
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,

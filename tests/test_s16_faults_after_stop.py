@@ -9,8 +9,8 @@ import sys
 import time
 
 from teletouch import Component, Kind, Params, Port, hookimpl
-from teletouch.runtime import EXIT_FAULT, EXIT_OK
-from teletouch.testing import make_registry, run_yaml
+from teletouch.runtime import EXIT_FAULT, EXIT_OK, Runtime
+from teletouch.testing import load_text, make_registry, run_yaml
 
 
 class Stopper(Component):
@@ -75,3 +75,21 @@ def test_a_stop_without_a_fault_is_still_ok():
 def test_a_node_disabled_as_the_run_stops_is_still_degraded():
     res, _ = run_yaml(_graph("degrade", 0.25), _registry(), duration=5.0)
     assert (res.status, res.exit_code) == ("degraded", EXIT_FAULT), res.message
+
+
+def test_a_progress_callback_that_fails_as_the_run_stops_is_named_as_such():
+    # a second review found "node '' progress: ..." (the progress callback has no node)
+    def progress(rt, t):
+        rt.request_stop("the notebook's stop button")
+        raise ValueError("the plot failed")
+
+    text = """
+clock: sim
+nodes:
+  - {id: src, plugin: mock-sensor, rate: 100}
+"""
+    rt = Runtime(load_text(text, _registry()), log=lambda m: None)
+    res = rt.run(100.0, progress=progress, progress_interval=0.0)
+    assert (res.status, res.exit_code) == ("fault", EXIT_FAULT), res.message
+    assert res.message.startswith("progress: the progress callback raised ValueError: the plot failed"), res.message
+    assert "(as the run stopped: the notebook's stop button)" in res.message
