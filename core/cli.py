@@ -631,9 +631,10 @@ _exit_code: int | None = None
 
 
 def _status_of_exit(exc: BaseException) -> int:
-    """The exit status Python gives a process that ``exc`` ends: SystemExit's code (None: 0; a message: 1), else 1."""
+    """The exit status Python gives a process that ``exc`` ends: SystemExit's code (None: 0; a message: 1; its low 8
+    bits, as the system keeps them), else 1."""
     if isinstance(exc, SystemExit):
-        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        return exc.code % 256 if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     return 1
 
 

@@ -139,7 +139,8 @@ class Harness:
       runtime does at the end of every run, and after a fault: also when the block raised) before ``deactivate()``
       and ``close()``, which are still called when it raises (its error goes on after them, as the runtime reports
       it and still shuts the node down); ``h.safe_calls`` counts the calls made through the harness.
-    - ``h.warm()`` calls the component's ``warm()`` (not a device's: the runtime never calls that one).
+    - ``h.warm()`` calls the component's ``warm()`` (not a device's, nor one its ``wants_warm_up`` turns off for
+      these parameters: the runtime never calls those).
     - ``h.stopped`` is the reason given to ``ctx.request_stop()`` (None if not called).
     """
 

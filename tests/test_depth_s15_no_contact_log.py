@@ -33,5 +33,5 @@ def test_the_background_s_log_counts_images_not_presses(qvga):
     labels[first] = C.Label(first, None, None, None, "no contact: the gel at rest")
     logs: list[str] = []
     C.calibrate(ims, 0.003, 17150.0, labels=labels, epochs=1, progress=False, hidden=(8,), log=logs.append)
-    assert "background: per-pixel median of the folder's 10 images" in logs, logs
+    assert "background: per-pixel median of the 10 images" in logs, logs
     assert not any("presses" in m for m in logs if m.startswith("background:")), logs

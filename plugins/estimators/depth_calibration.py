@@ -1076,7 +1076,7 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
     if background is None:
         background = median_background([im for _, im in images])
         background_source = {"from": "presses", "frames": len(images), "statistic": "per-pixel median"}
-        log(f"background: per-pixel median of the folder's {len(images)} images")   # (a no-contact frame among them)
+        log(f"background: per-pixel median of the {len(images)} images")   # (a no-contact frame may be among them)
     elif background.shape != images[0][1].shape:
         raise ValueError(f"background is {background.shape}, the presses are {images[0][1].shape}")
     elif is_grayscale(background):
