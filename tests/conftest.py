@@ -77,3 +77,18 @@ def python_sigint():
     old = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, old)
+
+
+@pytest.fixture
+def signal_handlers_restored():
+    """SIGINT's and SIGTERM's handlers as they were before the test, no profile function, and no stop kept by the
+    process (teletouch.runtime._stop_signals) after it: for tests that inject signals into the command line's or the
+    runtime's handlers."""
+    from teletouch import runtime
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    sys.setprofile(None)
+    for s, h in saved.items():
+        signal.signal(s, h)
+    runtime._stop_signals = None

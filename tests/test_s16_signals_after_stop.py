@@ -55,6 +55,29 @@ def _lines(stream, out: queue.Queue) -> None:
     out.put(None)
 
 
+def _signalled_in_its_hang(p: subprocess.Popen, sig: signal.Signals) -> tuple[int | None, float, str]:
+    """Wait until ``p`` says it hangs on its way out (:data:`MARKER` on stderr), send it ``sig``: (its exit code, or
+    None when it was still running 20 s later; seconds from the signal to its end; its stderr up to the hang)."""
+    seen: list[str] = []
+    try:
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        while (line := lines.get(timeout=120)) is not None and MARKER not in line:
+            seen.append(line)
+        assert line is not None, "".join(seen)[-3000:]   # it reached its hang
+        sent = time.monotonic()
+        p.send_signal(sig)
+        try:
+            got = p.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            got = None
+        return got, time.monotonic() - sent, "".join(seen)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=60)
+
+
 @pytest.mark.parametrize("hang, first, second, code", [("atexit", signal.SIGINT, signal.SIGINT, EXIT_INTERRUPTED),
                                                        ("thread", signal.SIGTERM, signal.SIGTERM, EXIT_TERMINATED),
                                                        ("thread", signal.SIGINT, signal.SIGTERM, EXIT_INTERRUPTED)])
@@ -67,25 +90,7 @@ def test_a_signal_after_the_safe_stop_ends_a_process_that_hangs_on_its_way_out(t
     program = PROGRAM.format(first=int(first), marker=MARKER, hang=hang)
     p = subprocess.Popen([sys.executable, "-c", program, "run", str(graph), "--duration", "5", "--quiet", "--json"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
-    seen: list[str] = []
-    try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
-        while (line := lines.get(timeout=120)) is not None and MARKER not in line:
-            seen.append(line)
-        assert line is not None, "".join(seen)[-3000:]   # it reached its hang
-        sent = time.monotonic()
-        p.send_signal(second)
-        try:
-            got = p.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            got = None
-        took = time.monotonic() - sent
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait(timeout=60)
-    err = "".join(seen)
+    got, took, err = _signalled_in_its_hang(p, second)
     assert got is not None and took < 10, f"still running {took:.1f} s after the {second.name} (ignored)"
     out = p.stdout.read()
     assert got == code, (got, err[-3000:])   # the command's own code: the signal only cut its exit short
@@ -153,20 +158,5 @@ def test_a_signal_after_a_stopped_command_crashed_ends_the_process_with_the_cras
         "atexit.register(hang)",
         "sys.exit(cli.main())"])
     p = subprocess.Popen([sys.executable, "-c", program], stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    seen: list[str] = []
-    try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
-        while (line := lines.get(timeout=120)) is not None and MARKER not in line:
-            seen.append(line)
-        assert line is not None, "".join(seen)[-3000:]
-        p.send_signal(signal.SIGTERM)
-        try:
-            got = p.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            got = None
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.wait(timeout=60)
-    assert got == code, (got, "".join(seen)[-3000:])
+    got, _, err = _signalled_in_its_hang(p, signal.SIGTERM)
+    assert got == code, (got, err[-3000:])

@@ -51,14 +51,7 @@ nodes:
 """
 
 
-@pytest.fixture(autouse=True)
-def _restore_handlers():
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    sys.setprofile(None)
-    for s, h in saved.items():
-        signal.signal(s, h)
-    runtime._stop_signals = None
+pytestmark = pytest.mark.usefixtures("signal_handlers_restored")
 
 
 def _signal_at(where: str, sig: signal.Signals, outer: dict):

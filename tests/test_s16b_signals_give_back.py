@@ -13,14 +13,7 @@ import pytest
 from teletouch import cli, runtime
 
 
-@pytest.fixture(autouse=True)
-def _restore_handlers():
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    yield
-    sys.setprofile(None)
-    for s, h in saved.items():
-        signal.signal(s, h)
-    runtime._stop_signals = None
+pytestmark = pytest.mark.usefixtures("signal_handlers_restored")
 
 
 def _signal_after_sigterm_is_given_back(sig: signal.Signals, before: dict):
