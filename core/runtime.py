@@ -722,8 +722,9 @@ class Runtime:
             signum = getattr(exc, "signum", None)
             self._stop_evt.set()
         finally:
-            late: list[int] = []   # the signals held while the devices are made safe and the components closed
-            self._late = late      # (where a Ctrl-C from here on is held, :meth:`_hold_ctrl_c`)
+            # the signals held while the devices are made safe and the components closed; first, before any call
+            # (where a pending handler could run): a Ctrl-C from here on is held (:meth:`_hold_ctrl_c`)
+            self._late = late = []
             stopped: list[bool] = []
             while not stopped:   # (again where a signal came before the hold was taken)
                 try:
