@@ -718,13 +718,16 @@ class Runtime:
             else:
                 self._run_wall(duration, progress, progress_interval)
         except KeyboardInterrupt as exc:   # Ctrl-C, or a caller's SIGTERM handler raising one with its signum
+            self._late = []   # first, before any call: a second Ctrl-C is held from here on (_hold_ctrl_c)
             interrupted, fault_first = True, self._fault_reason()
             signum = getattr(exc, "signum", None)
             self._stop_evt.set()
         finally:
             # the signals held while the devices are made safe and the components closed; first, before any call
             # (where a pending handler could run): a Ctrl-C from here on is held (:meth:`_hold_ctrl_c`)
-            self._late = late = []
+            if self._late is None:
+                self._late = []
+            late = self._late
             stopped: list[bool] = []
             while not stopped:   # (again where a signal came before the hold was taken)
                 try:

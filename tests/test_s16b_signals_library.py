@@ -139,3 +139,35 @@ nodes:
     res = _runtime(text, _P()).run(1.0)
     assert _SlowConfigure.log == [], "the second Ctrl-C did not stop b's configure: " + capfd.readouterr().err
     assert res.status == "interrupted", res.message
+
+
+def test_a_second_ctrl_c_as_the_run_notes_the_first_is_held_and_the_devices_are_made_safe(capfd):
+    """The first Ctrl-C stops the run (raised in its loop); a second one landing as run() notes it (its except clause,
+    before the shutdown) came out of run() after the shutdown: the run's result was lost."""
+    code = Runtime._fault_reason.__code__
+    sent = []
+
+    def prof(frame, event, arg):
+        if event == "call" and frame.f_code is code and not sent:
+            sent.append(True)
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, frame)   # its handler runs as _fault_reason is entered
+
+    n = {"k": 0}
+
+    def progress(rt, t):
+        n["k"] += 1
+        if n["k"] == 2:
+            sys.setprofile(prof)
+            _ctrl_c()
+
+    rt = _runtime()
+    escaped = None
+    try:
+        res = rt.run(200.0, progress=progress, progress_interval=0.0)
+    except KeyboardInterrupt as exc:   # before: out of run(), after its shutdown
+        escaped = exc
+    finally:
+        sys.setprofile(None)
+    assert sent and escaped is None
+    assert res.status == "interrupted", res.message
+    assert "teletouch: Ctrl-C: already stopping safely, please wait" in capfd.readouterr().err
