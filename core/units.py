@@ -148,8 +148,9 @@ def _in_smaller_unit(name: str, value: float, limit: float, unit: str, small: st
     head = f"{name} ({value:g} {unit}) is {beyond} ({limit:g} {unit} at most{note})"
     if abs(value) * factor > limit:   # too large in the smaller unit as well: no value to suggest
         return f"{head}: a bare number is {unit}"
-    return (f"{head}: {small} in the {unit} field? a bare number is {unit}: for {value:g} {small} write "
-            f"'{value:g}{small}' ({value * factor:g} {unit})")
+    # the value meant, with its unit where a field parses it (mN/s is not one: the bare number)
+    write = f"'{value:g}{small}' ({value * factor:g} {unit})" if small in _UNITS else f"{value * factor:g}"
+    return f"{head}: {small} in the {unit} field? a bare number is {unit}: for {value:g} {small} write {write}"
 
 
 def too_fast(name: str, value: float, limit: float = MAX_PLAUSIBLE_SPEED) -> str | None:
@@ -182,13 +183,14 @@ def plausible_hand_force(name: str, value: float, limit: float = MAX_PLAUSIBLE_H
 MAX_PLAUSIBLE_WORKSPACE = 1.0       # m
 
 #: the smaller unit a bare number in each SI unit is mistyped in
-_SMALLER = {"m/s": "mm/s", "N": "mN"}
+_SMALLER = {"m/s": "mm/s", "N": "mN", "N/s": "mN/s"}
 
 
 def plausible_quantity(name: str, value: float, limit: float, unit: str, beyond: str, note: str = "") -> float:
-    """``value`` if ``|value|`` (``unit``: m, m/s or N) is at most ``limit``, else a ValueError naming ``name``, saying
-    it is ``beyond`` what is plausible (``note``: said with the limit) and how to write the smaller unit (mm, mm/s,
-    mN) meant: for a bound of a plugin's own that this module has no check for."""
+    """``value`` if ``|value|`` (``unit``: m, m/s, N or N/s) is at most ``limit``, else a ValueError naming ``name``,
+    saying it is ``beyond`` what is plausible (``note``: said with the limit) and how to write the smaller unit (mm,
+    mm/s, mN; for mN/s, which no field parses, the bare number) meant: for a bound of a plugin's own that this module
+    has no check for."""
     if unit == "m":
         return _refused(_metres_typed(name, value, limit, beyond, note), value)
     if unit not in _SMALLER:

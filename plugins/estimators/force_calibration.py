@@ -72,19 +72,6 @@ MAX_PROBE_SPEED = 0.2    # m/s
 MAX_PLAUSIBLE_FORCE_RATE = 2 * MAX_PLAUSIBLE_HAND_FORCE / 1e-3   # N/s: 100 kN/s
 
 
-def _too_fast_a_force_change(name: str, value: float, limit: float = MAX_PLAUSIBLE_FORCE_RATE) -> str | None:
-    """None if ``value`` (N/s) is a plausible rate limit of the press force; else why ``name`` looks like mN/s typed
-    in the N/s field (``max_force_rate: 500000`` meant 500000 mN/s), with the bare number meant where it fits (there
-    is no unit mN/s to write)."""
-    if abs(value) <= limit:
-        return None
-    head = (f"{name} ({value:g} N/s) is faster than a press's force needs to change ({limit:g} N/s at most: a haptic "
-            f"device's whole +-{MAX_PLAUSIBLE_HAND_FORCE:g} N in 1 ms)")
-    if abs(value) * 1e-3 > limit:
-        return f"{head}: a bare number is N/s"
-    return f"{head}: mN/s in the N/s field? a bare number is N/s: for {value:g} mN/s write {value * 1e-3:g}"
-
-
 # ================================================================================================ the press routine
 class PressRoutine(Component):
     """Force calibration: presses a probe held by the leader into the gel in fixed steps and records (depth, force)."""
@@ -200,10 +187,9 @@ class PressRoutine(Component):
         @field_validator("max_force_rate")
         @classmethod
         def _force_rate(cls, v: float, info: Any) -> float:
-            problem = _too_fast_a_force_change(info.field_name, v)   # 500000 meant mN/s: a 500 N step per 1 ms
-            if problem:
-                raise ValueError(problem)
-            return v
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_FORCE_RATE, "N/s",   # 500000 meant mN/s
+                                      "faster than a press's force needs to change",
+                                      f": a haptic device's whole +-{MAX_PLAUSIBLE_HAND_FORCE:g} N in 1 ms")
 
     SATURATION_TIME = 0.1  # s of a saturated press (or of resistance on the approach) before aborting
     MAX_OFFSET = 0.025  # m: a press point farther than this from the start is off any DIGIT's gel (mm given as m?)
