@@ -51,8 +51,8 @@ def shapes_differ(a: tuple[int | None, ...], b: tuple[int | None, ...]) -> bool:
 def has_warm_up(cls: type, params: Any = None) -> bool:
     """Whether the runtime calls :meth:`Component.warm` of a node of class ``cls`` (under the wall clock): a warm()
     of its own, and no device's (a warm-up must never command one). For an isolated node, its class in the child.
-    With the node's validated ``params``, also whether that node wants it (:meth:`Component.wants_warm_up`): an
-    isolated node's proxy asks its child for nothing when not (isolation.ProcessProxy.warm)."""
+    With the node's validated ``params``, also whether that node wants it (:meth:`Component.wants_warm_up`): the
+    runtime asks so once the node has configured, inline or isolated (then no round trip to its child)."""
     if cls.warm is Component.warm or issubclass(cls, Device):
         return False
     return params is None or bool(cls.wants_warm_up(params))

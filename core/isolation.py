@@ -527,8 +527,8 @@ class ProcessProxy(Component):
         self._abandon: str | None = None            # why the step in flight (or about to wait) is to be abandoned
         self._wake_lock = threading.Lock()
         self._poller: Any = None                    # select.poll() on the pipe and the wake-up pipe (steps)
-        # whether warm() asks the child (as inline: _Node.warm); at configure, also whether the node's parameters
-        # want it (Component.wants_warm_up)
+        # whether warm() asks the child (as inline: _Node.warm; the runtime, which decides with the node's parameters
+        # once it has configured, calls it only where Component.wants_warm_up says yes)
         self._warms = has_warm_up(cls)
 
     # -------------------------------------------------------------------------------------------------- plumbing
@@ -664,7 +664,6 @@ class ProcessProxy(Component):
             raise ComponentFault(f"isolate: process needs a component class that a new process can import by name "
                                  f"(defined at the top level of a module), not {self.target.__module__}."
                                  f"{self.target.__qualname__}: {type(exc).__name__}: {exc}") from None
-        self._warms = has_warm_up(self.target, self.params)   # this node's parameters may turn its warm-ups off
         mpctx = mp.get_context("spawn")
         self._held.clear()   # a new child holds no input yet
         self._unanswered.clear()
@@ -744,8 +743,9 @@ class ProcessProxy(Component):
         """The component's warm() in the child (the runtime calls this :attr:`Runtime.WARM_LEAD` before each step),
         waited for as a step is: one call at a time, numbered, timed out after ``step_timeout``, cut short by
         :meth:`abandon_step`; an exception in it comes back as one in a step does. No input crosses: the child still
-        holds the last step's. Nothing is sent for a class without a warm() of its own, for a device, or for a node
-        whose parameters turn its warm-up off (:meth:`Component.wants_warm_up`: the depth node's ``warm: false``)."""
+        holds the last step's. Nothing is sent for a class without a warm() of its own or for a device; the runtime
+        does not call this for a node whose parameters turn its warm-up off (:meth:`Component.wants_warm_up`: the depth
+        node's ``warm: false``)."""
         if not self._warms:
             return
         if not self._lock.acquire(timeout=self._step_timeout):
