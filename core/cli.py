@@ -319,9 +319,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.json:   # exit_code: what the shell sees
         print(json.dumps(dict(result.as_dict(), exit_code=code,
                               recording_error=None if record_error is None else str(record_error)), default=str))
-    # an interrupted run's message says it and which signal came ("interrupted (SIGTERM): ..."): said once
-    said = result.message if result.status == "interrupted" else f"{result.status}: {result.message}"
-    print(f"teletouch: {said}", file=sys.stderr)
+    print(f"teletouch: {result.ending}", file=sys.stderr)   # (said once)
     return code
 
 

@@ -124,11 +124,17 @@ class RunResult:
                 "run_realtime_factor": self.run_realtime_factor, "nodes": [n.as_dict() for n in self.nodes],
                 "faults": [f.__dict__ for f in self.faults]}
 
+    @property
+    def ending(self) -> str:
+        """How the run ended, in one line for a person: "STATUS: message" (an interrupted run's message says so
+        itself, and which signal came: "interrupted (SIGTERM): ...")."""
+        return self.message if self.status == "interrupted" else f"{self.status}: {self.message}"
+
     def summary(self, header: bool = True) -> str:
         """The summary `teletouch run` prints at the end: status (``header``: the run's end, its message whole), clock
         and one row per node, with the period jitter p99 (ms; '-' where not measured: the simulated clock, or too
         few steps) next to the rates, as :meth:`as_dict` gives it in ``period_jitter_p99_s``."""
-        head = [self.message if self.status == "interrupted" else f"{self.status}: {self.message}"] if header else []
+        head = [self.ending] if header else []
         lines = [*head,
                  f"clock {self.clock}: {self.sim_time:.3f} s graph time in {self.wall_time - self.startup_time:.3f} s "
                  f"wall after {self.startup_time:.3f} s start-up ({self.run_realtime_factor:.1f}x real time)",

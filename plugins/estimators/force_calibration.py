@@ -1009,7 +1009,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         for f in result.faults:   # each, as `teletouch run`'s summary lists them (the fit below may still refuse)
             print(f"teletouch: fault: {f.line()} -> {f.action}", file=sys.stderr)
         if spoiled:
-            print(f"teletouch: {_run_said(result)}; {spoiled}; no calibration written", file=sys.stderr)
+            print(f"teletouch: {result.ending}; {spoiled}; no calibration written", file=sys.stderr)
             return result.exit_code or 3
         if result.exit_code:   # interrupted (held as the run stopped), degraded, fault: the calibration is complete,
             ended = result     # still written, and the command exits as `teletouch run` does for that run
@@ -1025,15 +1025,10 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     print(f"wrote {out} and {plot}")
     if ended is not None:   # the run's exit code, as `teletouch run` gives it (3; a signal: 130, 143 for SIGTERM)
         faulted = any(f.action != "logged" for f in ended.faults)
-        print(f"teletouch: {_run_said(ended)}; the press routine had finished"
+        print(f"teletouch: {ended.ending}; the press routine had finished"
               f"{' and no fault reached its samples' if faulted else ''}: its calibration is written", file=sys.stderr)
         return ended.exit_code
     return 0
-
-
-def _run_said(result: Any) -> str:
-    """How the run ended, as `teletouch run` says it (an interrupted run's message says so itself)."""
-    return result.message if result.status == "interrupted" else f"{result.status}: {result.message}"
 
 
 def _feeding(spec: Any, node_id: str) -> set[str]:
