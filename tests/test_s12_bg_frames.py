@@ -201,8 +201,8 @@ def test_calibrate_records_one_frame_and_the_presses_median_as_such(sim, tmp_pat
     assert a.training["background"] == {"from": "no-contact frames", "frames": 1, "statistic": "frame",
                                         "files": ["frame_0.png"]}
     assert _cal(root, tmp_path / "b.model") == 0
-    assert load_model(tmp_path / "b.model").training["background"] == {"from": "presses", "frames": 6,
-                                                                       "statistic": "per-pixel median"}
+    assert load_model(tmp_path / "b.model").training["background"] == {
+        "from": "images", "frames": 6, "statistic": "per-pixel median", "presses": 6, "no_contact": 0, "unlabelled": 0}
 
 
 def test_background_frames_in_the_presses_folder_are_left_out_by_file_not_by_name(sim, tmp_path, capsys):

@@ -1050,6 +1050,17 @@ def px_per_mm_from_caliper(image: np.ndarray, background: np.ndarray, gap_m: flo
 
 # --- the whole calibration -------------------------------------------------------------------------------------
 
+def _images_median_record(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label]) -> dict[str, Any]:
+    """The model file's record (``training.background``) of a background taken as the per-pixel median of all the
+    images: how many, and how many of them are labelled presses (usable or not), no-contact frames, or have no label
+    (all of them are in the median, whatever their labels)."""
+    names = [n for n, _ in images]
+    no_contact = sum(1 for n in names if n in labels and labels[n].no_contact)
+    unlabelled = sum(1 for n in names if n not in labels)
+    return {"from": "images", "frames": len(names), "statistic": "per-pixel median",
+            "presses": len(names) - no_contact - unlabelled, "no_contact": no_contact, "unlabelled": unlabelled}
+
+
 @dataclass
 class CalibrationResult:
     model: NormalModel
@@ -1063,19 +1074,19 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
               labels: dict[str, Label] | None = None, background: np.ndarray | None = None,
               holdout: int = 2, log: Callable[[str], None] | None = None,
               background_source: dict[str, Any] | None = None, **train_kw: Any) -> CalibrationResult:
-    """The whole calibration: background (given, or the per-pixel median of the presses), labels (given, or found
+    """The whole calibration: background (given, or the per-pixel median of the images), labels (given, or found
     by :func:`auto_label`), training on the usable presses with ``holdout`` of them (spread over the sensor) held
     out and evaluated; their metrics go into the model file.
 
     The model file records where the background came from (``training.background``): ``background_source`` (e.g.
-    :meth:`Background.meta`) for a given background, {"from": "presses", "frames": N, "statistic": "per-pixel
-    median"} for the median of the presses, {"from": "given"} for an array given without a source."""
+    :meth:`Background.meta`) for a given background, :func:`_images_median_record` for the median of the images,
+    {"from": "given"} for an array given without a source."""
     t0 = time.perf_counter()
     log = log or (lambda m: None)
     source_date_epoch()   # a malformed SOURCE_DATE_EPOCH is refused before the work, not when the time is written
+    median_of_images = background is None   # (recorded once the labels say what the images are)
     if background is None:
         background = median_background([im for _, im in images])
-        background_source = {"from": "presses", "frames": len(images), "statistic": "per-pixel median"}
         log(f"background: per-pixel median of the {len(images)} images")   # (a no-contact frame may be among them)
     elif background.shape != images[0][1].shape:
         raise ValueError(f"background is {background.shape}, the presses are {images[0][1].shape}")
@@ -1119,6 +1130,8 @@ def calibrate(images: Sequence[tuple[str, np.ndarray]], ball_radius_m: float, px
         step = len(order) / holdout
         val = [order[int((i + 0.5) * step)] for i in range(holdout)]
     model = train_model(images, labels, background, px_per_m, ball_radius_m, validation=val, log=log, **train_kw)
+    if median_of_images:
+        background_source = _images_median_record(images, labels)
     model.training["background"] = dict(background_source) if background_source is not None else {"from": "given"}
     return CalibrationResult(model=model, labels=[labels[n] for n, _ in images if n in labels],
                              background=background, seconds=time.perf_counter() - t0)
