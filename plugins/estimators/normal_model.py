@@ -23,6 +23,7 @@ reads it; no code can be executed by loading it):
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -416,25 +417,30 @@ def model_image_shape(spec: str | os.PathLike[str]) -> tuple[int, int]:
             _meta_number(str(p), meta, "cols", None, integer=True, low=1))
 
 
-#: headers read (:func:`_read_header`): (resolved path, device, inode, mtime ns, size) -> the 'meta' entry. A graph's
-#: validation reads a depth model's header twice (the ``model`` validator, then port_shapes for the frames' size)
+#: headers read (:func:`_read_header`): (resolved path, device, inode, mtime ns, size, digest of the 'meta' entry's
+#: bytes) -> the 'meta' entry. A graph's validation reads a depth model's header twice (the ``model`` validator, then
+#: port_shapes for the frames' size)
 _HEADERS: dict[tuple, dict[str, Any]] = {}
 _HEADERS_KEPT = 32
 
 
 def _read_header(spec: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]]:
     """The model file of ``spec`` and its 'meta' entry (this format and version), read without the rest of the
-    archive; else ModelFileError. Kept while the file is unchanged (the same path, inode, mtime and size); a file
-    that is not a model is read again each time (its error said again)."""
+    archive; else ModelFileError. Parsed once while the file is unchanged: the same path, inode, mtime and size, and
+    the same bytes of its 'meta' entry (read each time: a file replaced by one of the same size with its mtime put
+    back, as `cp -p` does, keeps the rest); a file that is not a model is read again each time (its error said
+    again)."""
     p = resolve_model(spec)
     try:
         st = p.stat()
-        key: tuple | None = (str(p.resolve()), st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size)
-    except OSError:   # (the read below says why)
-        key = None
+        raw: bytes | None = _meta_bytes(p)
+    except (ModelFileError, zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError):
+        raw = None   # (the read below says why)
+    key = ((str(p.resolve()), st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size, hashlib.sha256(raw).digest())
+           if raw is not None else None)
     meta = _HEADERS.get(key) if key is not None else None
     if meta is None:
-        meta = _read_meta(p)
+        meta = _read_meta(p, raw)
         if key is not None:
             if len(_HEADERS) >= _HEADERS_KEPT:
                 _HEADERS.pop(next(iter(_HEADERS)), None)   # the oldest
@@ -442,16 +448,22 @@ def _read_header(spec: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]]:
     return p, dict(meta)
 
 
-def _read_meta(p: Path) -> dict[str, Any]:
-    """The 'meta' entry of the model file ``p`` (this format and version); else ModelFileError."""
+def _meta_bytes(p: Path) -> bytes:
+    """The bytes of the 'meta' entry (meta.npy) of the zip archive ``p``; ModelFileError where it has none, zipfile's
+    and the system's errors where it cannot be read."""
+    with zipfile.ZipFile(p) as zf:
+        if "meta.npy" not in zf.namelist():
+            raise ModelFileError(f"{p}: no 'meta' entry; expected a {FORMAT} file written by `teletouch calibrate "
+                                 f"depth`")
+        return zf.read("meta.npy")
+
+
+def _read_meta(p: Path, raw: bytes | None = None) -> dict[str, Any]:
+    """The 'meta' entry of the model file ``p`` (this format and version), from ``raw`` (its bytes, already read) or
+    read here; else ModelFileError."""
     _check_archive(p)
     try:
-        with zipfile.ZipFile(p) as zf:
-            if "meta.npy" not in zf.namelist():
-                raise ModelFileError(f"{p}: no 'meta' entry; expected a {FORMAT} file written by `teletouch "
-                                     f"calibrate depth`")
-            with zf.open("meta.npy") as fh:
-                entry = np.lib.format.read_array(fh, allow_pickle=False)
+        entry = np.lib.format.read_array(io.BytesIO(_meta_bytes(p) if raw is None else raw), allow_pickle=False)
     except (zipfile.BadZipFile, zlib.error, OSError, ValueError, EOFError) as exc:
         raise ModelFileError(f"{p}: not a readable teletouch depth model ({_EXPECTED}): {_why(exc)}") from None
     return _check_meta(str(p), entry)
