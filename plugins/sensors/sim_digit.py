@@ -485,7 +485,8 @@ class SimDigit(Component):
         img, surf = self.sim.render(d, pos, tilt, t)    # refuses a tilt beyond MAX_TILT, a contact off the gel
         force = self._force(max(d, 0.0)) if tilt == 0.0 else self.sim.force(max(d, 0.0), tilt)
         max_depth = self.sim.max_depth if d > 0 else 0.0
-        self._last = {"indentation_m": max(d, 0.0), "force_n": force, "max_depth_m": max_depth}
+        # the simulation's truth ("true_": the live view shows it beside the depth node's estimate of max depth)
+        self._last = {"true_indentation_m": max(d, 0.0), "true_force_n": force, "true_max_depth_m": max_depth}
         return {"image": img, "gt_depth": surf.depth, "gt_max_depth": max_depth, "gt_force": force,
                 "gt_contact_mask": surf.mask, "gt_position": pos if d > 0 else np.full(2, np.nan)}
 
