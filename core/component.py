@@ -431,12 +431,14 @@ class Params(BaseModel):
 
 
 class Context:
-    """What the runtime gives a component: the clock, a logger, a way to end the run, and its step rate."""
+    """What the runtime gives a component: the clock, a logger, a way to end the run, its step rate, and which of the
+    nodes feeding it a fault has disabled (:meth:`disabled_upstream`)."""
 
     def __init__(self, now: Callable[[], float] | None = None, clock_kind: str = "sim",
                  request_stop: Callable[[str], None] | None = None,
                  log: Callable[[str], None] | None = None,
-                 from_monotonic: Callable[[float], float] | None = None, rate: float | None = None):
+                 from_monotonic: Callable[[float], float] | None = None, rate: float | None = None,
+                 disabled_upstream: Callable[[], list[str]] | None = None):
         import time
 
         t0 = time.monotonic()
@@ -446,6 +448,20 @@ class Context:
         self._log = log
         self.from_monotonic = from_monotonic or (lambda m: m - t0)
         self.rate = rate   # the node's step rate (Hz) in the graph; None outside a graph
+        self._disabled_upstream = disabled_upstream
+
+    def disabled_upstream(self) -> list[str]:
+        """The ids of the nodes that feed this node through the graph's wiring, directly or through other nodes, and
+        that a fault has disabled so far (action stop or degrade), in data-flow order; [] while none is, and outside
+        a graph. A node disabled by a fault publishes nothing more, but a node in between (a filter) may go on
+        publishing its last value with fresh stamps: the inputs' own freshness cannot tell. The runtime disables
+        only the devices wired straight to such a node; a node that must not go on with stale data (the press
+        routine) asks here. Cheap enough to call every step. A fault in another rate group (the wall clock) shows
+        from the moment the runtime records it; an isolated node (``isolate: process``) gets the list sent with each
+        step, as it was when the step was sent."""
+        if self._disabled_upstream is None:
+            return []
+        return list(self._disabled_upstream())
 
     def request_stop(self, reason: str = "done") -> None:
         """End the run normally (e.g. a calibration routine that has finished)."""

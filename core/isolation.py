@@ -25,9 +25,11 @@ An input whose sample is the same object as the one the child already holds (a c
 since the last step of a faster node) is not sent again: the child's component sees the same Sample, as inline.
 Values other than numbers, numeric arrays and text cross pickled one by one, so a value the child cannot unpickle
 (its class is not importable there) is a fault of the node that names the plugin and the input; the child lives on.
-A component's own warm() (Component.warm: 1 ms before each step) runs in the child, on the inputs it holds; the
-proxy waits for it as for a step. For a class without one, a device, or a node whose parameters turn it off
-(Component.wants_warm_up: the depth node's ``warm: false``), nothing crosses.
+Each step request also carries the node's Context.disabled_upstream (the nodes feeding it that a fault has disabled,
+as the parent's runtime knows them when the step is sent): the child's Context returns that list. A component's own
+warm() (Component.warm: 1 ms before each step) runs in the child, on the inputs it holds; the proxy waits for it as for
+a step. For a class without one, a device, or a node whose parameters turn it off (Component.wants_warm_up: the depth
+node's ``warm: false``), nothing crosses.
 
 Every request carries a number that its reply repeats: a reply that comes after its call timed out is recognised and
 dropped, never taken for a later call's. The child answers every request once, in order, so a reply without its number
@@ -421,9 +423,10 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: tuple[str, dict
             logs.append(f"priority {priority}: cannot use SCHED_FIFO in the isolated process ({exc}); running "
                         f"with normal scheduling")
     origin = [t0_perf, t0_mono]
+    lost: list[str] = []   # Context.disabled_upstream as the parent sent it with the latest step
     ctx = Context(now=lambda: time.perf_counter() - origin[0], clock_kind="wall",
                   request_stop=lambda r: stop_reason.append(r), log=logs.append,
-                  from_monotonic=lambda m: m - origin[1], rate=rate)
+                  from_monotonic=lambda m: m - origin[1], rate=rate, disabled_upstream=lambda: lost)
     slots = {name: _Slot() for name in cls.inputs} if cls is not None else {}
     inputs = Inputs(slots)
     comp: Component | None = None
@@ -445,7 +448,7 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: tuple[str, dict
         seq, op = msg[0], msg[1]
         try:
             if op == "step":
-                _, _, t, ins = msg
+                _, _, t, ins, lost[:] = msg
                 # inputs not in the request are unchanged: their slots keep the Sample they hold. Every value is
                 # unpacked before any slot changes, so an input that cannot be received changes none of them
                 new = {}
@@ -724,7 +727,8 @@ class ProcessProxy(Component):
                 sent[name] = s
                 ins[name] = None if s is None else (*_to_wire(name, self._lanes.pack(name, s.value)), s.stamp)
             try:
-                reply = self._exchange("step", (t, ins), self._step_timeout, abandonable=True)
+                reply = self._exchange("step", (t, ins, self.ctx.disabled_upstream()), self._step_timeout,
+                                       abandonable=True)
             except BaseException:
                 held.clear()   # the child may not have taken them (or only later): send everything next time
                 raise

@@ -290,6 +290,8 @@ class Runtime:
         self._ran = False
         self._safe_lock = threading.Lock()   # one safe_state() call at a time per device (see _safe)
         self.nodes: list[_Node] = []
+        #: each node's id -> the nodes that feed it (:func:`feeders`), for its Context.disabled_upstream
+        self._feeders: dict[str, tuple[_Node, ...]] = {}
         #: the graph's warnings under this runtime's clock (``spec.warnings`` are those of the clock it was loaded
         #: for, which the loader's caller has shown); each of them that the loader did not give is logged here
         self.warnings = spec.warnings_for(self.clock)
@@ -316,7 +318,7 @@ class Runtime:
         for i, n in enumerate(order):
             ctx = Context(now=self.now, clock_kind=self.clock, request_stop=self.request_stop,
                           log=lambda m, nid=n.id: self.log(f"[{nid}] {m}"), from_monotonic=self.from_monotonic,
-                          rate=float(n.rate))
+                          rate=float(n.rate), disabled_upstream=lambda nid=n.id: self._disabled_upstream(nid))
             params = n.params_obj if n.params_obj is not None else n.cls.Params.model_validate(n.params)
             if n.isolate == "process" and self.clock == "wall":
                 from .isolation import ProcessProxy
@@ -340,6 +342,13 @@ class Runtime:
                 if w.max_age is not None:
                     node.stale.append((port, in_slots[port], w.max_age, f"{w.node}.{w.source_port}"))
             self.nodes.append(node)
+        by_id = {node.id: node for node in self.nodes}
+        self._feeders = {nid: tuple(by_id[f] for f in ids) for nid, ids in feeders(self.spec).items()}
+
+    def _disabled_upstream(self, node_id: str) -> list[str]:
+        """Context.disabled_upstream of node ``node_id``: its feeders (precomputed in :meth:`_build`) that a fault
+        has disabled, in data-flow order."""
+        return [n.id for n in self._feeders.get(node_id, ()) if n.faulted]
 
     def component(self, node_id: str) -> Component:
         for n in self.nodes:
@@ -406,7 +415,7 @@ class Runtime:
             self.log(f"[{node.id}] {kind}: {message} -> node disabled (degrade)")
             # a device commanded by the disabled node would keep its last command: it goes to its safe state and
             # is disabled too (nodes further down, e.g. a controller behind a dead estimator, handle their own
-            # stale inputs)
+            # stale inputs, and may ask Context.disabled_upstream: a filter in between keeps its stamps fresh)
             for other in self.nodes:
                 if other.is_device and not other.faulted:
                     ports = [p for p, w in other.spec.inputs.items() if w.node == node.id]
@@ -1251,6 +1260,25 @@ def _signals_deferred(late: list[int] | None = None) -> Iterator[list[int]]:
         finally:   # SIGINT last: each handler given back may raise at once (the command line's, for a stop's first)
             if signal.SIGINT in old:
                 signal.signal(signal.SIGINT, old[signal.SIGINT])
+
+
+def feeders(spec: GraphSpec) -> dict[str, list[str]]:
+    """Each node's id -> the ids of the nodes whose outputs reach it through the graph's wiring, directly or through
+    other nodes (not itself, also where a feedback edge leads back to it), in data-flow order."""
+    order = [n.id for n in spec.order()]
+    direct = {n.id: {w.node for w in n.inputs.values()} for n in spec.nodes}
+    out: dict[str, list[str]] = {}
+    for nid in order:
+        seen: set[str] = set()
+        todo = list(direct.get(nid, ()))
+        while todo:
+            f = todo.pop()
+            if f not in seen:
+                seen.add(f)
+                todo.extend(direct.get(f, ()))
+        seen.discard(nid)
+        out[nid] = [f for f in order if f in seen]
+    return out
 
 
 def graph_time(t_ns: int) -> float:

@@ -142,6 +142,8 @@ class Harness:
     - ``h.warm()`` calls the component's ``warm()`` (not a device's, nor one its ``wants_warm_up`` turns off for
       these parameters: the runtime never calls those).
     - ``h.stopped`` is the reason given to ``ctx.request_stop()`` (None if not called).
+    - ``h.disabled_upstream`` (a list of node ids, [] at first) is what ``ctx.disabled_upstream()`` returns: set it
+      to see how the component takes a node feeding it that a fault has disabled.
     """
 
     def __init__(self, cls: type[Component], params: Any = None, *, rate: float | None = None, **kw: Any):
@@ -149,8 +151,10 @@ class Harness:
         self.cls = cls
         self.t = 0.0
         self.rate = cls.default_rate if rate is None else _node_rate(cls, rate)
+        self.disabled_upstream: list[str] = []
         self.ctx = Context(now=lambda: self.t, clock_kind="sim", request_stop=self._stop,
-                           log=lambda m: None, from_monotonic=lambda m: self.t, rate=self.rate)
+                           log=lambda m: None, from_monotonic=lambda m: self.t, rate=self.rate,
+                           disabled_upstream=lambda: self.disabled_upstream)
         self.comp = cls(params, node_id=cls.name, ctx=self.ctx, **kw)
         self.slots = {name: _Slot() for name in cls.inputs}
         self.inputs = Inputs(self.slots)

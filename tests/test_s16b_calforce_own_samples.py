@@ -3,7 +3,8 @@ writes no calibration and marks its own samples CSV partial. The routine's own `
 wrote it when it finished, unmarked: `--csv` fitted it without a word. Now it is marked partial with the same reason,
 and `--csv` refuses it saying the samples may be stale (before, it said "a run that did not finish may lack the deeper
 steps", untrue of a run that finished). The graph is test_s16_calforce_faults's: a spare mock-sensor that the routine
-reads as its reference depth faults at t = 6 s, before 8 of its 13 samples."""
+reads as its reference depth faults at t = 6 s, before 8 of its 13 samples; the routine is blinded to it (a fault it
+could not see at its step: seen, it aborts at once, test_s17_feeders_lost)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_s16_calforce_faults import _graph  # noqa: E402
+from test_s16_calforce_faults import _graph, blind_routine  # noqa: E402
 
 from teletouch.cli import main  # noqa: E402
 from teletouch.plugins.estimators.poly_force import read_pairs_csv  # noqa: E402
@@ -20,7 +21,8 @@ WHY = ("node 'spare' (exception at t=6.000 s) feeds the press routine and was di
        "recorded: they may hold stale values")
 
 
-def _calibrate_with_own_samples(tmp_path: Path, capsys) -> tuple[int, str, Path]:
+def _calibrate_with_own_samples(tmp_path: Path, capsys, monkeypatch) -> tuple[int, str, Path]:
+    blind_routine(monkeypatch)
     own = tmp_path / "routine.csv"
     capsys.readouterr()
     rc = main(["calibrate", "force", "--graph", _graph(tmp_path, 6.0, read=True), "-o", str(tmp_path / "x.force.json"),
@@ -28,8 +30,9 @@ def _calibrate_with_own_samples(tmp_path: Path, capsys) -> tuple[int, str, Path]
     return rc, capsys.readouterr().err, own
 
 
-def test_the_routine_s_own_samples_csv_is_marked_partial_when_a_fault_upstream_may_have_spoiled_it(tmp_path, capsys):
-    rc, err, own = _calibrate_with_own_samples(tmp_path, capsys)
+def test_the_routine_s_own_samples_csv_is_marked_partial_when_a_fault_upstream_may_have_spoiled_it(tmp_path, capsys,
+                                                                                                   monkeypatch):
+    rc, err, own = _calibrate_with_own_samples(tmp_path, capsys, monkeypatch)
     assert rc == 3 and not (tmp_path / "x.force.json").exists(), err[-3000:]
     for path in (tmp_path / "x.samples.csv", own):   # the command's samples and the routine's own samples_csv
         rows = read_pairs_csv(path)
@@ -38,8 +41,8 @@ def test_the_routine_s_own_samples_csv_is_marked_partial_when_a_fault_upstream_m
 
 
 def test_a_fit_of_stale_samples_is_refused_saying_they_may_be_stale_not_that_the_run_did_not_finish(tmp_path,
-                                                                                                 capsys):
-    rc, err, own = _calibrate_with_own_samples(tmp_path, capsys)
+                                                                                                 capsys, monkeypatch):
+    rc, err, own = _calibrate_with_own_samples(tmp_path, capsys, monkeypatch)
     assert rc == 3, err[-3000:]
     fitted = tmp_path / "fit.force.json"
     for path in (tmp_path / "x.samples.csv", own):

@@ -9,6 +9,8 @@ Components:
            -> [ step (ramp to the next displacement) -> hold (settle) -> record ] x loading + unloading
            -> retract -> next cycle ... -> done (write samples, request the end of the run)
       any fault (limit, stale/NaN input, timeout, the abort button) -> abort-retract -> aborted (fault)
+      a node feeding it disabled by a fault (Context.disabled_upstream) -> aborted at once, zero force (fault); in
+      the last retract, every sample recorded -> done at once
 
   At each step it records the displacement, the device force (the force it applies along the press axis, averaged
   over the record window once settled: the device has no force sensor, at rest its command balances the gel), the
@@ -40,6 +42,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
 from teletouch.paths import output_problem
+from teletouch.runtime import feeders
 from teletouch.reproducible import source_date_epoch
 from teletouch.units import (
     MAX_PLAUSIBLE_DEPTH_LIMIT, MAX_PLAUSIBLE_HAND_FORCE, Meters, MetersPerSecond, NewtonSecondsPerMeter, Newtons,
@@ -313,6 +316,32 @@ class PressRoutine(Component):
             self.goal = None
         self._go(t, "abort-retract" if self.goal is not None else "aborted")
 
+    def _feeders_lost(self, t: float) -> bool:
+        """Whether a node feeding the routine (through the graph's wiring, directly or not) has been disabled by a fault
+        (Context.disabled_upstream): a filter in between may go on publishing its last value with fresh stamps, so
+        the routine's freshness checks cannot tell, and its samples would be stale. Then the routine ends at once,
+        with zero force (no retract: the lost node may be on the position's path): aborted (the abort path writes
+        ``samples_csv`` marked partial and faults the node), or done in the last retract, where every sample was
+        recorded before the fault was known. Checked at each step and again before a sample is stored (a fault in
+        another rate group may land while this step runs). Not once the routine is done or aborted."""
+        if self.state in ("done", "aborted"):
+            return False
+        lost = self.ctx.disabled_upstream()
+        if not lost:
+            return False
+        names = ", ".join(f"'{n}'" for n in lost)
+        what = (f"node {names}, which feeds the press routine, was" if len(lost) == 1 else
+                f"nodes {names}, which feed the press routine, were")
+        reason = f"{what} disabled by a fault: its samples would be stale"
+        if self.state == "retract" and self.cycle + 1 >= self.params.cycles:
+            self.ctx.log(f"{reason}; every sample was recorded before: the last retract is cut short (zero force)")
+            self._finish(t)
+            return True
+        self.abort_reason = self.abort_reason or reason   # (an abort under way keeps its first reason)
+        self.ctx.log(f"aborting: {reason}; zero force at once")
+        self._go(t, "aborted")
+        return True
+
     def _ramp(self, dt: float, speed: float) -> bool:
         """Move the target towards the goal at ``speed``; True once it is there."""
         if self.target is None or self.goal is None:
@@ -366,6 +395,7 @@ class PressRoutine(Component):
             self.last_depth_stamp = ds.stamp
 
         # --- faults ---------------------------------------------------------------------------------------
+        self._feeders_lost(t)
         if self.state not in ("wait", "done", "aborted"):
             if pos is None:
                 # cannot steer without a position: no retract possible, zero force at once
@@ -483,7 +513,7 @@ class PressRoutine(Component):
                 w["ref_depth"].append(float(rd))
             if rf is not None:
                 w["ref_force"].append(float(rf))
-            if t - self.t_state >= p.record_time and w["depth"]:
+            if t - self.t_state >= p.record_time and w["depth"] and not self._feeders_lost(t):
                 self._store(t)
                 self._next_point(t)
         elif st == "retract":
@@ -1031,29 +1061,20 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
     return 0
 
 
-def _feeding(spec: Any, node_id: str) -> set[str]:
-    """The nodes whose outputs reach ``node_id`` through the graph's wiring, directly or through other nodes."""
-    seen: set[str] = set()
-    todo = [node_id]
-    while todo:
-        for wire in spec.node(todo.pop()).inputs.values():
-            if wire.node not in seen:
-                seen.add(wire.node)
-                todo.append(wire.node)
-    return seen
-
-
 #: how :func:`_spoiled_samples`'s reason ends (so `--csv` tells a stale-sample file from an unfinished run's)
 STALE_SAMPLES = "they may hold stale values"
 
 
 def _spoiled_samples(result: Any, routine: PressRoutine, spec: Any) -> str | None:
     """Why samples of a finished press run may be stale, or None. A node that feeds the routine (directly or through
-    other nodes) and was disabled by a fault (stop or degrade) publishes nothing more: the routine's freshness checks
-    see only its own inputs (a filter between steps on with fresh stamps on a stale value; the reference inputs are
-    not checked), so a sample recorded after that fault may hold stale values. A fault logged at the shutdown, after
-    the samples, or of a node the routine does not read cannot reach them."""
-    feeding = _feeding(spec, routine.id)
+    other nodes) and was disabled by a fault (stop or degrade) publishes nothing more, and a filter in between steps
+    on with fresh stamps on a stale value. The routine aborts on such a fault itself
+    (:meth:`PressRoutine._feeders_lost`, at each step and before each sample), but not on one it cannot have seen when
+    it stored a sample: a fault in another rate group at that instant (the wall clock), or of a node behind a feedback
+    edge that steps after it at the same tick; the fault's time is its step's start, so a sample stored from then on
+    may hold stale values. This check after the run is the second guard. A fault logged at the shutdown, after the
+    samples, or of a node the routine does not read cannot reach them."""
+    feeding = set(feeders(spec).get(routine.id, ()))
     hits = [(f, sum(1 for s in routine.samples if s["time_s"] >= f.time)) for f in result.faults
             if f.action != "logged" and f.node in feeding]
     hits = [(f, n) for f, n in hits if n]
@@ -1065,8 +1086,9 @@ def _spoiled_samples(result: Any, routine: PressRoutine, spec: Any) -> str | Non
 
 
 def _mark_own_samples(routine: PressRoutine, spoiled: str) -> None:
-    """The routine's own ``samples_csv``, which it wrote unmarked as it finished (it cannot see a fault upstream: see
-    :func:`_spoiled_samples`), written again marked partial with why its samples may be stale, as the command's are."""
+    """The routine's own ``samples_csv``, which it wrote unmarked as it finished (a fault upstream that it could not
+    see at its step: see :func:`_spoiled_samples`), written again marked partial with why its samples may be stale, as
+    the command's are."""
     own = routine.params.samples_csv
     if not own or not routine._samples_written:
         return
