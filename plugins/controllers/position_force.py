@@ -136,10 +136,11 @@ def rate_limit(previous: float, target: float, max_rate: float, dt: float) -> fl
 
 
 def finite_or(x: Any, default: float) -> float:
-    """``float(x)`` if it is a finite number, else ``default``."""
+    """``float(x)`` if it is a finite number, else ``default`` (also for an int too large for a float: a float64 port
+    takes any int, and ``float(10**400)`` raises OverflowError)."""
     try:
         v = float(x)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return default
     return v if math.isfinite(v) else default
 

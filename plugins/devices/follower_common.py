@@ -78,6 +78,14 @@ def command_value(value: Any) -> float | None:
     return v if math.isfinite(v) and abs(v) <= MAX_PLAUSIBLE_OPENING else None
 
 
+def _shown(value: Any) -> str:
+    """``repr(value)`` for a message, but an int too large for a float as its size: Python refuses to write an int of
+    more than 4300 digits as text (ValueError), and a 400-digit one says no more than its size."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1024:
+        return f"an integer of about {'-' if value < 0 else ''}1e{int(value.bit_length() * math.log10(2))}"
+    return repr(value)
+
+
 def shape_setpoint(previous: float, command: float, lo: float, hi: float, max_speed: float, dt: float) -> float:
     """Clamp ``command`` to [lo, hi] and move from ``previous`` towards it by at most ``max_speed * dt``."""
     target = clamp(command, lo, hi)
@@ -301,8 +309,8 @@ class FollowerBase(Device):
             self._bad_commands += 1
             self._start_hold("bad command")
             if self._bad_commands == 1:
-                self.ctx.log(f"opening_command {s.value!r} is not an opening (expected a finite number of metres, "
-                             f"at most {MAX_PLAUSIBLE_OPENING:g} m either way); holding the measured opening "
+                self.ctx.log(f"opening_command {_shown(s.value)} is not an opening (expected a finite number of "
+                             f"metres, at most {MAX_PLAUSIBLE_OPENING:g} m either way); holding the measured opening "
                              f"{self._hold_at * 1e3:.2f} mm")
             return None
         if s.stamp < self._command_stamp:

@@ -122,6 +122,10 @@ class ForceGuard:
                 except (TypeError, ValueError):
                     self.invalid += 1
                     return 0.0, self.zero3, f"gripper_force command is not a number: {s.value!r}"
+                except OverflowError:   # an int beyond any float (a float64 port takes any int)
+                    self.invalid += 1
+                    return 0.0, self.zero3, ("gripper_force command is an integer too large for a float (not "
+                                             "finite): force set to zero")
                 if not math.isfinite(g):
                     self.invalid += 1
                     return 0.0, self.zero3, f"gripper_force command is {g} (not finite): force set to zero"
@@ -143,6 +147,10 @@ class ForceGuard:
                 except (TypeError, ValueError):
                     self.invalid += 1
                     return 0.0, self.zero3, f"force command is not a 3-vector: {s.value!r}"
+                except OverflowError:
+                    self.invalid += 1
+                    return 0.0, self.zero3, ("force command has an integer component too large for a float (not "
+                                             "finite): force set to zero")
                 if not np.all(np.isfinite(f)):
                     self.invalid += 1
                     return 0.0, self.zero3, f"force command {f.tolist()} is not finite: force set to zero"

@@ -265,7 +265,7 @@ class SimOmega7(Device):
                 raise TypeError
             x, v = des
             x, v = float(x), float(v)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):   # (OverflowError: an int beyond any float)
             problem = f"{source} '{self.intent_name}' returned {des!r}: expected (opening m, velocity m/s) or None"
         else:
             if math.isfinite(x) and math.isfinite(v):
@@ -286,6 +286,11 @@ class SimOmega7(Device):
                 self.faults += 1
                 self.safe_state()
                 raise ComponentFault(f"intent_opening is {s.value!r} (not a number)", self.id) from None
+            except OverflowError:   # an int beyond any float (a float64 port takes any int)
+                self.faults += 1
+                self.safe_state()
+                raise ComponentFault("intent_opening is an integer too large for a float (not finite)",
+                                     self.id) from None
             if not math.isfinite(x):
                 self.faults += 1
                 self.safe_state()
