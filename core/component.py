@@ -520,6 +520,18 @@ class Component:
         refused, naming both. Empty when the parameters fix none (the default)."""
         return {}
 
+    @classmethod
+    def port_sources(cls, params: Any) -> dict[str, tuple]:
+        """What the values on ports are tied to by the node's validated ``params``, checked when a graph is validated:
+        the model or calibration that gives them their scale. {port: (identity, why)} or {port: (identity, why,
+        how)}: ``identity`` a non-empty string compared as it is (the depth node's max depth is tied to its model's
+        name, ``'sim-digit-qvga'``; poly-force's max depth input to the depth model its calibration was made for),
+        ``why`` what ties it, for a person ("model 'sim-digit-qvga'"), ``how`` what changes it. A port name is an
+        input's or an output's. A wire whose two ends both declare an identity for their port, and the identities
+        differ, is refused, naming both; an end that declares none is not checked (a bridge, a replay, a filter in
+        between). Empty when the parameters tie none (the default)."""
+        return {}
+
     # lifecycle hooks -------------------------------------------------------------------------------------------
     def configure(self) -> None:
         """Allocate resources, open connections, load models. May raise; then the run does not start."""

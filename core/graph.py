@@ -746,6 +746,19 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         if clash:
             err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {clash}", w.where)
 
+    # what the values are tied to (Component.port_sources), e.g. a depth model and a force calibration made for one
+    tied: dict[str, dict[str, tuple[str, str, str]]] = {}
+    for n in nodes:
+        try:
+            tied[n.id] = _port_sources(n)
+        except Exception as exc:   # a plugin's check must not hide the graph's other errors
+            err(f"node '{n.id}': the port source check of {n.plugin} failed: {type(exc).__name__}: {exc}", n.where)
+            tied[n.id] = {}
+    for n, port, w, src in matched:
+        clash = _source_clash(src, tied[src.id].get(w.source_port), n, tied[n.id].get(port))
+        if clash:
+            err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {clash}", w.where)
+
     if errors:
         raise GraphValidationError(errors)
     return GraphSpec(name=str(doc.get("name") or Path(file).stem), file=file, nodes=nodes, clock=clock_v,
@@ -815,6 +828,44 @@ def _size_clash(src: NodeSpec, out_port: str, src_fixed: dict[str, tuple], dst: 
     todo = "; or ".join(fixes) if fixes else f"change what fixes the size of node '{src.id}' or of node '{dst.id}'"
     return (f"sizes differ: node '{src.id}' ({src.plugin}) sends {a_size} ({a_what}; fixed by {a_why}) and node "
             f"'{dst.id}' ({dst.plugin}) takes {b_size} ({b_what}; fixed by {b_why}); to make them match: {todo}")
+
+
+def _port_sources(n: NodeSpec) -> dict[str, tuple[str, str, str]]:
+    """Node ``n``'s :meth:`Component.port_sources` as {port: (identity, why, how)} (``how`` "" where not given); none
+    where its plugin or parameters are unknown. TypeError or ValueError saying what is wrong with what the plugin
+    returned: a name that is no port of it, an entry that is no (identity, why) of strings, an empty identity."""
+    check = getattr(n.cls, "port_sources", None)
+    if n.cls is None or check is None or n.params_obj is None:
+        return {}
+    got = check(n.params_obj)
+    if not isinstance(got, dict):
+        raise TypeError(f"returned {type(got).__name__}, expected a dict of port: (identity, why)")
+    out = {}
+    for port, entry in got.items():
+        if port not in n.cls.inputs and port not in n.cls.outputs:
+            ports = [*n.cls.inputs, *n.cls.outputs]
+            raise ValueError(f"'{port}' is not a port of {n.plugin}{_suggest(str(port), ports)}; ports: "
+                             f"{', '.join(ports) or '(none)'}")
+        if (not isinstance(entry, tuple) or len(entry) not in (2, 3) or not all(isinstance(t, str) for t in entry)
+                or not entry[0]):
+            raise TypeError(f"port '{port}': expected (identity, why) or (identity, why, how), strings and the "
+                            f"identity not empty, got {entry!r}")
+        out[port] = (entry[0], entry[1], entry[2] if len(entry) == 3 else "")
+    return out
+
+
+def _source_clash(src: NodeSpec, src_tied: tuple[str, str, str] | None, dst: NodeSpec,
+                  dst_tied: tuple[str, str, str] | None) -> str | None:
+    """None if the identities that the two ends of a wire declare for their ports (:meth:`Component.port_sources`)
+    are one, or an end declares none; else the error: both nodes, both identities and what ties each, and what to
+    do."""
+    if src_tied is None or dst_tied is None or src_tied[0] == dst_tied[0]:
+        return None
+    (a, a_why, a_how), (b, b_why, b_how) = src_tied, dst_tied
+    fixes = [f"on node '{node.id}', {how}" for node, how in ((dst, b_how), (src, a_how)) if how]
+    todo = "; or ".join(fixes) if fixes else f"change what ties node '{src.id}' or node '{dst.id}'"
+    return (f"sources differ: node '{src.id}' ({src.plugin}) sends values tied to {a!r} ({a_why}) and "
+            f"node '{dst.id}' ({dst.plugin}) takes values tied to {b!r} ({b_why}); to make them match: {todo}")
 
 
 def _refused(cls: type[Component], params: dict[str, Any], name: str, value: Any) -> bool:

@@ -161,10 +161,22 @@ def test_a_vga_model_on_the_qvga_sim_digit_is_refused_by_validate(capsys, models
     assert "set resolution: qvga (320x240) or vga (640x480)" in line, line
 
 
-def test_the_same_model_at_qvga_passes_and_a_vga_sensor_takes_the_vga_model(capsys, models):
-    assert _validate(capsys, PAPER_SIM, f"depth.model={models['qvga']}")[0] == 0
+def _calibration_for(model: str, folder: Path) -> str:
+    """The packaged force calibration, recorded as made for the depth model file ``model``: poly-force refuses a
+    depth node of another model (Component.port_sources), which is not what these tests check."""
+    from teletouch.plugins.estimators.poly_force import ForceCalibration
+
+    cal = ForceCalibration.load("sim-digit-qvga")
+    cal.sensor_model_id = Path(model).name
+    return str(cal.save(folder / (Path(model).stem + ".force.json")))
+
+
+def test_the_same_model_at_qvga_passes_and_a_vga_sensor_takes_the_vga_model(capsys, models, tmp_path):
+    qvga_cal, vga_cal = _calibration_for(models["qvga"], tmp_path), _calibration_for(models["vga"], tmp_path)
+    assert _validate(capsys, PAPER_SIM, f"depth.model={models['qvga']}", f"force.calibration={qvga_cal}")[0] == 0
     assert _validate(capsys, PAPER_SIM)[0] == 0   # the packaged model
-    assert _validate(capsys, PAPER_SIM, f"depth.model={models['vga']}", "digit.resolution=vga")[0] == 0
+    assert _validate(capsys, PAPER_SIM, f"depth.model={models['vga']}", "digit.resolution=vga",
+                     f"force.calibration={vga_cal}")[0] == 0
     code, err = _validate(capsys, PAPER_SIM, "digit.resolution=vga")   # the packaged QVGA model on a VGA sensor
     assert code == 1 and "takes 320x240 (rows x cols; fixed by model 'sim-digit-qvga'" in err, err
 

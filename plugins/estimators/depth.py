@@ -148,6 +148,19 @@ class DepthEstimator(Component):
         return {"image": ((rows, cols, 3), why, how), "depth": ((rows, cols), why, how),
                 "contact_mask": ((rows, cols), why, how)}
 
+    @classmethod
+    def port_sources(cls, params: Any) -> dict[str, tuple]:
+        """The depths (``max_depth`` and the depth map) are on the model's scale: tied to its name, as `teletouch
+        calibrate force` records it in a calibration (``sensor_model_id``: the file's name) and poly-force compares
+        it (folders and '.model' left out: poly_force._model_name), so that a force calibration made for another
+        depth model is refused when the graph is validated. The name only: no file is read."""
+        from .poly_force import _model_name
+
+        identity = _model_name(params.model)
+        why = f"model {params.model!r}"
+        how = "set model to the depth model that the other end was made for"
+        return {"max_depth": (identity, why, how), "depth": (identity, why, how)}
+
     def configure(self) -> None:
         from .depth_pipeline import DepthPipeline
         from .normal_model import load_model

@@ -1358,6 +1358,21 @@ class PolyForce(Component):
                 raise ValueError(problem)
             return self
 
+    @classmethod
+    def port_sources(cls, params: Any) -> dict[str, tuple]:
+        """The max depth the calibration takes is the depth model's it was made for (its ``sensor_model_id``, by
+        name: folders and '.model' left out, as the depth node gives its own): a depth node of another model wired
+        to ``max_depth`` is refused when the graph is validated, whether or not ``depth_model`` is set. A calibration
+        that records no model (an old one, a CSV fitted without --sensor-model-id) ties nothing."""
+        path = resolve_calibration(params.calibration)
+        made_for = check_calibration_file(str(path)).get("sensor_model_id")
+        identity = _model_name(made_for) if isinstance(made_for, str) else ""
+        if not identity:
+            return {}
+        how = ("calibrate the force with this depth model (`teletouch calibrate force --set depth.model=...`) or set "
+               "calibration to one made for it")
+        return {"max_depth": (identity, f"calibration {path}, made for depth model {made_for!r}", how)}
+
     def configure(self) -> None:
         p = self.params
         self.cal = ForceCalibration.load(resolve_calibration(p.calibration))
