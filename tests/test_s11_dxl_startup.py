@@ -19,8 +19,9 @@ from teletouch.plugins.devices import dynamixel_gripper as dg  # noqa: E402
 pytestmark = pytest.mark.timeout(60)
 
 #: the answers of an XM430-W350's start-up: PING, Torque_Enable=0, Operating_Mode, Current_Limit, Goal_Current,
-#: Profile_Velocity, Present_Position, Goal_Position, Torque_Enable=1, then the first SYNC_READ of the state
-STARTUP_ANSWERS = 10
+#: Drive_Mode (read; written only where time-based), Profile_Velocity, Present_Position, Goal_Position,
+#: Torque_Enable=1, then the first SYNC_READ of the state
+STARTUP_ANSWERS = 11
 #: the tries of a start-up request (docs/followers.md; dynamixel_gripper.STARTUP_TRIES)
 STARTUP_TRIES = 3
 
@@ -41,7 +42,7 @@ def test_start_up_has_the_answers_counted_here(emu):
         assert h.comp.startup_retries == 0
     answered = [p[2] for p in emu.rx_packets if p[2] != INST_SYNC_WRITE]   # (SYNC_WRITE is not answered)
     R = 0x02
-    assert answered[:STARTUP_ANSWERS] == [INST_PING, INST_WRITE, INST_WRITE, R, INST_WRITE, INST_WRITE, R,
+    assert answered[:STARTUP_ANSWERS] == [INST_PING, INST_WRITE, INST_WRITE, R, INST_WRITE, R, INST_WRITE, R,
                                           INST_WRITE, INST_WRITE, INST_SYNC_READ]
 
 

@@ -16,7 +16,11 @@ the goals went on reaching the servo while its answers were lost, and the stale 
 
 The servo's own speed limit: Profile_Velocity is set from ``max_speed`` at start-up (rounded down, and capped at
 Velocity_Limit where the table names it), so a setpoint jump (the ``open`` safe state) is not run at the servo's full
-speed. A table without Profile_Velocity relies on the driver's setpoint shaping only.
+speed. A table without Profile_Velocity relies on the driver's setpoint shaping only. Drive_Mode's bit 2 (Profile
+Configuration: X-series from firmware V42, DYNAMIXEL-P) makes the profile time-based, Profile_Velocity then being the
+time of each move in ms (the 43 for 0.05 m/s asked for a 75 mm jump in 43 ms: the servo's full speed): a servo found
+time-based is set velocity-based before Profile_Velocity is written, as Operating_Mode is set (an EEPROM item, with the
+torque off), the other bits (direction, torque on by goal update) kept, with a log line.
 
 Answers: Protocol 2.0 status packets carry no sequence number, so a status packet that arrives after its request
 timed out (a late answer) looks like the answer to the next request. Every answer is checked (the servo's ID, and the
@@ -77,6 +81,9 @@ class ControlTable(BaseModel):
     model_config = ConfigDict(extra="forbid")
     model_number: int | None = Field(None, description="expected model number from PING (None: any)")
     operating_mode: Item = (11, 1)
+    drive_mode: Item | None = Field((10, 1), description="Drive_Mode, whose bit 2 (Profile Configuration) set makes "
+                                    "Profile_Velocity the time of each move (ms): cleared at start-up; None: the "
+                                    "servo has no time-based profile (not read)")
     current_limit: Item = (38, 2)
     torque_enable: Item = (64, 1)
     hardware_error_status: Item | None = (70, 1)
@@ -101,8 +108,9 @@ CONTROL_TABLES: dict[str, dict[str, Any]] = {
     "x-series": {},
     # ROBOTIS RH-P12-RN gripper, "RH-P12-RN(A)" firmware (model number 35074; the table of DYNAMIXEL-P / PRO(A)):
     # e-Manual platform/rh_p12_rna. Position 0 (open) .. 740 (closed) within the 0..1150 position limits; current
-    # in 1 mA, velocity in 0.01 rev/min; Profile_Velocity (0 = none) at most Velocity_Limit.
-    "rh-p12-rn-a": {"model_number": 35074, "operating_mode": (11, 1), "current_limit": (38, 2),
+    # in 1 mA, velocity in 0.01 rev/min; Profile_Velocity (0 = none) at most Velocity_Limit. No time-based profile:
+    # its Drive_Mode (10), where the e-Manual lists it, is the direction only (0 ~ 1), so it is not read.
+    "rh-p12-rn-a": {"model_number": 35074, "operating_mode": (11, 1), "drive_mode": None, "current_limit": (38, 2),
                     "velocity_limit": (44, 4), "torque_enable": (512, 1), "hardware_error_status": (518, 1),
                     "goal_current": (550, 2), "profile_velocity": (560, 4), "goal_position": (564, 4),
                     "present_current": (574, 2), "present_velocity": (576, 4), "present_position": (580, 4),
@@ -111,8 +119,8 @@ CONTROL_TABLES: dict[str, dict[str, Any]] = {
     # platform/rh_p12_rn. Current in about 4.02 mA, velocity in 0.114 rev/min; its Goal_Velocity (600) is the
     # profile's top speed in current-based position mode (0 = none), so it takes the place of Profile_Velocity.
     # ROBOTIS recommends flashing the RH-P12-RN(A) firmware (DYNAMIXEL Wizard 2.0 / R+ Manager 2.0, Firmware
-    # Recovery) and using "rh-p12-rn-a".
-    "rh-p12-rn": {"model_number": 35073, "operating_mode": (11, 1), "current_limit": (30, 2),
+    # Recovery) and using "rh-p12-rn-a". No Drive_Mode in this table.
+    "rh-p12-rn": {"model_number": 35073, "operating_mode": (11, 1), "drive_mode": None, "current_limit": (30, 2),
                   "velocity_limit": (32, 4), "torque_enable": (562, 1), "hardware_error_status": (892, 1),
                   "goal_position": (596, 4), "profile_velocity": (600, 4), "goal_current": (604, 2),
                   "present_position": (611, 4), "present_velocity": (615, 4), "present_current": (621, 2),
@@ -148,6 +156,8 @@ BAUDRATES = (9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 
 HW_ERROR_BITS = {0x01: "input voltage", 0x02: "motor hall sensor", 0x04: "overheating", 0x08: "motor encoder",
                  0x10: "electrical shock", 0x20: "overload"}
 CURRENT_BASED_POSITION = 5
+#: Drive_Mode bit 2, Profile Configuration: 0 velocity-based (Profile_Velocity a speed), 1 time-based (a time, ms)
+TIME_BASED_PROFILE = 0x04
 # Protocol 2.0 status packet: FF FF FD 00 | ID | LEN_L LEN_H | 0x55 | ERR | data | CRC_L CRC_H (LEN counts from 0x55)
 _PKT_ID, _PKT_LEN, _PKT_INST, _PKT_ERR, _PKT_DATA = 4, 5, 7, 8, 9
 _INST_PING = 0x01
@@ -441,6 +451,7 @@ class DynamixelGripper(FollowerBase):
             self.ctx.log(f"max_effort {p.max_effort} N needs Goal_Current {want} > Current_Limit {limit}; "
                          f"capped at {limit * t.current_unit * p.newtons_per_amp:.2f} N")
         self._write(t.goal_current, self.goal_current, "Goal_Current")
+        self._velocity_based_profile()
         self.profile_velocity = self._profile_velocity()
         if self.profile_velocity is not None:
             self._write(t.profile_velocity, self.profile_velocity, "Profile_Velocity")
@@ -456,6 +467,29 @@ class DynamixelGripper(FollowerBase):
             raise HardwareError(f"GroupSyncRead refused ID {p.dxl_id}")
         self.gsw = sdk.GroupSyncWrite(self.port, self.ph, t.goal_position[0], 4)
         self._last_check = time.monotonic()
+
+    def _velocity_based_profile(self) -> None:
+        """Drive_Mode with its time-based profile bit cleared, before Profile_Velocity is written: time-based, the
+        servo reads Profile_Velocity as the time of each move (ms), whatever its length, so no speed limit at all.
+        The driver sets it as it sets Operating_Mode (the mode its Profile_Velocity needs; an EEPROM item, written
+        with the torque off, still off here), and only when set (EEPROM writes wear it); the other bits are kept."""
+        t = self.table
+        if t.drive_mode is None or t.profile_velocity is None:
+            return
+        addr, size = t.drive_mode
+        mode = self._read(t.drive_mode, "Drive_Mode") & ((1 << 8 * size) - 1)
+        if not mode & TIME_BASED_PROFILE:
+            return
+        new = mode & ~TIME_BASED_PROFILE
+        try:
+            self._write(t.drive_mode, new, f"Drive_Mode (address {addr}) = {new}, velocity-based profile (read "
+                                          f"{mode}: time-based)")
+        except HardwareError as exc:
+            raise HardwareError(f"{exc}; without it the servo's speed limit would not hold: set Drive_Mode to {new} "
+                                f"(bit 2 cleared) with the Dynamixel Wizard") from None
+        self.ctx.log(f"{self._where()}: Drive_Mode (address {addr}) was {mode}, a time-based profile (Profile_Velocity "
+                     f"the time of each move in ms); set to {new}, velocity-based, so that the servo moves at most at "
+                     f"max_speed; its other bits kept")
 
     def _profile_velocity(self) -> int | None:
         """Profile_Velocity (raw) for ``max_speed``: rounded down so the servo's limit is at or below it, and capped

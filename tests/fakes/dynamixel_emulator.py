@@ -7,12 +7,15 @@ REBOOT; CRC, access, range and instruction errors in the status packet's error b
 and it can be told to stop answering, to lose a given number of answers (``drop``), to corrupt its answers, or to
 answer late; ``refuse_reads`` (address -> error byte) refuses, and ``drop_reads`` (addresses) loses, the answers to
 READs that start at given addresses (one item of a poll refused or lost while the others are answered);
+``refuse_writes`` (address -> error byte) refuses WRITEs that start at given addresses (not applied);
 ``ping_delay`` answers a PING that many seconds late (a busy servo: a resync PING that takes a while).
 
 Models (``MODELS``): an XM430-W350 (X-series table) and the ROBOTIS RH-P12-RN gripper with either firmware: the
 RH-P12-RN(A) firmware (model number 35074, DYNAMIXEL-P-like table) and the old RH-P12-RN firmware (35073,
 DYNAMIXEL-PRO-like table, whose Goal_Velocity is the profile's top speed), with the addresses of the ROBOTIS
-e-Manual.
+e-Manual. The XM430-W350 has Drive_Mode (10, EEPROM; ``drive_mode`` sets it): bit 2 (Profile Configuration) makes the
+profile time-based, Profile_Velocity then being the time of each move in ms (firmware V42 on); its other bits
+(direction, torque on by goal update) are stored, not modelled. The RH-P12-RN tables have no time-based profile.
 
 Late answers: ``late_answers`` puts a short (1-byte) late status packet before SYNC_READ answers;
 ``delay_answers`` holds back whole SYNC_READ answers (taken when the request arrives, so they carry the servo's
@@ -25,7 +28,9 @@ take on a real wire (10 bits per byte, instruction and status) plus the servo's 
 57600 baud is as slow as the real bus.
 
 The servo model: current-based position mode; the horn moves towards Goal_Position at ``speed`` ticks/s (the
-servo's top speed), or at Profile_Velocity where that is set (non-zero; 0 means no limit, as on the servo); an object
+servo's top speed), or at Profile_Velocity where that is set (non-zero; 0 means no limit, as on the servo; with a
+time-based profile, at the speed that covers the move, from where the horn was when its Goal_Position arrived, in
+Profile_Velocity ms); an object
 (``block_at`` ticks, approached in the ``closing`` direction) stops it there, and the current rises to
 ``min(Goal_Current, current_gain * |goal - block_at|)``. ``trace`` records (monotonic, position in ticks) at every
 physics update, so a test can measure the speed the horn actually moved at; ``poll()`` advances the physics without a
@@ -140,10 +145,15 @@ class Table:
     profile_velocity: tuple[int, int] | None = None  # unit velocity_unit_rpm, 0 = unlimited
     velocity_limit: tuple[int, int] | None = None  # where set: Profile_Velocity above it is refused (limit error)
     velocity_limit_default: int = 0
+    drive_mode: tuple[int, int] | None = None  # where set: bit 2 (TIME_BASED_PROFILE) makes Profile_Velocity a time
 
+
+#: Drive_Mode bit 2, Profile Configuration: 0 velocity-based, 1 time-based (Profile_Velocity in ms per move)
+TIME_BASED_PROFILE = 0x04
 
 XM430_W350 = Table(1020, 48, 64, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (64, 1), (70, 1), (102, 2), (116, 4),
-                   (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229, profile_velocity=(112, 4))
+                   (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229, profile_velocity=(112, 4),
+                   drive_mode=(10, 1))
 # ROBOTIS RH-P12-RN(A) firmware (e-Manual platform/rh_p12_rna): RAM from 512; Current_Limit 1984 mA, Velocity_Limit
 # 2970 x 0.01 rev/min, position limits 0 .. 1150
 RH_P12_RN_A = Table(35074, 1, 512, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (512, 1), (518, 1), (550, 2),
@@ -203,7 +213,7 @@ class DynamixelEmulator:
 
     def __init__(self, dxl_id: int = 15, model: str = "xm430-w350", *, position: int = 2048,
                  speed: float = 3000.0, block_at: int | None = None, closing: int = 1, current_gain: float = 2.0,
-                 wire_timing: bool = True, return_delay: int = 0, instant: bool = False):
+                 wire_timing: bool = True, return_delay: int = 0, instant: bool = False, drive_mode: int = 0):
         self.table = MODELS[model]
         self.id = dxl_id
         self.mem = bytearray(self.table.size)
@@ -213,6 +223,10 @@ class DynamixelEmulator:
         self.mem[7] = dxl_id
         self._put(t.return_delay, return_delay)
         self._put(t.operating_mode, 3)
+        if t.drive_mode is not None:
+            self._put(t.drive_mode, drive_mode)
+        elif drive_mode:
+            raise ValueError(f"model {model!r} has no Drive_Mode in the emulator's table")
         self._put(t.current_limit, t.current_limit_default)
         self._put(t.max_position, t.max_position_default)
         self._put(t.min_position, t.min_position_default)
@@ -221,6 +235,8 @@ class DynamixelEmulator:
         self._put(t.goal_position, position)
         self._put(t.present_position, position)
         self.pos = float(position)
+        self._goal_seen = position   # the last Goal_Position the physics saw, and the move it started (ticks)
+        self._move_ticks = 0.0
         self.speed = speed
         self.block_at = block_at
         self.closing = closing
@@ -243,6 +259,7 @@ class DynamixelEmulator:
         self._held: tuple[int, int, bytes] | None = None
         self.refuse_reads: dict[int, int] = {}  # READ start address -> error byte answered instead of the data
         self.drop_reads: set[int] = set()        # READ start addresses whose answers are lost (kept in ``dropped``)
+        self.refuse_writes: dict[int, int] = {}  # WRITE start address -> error byte answered (the write not applied)
         self.ping_delay = 0.0        # answer a PING this long (s) after it arrived (busy: the requests after it queue)
         # observation
         self.rx_packets: list[tuple[float, int, int, bytes]] = []  # (monotonic, id, instruction, params)
@@ -283,12 +300,20 @@ class DynamixelEmulator:
         with self._lock:
             self._update()
 
+    def time_based(self) -> bool:
+        """Whether Drive_Mode selects the time-based profile (Profile_Velocity: the time of each move in ms)."""
+        t = self.table
+        return t.drive_mode is not None and bool(self.get(t.drive_mode) & TIME_BASED_PROFILE)
+
     def max_speed_ticks(self) -> float:
-        """Ticks/s the horn may move at: Profile_Velocity where set (non-zero), else the servo's top speed."""
+        """Ticks/s the horn may move at: Profile_Velocity where set (non-zero), else the servo's top speed. With a
+        time-based profile Profile_Velocity is the move's time (ms): the speed that covers the move in that time."""
         t = self.table
         if t.profile_velocity is not None:
             raw = self.get(t.profile_velocity)
             raw = abs(raw)  # the old RH-P12-RN firmware's Goal_Velocity may be negative
+            if raw > 0 and self.time_based():
+                return min(self.speed, self._move_ticks / (raw / 1000.0))
             if raw > 0:
                 return min(self.speed, raw * t.velocity_unit_rpm / 60.0 * 4096.0)
         return self.speed
@@ -330,6 +355,8 @@ class DynamixelEmulator:
         t = self.table
         torque = self.get(t.torque_enable) == 1
         goal = self.get(t.goal_position)
+        if goal != self._goal_seen:   # a new move: a time-based profile spreads it over Profile_Velocity ms
+            self._goal_seen, self._move_ticks = goal, abs(goal - self.pos)
         current = 0.0
         if torque:
             err = goal - self.pos
@@ -423,7 +450,7 @@ class DynamixelEmulator:
                 if len(params) < 3:
                     return self._reply(len(pkt), ERR_DATA_LENGTH, b"")
                 addr = struct.unpack_from("<H", params)[0]
-                err = self.write_error or self._write(addr, params[2:])
+                err = self.write_error or self.refuse_writes.get(addr) or self._write(addr, params[2:])
                 if dxl_id == self.id:
                     self._reply(len(pkt), err, b"")
             elif inst == INST_SYNC_WRITE:
