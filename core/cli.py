@@ -537,8 +537,10 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
     :class:`Terminated`, the same safe stop as Ctrl-C). Each one is recorded in the yielded list, first first; one after
     it (or after one the runtime held in its safe shutdown: it adds those to this list, ``runtime._stop_signals``) is
     said on stderr ("already stopping safely, please wait") and raises nothing: it must not cut the safe stop short (the
-    samples file, the recording) nor change the exit code (it raised again, or ended the process). A block inside
-    another shares its list and handlers. SIGINT is taken over only from Python's own handler (a background job's
+    samples file, the recording) nor change the exit code (it raised again, or ended the process). Inside a run that
+    is not stopping yet it raises as the first does, and becomes the list's first: the ones before it stopped nothing
+    (a plugin swallowed their KeyboardInterrupt, see :func:`_held_here`). A block inside another shares its list and
+    handlers. SIGINT is taken over only from Python's own handler (a background job's
     ignored SIGINT stays ignored). The previous handlers are restored after; with ``program`` (the block is the
     process's life: it exits next) and a signal seen, :func:`_after_stop` handles them instead: the stop is done, so
     one ends the process at once with the command's exit code (no traceback, no -2 or -15), also where it hangs on its
@@ -556,11 +558,13 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
     def _handler(signum: int, frame: Any) -> None:
         first = not signals   # decided before the append: a second handler nested right after it is not the first
         signals.append(signum)
-        if not first:
+        if not first and _held_here(frame, _handler.__code__):
             _say_held(signum)
         elif closing:
             closing.append(signum)   # raised once the handlers are restored (below)
         else:
+            if not first:   # those before it stopped nothing (swallowed): this one is the stop's first, its code
+                del signals[:signals.index(signum)]
             raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
     old: dict[int, Any] = {}
@@ -587,6 +591,40 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
                 runtime._stop_signals = None
         if len(closing) > 1:   # the first signal came while the handlers were restored: it stops the command, as
             raise Terminated if closing[1] == signal.SIGTERM else KeyboardInterrupt   # it would have a moment before
+
+
+def _held_here(frame: Any, handler: Any) -> bool:
+    """Whether a signal after the command's first, landing in ``frame``, is held (said, raising nothing) because a stop
+    is under way. Inside a run (the innermost :meth:`Runtime.run` below it) only once that run is stopping
+    (:func:`_run_stopping`): an earlier signal that a plugin swallowed (its configure(), or its close() at start-up,
+    catching KeyboardInterrupt and carrying on) stopped nothing, so this one raises as a first does, as in a program
+    of its own (``runtime._ctrl_c_until_stopping``). Outside a run always: the command's own code, where the earlier
+    one may be its stop under way (a samples file, a recording). Nested in the handler of an earlier one (``handler``:
+    its code), always: that one stops the command."""
+    while frame is not None:
+        if frame.f_code is handler:
+            return True
+        if frame.f_code is _RUN_CODE:
+            return _run_stopping(frame)
+        frame = frame.f_back
+    return True
+
+
+#: the code of the run (Runtime.run's body) that a signal's frames are looked up for (see :func:`_held_here`)
+_RUN_CODE = Runtime._run.__code__
+
+
+def _run_stopping(frame: Any) -> bool:
+    """Whether the run whose frame is ``frame`` is stopping: a KeyboardInterrupt is on its way out to the run (an
+    except or finally clause handles it: cutting that short gains nothing, the run stops for it), or the run has
+    reached its shutdown (``Runtime._late`` set: it makes the devices safe with the signals held by its own
+    handlers, which note them in its result)."""
+    exc, seen = sys.exc_info()[1], 0
+    while exc is not None and seen < 100:   # (the one handled, and those it was raised while handling)
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        exc, seen = exc.__context__, seen + 1
+    return getattr(frame.f_locals.get("self"), "_late", True) is not None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
