@@ -316,11 +316,21 @@ def cmd_run(args: argparse.Namespace) -> int:
         code = EXIT_INVALID
     if not args.quiet:   # without the summary's first line: how the run ended, said once, last (below)
         print(result.summary(header=False), file=sys.stderr)
+        for line in _results_lines(result):
+            print(line, file=sys.stderr)
     if args.json:   # exit_code: what the shell sees
         print(json.dumps(dict(result.as_dict(), exit_code=code,
                               recording_error=None if record_error is None else str(record_error)), default=str))
     print(f"teletouch: {result.ending}", file=sys.stderr)   # (said once)
     return code
+
+
+def _results_lines(result: Any) -> list[str]:
+    """What the run achieved (Component.results), one row per node that said something, in a person's units as the
+    live view shows status() (``peak_force=1.20N contact_time=4.93s``); nothing where no node did."""
+    rows = [f"  {n.id:<16}" + " ".join(_status_item(k, v) for k, v in n.results.items())
+            for n in result.nodes if n.results]
+    return ["results:", *rows] if rows else []
 
 
 def _json_safe(value: Any) -> Any:

@@ -572,6 +572,14 @@ class Component:
         ``force_n``; counts, flags and text without; docs/writing-a-plugin.md)."""
         return {}
 
+    def results(self) -> dict[str, Any]:
+        """What the run achieved, said once after it: the command line's summary prints it below the table (and
+        ``--json`` under each node's ``results``). SI under keys that end in their unit, as :meth:`status` (a
+        controller's ``peak_force_n``, ``contact_time_s``). Called once, after deactivate() and before close(), also
+        after a fault: keep the figures as the run goes, touch no hardware here. Not asked of a node in its own
+        process (``isolate: process``). Empty (the default): nothing to say."""
+        return {}
+
     # introspection ---------------------------------------------------------------------------------------------
     @classmethod
     def describe(cls) -> dict[str, Any]:

@@ -20,6 +20,7 @@ import ctypes
 import gc
 import heapq
 import math
+import numbers
 import os
 import sys
 import threading
@@ -82,6 +83,8 @@ class NodeStats:
     max_step_s: float
     faulted: bool
     period_jitter_p99_s: float | None = None
+    #: what the run achieved (Component.results): {key: number or text}; empty where the node said nothing
+    results: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -156,7 +159,7 @@ class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
                  "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark",
-                 "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt", "warm_skips")
+                 "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt", "warm_skips", "results")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -183,6 +186,7 @@ class _Node:
         self.last_dt = 0.0
         self.state = "unconfigured"
         self.hung = False   # its safe_state() did not return within faults.safe_timeout: left behind
+        self.results: dict[str, Any] = {}   # Component.results(), asked at the shutdown
         self.safe_thread: threading.Thread | None = None   # wall clock: the thread of its latest safe_state() call
         self.in_step = False   # wall clock: its step() is running in its rate group's thread
         # output port -> its value check (None: dtype "any"), see component.value_checker
@@ -656,11 +660,39 @@ class Runtime:
             if node.state == "active":
                 self._lifecycle_call(node, "deactivate")
                 node.state = "inactive"
+        for node in self.nodes:
+            if node.state != "finalized" and node.steps:
+                node.results = self._results_of(node)
         for node in reversed(self.nodes):
             if node.state == "finalized":
                 continue
             self._lifecycle_call(node, "close")
             node.state = "finalized"
+
+    def _results_of(self, node: _Node) -> dict[str, Any]:
+        """``node``'s Component.results(), its values as numbers or text (JSON can hold them; anything else as its
+        repr); an error there is a logged shutdown fault and no results (the run's result stays)."""
+        from .isolation import ProcessProxy
+
+        if isinstance(node.comp, ProcessProxy):
+            return {}
+        try:
+            got = dict(node.comp.results() or {})
+        except BaseException as exc:
+            self.faults.append(Fault(node.id, "shutdown", f"results() raised {exception_line(exc)}", self._now,
+                                     "logged"))
+            return {}
+        out: dict[str, Any] = {}
+        for k, v in got.items():
+            if isinstance(v, (bool, str)) or v is None:
+                out[str(k)] = v
+            elif isinstance(v, numbers.Integral):
+                out[str(k)] = int(v)
+            elif isinstance(v, numbers.Real):
+                out[str(k)] = float(v)
+            else:
+                out[str(k)] = repr(v)
+        return out
 
     def _lifecycle_call(self, node: _Node, name: str) -> None:
         try:
@@ -826,7 +858,8 @@ class Runtime:
                 jit = errs[min(len(errs) - 1, int(0.99 * len(errs)))]
             # a node with fewer than two steps (a fault at t = 0) has no rate to show: 1 step / 1e-12 s read 1e12 Hz
             out.append(NodeStats(n.id, n.spec.plugin, n.rate, n.steps, n.achieved_rate(), n.overruns,
-                                 n.busy / n.steps if n.steps else 0.0, n.max_step, n.faulted, jit))
+                                 n.busy / n.steps if n.steps else 0.0, n.max_step, n.faulted, jit,
+                                 dict(n.results)))
         return out
 
     def _run_sim(self, duration: float, progress: Any, interval: float) -> None:

@@ -62,6 +62,7 @@ The pure functions here are tested without the runtime; the components are thin 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
@@ -133,6 +134,41 @@ def rate_limit(previous: float, target: float, max_rate: float, dt: float) -> fl
     if d < -step:
         return previous - step
     return target
+
+
+@dataclass
+class RunFigures:
+    """What a bilateral controller's run achieved, summed step by step (:meth:`_Bilateral.results`)."""
+
+    peak_force: float = 0.0        # N, the sensed force
+    peak_feedback: float = 0.0     # N, |the force rendered to the leader|
+    contact_time: float = 0.0      # s with a sensed force above zero
+    error_sum: float = 0.0         # m x steps, |follower - its target|
+    error_max: float = 0.0
+    error_steps: int = 0
+
+    def add(self, dt: float, sensed: float, feedback: float, target: float, follower: float) -> None:
+        """One step: ``dt`` (s) since the last, the sensed force and the feedback force (N), the follower's target
+        and its opening (m; NaN where one is not known)."""
+        if math.isfinite(sensed):
+            self.peak_force = max(self.peak_force, sensed)
+            if sensed > 0.0:
+                self.contact_time += dt
+        if math.isfinite(feedback):
+            self.peak_feedback = max(self.peak_feedback, abs(feedback))
+        e = abs(follower - target)
+        if math.isfinite(e):
+            self.error_sum += e
+            self.error_max = max(self.error_max, e)
+            self.error_steps += 1
+
+    def results(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"peak_force_n": self.peak_force, "peak_feedback_n": self.peak_feedback,
+                               "contact_time_s": self.contact_time}
+        if self.error_steps:
+            out["mean_position_error_m"] = self.error_sum / self.error_steps
+            out["max_position_error_m"] = self.error_max
+        return out
 
 
 def finite_or(x: Any, default: float) -> float:
@@ -452,6 +488,8 @@ class _Bilateral(Component):
         self.force_lost_since: float | None = None      # position-force: the force estimate lost since
         self.leader_problem = ""                        # why the leader opening is not ok (for the fault)
         self.force_problem = ""                         # why the force estimate is lost (for the fault)
+        self.figures = RunFigures()                     # what the run achieved (results())
+        self._target = math.nan                         # the follower's target at the last step (m)
 
     # -- helpers
     def _ordered(self, name: str, s: Sample | None, t: float, max_age: float) -> Sample | None:
@@ -620,6 +658,7 @@ class _Bilateral(Component):
         follower_ok = self._follower(t, inputs)
         if self.leader_ok:
             cmd = map_opening(self.x_l, p.scale, p.offset, p.opening_min, p.opening_max)
+            self._target = cmd
             if math.isfinite(cmd):               # (finite params and opening: always; else the last one holds)
                 self.command = cmd if self.command is None else self._follow(cmd, dt)
             if self._record_commands:
@@ -717,6 +756,7 @@ class _Bilateral(Component):
         if not math.isfinite(alpha):
             alpha = 0.0
         self.damping = alpha
+        self.figures.add(dt, self.force_held, f, self._target if self.leader_ok and follower_ok else math.nan, self.x_f)
         out: dict[str, float] = {"gripper_force": f, "energy": self.pas.energy, "damping": alpha}
         if self.command is not None:
             out["opening_command"] = self.command
@@ -733,6 +773,12 @@ class _Bilateral(Component):
             "state": self.state,
             "damping_n_s_per_m": self.damping,
         }
+
+    def results(self) -> dict[str, Any]:
+        """What the run achieved: the peak sensed force and the peak force rendered to the hand, how long the sensor
+        felt a contact, and how far the follower was from the opening the leader asked for (x_fd = x_l mapped, at
+        steps where both openings were known; in contact, how far the leader went into the object)."""
+        return self.figures.results()
 
 
 class PositionForce(_Bilateral):

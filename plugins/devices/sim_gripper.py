@@ -168,6 +168,7 @@ class SimGripper(FollowerBase):
         of the last run's last step made every step of a new run look like no time had passed)."""
         self.t_sim = None
         self.v = 0.0
+        self.peak_force = 0.0       # N: the largest true squeezing force of the run (results())
         super().activate()
 
     def _hw_read(self) -> Reading:
@@ -257,7 +258,12 @@ class SimGripper(FollowerBase):
         out["contact"] = Sample(self.force > 0.0, t)
         out["indentation"] = Sample(self.indentation, t)
         out["contact_force"] = Sample(self.force, t)
+        self.peak_force = max(self.peak_force, self.force)
         return out
+
+    def results(self) -> dict[str, Any]:
+        """The simulation's truth beside what the controller sensed (its results' peak_force)."""
+        return {"true_peak_force_n": getattr(self, "peak_force", 0.0)}
 
     def status(self) -> dict[str, Any]:
         d = super().status()
