@@ -88,6 +88,21 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     off = reg.autoload_off_why()
     # autoload off is a choice (not a problem, exit status unchanged); said, so an empty list is not read as none
     note = f"installed plugins are not loaded ({off}); only the modules named in {ENV_PLUGINS} are listed"
+    names = list(getattr(args, "names", None) or [])
+    if names:
+        keys = ("name", "plugin", "distribution")
+        unknown = [n for n in names if not any(r.get(k) == n for r in rows for k in keys)]
+        if unknown:
+            from .graph import _suggest
+
+            known = {str(r.get(k)) for r in rows for k in keys if r.get(k)}
+            for n in unknown:
+                print(f"teletouch: no component, plugin or distribution named {n!r}{_suggest(n, known)}"
+                      + (f" ({note})" if off else "; `teletouch plugins` lists them all"), file=sys.stderr)
+            return EXIT_INVALID
+        # a component's own name first: "position-force" is that component, not its plugin's three
+        rows = [r for r in rows if r.get("name") in names
+                or any(r.get(k) == n for n in names if not any(q.get("name") == n for q in rows) for k in keys[1:])]
     if args.json:
         print(json.dumps(rows, indent=2, default=str))
         if off:   # stdout stays JSON
@@ -119,7 +134,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
         print()
     others = [f"{p.name} ({p.origin}: {', '.join(h.removeprefix('teletouch_') for h in p.hooks) or 'nothing'})"
               for p in reg.plugins.values() if not (p.components or p.error or p.blocked)]
-    if others:
+    if others and not names:
         print("plugins without components: " + ", ".join(others))
     if off:
         print(note)
@@ -424,6 +439,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "(provided twice), and every blocked plugin with where the block came from "
                                    "(--block or TELETOUCH_BLOCK). Exit status 1 when a plugin failed, a name is "
                                    "refused or a blocked name matches nothing; a block itself is not a problem.")
+    p.add_argument("names", nargs="*", metavar="NAME",
+                   help="list only these components (or every component of these plugins or distributions)")
     p.add_argument("--json", action="store_true", help="machine-readable list")
     p.set_defaults(func=cmd_plugins)
 
