@@ -343,7 +343,8 @@ def test_non_finite_velocity_is_not_output(scripted):
 def test_effort_is_the_squeeze_not_the_magnitude(scripted):
     """effort was the mean effort magnitude: a sideways push (one finger +8 N, the other -8 N) read as an 8 N grip,
     and above max_effort it kept the fingers from closing; a push outwards read as a grip too."""
-    h = connect(scripted, harness(max_effort=5.0, max_speed=0.1))
+    # effort_timeout 0.4 s: the closing step after the last message must not find its effort stale on a loaded machine
+    h = connect(scripted, harness(max_effort=5.0, max_speed=0.1, effort_timeout=0.4))
     try:
         scripted.deliver(h, scripted.message((0.02, 0.02), eff=(-6.0, -6.0)))
         assert step(h, 0.04)["effort"] == pytest.approx(6.0)  # closing efforts are negative: a 6 N squeeze
@@ -363,7 +364,9 @@ def test_effort_is_the_squeeze_not_the_magnitude(scripted):
 def test_safe_state_from_another_thread_goes_out_after_a_step_in_progress(scripted):
     """safe_state() (the watchdog's thread) during a step: the hold went out first (or, equal to the last set-point
     sent, not at all) and the step's command after it, so the controller was left on the command."""
-    h = connect(scripted, harness(max_speed=0.1))
+    # effort_timeout 1.5 s: the step's closing command, after the last message of the connection, must not be held
+    # as closing on a stale effort on a loaded machine
+    h = connect(scripted, harness(max_speed=0.1, read_timeout=2.0, effort_timeout=1.5))
     try:
         step(h, 0.03)  # sends the measured 40 mm (no time elapsed yet)
         computed, go = threading.Event(), threading.Event()
@@ -419,7 +422,7 @@ def test_hold_after_the_state_went_stale_keeps_the_last_setpoint_not_the_stale_m
     """/joint_states went silent while the command moved the set-point on (the controller took the fingers along):
     the read_timeout fault's hold sent the last measured opening, a second old, as a 10 ms goal, so the fingers
     snapped back by all they had moved since (40 mm instead of 90); with the state stale it holds the last set-point
-    sent, where the controller has the fingers."""
+    sent, where the controller has the fingers (wider than the stale opening: opening goes on on a stale state)."""
     h = connect(scripted, harness(max_speed=0.1, read_timeout=1.0))
     try:
         last = _command_until_silent(h, 0.09)
@@ -433,8 +436,10 @@ def test_hold_after_the_state_went_stale_keeps_the_last_setpoint_not_the_stale_m
 def test_open_safe_state_after_the_state_went_stale_takes_the_time_max_speed_needs(scripted):
     """/joint_states went silent at 90 mm while the command closed the set-point to 40 mm (the controller took the
     fingers along): the open safe state timed its move from the stale finger positions (no distance) and sent 90 mm
-    to be reached in time_from_start (10 ms), 50 mm at 5 m/s; it counts from the last set-point sent too."""
-    h = connect(scripted, harness(safe_mode="open", max_speed=0.1, read_timeout=1.0), pos=(0.045, 0.045))
+    to be reached in time_from_start (10 ms), 50 mm at 5 m/s; it counts from the last set-point sent too.
+    (effort_timeout 0.9 s: the set-point closes on the silent state for that long, which the default 0.05 s holds.)"""
+    h = connect(scripted, harness(safe_mode="open", max_speed=0.1, read_timeout=1.0, effort_timeout=0.9),
+                pos=(0.045, 0.045))
     try:
         last = _command_until_silent(h, 0.04)
         assert last < 0.07   # closed, from the measured 90 mm, while the state was silent

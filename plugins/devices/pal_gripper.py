@@ -27,7 +27,12 @@ The position controller has no force limit of its own, so ``max_effort`` is enfo
 exceeds it, the setpoint backs off towards the measured opening (at ``max_speed``) instead of closing further. That
 needs efforts in ``/joint_states``: without them (or with non-finite ones) the driver refuses to run (a HardwareError
 at start-up or at the message that lacks them) unless ``enforce_effort: false`` says to run without the force limit
-(the effort output is then NaN).
+(the effort output is then NaN; there is no ``effort_timeout`` hold either). It needs them fresh too: while the
+last message is older than ``effort_timeout`` (0.05 s: 5 messages at 100 Hz; below ``read_timeout``) the setpoint
+closes no further than the last measured opening, nor further than it was where it was already below it (a squeeze
+is held, not tightened); opening goes on. Each step held so is counted (``status()['stale_effort_holds']``) and the
+first of each stale spell logged. (The setpoint closed at ``max_speed`` against the old effort until the
+``read_timeout`` fault.)
 
 A controller that goes away while ``/joint_states`` keeps arriving (unloaded, crashed) is noticed too: every read
 checks that something still subscribes to the command topic, and ``controller_timeout`` without a subscriber is a
@@ -47,10 +52,12 @@ runs anyway; the others are then named in ``status()['other_publishers']`` and l
 Commands through the controller's FollowJointTrajectory action are not seen by this check.
 
 Safe state: ``hold`` sends the measured opening (the controller holds the fingers there: a squeeze is released to
-the object's surface), or the last setpoint sent while the state is stale (no usable message for ``read_timeout``:
-the fingers have followed the setpoint since, and the stale opening would move them back), ``open`` sends
-``max_opening``; either is always sent, and a step's command and send hold a lock, so a safe_state() from another
-thread waits for a step in progress and its hold goes out last.
+the object's surface), also while the state is stale (no usable message for ``effort_timeout``), unless the last
+setpoint sent is wider: opening goes on while the state is stale, the fingers have followed the setpoint since, and
+the stale opening would close them back with no force reading (the hold sent the last setpoint whatever it was,
+after a ``read_timeout`` fault deep inside the object); ``open`` sends ``max_opening``; either is always sent, and a
+step's command and send hold a lock, so a safe_state() from another thread waits for a step in progress and its hold
+goes out last.
 
 QoS: ``state_reliability``/``state_depth`` (best-effort, 1: hears a reliable and a best-effort broadcaster) and
 ``command_reliability``/``command_depth`` (reliable, 1: serves the controller's reliable subscription), volatile both
@@ -200,6 +207,12 @@ class PalGripper(FollowerBase):
                                             json_schema_extra={"unit": "s"})
         enforce_effort: bool = Field(True, description="max_effort needs efforts in /joint_states: refuse to run "
                                      "without them (false: run without the force limit, effort output NaN)")
+        effort_timeout: Seconds = Field(0.05, gt=0, description="a set-point that closes further than the last "
+                                        "measured opening needs a /joint_states message younger than this (100 Hz: "
+                                        "5 messages); on an older one it holds, as max_effort cannot be enforced on "
+                                        "an old effort (opening goes on; not with enforce_effort: false); below "
+                                        "read_timeout",
+                                        json_schema_extra={"unit": "s"})
         state_reliability: Literal["best_effort", "reliable"] = Field(
             "best_effort", description="QoS reliability of the /joint_states subscription: best_effort hears both "
             "a reliable and a best-effort publisher; reliable hears a reliable one only")
@@ -268,6 +281,15 @@ class PalGripper(FollowerBase):
                                     f"{2 * lo * 1e3:g}-{2 * hi * 1e3:g} mm (twice finger_lower/finger_upper){hint}")
             if problems:
                 raise ValueError("; ".join(problems))
+            return self
+
+        @model_validator(mode="after")
+        def _effort_timeout(self) -> "PalGripper.Params":
+            if self.effort_timeout >= self.read_timeout:
+                hint = " (milliseconds in a second field? write e.g. '50ms')" if self.effort_timeout >= 1.0 else ""
+                raise ValueError(f"effort_timeout ({self.effort_timeout:g} s) must be below read_timeout "
+                                 f"({self.read_timeout:g} s): a closing set-point would be followed on the old effort "
+                                 f"until the read_timeout fault{hint}")
             return self
 
         @model_validator(mode="after")
@@ -566,6 +588,11 @@ class PalGripper(FollowerBase):
                                 f"enforce_effort: false to run without the force limit (effort output NaN)")
         return Reading(s[0], s[1], s[2], s[3])
 
+    def configure(self) -> None:
+        self._stale_effort_holds = 0  # steps whose closing set-point was held on a stale effort
+        self._effort_stale = False  # that hold was logged, until a fresh message
+        super().configure()
+
     def activate(self) -> None:
         self._no_controller_since = None  # counted afresh: the node was not looking while inactive
         super().activate()
@@ -578,7 +605,31 @@ class PalGripper(FollowerBase):
             # squeezing harder than max_effort: back the setpoint off towards the measured opening
             dt = 0.0 if t_before is None else min(max(0.0, t - t_before), self._max_dt)   # a late step: no jump
             target = self._setpoint = max(target, min(r.opening, before + self.params.max_speed * dt))
-        return target
+        return self._no_closing_on_stale_effort(target, before, r)
+
+    def _no_closing_on_stale_effort(self, target: float, before: float, r: Reading | None) -> float:
+        """``target``, or where the set-point holds instead while the last /joint_states message is older than
+        effort_timeout (with enforce_effort): max_effort cannot be enforced on an old effort, so the set-point closes
+        no further than the last measured opening, nor further than it was where it already was below it (a squeeze
+        is held, not tightened); opening goes on."""
+        p = self.params
+        if not p.enforce_effort or r is None or r.mono is None or not math.isfinite(target):
+            return target
+        age = time.monotonic() - r.mono
+        if age <= p.effort_timeout:
+            self._effort_stale = False
+            return target
+        floor = min(before, r.opening) if math.isfinite(before) else r.opening
+        if target >= floor:
+            return target
+        self._stale_effort_holds += 1
+        if not self._effort_stale:
+            self._effort_stale = True
+            self.ctx.log(f"{self.state_topic}: the last message is {age:.3f} s old (effort_timeout "
+                         f"{p.effort_timeout} s): max_effort cannot be enforced on its effort, so the set-point "
+                         f"closes no further than {floor * 1e3:.2f} mm until a fresh message")
+        self._setpoint = floor
+        return floor
 
     def _command_guard(self) -> Any:
         return self._io_lock
@@ -622,16 +673,19 @@ class PalGripper(FollowerBase):
             self._sent, self._sent_at, self._sent_half = opening, now, half
 
     def safe_target(self) -> float:
-        """``hold`` with the state stale (no usable message for read_timeout, or none): the last set-point sent,
-        where the controller has taken the fingers since; a hold of the stale measured opening would move them
-        back at once. Otherwise the base's target."""
+        """``hold`` with the state stale (no usable message for effort_timeout, or none): the last measured opening
+        (a squeeze is released to the object's surface, not held where a set-point inside the object left it), or
+        the last set-point where that is wider: opening goes on while the state is stale, the controller has
+        taken the fingers out there since, and the stale opening would close them back with no force reading.
+        Otherwise the base's target."""
         p = self.params
         lock = getattr(self, "_lock", None)
         if p.safe_mode == "hold" and lock is not None and math.isfinite(self._setpoint):
             with lock:
                 s = self._state
-            if s is None or time.monotonic() - s[3] > p.read_timeout:
-                return self._setpoint
+            if s is None or time.monotonic() - s[3] > p.effort_timeout:
+                measured = self._measured() if s is None else s[0]
+                return max(self._setpoint, measured) if math.isfinite(measured) else self._setpoint
         return super().safe_target()
 
     def _forget_sent(self) -> None:
@@ -640,6 +694,7 @@ class PalGripper(FollowerBase):
     def status(self) -> dict[str, Any]:
         d = super().status()
         d["dropped"] = dict(getattr(self, "_dropped_total", {}))
+        d["stale_effort_holds"] = getattr(self, "_stale_effort_holds", 0)
         d["messages"] = getattr(self, "_msgs", 0)
         report = getattr(self, "qos_report", None)
         d["incompatible_qos"] = report.count if report is not None else 0
