@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import math
 import traceback
+from typing import Any
 
 
 class TeletouchError(Exception):
@@ -95,3 +97,12 @@ def exception_line(exc: BaseException, more: str = "") -> str:
     before the place."""
     place = exception_place(exc)
     return f"{type(exc).__name__}: {exc}{more}" + (f" ({place})" if place else "")
+
+
+def value_text(value: Any) -> str:
+    """``repr(value)`` for a message, but an int too large for a float as its size: a float64 port takes any int,
+    Python refuses to write one of more than 4300 digits as text (ValueError), and a 400-digit one says no more than
+    its size."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1024:
+        return f"an integer of about {'-' if value < 0 else ''}1e{int(value.bit_length() * math.log10(2))}"
+    return repr(value)

@@ -193,3 +193,18 @@ def test_follower_holds_on_an_overflowing_opening_command(value):
     assert status["bad_commands"] == 1 and status["holding"] == "bad command"
     said = [m for m in logs if m.startswith("opening_command")]
     assert len(said) == 1 and "is not an opening" in said[0] and len(said[0]) < 400, said
+
+
+def test_position_force_says_an_opening_beyond_any_float_by_its_size():
+    """Printing a 5000-digit int raises ValueError (Python's limit on int text): the step crashed instead."""
+    with Harness(PositionForce, {}) as h:
+        h.step(0.0, leader_opening=0.02, force=1.0)
+        out = h.step(0.001, leader_opening=10 ** 5000, force=1.0)
+        assert not h.comp.leader_ok and "an integer of about 1e5000" in h.comp.leader_problem
+        assert math.isfinite(out["gripper_force"])
+
+
+def test_press_routine_reads_a_depth_beyond_any_float_as_not_a_number():
+    with Harness(PressRoutine, {}) as h:
+        h.step(0.0, position=np.zeros(3), max_depth=10 ** 400)   # (raised OverflowError)
+        assert h.comp.state == "wait"

@@ -68,6 +68,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
+from teletouch.errors import value_text
 from teletouch.units import (
     MAX_PLAUSIBLE_OPENING, MAX_PLAUSIBLE_SPEED, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds,
     millimetres_in_metres, plausible_depth, plausible_hand_force, plausible_opening, plausible_quantity,
@@ -575,7 +576,7 @@ class _Bilateral(Component):
         if not math.isfinite(x):
             if self._first_look("leader_opening", s):
                 self.invalid_inputs += 1
-            self.leader_problem = f"invalid ({s.value!r} m: not a finite opening within 1 m)"
+            self.leader_problem = f"invalid ({value_text(s.value)} m: not a finite opening within 1 m)"
             return False
         self.x_l = x
         v_raw = self._ordered("leader_velocity", inputs.get("leader_velocity"), t, p.leader_stale_after)

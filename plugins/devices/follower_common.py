@@ -29,6 +29,7 @@ from typing import Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Device, HardwareError, Kind, Params, Port, Sample
+from teletouch.errors import value_text
 from teletouch.units import (
     MAX_PLAUSIBLE_OPENING, Meters, MetersPerSecond, Newtons, Seconds, plausible_opening, plausible_quantity,
     plausible_speed,
@@ -76,14 +77,6 @@ def command_value(value: Any) -> float | None:
     except (TypeError, ValueError, OverflowError):
         return None
     return v if math.isfinite(v) and abs(v) <= MAX_PLAUSIBLE_OPENING else None
-
-
-def _shown(value: Any) -> str:
-    """``repr(value)`` for a message, but an int too large for a float as its size: Python refuses to write an int of
-    more than 4300 digits as text (ValueError), and a 400-digit one says no more than its size."""
-    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1024:
-        return f"an integer of about {'-' if value < 0 else ''}1e{int(value.bit_length() * math.log10(2))}"
-    return repr(value)
 
 
 def shape_setpoint(previous: float, command: float, lo: float, hi: float, max_speed: float, dt: float) -> float:
@@ -309,7 +302,7 @@ class FollowerBase(Device):
             self._bad_commands += 1
             self._start_hold("bad command")
             if self._bad_commands == 1:
-                self.ctx.log(f"opening_command {_shown(s.value)} is not an opening (expected a finite number of "
+                self.ctx.log(f"opening_command {value_text(s.value)} is not an opening (expected a finite number of "
                              f"metres, at most {MAX_PLAUSIBLE_OPENING:g} m either way); holding the measured opening "
                              f"{self._hold_at * 1e3:.2f} mm")
             return None

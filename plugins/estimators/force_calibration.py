@@ -386,7 +386,7 @@ class PressRoutine(Component):
         if ds is not None and ds.is_fresh(t, p.input_timeout):
             try:
                 depth = float(ds.value)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):   # (OverflowError: an int beyond any float)
                 depth = math.nan
         # a new frame only if newer than the last one (a repeated or late, out-of-order frame is not), and only a
         # fresh one: a NaN stamp or one far ahead of the clock, taken as the newest, locked out every frame after it
