@@ -5,10 +5,18 @@ Start-up (all through the canopen library): connect the bus; check the node answ
 asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078
 + velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, then 0x6061
 read until it shows it: a drive switches in its own time; not within ``mode_timeout``, an error naming the requested
-and the displayed mode); profile velocity 0x6081 from ``max_speed`` (rounded down); max current 0x6073 from
-``max_effort``; target := actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED (canopen's
-BaseNode402, with SYNCs every 5 ms from a thread of the driver), starting from the statusword of the drive's first
-TPDO1 (a drive found enabled stays enabled; one found in FAULT is logged with its error code, then reset).
+and the displayed mode); profile velocity 0x6081 from ``max_speed`` (rounded down) in the drive's velocity unit;
+max current 0x6073 from ``max_effort``; target := actual; NMT operational; then the CiA 402 state machine to OPERATION
+ENABLED (canopen's BaseNode402, with SYNCs every 5 ms from a thread of the driver), starting from the statusword of the
+drive's first TPDO1 (a drive found enabled stays enabled; one found in FAULT is refused, naming its error code 0x603F,
+unless ``reset_fault_at_start``: then it is logged and reset).
+
+The velocity unit (of 0x6081 and 0x606C) is the drive's own: its SI unit velocity 0x60A9 (bits 24-31 a power of ten,
+16-23 the position unit, 8-15 the time unit: rpm is 0x00B44700), read at start-up; where the drive has none (SDO
+abort), the ``velocity_unit`` parameter, which is then required (counts/s ran a drive in rpm ~68x max_speed at 4096
+counts/rev). A unit in revolutions takes the 0x6064 counts per revolution from ``counts_per_revolution``, else from the
+position encoder resolution 0x608F (increments / motor revolutions). Other units (a linear m/s, whose relation to the
+fingers the driver cannot know) are refused, naming 0x60A9's value and what to set.
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
@@ -46,6 +54,12 @@ from teletouch.units import Meters, Newtons, Seconds
 from .follower_common import FollowerBase, FollowerParams, OpeningMap, Reading
 
 PROFILE_POSITION = 1
+#: unit codes (CiA 303-2, now CiA 890) in SI unit velocity 0x60A9: position unit in bits 16-23, time unit in 8-15
+REVOLUTION, SECOND, MINUTE = 0xB4, 0x03, 0x47
+POSITION_UNITS = {0x01: "m", 0x10: "rad", 0x41: "deg", REVOLUTION: "rev"}
+TIME_UNITS = {SECOND: "s", MINUTE: "min"}
+RPM = 0x00B44700
+VELOCITY_UNITS = {"counts/s": ("counts", 1), "rev/s": ("rev", 1), "rpm": ("rev", 60)}   # param: (kind, seconds)
 #: CiA 402 modes of operation (0x6060 / 0x6061), for messages; negative values are manufacturer-specific
 MODE_NAMES = {0: "no mode", 1: "profile position", 3: "profile velocity", 4: "profile torque", 6: "homing",
               7: "interpolated position", 8: "cyclic synchronous position", 9: "cyclic synchronous velocity",
@@ -137,6 +151,24 @@ class CanopenGripper(FollowerBase):
                                       json_schema_extra={"unit": "s"})
         heartbeat_period: Seconds = Field(0.1, ge=0, description="drive heartbeat period (0: off); three missed "
                                           "heartbeats are a fault", json_schema_extra={"unit": "s"})
+        velocity_unit: str | None = Field(None, description="the drive's velocity unit (of profile velocity 0x6081 "
+                                          "and velocity actual 0x606C) where it has no SI unit velocity 0x60A9: "
+                                          "'rpm', 'rev/s' or 'counts/s' (0x6064 counts per second), with a factor "
+                                          "if it has one ('0.001 rpm'); None: 0x60A9's, and a drive without it is "
+                                          "refused. Given where the drive has 0x60A9, the two must agree")
+        counts_per_revolution: float | None = Field(None, gt=0, description="position counts (0x6064) per "
+                                                    "revolution, for a velocity unit in revolutions (rpm); None: the "
+                                                    "position encoder resolution 0x608F (increments / motor "
+                                                    "revolutions)")
+        reset_fault_at_start: bool = Field(False, description="reset a drive found in FAULT at start-up (fault "
+                                           "reset, controlword bit 7) instead of refusing to start")
+
+        @field_validator("velocity_unit")
+        @classmethod
+        def _velocity_unit_known(cls, v: str | None) -> str | None:
+            if v is not None:
+                parse_velocity_unit(v)
+            return v
 
         @field_validator("heartbeat_period")
         @classmethod
@@ -213,6 +245,8 @@ class CanopenGripper(FollowerBase):
         if dev & 0xFFFF != 402:
             raise HardwareError(f"{self._where()} is not a CiA 402 drive: device type 0x{dev:08X} (profile "
                                 f"{dev & 0xFFFF}); check the node id")
+        self.counts_per_unit = self._velocity_unit()   # counts/s in one unit of 0x6081 and 0x606C
+        self._mps_per_unit = float(self.counts_per_unit) * self.map.scale
         node.nmt.state = "PRE-OPERATIONAL"
         self._map_pdos()
         if p.heartbeat_period > 0:
@@ -242,9 +276,15 @@ class CanopenGripper(FollowerBase):
             # the walk starts from the drive's own statusword: from canopen's default (0, none received yet) its
             # first controlword was "disable voltage", switching off a drive found enabled (and holding)
             sw = node.check_statusword()
-            if sw & 0x4F in (0x08, 0x0F):   # FAULT (reaction active): the walk resets it
-                self.ctx.log(f"{self._where()} was in FAULT (statusword 0x{sw:04X}, error code {self._fault_code()}, "
-                             f"{self._emcy_text()}): resetting it (controlword bit 7)")
+            if sw & 0x4F in (0x08, 0x0F):   # FAULT (reaction active): the walk would reset it (transition 15)
+                found = f"(statusword 0x{sw:04X}, error code {self._fault_code()}, {self._emcy_text()})"
+                if not p.reset_fault_at_start:
+                    raise HardwareError(f"{self._where()} is in FAULT {found}: not reset without you, the cause may "
+                                        f"still be there (over-current, a blocked gripper). Find and clear it, reset "
+                                        f"the fault (the drive's own tool, or power-cycle it), then start again; or "
+                                        f"set reset_fault_at_start: true to have the start-up reset it")
+                self.ctx.log(f"{self._where()} was in FAULT {found}: resetting it (controlword bit 7, "
+                             f"reset_fault_at_start)")
             node.state = "OPERATION ENABLED"
         except (RuntimeError, ValueError) as exc:
             raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
@@ -274,18 +314,83 @@ class CanopenGripper(FollowerBase):
             time.sleep(MODE_POLL)
 
     def _profile_velocity(self) -> int:
-        """Profile velocity 0x6081 (counts/s) for ``max_speed``, rounded down in exact decimal arithmetic: the drive's
-        own speed limit (what a set-point jump, the ``open`` safe state, runs at) never exceeds max_speed (rounded to
-        nearest it did, and a limit below 1 count/s became 1 count/s)."""
+        """Profile velocity 0x6081 (in the drive's velocity unit) for ``max_speed``, rounded down in exact arithmetic:
+        the drive's own speed limit (what a set-point jump, the ``open`` safe state, runs at) never exceeds max_speed
+        (rounded to nearest it did, a limit below one unit became one, and counts/s written to a drive in rpm ran
+        it ~68x max_speed at 4096 counts/rev)."""
         p = self.params
         span = abs(Fraction(repr(p.opening_at_counts_open)) - Fraction(repr(p.opening_at_counts_closed)))
-        exact = Fraction(repr(p.max_speed)) * abs(p.counts_closed - p.counts_open) / span
+        exact = Fraction(repr(p.max_speed)) * abs(p.counts_closed - p.counts_open) / span / self.counts_per_unit
         raw = min(math.floor(exact), 0xFFFFFFFF)
         if raw < 1:
-            unit = float(span) / abs(p.counts_closed - p.counts_open)
+            unit = float(self.counts_per_unit * span / abs(p.counts_closed - p.counts_open))
             raise HardwareError(f"max_speed {p.max_speed} m/s is below the slowest profile velocity 0x6081 of "
-                                f"{self._where()} (1 count/s = {unit:.4g} m/s with this calibration); raise max_speed")
+                                f"{self._where()} (1 x {self.velocity_unit} = {unit:.4g} m/s with this calibration); "
+                                f"raise max_speed")
         return raw
+
+    def _velocity_unit(self) -> Fraction:
+        """Counts per second in one unit of the drive's velocity (profile velocity 0x6081, velocity actual 0x606C):
+        from its SI unit velocity 0x60A9, or ``velocity_unit`` where it has none (SDO abort); a unit in revolutions
+        times the counts per revolution. Refused: a unit the driver cannot convert, none known, a ``velocity_unit``
+        that disagrees with 0x60A9."""
+        p = self.params
+        code, why = self._read_u32(0x60A9, 0, "reading SI unit velocity 0x60A9")
+        if code is None:
+            if p.velocity_unit is None:
+                raise HardwareError(f"{self._where()} has no SI unit velocity 0x60A9 (SDO abort: {why}): the unit of "
+                                    f"its profile velocity 0x6081 and velocity actual 0x606C is unknown, and a wrong "
+                                    f"guess runs the gripper at a multiple of max_speed; give velocity_unit from the "
+                                    f"drive's manual ('rpm', '0.001 rpm', 'counts/s', ...)")
+            kind, per_second = parse_velocity_unit(p.velocity_unit)
+            self.velocity_unit = p.velocity_unit
+            source = f"velocity_unit '{p.velocity_unit}'"
+        else:
+            self.velocity_unit = velocity_unit_text(code)
+            source = f"SI unit velocity 0x60A9 of {self._where()} is 0x{code:08X} ({self.velocity_unit})"
+            unit = si_velocity_unit(code)
+            if unit is None:
+                raise HardwareError(f"{source}: the driver converts only revolutions per minute or second (with a "
+                                    f"power of ten) to the fingers' m/s; set 0x60A9 to 0x{RPM:08X} (rpm) or "
+                                    f"0xFDB44700 (0.001 rpm) with the drive's configuration tool")
+            if p.velocity_unit is not None and parse_velocity_unit(p.velocity_unit) != unit:
+                raise HardwareError(f"velocity_unit '{p.velocity_unit}' disagrees with the SI unit velocity 0x60A9 "
+                                    f"of {self._where()}, 0x{code:08X} ({self.velocity_unit}): leave velocity_unit "
+                                    f"out (the drive's own is used) or correct it")
+            kind, per_second = unit
+        return per_second if kind == "counts" else per_second * self._counts_per_revolution(source)
+
+    def _counts_per_revolution(self, source: str) -> Fraction:
+        """0x6064 counts per revolution: ``counts_per_revolution``, else the position encoder resolution 0x608F
+        (increments / motor revolutions)."""
+        p = self.params
+        if p.counts_per_revolution is not None:
+            return Fraction(repr(p.counts_per_revolution))
+        increments, why = self._read_u32(0x608F, 1, "reading position encoder resolution 0x608F")
+        revolutions, why = (None, why) if increments is None else \
+            self._read_u32(0x608F, 2, "reading position encoder resolution 0x608F")
+        if increments is None or revolutions is None:
+            raise HardwareError(f"{source}, in revolutions: converting it needs the position counts (0x6064) per "
+                                f"revolution, and {self._where()} has no position encoder resolution 0x608F (SDO "
+                                f"abort: {why}); give counts_per_revolution")
+        if not increments or not revolutions:
+            raise HardwareError(f"{self._where()} reports a position encoder resolution 0x608F of {increments} "
+                                f"increments per {revolutions} motor revolutions; give counts_per_revolution")
+        return Fraction(increments, revolutions)
+
+    def _read_u32(self, index: int, sub: int, what: str) -> tuple[int | None, str]:
+        """An UNSIGNED32 object read by SDO upload (an EDS file need not list it): (value, ""), or (None, the abort)
+        where the drive has no such object; no answer at all is a HardwareError."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        def upload() -> tuple[bytes | None, str]:
+            try:
+                return self.node.sdo.upload(index, sub), ""
+            except SdoAbortedError as exc:
+                return None, str(exc)
+
+        data, why = self._sdo(what, upload)
+        return (None, why) if data is None else (int.from_bytes(data[:4], "little"), "")
 
     def _max_current_permille(self, rated_ma: int) -> int:
         """Max current 0x6073 (per mille of the rated current) for ``max_effort``, rounded down: the cap the drive
@@ -448,7 +553,7 @@ class CanopenGripper(FollowerBase):
             raise HardwareError(f"{self._where()} left profile position mode (0x6061 = {mode})")
         counts = self.tp1[0x6064].raw
         amps = self.tp2[0x6078].raw / 1000.0 * self.rated_ma / 1000.0
-        vel = self.tp2[0x606C].raw * self.map.scale
+        vel = self.tp2[0x606C].raw * self._mps_per_unit   # the drive's velocity unit -> counts/s -> m/s
         return Reading(self.map.opening(counts), vel, abs(amps) * p.newtons_per_amp, 0.5 * (t0 + t1))
 
     def _check_heartbeat(self) -> None:
@@ -522,6 +627,54 @@ class CanopenGripper(FollowerBase):
         d["emcy"] = len(getattr(self, "emcys", []))
         return d
 
+
+
+def parse_velocity_unit(text: str) -> tuple[str, Fraction]:
+    """A ``velocity_unit`` param ('0.001 rpm', 'counts/s'): ("counts" or "rev", the factor per second)."""
+    import re
+
+    m = re.fullmatch(r"\s*(?:(\S+?)\s*)?(counts/s|rev/s|rpm)\s*", text)
+    factor = None
+    if m:
+        try:
+            factor = Fraction(m.group(1) or "1")
+        except (ValueError, ZeroDivisionError, OverflowError):   # "x", "1/0", "inf"
+            factor = None
+    if not m or factor is None or factor <= 0:
+        raise ValueError(f"velocity_unit {text!r} is not a velocity unit the driver converts: give 'rpm', 'rev/s' or "
+                         f"'counts/s' (position counts 0x6064 per second), with a positive factor if the drive's unit "
+                         f"has one ('0.001 rpm', '0.1 counts/s')")
+    kind, seconds = VELOCITY_UNITS[m.group(2)]
+    return kind, factor / seconds
+
+
+def _power_of_ten(exponent: int) -> str:
+    return str(10 ** exponent) if exponent >= 0 else "0." + "0" * (-exponent - 1) + "1"
+
+
+def _exponent(code: int) -> int:
+    """The power of ten in bits 24-31 of an SI unit object (signed)."""
+    return int.from_bytes(bytes([code >> 24 & 0xFF]), "little", signed=True)
+
+
+def velocity_unit_text(code: int) -> str:
+    """SI unit velocity 0x60A9 in words: 0xFDB44700 -> "0.001 rpm", 0xFD010300 -> "0.001 m/s"."""
+    position, time_ = code >> 16 & 0xFF, code >> 8 & 0xFF
+    if (position, time_) == (REVOLUTION, MINUTE):
+        unit = "rpm"
+    else:
+        unit = (f"{POSITION_UNITS.get(position, f'unit 0x{position:02X}')}/"
+                f"{TIME_UNITS.get(time_, f'unit 0x{time_:02X}')}")
+    return f"{_power_of_ten(_exponent(code))} {unit}" if _exponent(code) else unit
+
+
+def si_velocity_unit(code: int) -> tuple[str, Fraction] | None:
+    """SI unit velocity 0x60A9 as ("rev", the factor per second) for revolutions per second or minute with a power of
+    ten; None for any other unit (a linear or angular one the driver cannot relate to the counts)."""
+    seconds = {SECOND: 1, MINUTE: 60}.get(code >> 8 & 0xFF)
+    if code >> 16 & 0xFF != REVOLUTION or seconds is None:
+        return None
+    return "rev", Fraction(10) ** _exponent(code) / seconds
 
 
 def mode_text(mode: int) -> str:

@@ -5,7 +5,11 @@ configured by the master through SDO (0x1400/0x1600 receive, 0x1800/0x1A00 trans
 (transmission types 1-240), RPDOs applied on reception, EMCY on faults. Its firmware is the CiA 402 state machine
 (controlword 0x6040 -> statusword 0x6041) and profile position mode (0x6060 = 1): a rising edge of controlword bit 4
 ("new set-point") latches target position 0x607A, acknowledged by statusword bit 12; the axis moves towards it at
-profile velocity 0x6081 (counts/s). An object at ``block_at`` counts (approached in the ``closing`` direction) stops
+profile velocity 0x6081, in the drive's velocity unit ``velocity_unit`` (CiA 402's SI unit velocity 0x60A9 encoding:
+power of ten in bits 24-31, position unit in 16-23, time unit in 8-15; the default 0xFDB40300 is 0.001 rev/s, which
+with the default ``counts_per_revolution`` of 1000 (position encoder resolution 0x608F) is one count per second; rpm is
+0x00B44700); ``velocity_unit_object`` / ``resolution_object`` False: the drive has no 0x60A9 / 0x608F (an SDO upload
+is aborted), its unit is its own. An object at ``block_at`` counts (approached in the ``closing`` direction) stops
 it, and the current rises to ``min(max current 0x6073, current_gain * |target - block_at|)`` (per mille of the rated
 current 0x6075). Entering OPERATION ENABLED holds the actual position (the position demand starts there, as on a
 real drive): only a new set-point moves the axis. ``go_silent()`` makes the node vanish from the bus (no SDO, PDO or
@@ -26,6 +30,7 @@ import collections
 import struct
 import threading
 import time
+from fractions import Fraction
 from typing import Callable
 
 import canopen
@@ -38,6 +43,9 @@ I8, I16, I32 = od_mod.INTEGER8, od_mod.INTEGER16, od_mod.INTEGER32
 STATUS = {"NOT READY TO SWITCH ON": 0x0000, "SWITCH ON DISABLED": 0x0040, "READY TO SWITCH ON": 0x0021,
           "SWITCHED ON": 0x0023, "OPERATION ENABLED": 0x0027, "QUICK STOP ACTIVE": 0x0007, "FAULT": 0x0008}
 DEVICE_TYPE_402 = 0x00020192  # CiA 402, servo drive
+VELOCITY_UNIT = 0xFDB40300  # 0.001 rev/s (10^-3, revolution 0xB4, second 0x03): one count/s at 1000 counts/rev
+RPM = 0x00B44700  # revolutions (0xB4) per minute (0x47)
+REVOLUTION, SECOND, MINUTE = 0xB4, 0x03, 0x47  # CiA 303-2 / CiA 890 unit codes in 0x60A8/0x60A9
 
 
 def _var(name, index, sub, dtype, access="rw", default=0):
@@ -48,8 +56,11 @@ def _var(name, index, sub, dtype, access="rw", default=0):
     return v
 
 
-def drive_od(node_id: int) -> canopen.ObjectDictionary:
-    """The drive's object dictionary (communication profile, 4 RPDOs/TPDOs, CiA 402 objects it implements)."""
+def drive_od(node_id: int, velocity_unit: int | None = VELOCITY_UNIT,
+             resolution: tuple[int, int] | None = (1000, 1)) -> canopen.ObjectDictionary:
+    """The drive's object dictionary (communication profile, 4 RPDOs/TPDOs, CiA 402 objects it implements), with SI
+    unit velocity 0x60A9 = ``velocity_unit`` and position encoder resolution 0x608F = ``resolution`` (increments,
+    motor revolutions) unless None (the drive has no such object)."""
     od = canopen.ObjectDictionary()
     od.node_id = node_id
     od.add_object(_var("Device type", 0x1000, 0, U32, "ro", DEVICE_TYPE_402))
@@ -91,7 +102,23 @@ def drive_od(node_id: int) -> canopen.ObjectDictionary:
             (0x6083, "Profile acceleration", U32, "rw", 1000000),
             (0x6502, "Supported drive modes", U32, "ro", 0x0000000D)):
         od.add_object(_var(name, index, 0, dtype, access, default))
+    if velocity_unit is not None:
+        od.add_object(_var("SI unit velocity", 0x60A9, 0, U32, "rw", velocity_unit))
+    if resolution is not None:
+        rec = ODRecord("Position encoder resolution", 0x608F)
+        rec.add_member(_var("Highest sub-index supported", 0x608F, 0, U8, "ro", 2))
+        rec.add_member(_var("Encoder increments", 0x608F, 1, U32, "rw", resolution[0]))
+        rec.add_member(_var("Motor revolutions", 0x608F, 2, U32, "rw", resolution[1]))
+        od.add_object(rec)
     return od
+
+
+def counts_per_unit(velocity_unit: int, counts_per_revolution: int) -> float:
+    """Counts per second in one ``velocity_unit`` (0x60A9 encoding): revolutions are ``counts_per_revolution``; any
+    other position unit is taken as counts (what the emulator moves in)."""
+    exponent = struct.unpack("<b", bytes([velocity_unit >> 24 & 0xFF]))[0]
+    per = counts_per_revolution if velocity_unit >> 16 & 0xFF == REVOLUTION else 1
+    return float(Fraction(10) ** exponent * per / (60 if velocity_unit >> 8 & 0xFF == MINUTE else 1))
 
 
 class Cia402Drive:
@@ -100,10 +127,14 @@ class Cia402Drive:
     def __init__(self, node_id: int = 5, channel: str = "teletouch-vcan", *, position: int = 0,
                  block_at: int | None = None, closing: int = 1, current_gain: float = 0.5,
                  device_type: int = DEVICE_TYPE_402, stamp: Callable[[], float] | None = None,
-                 mode_delay: float | None = 0.0, latency: float = 0.0, instant: bool = False):
+                 mode_delay: float | None = 0.0, latency: float = 0.0, instant: bool = False,
+                 velocity_unit: int = VELOCITY_UNIT, velocity_unit_object: bool = True,
+                 counts_per_revolution: int = 1000, resolution_object: bool = True):
         self.node_id = node_id
         self.channel = channel
-        self.od = drive_od(node_id)
+        self.od = drive_od(node_id, velocity_unit if velocity_unit_object else None,
+                           (counts_per_revolution, 1) if resolution_object else None)
+        self.counts_per_unit = counts_per_unit(velocity_unit, counts_per_revolution)  # counts/s per velocity unit
         self.od[0x1000].default = device_type
         self.pos = float(position)
         self.vel = 0.0
@@ -326,7 +357,7 @@ class Cia402Drive:
         current = 0.0
         if self.state == "OPERATION ENABLED":
             target = float(self.latched)
-            v = float(self.get(0x6081))
+            v = self.get(0x6081) * self.counts_per_unit   # counts/s
             new = target if self.instant else old + max(-v * dt, min(v * dt, target - old))
             if self.block_at is not None:
                 c = self.closing
@@ -337,7 +368,7 @@ class Cia402Drive:
             self.pos = new
         self.vel = (self.pos - old) / dt if dt > 0 else 0.0
         self._put(0x6064, int(round(self.pos)))
-        self._put(0x606C, int(round(self.vel)))
+        self._put(0x606C, int(round(self.vel / self.counts_per_unit)))
         self._put(0x6078, int(round(current)))
         self._put(0x6077, int(round(current)))
         self._status()

@@ -1,0 +1,119 @@
+"""canopen-gripper (s17): profile velocity 0x6081 and velocity actual 0x606C in the drive's own velocity unit (SI unit
+velocity 0x60A9 and position encoder resolution 0x608F, or the velocity_unit / counts_per_revolution params where the
+drive has neither), and a drive found in FAULT at start-up, which is not reset unless reset_fault_at_start says so;
+against the emulated CiA 402 drive on python-can's virtual bus."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from fakes.canopen_drive import RPM, Cia402Drive  # noqa: E402
+from fakes.followers import canopen_harness, channel_fixture  # noqa: E402
+from fakes.realtime import configure_fails, drive_until  # noqa: E402
+
+from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+channel = channel_fixture()
+harness = canopen_harness
+
+COUNTS_PER_M = 100000 / 0.08   # the default calibration: 100000 counts over 80 mm
+MILLI_RPM = 0xFDB44700         # 0.001 rpm (10^-3, revolution 0xB4, minute 0x47)
+TENTH_MILLI_RPM = 0xFCB44700   # 0.0001 rpm: Beckhoff's default velocity unit
+MM_PER_S = 0xFD010300          # 0.001 m/s (metre 0x01, second 0x03): a linear axis unit the driver cannot map
+
+
+def speed(drive, raw):
+    """The speed (m/s) ``raw`` units of ``drive``'s velocity unit are with the default calibration."""
+    return raw * drive.counts_per_unit / COUNTS_PER_M
+
+
+def test_a_drive_in_rpm_is_given_max_speed_in_rpm_and_its_velocity_is_read_in_m_per_s(channel):
+    """0x6081 was written in counts/s whatever the drive's unit: a drive in rpm (Maxon EPOS4's default) with 4096
+    counts/rev ran ~68x max_speed (what the ``open`` safe state's jump runs at), and the velocity port showed rpm x
+    m/count. 0x60A9 (0.001 rpm here) and 0x608F (4096 increments per revolution) say the unit."""
+    with Cia402Drive(5, channel, position=0, velocity_unit=MILLI_RPM, counts_per_revolution=4096) as drive:
+        h = harness(channel, max_speed=0.04)
+        h.ctx.rate = 20.0   # the set-point runs ahead of the drive: it moves at its own limit (a loaded machine too)
+        with h:
+            # 0.04 m/s = 50000 counts/s = 732.421875 rpm: rounded down to 0.001 rpm
+            assert drive.get(0x6081) == 732421
+            assert speed(drive, drive.get(0x6081)) <= 0.04
+            limit = speed(drive, 732421)
+            trace: list = []
+            drive_until(h, 0.0, lambda o: o["velocity"] == pytest.approx(-limit, rel=2e-3), trace=trace)
+            assert all(s["velocity"] >= -0.04 * (1 + 1e-9) for s in trace), [s["velocity"] for s in trace]
+
+
+def test_a_drive_without_0x608F_takes_counts_per_revolution(channel):
+    """Beckhoff's 0.0001 rpm on a drive without position encoder resolution 0x608F: counts_per_revolution gives the
+    counts per revolution; without it the start-up is refused naming both."""
+    with Cia402Drive(5, channel, position=0, velocity_unit=TENTH_MILLI_RPM, counts_per_revolution=4096,
+                     resolution_object=False) as drive:
+        configure_fails(harness(channel, max_speed=0.04),
+                        r"SI unit velocity 0x60A9 of CANopen node 5 .* is 0xFCB44700 \(0.0001 rpm\).* position "
+                        r"encoder resolution 0x608F .*SDO abort.*counts_per_revolution")
+        with harness(channel, max_speed=0.04, counts_per_revolution=4096):
+            assert drive.get(0x6081) == math.floor(50000 * 60 / 4096 * 10000)   # 7324218 (0.0001 rpm)
+
+
+def test_a_velocity_unit_the_driver_cannot_convert_is_refused_naming_0x60A9_and_what_to_set(channel):
+    with Cia402Drive(5, channel, position=0, velocity_unit=MM_PER_S) as drive:
+        configure_fails(harness(channel),
+                        r"SI unit velocity 0x60A9 of CANopen node 5 .* is 0xFD010300 \(0.001 m/s\).*revolutions "
+                        r"per minute or second.*0x00B44700 \(rpm\)")
+        assert drive.get(0x6081) == 100000   # nothing written in a unit the driver does not know
+
+
+def test_a_drive_without_0x60A9_needs_velocity_unit(channel):
+    """Where the drive has no 0x60A9 the unit is not guessed (counts/s ran an rpm drive ~68x max_speed, rpm would
+    run a counts/s drive ~68x slower and misread its velocity): velocity_unit is required."""
+    with Cia402Drive(5, channel, position=0, velocity_unit=RPM, velocity_unit_object=False,
+                     counts_per_revolution=4096) as drive:
+        configure_fails(harness(channel), r"CANopen node 5 .* has no SI unit velocity 0x60A9 \(SDO abort.*\): .*"
+                                          r"give velocity_unit")
+        with harness(channel, max_speed=0.04, velocity_unit="rpm"):
+            assert drive.get(0x6081) == 732   # 732.42 rpm, rounded down
+    with Cia402Drive(5, channel, position=0, velocity_unit_object=False) as drive:   # one count/s
+        with harness(channel, max_speed=0.04, velocity_unit="counts/s"):
+            assert drive.get(0x6081) == 50000
+
+
+def test_velocity_unit_that_disagrees_with_the_drives_0x60A9_is_refused(channel):
+    with Cia402Drive(5, channel, position=0, velocity_unit=RPM, counts_per_revolution=4096) as drive:
+        configure_fails(harness(channel, velocity_unit="counts/s"),
+                        r"velocity_unit 'counts/s' disagrees with the SI unit velocity 0x60A9 of CANopen node 5 .* "
+                        r"0x00B44700 \(rpm\)")
+        with harness(channel, max_speed=0.04, velocity_unit="1 rpm"):   # the same unit: fine
+            assert drive.get(0x6081) == 732
+
+
+def test_velocity_unit_and_counts_per_revolution_are_validated():
+    for good in ("rpm", "0.001 rpm", "1e-4 rpm", "rev/s", "counts/s", "0.1 counts/s"):
+        assert CanopenGripper.Params(velocity_unit=good).velocity_unit == good
+    for bad in ("mm/s", "rpm/s", "-1 rpm", "0 rpm", "fast"):
+        with pytest.raises(ValidationError, match=r"velocity_unit '.*' is not a velocity unit the driver converts"):
+            CanopenGripper.Params(velocity_unit=bad)
+    with pytest.raises(ValidationError, match="counts_per_revolution"):
+        CanopenGripper.Params(counts_per_revolution=0)
+
+
+def test_a_drive_found_in_fault_is_not_reset_unless_reset_fault_at_start(channel):
+    """A drive found in FAULT was reset and enabled (transition 15) with only a log line: the operator never saw
+    the fault. Refused by default, naming the error code 0x603F and how to clear it; reset_fault_at_start: true
+    lets the state walk reset it."""
+    with Cia402Drive(5, channel, position=0) as drive:
+        drive.inject_fault(0x2310)
+        configure_fails(harness(channel), r"CANopen node 5 .* is in FAULT \(statusword 0x[0-9A-F]{4}, error code "
+                                          r"0x2310, .*\): not reset.*reset_fault_at_start: true")
+        assert drive.state == "FAULT" and drive.get(0x603F) == 0x2310   # left as found
+        with harness(channel, reset_fault_at_start=True):
+            assert drive.state == "OPERATION ENABLED" and drive.get(0x603F) == 0
