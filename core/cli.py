@@ -30,7 +30,9 @@ from typing import Any, Iterator, Sequence
 from . import __version__, runtime
 from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
 from .registry import ENV_PLUGINS, Registry, default_registry
-from .runtime import EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime, _say_held
+from .runtime import (
+    EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime, _say_held, run_stopping,
+)
 
 EXIT_TERMINATED = 128 + signal.SIGTERM   # 143: the shell's code for a process ended by SIGTERM (130 is Ctrl-C)
 
@@ -325,8 +327,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                     record_error = exc
                     print(f"teletouch: error: {exc}", file=sys.stderr)
     code = result.exit_code
-    if signals and signals[0] == signal.SIGTERM and result.exit_code == EXIT_INTERRUPTED:   # not a fault that had
-        code = EXIT_TERMINATED                                                              # stopped the run before
+    # the signal the run stopped for (not one a plugin swallowed before it), where not a fault that had stopped it
+    if (result.signal or (signals[0] if signals else None)) == signal.SIGTERM and result.exit_code == EXIT_INTERRUPTED:
+        code = EXIT_TERMINATED
     if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
         code = EXIT_INVALID
     if not args.quiet:   # without the summary's first line: how the run ended, said once, last (below)
@@ -591,7 +594,7 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
             closing.append(signum)   # raised once the handlers are restored (below)
         else:
             if not first:   # those before it stopped nothing (swallowed): this one is the stop's first, its code
-                del signals[:signals.index(signum)]
+                del signals[:-1]
             raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
     old: dict[int, Any] = {}
@@ -622,36 +625,26 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
 
 def _held_here(frame: Any, handler: Any) -> bool:
     """Whether a signal after the command's first, landing in ``frame``, is held (said, raising nothing) because a stop
-    is under way. Inside a run (the innermost :meth:`Runtime.run` below it) only once that run is stopping
-    (:func:`_run_stopping`): an earlier signal that a plugin swallowed (its configure(), or its close() at start-up,
-    catching KeyboardInterrupt and carrying on) stopped nothing, so this one raises as a first does, as in a program
-    of its own (``runtime._ctrl_c_until_stopping``). Outside a run always: the command's own code, where the earlier
-    one may be its stop under way (a samples file, a recording). Nested in the handler of an earlier one (``handler``:
-    its code), always: that one stops the command."""
+    is under way. Nested in the handler of an earlier one (``handler``: its code), always: that one stops the command.
+    Inside a run (:func:`runtime.run_stopping`) only once that run is stopping, or while a KeyboardInterrupt is on its
+    way out to it (an except or finally clause handles it: cutting that short gains nothing, the run stops for it):
+    an earlier signal that a plugin swallowed (its configure(), or its close() at start-up, catching KeyboardInterrupt
+    and carrying on) stopped nothing, so this one raises as a first does, as in a program of its own
+    (``runtime._ctrl_c_until_stopping``). Outside a run always: the command's own code, where the earlier one may be
+    its stop under way (a samples file, a recording)."""
     while frame is not None:
         if frame.f_code is handler:
             return True
-        if frame.f_code is _RUN_CODE:
-            return _run_stopping(frame)
         frame = frame.f_back
-    return True
-
-
-#: the code of the run (Runtime.run's body) that a signal's frames are looked up for (see :func:`_held_here`)
-_RUN_CODE = Runtime._run.__code__
-
-
-def _run_stopping(frame: Any) -> bool:
-    """Whether the run whose frame is ``frame`` is stopping: a KeyboardInterrupt is on its way out to the run (an
-    except or finally clause handles it: cutting that short gains nothing, the run stops for it), or the run has
-    reached its shutdown (``Runtime._late`` set: it makes the devices safe with the signals held by its own
-    handlers, which note them in its result)."""
+    stopping = run_stopping()
+    if stopping is None or stopping:
+        return True
     exc, seen = sys.exc_info()[1], 0
     while exc is not None and seen < 100:   # (the one handled, and those it was raised while handling)
         if isinstance(exc, KeyboardInterrupt):
             return True
         exc, seen = exc.__context__, seen + 1
-    return getattr(frame.f_locals.get("self"), "_late", True) is not None
+    return False
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -108,6 +108,9 @@ class RunResult:
     #: the signal (SIGINT/SIGTERM number) that arrived during the safe shutdown and made the run "interrupted"
     #: (held there, so the caller's own handler never saw it); None otherwise
     late_signal: int | None = field(default=None, repr=False, compare=False)
+    #: the signal that interrupted the run (raised in it, or held in its shutdown: ``late_signal``), SIGINT for a plain
+    #: KeyboardInterrupt; None where no signal did
+    signal: int | None = field(default=None, repr=False, compare=False)
 
     @property
     def realtime_factor(self) -> float:
@@ -718,8 +721,15 @@ class Runtime:
         or until it stops, drive the devices to their safe state and close everything; the result says how it ended.
         A Ctrl-C stops the run safely (status "interrupted"); in a program without the command line's handlers a
         Ctrl-C once the run is stopping is said and held, as under the command line (:func:`_ctrl_c_until_stopping`)."""
-        with _ctrl_c_until_stopping(self._hold_ctrl_c):
-            return self._run(duration, progress, progress_interval)
+        here = threading.current_thread() is threading.main_thread()
+        if here:
+            _runs.append(self)
+        try:
+            with _ctrl_c_until_stopping(self._hold_ctrl_c):
+                return self._run(duration, progress, progress_interval)
+        finally:
+            if here:
+                _runs.remove(self)
 
     def _run(self, duration: float | None, progress: Callable[["Runtime", float], None] | None,
              progress_interval: float) -> RunResult:
@@ -767,7 +777,7 @@ class Runtime:
         except KeyboardInterrupt as exc:   # Ctrl-C, or a caller's SIGTERM handler raising one with its signum
             self._late = []   # first, before any call: a second Ctrl-C is held from here on (_hold_ctrl_c)
             interrupted, fault_first = True, self._fault_reason()
-            signum = getattr(exc, "signum", None)
+            signum = getattr(exc, "signum", None) or _SIGINT
             self._stop_evt.set()
         finally:
             # the signals held while the devices are made safe and the components closed; first, before any call
@@ -784,6 +794,10 @@ class Runtime:
             if late and not interrupted:
                 interrupted, fault_first = True, self._fault_reason()
                 late_signal = signum = late[0]
+                if _stop_signals is not None and len(_stop_signals) > len(late):
+                    # the command line's signals before these stopped nothing (a plugin swallowed them: the run
+                    # was not interrupted): the stop's first is this one, and its exit code
+                    del _stop_signals[:len(_stop_signals) - len(late)]
             if gc_frozen:
                 gc.unfreeze()
         wall = time.perf_counter() - wall0
@@ -812,7 +826,8 @@ class Runtime:
             status = (status[0], status[1], status[2] + "; devices driven to their safe state")
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
-                         startup_time=startup, error=error, late_signal=late_signal)
+                         startup_time=startup, error=error, late_signal=late_signal,
+                         signal=signum if interrupted else None)
 
     def _hold_ctrl_c(self, signum: int) -> bool:
         """Whether a Ctrl-C (:func:`_ctrl_c_until_stopping`) is held: once the run has reached its shutdown, noted
@@ -1195,6 +1210,18 @@ def _signal_text(signum: int | None) -> str:
 #: added too, so that one landing in the runtime's shutdown of a run that was ending counts as the stop's first: a
 #: later one is held as well (not raised in the command's own code after the run), and the exit code is the first's
 _stop_signals: list[int] | None = None
+
+_SIGINT = 2   # signal.SIGINT on every platform Python runs on (signal is imported where it is used)
+
+#: the runs under way in the main thread (where signal handlers run), innermost last: see :func:`run_stopping`
+_runs: list["Runtime"] = []
+
+
+def run_stopping() -> bool | None:
+    """Whether the innermost run under way in the main thread is stopping: it has reached its shutdown (or a
+    Ctrl-C has stopped it), where it holds signals itself; None where no run is under way. For a signal handler of
+    the process (the command line's) to tell a run that a signal may still stop from one already stopping."""
+    return (_runs[-1]._late is not None) if _runs else None
 
 
 def _say_held(signum: int) -> None:

@@ -249,3 +249,90 @@ def test_a_signal_while_the_first_is_on_its_way_out_of_a_start_up_is_held(tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"teletouch: SIGTERM: {HELD}",
                    "teletouch: interrupted (Ctrl-C): devices driven to their safe state"], err
+
+
+#: a plugin whose configure() swallows the first signal and goes on (no long load): the run then runs and stops on
+#: its own, and the second signal lands in the shutdown (the device's safe_state waits for it)
+PLUGIN_LATE = '''
+import sys, time
+
+from teletouch import Component, Device, Kind, Port, hookimpl
+
+
+def say(text):
+    print("s17: " + text, file=sys.stderr, flush=True)
+
+
+class Lingers(Device):
+    name = "s17-lingers"
+    inputs = {"command": Port("float64", (), "", required=False)}
+
+    def step(self, t, inputs):
+        return {}
+
+    def safe_state(self):
+        say("safe state")
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and not getattr(self, "told", False):
+            time.sleep(0.01)   # the signal, held by the runtime's shutdown, cannot raise here
+
+    def close(self):
+        say("closed")
+
+
+class Swallows(Component):
+    name = "s17-swallows-once"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "")}
+
+    def configure(self):
+        try:
+            say("waiting for a signal")
+            time.sleep(60)
+        except KeyboardInterrupt:
+            say("swallowed one")
+
+    def step(self, t, inputs):
+        return {"y": 0.0}
+
+
+@hookimpl
+def teletouch_components():
+    return [Lingers, Swallows]
+'''
+
+
+def test_the_signal_held_in_the_shutdown_after_a_swallowed_one_gives_the_exit_code(tmp_path):
+    """A review found: Ctrl-C swallowed at start-up, then SIGTERM as the devices are made safe: stderr said SIGTERM
+    but the exit code was the swallowed Ctrl-C's 130."""
+    (tmp_path / "s17_late.py").write_text(PLUGIN_LATE)
+    graph = tmp_path / "g.yaml"
+    graph.write_text("clock: sim\nnodes:\n  - {id: dev, plugin: s17-lingers, rate: 100}\n"
+                     "  - {id: a, plugin: s17-swallows-once, rate: 100}\n")
+    env = dict(os.environ, PYTHONUNBUFFERED="1", TELETOUCH_DISABLE_PLUGIN_AUTOLOAD="1",
+               TELETOUCH_PLUGINS="teletouch.mock,s17_late",
+               PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    p = subprocess.Popen([sys.executable, "-c", PROGRAM, "run", str(graph), "--duration", "0.5", "--quiet"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    seen: list[str] = []
+    try:
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        while (line := lines.get(timeout=120)) is not None:
+            seen.append(line)
+            if "s17: waiting for a signal" in line:
+                p.send_signal(signal.SIGINT)
+            elif "s17: safe state" in line:
+                p.send_signal(signal.SIGTERM)
+                break
+        got = p.wait(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=60)
+    while (line := lines.get(timeout=60)) is not None:
+        seen.append(line)
+    err = "".join(seen)
+    assert "s17: swallowed one" in err and "s17: closed" in err, err[-3000:]
+    assert err.splitlines()[-1] == "teletouch: interrupted (SIGTERM): devices driven to their safe state", err[-3000:]
+    assert got == EXIT_TERMINATED, (got, err[-3000:])
