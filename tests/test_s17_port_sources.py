@@ -209,11 +209,27 @@ def test_another_depth_model_with_the_packaged_calibration_is_refused_by_validat
         assert f"to make them match: on node 'force', {HOW_FORCE}; or on node 'depth', " in e, e
 
 
-def _calibration(path: Path, sensor_model_id: str) -> str:
-    """A force calibration fitted on a made-up curve, recording ``sensor_model_id``, saved to ``path``."""
+def _calibration(path: Path, sensor_model_id: str, depth_source: str = "depth.max_depth (depth)") -> str:
+    """A force calibration fitted on a made-up curve, recording ``sensor_model_id`` and where its depth came from
+    (as `teletouch calibrate force` does: a depth node's max_depth unless said), saved to ``path``."""
     d = np.linspace(5e-5, 1.5e-3, 40)
-    cal = ForceCalibration.fit(d, 4000.0 * d + 1e6 * d ** 2, degree=2, sensor_model_id=sensor_model_id)
+    cal = ForceCalibration.fit(d, 4000.0 * d + 1e6 * d ** 2, degree=2, sensor_model_id=sensor_model_id,
+                               depth_source=depth_source)
     return str(cal.save(path))
+
+
+def test_a_calibration_whose_depth_came_through_another_node_ties_nothing(capsys, tmp_path):
+    """A review found: a press routine reading a filter (or any node but depth) records the sensor as the model;
+    such a calibration was refused beside every depth node, and its error called 'sim-digit' a depth model."""
+    graph = load_graph(CALIBRATE_SIM)
+    assert _sensor_model_id(graph)[1] == "depth.max_depth (depth)"
+    cal = _calibration(tmp_path / "filtered.force.json", "sim-digit", "lp.y (mock-gain)")
+    assert PolyForce.port_sources(PolyForce.Params(calibration=cal)) == {}
+    code, err = _validate(capsys, PAPER_SIM, f"force.calibration={cal}")
+    assert code == 0, err
+    # force.depth_model still checks it where the user says which model it was made for
+    code, err = _validate(capsys, PAPER_SIM, f"force.calibration={cal}", "force.depth_model=sim-digit-qvga")
+    assert code == 1 and "made for 'sim-digit'" in err, err
 
 
 def test_a_calibration_made_for_that_model_passes(capsys, models, tmp_path):

@@ -1211,6 +1211,10 @@ def _deepest(doc: dict[str, Any]) -> float | None:
     return float(dr[1]) if isinstance(dr, list) and len(dr) == 2 and _finite(dr[1]) else None
 
 
+#: the depth estimator whose max depth a calibration's ``depth_source`` names (``"NODE.PORT (depth)"``): its model is
+#: what the calibration was made for (PolyForce.port_sources)
+DEPTH_PLUGIN = "depth"
+
 #: what poly-force's ``depth_model`` must name
 EXPECTED_DEPTH_MODEL = ("depth_model must name the depth node's `model`: an existing depth model file or a packaged "
                         "model's name")
@@ -1362,10 +1366,16 @@ class PolyForce(Component):
     def port_sources(cls, params: Any) -> dict[str, tuple]:
         """The max depth the calibration takes is the depth model's it was made for (its ``sensor_model_id``, by
         name: folders and '.model' left out, as the depth node gives its own): a depth node of another model wired
-        to ``max_depth`` is refused when the graph is validated, whether or not ``depth_model`` is set. A calibration
-        that records no model (an old one, a CSV fitted without --sensor-model-id) ties nothing."""
+        to ``max_depth`` is refused when the graph is validated, whether or not ``depth_model`` is set. Only where the
+        calibration's depth came from a `depth` node (its ``depth_source`` says so, as `teletouch calibrate force`
+        records it): one whose press routine read another node (a filter in between: then it records the sensor), a
+        CSV fitted with any --sensor-model-id, an old file without the record, tie nothing (``depth_model`` still
+        checks them)."""
         path = resolve_calibration(params.calibration)
-        made_for = check_calibration_file(str(path)).get("sensor_model_id")
+        doc = check_calibration_file(str(path))
+        made_for, source = doc.get("sensor_model_id"), doc.get("depth_source")
+        if not (isinstance(source, str) and source.endswith(f"({DEPTH_PLUGIN})")):
+            return {}
         identity = _model_name(made_for) if isinstance(made_for, str) else ""
         if not identity:
             return {}
