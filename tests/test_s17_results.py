@@ -128,3 +128,30 @@ def test_a_quiet_run_prints_no_results(capsys):
 
     assert main(["run", str(ROOT / "examples" / "paper-sim.yaml"), "--duration", "0.5", "--quiet"]) == 0
     assert "results:" not in capsys.readouterr().err
+
+
+def test_contact_time_counts_only_fresh_estimates():
+    """A review found: the held estimate of a stale force kept counting as contact (0.5 s of 1 N, then stale until
+    2 s: contact_time 1.999 s). Here stale until 1 s (fault_after_lost ends the run 0.5 s after the loss)."""
+    from teletouch.plugins.controllers.position_force import PositionForce
+    from teletouch.testing import Harness
+
+    with Harness(PositionForce, {}) as h:
+        t = 0.0
+        while t < 1.0:
+            force = {"force": 1.0} if t < 0.5 else {}
+            h.step(t, leader_opening=0.02, follower_opening=0.02, **force)
+            t = round(t + 0.001, 6)
+        r = h.comp.results()
+    assert r["peak_force_n"] == pytest.approx(1.0)
+    assert 0.45 < r["contact_time_s"] < 0.65, r   # fresh for stale_after (0.1 s) after the last estimate at most
+
+
+def test_position_position_says_no_sensed_force():
+    """Its force is its PD coupling's: as peak_force it read 0.53 N while the object was squeezed with 5.3 N."""
+    rt = Runtime(load_graph(str(ROOT / "examples" / "paper-sim.yaml"), sets=["controller.plugin=position-position"],
+                            duration=3.0), log=lambda m: None)
+    res = rt.run()
+    r = {n.id: n.results for n in res.nodes}["controller"]
+    assert "peak_force_n" not in r and "contact_time_s" not in r and r["peak_feedback_n"] > 0.0, r
+    assert "mean_position_error_m" in r

@@ -147,11 +147,13 @@ class RunFigures:
     error_sum: float = 0.0         # m x steps, |follower - its target|
     error_max: float = 0.0
     error_steps: int = 0
+    sensed_steps: int = 0          # steps with a fresh sensed force
 
     def add(self, dt: float, sensed: float, feedback: float, target: float, follower: float) -> None:
         """One step: ``dt`` (s) since the last, the sensed force and the feedback force (N), the follower's target
         and its opening (m; NaN where one is not known)."""
         if math.isfinite(sensed):
+            self.sensed_steps += 1
             self.peak_force = max(self.peak_force, sensed)
             if sensed > 0.0:
                 self.contact_time += dt
@@ -164,8 +166,12 @@ class RunFigures:
             self.error_steps += 1
 
     def results(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"peak_force_n": self.peak_force, "peak_feedback_n": self.peak_feedback,
-                               "contact_time_s": self.contact_time}
+        out: dict[str, Any] = {}
+        if self.sensed_steps:
+            out["peak_force_n"] = self.peak_force
+        out["peak_feedback_n"] = self.peak_feedback
+        if self.sensed_steps:
+            out["contact_time_s"] = self.contact_time
         if self.error_steps:
             out["mean_position_error_m"] = self.error_sum / self.error_steps
             out["max_position_error_m"] = self.error_max
@@ -757,7 +763,7 @@ class _Bilateral(Component):
         if not math.isfinite(alpha):
             alpha = 0.0
         self.damping = alpha
-        self.figures.add(dt, self.force_held, f, self._target if self.leader_ok and follower_ok else math.nan, self.x_f)
+        self.figures.add(dt, self._sensed(), f, self._target if self.leader_ok and follower_ok else math.nan, self.x_f)
         out: dict[str, float] = {"gripper_force": f, "energy": self.pas.energy, "damping": alpha}
         if self.command is not None:
             out["opening_command"] = self.command
@@ -775,10 +781,17 @@ class _Bilateral(Component):
             "damping_n_s_per_m": self.damping,
         }
 
+    def _sensed(self) -> float:
+        """The sensed force (N) this step took fresh, for the results; NaN where it took none (a stale estimate, or a
+        law without one: position-position's force is its coupling's)."""
+        return math.nan
+
     def results(self) -> dict[str, Any]:
         """What the run achieved: the peak sensed force and the peak force rendered to the hand, how long the sensor
-        felt a contact, and how far the follower was from the opening the leader asked for (x_fd = x_l mapped, at
-        steps where both openings were known; in contact, how far the leader went into the object)."""
+        felt a contact (steps with a fresh estimate above zero), and how far the follower was from the opening the
+        leader asked for (x_fd = x_l mapped, at steps where both openings were known; in contact, how far the leader
+        went into the object). A law that takes no sensed force (position-position) says no peak force nor contact
+        time."""
         return self.figures.results()
 
 
@@ -975,6 +988,9 @@ class PositionForce(_Bilateral):
         d["contact_stiffness_n_per_m"] = getattr(self, "k_hat", 0.0)     # learnt by the prediction
         return d
 
+    def _sensed(self) -> float:
+        return self.force_held if self.force_state == "ok" else math.nan   # (stale, bad: fading, not sensed)
+
     def _fade(self, t: float) -> None:
         if not self.fading:
             self.fading = True
@@ -1052,6 +1068,11 @@ class PositionPosition(_Bilateral):
         return f
 
 
+#: how old a no-feedback controller's force input may be to count as sensed in its results (s; position-force's
+#: default stale_after)
+NO_FEEDBACK_STALE_AFTER = 0.1
+
+
 class NoFeedback(_Bilateral):
     """No force feedback: the follower tracks the leader, the operator feels nothing."""
 
@@ -1059,11 +1080,17 @@ class NoFeedback(_Bilateral):
     inputs = dict(_IN, force=Port("float64", (), "N", "sensed force (shown in the status only)", required=False))
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
+        s = inputs["force"]
         f = finite_or(inputs.value("force"), 0.0)
         self.force_held = f
+        # sensed (for the results) while the estimate is as fresh as position-force's default stale_after
+        self.fresh_force = s is not None and self._fresh(s, t, NO_FEEDBACK_STALE_AFTER)
         if self.leader_ok:
             self.state = "ok"
         return 0.0
+
+    def _sensed(self) -> float:
+        return self.force_held if getattr(self, "fresh_force", False) else math.nan
 
 
 @hookimpl
