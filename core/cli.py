@@ -93,11 +93,12 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     names = list(getattr(args, "names", None) or [])
     if names:
         keys = ("name", "plugin", "distribution")
-        unknown = [n for n in names if not any(r.get(k) == n for r in rows for k in keys)]
+        bare = {p.name for p in reg.plugins.values()}   # (also a plugin with commands only: listed below)
+        unknown = [n for n in names if n not in bare and not any(r.get(k) == n for r in rows for k in keys)]
         if unknown:
             from .graph import _suggest
 
-            known = {str(r.get(k)) for r in rows for k in keys if r.get(k)}
+            known = {str(r.get(k)) for r in rows for k in keys if r.get(k)} | bare
             for n in unknown:
                 print(f"teletouch: no component, plugin or distribution named {n!r}{_suggest(n, known)}"
                       + (f" ({note})" if off else "; `teletouch plugins` lists them all"), file=sys.stderr)
@@ -135,13 +136,15 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             print(f"    .  {prm['name']:<16} = {prm['default']!r}{unit}   {prm.get('description', '')}")
         print()
     others = [f"{p.name} ({p.origin}: {', '.join(h.removeprefix('teletouch_') for h in p.hooks) or 'nothing'})"
-              for p in reg.plugins.values() if not (p.components or p.error or p.blocked)]
-    if others and not names:
+              for p in reg.plugins.values() if not (p.components or p.error or p.blocked) and (
+                  not names or p.name in names)]
+    if others:
         print("plugins without components: " + ", ".join(others))
     if off:
         print(note)
-    if problems:   # each is in the list above or was warned about on stderr
-        print(f"teletouch: {len(problems)} plugin problem(s); exit status {status}", file=sys.stderr)
+    if problems:   # each is in the list above or was warned about on stderr (a filtered list may not show it)
+        where = "; `teletouch plugins` lists them" if names else ""
+        print(f"teletouch: {len(problems)} plugin problem(s){where}; exit status {status}", file=sys.stderr)
     return status
 
 
