@@ -142,7 +142,7 @@ def test_a_drive_found_enabled_is_not_switched_off_at_start_up(channel):
 
 def test_a_fault_found_at_start_up_is_reported_before_it_is_reset(channel):
     """A drive found in FAULT at start-up is reset by the state walk (fault reset, controlword bit 7) when
-    reset_fault_at_start says so (by default it is refused: tests/test_s17_canopen_units.py): its error code 0x603F
+    reset_fault_at_start says so (by default it is refused: tests/test_canopen_units.py): its error code 0x603F
     is logged first (it was erased without a word)."""
     with RecordingDrive(5, channel, position=0) as drive:
         drive.inject_fault(0x2310)

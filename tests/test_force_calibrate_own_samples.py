@@ -2,9 +2,9 @@
 writes no calibration and marks its own samples CSV partial. The routine's own ``samples_csv`` was left as the routine
 wrote it when it finished, unmarked: `--csv` fitted it without a word. Now it is marked partial with the same reason,
 and `--csv` refuses it saying the samples may be stale (before, it said "a run that did not finish may lack the deeper
-steps", untrue of a run that finished). The graph is test_s16_calforce_faults's: a spare mock-sensor that the routine
+steps", untrue of a run that finished). The graph is test_force_calibrate_faults's: a spare mock-sensor that the routine
 reads as its reference depth faults at t = 6 s, before 8 of its 13 samples; the routine is blinded to it (a fault it
-could not see at its step: seen, it aborts at once, test_s17_feeders_lost)."""
+could not see at its step: seen, it aborts at once, test_runtime_disabled_upstream)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_s16_calforce_faults import _graph, blind_routine  # noqa: E402
+from test_force_calibrate_faults import _graph, blind_routine  # noqa: E402
 
 from teletouch.cli import main  # noqa: E402
 from teletouch.plugins.estimators.poly_force import read_pairs_csv  # noqa: E402

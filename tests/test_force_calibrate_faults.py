@@ -3,8 +3,9 @@ calibration and exited 0, saying nothing of the fault. Now it says each fault on
 with the run's code (3, as `teletouch run` gives that run). The calibration is written when no fault reached the
 samples (a node the routine does not read, or one disabled after the last sample); a node that feeds the routine and
 was disabled before a sample was recorded may have left stale values in it: no calibration then, and the samples CSV
-is marked partial, naming the fault (the routine itself aborts on such a fault at its next step, test_s17_feeders_lost;
-this check after the run is for one it could not see: here the routine is blinded to it).
+is marked partial, naming the fault (the routine itself aborts on such a fault at its next step,
+test_runtime_disabled_upstream; this check after the run is for one it could not see: here the routine is blinded to
+it).
 
 These graphs are the fast press graph of test_force_calibration (1 cycle, 13 samples recorded at t = 3.4 ... 10.8 s,
 done at t = 11.8 s under the simulated clock) with a mock-sensor that faults at ``fail_at`` (on_fault: degrade)."""
@@ -91,7 +92,8 @@ def test_calibrate_force_fault_after_the_last_sample_of_a_node_the_routine_reads
 def blind_routine(monkeypatch) -> None:
     """The routine does not see a node feeding it disabled (Context.disabled_upstream says none), as with a fault it
     cannot see at its step (one in another rate group at the same instant, under the wall clock): the command's check
-    after the run (_spoiled_samples) is then what finds it. Seen, the routine aborts at once: test_s17_feeders_lost."""
+    after the run (_spoiled_samples) is then what finds it. Seen, the routine aborts at once:
+    test_runtime_disabled_upstream."""
     from teletouch.component import Context
 
     monkeypatch.setattr(Context, "disabled_upstream", lambda self: [])

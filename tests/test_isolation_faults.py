@@ -1,6 +1,6 @@
 """A fault of an isolated node (``isolate: process``) keeps what a fault of an inline node carries across the process
 boundary: its type and message, its place in the plugin (``where``) and the input it is about (``input_port``), so
-that the runtime still adds which node and port feed that input (test_s16_faults_upstream.py, inline)."""
+that the runtime still adds which node and port feed that input (test_faults_upstream.py, inline)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from teletouch.isolation import ProcessProxy
 from teletouch.runtime import EXIT_FAULT
 from teletouch.testing import make_registry, run_yaml
 
-HERE = "test_s16_isolation_faults.py:"
+HERE = "test_isolation_faults.py:"
 
 
 # --- a plugin of our own (module level: the child imports it by name, as it does a plugin's) --------------------------

@@ -178,7 +178,7 @@ def test_an_exception_in_the_childs_warm_faults_the_node_naming_warm(reg):
     (f,) = [f for f in res.faults if f.node == "warmed"]
     assert f.kind == "exception" and f.message.startswith(
         "warm(): ComponentFault: in isolated process: RuntimeError: cache rehearsal failed in the child"), f
-    assert "test_isolation_s15_warm.py:" in f.message, f   # its place in the child
+    assert "test_isolation_warm.py:" in f.message, f   # its place in the child
     assert res.sim_time < 1.0 and rt.component("dev").safe_calls >= 1
     assert rt.component("warmed")._proc.exitcode == 0   # the child lived on and was closed
 

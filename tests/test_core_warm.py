@@ -2,7 +2,7 @@
 steps, in its rate group's thread, so that a slow estimator's step finds its data in the CPU's caches; never under the
 simulated clock, for a device or in a fast group (period under 5 x WARM_LEAD); an exception in it faults the node as
 one in its step does. The depth node's warm() rehearses its last new frame without changing any output. (An isolated
-node's warm-up: tests/test_isolation_s15_warm.py.)"""
+node's warm-up: tests/test_isolation_warm.py.)"""
 
 from __future__ import annotations
 

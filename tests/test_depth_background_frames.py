@@ -4,7 +4,7 @@ A single recorded frame carries its own noise into every difference, so the cali
 higher (VGA: 40 levels with frame_49 against 27-31 with the presses' median) and light touches needed more colour
 change. `--background` now takes several frames (repeated, several paths, a folder): their per-pixel median. These
 tests check the median itself (exact), the loader's errors (each names its file), the CLI and the model file's
-record of the background; tests/test_s12_bg_threshold.py checks that the median lowers the threshold."""
+record of the background; tests/test_depth_background_threshold.py checks that the median lowers the threshold."""
 
 from __future__ import annotations
 

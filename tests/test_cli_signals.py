@@ -118,7 +118,7 @@ def test_a_sigterm_after_a_ctrl_c_in_an_experiment_keeps_ctrl_c_s_exit_code(tmp_
 @pytest.mark.parametrize("after", [signal.SIGINT, signal.SIGTERM])
 def test_a_second_signal_while_the_process_exits_keeps_its_exit_code(tmp_path, after):
     # before: -2 (a KeyboardInterrupt traceback) or -15: Python's shutdown (torch's clean-up) takes ~0.5 s; it may now
-    # end the process sooner, with the command's code (test_s16_signals_after_stop.py)
+    # end the process sooner, with the command's code (test_signals_after_stop.py)
     program = _program(("teletouch.runtime:Runtime._run_sim", signal.SIGINT, "True"), after=after)
     got, err = _signalled(program, ["experiment", "pivot", "--trials", "8", "--out", str(tmp_path)], tmp_path)
     assert got == EXIT_INTERRUPTED, err[-3000:]

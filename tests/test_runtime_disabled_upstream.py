@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_force_calibration import graph  # noqa: E402
-from test_s16_calforce_faults import _graph  # noqa: E402
+from test_force_calibrate_faults import _graph  # noqa: E402
 
 from teletouch import Component, Kind, Port, hookimpl  # noqa: E402
 from teletouch.cli import main  # noqa: E402

@@ -21,7 +21,7 @@ from teletouch.runtime import EXIT_INTERRUPTED, Runtime
 from teletouch.testing import make_registry
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_cli_s15_signals import HELD, REPO, _program, _signalled  # noqa: E402
+from test_cli_signals import HELD, REPO, _program, _signalled  # noqa: E402
 
 
 # --- as programs: the first signal lands in the runtime's shutdown of a run that was ending ---------------------------

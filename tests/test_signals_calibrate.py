@@ -15,7 +15,7 @@ from teletouch.cli import EXIT_TERMINATED
 from teletouch.runtime import EXIT_INTERRUPTED
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_cli_s15_signals import HELD, REPO, _program, _signalled  # noqa: E402
+from test_cli_signals import HELD, REPO, _program, _signalled  # noqa: E402
 
 NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
 
