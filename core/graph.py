@@ -766,17 +766,18 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                      realtime_priority=rt_prio, warnings=_isolation_warnings(nodes, clock_v, file))
 
 
-def _fixed_shapes(n: NodeSpec) -> dict[str, tuple[tuple[int | None, ...], str, str]]:
-    """Node ``n``'s :meth:`Component.port_shapes` as {port: (shape, why, how)} (``how`` "" where not given); none
-    where its plugin or parameters are unknown. TypeError or ValueError saying what is wrong with what the plugin
-    returned: a name that is no port of it, a shape that is no tuple of sizes or does not fit its port."""
-    check = getattr(n.cls, "port_shapes", None)
+def _declared(n: NodeSpec, method: str, what: str) -> list[tuple[str, Any, tuple]]:
+    """What node ``n``'s classmethod ``method`` (port_shapes, port_sources) declares for its ports: (port, the Port,
+    the entry) each, the entry a tuple (``what``, why) or (``what``, why, how) with why and how text; none where its
+    plugin or parameters are unknown. TypeError or ValueError saying what is wrong with what the plugin returned: no
+    dict, a name that is no port of it, an entry of another form."""
+    check = getattr(n.cls, method, None)
     if n.cls is None or check is None or n.params_obj is None:
-        return {}
+        return []
     got = check(n.params_obj)
     if not isinstance(got, dict):
-        raise TypeError(f"returned {type(got).__name__}, expected a dict of port: (shape, why)")
-    out = {}
+        raise TypeError(f"returned {type(got).__name__}, expected a dict of port: ({what}, why)")
+    out = []
     for port, entry in got.items():
         declared = n.cls.inputs.get(port) or n.cls.outputs.get(port)
         if declared is None:
@@ -785,14 +786,23 @@ def _fixed_shapes(n: NodeSpec) -> dict[str, tuple[tuple[int | None, ...], str, s
                              f"{', '.join(ports) or '(none)'}")
         if (not isinstance(entry, tuple) or len(entry) not in (2, 3)
                 or not all(isinstance(t, str) for t in entry[1:])):
-            raise TypeError(f"port '{port}': expected (shape, why) or (shape, why, how), got {entry!r}")
-        shape = entry[0]
+            raise TypeError(f"port '{port}': expected ({what}, why) or ({what}, why, how), got {entry!r}")
+        out.append((port, declared, entry if len(entry) == 3 else (*entry, "")))
+    return out
+
+
+def _fixed_shapes(n: NodeSpec) -> dict[str, tuple[tuple[int | None, ...], str, str]]:
+    """Node ``n``'s :meth:`Component.port_shapes` as {port: (shape, why, how)} (``how`` "" where not given); none
+    where its plugin or parameters are unknown. TypeError or ValueError saying what is wrong with what the plugin
+    returned (:func:`_declared`; a shape that is no tuple of sizes or does not fit its port)."""
+    out = {}
+    for port, declared, (shape, why, how) in _declared(n, "port_shapes", "shape"):
         if not isinstance(shape, tuple) or not all(
                 d is None or (isinstance(d, int) and not isinstance(d, bool) and d >= 0) for d in shape):
             raise TypeError(f"port '{port}': shape {shape!r}, expected a tuple of sizes (int >= 0 or None)")
         if declared.shape is not None and shapes_differ(declared.shape, shape):
             raise ValueError(f"port '{port}': shape {shape!r} does not fit the port ({declared.describe()})")
-        out[port] = (shape, entry[1], entry[2] if len(entry) == 3 else "")
+        out[port] = (shape, why, how)
     return out
 
 
@@ -833,24 +843,12 @@ def _size_clash(src: NodeSpec, out_port: str, src_fixed: dict[str, tuple], dst: 
 def _port_sources(n: NodeSpec) -> dict[str, tuple[str, str, str]]:
     """Node ``n``'s :meth:`Component.port_sources` as {port: (identity, why, how)} (``how`` "" where not given); none
     where its plugin or parameters are unknown. TypeError or ValueError saying what is wrong with what the plugin
-    returned: a name that is no port of it, an entry that is no (identity, why) of strings, an empty identity."""
-    check = getattr(n.cls, "port_sources", None)
-    if n.cls is None or check is None or n.params_obj is None:
-        return {}
-    got = check(n.params_obj)
-    if not isinstance(got, dict):
-        raise TypeError(f"returned {type(got).__name__}, expected a dict of port: (identity, why)")
+    returned (:func:`_declared`; an identity that is no text, or empty)."""
     out = {}
-    for port, entry in got.items():
-        if port not in n.cls.inputs and port not in n.cls.outputs:
-            ports = [*n.cls.inputs, *n.cls.outputs]
-            raise ValueError(f"'{port}' is not a port of {n.plugin}{_suggest(str(port), ports)}; ports: "
-                             f"{', '.join(ports) or '(none)'}")
-        if (not isinstance(entry, tuple) or len(entry) not in (2, 3) or not all(isinstance(t, str) for t in entry)
-                or not entry[0]):
-            raise TypeError(f"port '{port}': expected (identity, why) or (identity, why, how), strings and the "
-                            f"identity not empty, got {entry!r}")
-        out[port] = (entry[0], entry[1], entry[2] if len(entry) == 3 else "")
+    for port, _, (identity, why, how) in _declared(n, "port_sources", "identity"):
+        if not isinstance(identity, str) or not identity:
+            raise TypeError(f"port '{port}': identity {identity!r}, expected a non-empty string")
+        out[port] = (identity, why, how)
     return out
 
 

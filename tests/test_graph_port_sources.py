@@ -171,7 +171,10 @@ def test_a_source_check_returning_nonsense_is_reported_as_failed(reg, monkeypatc
     assert "'valeu' is not a port of s17-maker" in errs[0], errs
     monkeypatch.setattr(_Maker, "port_sources", classmethod(lambda cls, params: {"value": ("", "x")}))
     errs = _errors(_graph("a", "b"), reg)
-    assert len(errs) == 1 and "port 'value': expected (identity, why)" in errs[0], errs
+    assert len(errs) == 1 and "port 'value': identity '', expected a non-empty string" in errs[0], errs
+    monkeypatch.setattr(_Maker, "port_sources", classmethod(lambda cls, params: {"value": ("a",)}))
+    errs = _errors(_graph("a", "b"), reg)
+    assert len(errs) == 1 and "port 'value': expected (identity, why) or (identity, why, how)" in errs[0], errs
 
 
 # --------------------------------------------------------------------------------------------- depth and poly-force
