@@ -9,10 +9,11 @@ import queue
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
+
+from helpers_signals import stderr_lines
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fakes.plugin_dists import estimator_source, make_dist  # noqa: E402
@@ -124,12 +125,6 @@ def test_unknown_name_on_both_settings_names_both():
 
 
 # --- 3. SIGTERM ------------------------------------------------------------------------------------------------------
-def _lines(stream, out: queue.Queue) -> None:
-    for line in stream:
-        out.put(line)
-    out.put(None)
-
-
 def _wait_for(lines: queue.Queue, seen: list[str], predicate, timeout: float = 120.0) -> bool:
     """Read lines (kept in ``seen``) until one satisfies ``predicate``; False at the end of the stream. Bounded by
     ``timeout`` per line."""
@@ -158,8 +153,7 @@ def test_sigterm_ends_a_run_with_143_after_the_safe_stop_and_prints_the_summary(
                           "--progress-interval", "0.1", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          text=True, env=_env(), cwd=REPO)
     try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        lines = stderr_lines(p)
         seen: list[str] = []
         assert _wait_for(lines, seen, lambda s: s.startswith("t=")), "".join(seen)   # the live view: running
         os.kill(p.pid, sig)

@@ -8,14 +8,14 @@ is the first signal's."""
 from __future__ import annotations
 
 import os
-import queue
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
+
+from helpers_signals import stderr_lines
 
 from teletouch import Component, Device, Kind, Port, hookimpl
 from teletouch.cli import EXIT_TERMINATED, main
@@ -53,12 +53,6 @@ def _program(*patches: tuple[str, signal.Signals, str], after: signal.Signals | 
     return "\n".join(lines) + "\n"
 
 
-def _lines(stream, out: queue.Queue) -> None:
-    for line in stream:
-        out.put(line)
-    out.put(None)
-
-
 def _signalled(program: str, args: list[str], cwd: Path, marker: str = "",
                first: signal.Signals = signal.SIGINT) -> tuple[int, str]:
     """Run ``program`` with ``args`` (and, given a ``marker``, send ``first`` once it shows on stderr: the test fails
@@ -68,8 +62,7 @@ def _signalled(program: str, args: list[str], cwd: Path, marker: str = "",
                          text=True, env=env, cwd=cwd)
     seen: list[str] = []
     try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        lines = stderr_lines(p)
         sent = not marker
         while (line := lines.get(timeout=120)) is not None:
             seen.append(line)

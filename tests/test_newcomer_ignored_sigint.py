@@ -6,14 +6,14 @@ to stop it (SIGTERM); a quick command (validate, plugins, ...) and a caller of m
 from __future__ import annotations
 
 import os
-import queue
 import signal
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
+
+from helpers_signals import stderr_lines
 
 from teletouch.cli import EXIT_TERMINATED, main
 from teletouch.testing import make_registry
@@ -28,12 +28,6 @@ nodes:
 SIM = WALL.replace("clock: wall", "clock: sim")
 
 
-def _lines(stream, out: queue.Queue) -> None:
-    for line in stream:
-        out.put(line)
-    out.put(None)
-
-
 def test_a_run_started_with_sigint_ignored_says_so_and_stops_on_sigterm(tmp_path):
     graph = tmp_path / "g.yaml"
     graph.write_text(WALL)
@@ -44,8 +38,7 @@ def test_a_run_started_with_sigint_ignored_says_so_and_stops_on_sigterm(tmp_path
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))   # as `cmd &` in a script
     seen: list[str] = []
     try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        lines = stderr_lines(p)
         while (line := lines.get(timeout=120)) is not None:
             seen.append(line)
             if "SIGINT is ignored" in line:

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import json
 import os
-import queue
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
+
+from helpers_signals import stderr_lines
 
 from teletouch.cli import EXIT_TERMINATED
 from teletouch.runtime import EXIT_INTERRUPTED
@@ -49,19 +49,12 @@ sys.exit(code)
 """
 
 
-def _lines(stream, out: queue.Queue) -> None:
-    for line in stream:
-        out.put(line)
-    out.put(None)
-
-
 def _signalled_in_its_hang(p: subprocess.Popen, sig: signal.Signals) -> tuple[int | None, float, str]:
     """Wait until ``p`` says it hangs on its way out (:data:`MARKER` on stderr), send it ``sig``: (its exit code, or
     None when it was still running 20 s later; seconds from the signal to its end; its stderr up to the hang)."""
     seen: list[str] = []
     try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        lines = stderr_lines(p)
         while (line := lines.get(timeout=120)) is not None and MARKER not in line:
             seen.append(line)
         assert line is not None, "".join(seen)[-3000:]   # it reached its hang

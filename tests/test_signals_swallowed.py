@@ -8,15 +8,15 @@ its own does (runtime._ctrl_c_until_stopping); the signal that stops it gives th
 from __future__ import annotations
 
 import os
-import queue
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
+
+from helpers_signals import stderr_lines
 
 from teletouch import Component, Device, Kind, Port, hookimpl
 from teletouch.cli import EXIT_TERMINATED, main
@@ -124,12 +124,6 @@ sys.exit(main())
 """
 
 
-def _lines(stream, out: queue.Queue) -> None:
-    for line in stream:
-        out.put(line)
-    out.put(None)
-
-
 def _run_signalled(tmp_path: Path, where: str, first: signal.Signals,
                    second: signal.Signals) -> tuple[int | None, float, str]:
     """`teletouch run` of the graph: ``first`` once a node waits for it, ``second`` once the start-up goes on after
@@ -145,8 +139,7 @@ def _run_signalled(tmp_path: Path, where: str, first: signal.Signals,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
     seen: list[str] = []
     try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        lines = stderr_lines(p)
         sent = None
         while sent is None and (line := lines.get(timeout=120)) is not None:
             seen.append(line)
@@ -316,8 +309,7 @@ def test_the_signal_held_in_the_shutdown_after_a_swallowed_one_gives_the_exit_co
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
     seen: list[str] = []
     try:
-        lines: queue.Queue = queue.Queue()
-        threading.Thread(target=_lines, args=(p.stderr, lines), daemon=True).start()
+        lines = stderr_lines(p)
         while (line := lines.get(timeout=120)) is not None:
             seen.append(line)
             if "s17: waiting for a signal" in line:
