@@ -733,31 +733,22 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             where = n.inputs[port].where if port in n.inputs else read.get(port, n.where)
             err(f"node '{n.id}': {why}", where)
 
-    # the shapes the nodes' parameters fix (Component.port_shapes), e.g. a camera's image size and a depth model's
-    fixed: dict[str, dict[str, tuple[tuple[int | None, ...], str, str]]] = {}
-    for n in nodes:
-        try:
-            fixed[n.id] = _fixed_shapes(n)
-        except Exception as exc:   # a plugin's check must not hide the graph's other errors
-            err(f"node '{n.id}': the port size check of {n.plugin} failed: {type(exc).__name__}: {exc}", n.where)
-            fixed[n.id] = {}
-    for n, port, w, src in matched:
-        clash = _size_clash(src, w.source_port, fixed[src.id], n, port, fixed[n.id])
-        if clash:
-            err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {clash}", w.where)
-
-    # what the values are tied to (Component.port_sources), e.g. a depth model and a force calibration made for one
-    tied: dict[str, dict[str, tuple[str, str, str]]] = {}
-    for n in nodes:
-        try:
-            tied[n.id] = _port_sources(n)
-        except Exception as exc:   # a plugin's check must not hide the graph's other errors
-            err(f"node '{n.id}': the port source check of {n.plugin} failed: {type(exc).__name__}: {exc}", n.where)
-            tied[n.id] = {}
-    for n, port, w, src in matched:
-        clash = _source_clash(src, tied[src.id].get(w.source_port), n, tied[n.id].get(port))
-        if clash:
-            err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {clash}", w.where)
+    # what the nodes' parameters fix at their ports, compared at both ends of each wire: sizes (Component.port_shapes:
+    # a camera's image size, a depth model's) and what the values are tied to (Component.port_sources: a depth model,
+    # a force calibration made for one)
+    for read, check, clash_of in ((_fixed_shapes, "port size check", _size_clash),
+                                  (_port_sources, "port source check", _source_clash)):
+        declared: dict[str, dict[str, tuple]] = {}
+        for n in nodes:
+            try:
+                declared[n.id] = read(n)
+            except Exception as exc:   # a plugin's check must not hide the graph's other errors
+                err(f"node '{n.id}': the {check} of {n.plugin} failed: {type(exc).__name__}: {exc}", n.where)
+                declared[n.id] = {}
+        for n, port, w, src in matched:
+            clash = clash_of(src, w.source_port, declared[src.id], n, port, declared[n.id])
+            if clash:
+                err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {clash}", w.where)
 
     if errors:
         raise GraphValidationError(errors)
@@ -852,14 +843,15 @@ def _port_sources(n: NodeSpec) -> dict[str, tuple[str, str, str]]:
     return out
 
 
-def _source_clash(src: NodeSpec, src_tied: tuple[str, str, str] | None, dst: NodeSpec,
-                  dst_tied: tuple[str, str, str] | None) -> str | None:
-    """None if the identities that the two ends of a wire declare for their ports (:meth:`Component.port_sources`)
-    are one, or an end declares none; else the error: both nodes, both identities and what ties each, and what to
-    do."""
-    if src_tied is None or dst_tied is None or src_tied[0] == dst_tied[0]:
+def _source_clash(src: NodeSpec, out_port: str, src_tied: dict[str, tuple[str, str, str]], dst: NodeSpec,
+                  in_port: str, dst_tied: dict[str, tuple[str, str, str]]) -> str | None:
+    """None if the identities that the two ends of a wire declare for their ports (their parameters'
+    :meth:`Component.port_sources`) are one, or an end declares none; else the error: both nodes, both identities and
+    what ties each, and what to do."""
+    a_tied, b_tied = src_tied.get(out_port), dst_tied.get(in_port)
+    if a_tied is None or b_tied is None or a_tied[0] == b_tied[0]:
         return None
-    (a, a_why, a_how), (b, b_why, b_how) = src_tied, dst_tied
+    (a, a_why, a_how), (b, b_why, b_how) = a_tied, b_tied
     fixes = [f"on node '{node.id}', {how}" for node, how in ((dst, b_how), (src, a_how)) if how]
     todo = "; or ".join(fixes) if fixes else f"change what ties node '{src.id}' or node '{dst.id}'"
     return (f"sources differ: node '{src.id}' ({src.plugin}) sends values tied to {a!r} ({a_why}) and "
