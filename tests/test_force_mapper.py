@@ -284,13 +284,20 @@ def test_component_maps_and_gates_contact(cal_file):
         assert out["force"] == pytest.approx(float(truth(1e-3))) and out["status"] == "ok"
         out = h.step(0.02, max_depth=1e-5)  # below the contact threshold
         assert out["force"] == 0.0 and out["status"] == "no-contact"
+        # pressed in 1 mm without a contact area: the inputs disagree, invalid (no force sample), not a fresh 0 N
+        # that reads as "the object is gone" (it was no contact, 0 N, at any depth: a review)
         out = h.step(0.03, max_depth=1e-3, contact_area=0.0)
-        assert out["force"] == 0.0 and out["status"] == "no-contact"
+        assert "force" not in out and out["status"] == "invalid-input"
         out = h.step(0.04, max_depth=1e-3, contact_area=1e-6, contact_mask=np.zeros((4, 4), bool))
-        assert out["force"] == 0.0 and out["status"] == "no-contact"
+        assert "force" not in out and out["status"] == "invalid-input"
+        # a light touch (within centroid_band of contact_threshold) that the mask misses is no contact
+        light = h.comp.params.contact_threshold + 0.5 * h.comp.params.centroid_band
+        for area, mask in ((0.0, None), (None, np.zeros((4, 4), bool))):
+            out = h.step(h.t + 0.01, max_depth=light, contact_area=area, contact_mask=mask)
+            assert out["force"] == 0.0 and out["status"] == "no-contact"
         m = np.zeros((4, 4), bool)
         m[1, 1] = True
-        out = h.step(0.05, max_depth=1e-3, contact_mask=m)
+        out = h.step(h.t + 0.01, max_depth=1e-3, contact_area=1e-6, contact_mask=m)
         assert out["force"] > 1.0 and out["status"] == "ok"
 
 

@@ -1285,8 +1285,10 @@ class PolyForce(Component):
             "held-out sim presses, more accurate) or continue on the end slope")
         contact_threshold: Meters = Field(3e-5, ge=0, description="max depth below this is no contact (0 N)",
                                           json_schema_extra={"unit": "m"})
-        min_contact_area: float = Field(0.0, ge=0, description="contact area below this is no contact (when "
-                                        "contact_area is wired)", json_schema_extra={"unit": "m^2"})
+        min_contact_area: float = Field(0.0, ge=0, description="contact area at or below this is no contact (when "
+                                        "contact_area is wired), within centroid_band of contact_threshold; deeper "
+                                        "it is invalid input (pressed in without an area)",
+                                        json_schema_extra={"unit": "m^2"})
         negative_tolerance: Meters = Field(1e-4, ge=0, description="a max depth below -tolerance is invalid "
                                            "input (small negative values are no contact)",
                                            json_schema_extra={"unit": "m"})
@@ -1491,10 +1493,15 @@ class PolyForce(Component):
         # a depth of 0 (or a small negative one) is no contact, also with contact_threshold 0: else the untouched
         # gel would be "in contact" (invalid input without a centroid, a median's older depths on release)
         contact = d > 0.0 and d >= p.contact_threshold
-        if contact and area is not None and float(area) <= p.min_contact_area:
-            contact = False
-        if contact and mask is not None and not bool(np.any(mask)):
-            contact = False
+        if contact and ((area is not None and float(area) <= p.min_contact_area)
+                        or (mask is not None and not bool(np.any(mask)))):
+            if d > p.contact_threshold + p.centroid_band:
+                # pressed in, yet no contact area: the inputs disagree. Not a fresh 0 N, which reads as "the object
+                # is gone" (the operator closes the hand onto it): invalid, so the estimate goes stale (a 1.5 mm press
+                # over 0.8 mm^2 with min_contact_area 1 mm^2 read 0 N, no contact)
+                self._reset_filters()
+                return 0.0, "invalid-input"
+            contact = False   # a light touch the full-size mask misses (see centroid_band), or noise
         if not contact:
             self._reset_filters()
             return 0.0, "no-contact"
