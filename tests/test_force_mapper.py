@@ -628,3 +628,14 @@ def test_position_fit_with_one_depth_level_away_from_the_centre_is_refused():
     f = (1500 + 2e5 * a[:, 1]) * a[:, 0] + 4e5 * a[:, 0] ** 2 + 5e7 * a[:, 0] ** 3
     with pytest.raises(CalibrationError, match="do not determine a degree-3 depth curve with position terms"):
         ForceCalibration.fit(a[:, 0], f, 3, positions=a[:, 1:], position_degree=1)
+
+
+@pytest.mark.parametrize("constant", [4.5, -3.0], ids=["step-at-contact", "dead-zone"])
+def test_a_hand_edited_constant_term_far_from_the_recorded_forces_is_refused(cal_file, constant):
+    """A review found both loading: 4.5 N the moment contact starts, or 0 N well into the contact (the curve below
+    zero). The curve's ends must be near the forces the calibration recorded."""
+    _edit(cal_file, lambda d: d["model"]["coefficients"].__setitem__(0, constant))
+    with pytest.raises(ModelFileError) as ei:
+        ForceCalibration.load(cal_file)
+    msg = str(ei.value)
+    assert cal_file in msg and "'model.coefficients'" in msg and "shallowest calibrated depth" in msg, msg

@@ -410,6 +410,15 @@ def _limits_problem(cal: "ForceCalibration", monotonic: bool = True) -> tuple[st
     if problem is not None:
         return ("model.coefficients", f"a strictly increasing polynomial on the depth range ({problem})",
                 list(cal.coefficients), "the curve is not strictly increasing")
+    # the curve starts where the recorded forces do: a hand-edited constant term gave a force step at contact onset
+    # (4.5 N at 30 um) or a dead zone in contact (0 N down to 0.375 mm), both loading
+    bottom = float(np.polynomial.polynomial.polyval(lo, cal.coefficients))
+    if not abs(bottom - f_lo) <= 0.25 * (f_hi - f_lo) + 0.1:
+        return ("model.coefficients", f"a polynomial whose force at the shallowest calibrated depth is near the "
+                f"recorded force range's bottom ({f_lo:.4g} N, model.force_range_n), but it gives {bottom:.4g} N",
+                list(cal.coefficients),
+                f"the curve's force at the shallowest depth ({bottom:.4g} N) is far from the smallest force recorded "
+                f"({f_lo:.4g} N): an outlier, or forces that do not follow one curve of the depth; check the data")
     # coefficients in other units (N/mm^k, mN) give forces far from the ones the calibration recorded
     top = cal.largest_force("clamp")
     if not 0.5 * f_hi - 0.1 <= top <= 2.0 * f_hi + 0.1:
