@@ -117,3 +117,24 @@ def test_a_drive_found_in_fault_is_not_reset_unless_reset_fault_at_start(channel
         assert drive.state == "FAULT" and drive.get(0x603F) == 0x2310   # left as found
         with harness(channel, reset_fault_at_start=True):
             assert drive.state == "OPERATION ENABLED" and drive.get(0x603F) == 0
+
+
+def test_an_abort_other_than_no_such_object_is_a_fault_not_an_absent_0x60A9(channel):
+    """A review found every SDO abort read as "the drive has no 0x60A9": a drive in rpm answering "present device
+    state" (0x08000022) started with an old config's velocity_unit counts/s, 68x max_speed."""
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    with Cia402Drive(5, channel, position=0, velocity_unit=MILLI_RPM, counts_per_revolution=4096) as drive:
+        def refuse(index, subindex, od):
+            if index == 0x60A9:
+                raise SdoAbortedError(0x08000022)
+
+        drive.node.add_read_callback(refuse)
+        configure_fails(harness(channel, velocity_unit="counts/s"), r"reading SI unit velocity 0x60A9.*refused it")
+        assert drive.get(0x6081) != 50000   # (what counts/s would have written: 68x max_speed in rpm)
+
+
+@pytest.mark.parametrize("text", ["1e400 rpm", "1e-400 rpm", "1e12 counts/s"])
+def test_a_velocity_unit_factor_no_drive_has_is_refused(text):
+    with pytest.raises(ValidationError, match="outside 1e-9..1e9"):
+        CanopenGripper.Params(velocity_unit=text)

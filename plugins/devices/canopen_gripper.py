@@ -380,13 +380,17 @@ class CanopenGripper(FollowerBase):
 
     def _read_u32(self, index: int, sub: int, what: str) -> tuple[int | None, str]:
         """An UNSIGNED32 object read by SDO upload (an EDS file need not list it): (value, ""), or (None, the abort)
-        where the drive has no such object; no answer at all is a HardwareError."""
+        where the drive has no such object (abort 0x06020000 or 0x06090011); any other abort (the drive's state, a
+        refused access) and no answer at all are a HardwareError: taken for "no such object", a drive that has one
+        was driven in a unit it does not use."""
         from canopen.sdo.exceptions import SdoAbortedError
 
         def upload() -> tuple[bytes | None, str]:
             try:
                 return self.node.sdo.upload(index, sub), ""
             except SdoAbortedError as exc:
+                if getattr(exc, "code", None) not in NO_SUCH_OBJECT:
+                    raise   # (_sdo names it)
                 return None, str(exc)
 
         data, why = self._sdo(what, upload)
@@ -629,6 +633,13 @@ class CanopenGripper(FollowerBase):
 
 
 
+#: SDO abort codes that say the object is not there: object does not exist in the OD, sub-index does not exist
+NO_SUCH_OBJECT = (0x06020000, 0x06090011)
+
+#: the factor a ``velocity_unit`` may have (beyond: a typo; 1e400 overflowed at start-up, 1e-400 read every velocity 0)
+VELOCITY_FACTOR_RANGE = (Fraction(1, 10 ** 9), Fraction(10 ** 9))
+
+
 def parse_velocity_unit(text: str) -> tuple[str, Fraction]:
     """A ``velocity_unit`` param ('0.001 rpm', 'counts/s'): ("counts" or "rev", the factor per second)."""
     import re
@@ -640,6 +651,9 @@ def parse_velocity_unit(text: str) -> tuple[str, Fraction]:
             factor = Fraction(m.group(1) or "1")
         except (ValueError, ZeroDivisionError, OverflowError):   # "x", "1/0", "inf"
             factor = None
+    if factor is not None and factor > 0 and not VELOCITY_FACTOR_RANGE[0] <= factor <= VELOCITY_FACTOR_RANGE[1]:
+        raise ValueError(f"velocity_unit {text!r}: the factor {m.group(1)} is outside 1e-9..1e9, which no drive's "
+                         f"velocity unit has (a typo?)")
     if not m or factor is None or factor <= 0:
         raise ValueError(f"velocity_unit {text!r} is not a velocity unit the driver converts: give 'rpm', 'rev/s' or "
                          f"'counts/s' (position counts 0x6064 per second), with a positive factor if the drive's unit "
