@@ -138,3 +138,27 @@ def test_an_abort_other_than_no_such_object_is_a_fault_not_an_absent_0x60A9(chan
 def test_a_velocity_unit_factor_no_drive_has_is_refused(text):
     with pytest.raises(ValidationError, match="outside 1e-9..1e9"):
         CanopenGripper.Params(velocity_unit=text)
+
+
+def test_a_fault_during_the_enable_walk_is_not_reset_without_you(channel):
+    """A review found canopen's own state walk resetting a fault that came as the drive was being enabled (a following
+    error on enabling): the start-up went on, no line said it."""
+    class FaultOnEnable(Cia402Drive):
+        faulted = False
+
+        def _controlword(self, cw):
+            super()._controlword(cw)
+            if self.state == "OPERATION ENABLED" and not self.faulted:   # (before a statusword says enabled)
+                self.faulted = True
+                self.inject_fault(0x8611)
+
+    with FaultOnEnable(5, channel, position=0) as drive:
+        configure_fails(harness(channel), r"faulted as it was being enabled \(EMCY .*8611")
+        assert drive.faulted and drive.state != "OPERATION ENABLED", drive.state
+    with FaultOnEnable(5, channel, position=0) as drive:
+        h = harness(channel, reset_fault_at_start=True)
+        try:
+            h.comp.configure()   # allowed: reset by the walk, as a fault found at start-up is
+            assert drive.state == "OPERATION ENABLED"
+        finally:
+            h.comp.close()

@@ -285,7 +285,16 @@ class CanopenGripper(FollowerBase):
                                         f"set reset_fault_at_start: true to have the start-up reset it")
                 self.ctx.log(f"{self._where()} was in FAULT {found}: resetting it (controlword bit 7, "
                              f"reset_fault_at_start)")
+            before = len(self.emcys)
             node.state = "OPERATION ENABLED"
+            # a fault during the walk: canopen's walk resets it (transition 15) and goes on, unseen here but for the
+            # drive's EMCY (code 0: its error reset)
+            came = [e for e in self.emcys[before:] if getattr(e, "code", 0)]
+            if came and not p.reset_fault_at_start:
+                node.state = "SWITCH ON DISABLED"   # (its power stage off again: not enabled on a fault not seen to)
+                raise HardwareError(f"{self._where()} faulted as it was being enabled (EMCY {came[0]}) and canopen's "
+                                    f"state walk reset it: not enabled without you. Find and clear the cause, then "
+                                    f"start again; or set reset_fault_at_start: true")
         except (RuntimeError, ValueError) as exc:
             raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
                                 f"0x{node.statusword:04X}, {self._emcy_text()})") from exc
