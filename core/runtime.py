@@ -674,11 +674,8 @@ class Runtime:
 
     def _results_of(self, node: _Node) -> dict[str, Any]:
         """``node``'s Component.results(), its values as numbers or text (JSON can hold them; anything else as its
-        repr); an error there is a logged shutdown fault and no results (the run's result stays)."""
-        from .isolation import ProcessProxy
-
-        if isinstance(node.comp, ProcessProxy):
-            return {}
+        repr); an error there is a logged shutdown fault and no results (the run's result stays). An isolated node's
+        proxy says nothing (Component's default): its component is in the other process."""
         try:
             got = dict(node.comp.results() or {})
         except BaseException as exc:
