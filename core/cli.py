@@ -315,9 +315,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
     record_error = None
-    # a signal after the first is held until the recording is closed too; one the runtime held in its safe shutdown
-    # (the first, also: a run that was ending) it added to `signals` itself
-    with _interrupts() as signals:
+    # a signal after the first is held until the recording is closed too; the exit code is that of the signal the
+    # run stopped for (RunResult.signal: also one the runtime held in its safe shutdown of a run that was ending)
+    with _interrupts():
         try:
             result = rt.run(spec.duration, progress=progress, progress_interval=args.progress_interval)
         finally:
@@ -331,7 +331,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                     print(f"teletouch: error: {exc}", file=sys.stderr)
     code = result.exit_code
     # the signal the run stopped for (not one a plugin swallowed before it), where not a fault that had stopped it
-    if (result.signal or (signals[0] if signals else None)) == signal.SIGTERM and result.exit_code == EXIT_INTERRUPTED:
+    if result.signal == signal.SIGTERM and result.exit_code == EXIT_INTERRUPTED:
         code = EXIT_TERMINATED
     if record_error is not None and code == EXIT_OK:   # the run was ok, its recording was not
         code = EXIT_INVALID
