@@ -412,7 +412,7 @@ def _limits_problem(cal: "ForceCalibration", monotonic: bool = True) -> tuple[st
                 list(cal.coefficients), "the curve is not strictly increasing")
     # the curve starts where the recorded forces do: a hand-edited constant term gave a force step at contact onset
     # (4.5 N at 30 um) or a dead zone in contact (0 N down to 0.375 mm), both loading
-    bottom = float(np.polynomial.polynomial.polyval(lo, cal.coefficients))
+    bottom = cal._f_lo   # (the curve at the shallowest calibrated depth, evaluated once when it was made)
     if not abs(bottom - f_lo) <= 0.25 * (f_hi - f_lo) + 0.1:
         return ("model.coefficients", f"a polynomial whose force at the shallowest calibrated depth is near the "
                 f"recorded force range's bottom ({f_lo:.4g} N, model.force_range_n), but it gives {bottom:.4g} N",
