@@ -67,31 +67,43 @@ def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeCons
         raise GraphError(f"YAML error: {node.value!r} is not a valid {tag}", where) from None
 
 
-def _flatten(node: yaml.MappingNode, constructor: "yaml.constructor.SafeConstructor") -> int:
+_MERGE = "tag:yaml.org,2002:merge"
+
+
+def _flatten(node: yaml.MappingNode, file: str) -> int:
     """Resolve the merge keys (``<<: *defaults``) of ``node`` in place; return how many of its pairs, at the start,
-    came from them (keys the mapping's own keys may override, as YAML says). Remembered on the node: an alias
-    converts the same node again."""
+    came from them (keys the mapping's own keys may override, as YAML says). Of the pairs merged, a later one
+    overrides an earlier one: a list of mappings is laid in reverse, so its first mapping wins, as the YAML merge key
+    type says. Done here, not by PyYAML's flatten_mapping, whose order changed in 6.0.4 (with it the last mapping of
+    a list won). Remembered on the node: an alias converts the same node again."""
     done = getattr(node, "tt_merged", None)
     if done is not None:
         return done
     node.tt_merged = 0   # (while here: a merge key that refers to its own mapping)
-    own = 0
+    merged: list[tuple[yaml.Node, yaml.Node]] = []
+    own: list[tuple[yaml.Node, yaml.Node]] = []
     for knode, vnode in node.value:
-        if knode.tag != "tag:yaml.org,2002:merge":
-            own += 1
+        if knode.tag != _MERGE:
+            if knode.tag == "tag:yaml.org,2002:value":   # a key `=`: a string, as PyYAML reads it
+                knode.tag = "tag:yaml.org,2002:str"
+            own.append((knode, vnode))
             continue
-        for sub in vnode.value if isinstance(vnode, yaml.SequenceNode) else [vnode]:
-            if isinstance(sub, yaml.MappingNode):
-                _flatten(sub, constructor)
-    constructor.flatten_mapping(node)
-    node.tt_merged = len(node.value) - own
+        subs = list(reversed(vnode.value)) if isinstance(vnode, yaml.SequenceNode) else [vnode]
+        for sub in subs:
+            if not isinstance(sub, yaml.MappingNode):
+                raise GraphError(f"a merge key '<<' takes a mapping or a list of mappings, not a {sub.id}",
+                                 Location(file, sub.start_mark.line + 1))
+            _flatten(sub, file)
+            merged.extend(sub.value)
+    node.value = merged + own
+    node.tt_merged = len(merged)
     return node.tt_merged
 
 
 def _convert_collection(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor",
                         active: set[int], where: Location) -> Any:
     if isinstance(node, yaml.MappingNode):
-        merged = _flatten(node, constructor)
+        merged = _flatten(node, file)
         out = LDict(where=where)
         inherited: set[Any] = set()   # keys that came from a merge key, so far: the mapping's own keys override them
         for i, (knode, vnode) in enumerate(node.value):

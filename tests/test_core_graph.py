@@ -433,6 +433,19 @@ def test_yaml_merge_keys_are_overridden_by_the_mappings_own_keys(reg):
     assert errs == ["g.yaml:22: duplicate key 'id' (first at line 21)"], errs   # a mapping's own keys, twice
 
 
+def test_yaml_merge_key_order_does_not_depend_on_the_pyyaml_version(reg):
+    # PyYAML 6.0.4 changed flatten_mapping's order: the last mapping of a merged list won (the first must, as the
+    # YAML merge key type says); within a merged mapping its own keys still beat what it merged itself
+    from teletouch.yamlio import load_yaml_text
+    doc = load_yaml_text("a: &a {<<: {k: 1, j: 1}, k: 2}\nb: {<<: [{k: 4, m: 1}, *a, {m: 3, n: 5}], j: 9}\n", "m.yaml")
+    assert dict(doc["b"]) == {"k": 4, "m": 1, "j": 9, "n": 5}
+    assert dict(doc["a"]) == {"k": 2, "j": 1}
+    for bad, what in (("[1, 2]", "int"), ("[[1]]", "seq"), ("7", "int")):
+        errs = errors_of(GOOD.replace("params: {gain: 3}", f"params: {{<<: {bad}}}"), reg)
+        assert len(errs) == 1 and errs[0].startswith("g.yaml:12: a merge key '<<' takes a mapping or a list of "
+                                                     "mappings, not a "), errs
+
+
 def test_a_graph_file_that_is_a_bare_value_names_the_file(tmp_path, reg):
     # before: "<graph>: a graph file must be a mapping ..." without the file's name
     assert errors_of("42\n", reg) == ["g.yaml:1: a graph file must be a mapping with a 'nodes' list"]
