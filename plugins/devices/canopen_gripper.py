@@ -1,22 +1,25 @@
 """canopen-gripper: an electric gripper behind a CiA 402 drive on CANopen (canopen on python-can), profile position.
 
 Start-up (all through the canopen library): connect the bus; check the node answers SDO and is a CiA 402 device
-(0x1000); NMT pre-operational; map the PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060,
-asynchronous; TPDO1: statusword 0x6041 + position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078
-+ velocity actual 0x606C, both on SYNC); producer heartbeat 0x1017; profile position mode (0x6060 = 1, then 0x6061
-read until it shows it: a drive switches in its own time; not within ``mode_timeout``, an error naming the requested
-and the displayed mode); profile velocity 0x6081 from ``max_speed`` (rounded down) in the drive's velocity unit;
-max current 0x6073 from ``max_effort``; target := actual; NMT operational; then the CiA 402 state machine to OPERATION
-ENABLED (canopen's BaseNode402, with SYNCs every 5 ms from a thread of the driver), starting from the statusword of the
-drive's first TPDO1 (a drive found enabled stays enabled; one found in FAULT is refused, naming its error code 0x603F,
-unless ``reset_fault_at_start``: then it is logged and reset).
+(0x1000), and read its statusword 0x6041 (one in FAULT is refused before anything is written to it, naming its error
+code 0x603F, unless ``reset_fault_at_start``: then it is logged, and reset by the walk); NMT pre-operational; map the
+PDOs (RPDO1: target position 0x607A + controlword 0x6040 + mode 0x6060, asynchronous; TPDO1: statusword 0x6041 +
+position actual 0x6064 + mode display 0x6061, TPDO2: current actual 0x6078 + velocity actual 0x606C, both on SYNC);
+producer heartbeat 0x1017; profile position mode (0x6060 = 1, then 0x6061 read until it shows it: a drive switches in
+its own time; not within ``mode_timeout``, an error naming the requested and the displayed mode); profile velocity
+0x6081 from ``max_speed`` (rounded down) in the drive's velocity unit; max current 0x6073 from ``max_effort``; target :=
+actual; NMT operational; then the CiA 402 state machine to OPERATION ENABLED, one transition of canopen's BaseNode402
+table at a time (with SYNCs every 5 ms from a thread of the driver), starting from the statusword of the drive's first
+TPDO1 (a drive found enabled stays enabled); a FAULT seen at any step is refused as one found at start-up (canopen's own
+walk resets it, transition 15, without a word).
 
 The velocity unit (of 0x6081 and 0x606C) is the drive's own: its SI unit velocity 0x60A9 (bits 24-31 a power of ten,
-16-23 the position unit, 8-15 the time unit: rpm is 0x00B44700), read at start-up; where the drive has none (SDO
-abort), the ``velocity_unit`` parameter, which is then required (counts/s ran a drive in rpm ~68x max_speed at 4096
-counts/rev). A unit in revolutions takes the 0x6064 counts per revolution from ``counts_per_revolution``, else from the
-position encoder resolution 0x608F (increments / motor revolutions). Other units (a linear m/s, whose relation to the
-fingers the driver cannot know) are refused, naming 0x60A9's value and what to set.
+16-23 the position unit, 8-15 the time unit: rpm is 0x00B44700), read at start-up; where the drive has none (SDO abort
+0x06020000 or 0x06090011; any other abort is a start-up failure), the ``velocity_unit`` parameter, which is then
+required (counts/s ran a drive in rpm ~68x max_speed at 4096 counts/rev). A unit in revolutions takes the 0x6064 counts
+per revolution from ``counts_per_revolution``, else from the position encoder resolution 0x608F (increments / motor
+revolutions). Other units (a linear m/s, whose relation to the fingers the driver cannot know) are refused, naming
+0x60A9's value and what to set.
 
 Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
 set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
@@ -245,6 +248,9 @@ class CanopenGripper(FollowerBase):
         if dev & 0xFFFF != 402:
             raise HardwareError(f"{self._where()} is not a CiA 402 drive: device type 0x{dev:08X} (profile "
                                 f"{dev & 0xFFFF}); check the node id")
+        # a drive in FAULT is refused before anything is written to it (PDO mapping, heartbeat, mode, NMT): as found
+        sw = self._sdo("reading statusword 0x6041", lambda: node.sdo[0x6041].raw)
+        found_in_fault = self._fault(sw, "is in FAULT", "was in FAULT")
         self.counts_per_unit = self._velocity_unit()   # counts/s in one unit of 0x6081 and 0x606C
         self._mps_per_unit = float(self.counts_per_unit) * self.map.scale
         node.nmt.state = "PRE-OPERATIONAL"
@@ -273,28 +279,7 @@ class CanopenGripper(FollowerBase):
                                  name=f"canopen-sync-node{p.node_id}")
         syncs.start()
         try:
-            # the walk starts from the drive's own statusword: from canopen's default (0, none received yet) its
-            # first controlword was "disable voltage", switching off a drive found enabled (and holding)
-            sw = node.check_statusword()
-            if sw & 0x4F in (0x08, 0x0F):   # FAULT (reaction active): the walk would reset it (transition 15)
-                found = f"(statusword 0x{sw:04X}, error code {self._fault_code()}, {self._emcy_text()})"
-                if not p.reset_fault_at_start:
-                    raise HardwareError(f"{self._where()} is in FAULT {found}: not reset without you, the cause may "
-                                        f"still be there (over-current, a blocked gripper). Find and clear it, reset "
-                                        f"the fault (the drive's own tool, or power-cycle it), then start again; or "
-                                        f"set reset_fault_at_start: true to have the start-up reset it")
-                self.ctx.log(f"{self._where()} was in FAULT {found}: resetting it (controlword bit 7, "
-                             f"reset_fault_at_start)")
-            before = len(self.emcys)
-            node.state = "OPERATION ENABLED"
-            # a fault during the walk: canopen's walk resets it (transition 15) and goes on, unseen here but for the
-            # drive's EMCY (code 0: its error reset)
-            came = [e for e in self.emcys[before:] if getattr(e, "code", 0)]
-            if came and not p.reset_fault_at_start:
-                node.state = "SWITCH ON DISABLED"   # (its power stage off again: not enabled on a fault not seen to)
-                raise HardwareError(f"{self._where()} faulted as it was being enabled (EMCY {came[0]}) and canopen's "
-                                    f"state walk reset it: not enabled without you. Find and clear the cause, then "
-                                    f"start again; or set reset_fault_at_start: true")
+            self._walk_to_enabled(found_in_fault)
         except (RuntimeError, ValueError) as exc:
             raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
                                 f"0x{node.statusword:04X}, {self._emcy_text()})") from exc
@@ -303,6 +288,51 @@ class CanopenGripper(FollowerBase):
             syncs.join()
         self._hb_seen = time.monotonic()
         self._nmt_state = None  # heartbeats from here on (the ones before said PRE-OPERATIONAL)
+
+    def _fault(self, sw: int, what: str, logged: str) -> bool:
+        """Whether statusword ``sw`` is FAULT (or its reaction): then refused, a HardwareError "<the drive> <what>"
+        naming the error code 0x603F and the last EMCY, unless ``reset_fault_at_start``: then logged ("<the drive>
+        <logged>", to be reset)."""
+        if sw & 0x4F not in (0x08, 0x0F):
+            return False
+        found = f"(statusword 0x{sw:04X}, error code {self._fault_code()}, {self._emcy_text()})"
+        if not self.params.reset_fault_at_start:
+            raise HardwareError(f"{self._where()} {what} {found}: not reset without you, the cause may still be there "
+                                f"(over-current, a following error, a blocked gripper). Find and clear it, reset the "
+                                f"fault (the drive's own tool, or power-cycle it), then start again; or set "
+                                f"reset_fault_at_start: true to have the start-up reset it")
+        self.ctx.log(f"{self._where()} {logged} {found}: resetting it (controlword bit 7, reset_fault_at_start)")
+        return True
+
+    def _walk_to_enabled(self, fault_seen: bool) -> None:
+        """The CiA 402 state machine to OPERATION ENABLED, one transition of canopen's table at a time, from the
+        drive's own statusword (from canopen's default 0, none received yet, the first controlword was "disable
+        voltage", switching off a drive found enabled). canopen's own walk (``node.state = ...``) resets a FAULT on
+        its way (transition 15) without a word: here each FAULT is refused, or logged first (:meth:`_fault`);
+        ``fault_seen``: the drive was found in FAULT, and that was logged. A transition not shown within canopen's
+        single-step timeout is commanded again, until its final timeout (a RuntimeError, as canopen's)."""
+        from canopen.profiles.p402 import State402
+
+        node, target = self.node, "OPERATION ENABLED"
+        node.check_statusword()
+        deadline = time.monotonic() + node.TIMEOUT_SWITCH_STATE_FINAL
+        at = "its start"   # the walk's last state that was no fault (for the message)
+        while (state := node.state) != target:
+            if state in ("FAULT", "FAULT REACTION ACTIVE"):
+                if not fault_seen:   # a new one: a fault that came during the start-up
+                    came = f"went into FAULT during the start-up (the state walk to {target} at {at})"
+                    fault_seen = self._fault(node.statusword, came, came)
+            else:
+                fault_seen, at = False, state
+            step = target if (state, target) in State402.TRANSITIONTABLE else State402.next_state_indirect(state)
+            if (state, step) not in State402.TRANSITIONTABLE:
+                raise ValueError(f"no transition from {state} towards {target}")
+            node.controlword = State402.TRANSITIONTABLE[(state, step)]
+            until = time.monotonic() + node.TIMEOUT_SWITCH_STATE_SINGLE
+            while node.state == state and time.monotonic() < until:
+                node.check_statusword()
+            if node.state == state and time.monotonic() > deadline:
+                raise RuntimeError("Timeout when trying to change state")
 
     def _enter_mode(self, mode: int) -> None:
         """Write modes of operation 0x6060, then read the display 0x6061 (every MODE_POLL) until it shows ``mode``:
@@ -340,9 +370,9 @@ class CanopenGripper(FollowerBase):
 
     def _velocity_unit(self) -> Fraction:
         """Counts per second in one unit of the drive's velocity (profile velocity 0x6081, velocity actual 0x606C):
-        from its SI unit velocity 0x60A9, or ``velocity_unit`` where it has none (SDO abort); a unit in revolutions
-        times the counts per revolution. Refused: a unit the driver cannot convert, none known, a ``velocity_unit``
-        that disagrees with 0x60A9."""
+        from its SI unit velocity 0x60A9, or ``velocity_unit`` where it has none (:meth:`_read_u32`); a unit in
+        revolutions times the counts per revolution. Refused: a unit the driver cannot convert, none known, a
+        ``velocity_unit`` that disagrees with 0x60A9."""
         p = self.params
         code, why = self._read_u32(0x60A9, 0, "reading SI unit velocity 0x60A9")
         if code is None:

@@ -13,7 +13,10 @@ is aborted), its unit is its own. An object at ``block_at`` counts (approached i
 it, and the current rises to ``min(max current 0x6073, current_gain * |target - block_at|)`` (per mille of the rated
 current 0x6075). Entering OPERATION ENABLED holds the actual position (the position demand starts there, as on a
 real drive): only a new set-point moves the axis. ``go_silent()`` makes the node vanish from the bus (no SDO, PDO or
-heartbeat); ``inject_fault()`` sends an EMCY and enters FAULT. ``mode_delay`` is how long the drive takes to
+heartbeat); ``inject_fault()`` sends an EMCY (unless ``emcy`` is False: a drive whose EMCY is off) and enters FAULT;
+``fault_at`` (a state, an error code) faults the drive as its controlword takes it into that state, once; ``warn()``
+sends an EMCY without a fault; ``aborts`` ({index: SDO abort code}) answers every upload of those objects with that
+abort (0x08000022: "present device state"). ``mode_delay`` is how long the drive takes to
 switch modes: the modes of operation display 0x6061 shows a mode written to 0x6060 that many seconds later (None:
 never, a mode the drive does not enter). ``latency`` delays every SYNC's TPDOs, ``answer_late()`` those of the next
 SYNCs (or loses them), each with the state sampled at its SYNC and never before an earlier answer; ``set_position()``
@@ -129,7 +132,8 @@ class Cia402Drive:
                  device_type: int = DEVICE_TYPE_402, stamp: Callable[[], float] | None = None,
                  mode_delay: float | None = 0.0, latency: float = 0.0, instant: bool = False,
                  velocity_unit: int = VELOCITY_UNIT, velocity_unit_object: bool = True,
-                 counts_per_revolution: int = 1000, resolution_object: bool = True):
+                 counts_per_revolution: int = 1000, resolution_object: bool = True, emcy: bool = True,
+                 fault_at: tuple[str, int] | None = None, aborts: dict[int, int] | None = None):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id, velocity_unit if velocity_unit_object else None,
@@ -142,6 +146,9 @@ class Cia402Drive:
         self.closing = closing
         self.current_gain = current_gain
         self.state = "SWITCH ON DISABLED"
+        self.emcy = emcy
+        self.fault_at = fault_at   # (state, error code): fault on entering that state, once
+        self.aborts = dict(aborts or {})
         self.silent = False
         self.syncs = 0
         self.stamp = stamp
@@ -184,6 +191,7 @@ class Cia402Drive:
         n.data_store.setdefault(0x6064, {})[0] = struct.pack("<i", int(self.pos))
         n.data_store.setdefault(0x607A, {})[0] = struct.pack("<i", int(self.pos))
         n.add_write_callback(self._on_write)
+        n.add_read_callback(self._on_read)
         self.network.subscribe(0x80, self._on_sync)
         self.network.subscribe(0, self._on_nmt)  # after the NmtSlave's own handler
         # boot-up message, then PRE-OPERATIONAL (as a drive does after power-on)
@@ -232,12 +240,17 @@ class Cia402Drive:
             self.latched = int(counts)
 
     def inject_fault(self, code: int = 0x2310, register: int = 0x02) -> None:
-        """A drive fault (default 0x2310: continuous over-current): EMCY, FAULT state, 0x603F set."""
+        """A drive fault (default 0x2310: continuous over-current): EMCY (if ``emcy``), FAULT state, 0x603F set."""
         with self._lock:
             self.state = "FAULT"
             self.node.data_store.setdefault(0x603F, {})[0] = struct.pack("<H", code)
             self.node.data_store.setdefault(0x1001, {})[0] = bytes([register])
             self._status()
+        if self.emcy:
+            self.node.emcy.send(code, register)
+
+    def warn(self, code: int = 0x4210, register: int = 0x08) -> None:
+        """An EMCY without a fault (default 0x4210: temperature warning): the drive stays in its state."""
         self.node.emcy.send(code, register)
 
     # --- helpers ---------------------------------------------------------------------------------------------
@@ -263,6 +276,13 @@ class Cia402Drive:
         self._put(0x6041, sw)
 
     # --- firmware --------------------------------------------------------------------------------------------
+    def _on_read(self, index, subindex, od):
+        if index in self.aborts:
+            from canopen.sdo.exceptions import SdoAbortedError
+
+            raise SdoAbortedError(self.aborts[index])
+        return None
+
     def _on_write(self, index, subindex, od, data):
         if 0x1400 <= index <= 0x1BFF:
             self._pdo_dirty = True
@@ -307,6 +327,10 @@ class Cia402Drive:
                 if s in ("SWITCHED ON", "QUICK STOP ACTIVE"):
                     self.state = "OPERATION ENABLED"
                     self.latched = int(round(self.pos))  # enabled: holds where it is until a new set-point
+            if self.fault_at is not None and self.state == self.fault_at[0] != s:
+                code, self.fault_at = self.fault_at[1], None
+                self.inject_fault(code)   # (before any statusword shows the state: as the drive enters it)
+                return
             ack = None
             if self.state == "OPERATION ENABLED" and self.get(0x6061) == 1:
                 if cw & 0x10 and not prev & 0x10:
