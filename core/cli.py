@@ -340,8 +340,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         for line in _results_lines(result):
             print(line, file=sys.stderr)
     if args.json:   # exit_code: what the shell sees
-        print(json.dumps(dict(result.as_dict(), exit_code=code,
-                              recording_error=None if record_error is None else str(record_error)), default=str))
+        # strict JSON: a plugin's NaN (in its status or results) becomes null
+        print(json.dumps(_json_safe(dict(result.as_dict(), exit_code=code,
+                                         recording_error=None if record_error is None else str(record_error))),
+                         default=str, allow_nan=False))
     print(f"teletouch: {result.ending}", file=sys.stderr)   # (said once)
     return code
 

@@ -155,3 +155,44 @@ def test_position_position_says_no_sensed_force():
     r = {n.id: n.results for n in res.nodes}["controller"]
     assert "peak_force_n" not in r and "contact_time_s" not in r and r["peak_feedback_n"] > 0.0, r
     assert "mean_position_error_m" in r
+
+
+NAN_PLUGIN = '''
+import math
+from teletouch import Component, Kind, hookimpl
+
+
+class NanResults(Component):
+    name = "nan-results"
+    kind = Kind.ESTIMATOR
+
+    def step(self, t, inputs):
+        return None
+
+    def results(self):
+        return {"peak_force_n": math.nan, "ratio": math.inf, "frames": 3}
+
+
+@hookimpl
+def teletouch_components():
+    return [NanResults]
+'''
+
+
+def test_teletouch_run_json_is_strict_json_when_a_plugin_s_results_are_not_finite(tmp_path, monkeypatch, capsys):
+    # before: json.dumps wrote NaN and Infinity, which no strict JSON reader (jq, JSON.parse) takes
+    (tmp_path / "nan_results_plugin.py").write_text(NAN_PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("TELETOUCH_PLUGINS", "nan_results_plugin")
+    import teletouch.registry as registry
+
+    monkeypatch.setattr(registry, "_default", None)   # the CLI's cached registry is loaded again, with the plugin
+    graph = tmp_path / "g.yaml"
+    graph.write_text("clock: sim\nduration: 0.05\nnodes:\n  - {id: est, plugin: nan-results, rate: 100}\n")
+    from teletouch.cli import main
+
+    assert main(["run", str(graph), "--quiet", "--json"]) == 0
+    out = capsys.readouterr().out.strip().splitlines()[-1]
+    doc = json.loads(out, parse_constant=lambda c: pytest.fail(f"not strict JSON: {c}"))
+    assert [n["results"] for n in doc["nodes"] if n["id"] == "est"] == [{"peak_force_n": None, "ratio": None,
+                                                                          "frames": 3}]
