@@ -1079,6 +1079,10 @@ class NoFeedback(_Bilateral):
     name = "no-feedback"
     inputs = dict(_IN, force=Port("float64", (), "N", "sensed force (shown in the status only)", required=False))
 
+    def _reset(self) -> None:
+        super()._reset()
+        self.fresh_force = False
+
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         s = inputs["force"]
         f = finite_or(inputs.value("force"), 0.0)
@@ -1090,7 +1094,7 @@ class NoFeedback(_Bilateral):
         return 0.0
 
     def _sensed(self) -> float:
-        return self.force_held if getattr(self, "fresh_force", False) else math.nan
+        return self.force_held if self.fresh_force else math.nan
 
 
 @hookimpl
