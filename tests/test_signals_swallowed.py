@@ -102,9 +102,39 @@ class Loads(Component):
         return {"y": 0.0}
 
 
+class Lingers(Device):
+    name = "s17-lingers"
+    inputs = {"command": Port("float64", (), "", required=False)}
+
+    def step(self, t, inputs):
+        return {}
+
+    def safe_state(self):
+        say("safe state")
+        time.sleep(5.0)   # while the test's signal comes: held by the runtime's shutdown, it cannot raise here
+
+    def close(self):
+        say("closed")
+
+
+class SwallowsOnce(Component):
+    """configure() swallows the first signal and goes on (no long load): the run then runs and stops on its own, and
+    the second signal lands in the shutdown (Lingers' safe_state waits for it)."""
+
+    name = "s17-swallows-once"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "")}
+
+    def configure(self):
+        swallow_one()
+
+    def step(self, t, inputs):
+        return {"y": 0.0}
+
+
 @hookimpl
 def teletouch_components():
-    return [Notes, Swallows, Loads]
+    return [Notes, Swallows, Loads, Lingers, SwallowsOnce]
 '''
 
 GRAPH = """
@@ -124,19 +154,24 @@ sys.exit(main())
 """
 
 
+def _spawn(tmp_path: Path, graph_text: str, duration: float) -> subprocess.Popen:
+    """`teletouch run --quiet` of ``graph_text`` for ``duration`` s, with the test plugin, as a new process."""
+    (tmp_path / "s17_swallow.py").write_text(PLUGIN)
+    graph = tmp_path / "g.yaml"
+    graph.write_text(graph_text)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", TELETOUCH_DISABLE_PLUGIN_AUTOLOAD="1",
+               TELETOUCH_PLUGINS="teletouch.mock,s17_swallow",
+               PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    return subprocess.Popen([sys.executable, "-c", PROGRAM, "run", str(graph), "--duration", str(duration), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+
+
 def _run_signalled(tmp_path: Path, where: str, first: signal.Signals,
                    second: signal.Signals) -> tuple[int | None, float, str]:
     """`teletouch run` of the graph: ``first`` once a node waits for it, ``second`` once the start-up goes on after
     swallowing it. (Its exit code, or None when it still ran 20 s after the second; seconds from the second signal to
     its end; its stderr.)"""
-    (tmp_path / "s17_swallow.py").write_text(PLUGIN)
-    graph = tmp_path / "g.yaml"
-    graph.write_text(GRAPH.replace("WHERE", where))
-    env = dict(os.environ, PYTHONUNBUFFERED="1", TELETOUCH_DISABLE_PLUGIN_AUTOLOAD="1",
-               TELETOUCH_PLUGINS="teletouch.mock,s17_swallow",
-               PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    p = subprocess.Popen([sys.executable, "-c", PROGRAM, "run", str(graph), "--duration", "1", "--quiet"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    p = _spawn(tmp_path, GRAPH.replace("WHERE", where), duration=1)
     seen: list[str] = []
     try:
         lines = stderr_lines(p)
@@ -244,69 +279,11 @@ def test_a_signal_while_the_first_is_on_its_way_out_of_a_start_up_is_held(tmp_pa
                    "teletouch: interrupted (Ctrl-C): devices driven to their safe state"], err
 
 
-#: a plugin whose configure() swallows the first signal and goes on (no long load): the run then runs and stops on
-#: its own, and the second signal lands in the shutdown (the device's safe_state waits for it)
-PLUGIN_LATE = '''
-import sys, time
-
-from teletouch import Component, Device, Kind, Port, hookimpl
-
-
-def say(text):
-    print("s17: " + text, file=sys.stderr, flush=True)
-
-
-class Lingers(Device):
-    name = "s17-lingers"
-    inputs = {"command": Port("float64", (), "", required=False)}
-
-    def step(self, t, inputs):
-        return {}
-
-    def safe_state(self):
-        say("safe state")
-        end = time.monotonic() + 5.0
-        while time.monotonic() < end and not getattr(self, "told", False):
-            time.sleep(0.01)   # the signal, held by the runtime's shutdown, cannot raise here
-
-    def close(self):
-        say("closed")
-
-
-class Swallows(Component):
-    name = "s17-swallows-once"
-    kind = Kind.ESTIMATOR
-    outputs = {"y": Port("float64", (), "")}
-
-    def configure(self):
-        try:
-            say("waiting for a signal")
-            time.sleep(60)
-        except KeyboardInterrupt:
-            say("swallowed one")
-
-    def step(self, t, inputs):
-        return {"y": 0.0}
-
-
-@hookimpl
-def teletouch_components():
-    return [Lingers, Swallows]
-'''
-
-
 def test_the_signal_held_in_the_shutdown_after_a_swallowed_one_gives_the_exit_code(tmp_path):
     """A review found: Ctrl-C swallowed at start-up, then SIGTERM as the devices are made safe: stderr said SIGTERM
     but the exit code was the swallowed Ctrl-C's 130."""
-    (tmp_path / "s17_late.py").write_text(PLUGIN_LATE)
-    graph = tmp_path / "g.yaml"
-    graph.write_text("clock: sim\nnodes:\n  - {id: dev, plugin: s17-lingers, rate: 100}\n"
-                     "  - {id: a, plugin: s17-swallows-once, rate: 100}\n")
-    env = dict(os.environ, PYTHONUNBUFFERED="1", TELETOUCH_DISABLE_PLUGIN_AUTOLOAD="1",
-               TELETOUCH_PLUGINS="teletouch.mock,s17_late",
-               PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
-    p = subprocess.Popen([sys.executable, "-c", PROGRAM, "run", str(graph), "--duration", "0.5", "--quiet"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    p = _spawn(tmp_path, "clock: sim\nnodes:\n  - {id: dev, plugin: s17-lingers, rate: 100}\n"
+                         "  - {id: a, plugin: s17-swallows-once, rate: 100}\n", duration=0.5)
     seen: list[str] = []
     try:
         lines = stderr_lines(p)
