@@ -45,6 +45,17 @@ def site(tmp_path, monkeypatch):
         del sys.modules[mod]
 
 
+@pytest.fixture
+def plugin_module(site, monkeypatch):
+    """``plugin_module(name, source)``: a plugin module (its name starts with tt_) written to the site folder and
+    loaded by the CLI's registry through TELETOUCH_PLUGINS, as a user's own module is."""
+    def install(name: str, source: str) -> None:
+        assert name.startswith("tt_"), name   # (forgotten after the test: see site)
+        (site / f"{name}.py").write_text(source)
+        monkeypatch.setenv("TELETOUCH_PLUGINS", name)
+    return install
+
+
 @pytest.fixture(autouse=True)
 def _no_plugin_env(monkeypatch):
     """Tests build their own registries; the user's environment must not leak in."""

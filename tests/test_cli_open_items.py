@@ -229,15 +229,10 @@ def teletouch_components():
 '''
 
 
-def test_a_sigterm_during_the_safe_shutdown_exits_143_too(tmp_path, monkeypatch, capsys):
+def test_a_sigterm_during_the_safe_shutdown_exits_143_too(tmp_path, plugin_module, capsys):
     # before: the runtime holds signals while it makes the devices safe, so the CLI's own SIGTERM handler never saw
     # one that came then: the run ended 'interrupted' with 130, Ctrl-C's code
-    (tmp_path / "late_term_plugin.py").write_text(LATE_TERM)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("TELETOUCH_PLUGINS", "late_term_plugin")
-    import teletouch.registry as registry
-
-    monkeypatch.setattr(registry, "_default", None)   # the CLI's cached registry is loaded again, with the plugin
+    plugin_module("tt_late_term", LATE_TERM)
     graph = tmp_path / "g.yaml"
     graph.write_text("clock: sim\nduration: 0.1\nnodes:\n  - {id: dev, plugin: self-term, rate: 100}\n")
     from teletouch.cli import main

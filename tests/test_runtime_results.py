@@ -179,14 +179,9 @@ def teletouch_components():
 '''
 
 
-def test_teletouch_run_json_is_strict_json_when_a_plugin_s_results_are_not_finite(tmp_path, monkeypatch, capsys):
+def test_teletouch_run_json_is_strict_json_when_a_plugin_s_results_are_not_finite(tmp_path, plugin_module, capsys):
     # before: json.dumps wrote NaN and Infinity, which no strict JSON reader (jq, JSON.parse) takes
-    (tmp_path / "nan_results_plugin.py").write_text(NAN_PLUGIN)
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("TELETOUCH_PLUGINS", "nan_results_plugin")
-    import teletouch.registry as registry
-
-    monkeypatch.setattr(registry, "_default", None)   # the CLI's cached registry is loaded again, with the plugin
+    plugin_module("tt_nan_results", NAN_PLUGIN)
     graph = tmp_path / "g.yaml"
     graph.write_text("clock: sim\nduration: 0.05\nnodes:\n  - {id: est, plugin: nan-results, rate: 100}\n")
     from teletouch.cli import main
