@@ -132,7 +132,7 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
 
         def send_force(age, value):
             m = WrenchStamped()
-            m.header.stamp = ros_time(time.time() - age)
+            m.header.stamp, m.header.frame_id = ros_time(time.time() - age), "digit"   # (frame_id's default)
             m.wrench.force.z = value
             pubs["force"].publish(m)
 
@@ -165,11 +165,11 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
 
         rgb = np.zeros((4, 5, 3), np.uint8)
         rgb[..., 0] = 200  # red in RGB order
-        m = image_msg(rgb, time.time(), "cam")
+        m = image_msg(rgb, time.time(), "digit")
         m.encoding = "rgb8"
         pubs["image"].publish(m)
         mm = np.full((4, 5), 3, np.uint16)  # 16UC1: millimetres by ROS convention
-        pubs["depth"].publish(image_msg(mm, time.time()))
+        pubs["depth"].publish(image_msg(mm, time.time(), "digit"))
         js = JointState()
         js.header.stamp = ros_time(time.time())
         js.name, js.position, js.velocity, js.effort = ["other", "gripper"], [0.5, 0.03], [0.0, 0.01], [1.0, 2.5]
@@ -184,7 +184,7 @@ def test_subscribe_maps_stamps_to_the_graph_clock_and_converts_messages():
         assert got["effort"][-1].value == 2.5
 
         bad = sub.bad
-        m = image_msg(np.zeros((4, 5), np.uint16), time.time())  # not a colour image on the image topic
+        m = image_msg(np.zeros((4, 5), np.uint16), time.time(), "digit")  # not a colour image on the image topic
         pubs["image"].publish(m)
         other = JointState(name=["other"], position=[0.7])
         pubs["joint_states"].publish(other)

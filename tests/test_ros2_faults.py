@@ -87,7 +87,7 @@ class Sub(SubscribeNode):
 
 def _force(value, stamp, axis="z"):
     m = WrenchStamped()
-    m.header.stamp = stamp
+    m.header.stamp, m.header.frame_id = stamp, "digit"   # (ros2-subscribe's default frame_id)
     setattr(m.wrench.force, axis, value)
     return m
 
@@ -216,7 +216,7 @@ def test_non_finite_values_never_come_out():
         assert sub.send(pubs["force"], _force(-math.inf, ros_time(time.time()))) == {}
         d = np.full((4, 5), 1e-3, np.float32)
         d[1, 2] = np.nan
-        assert sub.send(pubs["depth"], image_msg(d, time.time())) == {}
+        assert sub.send(pubs["depth"], image_msg(d, time.time(), "digit")) == {}
         js = JointState(name=["gripper"], position=[0.03], velocity=[math.nan], effort=[])
         js.header.stamp = ros_time(time.time())
         assert sub.send(pubs["joint_states"], js) == {"opening": 0.03}     # the NaN field is left out
@@ -246,11 +246,11 @@ def test_millimetres_and_malformed_messages_are_refused():
         js2.header.stamp = ros_time(now + 1e-3)
         assert sub.send(pubs["joint_states"], js2) == {}
         # 1.5 mm written as 1.5 m
-        assert sub.send(pubs["depth"], image_msg(np.full((4, 5), 1.5, np.float32), now)) == {}
-        empty = image_msg(np.zeros((4, 5, 3), np.uint8), now)
+        assert sub.send(pubs["depth"], image_msg(np.full((4, 5), 1.5, np.float32), now, "digit")) == {}
+        empty = image_msg(np.zeros((4, 5, 3), np.uint8), now, "digit")
         empty.height, empty.width, empty.step, empty.data = 0, 0, 0, b""
         assert sub.send(pubs["image"], empty) == {}
-        short = image_msg(np.zeros((4, 5, 3), np.uint8), now + 1e-3)
+        short = image_msg(np.zeros((4, 5, 3), np.uint8), now + 1e-3, "digit")
         short.step = 5                                                        # 5 bytes a row for 5 bgr8 pixels
         assert sub.send(pubs["image"], short) == {}
         good = JointState(name=["gripper"], position=[0.042])

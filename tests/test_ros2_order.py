@@ -55,7 +55,7 @@ class _Sub(SubscribeNode):
 
 def _force(value: float, unix: float) -> WrenchStamped:
     m = WrenchStamped()
-    m.header.stamp = ros_time(unix)
+    m.header.stamp, m.header.frame_id = ros_time(unix), "digit"   # (ros2-subscribe's default frame_id)
     m.wrench.force.z = value
     return m
 

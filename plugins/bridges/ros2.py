@@ -38,7 +38,9 @@ Values. A non-finite value never crosses the bridge: the publisher does not send
 (a non-finite JointState field is left out, the others go on); the subscriber also refuses a JointState whose
 finite opening is above ``max_opening`` and a depth above ``max_depth``
 (millimetres in a metre field), and malformed images. Refused messages are counted (``bad``) and each kind of
-problem is logged once.
+problem is logged once. A WrenchStamped or Image whose ``header.frame_id`` is not ``frame_id`` (default ``digit``,
+the publisher's; null: any) is refused before its stamp is looked at, counted (``wrong_frame``) and logged once per
+frame: another sender's wrench (a wrist force/torque sensor) is no fingertip force. A JointState's frame is not read.
 
 Each node has its own rclpy Context (its own DDS participant; ``domain_id`` param, default ``ROS_DOMAIN_ID``, both
 checked to be 0..232), never the global default context nor rclpy's signal handlers, and spins its executor in a
@@ -637,6 +639,10 @@ class Ros2Subscribe(Component):
         stamps: Literal["message", "arrival"] = Field(
             "message", description="sample stamps: the message's header.stamp (needs synchronised clocks) or the "
             "arrival time")
+        frame_id: str | None = Field(
+            "digit", description="header.frame_id a WrenchStamped or Image must carry (ros2-publish's default "
+            "'digit'); another frame (a wrist force/torque sensor's on the force topic) is refused; null: any "
+            "frame (the first one seen is logged). A JointState's frame_id is not read (robots leave it empty)")
         max_clock_skew: Seconds = Field(0.05, ge=0, description="a stamp further in the future is clamped to the "
                                         "arrival time", json_schema_extra={"unit": "s"})
         max_opening: Meters = Field(1.0, gt=0, description="a JointState position (opening) larger than this is "
@@ -690,6 +696,8 @@ class Ros2Subscribe(Component):
         self.out_of_order = 0
         self.late = 0
         self.off_axis = 0
+        self.wrong_frame = 0
+        self._frames_seen: set[str] = set()   # topics whose first frame_id was logged (frame_id: null)
         self.lag: float | None = None   # arrival - header.stamp of the last message taken (s)
         self._last_rx: float | None = None   # time.monotonic() of the last message taken
         self._log_once = _LogOnce(self.ctx)
@@ -806,7 +814,29 @@ class Ros2Subscribe(Component):
             raise _Bad(f"{what} is not finite", f" ({v!r})")
         return v
 
+    def _frame_ok(self, key: str, header: Any) -> bool:
+        """Whether a message's ``header.frame_id`` is the one expected (``frame_id``; null: any, the first one seen
+        logged). Another frame (a second sender on the topic: a wrist force/torque sensor's wrench, another camera)
+        is refused before its stamp is looked at, so it cannot make the expected sender's messages look repeated or
+        out of order: counted (``wrong_frame``) and logged once per topic and frame."""
+        want, got = self.params.frame_id, str(header.frame_id)
+        if want is None:
+            if key not in self._frames_seen:
+                self._frames_seen.add(key)
+                self._log_once(("frame", key), f"{key} topic: header.frame_id '{got}' (frame_id: null takes any "
+                                               f"frame; set frame_id: {got!r} to refuse others)")
+            return True
+        if got == want:
+            return True
+        self.wrong_frame += 1
+        self._log_once(("wrong_frame", key, got), f"{key} topic: header.frame_id '{got}', expected '{want}' "
+                                                  f"(frame_id): refused, another sender's frame (set frame_id to "
+                                                  f"the sender's frame, or null to take any)")
+        return False
+
     def _on_force(self, msg: Any) -> None:
+        if not self._frame_ok("force", msg.header):
+            return
         axis = self.params.force_axis
         f = msg.wrench.force
         v = self._finite("force", float(getattr(f, axis)))
@@ -833,6 +863,8 @@ class Ros2Subscribe(Component):
         return image_from_msg(msg)
 
     def _on_image(self, msg: Any) -> None:
+        if not self._frame_ok("image", msg.header):
+            return
         a = self._image(msg, "image")
         if a.dtype != np.uint8 or a.ndim != 3:
             raise _Bad("image: not a colour image", f": expected bgr8/rgb8/bgra8/rgba8, got encoding "
@@ -840,6 +872,8 @@ class Ros2Subscribe(Component):
         self._take("image", msg.header, {"image": a})
 
     def _on_depth(self, msg: Any) -> None:
+        if not self._frame_ok("depth", msg.header):
+            return
         a = self._image(msg, "depth")
         if a.ndim != 2 or a.dtype.kind != "f":
             raise _Bad("depth: not a depth map", f": expected 32FC1/64FC1/16UC1, got encoding '{msg.encoding}'")
@@ -913,7 +947,8 @@ class Ros2Subscribe(Component):
         rx = getattr(self, "_last_rx", None)
         problems = {"bad": getattr(self, "bad", 0), "unstamped": getattr(self, "unstamped", 0),
                     "skewed": getattr(self, "skewed", 0), "late": getattr(self, "late", 0),
-                    "off_axis": getattr(self, "off_axis", 0), "duplicates": getattr(self, "duplicates", 0),
+                    "off_axis": getattr(self, "off_axis", 0), "wrong_frame": getattr(self, "wrong_frame", 0),
+                    "duplicates": getattr(self, "duplicates", 0),
                     "out_of_order": getattr(self, "out_of_order", 0), **_ros_status(self)}
         lag = getattr(self, "lag", None)
         return {"received": getattr(self, "received", 0),
