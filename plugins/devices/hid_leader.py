@@ -23,7 +23,8 @@ from then on) and step() raises HardwareError; while the cap moves, the outputs 
 In position mode the same holds for the deflection: silence while deflected is a lost link (the opening would
 otherwise stay at that deflection, out of the operator's control). At rest a SpaceMouse has no timeout and
 step-time stamps. A ``generic`` pad has a timeout (and report-time stamps) only when ``report_timeout`` is set, for
-a pad known to stream its reports.
+a pad known to stream its reports. A report the parser does not read (another report id, too short) counts as none:
+it neither stamps the outputs nor resets the timeout.
 """
 
 from __future__ import annotations
@@ -459,6 +460,16 @@ class HidLeader(Device):
                 resolve_report_timeout(self.device, self.report_timeout, self.mode)
             return self
 
+        @model_validator(mode="after")
+        def _offsets_past_the_id(self) -> "HidLeader.Params":
+            if self.device == "generic" and self.report_id is not None:
+                for name in ("trigger_offset", "button_offset"):
+                    if getattr(self, name) == 0:
+                        raise ValueError(f"{name}: byte 0 is the report id (report_id {self.report_id}), which never "
+                                         f"changes: the offsets count the report id, so the report's first data byte "
+                                         f"is 1")
+            return self
+
     def configure(self) -> None:
         p = self.params
         hid = _hid()
@@ -499,6 +510,9 @@ class HidLeader(Device):
         self.velocity = 0.0
         self.last_t: float | None = None
         self.reports = 0
+        self.ignored_reports = 0   # reports read that the parser does not read (another report id, too short)
+        self._unread = 0           # ... of them since the last report it read, and the last one's (id, length)
+        self._last_unread: tuple[int | None, int] | None = None
         self.last_report_t: float | None = None  # graph time of the last report read (report_timeout on)
         self._watch_from: float | None = None
         self._out: dict[str, Sample] | None = None
@@ -510,18 +524,43 @@ class HidLeader(Device):
         self._watch_from = None
         self._out = None
         self._deflection = 0.0  # a rate from before a deactivate is not integrated on
+        self._unread = 0
 
-    def _parse(self, report: Any) -> None:
+    def _parse(self, report: Any) -> bool:
+        """Update the state with one report; whether the parser read it (a parser returns the very state it was given
+        for a report it does not read: another report id, too short)."""
         p = self.params
+        sm, pad = self.sm, self.pad
         if self.profile == "spacemouse":
-            self.sm = parse_spacemouse(report, self.sm)
+            self.sm = parse_spacemouse(report, sm)
         elif self.profile == "dualshock4":
-            self.pad = parse_dualshock4(report, self.pad)
+            self.pad = parse_dualshock4(report, pad)
         elif self.profile == "dualsense":
-            self.pad = parse_dualsense(report, self.pad)
+            self.pad = parse_dualsense(report, pad)
         else:
-            self.pad = parse_generic_trigger(report, self.pad, p.report_id, p.trigger_offset, p.button_offset,
+            self.pad = parse_generic_trigger(report, pad, p.report_id, p.trigger_offset, p.button_offset,
                                              p.button_mask)
+        if self.sm is not sm or self.pad is not pad:
+            self._unread = 0
+            return True
+        self.ignored_reports += 1
+        self._unread += 1
+        r = _report(report)
+        self._last_unread = (r[0] if r else None, len(r))
+        return False
+
+    def _why_silent(self, lost: str) -> str:
+        """``lost`` (a lost link and what to check), or, where reports came since the last one the parser read, what
+        they were."""
+        if not self._unread:
+            return lost
+        rid, n = self._last_unread   # type: ignore[misc]
+        what = f"id 0x{rid:02x}, {n} bytes" if rid is not None else "empty"
+        hint = {"dualsense": " (a DualSense over Bluetooth sends 10-byte reports until the host asks for its full "
+                             "ones; Linux's hid-playstation does)",
+                "generic": "; check report_id, trigger_offset and button_offset"}.get(self.profile, "")
+        return (f"{self._unread} report(s) came in a layout the {self.profile} parser does not read (the last: "
+                f"{what}), and such a report is no measurement{hint}")
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         p = self.params
@@ -531,9 +570,9 @@ class HidLeader(Device):
                 r = self.dev.read(64)
                 if not r:
                     break
-                mono = time.monotonic()
                 self.reports += 1
-                self._parse(r)
+                if self._parse(r):   # (a report the parser does not read is no measurement: no stamp, no timeout reset)
+                    mono = time.monotonic()
         except (OSError, IOError, ValueError) as exc:
             info = self.info
             raise HardwareError(f"{info['name']} stopped answering ({exc}): the HID device "
@@ -552,6 +591,9 @@ class HidLeader(Device):
         return {"gripper_opening": self.opening, "gripper_velocity": self.velocity, "position": np.zeros(3),
                 "button": self.pad.cross}
 
+    def _no_report(self) -> str:
+        return "no report it reads" if self._unread else "no report"
+
     def _step_periodic(self, mono: float | None) -> dict[str, Any] | None:
         """A device that reports periodically: fault on silence, stamp the outputs with the last report's time."""
         p = self.params
@@ -564,10 +606,11 @@ class HidLeader(Device):
             if silent > self.report_timeout:  # type: ignore[operator]
                 what = "since its last report" if self.last_report_t is not None else "since the run started"
                 raise HardwareError(f"{self.info['name']} ({self.info.get('vendor_id', 0):04x}:"
-                                    f"{self.info.get('product_id', 0):04x}) sent no report for {silent:.3f} s "
-                                    f"{what} (report_timeout {self.report_timeout:g} s; it reports every few ms "
-                                    f"while connected): link lost; check the cable, the Bluetooth range and the "
-                                    f"battery")
+                                    f"{self.info.get('product_id', 0):04x}) sent {self._no_report()} for {silent:.3f} "
+                                    f"s {what} (report_timeout {self.report_timeout:g} s; it reports every few ms "
+                                    f"while connected): "
+                                    + self._why_silent("link lost; check the cable, the Bluetooth range and the "
+                                                       "battery"))
             return None if self._out is None else dict(self._out)  # the last report's samples, with their stamp
         stamp = self.ctx.from_monotonic(mono)
         x = trigger_to_opening(self.pad.trigger(p.trigger), p.min_opening, p.max_opening)
@@ -597,10 +640,11 @@ class HidLeader(Device):
             silent = self.ctx.from_monotonic(time.monotonic()) - self.last_report_t
             if silent > timeout:  # type: ignore[operator]
                 raise HardwareError(f"{self.info['name']} ({self.info.get('vendor_id', 0):04x}:"
-                                    f"{self.info.get('product_id', 0):04x}) sent no report for {silent:.3f} s while "
-                                    f"its cap was deflected (report_timeout {timeout:g} s; it reports every few ms "
-                                    f"while deflected): link lost; the opening stays where it was at the last report; "
-                                    f"check the cable or the wireless receiver and its battery")
+                                    f"{self.info.get('product_id', 0):04x}) sent {self._no_report()} for {silent:.3f} "
+                                    f"s while its cap was deflected (report_timeout {timeout:g} s; it reports every "
+                                    f"few ms while deflected): the opening stays where it was at the last report; "
+                                    + self._why_silent("link lost; check the cable or the wireless receiver and its "
+                                                       "battery"))
             return dict(self._out)  # type: ignore[arg-type]  # moving: the last report's samples, with their stamp
         stamp = self.ctx.from_monotonic(mono)
         sm = self.sm
@@ -642,7 +686,8 @@ class HidLeader(Device):
     def status(self) -> dict[str, Any]:
         if not hasattr(self, "dev"):
             return {}
-        return {"gripper_opening_m": self.opening, "reports": self.reports, "last_report_at_s": self.last_report_t,
+        return {"gripper_opening_m": self.opening, "reports": self.reports, "ignored_reports": self.ignored_reports,
+                "last_report_at_s": self.last_report_t,
                 "report_timeout_s": self.report_timeout, "profile": self.profile, "device": self.info.get("name", "")}
 
 
