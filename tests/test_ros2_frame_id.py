@@ -56,10 +56,11 @@ def test_a_wrench_of_another_frame_is_refused_and_cannot_disorder_the_expected_o
         # a wrist F/T sensor on the same topic, newer stamps: before, its 25 N went to the operator's hand
         assert sub.send(pub, _force(25.0, now - 0.1, "wrist_ft")) == {}
         assert sub.send(pub, _force(26.0, now - 0.05, "wrist_ft")) == {}
+        assert sub.send(pub, _force(27.0, now - 0.04, "tool0")) == {}     # a third sender: counted, not logged
         st = sub.comp.status()
-        assert st["wrong_frame"] == 2 and st["problems"] >= 2 and st["received"] == 1, st
+        assert st["wrong_frame"] == 3 and st["problems"] >= 3 and st["received"] == 1, st
         lines = [m for m in sub.logs if "frame_id" in m]
-        assert len(lines) == 1 and "'wrist_ft', expected 'digit'" in lines[0], sub.logs   # logged once
+        assert len(lines) == 1 and "'wrist_ft', expected 'digit'" in lines[0], sub.logs   # logged once per topic
         # the refused messages' newer stamps did not become the port's last one: the next fingertip force is taken
         assert sub.send(pub, _force(1.5, now - 0.15, "digit")) == {"force": 1.5}
         assert sub.comp.status()["out_of_order"] == 0

@@ -40,7 +40,7 @@ finite opening is above ``max_opening`` and a depth above ``max_depth``
 (millimetres in a metre field), and malformed images. Refused messages are counted (``bad``) and each kind of
 problem is logged once. A WrenchStamped or Image whose ``header.frame_id`` is not ``frame_id`` (default ``digit``,
 the publisher's; null: any) is refused before its stamp is looked at, counted (``wrong_frame``) and logged once per
-frame: another sender's wrench (a wrist force/torque sensor) is no fingertip force. A JointState's frame is not read.
+topic: another sender's wrench (a wrist force/torque sensor) is no fingertip force. A JointState's frame is not read.
 
 Each node has its own rclpy Context (its own DDS participant; ``domain_id`` param, default ``ROS_DOMAIN_ID``, both
 checked to be 0..232), never the global default context nor rclpy's signal handlers, and spins its executor in a
@@ -697,7 +697,6 @@ class Ros2Subscribe(Component):
         self.late = 0
         self.off_axis = 0
         self.wrong_frame = 0
-        self._frames_seen: set[str] = set()   # topics whose first frame_id was logged (frame_id: null)
         self.lag: float | None = None   # arrival - header.stamp of the last message taken (s)
         self._last_rx: float | None = None   # time.monotonic() of the last message taken
         self._log_once = _LogOnce(self.ctx)
@@ -818,20 +817,20 @@ class Ros2Subscribe(Component):
         """Whether a message's ``header.frame_id`` is the one expected (``frame_id``; null: any, the first one seen
         logged). Another frame (a second sender on the topic: a wrist force/torque sensor's wrench, another camera)
         is refused before its stamp is looked at, so it cannot make the expected sender's messages look repeated or
-        out of order: counted (``wrong_frame``) and logged once per topic and frame."""
+        out of order: counted (``wrong_frame``) and logged once per topic (the first frame refused: a sender that
+        changes its frame_id at each message must not use up the log's budget of kinds of problem)."""
         want, got = self.params.frame_id, str(header.frame_id)
-        if want is None:
-            if key not in self._frames_seen:
-                self._frames_seen.add(key)
-                self._log_once(("frame", key), f"{key} topic: header.frame_id '{got}' (frame_id: null takes any "
-                                               f"frame; set frame_id: {got!r} to refuse others)")
+        if want is None:   # (logged for the first message of each topic)
+            self._log_once(("frame", key), f"{key} topic: header.frame_id '{got}' (frame_id: null takes any frame; "
+                                           f"set frame_id: {got!r} to refuse others)")
             return True
         if got == want:
             return True
         self.wrong_frame += 1
-        self._log_once(("wrong_frame", key, got), f"{key} topic: header.frame_id '{got}', expected '{want}' "
-                                                  f"(frame_id): refused, another sender's frame (set frame_id to "
-                                                  f"the sender's frame, or null to take any)")
+        self._log_once(("wrong_frame", key), f"{key} topic: header.frame_id '{got}', expected '{want}' (frame_id): "
+                                             f"refused, another sender's frame (set frame_id to the sender's frame, "
+                                             f"or null to take any); further ones are counted (wrong_frame), not "
+                                             f"logged")
         return False
 
     def _on_force(self, msg: Any) -> None:

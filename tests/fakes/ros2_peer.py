@@ -67,8 +67,8 @@ class SubscribeNode:
     def handled(self) -> int:
         """Messages the subscription callbacks have dealt with, taken or refused."""
         st = self.comp.status()
-        return sum(st.get(k, 0) for k in ("received", "bad", "unstamped", "duplicates", "out_of_order",
-                                                  "wrong_frame"))
+        counted = ("received", "bad", "unstamped", "duplicates", "out_of_order", "wrong_frame")
+        return sum(st.get(k, 0) for k in counted)
 
     def close(self) -> None:
         self.comp.deactivate()
