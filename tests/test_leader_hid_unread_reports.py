@@ -82,3 +82,12 @@ def test_generic_trigger_and_button_cannot_be_the_report_id_byte():
         hl.HidLeader.Params(device="generic", report_id=3, trigger_offset=2, button_offset=0)
     assert hl.HidLeader.Params(device="generic", report_id=3, trigger_offset=1, button_offset=2).trigger_offset == 1
     assert hl.HidLeader.Params(device="generic", trigger_offset=0, button_offset=0).trigger_offset == 0   # no ids
+
+
+def test_report_timeout_is_at_most_2_s():
+    # before: 500 (meant as ms) was 500 s: a dead link noticed after 8 minutes, and a SpaceMouse's last rate applied
+    # for that long at once when a report came back
+    with pytest.raises(ValidationError, match="report_timeout"):
+        hl.HidLeader.Params(device="dualsense", report_timeout=500)
+    assert hl.HidLeader.Params(device="spacemouse", report_timeout="500ms").report_timeout == 0.5
+    assert hl.HidLeader.Params(device="generic", report_timeout=2.0).report_timeout == 2.0

@@ -419,11 +419,11 @@ class HidLeader(Device):
         button_mask: int = Field(1, ge=1, le=255, description="generic: bit mask of the button")
         max_reports: int = Field(64, ge=1, description="reports drained per step at most")
         report_timeout: Seconds | None = Field(
-            None, ge=0, description="silence after which the device faults (HardwareError), and its outputs carry "
-                                    "the time of the last report; None: 0.5 s for dualshock4/dualsense (they report "
-                                    "every few ms; cannot be turned off) and for a spacemouse (while its cap is "
-                                    "deflected; cannot be turned off), off for generic (set it for a pad that "
-                                    "streams reports)",
+            None, ge=0, le=2.0, description="silence after which the device faults (HardwareError), and its outputs "
+            "carry the time of the last report; None: 0.5 s for dualshock4/dualsense (they report every few ms; "
+            "cannot be turned off) and for a spacemouse (while its cap is deflected; cannot be turned off), off for "
+            "generic (set it for a pad that streams reports); at most 2 s (a SpaceMouse's last rate holds that long: "
+            "500 meant as ms would be 500 s, write 500ms)",
             json_schema_extra={"unit": "s"})
 
         @field_validator("vendor_id", "product_id", "report_id", mode="before")
