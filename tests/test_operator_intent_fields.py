@@ -54,3 +54,17 @@ def test_a_misspelt_intent_field_gets_a_did_you_mean():
     with pytest.raises(ValueError, match=r"has no field 'target_openning' \(did you mean 'target_opening'( or "
                                          r"'start_opening')?\?\); its fields: "):
         validate_intent({"type": "close-and-hold", "target_openning": 0.01})
+
+
+@pytest.mark.parametrize("source, says", [
+    ("def desired(:\n", "module 'tt_bad_intent' failed to load ("),
+    ("raise RuntimeError('no config')\n", "module 'tt_bad_intent' failed to load: RuntimeError: no config"),
+])
+def test_an_intent_module_that_fails_to_load_is_a_clear_error(site, source, says):
+    # before: a SyntaxError (or any error but ImportError) in a user's intent module came out as itself, a traceback
+    (site / "tt_bad_intent.py").write_text(source)
+    with pytest.raises(ValueError) as err:
+        validate_intent({"type": "tt_bad_intent:MyIntent"})
+    assert str(err.value).startswith("intent type 'tt_bad_intent:MyIntent': ") and says in str(err.value), err.value
+    if "def desired" in source:
+        assert "tt_bad_intent.py:1): SyntaxError" in str(err.value)

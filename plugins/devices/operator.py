@@ -106,6 +106,10 @@ def _resolve(type_name: str) -> type:
             mod = importlib.import_module(mod_name)
         except ImportError as exc:
             raise ValueError(f"intent type '{type_name}': cannot import module '{mod_name}' ({exc})") from None
+        except Exception as exc:   # the module is there but fails as it loads (a SyntaxError, an error at import)
+            where = f" ({exc.filename}:{exc.lineno})" if isinstance(exc, SyntaxError) else ""
+            raise ValueError(f"intent type '{type_name}': module '{mod_name}' failed to load{where}: "
+                             f"{type(exc).__name__}: {exc}") from None
         cls = getattr(mod, attr, None)
         if cls is None:
             raise ValueError(f"intent type '{type_name}': module '{mod_name}' has no attribute '{attr}'")
