@@ -12,7 +12,8 @@ ROS 2 messages in CDR with ``ros2msg`` schemas where a standard message fits, so
 ======================================  ==============================================================
 value                                   message
 ======================================  ==============================================================
-float, unit N (scalar or 3-vector)      geometry_msgs/msg/WrenchStamped (scalar on force.z)
+float, unit N (scalar or 3-vector)      geometry_msgs/msg/WrenchStamped (scalar on force.z; a channel keeps its
+                                        first value's form, metadata value_shape)
 other float or int scalar               std_msgs/msg/Float64 (an int is exact up to 2**53)
 bool / str scalar                       std_msgs/msg/Bool / String
 1-D or N-D number or bool array         std_msgs/msg/Float64MultiArray (layout keeps the shape, read back in
@@ -306,12 +307,26 @@ def _cdr_header(stamp_ns: int, frame_id: str) -> bytearray:
 
 
 class _Wrench(_Codec):
+    """A force in N: a 3-vector on force xyz, a scalar on force.z. A channel holds one of the two, the form of its
+    first value (``vector``; None while the codec is chosen), kept in its metadata (``value_shape``): the message
+    cannot tell a scalar from a vector whose x and y are 0, and the port's declared shape may leave it open."""
+
     kind = "wrench"
     ros_type = "geometry_msgs/msg/WrenchStamped"
 
+    def __init__(self, recorder_opts: dict[str, Any] | None = None, vector: bool | None = None):
+        super().__init__(recorder_opts)
+        self.vector = vector
+
+    @staticmethod
+    def is_vector(v: Any) -> bool:
+        return isinstance(v, np.ndarray) and v.shape == (3,) and v.dtype.kind in "fiu"
+
     def accepts(self, v):
-        return _is_scalar_number(v) or (isinstance(v, np.ndarray) and v.shape in ((), (3,))
-                                        and v.dtype.kind in "fiu")
+        if self.is_vector(v):
+            return self.vector is not False
+        scalar = _is_scalar_number(v) or (isinstance(v, np.ndarray) and v.shape == () and v.dtype.kind in "fiu")
+        return scalar and not self.vector
 
     def encode(self, v, stamp_ns, frame_id):
         if isinstance(v, np.ndarray) and v.shape == (3,):
@@ -325,8 +340,8 @@ class _Wrench(_Codec):
 
     def unpack(self, msg, meta):
         f = msg.wrench.force
-        if meta.get("shape") == "[3]":
-            return np.array([f.x, f.y, f.z])
+        if meta.get("value_shape", meta.get("shape")) == "[3]":   # (a file from before value_shape: as declared)
+            return _as_recorded(np.array([f.x, f.y, f.z]), meta)
         return float(f.z)
 
 
@@ -617,6 +632,8 @@ def _choose_codec(value: Any, port: Any, ros: bool, opts: dict[str, Any]) -> _Co
     for cls in order:
         c = cls(opts)
         if c.accepts(value):
+            if isinstance(c, _Wrench):   # the channel's form: a later value of the other form goes to JSON
+                c.vector = _Wrench.is_vector(value)
             return c
     return _Json(opts)
 
@@ -633,6 +650,11 @@ def _ros_available() -> bool:
 
 
 # --------------------------------------------------------------------------------------------- writing
+def _topic(node: str, port: str) -> str:
+    """The MCAP topic of a port: ``/<node>/<port>``, '-' and other characters ROS does not take as '_'."""
+    return "/" + re.sub(r"[^A-Za-z0-9_/]", "_", f"{node}/{port}")
+
+
 #: s without progress after which close() stops waiting for the writer (a write that never returns)
 CLOSE_STALL_TIMEOUT = 10.0
 _STOP = object()
@@ -696,18 +718,14 @@ class Recorder:
             import lz4.frame  # noqa: F401
         except ImportError:  # pragma: no cover - lz4 ships with mcap's usual installs
             compression = CompressionType.NONE
-        self._writer = Writer(self._fh, chunk_size=4 * 1024 * 1024, compression=compression)
-        self._writer.start(profile="ros2" if self.ros else "", library="teletouch")
-        from . import __version__
-
-        self._writer.add_metadata("teletouch", {
-            "teletouch_version": __version__,
-            "graph": str(getattr(spec, "name", "") or ""),
-            "graph_file": str(getattr(spec, "file", "") or ""),
-            "clock": str(self.clock),
-            "flush_interval_s": repr(self.flush_interval),
-        })
-        self._fh.flush()
+        try:
+            self._start(spec, Writer, compression)
+        except OSError as exc:   # a full disk refuses the header: say so, leave no file open
+            try:
+                self._fh.close()
+            except OSError:
+                pass
+            raise RecordingError(f"cannot write the recording {self.path}: {exc.strerror or exc}") from None
         self._schemas: dict[str, int] = {}
         self._chans: dict[tuple[str, str], _Chan] = {}
         self._q: queue.SimpleQueue = queue.SimpleQueue()
@@ -727,6 +745,21 @@ class Recorder:
         self._seq = 0
         self._thread = threading.Thread(target=self._run, name="teletouch-recorder", daemon=True)
         self._thread.start()
+
+    def _start(self, spec: Any, writer: Any, compression: Any) -> None:
+        """Write the file's header and the ``teletouch`` metadata record, flushed."""
+        from . import __version__
+
+        self._writer = writer(self._fh, chunk_size=4 * 1024 * 1024, compression=compression)
+        self._writer.start(profile="ros2" if self.ros else "", library="teletouch")
+        self._writer.add_metadata("teletouch", {
+            "teletouch_version": __version__,
+            "graph": str(getattr(spec, "name", "") or ""),
+            "graph_file": str(getattr(spec, "file", "") or ""),
+            "clock": str(self.clock),
+            "flush_interval_s": repr(self.flush_interval),
+        })
+        self._fh.flush()
 
     # ------------------------------------------------------------------------------------------------ API
     def tap(self, node_id: str, t: float, outputs: dict) -> None:
@@ -870,7 +903,7 @@ class Recorder:
 
     def _register(self, node: str, port: str, codec: _Codec, value: Any, suffix: str = "") -> int:
         p = self._ports.get((node, port))
-        topic = "/" + re.sub(r"[^A-Za-z0-9_/]", "_", f"{node}/{port}") + suffix
+        topic = _topic(node, port) + suffix
         meta = {"node": node, "port": port, "codec": codec.kind,
                 "dtype": p.dtype if p is not None else "any",
                 "unit": p.unit if p is not None else "any",
@@ -878,6 +911,8 @@ class Recorder:
                 "description": p.description if p is not None else ""}
         if isinstance(value, np.ndarray):  # what a reader gives back where the message does not keep the dtype
             meta["value_dtype"] = value.dtype.name
+        if isinstance(codec, _Wrench):  # a force vector or a scalar: the message cannot tell
+            meta["value_shape"] = "[3]" if codec.vector else "[]"
         return self._writer.register_channel(topic, "cdr" if codec.ros_type else "json",
                                              self._schema(codec.ros_type), meta)
 
@@ -1105,6 +1140,16 @@ def _unreadable(path: str, fh: Any, size: int, exc: BaseException, cut: bool) ->
     return f"{path} is a corrupt MCAP file: its first record (byte 8) cannot be read ({_why(exc)})"
 
 
+def _graph_epoch(path: str, text: str) -> int:
+    """The ``graph_epoch_ns`` of a teletouch.time record; one that is no integer is a RecordingError (every graph time
+    of the recording hangs on it: not one could be given right)."""
+    try:
+        return int(text)
+    except ValueError:
+        raise RecordingError(f"{path}: metadata record teletouch.time: graph_epoch_ns {text!r} is not an integer "
+                             f"(a corrupt record): the graph times of the recording cannot be known") from None
+
+
 def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
     """Yield (channel, mcap Message) in file order. Where a crash cut the file (or a record is corrupt) stop with
     rec.truncated and rec.problem saying where; a file in which no record can be read raises RecordingError."""
@@ -1119,7 +1164,8 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
         raise RecordingError(f"cannot read the recording {path}: {exc.strerror or exc}") from exc
     with fh:
         size = os.fstat(fh.fileno()).st_size
-        reader = StreamReader(fh, skip_magic=False)
+        # CRCs checked: a chunk damaged on the disk is where the file is corrupt, not other values read back
+        reader = StreamReader(fh, skip_magic=False, validate_crcs=True)
         it = reader.records
         records = 0
         while True:
@@ -1147,14 +1193,14 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                     continue  # repeated in the summary section
                 meta = dict(r.metadata)
                 key = f"{meta['node']}.{meta['port']}" if "node" in meta and "port" in meta else r.topic
-                if r.topic.endswith("/json") and "node" in meta:
-                    key += "/json"
+                if "node" in meta and "port" in meta and r.topic == _topic(meta["node"], meta["port"]) + "/json":
+                    key += "/json"   # the sibling JSON channel (not a port named "json": its topic is /<node>/json)
                 sname = schemas[r.schema_id].name if r.schema_id in schemas else ""
                 rec.channels[r.id] = ChannelInfo(r.id, r.topic, key, r.message_encoding, sname, meta)
             elif isinstance(r, Metadata):
                 rec.metadata[r.name] = dict(r.metadata)
                 if r.name == "teletouch.time" and "graph_epoch_ns" in r.metadata:
-                    rec.epoch_ns = int(r.metadata["graph_epoch_ns"])
+                    rec.epoch_ns = _graph_epoch(path, r.metadata["graph_epoch_ns"])
                 elif r.name == "teletouch.drops":
                     try:
                         rec.dropped = int(r.metadata["dropped"])
@@ -1267,7 +1313,9 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
     """Yield (stamp_s, BGR uint8 image) for the colour images of a recording, in recorded order; stamps are the
     capture times on the recording's graph clock (another tool's recording: from its first message, as the other
     readers give them). ``port``: "node.port", a port name or a topic; None: the only colour-image channel (an
-    error names the choices if there are several). A recording cut short (a crashed run), or one whose recorder
+    error names the choices if there are several). A mono8 channel is given as BGR; one of depth maps or masks is
+    refused (the error names what it holds), and another tool's image that is no BGR or mono8 frame is an error as a
+    message that cannot be decoded is (below). A recording cut short (a crashed run), or one whose recorder
     dropped samples, gives the images it holds, after a warning to ``log`` (if given). An image message that
     cannot be decoded raises a RecordingError naming the file, the channel and its time; with ``on_damaged`` it is
     handed to it instead, with its stamp, and skipped.
@@ -1298,6 +1346,11 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
         if len({c.key for c in chosen}) > 1:
             raise RecordingError(f"{path}: '{port}' matches several image channels "
                                  f"({', '.join(sorted(c.key for c in chosen))}); give node.port")
+        holds = _not_frames(chosen[0])
+        if holds:
+            others = ", ".join(sorted(c.key for c in colour)) or "(none)"
+            raise RecordingError(f"{path}: channel '{chosen[0].key}' holds {holds}, not colour (BGR uint8) or mono8 "
+                                 f"frames; colour image channels: {others}")
     if not chosen:
         raise RecordingError(f"{path}: the recording has no images{note}")
     if rec.truncated and log is not None:
@@ -1312,18 +1365,38 @@ def iter_images(path: str | os.PathLike, port: str | None = None, log: Callable[
         if ch.id not in ids:
             continue
         c = codecs.get(ch.id) or codecs.setdefault(ch.id, _codec_for(ch, path))
+        stamp = (msg.publish_time - epoch) * 1e-9
         try:
-            img = _decode(path, c, ch, msg, epoch)
+            img = _frame(path, ch, _decode(path, c, ch, msg, epoch), stamp)
         except RecordingError as exc:
             if on_damaged is None:
                 raise
-            on_damaged((msg.publish_time - epoch) * 1e-9, exc)
+            on_damaged(stamp, exc)
             continue
-        if img.ndim == 2:
-            import cv2
+        yield stamp, img
 
-            img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-        yield (msg.publish_time - epoch) * 1e-9, img
+
+def _not_frames(ch: ChannelInfo) -> str:
+    """What an image channel teletouch wrote holds that is no frame (its depth maps: float or uint16 images; its
+    masks), "" for colour or mono8 images; another tool's sensor_msgs/Image says only in its messages (bgr8 or depth:
+    :func:`_frame`)."""
+    if ch.metadata.get("codec") == "image":
+        dt = _recorded_dtype(ch.metadata)
+        return f"{dt.name if dt is not None else 'float or uint16'} images (sensor_msgs/msg/Image, depth maps)"
+    return "bool masks" if _recorded_bool(ch.metadata) else ""
+
+
+def _frame(path: str, ch: ChannelInfo, img: np.ndarray, stamp: float) -> np.ndarray:
+    """A decoded image as a BGR uint8 frame (mono8 turned BGR); any other image (a depth map of another tool's
+    recording, a 16-bit or 4-channel PNG) is a RecordingError naming the file, the channel and the message."""
+    if img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3:
+        return img
+    if img.dtype == np.uint8 and img.ndim == 2:
+        import cv2
+
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    raise RecordingError(f"{path}: channel {ch.topic}: message {ch.count} (at {stamp:.3f} s) is a {img.dtype} "
+                         f"{img.shape} image, not a BGR or mono8 frame")
 
 
 # --------------------------------------------------------------------------------------------- plotting
