@@ -16,7 +16,7 @@ from sensor_msgs.msg import Image, JointState
 from teletouch import Inputs
 from teletouch.recording import image_msg, ros_time
 
-from fakes.ros2_peer import Peer, SubscribeNode, domain_fixture, own_domain, wait_until
+from fakes.ros2_peer import Peer, SubscribeNode, domain_fixture, own_domain
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -29,13 +29,8 @@ class _Sub(SubscribeNode):
         super().__init__(DOMAIN, ns, **params)
 
     def send(self, pub, msg) -> dict:
-        """Publish one message (once both ends are matched), wait until the node has dealt with it, step once."""
-        subs = [s for s in self.comp._subs if s.topic_name == pub.topic_name]
-        assert wait_until(lambda: pub.get_subscription_count() >= 1 and subs[0].get_publisher_count() >= 1), \
-            f"{pub.topic_name}: never matched"
-        h = self.handled()
-        pub.publish(msg)
-        assert wait_until(lambda: self.handled() > h), f"message not handled: {self.comp.status()}"
+        """Publish one message, wait until the node has dealt with it, step once."""
+        self.deliver(pub, msg)
         return {k: s.value for k, s in (self.comp.step(self.ctx.now(), Inputs({})) or {}).items()}
 
 

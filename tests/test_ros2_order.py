@@ -16,7 +16,7 @@ from sensor_msgs.msg import JointState
 from teletouch import Inputs, Sample
 from teletouch.recording import ros_time
 
-from fakes.ros2_peer import Peer, SubscribeNode, domain_fixture, own_domain, wait_until
+from fakes.ros2_peer import Peer, SubscribeNode, domain_fixture, own_domain
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -30,15 +30,6 @@ class _Sub(SubscribeNode):
     def __init__(self, ns: str, **params):
         super().__init__(DOMAIN, ns, **params)
         self.out: list[tuple[str, Sample]] = []
-
-    def deliver(self, pub, msg) -> None:
-        """Publish one message (once both ends are matched) and wait until the node has dealt with it; no step."""
-        subs = [s for s in self.comp._subs if s.topic_name == pub.topic_name]
-        assert wait_until(lambda: pub.get_subscription_count() >= 1 and subs[0].get_publisher_count() >= 1), \
-            f"{pub.topic_name}: never matched"
-        h = self.handled()
-        pub.publish(msg)
-        assert wait_until(lambda: self.handled() > h), f"message not handled: {self.comp.status()}"
 
     def step(self) -> dict[str, Sample]:
         out = self.comp.step(self.ctx.now(), Inputs({})) or {}

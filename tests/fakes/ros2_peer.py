@@ -64,6 +64,16 @@ class SubscribeNode:
         self.comp.configure()
         self.comp.activate()
 
+    def deliver(self, pub: Any, msg: Any) -> None:
+        """Publish one message on ``pub`` (once both ends are matched) and wait until the node has dealt with it (taken
+        or refused); no step."""
+        subs = [s for s in self.comp._subs if s.topic_name == pub.topic_name]
+        assert wait_until(lambda: pub.get_subscription_count() >= 1 and subs[0].get_publisher_count() >= 1), \
+            f"{pub.topic_name}: never matched"
+        h = self.handled()
+        pub.publish(msg)
+        assert wait_until(lambda: self.handled() > h), f"message not handled: {self.comp.status()}"
+
     def handled(self) -> int:
         """Messages the subscription callbacks have dealt with, taken or refused."""
         st = self.comp.status()
