@@ -320,3 +320,31 @@ def test_replay_video_without_a_frame_fails_at_configure(tmp_path):
     with pytest.raises(ModelFileError, match=rf"{path}: no frame can be decoded"):
         with Harness(Replay, {"path": str(path)}):
             pass
+
+
+def test_a_folder_of_frames_named_by_their_time_plays_in_time_order(tmp_path, shared_data):
+    # ROS tools export frames as <seconds>.<fraction>.png: natural order put 1700000000.5 before 1700000000.123
+    src = list_images(shared_data / "digit-presses-qvga")[:3]
+    names = ["1700000000.123.png", "1700000000.5.png", "1700000001.png"]
+    for f, name in zip(src, names):
+        shutil.copy(f, tmp_path / name)
+    assert [f.name for f in list_images(tmp_path)] == names
+    (tmp_path / "frame_a.png").write_bytes((tmp_path / names[0]).read_bytes())   # one name that is no time
+    assert [f.name for f in list_images(tmp_path)] == ["1700000000.5.png", "1700000000.123.png", "1700000001.png",
+                                                        "frame_a.png"]   # natural order, as before
+
+
+def test_a_recording_without_the_mcap_suffix_is_replayed_not_opened_as_a_video(tmp_path, shared_data):
+    import cv2
+
+    from teletouch.recording import Recorder
+
+    frames = [cv2.imread(str(f)) for f in list_images(shared_data / "digit-presses-qvga")[:3]]
+    path = tmp_path / "run.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        for k, f in enumerate(frames):
+            rec.tap("digit", 0.1 + k * 0.05, {"image": Sample(f, 0.09 + k * 0.05)})
+    renamed = path.rename(tmp_path / "run.bag")
+    result, rt, got = _run(_graph(renamed, node_rate=100), duration=1.0)
+    assert "finished: 3 frames" in result.ending, result.ending   # before: "cannot open the video"
+    assert len(got) == 3 and all(np.array_equal(s.value, f) for (_, s), f in zip(got, frames))

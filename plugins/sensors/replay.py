@@ -1,5 +1,8 @@
 """``replay``: DIGIT frames from a folder of images, a video file or a teletouch recording (MCAP), at a given rate.
 
+A folder plays in natural order (frame_2 before frame_10), or in time order where every name is a time in seconds (as
+ROS tools export frames); a file that starts as MCAP does is a recording whatever its suffix.
+
 Same output port as the real driver (``image``: uint8 BGR, portrait). Frame k is due ``k / rate`` seconds after the
 first step (``rate`` None: the video's own fps, the recording's own stamps, one image per step for a folder); each
 step publishes the newest due frame, stamped with the graph time it became due, so replays are deterministic under
@@ -43,10 +46,29 @@ def _natural_key(name: str) -> list[Any]:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
+#: a frame named by its time: seconds, with a fraction or not (``1700000000.123.png``, as ROS tools export frames)
+_TIME_NAME = re.compile(r"\d+(?:\.\d+)?")
+#: the first bytes of every MCAP file
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 def list_images(folder: str | os.PathLike) -> list[Path]:
-    """Image files of a folder in natural order (frame_2 before frame_10); other files are ignored."""
+    """Image files of a folder in natural order (frame_2 before frame_10); where every name is a number of seconds
+    with a fraction (``1700000000.5.png``, ``1700000000.123.png``), in the order of those numbers (natural order put
+    .5 before .123). Other files are ignored."""
     files = [f for f in Path(folder).iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES]
+    if files and all(_TIME_NAME.fullmatch(f.stem) for f in files):
+        return sorted(files, key=lambda f: (float(f.stem), f.name))
     return sorted(files, key=lambda f: _natural_key(f.name))
+
+
+def is_mcap(path: Path) -> bool:
+    """Whether ``path`` starts as an MCAP file does (whatever its name's suffix)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
 
 
 class CorruptFrame(Exception):
@@ -317,7 +339,7 @@ class Replay(Component):
             if p.port is not None:  # a folder named *.mcap: the Params check passed
                 raise ModelFileError(_port_only_for_mcap(p.port, str(path) + " is a folder"))
             self.source: _Source = _Folder(path)
-        elif path.suffix.lower() == ".mcap":
+        elif path.suffix.lower() == ".mcap" or is_mcap(path):   # (a recording renamed: not opened as a video)
             self.source = _Recording(path, p.port, self.ctx.log)
         elif path.suffix.lower() in IMAGE_SUFFIXES:
             raise ModelFileError(f"{path}: a single image; give the folder that holds the frames")
