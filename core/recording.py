@@ -501,10 +501,22 @@ class _Json(_Codec):
     expected = 'JSON {"value": ...}, as teletouch writes'
 
     def encode(self, v, stamp_ns, frame_id):
-        return json.dumps({"value": _jsonable(v)}, allow_nan=False).encode()
+        doc = {"value": _jsonable(v)}
+        if isinstance(v, np.ndarray) and v.ndim > 1:   # an empty (0, 3) array's list is [], which says no shape
+            doc["shape"] = list(v.shape)
+        return json.dumps(doc, allow_nan=False).encode()
 
     def decode(self, data, meta):
-        v = _unjson(json.loads(data)["value"])
+        doc = json.loads(data)
+        v = _unjson(doc["value"])
+        a = self._array(v, meta)
+        shape = doc.get("shape")
+        if isinstance(a, np.ndarray) and isinstance(shape, list) and a.size == math.prod(shape):
+            return a.reshape(shape)
+        return a
+
+    @staticmethod
+    def _array(v: Any, meta: dict[str, str]) -> Any:
         if isinstance(v, list) and meta.get("dtype") not in (None, "any"):
             try:
                 return np.asarray(v, dtype=meta["dtype"])

@@ -210,3 +210,15 @@ def test_another_tools_depth_image_is_an_error_per_message_naming_channel_and_ti
     assert list(iter_images(path, port="/camera/depth", on_damaged=lambda s, e: damaged.append((s, str(e))))) == []
     assert [round(s, 3) for s, _ in damaged] == [0.0, 0.05] and "message 2 (at 0.050 s)" in damaged[1][1]
     assert read_signals(path, images=True)["/camera/depth"][1][0].dtype == np.float32   # the data itself is fine
+
+
+def test_an_empty_n_d_array_on_a_json_channel_keeps_its_shape(tmp_path):
+    """An array after a scalar on one port goes to the JSON sibling channel; an empty (0, 4) one came back (0,): its
+    list, [], says no shape."""
+    path = tmp_path / "e.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        rec.tap("n", 0.0, {"x": 1.0})
+        rec.tap("n", 0.1, {"x": np.zeros((0, 4), np.float32)})
+        rec.tap("n", 0.2, {"x": np.ones((2, 3), np.float32)})
+    got = _values(path, "n.x/json")
+    assert [(v.shape, v.dtype) for v in got] == [((0, 4), np.float32), ((2, 3), np.float32)]
