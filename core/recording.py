@@ -1192,8 +1192,9 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                     raise RecordingError(_unreadable(path, fh, size, exc, cut)) from None
                 rec.truncated = True
                 if cut:  # the end of a file whose writer was killed
-                    rec.problem = (f"the recording is truncated at byte {pos} (the file, {size} bytes, ends inside "
-                                   f"that record: a run that crashed or is still recording)")
+                    where = "there, after its last whole record" if pos >= size else "inside that record"
+                    rec.problem = (f"the recording is truncated at byte {pos} (the file, {size} bytes, ends {where}: "
+                                   f"a run that crashed or is still recording)")
                 else:
                     rec.problem = f"the recording is corrupt at byte {pos} ({_why(exc)})"
                 return

@@ -222,3 +222,28 @@ def test_an_empty_n_d_array_on_a_json_channel_keeps_its_shape(tmp_path):
         rec.tap("n", 0.2, {"x": np.ones((2, 3), np.float32)})
     got = _values(path, "n.x/json")
     assert [(v.shape, v.dtype) for v in got] == [((0, 4), np.float32), ((2, 3), np.float32)]
+
+
+def test_a_file_cut_between_two_records_says_so(tmp_path):
+    # before: "ends inside that record" also where the cut fell between two records
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    path = tmp_path / "c.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        for k in range(5):
+            rec.tap("n", 0.1 * k, {"x": float(k)})
+    data = path.read_bytes()
+    with open(path, "rb") as fh:   # the end of the first chunk: a boundary between two records
+        it = StreamReader(fh, emit_chunks=True).records
+        while not isinstance(next(it), Chunk):
+            pass
+        end = fh.tell()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:end])
+    got, _ = open_recording(cut)
+    assert got.truncated and f"truncated at byte {end} (the file, {end} bytes, ends there, after its last whole " \
+                              f"record" in got.problem, got.problem
+    cut.write_bytes(data[:end + 3])
+    got, _ = open_recording(cut)
+    assert "ends inside that record" in got.problem, got.problem
