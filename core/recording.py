@@ -1130,6 +1130,15 @@ def _decode(path: str, codec: _Codec, ch: ChannelInfo, msg: Any, epoch_ns: int) 
 _MAGIC = b"\x89MCAP0\r\n"
 
 
+def is_mcap(path: str | os.PathLike) -> bool:
+    """Whether the file at ``path`` starts as an MCAP file does (whatever its name's suffix)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(_MAGIC)) == _MAGIC
+    except OSError:
+        return False
+
+
 def _why(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 

@@ -48,8 +48,6 @@ def _natural_key(name: str) -> list[Any]:
 
 #: a frame named by its time: seconds, with a fraction or not (``1700000000.123.png``, as ROS tools export frames)
 _TIME_NAME = re.compile(r"\d+(?:\.\d+)?")
-#: the first bytes of every MCAP file
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:
@@ -60,15 +58,6 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     if files and all(_TIME_NAME.fullmatch(f.stem) for f in files):
         return sorted(files, key=lambda f: (float(f.stem), f.name))
     return sorted(files, key=lambda f: _natural_key(f.name))
-
-
-def is_mcap(path: Path) -> bool:
-    """Whether ``path`` starts as an MCAP file does (whatever its name's suffix)."""
-    try:
-        with open(path, "rb") as fh:
-            return fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
-    except OSError:
-        return False
 
 
 class CorruptFrame(Exception):
@@ -330,6 +319,8 @@ class Replay(Component):
             return self
 
     def configure(self) -> None:
+        from teletouch.recording import is_mcap   # (imported when the node starts, as iter_images is)
+
         p = self.params
         path = Path(p.path).expanduser()
         if not path.exists():
