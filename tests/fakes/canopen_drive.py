@@ -334,6 +334,9 @@ class Cia402Drive:
             ack = None
             if self.state == "OPERATION ENABLED" and self.get(0x6061) == 1:
                 if cw & 0x10 and not prev & 0x10:
+                    # the axis moved towards the old set-point until now; the new one's motion starts now, not at the
+                    # last SYNC (the physics runs at each SYNC: a step's first period counted from before it came)
+                    self._physics()
                     self.latched = self.get(0x607A)
                     ack = True
                 elif not cw & 0x10:
