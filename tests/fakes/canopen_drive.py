@@ -335,8 +335,11 @@ class Cia402Drive:
             if self.state == "OPERATION ENABLED" and self.get(0x6061) == 1:
                 if cw & 0x10 and not prev & 0x10:
                     # the axis moved towards the old set-point until now; the new one's motion starts now, not at the
-                    # last SYNC (the physics runs at each SYNC: a step's first period counted from before it came)
-                    self._physics()
+                    # last SYNC (the physics runs at each SYNC: a step's first period counted from before it came).
+                    # (instant: at the goal at the next SYNC anyway; a physics step here would leave the next one a
+                    # dt of microseconds, and the jump's velocity would not fit 0x606C)
+                    if not self.instant:
+                        self._physics()
                     self.latched = self.get(0x607A)
                     ack = True
                 elif not cw & 0x10:
