@@ -129,7 +129,8 @@ def test_a_drive_found_enabled_is_not_switched_off_at_start_up(channel):
     controlword was "disable voltage": the power stage went off and a gripper holding an object let go."""
     with RecordingDrive(5, channel, position=0) as drive:
         with harness(channel) as h:
-            drive_until(h, 0.06, lambda o: o["opening"] == pytest.approx(0.06, abs=1e-4))
+            goal = h.comp.map.counts(0.06)   # at rest at the goal: a drive still moving goes on when SYNCs come back
+            drive_until(h, 0.06, lambda o: drive.latched == goal and abs(drive.pos - goal) < 1.0)
         assert drive.state == "OPERATION ENABLED"
         held = round(drive.pos)
         drive.states.clear()
