@@ -70,6 +70,15 @@ def _no_plugin_env(monkeypatch):
 _skipped: list[str] = []
 
 
+def pytest_configure(config):
+    """Python's own Ctrl-C handler for the session, as a terminal gives it: a test run started as a background job
+    (``pytest ... &`` in a script, as a CI runner may) begins with SIGINT ignored, which Python and the child processes
+    it starts keep, and every test of Ctrl-C (the command line's, the runtime's, an isolated node's) then saw nothing.
+    The tests of an ignored SIGINT set it themselves (tests/test_newcomer_ignored_sigint.py)."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def pytest_runtest_logreport(report):
     if report.skipped:
         _skipped.append(report.nodeid)
