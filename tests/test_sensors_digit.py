@@ -777,7 +777,7 @@ def test_a_frame_from_before_a_reactivation_is_never_published(fake_camera):
         cam.pos_msec = 0.0       # no buffer time: the receive time
         return True, _landscape(k % 10)
 
-    h, cam = fake_camera(script)
+    h, cam = fake_camera(script, frame_timeout=10.0)   # the stream stalls after the reactivation: no fault here
     with h:
         t0 = _wall_clock(h)
         assert _step_until_a_sample(h, t0)
