@@ -166,7 +166,7 @@ def test_replay_path_errors(tmp_path, shared_data):
 def test_replay_port_only_applies_to_a_recording(tmp_path, shared_data):
     folder = shared_data / "digit-presses-qvga"
     with pytest.raises(ValueError, match=r"port 'cam.image' applies only to a \.mcap recording.*"
-                                         r"is not a \.mcap file: remove port"):
+                                         r"is not a \.mcap file \(by its name or its first bytes\): remove port"):
         Replay.Params(path=str(folder), port="cam.image")
     with pytest.raises(GraphValidationError, match=r":8: node 'cam': params of replay: port 'cam.image' applies"):
         _run(_graph(folder, port="cam.image"))  # in a graph: an error at the params' line, before anything runs

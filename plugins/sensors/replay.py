@@ -315,7 +315,11 @@ class Replay(Component):
             if not self.path.strip():   # Path("") is the working directory
                 raise ValueError("path: empty; expected a folder of images, a video file or a .mcap recording")
             if self.port is not None and not self.path.lower().endswith(".mcap"):
-                raise ValueError(_port_only_for_mcap(self.port, f"path {self.path!r} is not a .mcap file"))
+                from teletouch.recording import is_mcap   # a recording renamed (run.bag) starts as MCAP does
+
+                if not is_mcap(Path(self.path).expanduser()):
+                    raise ValueError(_port_only_for_mcap(self.port, f"path {self.path!r} is not a .mcap file (by "
+                                                                    f"its name or its first bytes)"))
             return self
 
     def configure(self) -> None:
