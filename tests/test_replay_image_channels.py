@@ -46,30 +46,27 @@ def test_replay_refuses_a_depth_or_mask_channel_at_configure(tmp_path, port, key
     assert "OpenCV" not in text and "cv::" not in text
 
 
-def test_replay_of_the_colour_channel_of_the_same_recording_plays_every_frame(tmp_path):
-    path = _recording(tmp_path / "run.mcap")
+def _played(path: Path) -> list[int]:
+    """The first pixel of each frame replay plays of ``path``'s colour channel (``digit.image``)."""
     got = []
     with Harness(Replay, {"path": str(path), "port": "digit.image", "orientation": "as-is"}, rate=30.0) as h:
         for k in range(6):
             h.step(k / 30)
             if "image" in h.samples:
-                got.append(h.samples["image"].value)
+                got.append(int(h.samples["image"].value[0, 0, 0]))
             if h.stopped:
                 break
-    assert [int(img[0, 0, 0]) for img in got] == [0, 10, 20, 30]
+    return got
+
+
+def test_replay_of_the_colour_channel_of_the_same_recording_plays_every_frame(tmp_path):
+    assert _played(_recording(tmp_path / "run.mcap")) == [0, 10, 20, 30]
 
 
 def test_port_picks_the_channel_of_a_recording_without_the_mcap_suffix(tmp_path):
     """A recording renamed (``run.bag``) is replayed as a recording: its ``port`` was refused at validation ("applies
     only to a .mcap recording") because the check read the name, not the file; a port given for a video is refused."""
-    path = _recording(tmp_path / "run.mcap").rename(tmp_path / "run.bag")
-    got = []
-    with Harness(Replay, {"path": str(path), "port": "digit.image", "orientation": "as-is"}, rate=30.0) as h:
-        for k in range(6):
-            h.step(k / 30)
-            if "image" in h.samples:
-                got.append(h.samples["image"].value)
-    assert [int(img[0, 0, 0]) for img in got] == [0, 10, 20, 30]
+    assert _played(_recording(tmp_path / "run.mcap").rename(tmp_path / "run.bag")) == [0, 10, 20, 30]
     video = tmp_path / "run.mp4"
     video.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(32))
     with pytest.raises(ValueError, match=r"port 'digit.image' applies only to a .mcap recording .*run.mp4.* is not"):
