@@ -576,3 +576,29 @@ def test_spacemouse_report_timeout_in_rate_mode(fake_hid):
         with pytest.raises(HardwareError, match=r"SpaceNavigator .*sent no report for 0\.104 s while its cap was "
                                                 r"deflected \(report_timeout 0\.1 s"):
             h.step(0.104)
+
+
+def test_velocity_of_two_reports_read_close_together_is_not_a_spike(fake_hid):
+    """A pad reporting every 4 ms with the trigger squeezed at a steady rate; a step 3.9 ms late reads one report and
+    the next step, 0.1 ms later, the next: the velocity was that report's 4 ms of travel over the 0.1 ms between the
+    two reads (40 times the hand's speed). It is taken over at least VELOCITY_WINDOW of reports now."""
+    fake_hid.devices.append(info(0x054C, 0x05C4))
+
+    def report(k):   # the trigger 2 counts further every report
+        return DS4_USB[:9] + bytes([2 * k]) + DS4_USB[10:]
+
+    per_count = 0.020 / 255   # m of opening per trigger count (min_opening 2 mm, max_opening 22 mm)
+    true_v = -2 * per_count / 0.004
+    with Harness(hl.HidLeader, {"min_opening": "2mm", "max_opening": "22mm"}) as h:
+        for k in range(24):                       # on time: one report per 4 ms step
+            fake_hid.reports.append(report(k))
+            out = _raw_step(h, k * 0.004)
+        assert out["gripper_velocity"].value == pytest.approx(true_v, rel=1e-6)
+        t = 24 * 0.004 + 0.0039                   # a step 3.9 ms late reads report 24, just before 25 is due...
+        fake_hid.reports.append(report(24))
+        out = _raw_step(h, t)
+        fake_hid.reports.append(report(25))       # ...and the next one, 0.1 ms later, reads report 25
+        out = _raw_step(h, t + 0.0001)
+        assert out["gripper_opening"].stamp == pytest.approx(t + 0.0001)
+        assert true_v * 1.5 < out["gripper_velocity"].value < true_v / 1.5, (out["gripper_velocity"].value, true_v)
+        assert h.comp.velocity == out["gripper_velocity"].value

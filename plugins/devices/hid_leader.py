@@ -35,6 +35,7 @@ import re
 import struct
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
@@ -79,6 +80,10 @@ KNOWN_DEVICES: dict[tuple[int, int], tuple[str, str]] = {
 # in with report_timeout)
 PERIODIC_PROFILES = ("dualshock4", "dualsense")
 DEFAULT_REPORT_TIMEOUT = 0.5
+#: s: a periodic pad's gripper velocity is the opening's change since the newest report at least this old (their read
+#: times; over one report pair, a step that came late and the next one a fraction of a ms after it turned one report's
+#: travel into a spike: 4 ms of travel over 0.1 ms)
+VELOCITY_WINDOW = 0.01
 
 SPACEMOUSE_AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 SPACEMOUSE_FULL_SCALE = 350.0  # counts at full deflection (typical; some models reach ~500)
@@ -514,6 +519,7 @@ class HidLeader(Device):
         self._unread = 0           # ... of them since the last report it read, and the last one's (id, length)
         self._last_unread: tuple[int | None, int] | None = None
         self.last_report_t: float | None = None  # graph time of the last report read (report_timeout on)
+        self._trail: deque[tuple[float, float]] = deque()   # (read time, opening) of recent reports (VELOCITY_WINDOW)
         self._watch_from: float | None = None
         self._out: dict[str, Sample] | None = None
         self._deflection = 0.0  # SpaceMouse rate mode: the axis as last reported, -1..1 (0: at rest)
@@ -521,6 +527,7 @@ class HidLeader(Device):
     def activate(self) -> None:
         self.last_t = None
         self.last_report_t = None  # a sample from before a deactivate is not re-emitted
+        self._trail.clear()
         self._watch_from = None
         self._out = None
         self._deflection = 0.0  # a rate from before a deactivate is not integrated on
@@ -614,10 +621,13 @@ class HidLeader(Device):
             return None if self._out is None else dict(self._out)  # the last report's samples, with their stamp
         stamp = self.ctx.from_monotonic(mono)
         x = trigger_to_opening(self.pad.trigger(p.trigger), p.min_opening, p.max_opening)
-        if self.last_report_t is not None and stamp > self.last_report_t:
-            self.velocity = (x - self.opening) / (stamp - self.last_report_t)
-        elif self.last_report_t is None:
-            self.velocity = 0.0
+        trail = self._trail
+        if not trail or stamp > trail[-1][0]:   # (a read stamped no later than the last: the velocity stands)
+            trail.append((stamp, x))
+            while len(trail) > 2 and stamp - trail[1][0] >= VELOCITY_WINDOW:
+                trail.popleft()   # the oldest left is the newest at least VELOCITY_WINDOW old (or the first)
+            t_ref, x_ref = trail[0]
+            self.velocity = (x - x_ref) / (stamp - t_ref) if stamp > t_ref else 0.0
         self.opening = x
         self.last_report_t = stamp
         self._out = {"gripper_opening": Sample(self.opening, stamp), "gripper_velocity": Sample(self.velocity, stamp),
