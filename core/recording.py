@@ -762,7 +762,9 @@ class Recorder:
         """Write the file's header and the ``teletouch`` metadata record, flushed."""
         from . import __version__
 
-        self._writer = writer(self._fh, chunk_size=4 * 1024 * 1024, compression=compression)
+        # the data section's CRC too (DataEnd): the chunks carry their own, but not the records between them (the
+        # metadata, each record's opcode): a byte damaged there went unnoticed (checked by _iter_raw's reader)
+        self._writer = writer(self._fh, chunk_size=4 * 1024 * 1024, compression=compression, enable_data_crcs=True)
         self._writer.start(profile="ros2" if self.ros else "", library="teletouch")
         self._writer.add_metadata("teletouch", {
             "teletouch_version": __version__,
@@ -1204,6 +1206,10 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                     where = "there, after its last whole record" if pos >= size else "inside that record"
                     rec.problem = (f"the recording is truncated at byte {pos} (the file, {size} bytes, ends {where}: "
                                    f"a run that crashed or is still recording)")
+                elif type(getattr(exc, "record", None)).__name__ == "DataEnd":   # (mcap's CRCValidationError)
+                    rec.problem = (f"the recording is corrupt: a byte outside its chunks (a metadata record, or a "
+                                   f"record's opcode) is damaged; the data section's CRC at byte {pos} does not match "
+                                   f"({_why(exc)})")
                 else:
                     rec.problem = f"the recording is corrupt at byte {pos} ({_why(exc)})"
                 return

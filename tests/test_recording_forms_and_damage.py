@@ -247,3 +247,25 @@ def test_a_file_cut_between_two_records_says_so(tmp_path):
     cut.write_bytes(data[:end + 3])
     got, _ = open_recording(cut)
     assert "ends inside that record" in got.problem, got.problem
+
+
+@pytest.mark.parametrize("what", ["metadata key", "record opcode"])
+def test_a_byte_damaged_outside_the_chunks_is_reported(tmp_path, what):
+    """A flipped byte outside the chunks (the ``teletouch.time`` metadata record's name, a record's opcode byte) went
+    unnoticed: the graph epoch was silently lost, or a record skipped (readers skip unknown opcodes). The writer now
+    writes the data section's CRC, and the reader checks it: the damage is reported (Recording.problem)."""
+    path = tmp_path / "m.mcap"
+    with Recorder(path, None, log=lambda m: None) as rec:
+        rec.tap("a", 0.0, {"x": 1.0})
+        rec.tap("a", 0.1, {"x": 2.0})
+    data = bytearray(path.read_bytes())
+    at = data.find(b"teletouch.time")
+    assert at > 0
+    if what == "metadata key":
+        data[at + len("teletouch.tim")] ^= 0x01   # teletouch.timd
+    else:
+        at = data.rfind(b"\x0c", 8, at)   # the Metadata record's opcode (0x0C), before its name
+        data[at] = 0x7F                   # an opcode no reader knows: skipped as a record of another kind
+    path.write_bytes(bytes(data))
+    rec, _items = open_recording(path)
+    assert rec.truncated and "corrupt" in rec.problem and "crc" in rec.problem.lower(), rec.problem
