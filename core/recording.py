@@ -13,7 +13,8 @@ ROS 2 messages in CDR with ``ros2msg`` schemas where a standard message fits, so
 value                                   message
 ======================================  ==============================================================
 float, unit N (scalar or 3-vector)      geometry_msgs/msg/WrenchStamped (scalar on force.z; a channel keeps its
-                                        first value's form, metadata value_shape)
+                                        first value's form, metadata value_shape; another tool's is read back
+                                        as the 6-vector force xyz, torque xyz)
 other float or int scalar               std_msgs/msg/Float64 (an int is exact up to 2**53)
 bool / str scalar                       std_msgs/msg/Bool / String
 1-D or N-D number or bool array         std_msgs/msg/Float64MultiArray (layout keeps the shape, read back in
@@ -340,6 +341,9 @@ class _Wrench(_Codec):
 
     def unpack(self, msg, meta):
         f = msg.wrench.force
+        if meta.get("codec") != self.kind:   # another tool's wrench (a force/torque sensor's): all of it
+            m = msg.wrench.torque
+            return np.array([f.x, f.y, f.z, m.x, m.y, m.z])
         if meta.get("value_shape", meta.get("shape")) == "[3]":   # (a file from before value_shape: as declared)
             return _as_recorded(np.array([f.x, f.y, f.z]), meta)
         return float(f.z)

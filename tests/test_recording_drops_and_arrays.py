@@ -194,3 +194,26 @@ def test_every_reader_counts_the_times_of_another_tools_recording_from_its_first
     rec, items = open_recording(path, keys={"/cam"})
     assert [t for _, t, _, _ in items] == pytest.approx(stamps, abs=1e-9)
     assert rec.epoch_ns == T0
+
+
+def test_another_tools_wrench_is_read_back_whole(tmp_path):
+    """A WrenchStamped of another tool (a wrist force/torque sensor's: no teletouch channel metadata) was read as
+    force.z alone, teletouch's convention for a grip force: x, y and the torque were silently dropped. It is read
+    back as the 6-vector (force xyz in N, torque xyz in N*m); teletouch's own channels are read as written."""
+    from teletouch.recording import _Wrench
+
+    path = tmp_path / "ft.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2", library="another tool")
+        sid = w.register_schema("geometry_msgs/msg/WrenchStamped", "ros2msg",
+                                ros2msg_definition("geometry_msgs/msg/WrenchStamped").encode())
+        ch = w.register_channel("/wrist/wrench", "cdr", sid)
+        data = bytearray(_Wrench().encode(np.array([1.0, -2.0, 3.0]), T0, "wrist"))
+        data[-24:] = np.array([0.1, 0.2, -0.3]).tobytes()   # the torque (teletouch writes zeros there)
+        for k in range(2):
+            w.add_message(ch, log_time=T0 + k * 10**7, publish_time=T0 + k * 10**7, data=bytes(data))
+        w.finish()
+    ts, vs = read_signals(path)["/wrist/wrench"]
+    assert vs.shape == (2, 6) and vs[1] == pytest.approx([1.0, -2.0, 3.0, 0.1, 0.2, -0.3]), vs
+    assert plot_recording(path, tmp_path / "plots", log=lambda m: None)   # drawn as six lines
