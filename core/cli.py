@@ -622,6 +622,8 @@ def _interrupts(program: bool = False) -> Iterator[list[int]]:
                 if program and signals:   # a first signal between two give-backs: both to _after_stop, none left
                     for sig in old:       # at its previous handler (SIGTERM's SIG_DFL: -15, not the exit code)
                         signal.signal(sig, _after_stop)
+                    if old:
+                        _after_stop_on_any_thread()
             finally:
                 runtime._stop_signals = None
         if len(closing) > 1:   # the first signal came while the handlers were restored: it stops the command, as
@@ -708,10 +710,50 @@ def _after_stop(signum: int, frame: Any) -> None:
     if _exit_code is None:
         _say_held(signum)
         return
+    _flush_std_streams()
+    os._exit(_exit_code)
+
+
+def _after_stop_on_any_thread() -> None:
+    """:func:`_after_stop` for a signal the kernel hands to another thread than the main one. CPython runs a handler
+    in the main thread only, and at the program's end that one may wait, blocked, for a plugin's non-daemon thread
+    that hangs: a Ctrl-C or SIGTERM that landed on that thread did nothing until it ended. The signal module's wakeup
+    fd is written by whichever thread a signal lands on: a daemon thread reading it ends the process as
+    :func:`_after_stop` does once the exit status is decided (before, the main thread's handler says the signal is
+    held). Called from the main thread, once the program's handlers are :func:`_after_stop` (it replaces a wakeup fd
+    set before: nothing but the process's end is waited for any more)."""
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    try:
+        signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    except (ValueError, OSError):   # not the main thread, after all
+        os.close(r)
+        os.close(w)
+        return
+    wanted = {int(signal.SIGINT), int(signal.SIGTERM)}
+
+    def watch() -> None:
+        while True:
+            try:
+                data = os.read(r, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if wanted.intersection(data) and _exit_code is not None:
+                # stdout's buffer written first, unless a write to it is stuck (a full pipe no one reads)
+                flush = threading.Thread(target=_flush_std_streams, daemon=True)
+                flush.start()
+                flush.join(1.0)
+                os._exit(_exit_code)
+
+    threading.Thread(target=watch, name="teletouch-after-stop", daemon=True).start()
+
+
+def _flush_std_streams() -> None:
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):   # (a signal that cut into a write to it: the reentrant flush fails)
             stream.flush()
-    os._exit(_exit_code)
 
 
 #: commands that end at once: not told that SIGINT is ignored (every other one, a plugin's too, may run for long)

@@ -92,6 +92,23 @@ def test_a_signal_after_the_safe_stop_ends_a_process_that_hangs_on_its_way_out(t
     assert json.loads(out)["exit_code"] == code   # its output, still in stdout's buffer, is not lost
 
 
+def test_a_signal_the_kernel_gives_the_hanging_thread_ends_the_process_too(tmp_path):
+    """A process-directed signal may land on any thread; CPython runs its handler in the main thread only, and that
+    one waits, blocked, for the hanging thread to end: the signal did nothing for the hang's 60 s (one CI run saw it,
+    the kernel having handed the SIGTERM to the hanging thread). Here the thread gets the signal itself."""
+    graph = tmp_path / "g.yaml"
+    graph.write_text(GRAPH)
+    env = dict(os.environ, TELETOUCH_DISABLE_PLUGIN_AUTOLOAD="1", TELETOUCH_PLUGINS="teletouch.mock")
+    program = PROGRAM.format(first=int(signal.SIGINT), marker=MARKER, hang="thread").replace(
+        "    time.sleep(60)", "    signal.pthread_kill(threading.get_ident(), signal.SIGTERM)\n    time.sleep(60)")
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-c", program, "run", str(graph), "--duration", "5", "--quiet", "--json"],
+                       capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    assert MARKER in p.stderr and time.monotonic() - t0 < 30, p.stderr[-3000:]   # not after the 60 s hang
+    assert p.returncode == EXIT_INTERRUPTED, p.stderr[-3000:]
+    assert json.loads(p.stdout)["exit_code"] == EXIT_INTERRUPTED   # stdout's buffer written first
+
+
 def test_the_program_s_signal_handlers_end_the_process_only_once_its_exit_code_is_known(tmp_path):
     # the hold stays until main() has decided the exit code (said "already stopping safely"): a signal as the command
     # ends must not end the process before its last line is said
