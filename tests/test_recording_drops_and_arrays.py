@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import types
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -162,15 +163,20 @@ def test_small_float_matrices_are_recorded_as_arrays_and_depth_maps_as_images(tm
 T0 = 1_700_000_000 * 10**9   # a Unix-epoch time in ns, as another tool's recorder writes
 
 
+def _another_tools_writer(fh: Any, topic: str, ros_type: str) -> tuple[Writer, int]:
+    """A Writer started as another tool's recorder starts one (ros2 profile, no teletouch metadata), with one CDR
+    channel: (writer, channel id)."""
+    w = Writer(fh)
+    w.start(profile="ros2", library="another tool")
+    sid = w.register_schema(ros_type, "ros2msg", ros2msg_definition(ros_type).encode())
+    return w, w.register_channel(topic, "cdr", sid)
+
+
 def _foreign(path: Path) -> Path:
     """An MCAP file of another tool (no teletouch metadata): /num (JSON) from T0, then /cam (CompressedImage)
     from T0 + 50 ms, every 100 ms."""
     with open(path, "wb") as fh:
-        w = Writer(fh)
-        w.start(profile="ros2", library="another tool")
-        sid = w.register_schema("sensor_msgs/msg/CompressedImage", "ros2msg",
-                                ros2msg_definition("sensor_msgs/msg/CompressedImage").encode())
-        cam = w.register_channel("/cam", "cdr", sid)
+        w, cam = _another_tools_writer(fh, "/cam", "sensor_msgs/msg/CompressedImage")
         num = w.register_channel("/num", "json", 0)
         for k in range(3):
             t = T0 + k * 10**8
@@ -204,11 +210,7 @@ def test_another_tools_wrench_is_read_back_whole(tmp_path):
 
     path = tmp_path / "ft.mcap"
     with open(path, "wb") as fh:
-        w = Writer(fh)
-        w.start(profile="ros2", library="another tool")
-        sid = w.register_schema("geometry_msgs/msg/WrenchStamped", "ros2msg",
-                                ros2msg_definition("geometry_msgs/msg/WrenchStamped").encode())
-        ch = w.register_channel("/wrist/wrench", "cdr", sid)
+        w, ch = _another_tools_writer(fh, "/wrist/wrench", "geometry_msgs/msg/WrenchStamped")
         data = bytearray(_Wrench().encode(np.array([1.0, -2.0, 3.0]), T0, "wrist"))
         data[-24:] = np.array([0.1, 0.2, -0.3]).tobytes()   # the torque (teletouch writes zeros there)
         for k in range(2):
