@@ -207,3 +207,22 @@ def test_the_depth_model_the_calibration_was_made_for_is_checked_when_named(cal_
         assert h.step(0.1, max_depth=1e-3)["status"] == "ok"
     with Harness(PolyForce, {"depth_model": "sim-digit-qvga"}) as h:   # the packaged pair
         assert h.comp.cal.sensor_model_id == "sim-digit-qvga"
+
+
+def test_a_contact_area_or_centroid_not_of_the_depth_frame_is_counted_and_said_once(cal_file):
+    """poly-force takes contact_area, contact_mask and centroid as the latest values: wired from another node than
+    max_depth (or through a bridge that stamps each on arrival), a frame's depth met another frame's area, silently.
+    Such an input is counted (status unmatched_inputs) and said once per input, with how far apart the stamps are;
+    from one depth node (one step, one stamp) nothing is said."""
+    with Harness(PolyForce, {"calibration": cal_file}) as h:
+        logs: list[str] = []
+        h.comp.ctx.log = logs.append
+        h.set(max_depth=Sample(1e-3, 1.0), contact_area=Sample(2e-6, 1.0))
+        h.comp.step(1.0, h.inputs)
+        assert h.comp.status()["unmatched_inputs"] == 0 and logs == []
+        for k in range(3):   # the area a frame behind the depth
+            h.set(max_depth=Sample(1e-3, 1.02 + 0.01 * k), contact_area=Sample(2e-6, 1.01 + 0.01 * k))
+            out = h.comp.step(1.02 + 0.01 * k, h.inputs)
+            assert out["force"].value > 0   # still taken: the latest value, as before
+        assert h.comp.status()["unmatched_inputs"] == 3
+        assert len(logs) == 1 and "contact_area" in logs[0] and "-10.0 ms" in logs[0] and "max_depth" in logs[0], logs

@@ -1411,6 +1411,8 @@ class PolyForce(Component):
         self.counts = {s: 0 for s in STATUS_VALUES}
         self.skipped = {"out_of_order": 0, "bad_stamp": 0}
         self.centroid_fallbacks = 0   # light touches evaluated at the fallback position (status no-centroid)
+        self.unmatched_inputs = 0     # contact_area / contact_mask / centroid samples not of the depth's frame
+        self._unmatched_said: set[str] = set()
         self.last_force = 0.0
         self.last_status = "no-contact"
         self.invalid_run = 0
@@ -1458,6 +1460,7 @@ class PolyForce(Component):
             self.skipped["out_of_order"] += 1
             return None
         self._last_stamp = st
+        self._match(inputs, st)
         centroid = None
         if self.cal.position is not None:
             centroid = inputs.value("centroid")
@@ -1477,6 +1480,29 @@ class PolyForce(Component):
             return {"status": Sample(status, s.stamp)}
         self.invalid_run = 0
         return {"force": Sample(force, s.stamp), "status": Sample(status, s.stamp)}
+
+    def _match(self, inputs: Any, stamp: float) -> None:
+        """Count, and say once per input, a contact_area, contact_mask or centroid sample that is not of the depth
+        sample's frame (another stamp): they are taken as the latest values, which from one depth node are of the
+        same step and stamp; wired from another node, or through a bridge that stamps each on arrival, a frame's
+        depth meets another frame's area or centroid."""
+        for name in ("contact_area", "contact_mask", "centroid"):
+            smp = inputs.get(name)
+            if smp is None:
+                continue
+            try:
+                skew = float(smp.stamp) - stamp
+            except (TypeError, ValueError):
+                skew = math.nan
+            if skew == 0.0:
+                continue
+            self.unmatched_inputs += 1
+            if name not in self._unmatched_said:
+                self._unmatched_said.add(name)
+                self.ctx.log(f"input {name} is stamped {skew * 1e3:+.1f} ms from the max_depth sample it is taken "
+                             f"with (t={stamp:.3f} s): the latest value is used, not the one of that depth frame; "
+                             f"wire max_depth, {name} and the others from one depth node (counted in status "
+                             f"unmatched_inputs; said once)")
 
     def compute(self, depth: Any, area: Any = None, mask: Any = None, stamp: float = 0.0,
                 centroid: Any = None) -> tuple[float, str]:
@@ -1561,7 +1587,8 @@ class PolyForce(Component):
         return {"force_n": getattr(self, "last_force", 0.0), "status": getattr(self, "last_status", ""),
                 "invalid": getattr(self, "counts", {}).get("invalid-input", 0),
                 "force_limit_n": getattr(self, "force_limit", None),
-                "centroid_fallbacks": getattr(self, "centroid_fallbacks", 0), **getattr(self, "skipped", {})}
+                "centroid_fallbacks": getattr(self, "centroid_fallbacks", 0),
+                "unmatched_inputs": getattr(self, "unmatched_inputs", 0), **getattr(self, "skipped", {})}
 
 
 @hookimpl
