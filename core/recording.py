@@ -1181,8 +1181,8 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
     """Yield (channel, mcap Message) in file order. Where a crash cut the file (or a record is corrupt) stop with
     rec.truncated and rec.problem saying where; a file in which no record can be read raises RecordingError."""
     from mcap.exceptions import EndOfFile
-    from mcap.records import Channel, Footer, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
+    from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
+    from mcap.stream_reader import CRCValidationError, StreamReader
 
     schemas: dict[int, Any] = {}
     try:
@@ -1210,7 +1210,7 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
                     where = "there, after its last whole record" if pos >= size else "inside that record"
                     rec.problem = (f"the recording is truncated at byte {pos} (the file, {size} bytes, ends {where}: "
                                    f"a run that crashed or is still recording)")
-                elif type(getattr(exc, "record", None)).__name__ == "DataEnd":   # (mcap's CRCValidationError)
+                elif isinstance(exc, CRCValidationError) and isinstance(exc.record, DataEnd):
                     rec.problem = (f"the recording is corrupt: a byte outside its chunks (a metadata record, or a "
                                    f"record's opcode) is damaged; the data section's CRC at byte {pos} does not match "
                                    f"({_why(exc)})")

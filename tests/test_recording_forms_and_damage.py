@@ -269,3 +269,4 @@ def test_a_byte_damaged_outside_the_chunks_is_reported(tmp_path, what):
     path.write_bytes(bytes(data))
     rec, _items = open_recording(path)
     assert rec.truncated and "corrupt" in rec.problem and "crc" in rec.problem.lower(), rec.problem
+    assert "a byte outside its chunks" in rec.problem, rec.problem
