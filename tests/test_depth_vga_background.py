@@ -103,3 +103,72 @@ def test_fill_enclosed_on_the_contact_box_is_the_fill_of_the_whole_grid():
             a = DP.fill_enclosed(m.copy(), close=close)
             t = DP.fill_enclosed_torch(torch.from_numpy(m).float()[None, None], close=close)[0, 0]
             assert np.array_equal(a, t.numpy().astype(np.uint8)), (close, i, cy, cx)
+
+
+def _spiral(n: int, gap: bool) -> np.ndarray:
+    """An n x n wall winding inwards (1 = changed): its corridor turns ~2n/3 times on its way to the centre; with
+    ``gap`` its entrance from the border is open, else walled."""
+    m = np.zeros((n, n), np.uint8)
+    r0, c0, r1, c1 = 1, 1, n - 2, n - 2
+    while r1 - r0 >= 2 and c1 - c0 >= 2:
+        m[r0, c0:c1 + 1] = 1
+        m[r0:r1 + 1, c1] = 1
+        m[r1, c0:c1 + 1] = 1
+        m[r0 + 2:r1 + 1, c0] = 1
+        if r1 - r0 >= 4 and c1 - c0 >= 4:
+            m[r0 + 2, c0:c0 + 3] = 1
+        r0, c0, r1, c1 = r0 + 2, c0 + 2, r1 - 2, c1 - 2
+    m[1:3, 1] = 0 if gap else 1
+    m[0, 1] = 0
+    if not gap:
+        m[1:4, 1] = 1
+    return m
+
+
+def _maze(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """A random maze (walls 1, corridors 0 between cells on odd rows and columns), its border open in a few places
+    and a few walls knocked through: reachable corridors, enclosed pockets and long winding paths."""
+    m = np.ones((h, w), np.uint8)
+    stack = [(1, 1)]
+    m[1, 1] = 0
+    while stack:
+        r, c = stack[-1]
+        nxt = [(r + dr, c + dc) for dr, dc in ((2, 0), (-2, 0), (0, 2), (0, -2))
+               if 0 < r + dr < h - 1 and 0 < c + dc < w - 1 and m[r + dr, c + dc]]
+        if not nxt:
+            stack.pop()
+            continue
+        nr, nc = nxt[rng.integers(len(nxt))]
+        m[(r + nr) // 2, (c + nc) // 2] = 0
+        m[nr, nc] = 0
+        stack.append((nr, nc))
+    for _ in range(rng.integers(0, 4)):
+        side = rng.integers(4)
+        k = 2 * rng.integers(0, (min(h, w) - 1) // 2) + 1
+        m[(0, h - 1, k, k)[side], (k, k, 0, w - 1)[side]] = 0
+    knock = rng.random(m.shape) < 0.02
+    m[knock] = 0
+    m[rng.random(m.shape) < 0.05] = 1                  # and some walls put up: pockets
+    return m
+
+
+def test_the_torch_fill_follows_paths_that_wind_like_the_opencv_flood_fill():
+    """The torch fill spreads along whole rows and columns a pass: a corridor that turns many times takes a pass per
+    turn. Spirals and random mazes (up to ~50 turns deep) against OpenCV's flood fill, each alone and all as one
+    batch (a mask that needs more passes must not change the others)."""
+    rng = np.random.default_rng(7)
+    masks = [_spiral(41, gap=True), _spiral(41, gap=False)] + [_maze(rng, 41, 41) for _ in range(30)]
+    ref = [DP.fill_enclosed(m.copy(), close=0) for m in masks]
+    # the spiral open to the border encloses nothing; the walled one encloses its whole corridor
+    assert np.array_equal(ref[0], masks[0])
+    assert ref[1].sum() > masks[1].sum() + 300
+    for i, (m, a) in enumerate(zip(masks, ref)):
+        t = DP.fill_enclosed_torch(torch.from_numpy(m).float()[None, None], close=0)[0, 0]
+        assert np.array_equal(a, t.numpy().astype(np.uint8)), i
+    batch = DP.fill_enclosed_torch(torch.from_numpy(np.stack(masks)).float()[:, None], close=0)[:, 0]
+    assert np.array_equal(np.stack(ref), batch.numpy().astype(np.uint8))
+    # rectangular grids (rows != cols): rows and columns are not swapped
+    for i in range(20):
+        m = _maze(rng, 31, 57)
+        t = DP.fill_enclosed_torch(torch.from_numpy(m).float()[None, None], close=int(i % 2) * 2)[0, 0]
+        assert np.array_equal(DP.fill_enclosed(m.copy(), close=int(i % 2) * 2), t.numpy().astype(np.uint8)), i

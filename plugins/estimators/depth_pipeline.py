@@ -152,29 +152,54 @@ def fill_enclosed(m: np.ndarray, close: int = FILL_CLOSE) -> np.ndarray:
     return m
 
 
-def fill_enclosed_torch(m: Any, close: int = FILL_CLOSE, check_every: int = 8) -> Any:
+def fill_enclosed_torch(m: Any, close: int = FILL_CLOSE) -> Any:
     """:func:`fill_enclosed` for a batch of masks, float (B, 1, rows, cols) 0/1, on any torch device: the closing,
-    then the unchanged cells reachable from the border grow one cell (4-connected) per step until they stop."""
+    then the unchanged cells reachable from the grid's border (4-connected), found by whole runs: along every row,
+    then along every column, a run of unchanged cells that holds a reachable cell is reachable as a whole; the two
+    passes alternate until a pair of them adds nothing. The outside of blobs takes two pairs (the second adds
+    nothing), ~50 kernels and one host synchronisation; a path around the changed cells takes one pair more for each
+    turn it must make. (Growing the reachable cells one cell a step, as before, took as many steps as the grid is
+    wide: on an H100 ~330 kernel launches and 3.3 ms a fill; the whole frame's GPU work is now 0.4 ms.)"""
     import torch.nn.functional as F
 
     if close > 0:
         k = 2 * close + 1
         c = -F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close)
         m = m.maximum(c)
-
-    def grow(a: Any) -> Any:   # one step along rows or columns (a cross, not the 3 x 3 square)
-        return free * F.max_pool2d(a, (3, 1), stride=1, padding=(1, 0)).maximum(
-            F.max_pool2d(a, (1, 3), stride=1, padding=(0, 1)))
-
-    free = 1.0 - m
-    out = F.pad(free[..., 1:-1, 1:-1] * 0.0, (1, 1, 1, 1), value=1.0) * free   # the free cells on the border
+    b, _, rows, cols = m.shape
+    free = m[:, 0] < 0.5
+    free_t = free.transpose(1, 2).contiguous()   # columns as lines
+    reach = free.clone()
+    reach[:, 1:-1, 1:-1] = False                 # the unchanged cells on the border
+    row_runs, col_runs = _run_index(free), _run_index(free_t)
+    count = None
     while True:
-        for _ in range(check_every):
-            out = grow(out)
-        nxt = grow(out)
-        if bool((nxt == out).all()):
-            return 1.0 - out
-        out = nxt
+        reach = _spread(reach, free, row_runs)
+        reach = _spread(reach.transpose(1, 2), free_t, col_runs).transpose(1, 2)
+        new = reach.sum()
+        if count is not None and bool(new == count):   # the first pair never ends it: one host sync where two do
+            return (~reach).to(m.dtype)[:, None]
+        count = new
+
+
+def _run_index(free: Any) -> Any:
+    """(B, lines, n) bool -> the index of each cell's run along the last axis, unique over the batch and lines: a
+    changed cell starts a new run (it joins the run after it, harmlessly: it is never reachable)."""
+    import torch
+
+    lines = free.shape[0] * free.shape[1]
+    n = free.shape[2]
+    first = torch.arange(lines, device=free.device, dtype=torch.int64).view(free.shape[:2] + (1,)) * (n + 1)
+    return (~free).to(torch.int64).cumsum(-1) + first
+
+
+def _spread(reach: Any, free: Any, runs: Any) -> Any:
+    """reach (B, lines, n) bool grown along the last axis to the whole of every run of free cells it touches."""
+    import torch
+
+    hits = torch.zeros(runs.shape[0] * runs.shape[1] * (runs.shape[2] + 1), dtype=torch.float32, device=runs.device)
+    hits.index_add_(0, runs.reshape(-1), reach.reshape(-1).to(torch.float32))
+    return (hits[runs] > 0) & free
 
 
 def channel_offset(d: np.ndarray) -> np.ndarray:
@@ -324,7 +349,8 @@ class DepthPipeline:
         keep = F.max_pool2d(m, k, stride=1, padding=self.dilate + 1)
         rim = min(self.net_rim, self.dilate) + 1
         core = F.max_pool2d(m, 2 * rim + 1, stride=1, padding=rim)
-        return self._fill(core)[:, 0] > 0.5, self._fill(keep)[:, 0] > 0.5
+        both = self._fill(self.torch.cat([core, keep]))[:, 0] > 0.5   # one call: half the kernel launches on a GPU
+        return both[: m.shape[0]], both[m.shape[0]:]
 
     def _fill(self, m: Any) -> Any:
         """(B, 1, gr, gc) 0/1 masks with what they enclose, as on the sparse path (:func:`fill_enclosed`)."""
@@ -401,8 +427,6 @@ class DepthPipeline:
             # contiguous: torch cannot take a view with negative strides (a frame flipped by numpy, frame[::-1])
             x, d = self._grid(torch.from_numpy(np.ascontiguousarray(frame))[None])
             core, m = self._mask(d)
-            self._offset = self._offsets[0].float().cpu().numpy()
-            self._changed = bool(core.any())
             gx, gy = self._dense_gradients(x, d, core)
             z = self._solve_dense(gx[0], gy[0]) * self.m_per_cell
             if self.baseline == "plane":
@@ -410,7 +434,11 @@ class DepthPipeline:
             z = z * m[0]
             if self.clamp_negative:
                 z = z.clamp_min(0.0)
-            return z.float().cpu().numpy(), None
+            zn = z.float().cpu().numpy()
+            # read back after the depth: on a GPU each read waits for the work queued before it
+            self._offset = self._offsets[0].float().cpu().numpy()
+            self._changed = bool(core.any())
+            return zn, None
 
     def _solve_dense(self, gx: Any, gy: Any) -> Any:
         """The dense path's whole-grid solve of one frame's slopes (gr, gc) -> depth in cells: torch.fft on the
