@@ -16,7 +16,8 @@ and each frame after a pause of 1/60 s, as a camera delivers them (`fast_after_6
 all five outputs (`fast_full_outputs_ms`), the max-depth agreement and where it comes from (`*_geometry`:
 per press, the cap height of each pipeline and the false depth each leaves far from the contact), the Poisson
 solve by matrix products against scipy.fft (`qvga_poisson_solve`: alone by window side, and the pipeline with and
-without it), VGA numbers and, with --device cuda, batched GPU throughput.
+without it), VGA numbers and, with --device cuda, batched GPU throughput and the dense path's hole fill against
+the one-cell-a-step fill it replaced (`hole_fill`).
 """
 
 from __future__ import annotations
@@ -251,6 +252,67 @@ def bench_solve(model, frames, reps: int):
             "pipeline_max_depth_rel_diff_max": float(f"{max(diff, default=0.0):.2g}")}
 
 
+def grow_fill(m, close: int):
+    """The dense path's hole fill as it was before (kept here as its reference): the same closing, then the unchanged
+    cells reachable from the border grown one cell a step, a convergence check (host synchronisation) every 9 steps.
+    As many steps as the grid is wide: ~330 kernel launches a call."""
+    import torch.nn.functional as F
+
+    if close > 0:
+        k = 2 * close + 1
+        c = -F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close)
+        m = m.maximum(c)
+    free = 1.0 - m
+
+    def grow(a):
+        return free * F.max_pool2d(a, (3, 1), stride=1, padding=(1, 0)).maximum(
+            F.max_pool2d(a, (1, 3), stride=1, padding=(0, 1)))
+
+    out = F.pad(free[..., 1:-1, 1:-1] * 0.0, (1, 1, 1, 1), value=1.0) * free
+    while True:
+        for _ in range(8):
+            out = grow(out)
+        nxt = grow(out)
+        if bool((nxt == out).all()):
+            return 1.0 - out
+        out = nxt
+
+
+def bench_fill(pipe, frames, torch, sync) -> dict:
+    """The hole fill alone, side by side with :func:`grow_fill`, interleaved, on the masks the frames give (a frame
+    fills two: the network's region and the kept one), as one frame's call and as a batch of 256 frames' masks."""
+    from teletouch.plugins.estimators import depth_pipeline as DP
+
+    seen = []
+    real = pipe._fill
+    pipe._fill = lambda m: seen.append(m.clone()) or real(m)
+    try:
+        for fr in frames:
+            pipe.max_depth(fr)
+    finally:
+        pipe._fill = real
+    one = seen[: len(frames)]                       # one call per frame: (2, 1, gr, gc)
+    big = torch.cat([seen[i % len(seen)] for i in range(256)])
+    same = all(torch.equal(DP.fill_enclosed_torch(m), grow_fill(m, DP.FILL_CLOSE)) for m in one + [big])
+    t = {k: [] for k in ("runs_one", "grow_one", "runs_batch", "grow_batch")}
+    for rep in range(6):
+        for k, fn, ms in (("runs_one", DP.fill_enclosed_torch, one), ("grow_one", grow_fill, one),
+                          ("runs_batch", DP.fill_enclosed_torch, [big]), ("grow_batch", grow_fill, [big])):
+            for m in ms:
+                sync()
+                t0 = time.perf_counter()
+                fn(m) if fn is DP.fill_enclosed_torch else fn(m, DP.FILL_CLOSE)
+                sync()
+                if rep:
+                    t[k].append(time.perf_counter() - t0)
+    med = {k: float(np.median(v)) * 1e3 for k, v in t.items()}
+    return {"same_masks_as_reference": same, "frame_call_ms": round(med["runs_one"], 3),
+            "frame_call_reference_ms": round(med["grow_one"], 3),
+            "frame_call_speedup": round(med["grow_one"] / med["runs_one"], 2),
+            "batch256_call_ms": round(med["runs_batch"], 3), "batch256_call_reference_ms": round(med["grow_batch"], 3),
+            "batch256_call_speedup": round(med["grow_batch"] / med["runs_batch"], 2)}
+
+
 def bench_gpu(model, frames, device: str, torch):
     from teletouch.plugins.estimators.depth_pipeline import DepthPipeline
 
@@ -291,6 +353,7 @@ def bench_gpu(model, frames, device: str, torch):
             sync()
             full.append(time.perf_counter() - t0)
     out["single_frame_full_outputs_ms"] = round(float(np.median(full) * 1e3), 3)
+    out["hole_fill"] = bench_fill(pipe, frames, torch, sync)
     # same results within tolerance: the GPU against the same (dense) path on CPU, every output, and against the
     # CPU's default (sparse) path on max depth
     cpu_dense = DepthPipeline(model, mode="dense")
