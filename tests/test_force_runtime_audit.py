@@ -12,6 +12,7 @@ import pytest
 
 from teletouch import ModelFileError, Sample
 from teletouch.plugins.estimators.force_calibration import PressRoutine
+from teletouch.plugins.estimators import poly_force as PF
 from teletouch.plugins.estimators.poly_force import CalibrationError, ForceCalibration, PolyForce, read_pairs_csv
 from teletouch.testing import Harness
 
@@ -226,3 +227,32 @@ def test_a_contact_area_or_centroid_not_of_the_depth_frame_is_counted_and_said_o
             assert out["force"].value > 0   # still taken: the latest value, as before
         assert h.comp.status()["unmatched_inputs"] == 3
         assert len(logs) == 1 and "contact_area" in logs[0] and "-10.0 ms" in logs[0] and "max_depth" in logs[0], logs
+
+
+def test_a_contact_area_that_came_before_its_depth_is_the_one_taken_with_it(cal_file):
+    """Wired from two nodes, or over a bridge that delivers each topic on its own, a frame's contact_area can come a
+    step before its max_depth: poly-force took the latest area, the next frame's. On a release that next area is 0,
+    so a depth of 1 mm met no contact area and read as invalid input. The area of the depth's frame (same stamp) is
+    now found among the input's last samples; one older than those, or one that comes after its depth, is still the
+    latest value, counted."""
+    with Harness(PolyForce, {"calibration": cal_file}) as h:
+        h.comp.ctx.log = lambda m: None
+        h.set(max_depth=Sample(1e-3, 1.00), contact_area=Sample(2e-6, 1.00))
+        assert h.comp.step(1.00, h.inputs)["force"].value > 0
+        h.set(contact_area=Sample(2e-6, 1.01))                       # frame 1.01's area, its depth not yet here
+        assert h.comp.step(1.01, h.inputs) is None                   # no new depth: no output
+        h.set(max_depth=Sample(1e-3, 1.01), contact_area=Sample(0.0, 1.02))   # its depth, and the next area: 0
+        out = h.comp.step(1.02, h.inputs)
+        assert out["status"].value == "ok" and out["force"].value == pytest.approx(truth(1e-3), rel=0.05)
+        assert h.comp.status()["unmatched_inputs"] == 0
+        # an area of a frame older than the kept samples: the latest value, counted
+        for k in range(PF.RECENT_CONTACT_SAMPLES):
+            h.set(contact_area=Sample(0.0, 1.03 + 0.001 * k))
+            h.comp.step(1.03 + 0.001 * k, h.inputs)
+        h.set(max_depth=Sample(1e-3, 1.02))
+        assert h.comp.step(1.05, h.inputs)["status"].value == "invalid-input"   # pressed in, the latest area 0
+        assert h.comp.status()["unmatched_inputs"] == 1
+        # reactivated: the kept samples are gone with the rest of the run's state
+        h.comp.deactivate()
+        h.comp.activate()
+        assert all(len(q) == 0 for q in h.comp._recent.values())

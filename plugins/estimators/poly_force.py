@@ -1262,6 +1262,17 @@ def _use_problem(p: Any, path: str, deepest: float | None, made_for_id: Any) -> 
 
 
 STATUS_VALUES = ("ok", "no-contact", "clamped", "extrapolated", "invalid-input", "no-centroid")
+#: the inputs taken with a depth sample, each the one of the depth's frame (its stamp) where it can be found
+CONTACT_INPUTS = ("contact_area", "contact_mask", "centroid")
+#: samples of each contact input kept to find a depth frame's (at 60 Hz: 0.13 s)
+RECENT_CONTACT_SAMPLES = 8
+
+
+def _stamp_of(smp: Any) -> float:
+    try:
+        return float(smp.stamp)
+    except (TypeError, ValueError):
+        return math.nan
 
 
 class PolyForce(Component):
@@ -1424,6 +1435,8 @@ class PolyForce(Component):
         self._last_stamp: float | None = None
         self._seen: Any = None
         self._last_pos: tuple[float, float] | None = None
+        # the last samples of each contact input, to find the one of a depth frame that came before its depth
+        self._recent: dict[str, deque[Any]] = {n: deque(maxlen=RECENT_CONTACT_SAMPLES) for n in CONTACT_INPUTS}
 
     def activate(self) -> None:
         self._reset()
@@ -1437,6 +1450,7 @@ class PolyForce(Component):
             raise ComponentFault(f"{self.invalid_run} invalid max-depth inputs in a row (last: {why})", self.id)
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
+        self._remember(inputs)
         s = inputs["max_depth"]
         if s is None or s is self._seen:
             return None
@@ -1460,16 +1474,15 @@ class PolyForce(Component):
             self.skipped["out_of_order"] += 1
             return None
         self._last_stamp = st
-        self._match(inputs, st)
+        contact = self._match(inputs, st)
         centroid = None
         if self.cal.position is not None:
-            centroid = inputs.value("centroid")
+            centroid = contact["centroid"]
             if centroid is None:
                 raise ComponentFault(f"the calibration {self.cal.path} has position terms (degree "
                                      f"{self.cal.position.degree}): wire the contact centroid into its 'centroid' "
                                      f"input (centroid: depth.centroid)", self.id)
-        force, status = self.compute(s.value, inputs.value("contact_area"), inputs.value("contact_mask"), s.stamp,
-                                     centroid)
+        force, status = self.compute(s.value, contact["contact_area"], contact["contact_mask"], s.stamp, centroid)
         self.last_force, self.last_status = force, status
         self.counts[status] += 1
         if status == "invalid-input":
@@ -1481,28 +1494,40 @@ class PolyForce(Component):
         self.invalid_run = 0
         return {"force": Sample(force, s.stamp), "status": Sample(status, s.stamp)}
 
-    def _match(self, inputs: Any, stamp: float) -> None:
-        """Count, and say once per input, a contact_area, contact_mask or centroid sample that is not of the depth
-        sample's frame (another stamp): they are taken as the latest values, which from one depth node are of the
-        same step and stamp; wired from another node, or through a bridge that stamps each on arrival, a frame's
-        depth meets another frame's area or centroid."""
-        for name in ("contact_area", "contact_mask", "centroid"):
+    def _remember(self, inputs: Any) -> None:
+        """Keep each contact input's last :data:`RECENT_CONTACT_SAMPLES` samples (a new sample each time it changes)."""
+        for name in CONTACT_INPUTS:
             smp = inputs.get(name)
-            if smp is None:
+            q = self._recent[name]
+            if smp is not None and (not q or q[-1] is not smp):
+                q.append(smp)
+
+    def _match(self, inputs: Any, stamp: float) -> dict[str, Any]:
+        """The contact_area, contact_mask and centroid of the depth sample's frame (None where not wired): the latest
+        sample, which from one depth node is of the same step and stamp; else the newest of the input's last
+        :data:`RECENT_CONTACT_SAMPLES` samples with the depth's stamp (wired from another node, or through a bridge
+        that delivers each topic on its own: the frame's area came a step before its depth). Where none has it (the
+        area comes after its depth, or another node stamps it otherwise) the latest value is taken, counted
+        (status unmatched_inputs) and said once per input."""
+        out: dict[str, Any] = {}
+        for name in CONTACT_INPUTS:
+            smp = inputs.get(name)
+            out[name] = None if smp is None else smp.value
+            if smp is None or _stamp_of(smp) == stamp:
                 continue
-            try:
-                skew = float(smp.stamp) - stamp
-            except (TypeError, ValueError):
-                skew = math.nan
-            if skew == 0.0:
+            hit = next((r for r in reversed(self._recent[name]) if _stamp_of(r) == stamp), None)
+            if hit is not None:
+                out[name] = hit.value
                 continue
             self.unmatched_inputs += 1
             if name not in self._unmatched_said:
                 self._unmatched_said.add(name)
-                self.ctx.log(f"input {name} is stamped {skew * 1e3:+.1f} ms from the max_depth sample it is taken "
-                             f"with (t={stamp:.3f} s): the latest value is used, not the one of that depth frame; "
-                             f"wire max_depth, {name} and the others from one depth node (counted in status "
+                self.ctx.log(f"input {name} is stamped {(_stamp_of(smp) - stamp) * 1e3:+.1f} ms from the max_depth "
+                             f"sample it is taken with (t={stamp:.3f} s), and none of its last "
+                             f"{RECENT_CONTACT_SAMPLES} samples is of that depth frame: the latest value is used; wire "
+                             f"max_depth, {name} and the others from one depth node (counted in status "
                              f"unmatched_inputs; said once)")
+        return out
 
     def compute(self, depth: Any, area: Any = None, mask: Any = None, stamp: float = 0.0,
                 centroid: Any = None) -> tuple[float, str]:
