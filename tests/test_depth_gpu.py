@@ -26,6 +26,7 @@ from teletouch.testing import Harness
 from helpers_depth import model_fixture, sim_fixture
 from test_depth_poisson import R_BALL_PX, _sampled, gaussian, paraboloid, sphere_cap
 from test_depth_vga_background import _maze, _spiral
+from test_open_items_review import _BadNormals
 
 if not torch.cuda.is_available():   # named on the command line (a whole-suite run does not collect this file here)
     pytest.skip("torch sees no CUDA GPU here", allow_module_level=True)
@@ -102,20 +103,9 @@ def test_the_poisson_solve_on_the_gpu_within_1_percent_of_analytic_surfaces(case
                        P.integrate(gx, gy), atol=1e-8)
 
 
-class _BadNormals(torch.nn.Module):
-    def __init__(self, net):
-        super().__init__()
-        self.net = net
-
-    def forward(self, f):
-        out = self.net(f).clone()
-        out[:, 10:12, 20:22, 0] = math.nan
-        return out
-
-
 def test_bad_normals_on_the_gpu_raise_the_cpus_error_and_a_batch_marks_only_that_frame(model, frames):
     gpu = DepthPipeline(model, device=GPU)
-    gpu.net = _BadNormals(gpu.net)
+    gpu.net = _BadNormals(gpu.net, math.nan)   # non-finite normals on rows 10-11, columns 20-21
     with pytest.raises(ValueError, match=r"gx: \d+ gradients are NaN or inf \(the first at row 10, column 20\)"):
         gpu.grid_depth(frames[0])
     z = gpu.batch_depth(np.stack(frames[:2]))
