@@ -48,6 +48,22 @@ def shapes_differ(a: tuple[int | None, ...], b: tuple[int | None, ...]) -> bool:
     return len(a) != len(b) or any(x is not None and y is not None and x != y for x, y in zip(a, b))
 
 
+def plain_results(got: Mapping[Any, Any]) -> dict[str, Any]:
+    """A component's :meth:`Component.results` as JSON can hold them: keys as text, numbers as int or float, bools,
+    text and None as they are, anything else as its repr."""
+    out: dict[str, Any] = {}
+    for k, v in got.items():
+        if isinstance(v, (bool, str)) or v is None:
+            out[str(k)] = v
+        elif isinstance(v, numbers.Integral):
+            out[str(k)] = int(v)
+        elif isinstance(v, numbers.Real):
+            out[str(k)] = float(v)
+        else:
+            out[str(k)] = repr(v)
+    return out
+
+
 def has_warm_up(cls: type, params: Any = None) -> bool:
     """Whether the runtime calls :meth:`Component.warm` of a node of class ``cls`` (under the wall clock): a warm()
     of its own, and no device's (a warm-up must never command one). For an isolated node, its class in the child.
@@ -576,8 +592,8 @@ class Component:
         """What the run achieved, said once after it: the command line's summary prints it below the table (and
         ``--json`` under each node's ``results``). SI under keys that end in their unit, as :meth:`status` (a
         controller's ``peak_force_n``, ``contact_time_s``). Called once, after deactivate() and before close(), also
-        after a fault: keep the figures as the run goes, touch no hardware here. Not asked of a node in its own
-        process (``isolate: process``). Empty (the default): nothing to say."""
+        after a fault: keep the figures as the run goes, touch no hardware here. A node in its own process
+        (``isolate: process``) is asked there. Empty (the default): nothing to say."""
         return {}
 
     # introspection ---------------------------------------------------------------------------------------------

@@ -64,7 +64,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .component import Component, Context, Inputs, Sample, _Slot, has_warm_up
+from .component import Component, Context, Inputs, Sample, _Slot, has_warm_up, plain_results
 from .errors import ComponentFault, exception_place
 
 #: seconds a child may take to answer a lifecycle call (configure may load a model)
@@ -476,6 +476,11 @@ def _serve(conn: Any, cls: type[Component] | None, import_error: tuple[str, dict
                 comp.configure()
             elif op in ("activate", "deactivate", "warm"):   # warm: with the inputs the child holds
                 getattr(comp, op)()
+            elif op == "results":
+                # as the runtime takes them (a value that is no number or text as its repr): nothing to unpickle
+                conn.send((seq, "res", plain_results(comp.results() or {}) if comp is not None else {}, logs[:]))
+                logs.clear()
+                continue
             elif op == "clock":
                 origin[:] = msg[2:]
             elif op == "close":
@@ -765,6 +770,14 @@ class ProcessProxy(Component):
         if self._started() and self._proc.is_alive():
             # a step still running in the node's thread ends by its own timeout at the latest
             self._call("deactivate", timeout=SHUTDOWN_TIMEOUT, wait=self._step_timeout + 1.0)
+
+    def results(self) -> dict[str, Any]:
+        """The component's own results(), asked of the child process (the runtime asks after deactivate(), before
+        close()), each value as a number or text as inline (:func:`plain_results`); none from a child that is gone or
+        stuck in a step. An error there raises here as the node's fault (the runtime logs it as a shutdown fault)."""
+        if not self._started() or not self._proc.is_alive() or self._stuck:
+            return {}
+        return dict(self._call("results", timeout=SHUTDOWN_TIMEOUT, wait=self._step_timeout + 1.0)[2])
 
     def close(self) -> None:
         got = self._lock.acquire(timeout=self._step_timeout + 1.0)

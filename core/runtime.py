@@ -20,7 +20,6 @@ import ctypes
 import gc
 import heapq
 import math
-import numbers
 import os
 import sys
 import threading
@@ -29,7 +28,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
 from .component import (
-    Component, Context, Device, Inputs, Sample, _Slot, has_warm_up, step_location, step_samples, value_checker,
+    Component, Context, Device, Inputs, Sample, _Slot, has_warm_up, plain_results, step_location, step_samples,
+    value_checker,
 )
 from .errors import ComponentFault, exception_line
 from .graph import GraphSpec
@@ -675,24 +675,13 @@ class Runtime:
     def _results_of(self, node: _Node) -> dict[str, Any]:
         """``node``'s Component.results(), its values as numbers or text (JSON can hold them; anything else as its
         repr); an error there is a logged shutdown fault and no results (the run's result stays). An isolated node's
-        proxy says nothing (Component's default): its component is in the other process."""
+        proxy asks its child process (none from a child that died or hangs)."""
         try:
-            got = dict(node.comp.results() or {})
+            return plain_results(node.comp.results() or {})
         except BaseException as exc:
             self.faults.append(Fault(node.id, "shutdown", f"results() raised {exception_line(exc)}", self._now,
                                      "logged"))
             return {}
-        out: dict[str, Any] = {}
-        for k, v in got.items():
-            if isinstance(v, (bool, str)) or v is None:
-                out[str(k)] = v
-            elif isinstance(v, numbers.Integral):
-                out[str(k)] = int(v)
-            elif isinstance(v, numbers.Real):
-                out[str(k)] = float(v)
-            else:
-                out[str(k)] = repr(v)
-        return out
 
     def _lifecycle_call(self, node: _Node, name: str) -> None:
         try:

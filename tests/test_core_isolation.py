@@ -151,9 +151,36 @@ class NeedsModel(Component):
         return {"y": t}
 
 
+class Tally(Component):
+    """Counts its steps; results() says how many and in which process (or raises, or holds a value that cannot be
+    pickled)."""
+
+    name = "iso-tally"
+    kind = Kind.ESTIMATOR
+    outputs = {"y": Port("float64", (), "any", "")}
+
+    class Params(Params):
+        results: str = Field("ok", description="ok | raise | unpicklable")
+
+    def configure(self):
+        self.n = 0
+
+    def step(self, t, inputs):
+        self.n += 1
+        return {"y": t}
+
+    def results(self):
+        if self.params.results == "raise":
+            raise RuntimeError("tally lost count")
+        out = {"steps_counted": self.n, "pid": os.getpid()}
+        if self.params.results == "unpicklable":
+            out["lock"] = threading.Lock()
+        return out
+
+
 @hookimpl
 def teletouch_components():
-    return [Crash, Morph, NanStamp, Unpicklable, LateBlock, SlowStart, NeedsModel]
+    return [Crash, Morph, NanStamp, Unpicklable, LateBlock, SlowStart, NeedsModel, Tally]
 
 GRAPH = """
 clock: wall
@@ -958,3 +985,39 @@ def test_a_child_left_running_does_not_hang_the_interpreter_at_exit():
     while not _gone(child) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert _gone(child)
+
+
+TALLY = """
+clock: wall
+nodes:
+  - {id: est, plugin: iso-tally, rate: 50, params: {results: HOW}, isolate: process}
+  - {id: dev, plugin: mock-device, rate: 200, inputs: {command: est.y}}
+"""
+
+
+def test_an_isolated_nodes_results_come_from_its_process(reg):
+    """results() was not asked of an isolated node (its proxy in the runtime said nothing): `teletouch run` showed no
+    results for it. Now the child is asked, after deactivate() and before close(), and its values are taken as an
+    inline node's (one that is no number or text, here a lock that could not cross pickled, as its repr)."""
+    for how in ("ok", "unpicklable"):
+        res, rt = run_yaml(TALLY.replace("HOW", how), reg, duration=0.5)
+        assert res.exit_code == EXIT_OK, res.message
+        stats = {n.id: n for n in res.nodes}
+        got = stats["est"].results
+        assert got["pid"] != os.getpid()                           # asked of the child
+        assert got["steps_counted"] == stats["est"].steps >= 20    # the child's count: every step the runtime made
+        assert not [f for f in res.faults if f.kind == "shutdown"]
+        if how == "unpicklable":
+            assert got["lock"].startswith("<unlocked _thread.lock object"), got
+
+
+def test_an_isolated_nodes_results_that_raise_are_a_logged_shutdown_fault(reg):
+    res, rt = run_yaml(TALLY.replace("HOW", "raise"), reg, duration=0.3)
+    assert res.exit_code == EXIT_OK, res.message               # the run's result stays
+    stats = {n.id: n for n in res.nodes}
+    assert stats["est"].results == {}
+    shutdown = [f for f in res.faults if f.kind == "shutdown"]
+    assert len(shutdown) == 1 and shutdown[0].action == "logged", shutdown
+    assert shutdown[0].message.startswith("results() raised") and "RuntimeError: tally lost count" in \
+        shutdown[0].message, shutdown[0].message
+    assert not rt.component("est")._proc.is_alive()            # closed afterwards all the same

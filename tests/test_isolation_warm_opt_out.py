@@ -116,8 +116,10 @@ def test_an_isolated_node_whose_parameters_turn_warm_ups_off_makes_no_warm_up_ro
         assert st["warm_calls"] >= st["steps"] / 2, st   # (a loaded machine's slow cycle leaves a few out)
     else:
         assert st["warm_calls"] == 0, st
-        # not one request more than its lifecycle and its steps: configure, clock, activate, deactivate, close
-        assert len(ops) == rt.component("knob")._seq == st["steps"] + 5, ops
+        # not one request more than its lifecycle and its steps: configure, clock, activate, deactivate, results
+        # (the run's results, asked of the child), close
+        assert len(ops) == rt.component("knob")._seq == st["steps"] + 6, ops
+        assert ops[-3:] == ["deactivate", "results", "close"], ops
 
 
 def test_an_isolated_depth_node_with_warm_false_sends_no_warm_up(requests):
