@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import time
 
-__all__ = ["source_date_epoch", "build_time"]
+__all__ = ["source_date_epoch", "build_time", "software_versions"]
 
 #: 9999-12-31T23:59:59Z: a later time is no date a file can record (datetime's and ISO 8601's four-digit year)
 MAX_SOURCE_DATE_EPOCH = 253402300799
@@ -37,3 +37,18 @@ def build_time() -> float:
     """The time to write into an output file: SOURCE_DATE_EPOCH when set, else now (s since 1970-01-01 UTC)."""
     sde = source_date_epoch()
     return float(sde) if sde is not None else time.time()
+
+
+def software_versions() -> dict[str, str]:
+    """The versions of what a trained or fitted file's numbers depend on (Python, numpy, torch, OpenCV), recorded in
+    it: the same inputs give the same file bit for bit only with the same versions (a training run amplifies a
+    rounding difference), so a file that another run does not reproduce says with what it was made."""
+    import platform
+
+    out = {"python": platform.python_version(), "machine": platform.machine()}
+    for name, module in (("numpy", "numpy"), ("torch", "torch"), ("opencv", "cv2")):
+        try:
+            out[name] = str(__import__(module).__version__)
+        except ImportError:
+            out[name] = "not installed"
+    return out

@@ -59,7 +59,7 @@ OUT = REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.model"
 #: the rounded figures (validation), whichever is larger.
 TOLERANCES = {"weights_rel": 1e-5, "background_levels": 1, "meta_rel": 1e-4}
 #: meta fields that differ from run to run or are fixed by SOURCE_DATE_EPOCH: reported, never a failure
-IGNORED_META = {"training.seconds", "training.total_seconds", "training.created"}
+IGNORED_META = {"training.seconds", "training.total_seconds", "training.created", "training.software"}
 
 
 def render_presses(folder: Path, n: int, seed: int, noise: float = 2.0) -> None:
@@ -274,9 +274,24 @@ def check(args: argparse.Namespace, ap: argparse.ArgumentParser) -> int:
     if bad:
         print(f"DIFFERS: {len(bad)} beyond tolerance (weights {TOLERANCES['weights_rel']:g} relative, background "
               f"{TOLERANCES['background_levels']:g} level, meta {TOLERANCES['meta_rel']:g} relative)")
+        other = software_change((meta.get("training") or {}).get("software"))
+        if other:
+            print(f"  the file was made with other software ({other}): the training is the same bit for bit only "
+                  f"with the same versions; remake the file with this software if it is to be the packaged one")
         return 1
     print("MATCHES: every number within tolerance")
     return 0
+
+
+def software_change(recorded: Any) -> str:
+    """What differs between the software a model file records (training.software) and this process's, as
+    ``torch 2.13.0+cpu -> 2.11.0``; "" when the same. A file that records none: said so."""
+    from teletouch.reproducible import software_versions
+
+    if not isinstance(recorded, dict):
+        return "the file records no versions"
+    now = software_versions()
+    return ", ".join(f"{k} {recorded.get(k, '?')} -> {v}" for k, v in now.items() if recorded.get(k) != v)
 
 
 def make(args: argparse.Namespace, output: Path | str) -> int:

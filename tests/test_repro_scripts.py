@@ -81,6 +81,40 @@ def test_depth_check_of_a_file_the_script_made_matches_byte_for_byte(depth_scrip
     assert list(small_model.parent.glob("*")) == [small_model]
 
 
+def test_a_model_file_records_the_software_it_was_made_with(depth_script, small_model):
+    import platform
+
+    import cv2
+    import torch
+
+    meta, _ = _read_model(depth_script, small_model)
+    assert meta["training"]["software"] == {"python": platform.python_version(), "machine": platform.machine(),
+                                            "numpy": np.__version__, "torch": torch.__version__,
+                                            "opencv": cv2.__version__}
+
+
+def test_depth_check_names_the_software_a_differing_file_was_made_with(depth_script, small_model, tmp_path):
+    """Remade with another torch or numpy the weights differ (a GPU machine's torch 2.11 and numpy 2.5: up to 0.44):
+    the check said only DIFFERS. Now the file's software is never a difference itself, and where the numbers differ
+    the check names what differs in it."""
+    import torch
+
+    meta, arrays = _read_model(depth_script, small_model)
+    m = copy.deepcopy(meta)
+    m["training"]["software"].update(torch="2.11.0+cu130", numpy="2.5.2")
+    w = arrays["w.0.weight"].copy()
+    w[0, 0] += 1.0
+    path = _write_model(tmp_path / "other.model", m, dict(arrays, **{"w.0.weight": w}))
+    rc, out = _run(depth_script, "--check", *SMALL, "-o", str(path))
+    assert rc == 1 and "DIFFERS  w.0.weight" in out, out
+    assert (f"the file was made with other software (numpy 2.5.2 -> {np.__version__}, torch 2.11.0+cu130 -> "
+            f"{torch.__version__})") in out, out
+    assert "meta training.software" not in out.replace("ignored  meta training.software", "")   # no difference
+    del m["training"]["software"]
+    assert depth_script.software_change(m["training"].get("software")) == "the file records no versions"
+    assert depth_script.software_change(meta["training"]["software"]) == ""
+
+
 def test_the_packaged_model_is_remade_byte_for_byte(tmp_path):
     """The packaged sim-digit model, made again by its script in a fresh process (as a maintainer runs --check:
     numpy pinned to its AVX2-level kernels before it loads), is the same file byte for byte: any change of the

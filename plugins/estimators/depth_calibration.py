@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from teletouch.errors import ModelFileError
-from teletouch.reproducible import build_time, source_date_epoch
+from teletouch.reproducible import build_time, software_versions, source_date_epoch
 
 from .normal_model import (DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, atomic_write, feature_count, make_net,
                            max_stride)
@@ -849,7 +849,8 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
     model.training = {"presses": train_names, "samples": int(n), "epochs": epochs, "lr": lr, "batch": batch,
                       "dropout": dropout, "seed": seed, "loss": "mse", "optimizer": "adam", "final_loss": loss_v,
                       "flat_ratio": flat_ratio, "seconds": round(train_s, 2), "gain_presses": len(ratios),
-                      "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(build_time()))}
+                      "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(build_time())),
+                      "software": software_versions()}
     if source_date_epoch() is not None:
         del model.training["seconds"]   # reproducible: a duration differs from run to run (docs/depth.md)
     if log:
