@@ -874,6 +874,9 @@ def _interrupt_in_the_wait(rt, k: int, nth: int = 3) -> tuple[object, bool]:
     out: list[object] = []
 
     def main():
+        # Python 3.12 sends opcode events only where f_trace_opcodes was set on a frame before sys.settrace() (a
+        # frame's f_trace_opcodes set in its call event is ignored: CPython issues 103615, 114480); elsewhere harmless
+        sys._getframe().f_trace_opcodes = True
         sys.settrace(tracer)
         try:
             out.append(rt.run(20.0))
