@@ -599,3 +599,17 @@ def test_missing_centroid_names_the_csv_line(tmp_path):
         fit_samples(samples, 3, position_degree=1, where=str(path))
     with pytest.raises(CalibrationError, match=r"sample 7 has no contact centroid"):
         fit_samples([dict(s, line=None) for s in samples], 3, position_degree=1)
+
+
+def test_an_abort_caused_by_a_slow_force_rate_names_max_force_rate(reg):
+    """With max_force_rate far too low (0.05 N/s: a typo, or N/min meant) the force command cannot follow the
+    controller: the run aborted at the tare saying "the probe still touches the gel ... increase backoff", a setting
+    that was right. An abort now says when max_force_rate held the force back in most of the last second's steps; an
+    abort for another cause (here over max_force, at the default rate) does not mention it."""
+    result, rt = run_yaml(graph(routine={"max_force_rate": 0.05}), reg)
+    assert result.status == "fault", result.message
+    assert "(max_force_rate, 0.05 N/s, held the force back in 1000 of the last 1000 steps: the probe cannot follow " \
+           "its targets; raise it)" in result.message, result.message
+    assert rt.component("leader").safe
+    result, _ = run_yaml(graph(routine={"max_force": 2.0, "max_displacement": "2mm"}), reg)
+    assert result.status == "fault" and "max_force" in result.message and "max_force_rate" not in result.message

@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections import deque
 from pathlib import Path
 from typing import Any, Literal
 
@@ -274,6 +275,8 @@ class PressRoutine(Component):
         self.touch_count = 0
         self.t_start: float | None = None
         self.tare = 0.0
+        # the last second's steps: whether max_force_rate held the force command back (an abort names it when so)
+        self.rate_held: deque[bool] = deque(maxlen=max(10, round(float(self.ctx.rate or self.default_rate))))
         self.arrived: float | None = None
         self._samples_written = False
 
@@ -303,6 +306,12 @@ class PressRoutine(Component):
     def _abort(self, t: float, reason: str) -> None:
         if self.state in ("abort-retract", "aborted"):
             return
+        held, steps = sum(self.rate_held), len(self.rate_held)
+        if steps >= 10 and held > 0.5 * steps:
+            # the symptom (a step that does not settle, a probe still in the gel at the backoff point) names another
+            # setting; the force command lagging its controller's most of the last second is the cause
+            reason += (f" (max_force_rate, {self.params.max_force_rate:g} N/s, held the force back in {held} of the "
+                       f"last {steps} steps: the probe cannot follow its targets; raise it)")
         self.abort_reason = reason
         self.ctx.log(f"aborting: {reason}; retracting")
         # straight back out along the press axis to the start height (never sideways while pressing), from where the
@@ -579,7 +588,9 @@ class PressRoutine(Component):
             f = f * (p.max_force / n)
         # rate limit: each component moves at most max_force_rate * dt from the last command, except towards zero
         r = p.max_force_rate * dt
-        return np.clip(f, np.minimum(self.cmd - r, 0.0), np.maximum(self.cmd + r, 0.0))
+        out = np.clip(f, np.minimum(self.cmd - r, 0.0), np.maximum(self.cmd + r, 0.0))
+        self.rate_held.append(not np.array_equal(out, f))
+        return out
 
     def _move_to_cycle(self, t: float) -> None:
         """Go (at the start height) over this cycle's press point, then search for the gel there."""
