@@ -166,7 +166,6 @@ def fill_enclosed_torch(m: Any, close: int = FILL_CLOSE) -> Any:
         k = 2 * close + 1
         c = -F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close)
         m = m.maximum(c)
-    b, _, rows, cols = m.shape
     free = m[:, 0] < 0.5
     free_t = free.transpose(1, 2).contiguous()   # columns as lines
     reach = free.clone()
