@@ -79,22 +79,30 @@ def pytest_configure(config):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def pytest_ignore_collect(collection_path, config):
-    """tests/test_depth_gpu.py exists for a machine where torch sees a CUDA GPU; elsewhere (CI) it is not collected,
-    rather than collected and skipped (a skip fails CI). Said in the header, so a GPU run shows it ran them."""
-    if collection_path.name == "test_depth_gpu.py":
+_gpu: list[str | None] = []   # the CUDA GPU's name (None: none), once tests/test_depth_gpu.py was looked at
+
+
+def _cuda_gpu() -> str | None:
+    """The name of the CUDA GPU torch sees (None without one); torch is imported only when this is asked."""
+    if not _gpu:
         import torch
 
-        if not torch.cuda.is_available():
-            return True
+        _gpu.append(torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
+    return _gpu[0]
+
+
+def pytest_ignore_collect(collection_path, config):
+    """tests/test_depth_gpu.py exists for a machine where torch sees a CUDA GPU; elsewhere (CI) it is not collected,
+    rather than collected and skipped (a skip fails CI). Said after the collection, so a GPU run shows it ran them."""
+    if collection_path.name == "test_depth_gpu.py" and _cuda_gpu() is None:
+        return True
     return None
 
 
-def pytest_report_header(config):
-    import torch
-
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    return (f"teletouch: CUDA GPU {gpu}: tests/test_depth_gpu.py runs" if gpu else
+def pytest_report_collectionfinish(config, start_path, items):
+    if not _gpu:   # the collection did not reach tests/test_depth_gpu.py: nothing to say, torch not imported for it
+        return []
+    return (f"teletouch: CUDA GPU {_gpu[0]}: tests/test_depth_gpu.py runs" if _gpu[0] else
             "teletouch: no CUDA GPU: tests/test_depth_gpu.py is not collected")
 
 
