@@ -1269,6 +1269,7 @@ RECENT_CONTACT_SAMPLES = 8
 
 
 def _stamp_of(smp: Any) -> float:
+    """A sample's stamp as a float; NaN for one that is no number."""
     try:
         return float(smp.stamp)
     except (TypeError, ValueError):
@@ -1459,11 +1460,7 @@ class PolyForce(Component):
         # staleness check takes over), and only newer samples are taken, so an old frame arriving late cannot
         # enter the median or the low-pass, nor bring back an older force; a stamp ahead of the clock is refused
         # rather than taken, so it cannot lock out the frames after it
-        st = s.stamp
-        try:
-            st = float(st)
-        except (TypeError, ValueError):
-            st = math.nan
+        st = _stamp_of(s)
         if not math.isfinite(st) or st > t + self.params.max_clock_skew:
             self.skipped["bad_stamp"] += 1
             self._reset_filters()
