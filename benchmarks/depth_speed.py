@@ -258,11 +258,9 @@ def grow_fill(m, close: int):
     As many steps as the grid is wide: ~330 kernel launches a call."""
     import torch.nn.functional as F
 
-    if close > 0:
-        k = 2 * close + 1
-        c = -F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close)
-        m = m.maximum(c)
-    free = 1.0 - m
+    from teletouch.plugins.estimators.depth_pipeline import _closing_torch
+
+    free = 1.0 - _closing_torch(m, close)   # the closing is unchanged
 
     def grow(a):
         return free * F.max_pool2d(a, (3, 1), stride=1, padding=(1, 0)).maximum(

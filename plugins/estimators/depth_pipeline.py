@@ -160,13 +160,7 @@ def fill_enclosed_torch(m: Any, close: int = FILL_CLOSE) -> Any:
     nothing), ~50 kernels and one host synchronisation; a path around the changed cells takes one pair more for each
     turn it must make. (Growing the reachable cells one cell a step, as before, took as many steps as the grid is
     wide: on an H100 ~330 kernel launches and 3.3 ms a fill; the whole frame's GPU work is now 0.4 ms.)"""
-    import torch.nn.functional as F
-
-    if close > 0:
-        k = 2 * close + 1
-        c = -F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close)
-        m = m.maximum(c)
-    free = m[:, 0] < 0.5
+    free = _closing_torch(m, close)[:, 0] < 0.5
     free_t = free.transpose(1, 2).contiguous()   # columns as lines
     reach = free.clone()
     reach[:, 1:-1, 1:-1] = False                 # the unchanged cells on the border
@@ -179,6 +173,17 @@ def fill_enclosed_torch(m: Any, close: int = FILL_CLOSE) -> Any:
         if count is not None and bool(new == count):   # the first pair never ends it: one host sync where two do
             return (~reach).to(m.dtype)[:, None]
         count = new
+
+
+def _closing_torch(m: Any, close: int) -> Any:
+    """Float (B, 1, rows, cols) 0/1 masks with their closing by a square of ``2 close + 1`` cells added (the grid's
+    outside counts as changed for the erosion: max-pooling pads with -inf)."""
+    import torch.nn.functional as F
+
+    if close <= 0:
+        return m
+    k = 2 * close + 1
+    return m.maximum(-F.max_pool2d(-F.max_pool2d(m, k, stride=1, padding=close), k, stride=1, padding=close))
 
 
 def _run_index(free: Any) -> Any:
