@@ -36,3 +36,19 @@ def test_a_signal_held_as_a_finished_press_run_stops_writes_the_calibration_and_
     assert err.rstrip().splitlines()[-1] == (f"teletouch: interrupted ({NAMES[sig]}): devices driven to their safe "
                                              f"state; the press routine had finished: its calibration is written")
     assert "no calibration written" not in err and "Traceback" not in err
+
+
+def test_a_signal_held_as_a_finished_press_run_stops_keeps_its_code_when_the_fit_refuses_the_samples(tmp_path):
+    program = _program(("teletouch.runtime:Runtime._shutdown", signal.SIGINT, "True"))
+    graph = str(REPO / "examples" / "calibrate-force-sim.yaml")
+    out = tmp_path / "x.force.json"
+    got, err = _signalled(program, ["calibrate", "force", "--graph", graph, "--quiet", "--degree", "2",
+                                    "--min-depth", "5mm", "--set", "routine.cycles=1",
+                                    "--set", "routine.max_displacement=0.6mm", "-o", str(out)], tmp_path)
+    assert got == EXIT_INTERRUPTED, err[-3000:]   # before: 1, the fit's refusal, as if no signal had come
+    assert "no sample with a max depth of at least 5.000 mm" in err, err[-3000:]
+    assert not out.exists() and (tmp_path / "x.samples.csv").exists()   # the samples are kept for --csv
+    assert err.rstrip().splitlines()[-1] == ("teletouch: interrupted (Ctrl-C): devices driven to their safe state; "
+                                             "the press routine had finished but its samples gave no calibration: "
+                                             "none written")
+    assert "Traceback" not in err

@@ -1058,11 +1058,21 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         if result.exit_code:   # interrupted (held as the run stopped), degraded, fault: the calibration is complete,
             ended = result     # still written, and the command exits as `teletouch run` does for that run
         model_id, depth_src = _sensor_model_id(spec)
-        cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
-                          position_degree=args.position_degree,
-                          zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or model_id,
-                          depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}",
-                          min_r2=min_r2)
+        try:
+            cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
+                              position_degree=args.position_degree,
+                              zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or model_id,
+                              depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}",
+                              min_r2=min_r2)
+        except CalibrationError as exc:
+            if ended is None:
+                raise
+            # the fit refused the samples of a run a signal (or a fault) ended: the run's exit code, as below, not the
+            # fit's (a Ctrl-C said 130 only when the fit succeeded); the samples file is written for --csv
+            print(f"teletouch: error: {exc}", file=sys.stderr)
+            print(f"teletouch: {ended.ending}; the press routine had finished but its samples gave no calibration: "
+                  f"none written", file=sys.stderr)
+            return ended.exit_code
     cal.save(out)
     cal.save_plot(plot)
     print(cal.summary())
