@@ -122,3 +122,36 @@ def test_a_huge_finite_force_is_scaled_to_max_force_not_zeroed(sdk_dir, standin,
         np.testing.assert_allclose(sent, 4.0 * (c / np.abs(c).max()) / np.linalg.norm(c / np.abs(c).max()))
         assert h.comp.status()["clamped"] == 1
         assert not caught, [str(w.message) for w in caught]   # no overflow warning either
+
+
+# ------------------------------------------------------------------------------ brakes released before forces
+def test_activate_releases_the_brakes_before_it_enables_forces(sdk_dir, standin):
+    """dhdSetBrakes(DHD_OFF) puts the device in IDLE mode, no current to the motors (Force Dimension's API): activate
+    called it after dhdEnableForce(DHD_ON), so on the real device every force write did nothing. The stand-in models
+    the modes now (it did not, and the order went unseen)."""
+    h = harness(sdk_dir, brakes_on_stop=True)
+    h.comp.configure()
+    assert standin.flags()["brakes"] and not standin.flags()["force_enabled"]
+    h.comp.activate()
+    assert standin.flags()["force_enabled"] and not standin.flags()["brakes"]   # FORCE mode
+    assert h.comp.dhd.force_status() == (True, 0)
+    h.step(0.0, gripper_force=2.0, force=np.array([0.0, 0.0, 1.5]))
+    applied, commanded = standin.forces()
+    assert applied[2] == pytest.approx(1.5) and applied[3] == pytest.approx(2.0), (applied, commanded)
+    h.comp.deactivate()
+    assert standin.flags()["brakes"] and not standin.flags()["force_enabled"] and standin.forces()[0] == [0.0] * 4
+    h.comp.close()
+
+
+def test_forces_that_do_not_come_on_at_activate_are_said(sdk_dir, standin):
+    """The device can keep its forces off (its force button, a safety feature): the operator then feels nothing, and
+    nothing said so unless a step came late."""
+    standin.set_force_on_refused(2)   # the velocity threshold
+    h = harness(sdk_dir)
+    logs: list[str] = []
+    h.ctx._log = logs.append
+    h.comp.configure()
+    h.comp.activate()
+    assert any("forces did not come on" in m and "the velocity threshold" in m for m in logs), logs
+    h.comp.deactivate()
+    h.comp.close()

@@ -291,9 +291,18 @@ class Omega7(Device):
             self._first_write = True
             self._fade_until, self._off_cause = 0.0, None
             self._new_session()
-            d.enable_force(True)
             d.set_gravity_compensation(self.params.gravity_compensation)
+            # the brakes released before forces are enabled: dhdSetBrakes(DHD_OFF) after dhdEnableForce(DHD_ON) puts
+            # the device in IDLE mode, where no current reaches the motors (every later force write did nothing)
             d.set_brakes(False)
+            d.enable_force(True)
+            st = d.force_status()
+            if st is not None and not st[0]:   # (the force button, a safety feature): said, as a late step says it
+                from .dhd import FORCEOFF_CAUSES
+
+                self._off_cause = st[1]
+                self.ctx.log(f"forces did not come on (dhdEnableForce): off by {FORCEOFF_CAUSES.get(st[1], st[1])}: "
+                             f"the operator feels no force until they are switched on at the device")
             self.active = True
 
     def _new_session(self) -> None:

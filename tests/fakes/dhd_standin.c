@@ -12,7 +12,10 @@
  *    gripper angle and linear velocity, and its gripper force acts in the opposite direction (the driver must undo
  *    that).
  *  - handle: quasi-static spring towards a rest position, p = rest + F / HANDLE_K, first-order lag.
- *  - force is produced only while enabled (dhdEnableForce) and the brakes are off; the SDK-side limits
+ *  - force is produced only in FORCE mode, which dhdEnableForce(DHD_ON) enters (the brakes released); as on the real
+ *    device, dhdSetBrakes leaves it whatever its argument: DHD_ON to BRAKE mode, DHD_OFF to IDLE mode, where no
+ *    current reaches the motors (Force Dimension's API: "if the brakes are disabled, the device is forced into IDLE
+ *    mode"), so a driver must release the brakes before it enables forces, not after. The SDK-side limits
  *    (dhdSetMaxForce, dhdSetMaxGripperForce) clamp what is applied.
  *  - the firmware watchdog (dhdSetWatchdog, SDK 3.3.2 and newer): a duration in units of 125 us, 0 = off. While
  *    forces are enabled, a force command (dhdSetForceAndGripperForce that reached the device, i.e. not skipped by
@@ -67,6 +70,7 @@ static struct {
     int serial;
     int system_type;    /* 35 omega.7 right, 37 omega.7 left, 104 sigma.7 right, 105 sigma.7 left (dhdc.h) */
     int force_enabled;
+    int force_on_refused;
     int brakes;
     int gravity;
     int timeguard_every; /* every Nth force write returns DHD_TIMEGUARD (0: never) */
@@ -155,7 +159,7 @@ static int check(char ID) {
 }
 
 static void apply_forces(void) {
-    int on = S.force_enabled && !S.brakes;
+    int on = S.force_enabled;
     double n = sqrt(S.f[0] * S.f[0] + S.f[1] * S.f[1] + S.f[2] * S.f[2]);
     double k = (on && n > S.max_force && n > 0) ? S.max_force / n : 1.0;
     for (int i = 0; i < 3; i++) S.fa[i] = on ? S.f[i] * k : 0.0;
@@ -238,6 +242,8 @@ void standin_press_force_button(void) {
     S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
     apply_forces();
 }
+/* forces do not come on at dhdEnableForce(DHD_ON) (which returns ok), off by this cause (0: they come on) */
+void standin_set_force_on_refused(int cause) { S.force_on_refused = cause; }
 int standin_get_expert(void) { return S.expert; }
 /* the firmware's clock stops here (until standin_reset); standin_advance_clock(dt) moves it on by dt seconds, the
    watchdog evaluated at the new time */
@@ -331,6 +337,8 @@ int dhdEnableForce(unsigned char val, char ID) {
     if (!val && S.force_off_fails) return fail(DHD_ERROR, "error");
     S.force_enabled = val ? 1 : 0;
     S.force_off_cause = val ? DHD_FORCEOFF_NONE : DHD_FORCEOFF_SOFTWARE;
+    if (val) S.brakes = 0; /* FORCE mode: the brakes released */
+    if (val && S.force_on_refused) { S.force_enabled = 0; S.force_off_cause = S.force_on_refused; }
     if (!val) { S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0; }
     apply_forces();
     return ok();
@@ -338,6 +346,11 @@ int dhdEnableForce(unsigned char val, char ID) {
 int dhdSetBrakes(int val, char ID) {
     if (check(ID)) return -1;
     S.brakes = val ? 1 : 0;
+    if (S.force_enabled) { /* out of FORCE mode: BRAKE (val) or IDLE (!val), forces off either way */
+        S.force_enabled = 0;
+        S.force_off_cause = DHD_FORCEOFF_SOFTWARE;
+        S.fg = 0; S.f[0] = S.f[1] = S.f[2] = 0;
+    }
     apply_forces();
     return ok();
 }
