@@ -217,3 +217,22 @@ def test_hold_after_a_read_timeout_keeps_the_last_goal_instead_of_the_stale_open
             assert emu.get(emu.table.goal_position) == h.comp.ticks_for(sent)
             assert h.comp._setpoint == sent
             emu.silent = False
+
+
+def test_hold_during_a_shorter_read_loss_keeps_the_last_goal_too():
+    # the same loss, shorter than read_timeout (no fault of the gripper's own yet) when another node's fault makes the
+    # runtime call safe_state(): the override above took the last goal only after read_timeout, so this hold sent the
+    # stale measured opening and the servo moved back (5.6 mm in an audit's run)
+    with DynamixelEmulator(15, position=1024) as emu:
+        with harness(emu, read_timeout=5.0, error_check_period=30.0) as h:
+            drive_until(h, 0.04, near(0.04, 5e-4))
+            stale = h.comp._last_reading.opening
+            emu.silent = True
+            drive(h, 0.07, 0.8)   # well under read_timeout
+            sent = h.comp._setpoint
+            assert sent - stale > 0.002
+            assert wait_for(lambda: emu.get(emu.table.goal_position) == h.comp.ticks_for(sent))
+            h.comp.safe_state()
+            time.sleep(0.05)
+            assert emu.get(emu.table.goal_position) == h.comp.ticks_for(sent)   # before: the stale opening's ticks
+            emu.silent = False

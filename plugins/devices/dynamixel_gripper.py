@@ -622,18 +622,6 @@ class DynamixelGripper(FollowerBase):
         if result != self._sdk.COMM_SUCCESS:
             raise HardwareError(f"sending Goal_Position to {self._where()}: {self.ph.getTxRxResult(result)}")
 
-    def safe_target(self) -> float:
-        """``hold`` with the state stale (no valid state for read_timeout: the answers are lost while the goals, which
-        need none, still reach the servo): the last set-point sent, where the servo has taken the fingers since; a
-        hold of the stale measured opening moved them back, by up to read_timeout x max_speed. Otherwise the base's
-        target."""
-        p = self.params
-        if p.safe_mode == "hold" and math.isfinite(self._setpoint) and \
-                time.monotonic() - self._last_good > p.read_timeout:
-            return self._setpoint
-        return super().safe_target()
-
-
     def _hw_close(self) -> None:
         if getattr(self, "_port_open", False):
             # the torque stays on: the servo keeps holding its last Goal_Position (the safe state)

@@ -176,6 +176,8 @@ class FollowerBase(Device):
 
     kind = Kind.DEVICE
     default_rate = 200.0
+    #: while the reads fail, hold the last set-point sent rather than the stale reading (see _measured)
+    hold_setpoint_while_stale = True
     inputs = dict(FOLLOWER_INPUTS)
     outputs = dict(FOLLOWER_OUTPUTS)
     Params = FollowerParams
@@ -197,6 +199,7 @@ class FollowerBase(Device):
     def configure(self) -> None:
         self._safe = False
         self._setpoint = math.nan
+        self._read_failed = False   # the last step's read gave no state (see _measured)
         self._last_t: float | None = None
         self._last_reading: Reading | None = None
         self._last_good = time.monotonic()
@@ -227,6 +230,7 @@ class FollowerBase(Device):
         self._holding = None
         self._prev = None
         self._command_stamp = -math.inf  # the graph's clock may start afresh
+        self._read_failed = False
         r = self._hw_read()
         self._last_good = time.monotonic()
         if r is not None and math.isfinite(r.opening):
@@ -247,8 +251,14 @@ class FollowerBase(Device):
 
     # step ------------------------------------------------------------------------------------------------------
     def _measured(self) -> float:
-        """The last measured opening; NaN when there is none since activate() (and no set-point either)."""
+        """The last measured opening; NaN when there is none since activate() (and no set-point either). While the
+        reads fail (``read_timeout`` not yet passed), the last set-point sent instead: the set-points, which need no
+        answer, may still reach the hardware, which has taken the fingers towards them since the last reading; a hold
+        of that stale reading moved them back, by up to read_timeout x max_speed (``hold_setpoint_while_stale``
+        False: the last reading all the same; pal-gripper has its own rule, see its safe_target)."""
         r = self._last_reading
+        if self.hold_setpoint_while_stale and getattr(self, "_read_failed", False) and math.isfinite(self._setpoint):
+            return self._setpoint
         return r.opening if r is not None and math.isfinite(r.opening) else self._setpoint
 
     def _start_hold(self, why: str) -> bool:
@@ -320,7 +330,8 @@ class FollowerBase(Device):
         ``read_timeout`` without a valid one."""
         r = self._hw_read()
         now = time.monotonic()
-        if r is None or not math.isfinite(r.opening):
+        self._read_failed = r is None or not math.isfinite(r.opening)
+        if self._read_failed:
             if now - self._last_good > self.params.read_timeout:
                 raise HardwareError(f"{self.name}: no valid state for {now - self._last_good:.3f} s "
                                     f"(read_timeout {self.params.read_timeout} s); check the connection")

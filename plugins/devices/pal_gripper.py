@@ -672,6 +672,8 @@ class PalGripper(FollowerBase):
             self.pub.publish(msg)
             self._sent, self._sent_at, self._sent_half = opening, now, half
 
+    hold_setpoint_while_stale = False   # its own rule while the state is stale (below)
+
     def safe_target(self) -> float:
         """``hold`` with the state stale (no usable message for effort_timeout, or none): the last measured opening
         (a squeeze is released to the object's surface, not held where a set-point inside the object left it), or
