@@ -7,11 +7,13 @@ Transports: pal-gripper over ROS 2 (DDS on loopback, the simulated controller in
 dynamixel-gripper over a pseudo-terminal at 57600 and 1000000 baud (the emulated servo waits the bytes' wire time),
 canopen-gripper on python-can's virtual bus (SYNC -> TPDO), and sim-gripper as the in-process reference.
 
-- round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware
-  path (``_hw_write``), then reads state (``_hw_read``) back to back until a state reflects it; the time in between,
-  per command. The drivers set their actuators' profile speed from ``max_speed`` (Dynamixel Profile_Velocity, CANopen
-  0x6081, PAL's trajectory time), at most 2 m/s (a 30 mm step: ~15 ms of motion): the emulators here reach each goal
-  at once instead (their ``instant`` knob, :func:`transport_specs`), so that the round trip is the transport's.
+- round trip (not for sim-gripper, which has no transport): the driver sends a new setpoint through its hardware path
+  (``_hw_write``), then reads state (``_hw_read``) back to back until a state reflects it (canopen-gripper, whose
+  set-point goes out by CiA 402's handshake over several writes, writes again after each read, as its steps do); the
+  time in between, per command. The drivers set their actuators' profile speed from ``max_speed`` (Dynamixel
+  Profile_Velocity, CANopen 0x6081, PAL's trajectory time), at most 2 m/s (a 30 mm step: ~15 ms of motion): the
+  emulators here reach each goal at once instead (their ``instant`` knob, :func:`transport_specs`), so that the round
+  trip is the transport's.
 - update rate: full ``step()`` calls (read state + send command) back to back (a 20 us yield between, none for the
   thread-less sim-gripper) for a while;
   ``fresh_state_hz`` counts only steps that got a new measurement (ROS 2 state arrives asynchronously at the
@@ -141,10 +143,16 @@ def make(cls, params):
 
 
 def round_trips(comp, n, a=0.03, b=0.06, tol=5e-4, timeout=0.5):
+    """``n`` round trips between openings ``a`` and ``b``: each a write, then reads until one is within ``tol``; a
+    driver whose set-point goes out over several writes (canopen-gripper's handshake: ``setpoint_handshake``) writes
+    again after each read, as its steps do (its handshake with the previous set-point is finished first, untimed)."""
     out = []
     failures = 0
+    again = getattr(comp, "setpoint_handshake", False)
     for k in range(n):
         target = a if k % 2 == 0 else b
+        if again:
+            settle(comp, b if k % 2 == 0 else a, timeout)
         t0 = time.perf_counter()
         comp._hw_write(target)
         while True:
@@ -156,8 +164,19 @@ def round_trips(comp, n, a=0.03, b=0.06, tol=5e-4, timeout=0.5):
             if now - t0 > timeout:
                 failures += 1
                 break
+            if again:
+                comp._hw_write(target)
             time.sleep(20e-6)  # let the driver's own threads (rclpy executor, CAN notifier) take the GIL
     return out, failures
+
+
+def settle(comp, target, timeout):
+    """Read and write ``target`` until the driver's set-point handshake is over (canopen-gripper: the acknowledge
+    answered by bit 4 low, then low again), so that the next write sends its set-point at once."""
+    t_end = time.perf_counter() + timeout
+    while not comp.handshake_idle() and time.perf_counter() < t_end:
+        comp._hw_read()
+        comp._hw_write(target)
 
 
 def update_rate(comp, slot, inputs, seconds, yield_s=20e-6):

@@ -39,6 +39,13 @@ def at(opening):
     return lambda o: o["opening"] == pytest.approx(opening, abs=1e-4)
 
 
+def handshake_done(drive, h, counts):
+    """drive_until's condition: the drive latched ``counts`` and the set-point handshake is over (bit 4 low again, and
+    the statusword's acknowledge low, so the drive has read that last frame): no frame is on its way, and the next
+    write sends the next set-point."""
+    return lambda o: drive.latched == counts and h.comp.handshake_idle()
+
+
 def latched(drive, counts):
     """drive_until's condition: the drive latched the set-point ``counts`` (the steps that sent it have finished)."""
     return lambda o: drive.latched == counts
@@ -124,8 +131,7 @@ def test_failed_setpoint_is_sent_again(drive, channel):
     """A set-point whose frame failed to go out is not taken as sent: the next write with the same target sends it
     (it was skipped forever: the target was recorded before the transmit)."""
     with harness(channel) as h:
-        drive_until(h, 0.06, latched(drive, h.comp.map.counts(0.06)))
-        assert drive.latched == h.comp.map.counts(0.06)
+        drive_until(h, 0.06, handshake_done(drive, h, h.comp.map.counts(0.06)))
         flaky = _FlakyRpdo(h.comp.network.bus)
         flaky.n = 1
         with pytest.raises(Exception, match="No buffer space"):
@@ -174,7 +180,7 @@ def test_safe_state_waits_for_a_send_in_progress(drive, channel):
     import threading
 
     with harness(channel) as h:
-        drive_until(h, 0.06, latched(drive, h.comp.map.counts(0.06)))
+        drive_until(h, 0.06, handshake_done(drive, h, h.comp.map.counts(0.06)))
         frames = []
         real = h.comp.rp1.transmit
         in_send, release = threading.Event(), threading.Event()
@@ -201,11 +207,12 @@ def test_safe_state_waits_for_a_send_in_progress(drive, channel):
         stepper.join(10.0)
         safe.join(10.0)
         assert not stepper.is_alive() and not safe.is_alive()
-        assert [f[0] for f in frames] == ["stepper", "stepper", "safe", "safe"]
-        stepped, hold = frames[0][1], frames[2][1]
-        assert stepped > h.comp.map.counts(0.06) and frames[1][1] == stepped  # the step moved towards 0.05 m
-        assert hold == h.comp.map.counts(h.comp._setpoint) and frames[3][1] == hold
-        assert [f[2] for f in frames] == [0, CW_NEW_SETPOINT] * 2  # two whole handshakes, one after the other
+        assert [f[0] for f in frames] == ["stepper", "safe", "safe"]
+        stepped, hold = frames[0][1], frames[1][1]
+        assert stepped > h.comp.map.counts(0.06)  # the step moved towards 0.05 m: its set-point raised (bit 4 high)
+        assert hold == h.comp.map.counts(h.comp._setpoint) and frames[2][1] == hold
+        # the hold at once, after the step's: bit 4 low, a pause longer than the drive's cycle, high
+        assert [f[2] for f in frames] == [CW_NEW_SETPOINT, 0, CW_NEW_SETPOINT]
         assert wait_for(lambda: drive.latched == hold)
         drive_for(h, 0.05, 0.1)
         assert drive.latched == hold  # the hold stays
@@ -249,10 +256,10 @@ def test_safe_state_does_not_enable_a_stopped_drive(drive, channel):
     the safe state: RPDO1's controlword (enable operation) took it back to OPERATION ENABLED, and the ``open`` safe
     state's set-point then drove the fingers open."""
     with harness(channel, safe_mode="open") as h:
-        drive_until(h, 0.06, latched(drive, h.comp.map.counts(0.06)))
+        drive_until(h, 0.06, handshake_done(drive, h, h.comp.map.counts(0.06)))
         logs = []
         h.ctx._log = logs.append
-        drive._controlword(0x0002)   # quick stop
+        drive._controlword(0x0002)   # quick stop (the drive's own input)
         assert drive.state == "QUICK STOP ACTIVE"
         with pytest.raises(HardwareError, match=r"left OPERATION ENABLED \(statusword 0x"):
             drive_for(h, 0.06, WAIT)   # a failure bound: raises at the next state
@@ -358,3 +365,79 @@ def test_opening_limits_must_lie_within_the_calibration():
     p = CanopenGripper.Params(opening_at_counts_open=0.05, max_opening=0.05, opening_at_counts_closed=0.01,
                               min_opening=0.01)
     assert (p.min_opening, p.max_opening) == (0.01, 0.05)
+
+
+# --- the set-point handshake (controlword bit 4 / statusword bit 12) -----------------------------------------------
+class _Frames:
+    """Records each RPDO1 the driver sends: (target counts, bit 4, the last statusword's acknowledge bit 12)."""
+
+    def __init__(self, comp):
+        self.comp, self.sent = comp, []
+        real = comp.rp1.transmit
+
+        def transmit():
+            self.sent.append((comp.rp1[0x607A].raw, bool(comp.rp1[0x6040].raw & CW_NEW_SETPOINT),
+                              bool(comp.tp1[0x6041].raw & 0x1000)))
+            real()
+
+        comp.rp1.transmit = transmit
+
+
+def test_each_set_point_waits_for_the_drive_to_acknowledge_the_one_before(drive, channel):
+    """The drive reads its controlword once per control cycle (1 ms here): bit 4 low then high back to back, as the
+    driver sent them, was no edge to it and the set-point was never taken (the fingers did not move). Now each
+    set-point goes out with bit 4 high while the acknowledge is low, bit 4 goes low once the acknowledge is high."""
+    with harness(channel) as h:
+        frames = _Frames(h.comp)
+        drive_until(h, 0.04, handshake_done(drive, h, h.comp.map.counts(0.04)))
+        assert drive.latched == h.comp.map.counts(0.04) and round(drive.pos) == drive.latched
+        sent = frames.sent
+        assert len(sent) >= 6
+        for (target, high, ack), (target2, high2, _) in zip(sent, sent[1:]):
+            if high:   # raised while the acknowledge was low; lowered next (same target) once it was high
+                assert not ack and not high2 and target2 == target
+            else:
+                assert high2 and ack is True or not high2
+        highs = [t for t, high, _ in sent if high]
+        assert highs == sorted(highs) and len(set(highs)) == len(highs)   # each set-point raised once, closing
+        assert h.comp.status()["setpoint_m"] == pytest.approx(0.04)
+
+
+def test_a_set_point_the_drive_never_acknowledges_is_a_fault(channel):
+    """A drive that does not take the set-point (bit 12 stays low: not in profile position after all, a drive that
+    wants another handshake) is a HardwareError after read_timeout, naming the set-point and the statusword."""
+    class Deaf(Cia402Drive):
+        def _controlword(self, cw):
+            super()._controlword(cw & ~CW_NEW_SETPOINT)   # bit 4 never seen: no set-point taken, no acknowledge
+
+    with Deaf(5, channel, position=0) as d:
+        with harness(channel, read_timeout=0.3) as h:
+            with pytest.raises(HardwareError, match=r"CANopen node 5 .*did not take set-point \d+ \(statusword bit 12 "
+                                                    r"set-point acknowledge\) within read_timeout \(0\.3\d* s; "
+                                                    r"statusword 0x"):
+                drive_for(h, 0.04, WAIT)   # a failure bound
+            assert d.latched == 0
+
+
+def test_back_to_back_pulses_are_no_edge_to_the_emulated_drive(drive, channel):
+    """The emulator's control cycle, which the tests above rely on: frames within one cycle leave only the last seen;
+    frames a cycle apart are each seen."""
+    with harness(channel) as h:
+        drive_until(h, 0.06, handshake_done(drive, h, h.comp.map.counts(0.06)))
+        c = h.comp
+        goal = c.map.counts(0.05)
+        with c._io_lock:
+            c._send_setpoint(c._target, new=True)   # bit 4 high left on, as the old pulse left it
+            time.sleep(0.004)
+            taken = 0
+            for i in range(20):   # low then high back to back (the old pulse), a new target each time: bit 4 was high
+                c._send_setpoint(goal + i, new=False)
+                c._send_setpoint(goal + i, new=True)
+                taken += wait_for(lambda: drive.latched == goal + i, 0.01)
+            assert taken <= 10   # (taken only where the two frames straddle the end of a cycle)
+            goal += 100
+            c._send_setpoint(goal, new=False)
+            time.sleep(0.004)
+            c._send_setpoint(goal, new=True)   # a cycle apart: taken
+            assert wait_for(lambda: drive.latched == goal)
+            c._raised, c._waiting_since = goal, time.monotonic()

@@ -495,8 +495,10 @@ class RecordingDrive(Cia402Drive):
 
 
 class CanopenRig(EmulatedRig):
-    """canopen-gripper against its CiA 402 drive on virtual CAN: the set-points the drive latched. The driver sends
-    a set-point only when its counts change (and the safe state's always)."""
+    """canopen-gripper against its CiA 402 drive on virtual CAN: the set-points the drive latched. The driver raises a
+    set-point (controlword bit 4 high) only when its counts change and the handshake with the one before is over (every
+    other step at most), and the safe state's always: the drive gets those steps' set-points, a subsequence of the
+    model's, each checked against its step's and the speed limit over the steps since the one before."""
 
     driver, period = "canopen", 0.01
     reads_first = True
@@ -507,6 +509,29 @@ class CanopenRig(EmulatedRig):
         self.drive = self.hw = RecordingDrive(5, channel, position=0)
         self.h = Harness(CanopenGripper, dict(case.params, interface="virtual", channel=channel, node_id=5))
 
+    def __enter__(self) -> "CanopenRig":
+        super().__enter__()
+        comp = self.h.comp
+        self.raised: list[bool] = []   # per step() and safe_state() call: whether it raised a set-point
+        self._now = False
+        send = comp._send_setpoint
+
+        def send_setpoint(counts: int, new: bool) -> None:
+            send(counts, new)
+            self._now = self._now or new
+
+        comp._send_setpoint = send_setpoint
+        for name in ("step", "safe_state"):
+            def call(*a: Any, _real: Any = getattr(comp, name), **k: Any) -> Any:
+                self._now = False
+                try:
+                    return _real(*a, **k)
+                finally:
+                    self.raised.append(self._now)
+
+            setattr(comp, name, call)
+        return self
+
     def recorded(self) -> int:
         return len(self.drive.latches)
 
@@ -514,14 +539,17 @@ class CanopenRig(EmulatedRig):
         return [self.h.comp.map.opening(c) for c in self.drive.latches[self.n0:]]
 
     def on_wire(self, expected: list[tuple[int, float, float, str]]) -> list[tuple[int, float, float, str]]:
-        counts = self.h.comp.map.counts
-        out, last = [], counts(expected[0][1])  # configure left the drive's target at its position
-        for e in expected:
-            if e[3] == "activate":
-                out.append(e)
-            elif e[3] == "safe_state" or counts(e[1]) != last:
-                out.append(e)
-                last = counts(e[1])
+        out, calls, waited = [], iter(self.raised), 0.0
+        for i, sp, dt, what in expected:
+            if what == "activate":
+                out.append((i, sp, dt, what))
+                waited = 0.0
+                continue
+            if what == "step":
+                waited += dt
+            if next(calls):
+                out.append((i, sp, waited if what == "step" else dt, what))
+                waited = 0.0
         n = sum(w[3] != "activate" for w in out)
         wait_for(lambda: len(self.drive.latches) - self.n0 >= n, timeout=WAIT)   # (a bound: the drive's thread)
         return out

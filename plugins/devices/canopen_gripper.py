@@ -21,9 +21,12 @@ per revolution from ``counts_per_revolution``, else from the position encoder re
 revolutions). Other units (a linear m/s, whose relation to the fingers the driver cannot know) are refused, naming
 0x60A9's value and what to set.
 
-Each step sends a new set-point when the target changed (RPDO1 with controlword bit 4 low, then high: the "new
-set-point" edge, bit 5 "change set immediately"); a set-point counts as sent only once its frames went out (a failed
-transmit is retried by the next write), and the safe state always sends its hold set-point; a lock makes a step's
+A new set-point goes out by CiA 402's handshake (RPDO1 with controlword bit 4 "new set-point" high, bit 5 "change set
+immediately"; once the statusword's bit 12 acknowledges it, bit 4 low; once bit 12 is low again, the next: a new
+set-point every other step at most, as a drive reads its controlword once per control cycle and bit 4 low then high
+back to back is no edge to it); no acknowledge within ``read_timeout`` is a HardwareError. A set-point counts as sent
+only once its frame went out (a failed transmit is retried by the next write), and the safe state always sends its hold
+set-point at once (bit 4 low, SETPOINT_PULSE_GAP, high); a lock makes a step's
 command and send one unit, so a safe_state() from another thread waits for it and its hold goes out last. No
 set-point goes out while the last statusword is not OPERATION ENABLED: RPDO1's controlword would enable a drive in
 quick stop or switched on again (the drive's own stop holds it). Max current 0x6073 is rounded down, so the current
@@ -73,6 +76,11 @@ NMT_OPERATIONAL = 5  # the NMT state in a heartbeat (CiA 301)
 CW_ENABLE = 0x000F
 CW_NEW_SETPOINT = 0x0010
 CW_CHANGE_IMMEDIATELY = 0x0020
+SW_SETPOINT_ACK = 0x1000   # statusword bit 12 in profile position mode: the drive took the new set-point
+#: the pause between bit 4 low and bit 4 high of a set-point sent at once (the safe state's, which cannot wait over the
+#: steps for the drive's acknowledge): longer than a CiA 402 drive's control cycle (62.5 us to 1 ms typically, 2 ms on
+#: slow ones), which reads the controlword once a cycle: two frames within one cycle leave only the second seen
+SETPOINT_PULSE_GAP = 0.004
 
 
 def _od_var(index: int, name: str, dtype: int, access: str, sub: int = 0) -> Any:
@@ -126,6 +134,9 @@ class CanopenGripper(FollowerBase):
 
     name = "canopen-gripper"
     default_rate = 200.0
+    #: a set-point goes out over several writes, each after a read (CiA 402's handshake, see _handshake): a caller
+    #: that writes once and then only reads (benchmarks/follower_latency.py's round trip) writes again after each read
+    setpoint_handshake = True
     requires_wall_clock = True  # the drive moves in real time; speed limits use the graph's time steps
 
     class Params(FollowerParams):
@@ -217,7 +228,11 @@ class CanopenGripper(FollowerBase):
 
         p = self.params
         self._io_lock = threading.RLock()  # one set-point handshake at a time (step vs. safe_state)
-        self._target: int | None = None  # counts of the last set-point whose frames all went out
+        self._target: int | None = None  # counts of the last set-point the drive took (acknowledged, bit 4 low again)
+        self._raised: int | None = None  # counts of the set-point sent with bit 4 high, not yet acknowledged
+        self._waiting_since = 0.0   # (monotonic) since when the handshake waits for the drive's acknowledge
+        self._resend = False   # the next write sends its set-point even when the drive has it (the safe state's)
+        self._sent_at = -math.inf   # (monotonic) when the last RPDO1 went out
         if p.interface == "socketcan":
             info = can_interface_info(p.channel)
             if info is not None and info["up"] is False:   # it would open, and every frame fail with "Network is down"
@@ -268,8 +283,8 @@ class CanopenGripper(FollowerBase):
         self._sdo("writing max current 0x6073", lambda: setattr(node.sdo[0x6073], "raw", self.max_current))
         actual = self._sdo("reading position 0x6064", lambda: node.sdo[0x6064].raw)
         self._cw = CW_ENABLE | CW_CHANGE_IMMEDIATELY
-        self._send_setpoint(actual, toggle=False)
-        self._target = actual
+        self._send_setpoint(actual, new=False)
+        self._target, self._waiting_since = actual, time.monotonic()
         node.nmt.state = "OPERATIONAL"
         node.setup_402_state_machine(read_pdos=False)
         # SYNC drives the TPDOs that carry the statusword while the state machine is walked: sent (and counted, so the
@@ -496,17 +511,60 @@ class CanopenGripper(FollowerBase):
         self._arrived_at[id(pdo)] = time.monotonic()
         self._arrivals[id(pdo)] += 1
 
-    def _send_setpoint(self, counts: int, toggle: bool = True) -> None:
+    def _send_setpoint(self, counts: int, new: bool) -> None:
+        """RPDO1: target ``counts`` with controlword bit 4 ("new set-point") high (``new``) or low."""
         r = self.rp1
         r[0x6060].raw = PROFILE_POSITION
         r[0x607A].raw = int(counts)
-        if toggle:  # new set-point: bit 4 low then high
-            r[0x6040].raw = self._cw & ~CW_NEW_SETPOINT
-            r.transmit()
-            r[0x6040].raw = self._cw | CW_NEW_SETPOINT
-        else:
-            r[0x6040].raw = self._cw & ~CW_NEW_SETPOINT
+        r[0x6040].raw = (self._cw | CW_NEW_SETPOINT) if new else (self._cw & ~CW_NEW_SETPOINT)
         r.transmit()
+        self._sent_at = time.monotonic()
+
+    def _handshake(self, sw: int, counts: int) -> None:
+        """CiA 402's set-point handshake in profile position mode, over the steps: a new set-point goes out with bit 4
+        high; once the statusword's set-point acknowledge (bit 12) shows the drive took it, bit 4 goes low (same
+        target); once the acknowledge is low again, the next set-point may go: one every other step at most. (Bit 4
+        low then high back to back, as before, reached the drive within one of its control cycles: no edge to it, and
+        the set-point was never taken.) No acknowledge within ``read_timeout`` is a HardwareError."""
+        now = time.monotonic()
+        if self._raised is not None:   # bit 4 high: waiting for the drive to take the set-point
+            if sw & SW_SETPOINT_ACK:
+                self._send_setpoint(self._raised, new=False)
+                self._target, self._raised, self._waiting_since = self._raised, None, now
+            else:
+                self._check_ack_wait(now, sw, f"take set-point {self._raised} (statusword bit 12 set-point "
+                                              f"acknowledge)")
+            return
+        if sw & SW_SETPOINT_ACK:   # bit 4 low has not been answered yet: the acknowledge still high
+            self._check_ack_wait(now, sw, "drop its set-point acknowledge (statusword bit 12) after bit 4 went low")
+            return
+        if self._resend or counts != self._target:
+            self._send_setpoint(counts, new=True)
+            self._raised, self._waiting_since, self._resend = counts, now, False
+
+    def handshake_idle(self) -> bool:
+        """Whether the set-point handshake is over: bit 4 low again and the last statusword's acknowledge low (the
+        drive has read that frame): the next write with another target sends it at once."""
+        return self._raised is None and not self.tp1[0x6041].raw & SW_SETPOINT_ACK
+
+    def _check_ack_wait(self, now: float, sw: int, what: str) -> None:
+        waited = now - self._waiting_since
+        if waited > self.params.read_timeout:
+            raise HardwareError(f"{self._where()} did not {what} within read_timeout ({waited:.3f} s; statusword "
+                                f"0x{sw:04X}, {self._emcy_text()})")
+
+    def _send_at_once(self, counts: int) -> None:
+        """The safe state's set-point, which cannot wait for the handshake over the steps: where bit 4 is high (or
+        its acknowledge still is), bit 4 low with the target, a pause longer than the drive's control cycle
+        (SETPOINT_PULSE_GAP), then high; the next steps finish the handshake. Each frame goes out a pause after the
+        one before, so that the drive reads every one (a step's set-point raised just before is taken, not lost)."""
+        time.sleep(max(0.0, self._sent_at + SETPOINT_PULSE_GAP - time.monotonic()))
+        if self._raised is not None or self.tp1[0x6041].raw & SW_SETPOINT_ACK:
+            self._raised = None
+            self._send_setpoint(counts, new=False)
+            time.sleep(SETPOINT_PULSE_GAP)
+        self._send_setpoint(counts, new=True)
+        self._raised, self._waiting_since, self._resend = counts, time.monotonic(), False
 
     def _emcy_text(self) -> str:
         if not self.emcys:
@@ -631,6 +689,10 @@ class CanopenGripper(FollowerBase):
                     from None
             raise
 
+    def activate(self) -> None:
+        super().activate()
+        self._waiting_since = time.monotonic()   # a wait for the drive's acknowledge counts from now
+
     def _command_guard(self) -> Any:
         # the step's set-point and its send are one unit against a safe_state() from elsewhere (the state read, which
         # waits up to pdo_timeout for the TPDOs, stays outside)
@@ -643,13 +705,13 @@ class CanopenGripper(FollowerBase):
                 raise HardwareError(f"{self._where()} is not in OPERATION ENABLED (statusword 0x{sw:04X}): no "
                                     f"set-point sent, it would enable the drive again (quick stop, disabled or fault)")
             counts = self.map.counts(opening)
-            if counts != self._target:
-                self._target = None  # unknown until both frames went out: a failed transmit is retried next time
-                self._send_setpoint(counts)
-                self._target = counts
+            if self._safe and (self._resend or counts not in (self._raised, self._target)):
+                self._send_at_once(counts)   # the safe state's hold (or open) goes out now
+            else:
+                self._handshake(sw, counts)
 
     def _forget_sent(self) -> None:
-        self._target = None  # always (re)send the hold set-point, whatever was sent before
+        self._resend = True  # always (re)send the hold set-point, whatever was sent before
 
     def _hw_close(self) -> None:
         net = getattr(self, "network", None)

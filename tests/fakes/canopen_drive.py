@@ -24,12 +24,16 @@ puts the axis somewhere (by hand). ``stamp`` (a clock, or None for the interface
 sends, as the receiving interface would: python-can interfaces differ (socketcan: epoch kernel stamps; others
 monotonic, device counters or none at all), so the driver must not trust the stamp's clock. ``instant`` (for
 benchmarks/follower_latency.py, which times the transport, not the motion): the axis is at the latched set-point at
-the next SYNC, whatever the profile velocity; an object still stops it.
+the next SYNC, whatever the profile velocity; an object still stops it. ``cycle`` is the drive's control cycle (s; 1 ms
+by default, 0: every frame taken at once): as a real drive, it reads the controlword once a cycle, on a fixed grid of
+the monotonic clock, so of the controlwords that arrive within one cycle (by RPDO or SDO) only the last is seen, at
+that cycle's end: a "new set-point" pulse of bit 4 low then high sent back to back is no edge to it.
 """
 
 from __future__ import annotations
 
 import collections
+import math
 import struct
 import threading
 import time
@@ -133,7 +137,8 @@ class Cia402Drive:
                  mode_delay: float | None = 0.0, latency: float = 0.0, instant: bool = False,
                  velocity_unit: int = VELOCITY_UNIT, velocity_unit_object: bool = True,
                  counts_per_revolution: int = 1000, resolution_object: bool = True, emcy: bool = True,
-                 fault_at: tuple[str, int] | None = None, aborts: dict[int, int] | None = None):
+                 fault_at: tuple[str, int] | None = None, aborts: dict[int, int] | None = None,
+                 cycle: float = 0.001):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id, velocity_unit if velocity_unit_object else None,
@@ -158,6 +163,8 @@ class Cia402Drive:
         self.latched = int(round(self.pos))  # the position demand: where the axis is, until a new set-point
         self.rpdo_frames = 0
         self._cw = 0
+        self.cycle = cycle
+        self._pending: tuple[int, int] | None = None   # (cycle number, controlword) not yet read by the firmware
         self._batch = False
         self._pdo_dirty = True
         self._hooked: set[int] = set()
@@ -290,7 +297,7 @@ class Cia402Drive:
             (mode,) = struct.unpack("<b", data)
             self._switch_mode(mode)
         elif index == 0x6040 and not self._batch:
-            self._controlword(struct.unpack("<H", data)[0])
+            self._receive_controlword(struct.unpack("<H", data)[0])
 
     def _switch_mode(self, mode: int) -> None:
         """Modes of operation 0x6060 written: the display 0x6061 follows after ``mode_delay`` s (None: never)."""
@@ -303,7 +310,35 @@ class Cia402Drive:
         timer.daemon = True
         timer.start()
 
+    def _receive_controlword(self, cw: int) -> None:
+        """A controlword came (RPDO or SDO): read by the firmware at the end of its control cycle (``cycle``), where a
+        later one of the same cycle replaces it; one of an earlier cycle still waiting is read first (its cycle has
+        ended: the timer that reads it may come late)."""
+        with self._lock:
+            if self.cycle <= 0:
+                self._controlword(cw)
+                return
+            now = time.monotonic()
+            slot = math.floor(now / self.cycle)
+            self._read_pending(slot)
+            self._pending = (slot, cw)
+        timer = threading.Timer(max(0.0, (slot + 1) * self.cycle - now), self._cycle_end, (slot,))
+        timer.daemon = True
+        timer.start()
+
+    def _read_pending(self, slot: int | None) -> None:
+        """The firmware reads the controlword waiting from a cycle before ``slot`` (None: whatever its cycle)."""
+        if self._pending is not None and (slot is None or self._pending[0] < slot):
+            cw, self._pending = self._pending[1], None
+            self._controlword(cw)
+
+    def _cycle_end(self, slot: int) -> None:
+        with self._lock:
+            if self._pending is not None and self._pending[0] == slot:
+                self._read_pending(None)
+
     def _controlword(self, cw: int) -> None:
+        """The firmware reads controlword ``cw`` (once per control cycle, see _receive_controlword)."""
         with self._lock:
             prev, self._cw = self._cw, cw
             s = self.state
@@ -362,7 +397,7 @@ class Cia402Drive:
             finally:
                 self._batch = False
             if cw is not None:
-                self._controlword(cw)
+                self._receive_controlword(cw)
 
     def _reload_pdos(self) -> None:
         for m in list(self.node.rpdo.map.values()):
@@ -413,6 +448,8 @@ class Cia402Drive:
             return
         self.syncs += 1
         with self._lock:
+            if self.cycle > 0:
+                self._read_pending(math.floor(time.monotonic() / self.cycle))
             if self._pdo_dirty:
                 self._reload_pdos()
             self._physics()
