@@ -28,6 +28,25 @@ __all__ = [
     "Kind", "Port", "Sample", "Inputs", "Params", "Component", "Device", "Context", "NAME_RE", "value_checker",
 ]
 
+#: the slowest and fastest node rates (Hz) a graph, a plugin's default_rate and Harness accept: the simulated clock
+#: counts whole nanoseconds (a faster tick repeats graph times), and a slower one overflowed the clocks' step times
+#: (1e-300 Hz: an infinite period; 1e-12 Hz on the wall clock: past the platform's time_t)
+MIN_RATE = 1e-3
+MAX_RATE = 1e6
+
+
+def rate_problem(hz: Any) -> str | None:
+    """Why ``hz`` is no node rate (what was expected), or None: a number of Hz from MIN_RATE to MAX_RATE."""
+    if isinstance(hz, bool) or not isinstance(hz, (int, float)) or not (hz > 0 and math.isfinite(hz)):
+        return "must be a positive number of Hz"
+    if hz > MAX_RATE:
+        return (f"at most {MAX_RATE:.0f} Hz (1 MHz: the simulated clock counts whole nanoseconds, and a faster tick "
+                f"repeats graph times)")
+    if hz < MIN_RATE:
+        return f"at least {MIN_RATE:g} Hz (one step per {1 / MIN_RATE:.0f} s)"
+    return None
+
+
 NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import difflib
 import importlib
-import math
 import os
 import re
 import sys
@@ -36,7 +35,7 @@ import pluggy
 from pydantic import BaseModel
 
 from . import hookspecs
-from .component import NAME_RE, Component, Device, Kind, Params, Port
+from .component import MAX_RATE, MIN_RATE, NAME_RE, Component, Device, Kind, Params, Port, rate_problem
 from .errors import DuplicateComponentError, PluginError, UnknownComponentError, exception_line
 
 GROUP = "teletouch"
@@ -518,9 +517,9 @@ def check_component(cls: Any) -> None:
         raise PluginError(f"{q}.Params must subclass teletouch.Params (it refuses unknown keys, so a typo in a "
                           f"graph is an error instead of a silently ignored parameter)")
     rate = cls.default_rate
-    if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float))
-                             or not (math.isfinite(rate) and 0 < rate <= 1e6)):
-        raise PluginError(f"{q}.default_rate must be None or a number of Hz in (0, 1e6], got {rate!r}")
+    if rate is not None and rate_problem(rate):
+        raise PluginError(f"{q}.default_rate must be None or a number of Hz from {MIN_RATE:g} to {MAX_RATE:g}, got "
+                          f"{rate!r}")
     for side in ("inputs", "outputs"):
         ports = getattr(cls, side)
         if not isinstance(ports, dict):

@@ -16,9 +16,9 @@ import math
 import weakref
 from typing import Any, Callable, Iterable
 
-from .component import Component, Context, Device, Inputs, Sample, _Slot, step_samples, value_checker
+from .component import Component, Context, Device, Inputs, Sample, _Slot, rate_problem, step_samples, value_checker
 from .errors import PluginError
-from .graph import MAX_RATE, GraphSpec, load_graph_text
+from .graph import GraphSpec, load_graph_text
 from .registry import Registry, check_component
 from .runtime import RunResult, Runtime, graph_time
 from .units import parse_quantity
@@ -101,15 +101,13 @@ def safe_states(rt: Runtime) -> dict[str, list[float]]:
 
 def _node_rate(cls: type[Component], rate: Any) -> float:
     """``Harness(..., rate=)`` as a graph takes a node's ``rate:``: Hz, a number or a quantity (``"1kHz"``), positive,
-    finite and at most MAX_RATE; otherwise ValueError naming the class and what was expected (the graph refuses
+    finite and from MIN_RATE to MAX_RATE; otherwise ValueError naming the class and what was expected (the graph refuses
     such a rate: run() looped for ever above 1 GHz, and a negative one froze a speed limit counted from it)."""
     try:
         hz = parse_quantity(rate, "Hz")
-        if not (hz > 0 and math.isfinite(hz)):
-            raise ValueError(f"must be a positive number of Hz, got {rate!r}")
-        if hz > MAX_RATE:
-            raise ValueError(f"at most {MAX_RATE:.0f} Hz (as in a graph: the simulated clock counts whole "
-                             f"nanoseconds), got {rate!r}")
+        problem = rate_problem(hz)
+        if problem:
+            raise ValueError(f"{problem} (as in a graph), got {rate!r}")
     except (TypeError, ValueError) as exc:
         raise ValueError(f"Harness({cls.__qualname__}): rate: {exc}") from None
     return hz

@@ -138,6 +138,33 @@ def test_rate_above_one_megahertz_is_refused(reg):
     assert load_graph_text(GOOD.replace("rate: 1kHz", "rate: 1000kHz"), "g.yaml", registry=reg).node("dev").rate == 1e6
 
 
+def test_rate_below_a_millihertz_is_refused(reg):
+    # `validate` said OK for rate: 1e-300, then `run` died with OverflowError (an infinite period on the simulated
+    # clock; 1e-12 Hz on the wall clock: past the platform's time_t)
+    for bad, shown in (("1e-300", "'1e-300'"), ("1e-12", "'1e-12'"), ("0.0005", "0.0005")):
+        errs = errors_of(GOOD.replace("rate: 1kHz", f"rate: {bad}"), reg)
+        assert any(e.startswith("g.yaml:16: node 'dev': rate: at least 0.001 Hz (one step per 1000 s)")
+                   and e.endswith(f"got {shown}") for e in errs), errs
+    assert load_graph_text(GOOD.replace("rate: 1kHz", "rate: 0.001"), "g.yaml", registry=reg).node("dev").rate == 1e-3
+
+
+def test_harness_and_default_rate_take_the_graphs_rate_limits():
+    from teletouch.errors import PluginError
+    from teletouch.mock import MockGain
+    from teletouch.registry import check_component
+    from teletouch.testing import Harness
+
+    with pytest.raises(ValueError, match=r"Harness\(MockGain\): rate: at least 0.001 Hz .*got 1e-09"):
+        Harness(MockGain, rate=1e-9)
+
+    class Slow(MockGain):
+        name = "slow-gain"
+        default_rate = 1e-6
+
+    with pytest.raises(PluginError, match=r"Slow.default_rate must be None or a number of Hz from 0.001 to 1e\+06"):
+        check_component(Slow)
+
+
 def test_duplicate_yaml_key_and_unknown_keys(reg):
     errs = errors_of(GOOD.replace("    rate: 100\n", "    rate: 100\n    rate: 200\n", 1), reg)
     assert any("duplicate key 'rate'" in e for e in errs), errs
