@@ -530,7 +530,7 @@ def test_safe_state_during_a_hanging_step_is_never_undone(sdk_dir, standin):
         guard = threading.Thread(target=h.comp.safe_state, daemon=True)
         guard.start()
         try:
-            assert wait_for(lambda: h.comp.status()["gripper_force_n"] == 0.0)  # safe_state() has begun
+            assert wait_for(lambda: not h.comp.active)  # safe_state() has begun (it waits for the step's lock)
             standin.mark()
         finally:
             standin.release()

@@ -155,3 +155,46 @@ def test_forces_that_do_not_come_on_at_activate_are_said(sdk_dir, standin):
     assert any("forces did not come on" in m and "the velocity threshold" in m for m in logs), logs
     h.comp.deactivate()
     h.comp.close()
+
+
+# ------------------------------------------------------------------------------ a safe state that fails
+def test_a_safe_state_whose_forces_stay_on_raises_and_status_keeps_the_force(sdk_dir, standin):
+    """The zero-force write and dhdEnableForce(0) both failed (the device answers, not lost): safe_state() only
+    counted it in safe_errors, said nothing, and status() reported 0 N while 3 N stayed on the hand (without a
+    firmware watchdog, for the rest of the run)."""
+    h = harness(sdk_dir, brakes_on_stop=False, firmware_watchdog=0)
+    logs: list[str] = []
+    h.ctx._log = logs.append
+    h.comp.configure()
+    h.comp.activate()
+    h.step(0.0, gripper_force=3.0)
+    standin.set_write_fails(1)
+    standin.set_force_off_fails(1)
+    try:
+        with pytest.raises(dhd.DhdError, match=r"safe_state: the zero-force write did not go through and "
+                                               r"dhdEnableForce\(0\) failed .*the forces may still be on; no firmware "
+                                               r"watchdog is set"):
+            h.comp.safe_state()
+        assert standin.forces()[0][3] == pytest.approx(3.0)   # still on
+        st = h.comp.status()
+        assert st["gripper_force_n"] == pytest.approx(3.0) and st["safe_errors"] >= 1   # before: 0 N
+        assert any("forces may still be on" in m for m in logs), logs
+    finally:
+        standin.set_write_fails(0)
+        standin.set_force_off_fails(0)
+    h.comp.safe_state()   # the device takes it again: safe, nothing raised
+    assert standin.forces()[0] == [0.0] * 4 and h.comp.status()["gripper_force_n"] == 0.0
+    h.comp.deactivate()
+    h.comp.close()
+
+
+def test_a_safe_state_of_a_device_that_is_gone_does_not_raise(sdk_dir, standin):
+    h = harness(sdk_dir)
+    h.comp.configure()
+    h.comp.activate()
+    h.step(0.0, gripper_force=2.0)
+    standin.unplug()
+    h.comp.safe_state()   # nothing can be set on it; its firmware takes the forces off a USB disconnection
+    assert h.comp.status()["safe_errors"] >= 1
+    standin.replug()
+    h.comp.close()

@@ -426,26 +426,43 @@ class Omega7(Device):
         self.safe_state()
 
     def safe_state(self) -> None:
-        """Zero force, then the brakes (if configured). Each call is tried on its own; never raises."""
+        """Zero force, then the brakes (if configured), each tried on its own. A device that is gone
+        (DeviceLostError) is only counted in safe_errors: nothing can be set on it, and its firmware takes the forces
+        off. One that answers but whose forces could be neither zeroed nor switched off raises a DhdError that says
+        so, after the brakes were tried (the forces may still be on: the runtime reports it, the run ends as a fault;
+        this was counted only, and status() said 0 N)."""
+        from .dhd import DeviceLostError, DhdError
+
         self.active = False
-        self.g_sent, self.f_sent = 0.0, np.zeros(3)
         d = getattr(self, "dhd", None)
         if d is None:
+            self.g_sent, self.f_sent = 0.0, np.zeros(3)
             return
+        failed: Exception | None = None
         with self._lock:
-            for call in (self._zero_forces,
-                         (lambda: d.set_brakes(True)) if self.params.brakes_on_stop else None):
-                if call is None:
-                    continue
+            try:
+                self._zero_forces()
+                self.g_sent, self.f_sent = 0.0, np.zeros(3)
+            except Exception as exc:
+                self.safe_errors += 1
+                if not isinstance(exc, DeviceLostError):
+                    failed = exc
+            if self.params.brakes_on_stop:
                 try:
-                    call()
+                    d.set_brakes(True)
                 except Exception:
                     self.safe_errors += 1
+        if failed is not None:
+            msg = (f"safe_state: the zero-force write did not go through and dhdEnableForce(0) failed ({failed}): the "
+                   f"forces may still be on; {self._forces_left_text()}")
+            self.ctx.log(msg)
+            raise DhdError(msg, getattr(failed, "code", None)) from failed
 
     def _zero_forces(self) -> None:
         """Zero force, written until the SDK takes it: a write the time guard skips (DHD_TIMEGUARD: too soon after
-        the step's write) is tried again; if it never goes through (or fails: -1), forces are disabled altogether."""
-        from .dhd import DHD_TIMEGUARD
+        the step's write) is tried again; if it never goes through, or fails (-1), forces are disabled altogether
+        (raises when that fails too, or when the device is gone)."""
+        from .dhd import DHD_TIMEGUARD, DeviceLostError
 
         d = self.dhd
         try:
@@ -453,9 +470,10 @@ class Omega7(Device):
                 if d.set_forces(0.0, 0.0, 0.0, 0.0) != DHD_TIMEGUARD:
                     return
                 time.sleep(2e-4)
-        except Exception:
-            d.enable_force(False)   # the zero-force write failed: the last force would stay on the hand
+        except DeviceLostError:
             raise
+        except Exception:
+            pass   # the zero-force write failed: the last force would stay on the hand
         self.safe_errors += 1
         d.enable_force(False)
 
@@ -480,16 +498,18 @@ class Omega7(Device):
             self.safe_errors += 1
             if isinstance(exc, DeviceLostError):
                 return
-            if self._wd_set:
-                kept = (f"the firmware watchdog ({self._wd_s * 1e3:g} ms) is left on, so the device switches them "
-                        f"off by itself once no force command comes")
-            else:
-                kept = ("no firmware watchdog is set (firmware_watchdog: 0): switch them off at the device (its "
-                        "force button) or power it off")
-            msg = f"{when}: dhdEnableForce(0) failed ({exc}): the forces may still be on; {kept}"
+            msg = f"{when}: dhdEnableForce(0) failed ({exc}): the forces may still be on; {self._forces_left_text()}"
             self.ctx.log(msg)
             raise DhdError(msg, getattr(exc, "code", None)) from exc
         self._watchdog_off(d)
+
+    def _forces_left_text(self) -> str:
+        """What takes forces that may still be on off the operator's hand."""
+        if getattr(self, "_wd_set", False):
+            return (f"the firmware watchdog ({self._wd_s * 1e3:g} ms) is left on, so the device switches them off by "
+                    f"itself once no force command comes")
+        return ("no firmware watchdog is set (firmware_watchdog: 0): switch them off at the device (its force button) "
+                "or power it off")
 
     def _watchdog_off(self, d: Any) -> None:
         """The firmware watchdog off (only once the forces are off: see :meth:`_forces_off`)."""
@@ -521,7 +541,7 @@ class Omega7(Device):
                 "saturated": self.saturated, "clamped": self.guard.clamped, "stale_commands": self.guard.stale,
                 "faded_in": self.guard.faded_in, "left_handed": self.sign < 0, "lost": self.lost or "",
                 "error": self.error or "", "firmware_watchdog_s": self._wd_s if self._wd_set else 0.0,
-                "watchdog_trips": self.watchdog_trips, "faults": self.faults}
+                "watchdog_trips": self.watchdog_trips, "faults": self.faults, "safe_errors": self.safe_errors}
 
 
 @hookimpl
