@@ -51,8 +51,8 @@ from teletouch.units import (
 )
 
 from .poly_force import (
-    DEFAULT_MIN_R2, MAX_DEGREE, MAX_POSITION_DEGREE, PHASES, CalibrationError, ForceCalibration, read_pairs_csv,
-    write_pairs_csv,
+    DEFAULT_MIN_R2, MAX_DEGREE, MAX_POSITION_DEGREE, PHASES, CalibrationError, ForceCalibration, PairsFileError,
+    read_pairs_csv, write_pairs_csv,
 )
 
 __all__ = ["PressRoutine", "SimPressRig", "fit_samples", "run_press_calibration"]
@@ -1011,7 +1011,10 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         if problem:
             return usage(f"{opt}: cannot write {str(path)!r}: {problem}")
     if args.csv:
-        data = read_pairs_csv(args.csv)
+        try:
+            data = read_pairs_csv(args.csv)
+        except PairsFileError as exc:   # missing, a folder, unreadable: the path given is wrong (as calibrate depth)
+            return usage(f"--csv: {exc}")
         partial = data.get("partial")
         if partial and not args.allow_partial:
             raise CalibrationError(f"{args.csv}: partial samples ({partial}): {_partial_harm(partial)}; rerun the "
@@ -1157,8 +1160,8 @@ def teletouch_add_commands(calibrate: Any) -> None:
                                          "probe into the gel in steps) or fit an existing CSV.")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--graph", help="graph with a press-routine node (e.g. examples/calibrate-force-sim.yaml)")
-    src.add_argument("--csv", help="CSV with a header: depth_m (or depth_mm), force_n, optional phase, cycle, "
-                                   "x_m, y_m (contact centroid)")
+    src.add_argument("--csv", help="CSV with a header: one depth column (depth_m or depth_mm), one force column "
+                                   "(force_n), optional phase, cycle, x_m, y_m (contact centroid); see docs/force.md")
     p.add_argument("-o", "--output", default="force-calibration.force.json", help="calibration file to write")
     p.add_argument("--plot", default=None, help="PNG to write (default: beside the output)")
     p.add_argument("--samples", default=None, help="CSV of the recorded samples (default: beside the output)")

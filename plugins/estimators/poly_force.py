@@ -47,7 +47,7 @@ from teletouch.errors import ComponentFault
 from teletouch.paths import input_file
 from teletouch.reproducible import build_time
 from teletouch.units import (
-    MAX_PLAUSIBLE_DEPTH_LIMIT, Hertz, Meters, Newtons, Seconds, plausible_contact_area, plausible_depth,
+    MAX_PLAUSIBLE_DEPTH_LIMIT, UNDERSCORE, Hertz, Meters, Newtons, Seconds, plausible_contact_area, plausible_depth,
 )
 
 __all__ = ["ForceCalibration", "CalibrationError", "PolyForce", "read_pairs_csv", "write_pairs_csv",
@@ -1002,12 +1002,22 @@ MAX_FORCE_N = 200.0       # N
 MAX_CENTROID_M = 0.1      # 100 mm from the image centre
 PARTIAL_MARK = "# partial:"   # first line of a samples CSV from a press run that did not finish
 CSV_COLUMNS = ["depth_m", "force_n", "phase", "cycle", "displacement_m", "gt_max_depth_m", "gt_force_n", "x_m", "y_m"]
+#: the other columns a pairs CSV may have: read (phase, cycle, the centroid), or written by the press routine for a look
+#: and ignored when read (the displacement, the simulation's ground truth), or a free-text note; any other is refused
+OTHER_COLUMNS = ("phase", "cycle", "x_m", "y_m", "displacement_m", "gt_max_depth_m", "gt_force_n", "note")
+
+
+class PairsFileError(CalibrationError):
+    """A pairs CSV that cannot be opened at all (missing, a folder, no permission): the path given is wrong, a usage
+    error for the command, not a refused file."""
 
 
 def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
-    """Read (depth, force) pairs. Header required: a depth column (depth_m, max_depth_m, depth or depth_mm) and a
-    force column (force_n or force, N); optional phase (loading/unloading), cycle, and x_m, y_m (the contact
-    centroid, m; both or neither).
+    """Read (depth, force) pairs. Header required: exactly one depth column (DEPTH_COLUMNS: depth_m, depth_mm, ...)
+    and exactly one force column (FORCE_COLUMNS, N); optional phase (loading/unloading), cycle, x_m, y_m (the contact
+    centroid, m; both or neither), and columns read back but ignored (displacement_m, gt_max_depth_m, gt_force_n: the
+    press routine's, and note). A column named twice or an unknown one is refused (did you mean ...?), and so is a
+    number with an underscore ('1_2'). A file that cannot be opened raises PairsFileError (a CalibrationError).
     Lines starting with ``#`` are comments (skipped before the CSV is parsed, so a quote in a comment cannot join
     the rows after it); errors name the file's line (a quoted cell may span lines: the row's first line).
     Returns {"depth_m": array, "force_n": array, "phase": list | None, "cycle": list | None, "x_m": array | None,
@@ -1017,7 +1027,8 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     try:
         fh = path.open(newline="", encoding="utf-8-sig")   # -sig: a spreadsheet's byte order mark is no header
     except OSError as exc:
-        raise CalibrationError(f"{path}: cannot open the CSV file: {exc}") from None
+        raise PairsFileError(f"{path}: cannot read the CSV file: {exc.strerror or exc} (expected a CSV file of "
+                             f"depth, force pairs)") from None
     with fh:
         try:
             text = list(fh)   # newline="": lines split on any line end, left as they are (the csv module's way)
@@ -1047,11 +1058,7 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
         raise CalibrationError(f"{path}: empty CSV file (expected a header such as 'depth_m,force_n')")
     hline, header = lines[0]
     names = [h.strip().lower() for h in header]
-    dcol = next((i for i, n in enumerate(names) if n in DEPTH_COLUMNS), None)
-    fcol = next((i for i, n in enumerate(names) if n in FORCE_COLUMNS), None)
-    if dcol is None or fcol is None:
-        raise CalibrationError(f"{path}:{hline}: header {header!r} needs a depth column ("
-                               f"{', '.join(DEPTH_COLUMNS)}) and a force column ({', '.join(FORCE_COLUMNS)})")
+    dcol, fcol = _pairs_header(path, hline, header, names)
     dscale = DEPTH_COLUMNS[names[dcol]]
     pcol = names.index("phase") if "phase" in names else None
     ccol = names.index("cycle") if "cycle" in names else None
@@ -1060,12 +1067,17 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     if (xcol is None) != (ycol is None):
         raise CalibrationError(f"{path}:{hline}: header has {'x_m' if ycol is None else 'y_m'} without "
                                f"{'y_m' if ycol is None else 'x_m'}: the contact centroid needs both columns")
+    unnamed = [i for i, n in enumerate(names) if not n]   # a trailing separator: only empty cells below it
     depth, force, phase, cycle, xs, ys, where = [], [], [], [], [], [], []
     for ln, r in lines[1:]:
         where.append(ln)
         if len(r) > len(header) and any(c.strip() for c in r[len(header):]):
             raise CalibrationError(f"{path}:{ln}: {len(r)} cells but the header (line {hline}) names "
                                    f"{len(header)} columns: a missing header name or a stray separator?")
+        lost = next((i for i in unnamed if i < len(r) and r[i].strip()), None)
+        if lost is not None:
+            raise CalibrationError(f"{path}:{ln}: {r[lost].strip()!r} in column {lost + 1}, which the header (line "
+                                   f"{hline}) leaves without a name: a missing header name or a stray separator?")
 
         def cell(i: int | None, what: str) -> str:
             if i is None:
@@ -1082,6 +1094,9 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
             if col in (xcol, ycol) and not txt:   # an empty centroid (e.g. a no-contact sample)
                 sink.append(None)
                 continue
+            if "_" in txt:   # float() reads '1_2' as 12
+                raise CalibrationError(f"{path}:{ln}: column '{names[col]}': expected a number ({what}), got {txt!r} "
+                                       f"({UNDERSCORE})")
             try:
                 v = float(txt) * scale
             except ValueError:
@@ -1098,6 +1113,8 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
             raise CalibrationError(f"{path}:{ln}: column 'phase': expected loading or unloading, got {p!r}")
         phase.append(p)
         c = cell(ccol, "cycle")
+        if "_" in c:   # int() reads '1_0' as 10
+            raise CalibrationError(f"{path}:{ln}: column 'cycle': expected an integer, got {c!r} ({UNDERSCORE})")
         try:
             cycle.append(int(c) if c else 0)
         except ValueError:
@@ -1108,6 +1125,40 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
             "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None,
             "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None, "line": where,
             "force_column": names[fcol], "partial": partial}
+
+
+def _pairs_header(path: Path, hline: int, header: list[str], names: list[str]) -> tuple[int, int]:
+    """The depth and the force column of a pairs CSV's header (``names``: lower case, stripped). Refused, naming the
+    file and line: a column named twice, a header without exactly one depth and one force column (of two, which one
+    was meant cannot be told: the first was taken), and an unknown column (a typo of ``phase`` lost the phases)."""
+    dup = next((n for i, n in enumerate(names) if n and n in names[:i]), None)
+    if dup is not None:
+        at = [str(i + 1) for i, n in enumerate(names) if n == dup]
+        raise CalibrationError(f"{path}:{hline}: the column {dup} is named twice (columns {' and '.join(at)}): keep "
+                               f"one")
+    found = []
+    for kind, columns in (("depth", DEPTH_COLUMNS), ("force", FORCE_COLUMNS)):
+        cols = [i for i, n in enumerate(names) if n in columns]
+        if len(cols) > 1:
+            both = ", ".join(f"'{names[i]}'" for i in cols[:-1]) + f" and '{names[cols[-1]]}'"
+            raise CalibrationError(f"{path}:{hline}: {len(cols)} {kind} columns, {both}: expected exactly one (which "
+                                   f"one is meant cannot be told); keep one")
+        found.append(cols[0] if cols else None)
+    known = [*DEPTH_COLUMNS, *FORCE_COLUMNS, *OTHER_COLUMNS]
+    unknown = [n for n in names if n and n not in known]
+    if unknown:
+        from teletouch.graph import _suggest   # the graph's "did you mean" for unknown keys
+
+        unknown_said = (f"unknown column{'s' if len(unknown) > 1 else ''} "
+                        + ", ".join(f"'{n}'{_suggest(n, known)}" for n in unknown))
+    if None in found:
+        raise CalibrationError(f"{path}:{hline}: header {header!r} needs a depth column ({', '.join(DEPTH_COLUMNS)}) "
+                               f"and a force column ({', '.join(FORCE_COLUMNS)})"
+                               + (f"; {unknown_said}" if unknown else ""))
+    if unknown:
+        raise CalibrationError(f"{path}:{hline}: {unknown_said}; expected a depth column, a force column and "
+                               f"optionally {', '.join(OTHER_COLUMNS)}")
+    return found[0], found[1]
 
 
 def _implausible(name: str, v: float, is_depth: bool, is_force: bool) -> str | None:
