@@ -991,6 +991,27 @@ def _isolation_warnings(nodes: list[NodeSpec], clock: str, file: str) -> list[st
 
 
 # ------------------------------------------------------------------------------------------------ JSON schema
+#: the keys of a parameter's schema that describe it, not its value (kept outside the anyOf of a quantity)
+_SCHEMA_META = ("title", "description", "default", "unit", "examples", "deprecated")
+
+
+def _quantities_take_text(schema: Any) -> Any:
+    """``schema`` (a parameter model's JSON Schema) with every field that has a unit also taking a string: a graph
+    may write a quantity with its unit ("20mm", "2Hz"), which the parameters convert (teletouch.units); the schema
+    said "type": "number" only, so an editor flagged every unit written in the examples."""
+    if isinstance(schema, list):
+        return [_quantities_take_text(v) for v in schema]
+    if not isinstance(schema, dict):
+        return schema
+    out = {k: _quantities_take_text(v) for k, v in schema.items()}
+    unit = out.get("unit")
+    if isinstance(unit, str) and ("type" in out or "anyOf" in out):
+        value = {k: v for k, v in out.items() if k not in _SCHEMA_META}
+        text = {"type": "string", "description": f"a quantity with its unit, in {unit} or one convertible to it"}
+        out = {**{k: v for k, v in out.items() if k in _SCHEMA_META}, "anyOf": [value, text]}
+    return out
+
+
 def graph_json_schema(registry: Any = None) -> dict[str, Any]:
     """A JSON Schema (draft 2020-12) of the graph format, with each installed plugin's parameters."""
     if registry is None:
@@ -1025,7 +1046,7 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
     }
     defs: dict[str, Any] = {}
     for name, info in sorted(registry.components.items()):
-        ps = info.cls.Params.model_json_schema(ref_template="#/$defs/{model}")
+        ps = _quantities_take_text(info.cls.Params.model_json_schema(ref_template="#/$defs/{model}"))
         for k, v in ps.pop("$defs", {}).items():
             defs[k] = v
         node["allOf"].append({"if": {"properties": {"plugin": {"const": name}}, "required": ["plugin"]},

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -439,6 +440,31 @@ def test_json_schema_accepts_the_documented_unwiring_of_an_input(reg):
     node = graph_json_schema(reg)["properties"]["nodes"]["items"]
     kinds = [alt.get("type") for alt in node["properties"]["inputs"]["additionalProperties"]["anyOf"]]
     assert sorted(kinds) == ["null", "object", "string"]
+
+
+def test_the_exported_schema_accepts_every_example_graph_with_its_units():
+    """`teletouch schema` is for editors: it typed every parameter with a unit as a number, so the examples' own
+    quantities ('20mm', '20ms', '2Hz') were errors there. Checked with a JSON Schema validator (draft 2020-12)."""
+    import jsonschema
+    import yaml
+
+    from teletouch.registry import default_registry
+
+    schema = graph_json_schema(default_registry())
+    validator = jsonschema.Draft202012Validator(schema)
+    examples = sorted((Path(__file__).resolve().parents[1] / "examples").glob("*.yaml"))
+    assert len(examples) >= 6
+    checked = 0
+    for path in examples:
+        errors = [f"{path.name}: {'/'.join(map(str, e.absolute_path))}: {e.message}"
+                  for e in validator.iter_errors(yaml.safe_load(path.read_text()))]
+        assert errors == [], errors
+        checked += 1
+    assert checked == len(examples)
+    quantity = {"nodes": [{"id": "g", "plugin": "sim-gripper", "params": {"max_opening": "80mm", "max_speed": 0.05}}]}
+    assert not list(validator.iter_errors(quantity))
+    wrong = {"nodes": [{"id": "g", "plugin": "sim-gripper", "params": {"max_opening": [1]}}]}
+    assert list(validator.iter_errors(wrong))   # still typed: a list is no quantity
 
 
 # ------------------------------------------------------------------------------------------------ bad input (review)
