@@ -207,6 +207,28 @@ nodes:
     assert ("finite" in str(e.value)) or ("greater than" in str(e.value))
 
 
+@pytest.mark.parametrize("name", ["stale_after", "leader_stale_after"])
+def test_staleness_limits_cannot_keep_a_lost_force_for_long(name):
+    """stale_after: 1e308 kept a dead sensor's last 5 N on the hand for good (4.98 N after 60 s, no fade, no fault),
+    and `stale_after: 100` (meant as ms) was 100 s: at most 1 s now, as the leaders' command_timeout."""
+    from teletouch.errors import GraphValidationError
+
+    text = f"""
+clock: sim
+nodes:
+  - {{id: hand, plugin: mock-sensor, rate: 1kHz, params: {{signal: constant, amplitude: 0.02}}}}
+  - {{id: est, plugin: mock-sensor, rate: 60}}
+  - {{id: ctl, plugin: position-force, rate: 1kHz, params: {{{name}: VALUE}},
+     inputs: {{leader_opening: hand.value, force: est.value}}}}
+"""
+    for bad, shown in (("100", "100"), ("1.5", "1.5"), ("1e308", r"1e\+308")):
+        with pytest.raises(GraphValidationError, match=rf"node 'ctl': param '{name}' = {shown}: Input should be less "
+                                                       rf"than or equal to 1 s"):
+            run_yaml(text.replace("VALUE", bad), make_registry(PLUGIN), duration=0.01)
+    res, _ = run_yaml(text.replace("VALUE", "1.0"), make_registry(PLUGIN), duration=0.01)
+    assert res.status == "ok"
+
+
 @pytest.mark.parametrize("leader", ["sim-omega7", "omega7"])
 def test_leader_command_timeout_cannot_be_switched_off(leader):
     from teletouch.plugins.devices.omega7 import Omega7

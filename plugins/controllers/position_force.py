@@ -305,8 +305,10 @@ class _CommonParams(Params):
                                json_schema_extra={"unit": "N"})
     max_force_rate: float = Field(200.0, gt=0, description="rate limit of the leader force",
                                   json_schema_extra={"unit": "N/s"})
-    leader_stale_after: Seconds = Field(0.05, gt=0, description="a leader opening older than this holds the "
-                                        "follower and fades the force", json_schema_extra={"unit": "s"})
+    leader_stale_after: Seconds = Field(0.05, gt=0, le=1.0, description="a leader opening older than this holds the "
+                                        "follower and fades the force (at most 1 s: the force of a dead leader "
+                                        "stayed on the hand that long; 100 meant as ms was 100 s)",
+                                        json_schema_extra={"unit": "s"})
     fade_time: Seconds = Field(0.2, gt=0, description="time to fade the force to zero when its source is lost",
                                json_schema_extra={"unit": "s"})
     max_clock_skew: Seconds = Field(0.05, ge=0, description="an input stamped further ahead of the graph clock "
@@ -810,8 +812,9 @@ class PositionForce(_Bilateral):
         smoothing_time: Seconds = Field(1.0 / 60.0, ge=0, description="each new estimate is reached by a linear "
                                         "ramp of this length (latency: this to the full value, half on average)",
                                         json_schema_extra={"unit": "s"})
-        stale_after: Seconds = Field(0.1, gt=0, description="a force estimate older than this fades to zero",
-                                     json_schema_extra={"unit": "s"})
+        stale_after: Seconds = Field(0.1, gt=0, le=1.0, description="a force estimate older than this fades to zero "
+                                     "(at most 1 s: a dead sensor's last force stayed on the hand that long; 100 "
+                                     "meant as ms was 100 s)", json_schema_extra={"unit": "s"})
         force_prediction: bool = Field(True, description="in contact, bridge the estimate's latency with a local "
                                        "contact model: add k_f * K * (x_cmd(capture) - x_cmd(now)), K the "
                                        "stiffness learnt from successive estimates (never past zero)")
