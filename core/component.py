@@ -47,6 +47,9 @@ def rate_problem(hz: Any) -> str | None:
     return None
 
 
+#: seconds: stamps this close count as equal in :meth:`Sample.is_fresh` (the simulated clock counts whole ns)
+STAMP_TOLERANCE = 1e-9
+
 NAME_RE = re.compile(r"^[a-z][a-z0-9]*(?:-[a-z0-9]+)*$")
 
 
@@ -259,8 +262,10 @@ class Sample:
     def is_fresh(self, now: float, max_age: float) -> bool:
         """Whether the sample may be used at ``now``: at most ``max_age`` old and at most ``max_age`` ahead of
         ``now`` (a stamp from the future beyond that is a clock fault, not a fresh sample). False for a NaN stamp,
-        so a bad stamp counts as stale rather than as fresh forever."""
-        return -max_age <= now - self.stamp <= max_age
+        so a bad stamp counts as stale rather than as fresh forever. Within a nanosecond (STAMP_TOLERANCE, the
+        simulated clock's tick) of the limit counts as at the limit: graph times are floats, and a sample exactly
+        max_age old was fresh at one time and stale at another (1.59 - 1.49 > 0.1)."""
+        return -max_age - STAMP_TOLERANCE <= now - self.stamp <= max_age + STAMP_TOLERANCE
 
     def __repr__(self) -> str:
         return f"Sample({self.value!r}, stamp={self.stamp:.6f})"

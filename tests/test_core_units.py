@@ -75,3 +75,15 @@ def test_progress_interval_refuses_an_underscore():
     for bad in ("0", "-1", "nan", "inf"):
         with pytest.raises(argparse.ArgumentTypeError, match="positive, finite number of seconds"):
             _positive_seconds(bad)
+
+
+def test_a_sample_exactly_max_age_old_is_fresh_whatever_the_time():
+    """docs/graphs.md: only a stamp more than max_age old is stale. With float graph times a sample exactly max_age
+    old (a 100 Hz source gone silent, max_age 0.1) was fresh at 0.59 s and stale at 1.59 s ("0.100 s old (limit
+    0.1 s)" as a fault)."""
+    from teletouch.component import Sample
+
+    for t0 in (0.49, 1.49, 7.3, 1234.56):
+        assert Sample(0.0, t0).is_fresh(t0 + 0.1, 0.1), t0
+        assert not Sample(0.0, t0).is_fresh(t0 + 0.1 + 1e-6, 0.1), t0
+        assert Sample(0.0, t0 + 0.1).is_fresh(t0, 0.1), t0   # ahead by exactly max_age: still taken
