@@ -102,6 +102,11 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             for n in unknown:
                 print(f"teletouch: no component, plugin or distribution named {n!r}{_suggest(n, known)}"
                       + (f" ({note})" if off else "; `teletouch plugins` lists them all"), file=sys.stderr)
+            failed = [f"plugin '{p.name}' ({p.origin}): {p.error}" for p in reg.errors()]
+            if failed:   # the one that provides it may be among them (the doc's `teletouch plugins NAME` said nothing)
+                print(f"teletouch: {len(failed)} plugin(s) failed to load, which may provide it:", file=sys.stderr)
+                for line in failed:
+                    print(f"  {line}", file=sys.stderr)
             return EXIT_INVALID
         # a component's own name first: "position-force" is that component, not its plugin's three
         rows = [r for r in rows if r.get("name") in names
@@ -110,6 +115,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
         print(json.dumps(rows, indent=2, default=str))
         if off:   # stdout stays JSON
             print(f"teletouch: {note}", file=sys.stderr)
+        _say_problems(problems, status)
         return status
     for r in rows:
         if r.get("blocked"):
@@ -142,10 +148,17 @@ def cmd_plugins(args: argparse.Namespace) -> int:
         print("plugins without components: " + ", ".join(others))
     if off:
         print(note)
-    if problems:   # each is in the list above or was warned about on stderr (a filtered list may not show it)
-        where = "; `teletouch plugins` lists them" if names else ""
-        print(f"teletouch: {len(problems)} plugin problem(s){where}; exit status {status}", file=sys.stderr)
+    _say_problems(problems, status)
     return status
+
+
+def _say_problems(problems: list[str], status: int) -> None:
+    """The plugin problems behind a nonzero exit status, each on its own line (on stderr): a filtered list, the JSON
+    rows and a command a plugin could not add do not show them all (it said "`teletouch plugins` lists them")."""
+    if problems:
+        print(f"teletouch: {len(problems)} plugin problem(s), exit status {status}:", file=sys.stderr)
+        for line in problems:
+            print(f"  {line}", file=sys.stderr)
 
 
 def _block_text(origin: dict[str, str]) -> str:
