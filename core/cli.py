@@ -304,6 +304,10 @@ def _status_item(key: Any, value: Any) -> str:
 def cmd_run(args: argparse.Namespace) -> int:
     from .graph import load_graph
 
+    if args.record_images is not None and not args.record:   # (it was ignored without a word)
+        print("teletouch: error: --record-images: only with --record FILE.mcap (it sets how that recording stores "
+              "images)", file=sys.stderr)
+        return EXIT_USAGE
     spec = load_graph(args.graph, sets=args.sets, clock=args.clock, duration=args.duration)
     _print_warnings(spec)
     if spec.clock == "sim" and spec.duration is None:
@@ -324,7 +328,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if getattr(args, "record", None):
         from .recording import Recorder
 
-        recorder = Recorder(args.record, spec, image_format=args.record_images)
+        recorder = Recorder(args.record, spec, image_format=args.record_images or "png")
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
     record_error = None
@@ -487,8 +491,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress-interval", type=_positive_seconds, default=0.5, metavar="S",
                    help="live view period: seconds (or '500ms'); default 0.5")
     p.add_argument("--record", metavar="FILE.mcap", default=None, help="record every port to an MCAP file")
-    p.add_argument("--record-images", choices=("png", "jpeg"), default="png",
-                   help="image compression in the recording: png (lossless, ~17 ms/frame) or jpeg (~1 ms/frame)")
+    p.add_argument("--record-images", choices=("png", "jpeg"), default=None,
+                   help="with --record: image compression in the recording: png (lossless, ~17 ms/frame; the "
+                        "default) or jpeg (~1 ms/frame)")
     p.set_defaults(func=cmd_run)
 
     calp = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")

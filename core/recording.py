@@ -1563,6 +1563,17 @@ def _save_png(fig: Any, out: Path) -> None:
                 pass
 
 
+def _regex(text: str) -> str:
+    """``--select``: a regular expression, checked as the command line is read (a usage error, exit 2: it was 1)."""
+    import re
+
+    try:
+        re.compile(text)
+    except re.error as exc:
+        raise argparse.ArgumentTypeError(f"invalid regular expression {text!r}: {exc}") from None
+    return text
+
+
 def _cmd_plot(args: argparse.Namespace) -> int:
     try:
         files = plot_recording(args.file, args.output, args.select,
@@ -1580,5 +1591,6 @@ def teletouch_add_commands(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("plot", help="plot the signals of a recording (one PNG per node)")
     p.add_argument("file", metavar="FILE.mcap", help="a recording made with `teletouch run --record`")
     p.add_argument("-o", "--output", default=None, help="output folder (default: FILE_plots next to the file)")
-    p.add_argument("--select", default=None, metavar="REGEX", help="only signals whose node.port matches")
+    p.add_argument("--select", default=None, metavar="REGEX", type=_regex,
+                   help="only signals whose node.port matches")
     p.set_defaults(func=_cmd_plot)

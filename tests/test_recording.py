@@ -406,8 +406,11 @@ def test_plot_bad_select_or_output_folder_is_an_error_not_a_traceback(tmp_path, 
     assert code == 1 and f"output folder {afile} is a file, not a folder" in err
     code, err = _plot(capsys, path, "-o", afile / "sub")
     assert code == 1 and f"cannot create the output folder {afile / 'sub'}: Not a directory" in err
-    code, err = _plot(capsys, path, "-o", tmp_path / "out", "--select", "[")
-    assert code == 1 and "--select: invalid regular expression '['" in err
+    # a usage error, as the command line's other mistakes (exit 2; it was 1), before anything is read
+    with pytest.raises(SystemExit) as exit_:
+        cli_main(["plot", str(path), "-o", str(tmp_path / "out"), "--select", "["])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "argument --select: invalid regular expression '['" in err, err
     assert not (tmp_path / "out").exists()
     code, err = _plot(capsys, path, "-o", tmp_path / "out", "--select", "^src\\.")
     assert code == 0 and err == "" and (tmp_path / "out" / "src.png").is_file()
@@ -646,3 +649,11 @@ def test_plot_a_single_sample_nan_values_and_arrays_that_change_shape(tmp_path, 
     assert not (tmp_path / "out" / "grow.png").exists()
     code, err = _plot(capsys, path, "-o", tmp_path / "out2", "--select", "grow")
     assert code == 1 and "no numeric signals to plot matching 'grow'; not drawn: grow.v (its shape changes" in err
+
+
+def test_record_images_without_record_is_a_usage_error(capsys):
+    """`--record-images jpeg` without `--record` was ignored without a word (the run went on, exit 0)."""
+    code = cli_main(["run", str(Path(__file__).resolve().parents[1] / "examples" / "mock-loop.yaml"), "--quiet",
+                     "--duration", "0.1", "--record-images", "jpeg"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--record-images: only with --record FILE.mcap" in err, err
