@@ -53,6 +53,13 @@ from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
+
+
+def _is_extension(key: Any) -> bool:
+    """A top-level key starting with ``x-``: ignored, so that shared values can be defined once as YAML anchors
+    (``x-limits: &limits {...}``, then ``params: {<<: *limits}``), as Compose files do; an anchor had nowhere to live
+    but inside a node."""
+    return isinstance(key, str) and key.startswith("x-")
 NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
              "description")
 FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog", "safe_timeout")
@@ -430,9 +437,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
         errors.append(GraphError(msg, where))
 
     for k in doc:
-        if k not in TOP_KEYS:
-            err(f"unknown top-level key '{k}'{_suggest(str(k), TOP_KEYS)}; expected one of {', '.join(TOP_KEYS)}",
-                doc.loc(k))
+        if k not in TOP_KEYS and not _is_extension(k):
+            err(f"unknown top-level key '{k}'{_suggest(str(k), TOP_KEYS)}; expected one of {', '.join(TOP_KEYS)} (or "
+                f"a key starting with 'x-', ignored: a place for YAML anchors)", doc.loc(k))
 
     clock_v = clock if clock is not None else doc.get("clock", "wall")
     if clock_v not in CLOCKS:
@@ -1070,6 +1077,7 @@ def graph_json_schema(registry: Any = None) -> dict[str, Any]:
                 "additionalProperties": False},
             "nodes": {"type": "array", "items": node},
         },
+        "patternProperties": {"^x-": {"description": "ignored: a place for YAML anchors"}},
         "required": ["nodes"],
         "additionalProperties": False,
     }

@@ -38,12 +38,21 @@ class LList(list):
         return self.item_where[i] if i < len(self.item_where) else self.where
 
 
+#: the most values (scalars and collections, each alias counted again) a graph's YAML may expand to
+MAX_YAML_VALUES = 200_000
+
 _NUMBER_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
 
 
 def _convert(node: yaml.Node, file: str, constructor: "yaml.constructor.SafeConstructor",
              active: set[int] | None = None) -> Any:
     where = Location(file, node.start_mark.line + 1)
+    # each alias is converted again (a value of its own, with its own lines): aliases of aliases grow exponentially
+    # (9 levels of 9: 43 million values, an out-of-memory crash), so the values converted are counted
+    constructor.tt_values = getattr(constructor, "tt_values", 0) + 1
+    if constructor.tt_values > MAX_YAML_VALUES:
+        raise GraphError(f"the YAML expands to more than {MAX_YAML_VALUES} values through its aliases (anchors used "
+                         f"inside anchors, many levels deep?): a graph is a few hundred", where)
     if isinstance(node, (yaml.MappingNode, yaml.SequenceNode)):
         # an alias may point at a collection that holds it (``a: &x [*x]``): that would never end
         active = set() if active is None else active
@@ -148,10 +157,20 @@ def load_yaml_text(text: str, file: str) -> Any:
         raise GraphError(f"YAML error: {exc.problem}", Location(file, mark.line + 1 if mark else None)) from None
 
 
+#: the largest graph file read (bytes): the examples are a few KB; `include: /dev/zero` (or a huge file by mistake)
+#: read until the kernel killed the process for its memory
+MAX_GRAPH_BYTES = 1 << 20
+
+
 def load_yaml_file(path: str | Path) -> Any:
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        with p.open("rb") as fh:   # (a pipe too: `teletouch run <(...)`; what it holds is capped the same)
+            data = fh.read(MAX_GRAPH_BYTES + 1)
+        if len(data) > MAX_GRAPH_BYTES:
+            raise GraphError(f"larger than {MAX_GRAPH_BYTES >> 20} MiB: a graph file is a few KB of YAML text (the "
+                             f"wrong file?)", Location(str(path), None))
+        text = data.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")   # (as read_text's newlines)
     except FileNotFoundError:
         raise GraphError("file not found", Location(str(path), None)) from None
     except UnicodeDecodeError as exc:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import textwrap
 from pathlib import Path
 
@@ -608,3 +609,36 @@ def test_unit_typed_fields_refuse_booleans():
         with pytest.raises(ValidationError, match="expected a number in"):
             TypeAdapter(typ).validate_python(True)
         assert TypeAdapter(typ).validate_python(2) == 2.0
+
+
+def test_a_graph_file_is_read_up_to_a_size_and_an_alias_bomb_is_refused(tmp_path, reg):
+    """`include: /dev/zero` read until the kernel killed the process for its memory; nine levels of aliases of
+    aliases expanded to 43 million values (a SystemError, or the same kill). Both are errors naming the file now; a
+    graph from a pipe still reads."""
+    g = tmp_path / "g.yaml"
+    g.write_text("include: /dev/zero\nnodes: []\n")
+    with pytest.raises(GraphValidationError, match=r"/dev/zero: larger than 1 MiB: a graph file is a few KB"):
+        load_graph(g, registry=reg)
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]" for i in range(1, 9)]
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text("\n".join(lines) + "\nnodes: []\n")
+    with pytest.raises(GraphValidationError, match=r"bomb.yaml:\d+: the YAML expands to more than 200000 values"):
+        load_graph(bomb, registry=reg)
+    r, w = os.pipe()
+    os.write(w, GOOD.encode())
+    os.close(w)
+    try:
+        assert load_graph(f"/dev/fd/{r}", registry=reg).node("dev").rate == 1000.0
+    finally:
+        os.close(r)
+
+
+def test_top_level_x_keys_hold_anchors_and_are_ignored(reg):
+    """docs/graphs.md says anchors and merge keys work, but a top-level `defaults: &d {...}` was an unknown key: an
+    anchor could live only inside a node. Keys starting with `x-` are ignored now (as in Compose files)."""
+    text = ("x-gain: &g {gain: 7}\n" + GOOD.replace("{gain: 3}", "{<<: *g}"))
+    spec = load_graph_text(text, "g.yaml", registry=reg)
+    assert spec.node("gain").params_obj.gain == 7.0
+    errs = errors_of("defaults: &g {gain: 7}\n" + GOOD, reg)
+    assert any("unknown top-level key 'defaults'" in e and "a key starting with 'x-'" in e for e in errs), errs
