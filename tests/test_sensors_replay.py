@@ -143,9 +143,13 @@ def test_replay_teletouch_recording(tmp_path, shared_data):
 
 
 def test_replay_path_errors(tmp_path, shared_data):
-    with pytest.raises(ModelFileError, match="does not exist"):
-        with Harness(Replay, {"path": str(tmp_path / "missing")}):
-            pass
+    # a missing path or a single image is refused with the parameters, so `teletouch validate` says it (it said OK,
+    # and the run failed at start-up)
+    with pytest.raises(ValueError, match=r"path '.*missing' does not exist; expected a folder of images"):
+        Replay.Params(path=str(tmp_path / "missing"))
+    with pytest.raises(ValueError, match=r"path 'nope' does not exist \(looked at .*nope: a relative path is taken "
+                                         r"from the current folder"):
+        Replay.Params(path="nope")
     (tmp_path / "empty").mkdir()
     with pytest.raises(ModelFileError, match="no images"):
         with Harness(Replay, {"path": str(tmp_path / "empty")}):
@@ -155,9 +159,8 @@ def test_replay_path_errors(tmp_path, shared_data):
     with pytest.raises(ModelFileError, match="bad.avi"):
         with Harness(Replay, {"path": str(bad)}):
             pass
-    with pytest.raises(ModelFileError, match="single image"):
-        with Harness(Replay, {"path": str(shared_data / "digit-presses-qvga" / "0000.png")}):
-            pass
+    with pytest.raises(ValueError, match="is a single image; give the folder"):
+        Replay.Params(path=str(shared_data / "digit-presses-qvga" / "0000.png"))
     with pytest.raises(ValueError, match=r"path\s+Field required"):
         Replay.Params()  # path is required
 

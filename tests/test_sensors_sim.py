@@ -321,3 +321,27 @@ def test_noise_is_fresh_every_frame():
         frames = [h.step(k / 60)["image"].astype(float) for k in range(4)]
     for a, b in zip(frames, frames[1:]):
         assert (a - b).std() == pytest.approx(3.0 * math.sqrt(2), rel=0.15)
+
+
+def test_an_unreadable_indenter_map_is_refused_when_the_graph_is_validated(tmp_path):
+    """`validate` said OK for indenter: map with no map, a missing one or a text file, and the run failed at start-up,
+    passing on numpy's advice to load pickled data unsafely."""
+    text = tmp_path / "hm.npy"
+    text.write_text("hello world\n")
+    pickled = tmp_path / "obj.npy"
+    np.save(pickled, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    flat = tmp_path / "flat.npy"
+    np.save(flat, np.zeros(5))
+    cases = [(None, r"indenter=map needs indenter_map"),
+             (str(tmp_path / "nope.npy"), r"indenter_map '.*nope.npy' does not exist"),
+             (str(tmp_path), r"is a folder"),
+             (str(text), r"hm.npy': cannot read the height map \(.*\); expected a \.npy file"),
+             (str(pickled), r"obj.npy': cannot read the height map \(it holds pickled \(object\) data\)"),
+             (str(flat), r"flat.npy': indenter height map must be a 2-D array")]
+    for path, msg in cases:
+        with pytest.raises(ValueError, match=msg) as e:
+            SimDigit.Params(indenter="map", indenter_map=path)
+        assert "allow_pickle" not in str(e.value)
+    good = tmp_path / "stamp.npy"
+    np.save(good, np.zeros((5, 5)))
+    assert SimDigit.Params(indenter="map", indenter_map=str(good)).indenter_map == str(good)

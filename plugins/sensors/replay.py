@@ -314,6 +314,14 @@ class Replay(Component):
         def _port(self) -> "Replay.Params":
             if not self.path.strip():   # Path("") is the working directory
                 raise ValueError("path: empty; expected a folder of images, a video file or a .mcap recording")
+            where = Path(self.path).expanduser()
+            if not where.exists():   # when the graph is validated (`validate` said OK, the run failed at start-up)
+                rel = "" if where.is_absolute() else (f" (looked at {Path.cwd() / where}: a relative path is taken "
+                                                      f"from the current folder, not the graph file's)")
+                raise ValueError(f"path {self.path!r} does not exist{rel}; expected a folder of images, a video "
+                                 f"file or a .mcap recording")
+            if where.is_file() and where.suffix.lower() in IMAGE_SUFFIXES:
+                raise ValueError(f"path {self.path!r} is a single image; give the folder that holds the frames")
             if self.port is not None and not self.path.lower().endswith(".mcap"):
                 from teletouch.recording import is_mcap   # a recording renamed (run.bag) starts as MCAP does
 

@@ -303,6 +303,35 @@ class DigitSimulator:
         return np.clip(acc, 0, 255).astype(np.uint8), self._surface
 
 
+
+def load_height_map(path: str | None) -> np.ndarray:
+    """An indenter height map (``indenter: map``): a 2-D float array in a .npy file (m above the lowest point).
+    ValueError naming the file and what was expected: none given, missing, a folder, not .npy data, pickled
+    (object) data (numpy's advice to load it unsafely is not passed on), not 2-D, no finite value."""
+    if not path:
+        raise ValueError("indenter=map needs indenter_map (a .npy height map in m)")
+    p = Path(path).expanduser()
+    what = "expected a .npy file of a 2-D float array of heights in m (numpy.save)"
+    if not p.exists():
+        rel = "" if p.is_absolute() else f" (looked at {Path.cwd() / p}: a relative path is from the current folder)"
+        raise ValueError(f"indenter_map {path!r} does not exist{rel}; {what}")
+    if p.is_dir():
+        raise ValueError(f"indenter_map {path!r} is a folder; {what}")
+    try:
+        surface = np.load(p, allow_pickle=False)
+    except ValueError as e:
+        why = "it holds pickled (object) data" if "pickle" in str(e) else str(e)
+        raise ValueError(f"indenter_map {path!r}: cannot read the height map ({why}); {what}") from None
+    except OSError as e:
+        raise ValueError(f"indenter_map {path!r}: cannot read the height map ({e.strerror or e}); {what}") from None
+    if not isinstance(surface, np.ndarray) or surface.dtype.kind not in "fiu":
+        raise ValueError(f"indenter_map {path!r}: not a numeric array; {what}")
+    try:
+        _gel.Indenter.from_height_map(surface, 1e-4)   # (its checks: 2-D, a finite value)
+    except ValueError as e:
+        raise ValueError(f"indenter_map {path!r}: {e}; {what}") from None
+    return surface
+
 class SimDigit(Component):
     """Simulated DIGIT: realistic images from the optical model of a real DIGIT, with ground truth."""
 
@@ -415,6 +444,14 @@ class SimDigit(Component):
             return self
 
         @model_validator(mode="after")
+        def _height_map(self):
+            """indenter: map needs a readable height map: checked when the graph is validated (`validate` said OK,
+            and the run failed at start-up)."""
+            if self.indenter == "map":
+                load_height_map(self.indenter_map)
+            return self
+
+        @model_validator(mode="after")
         def _indentation_within_gel(self):
             h = self.gel_thickness
             if h is not None and self.indentation >= h:
@@ -452,12 +489,10 @@ class SimDigit(Component):
     def _indenter(self) -> _gel.Indenter:
         p = self.params
         if p.indenter == "map":
-            if not p.indenter_map:
-                raise ValueError("indenter=map needs indenter_map (a .npy height map in m)")
             try:
-                surface = np.load(p.indenter_map)
-            except Exception as e:
-                raise ModelFileError(f"{p.indenter_map}: cannot read indenter height map ({e})") from None
+                surface = load_height_map(p.indenter_map)
+            except ValueError as e:   # (removed since the graph was validated)
+                raise ModelFileError(str(e)) from None
             mpp = p.indenter_map_m_per_px or p.m_per_px or M_PER_PX[p.resolution]
             try:
                 return _gel.Indenter.from_height_map(surface, mpp)
