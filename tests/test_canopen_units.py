@@ -65,6 +65,38 @@ def test_a_drive_without_0x608F_takes_counts_per_revolution(channel):
             assert drive.get(0x6081) == math.floor(50000 * 60 / 4096 * 10000)   # 7324218 (0.0001 rpm)
 
 
+def test_a_drive_that_scales_its_positions_needs_counts_per_revolution(channel):
+    """A drive with a gear ratio 0x6091 or feed constant 0x6092 other than 1:1 gives 0x6064 in its own position units:
+    0x608F's encoder increments per motor revolution are then not 0x6064 counts, and the profile velocity (and the
+    velocity read) was off by that factor. Refused, naming the scaling; counts_per_revolution settles it; 1:1 is no
+    scaling."""
+    with Cia402Drive(5, channel, position=0, velocity_unit=MILLI_RPM, counts_per_revolution=4096,
+                     scaling={0x6091: (3, 1), 0x6092: (1, 1)}) as drive:
+        configure_fails(harness(channel, max_speed=0.04),
+                        r"0x60A9 .* in revolutions: CANopen node 5 .* scales its positions \(gear ratio 0x6091 3:1\), "
+                        r"so the position encoder resolution 0x608F \(4096 increments per 1 motor revolutions\) is "
+                        r"not the 0x6064 counts per revolution; give counts_per_revolution")
+        assert drive.get(0x6081) == 100000   # nothing written
+        with harness(channel, max_speed=0.04, counts_per_revolution=4096):
+            assert drive.get(0x6081) == 732421
+    with Cia402Drive(5, channel, position=0, velocity_unit=MILLI_RPM, counts_per_revolution=4096,
+                     scaling={0x6091: (1, 1), 0x6092: (7, 7)}) as drive:
+        with harness(channel, max_speed=0.04):
+            assert drive.get(0x6081) == 732421
+
+
+def test_a_profile_acceleration_of_zero_is_refused(channel):
+    """Profile acceleration 0x6083 (and deceleration 0x6084) are the drive's own: one of 0 moves nothing on many
+    drives, and the start-up went on without a word."""
+    with Cia402Drive(5, channel, position=0) as drive:
+        drive._put(0x6083, 0)
+        configure_fails(harness(channel), r"CANopen node 5 .* has a profile acceleration 0x6083 of 0: the set-points "
+                                          r"would not move the fingers")
+        drive._put(0x6083, 5000)
+        with harness(channel):
+            pass
+
+
 def test_a_velocity_unit_the_driver_cannot_convert_is_refused_naming_0x60A9_and_what_to_set(channel):
     with Cia402Drive(5, channel, position=0, velocity_unit=MM_PER_S) as drive:
         configure_fails(harness(channel),

@@ -275,6 +275,7 @@ class CanopenGripper(FollowerBase):
                                                                    int(round(p.heartbeat_period * 1000))))
         self._enter_mode(PROFILE_POSITION)
         self.profile_velocity = self._profile_velocity()
+        self._check_profile_acceleration()
         self._sdo("writing profile velocity 0x6081", lambda: setattr(node.sdo[0x6081], "raw", self.profile_velocity))
         self.rated_ma = self._sdo("reading rated current 0x6075", lambda: node.sdo[0x6075].raw)
         if not self.rated_ma:
@@ -430,7 +431,36 @@ class CanopenGripper(FollowerBase):
         if not increments or not revolutions:
             raise HardwareError(f"{self._where()} reports a position encoder resolution 0x608F of {increments} "
                                 f"increments per {revolutions} motor revolutions; give counts_per_revolution")
+        scaling = self._position_scaling()
+        if scaling:   # 0x6064 is then in the drive's position units, not encoder increments
+            raise HardwareError(f"{source}, in revolutions: {self._where()} scales its positions ({scaling}), so the "
+                                f"position encoder resolution 0x608F ({increments} increments per {revolutions} motor "
+                                f"revolutions) is not the 0x6064 counts per revolution; give counts_per_revolution "
+                                f"(0x6064 counts per revolution of the velocity unit, from the drive's manual)")
         return Fraction(increments, revolutions)
+
+    def _position_scaling(self) -> str:
+        """The drive's position scaling where it has one ("" where it has none, or 1:1): gear ratio 0x6091 (motor
+        revolutions : shaft revolutions) and feed constant 0x6092 (feed : shaft revolutions). A drive without the
+        objects (SDO abort: no such object) scales nothing."""
+        found = []
+        for index, name in ((0x6091, "gear ratio 0x6091"), (0x6092, "feed constant 0x6092")):
+            a, _ = self._read_u32(index, 1, f"reading {name}")
+            b, _ = (None, "") if a is None else self._read_u32(index, 2, f"reading {name}")
+            if a is not None and b is not None and a != b:
+                found.append(f"{name} {a}:{b}")
+        return ", ".join(found)
+
+    def _check_profile_acceleration(self) -> None:
+        """Profile acceleration 0x6083 and deceleration 0x6084 are the drive's own (set with its tool): one of 0
+        moves nothing (or stops nothing) on many drives, and was left unseen. Objects the drive does not have are
+        its own business."""
+        for index, name in ((0x6083, "profile acceleration 0x6083"), (0x6084, "profile deceleration 0x6084")):
+            value, _ = self._read_u32(index, 0, f"reading {name}")
+            if value == 0:
+                raise HardwareError(f"{self._where()} has a {name} of 0: the set-points would not move the fingers "
+                                    f"(or not stop them); set it with the drive's configuration tool (in its "
+                                    f"acceleration unit, e.g. velocity units per second)")
 
     def _read_u32(self, index: int, sub: int, what: str) -> tuple[int | None, str]:
         """An UNSIGNED32 object read by SDO upload (an EDS file need not list it): (value, ""), or (None, the abort)

@@ -64,10 +64,12 @@ def _var(name, index, sub, dtype, access="rw", default=0):
 
 
 def drive_od(node_id: int, velocity_unit: int | None = VELOCITY_UNIT,
-             resolution: tuple[int, int] | None = (1000, 1)) -> canopen.ObjectDictionary:
+             resolution: tuple[int, int] | None = (1000, 1),
+             scaling: dict[int, tuple[int, int]] | None = None) -> canopen.ObjectDictionary:
     """The drive's object dictionary (communication profile, 4 RPDOs/TPDOs, CiA 402 objects it implements), with SI
     unit velocity 0x60A9 = ``velocity_unit`` and position encoder resolution 0x608F = ``resolution`` (increments,
-    motor revolutions) unless None (the drive has no such object)."""
+    motor revolutions) unless None (the drive has no such object); ``scaling``: the position scaling objects the
+    drive has ({0x6091: (motor revs, shaft revs)} gear ratio, {0x6092: (feed, shaft revs)} feed constant)."""
     od = canopen.ObjectDictionary()
     od.node_id = node_id
     od.add_object(_var("Device type", 0x1000, 0, U32, "ro", DEVICE_TYPE_402))
@@ -117,6 +119,12 @@ def drive_od(node_id: int, velocity_unit: int | None = VELOCITY_UNIT,
         rec.add_member(_var("Encoder increments", 0x608F, 1, U32, "rw", resolution[0]))
         rec.add_member(_var("Motor revolutions", 0x608F, 2, U32, "rw", resolution[1]))
         od.add_object(rec)
+    for index, (a, b) in (scaling or {}).items():
+        rec = ODRecord({0x6091: "Gear ratio", 0x6092: "Feed constant"}[index], index)
+        rec.add_member(_var("Highest sub-index supported", index, 0, U8, "ro", 2))
+        rec.add_member(_var("Numerator", index, 1, U32, "rw", a))
+        rec.add_member(_var("Denominator", index, 2, U32, "rw", b))
+        od.add_object(rec)
     return od
 
 
@@ -138,11 +146,11 @@ class Cia402Drive:
                  velocity_unit: int = VELOCITY_UNIT, velocity_unit_object: bool = True,
                  counts_per_revolution: int = 1000, resolution_object: bool = True, emcy: bool = True,
                  fault_at: tuple[str, int] | None = None, aborts: dict[int, int] | None = None,
-                 cycle: float = 0.001):
+                 cycle: float = 0.001, scaling: dict[int, tuple[int, int]] | None = None):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id, velocity_unit if velocity_unit_object else None,
-                           (counts_per_revolution, 1) if resolution_object else None)
+                           (counts_per_revolution, 1) if resolution_object else None, scaling)
         self.counts_per_unit = counts_per_unit(velocity_unit, counts_per_revolution)  # counts/s per velocity unit
         self.od[0x1000].default = device_type
         self.pos = float(position)
