@@ -601,6 +601,25 @@ def test_an_sdk_without_the_watchdog_is_refused_unless_it_is_off(tmp_path, stand
     s.lib.standin_reset()
 
 
+def test_an_sdk_without_the_max_force_calls_runs_on_the_drivers_own_limits(tmp_path, standin, monkeypatch):
+    """dhdSetMaxForce and dhdSetMaxGripperForce are not in SDK 3.7.0's dhdc.h: such a library was refused as "an SDK
+    older than 3.x", though the driver's own force guard clamps every command anyway. It runs now, and says so."""
+    monkeypatch.delenv("FORCEDIM_SDK", raising=False)
+    sdk = tmp_path / "sdk-3.7.0"
+    (sdk / "lib").mkdir(parents=True)
+    build_standin(sdk / "lib", "STANDIN_NO_MAX_FORCE")
+    s = StandIn(sdk / "lib" / "libdhd.so")
+    h = harness(sdk, max_gripper_force=2.0)
+    logs: list[str] = []
+    h.ctx._log = logs.append
+    with h:
+        assert any("limits 12 N, gripper 2 N (the driver's own: this SDK has no dhdSetMaxForce/dhdSetMaxGripperForce)"
+                   in m for m in logs), logs
+        h.step(0.0, gripper_force=5.0)
+        assert s.forces()[0][3] == pytest.approx(2.0)   # clamped by the driver (the SDK's limit is its default 8 N)
+    s.lib.standin_reset()
+
+
 def test_a_device_that_refuses_the_watchdog_never_gets_forces_on(sdk_dir, standin):
     standin.set_watchdog_fails(1)
     h = harness(sdk_dir)

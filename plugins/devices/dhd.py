@@ -231,7 +231,10 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "dhdGetWatchdog": (_c.c_int, [_c.POINTER(_c.c_ubyte), _ID]),  # added in release 3.3.2 (an expert SDK call)
 }
 _OPTIONAL = {"dhdGetSDKVersion", "dhdErrorGetLast", "dhdGetDeviceCount", "dhdGetGripperAngleRad", "dhdSetWatchdog",
-             "dhdGetWatchdog", "dhdGetStatus", "dhdEnableExpertMode", "dhdDisableExpertMode"}
+             "dhdGetWatchdog", "dhdGetStatus", "dhdEnableExpertMode", "dhdDisableExpertMode",
+             # not in SDK 3.7.0's dhdc.h (later ones have them): without them the driver's own force guard is the
+             # only limit (see Dhd.set_max_force)
+             "dhdSetMaxForce", "dhdSetMaxGripperForce"}
 # dhdGetStatus: DHD_MAX_STATUS entries (16 in older SDKs, 17 since DHD_STATUS_AXISCHECKED, e.g. SDK 3.11); the
 # buffer has room for more, as the SDK writes as many as its own dhdc.h says; the ones read here, and the causes of the
 # FORCE OFF state (dhdc.h)
@@ -348,11 +351,22 @@ class Dhd:
     def set_gravity_compensation(self, on: bool) -> None:
         self._check(self.lib.dhdSetGravityCompensation(1 if on else 0, self.id), "dhdSetGravityCompensation")
 
-    def set_max_force(self, newtons: float) -> None:
-        self._check(self.lib.dhdSetMaxForce(float(newtons), self.id), "dhdSetMaxForce")
+    def set_max_force(self, newtons: float) -> bool:
+        """The SDK's own force limit (a second layer under the driver's guard); False where this SDK has no
+        dhdSetMaxForce (SDK 3.7.0's dhdc.h has none)."""
+        f = getattr(self.lib, "dhdSetMaxForce", None)
+        if f is None:
+            return False
+        self._check(f(float(newtons), self.id), "dhdSetMaxForce")
+        return True
 
-    def set_max_gripper_force(self, newtons: float) -> None:
-        self._check(self.lib.dhdSetMaxGripperForce(float(newtons), self.id), "dhdSetMaxGripperForce")
+    def set_max_gripper_force(self, newtons: float) -> bool:
+        """As :meth:`set_max_force`, for the gripper (dhdSetMaxGripperForce)."""
+        f = getattr(self.lib, "dhdSetMaxGripperForce", None)
+        if f is None:
+            return False
+        self._check(f(float(newtons), self.id), "dhdSetMaxGripperForce")
+        return True
 
     def has_watchdog(self) -> bool:
         """Whether this libdhd has the firmware watchdog calls (SDK 3.3.2 and newer)."""

@@ -272,13 +272,14 @@ class Omega7(Device):
         left = stype in dhdmod.LEFT_HANDED if p.handedness == "auto" else p.handedness == "left"
         self.sign = -1.0 if left else 1.0
         lib.enable_force(False)
-        lib.set_max_force(p.max_force)
-        lib.set_max_gripper_force(p.max_gripper_force)
+        sdk_limits = lib.set_max_force(p.max_force) & lib.set_max_gripper_force(p.max_gripper_force)
         lib.set_gravity_compensation(p.gravity_compensation)
         lib.set_brakes(p.brakes_on_stop)
         wd = f"firmware watchdog {self._wd_s * 1e3:g} ms" if self.watchdog_units else "firmware watchdog off"
+        limits = "" if sdk_limits else " (the driver's own: this SDK has no dhdSetMaxForce/dhdSetMaxGripperForce)"
         self.ctx.log(f"opened {dhdmod.SYSTEM_NAMES.get(stype, stype)} through {lib.path} "
-                     f"(SDK {lib.sdk_version()}); limits {p.max_force:g} N, gripper {p.max_gripper_force:g} N; {wd}")
+                     f"(SDK {lib.sdk_version()}); limits {p.max_force:g} N, gripper {p.max_gripper_force:g} N{limits}; "
+                     f"{wd}")
 
     def activate(self) -> None:
         d = self.dhd

@@ -359,6 +359,7 @@ int dhdSetGravityCompensation(int val, char ID) {
     S.gravity = val ? 1 : 0;
     return ok();
 }
+#ifndef STANDIN_NO_MAX_FORCE   /* -DSTANDIN_NO_MAX_FORCE: a library as SDK 3.7.0's dhdc.h, without these two */
 int dhdSetMaxForce(double f, char ID) {
     if (check(ID)) return -1;
     S.max_force = f < 0 ? 12.0 : f; /* a negative value removes the limit */
@@ -374,6 +375,7 @@ int dhdSetMaxGripperForce(double f, char ID) {
     S.max_gripper_force = f < 0 ? 8.0 : f;
     return ok();
 }
+#endif
 int dhdGetPosition(double *px, double *py, double *pz, char ID) {
     if (check(ID)) return -1;
     hang_point("dhdGetPosition");
