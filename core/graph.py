@@ -484,6 +484,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 q = parse_quantity(v, "s")
                 if not 0 <= q < math.inf:
                     raise ValueError(f"expected a time >= 0 s, got {v!r}")
+                if k == "startup_grace" and q > 60:   # 1e9 let a source that never came stay unseen for good
+                    raise ValueError(f"expected at most 60 s (the time the sources get to start before a missing "
+                                     f"input is a fault), got {v!r}")
                 setattr(faults, k, q)
             except ValueError as exc:
                 err(f"faults.{k}: {exc}", w)

@@ -486,6 +486,16 @@ def test_safe_timeout_is_validated():
                             "<t>")
 
 
+def test_startup_grace_is_at_most_a_minute():
+    """faults.startup_grace: 1e9 let a source that never sent anything go unseen for good (status ok, exit 0)."""
+    for bad in ("61", "1e9", "61000ms"):
+        with pytest.raises(GraphValidationError, match=r"faults.startup_grace: expected at most 60 s"):
+            load_graph_text(f"faults: {{startup_grace: {bad}}}\nnodes:\n  - {{id: d, plugin: mock-device}}\n",
+                            "<t>")
+    spec = load_graph_text("faults: {startup_grace: 60}\nnodes:\n  - {id: d, plugin: mock-device}\n", "<t>")
+    assert spec.faults.startup_grace == 60.0
+
+
 def test_on_stop_a_device_is_made_safe_by_its_own_thread_not_after_the_slow_ones():
     # the 1 kHz source faults at 0.3 s while a 2 Hz node is inside a 0.6 s step: the device (1 kHz thread) must be
     # safe within a few periods, not after that step ends and the threads are joined
