@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -38,6 +39,10 @@ __all__ = ["DepthEstimator"]
 #: pixel is ever in contact ("0.03", meant in mm, read every press as no contact)
 MAX_CONTACT_DEPTH = 5e-3
 
+#: the torch devices the pipeline runs on: the CPU (sparse path by default), a CUDA GPU (by index) or Apple's MPS
+DEVICES = "cpu, cuda, cuda:N (N: the GPU's index, from 0) or mps"
+_DEVICE_FORM = re.compile(r"cpu|cuda(:\d+)?|mps")
+
 
 class DepthEstimator(Component):
     """DIGIT image -> depth map (m), max depth, contact mask/area/centroid (normal MLP + DST Poisson)."""
@@ -58,7 +63,7 @@ class DepthEstimator(Component):
     class Params(Params):
         model: str = Field("sim-digit-qvga", description="model file (.model from `teletouch calibrate depth`) "
                            "or the name of a packaged model (sim-digit-qvga)")
-        device: str = Field("cpu", description="torch device: cpu, cuda, cuda:1, mps")
+        device: str = Field("cpu", description=f"torch device: {DEVICES}")
         mode: Literal["auto", "sparse", "dense"] = Field(
             "auto", description="sparse: network only on changed pixels (CPU default); dense: every pixel, "
             "masked (GPU default)")
@@ -128,6 +133,15 @@ class DepthEstimator(Component):
                 check_model_file(v)
             except ModelFileError as exc:
                 raise ValueError(str(exc)) from None
+            return v
+
+        @field_validator("device")
+        @classmethod
+        def _device(cls, v: str) -> str:
+            """The device's form when the graph is validated (whether it is there is asked at start-up)."""
+            problem = device_form_problem(v)
+            if problem:
+                raise ValueError(problem)
             return v
 
         @field_validator("contact_depth")
@@ -255,7 +269,7 @@ class DepthEstimator(Component):
             except ValueError as exc:   # a depth that is not finite: no output is better than a wrong one
                 self._prev = None
                 raise ComponentFault(f"the depth of this frame could not be computed: {exc}", self.id) from None
-            problem = self._frame_problem(res)
+            problem = self._frame_problem(res) or colour_problem(frame)
             if problem:
                 self._prev = None
                 return self._bad(problem, s.stamp, t0)
@@ -388,6 +402,20 @@ def frame_problem(res: Any, max_global_change: float) -> str:
     return ""
 
 
+def colour_problem(frame: np.ndarray) -> str:
+    """Why a frame of plausible brightness is no camera frame ('' if it is): a grayscale image (three equal channels:
+    ``depth_calibration.is_grayscale``, ~8 us for a colour QVGA frame). The node and `estimate` ask it after the
+    global change (:func:`frame_problem`), which names a black frame (LEDs off; its channels are equal too) as such.
+    Unchecked, a grayscale copy of a real press read as another sensor's in `estimate` and as a contact in the node
+    (3.2 mm on the packaged model)."""
+    from .depth_calibration import is_grayscale
+
+    if is_grayscale(frame):
+        return ("a grayscale image (its three colour channels are equal); expected a colour BGR frame of the DIGIT "
+                "as its camera delivers it (the depth model reads the colours)")
+    return ""
+
+
 def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
     """Bit-identical frames; a sparse sample of the bytes first, so a new camera frame is told apart in ~2 us
     (the full comparison of a QVGA frame is ~20 us, against ~1-5 ms for the estimate it saves)."""
@@ -397,17 +425,46 @@ def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.array_equal(fa[::4099], fb[::4099]) and np.array_equal(fa, fb))
 
 
-def _check_device(device: str) -> str:
+def device_form_problem(device: Any) -> str:
+    """Why ``device`` is not one of the accepted forms (:data:`DEVICES`; '' if it is), without importing torch: asked
+    when the graph is validated. Before, any torch device type passed (``meta``: tensors without data, the run failed
+    at start-up; ``xpu``, ``hip``: never tried here) and a typo (``gpu``) was found only at start-up."""
+    if isinstance(device, str) and _DEVICE_FORM.fullmatch(device):
+        return ""
+    hint = ""
+    if isinstance(device, str) and device.strip().lower() in ("gpu", "nvidia"):
+        hint = "; an NVIDIA GPU is 'cuda'"
+    elif isinstance(device, str) and _DEVICE_FORM.fullmatch(device.strip().lower()):
+        hint = f"; did you mean {device.strip().lower()!r}?"
+    return f"expected {DEVICES}, got {device!r}{hint}"
+
+
+def device_problem(device: Any, name: str) -> str:
+    """Why the pipeline cannot run on ``device`` here ('' if it can), led by the parameter's ``name`` ('device',
+    '--device'): not an accepted form (:func:`device_form_problem`), or no such device on this machine."""
+    form = device_form_problem(device)
+    if form:
+        return f"{name}: {form}"
     import torch
 
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        raise ComponentFault(f"device {device!r}: {exc}") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ComponentFault(f"device {device!r}: torch sees no CUDA GPU here; use device: cpu")
+    dev = torch.device(device)
+    cpu = "device: cpu" if name == "device" else f"{name} cpu"
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            return f"{name} {device!r}: torch sees no CUDA GPU here; use {cpu}"
+        n = torch.cuda.device_count()
+        if dev.index is not None and dev.index >= n:
+            return f"{name} {device!r}: torch sees {n} CUDA GPU(s) here (cuda:0 to cuda:{n - 1})"
     if dev.type == "mps" and not torch.backends.mps.is_available():
-        raise ComponentFault(f"device {device!r}: MPS is not available; use device: cpu")
+        return f"{name} {device!r}: MPS is not available; use {cpu}"
+    return ""
+
+
+def _check_device(device: str) -> str:
+    """``device`` if the pipeline can run on it here, else a ComponentFault naming the parameter."""
+    problem = device_problem(device, "device")
+    if problem:
+        raise ComponentFault(problem)
     return device
 
 
@@ -515,6 +572,7 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         images = load_images(args.images)
         background = None
         background_source = None
+        left: list[str] = []   # images of the folder given as --background: not presses
         if args.background:
             def same_size(path: Path, frame: np.ndarray) -> None:
                 if frame.shape != images[0][1].shape:
@@ -558,6 +616,7 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         labels = read_labels(args.labels) if args.labels else None
         if labels is not None:
             check_labels(labels, images, radius * px_per_m, args.labels)
+            labels = _background_labels(labels, left, args.labels, log)
         # every output is checked before the work (training takes minutes)
         if args.labels_only:
             bg = background if background is not None else median_background([im for _, im in images])
@@ -628,6 +687,25 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _background_labels(labels: dict[str, Any], background: list[str], source: str,
+                       log: Any) -> dict[str, Any]:
+    """The labels without those of the folder's images given as --background (``background``): they are the
+    background, not presses (before, the log said their labels named no image in the folder). One labelled as a
+    press (a usable circle) is refused: a background must show no contact, and one with a press in it raises the
+    change threshold above every press."""
+    pressed = [labels[n] for n in background if n in labels and labels[n].usable]
+    if pressed:
+        lb = pressed[0]
+        raise ValueError(f"{source}:{lb.line}: {lb.image} is labelled as a press (radius {lb.r:g} px), but it is given "
+                         f"as --background, which must be a frame without contact: give a no-contact frame of the "
+                         f"sensor, or mark the row 'no contact' with radius_px 0 if nothing touches the gel in it")
+    taken = [n for n in background if n in labels]
+    if taken:
+        log(f"{len(taken)} label(s) not used: {', '.join(taken[:5])}{' ...' if len(taken) > 5 else ''}: taken as "
+            f"the background (--background), not as a press")
+    return {n: lb for n, lb in labels.items() if n not in taken}
+
+
 def _write_review(folder: str | None, images: list, bg: np.ndarray, labels: list, overlay: Any) -> None:
     if not folder:
         return
@@ -690,6 +768,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             bg, what = _background_for_model(args.background, model)
             print(f"teletouch estimate: background: {what}", file=sys.stderr)
         force = _force_calibration(args.force_calibration, args.model) if args.force_calibration else None
+        device = device_problem(args.device, "--device")
+        if device:
+            raise ValueError(device)
         if save is not None:
             _check_output(save, "--save-depth", folder=True)
             try:
@@ -699,7 +780,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError) as exc:
         print(f"teletouch estimate: error: {exc}", file=sys.stderr)
         return 2
-    pipe = DepthPipeline(model, device=_check_device(args.device), background=bg)
+    pipe = DepthPipeline(model, device=args.device, background=bg)
     pipe.warm_up()   # lazy imports and FFT set-up here, so that each image's "ms" is its own computation
     rc = 0
     for path in args.images:
@@ -715,7 +796,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         res = pipe(frame)
         ms = (time.perf_counter() - t0) * 1e3
-        problem = frame_problem(res, args.max_global_change) or _colour_problem(frame)
+        problem = frame_problem(res, args.max_global_change) or colour_problem(frame)
         mismatch = background_mismatch(frame, bg if bg is not None else model.background)
         if not problem and args.max_background_mismatch and mismatch > args.max_background_mismatch:
             problem = (f"the frame differs from the model's background by {mismatch:.1f} levels (median over the "
@@ -751,18 +832,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
             print(f"{path}: max depth {res.max_depth * 1e3:.3f} mm  contact area {res.contact_area * 1e6:.2f} mm^2"
                   f"{f}")
     return rc
-
-
-def _colour_problem(frame: np.ndarray) -> str:
-    """`estimate`: why an image of plausible brightness is no camera frame ('' if it is): a grayscale image (before:
-    read as another sensor's, 22 levels from the background). Asked after the global change, which names a black
-    frame (LEDs off; its channels are equal too) as such."""
-    from .depth_calibration import is_grayscale
-
-    if is_grayscale(frame):
-        return ("a grayscale image (its three colour channels are equal); expected a colour BGR frame of the DIGIT "
-                "as its camera delivers it (the depth model reads the colours)")
-    return ""
 
 
 def _estimate_input(path: str, pipe: Any) -> tuple[np.ndarray | None, str]:
@@ -855,7 +924,7 @@ def teletouch_add_commands(subparsers, calibrate):
                    "median); repeat the option for several frames (one path per --background: the images follow)")
     p.add_argument("--force-calibration", default=None, metavar="FILE", help="force calibration (poly-force JSON): "
                    "adds force_N")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--device", default="cpu", help=f"torch device: {DEVICES} (default cpu)")
     p.add_argument("--json", action="store_true", help="one JSON object per image on stdout (SI units)")
     p.add_argument("--save-depth", default=None, metavar="DIR", help="write DIR/<stem>.npy (m) and a colour PNG")
     p.add_argument("--max-global-change", type=_positive_levels, default=24.0, metavar="LEVELS",

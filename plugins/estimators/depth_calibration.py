@@ -25,6 +25,7 @@ import numpy as np
 
 from teletouch.errors import ModelFileError
 from teletouch.reproducible import build_time, software_versions, source_date_epoch
+from teletouch.units import UNDERSCORE
 
 from .normal_model import (DEFAULT_FEATURES, DEFAULT_HIDDEN, NormalModel, atomic_write, feature_count, make_net,
                            max_stride)
@@ -116,9 +117,15 @@ def load_images(folder: str | os.PathLike[str], names: Iterable[str] | None = No
 
 def is_grayscale(image: np.ndarray) -> bool:
     """True for an image whose three channels are equal within 2 levels (a grayscale frame saved as colour, or
-    expanded to BGR by OpenCV): no colour to learn from."""
+    expanded to BGR by OpenCV): no colour to learn from. Asked of every frame by the depth node, so a colour frame is
+    told on every 4th row and column first (~8 us for QVGA against ~70 us for all of it); only an image gray there is
+    checked in full, which gives the same answer."""
     if image.ndim == 2:
         return True
+    return _equal_channels(image[::4, ::4]) and _equal_channels(image)
+
+
+def _equal_channels(image: np.ndarray) -> bool:
     b, g, r = (image[..., i].astype(np.int16) for i in range(3))
     return bool(np.abs(b - g).max() <= 2 and np.abs(g - r).max() <= 2)
 
@@ -486,9 +493,11 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
     skipped; spaces around names and values are ignored; extra columns are ignored when the header names them.
     Refused: a row with more fields than the header (a note typed into a file without a note column was dropped,
     and the press trained) or without a required one, an image named twice (the later row won silently), a
-    non-number, a negative radius, a radius of 0 without a note saying "no contact" (such a row was trained as
-    a frame without contact), and a quoted field running on over several lines (an unclosed quote took the rows
-    after it into its note). Empty fields or a note starting with "uncertain" exclude the press from training."""
+    non-number (also one with an underscore: float() read '1_45' as 145), a negative radius, a radius of 0 without
+    a note saying "no contact" (such a row was trained as a frame without contact), a radius above 0 with that
+    note (a press trained as flat gel: its colour change raised the change threshold above every press), and a
+    quoted field running on over several lines (an unclosed quote took the rows after it into its note). Empty
+    fields or a note starting with "uncertain" exclude the press from training."""
     path = Path(path)
     out: dict[str, Label] = {}
     try:
@@ -541,6 +550,9 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
                 if t == "":
                     vals.append(None)
                     continue
+                if "_" in t:   # float() reads '1_45' as 145: a typo, as everywhere else (teletouch.units)
+                    raise ModelFileError(f"{path}:{i}: field {k} = {t!r} is not a number ({UNDERSCORE}); expected "
+                                         f"a number of px such as 145 or 145.5")
                 try:
                     v = float(t)
                 except ValueError:
@@ -559,6 +571,12 @@ def read_labels(path: str | os.PathLike[str]) -> dict[str, Label]:
             if lb.r == 0 and not lb.no_contact and not lb.note.lower().startswith("uncertain"):
                 raise ModelFileError(f"{path}:{i}: field radius_px = 0 for {name}; expected the contact radius in px "
                                      f"(> 0), or the note 'no contact' for a frame without contact")
+            if lb.no_contact and lb.r:
+                # a circle and "no contact" contradict each other: such a press was trained as flat gel, and its
+                # colour change, counted as the gel's noise, raised the change threshold above every press
+                raise ModelFileError(f"{path}:{i}: field radius_px = {rec['radius_px']!r} for {name} with the note "
+                                     f"{lb.note!r}; a frame without contact has radius_px 0 (or empty): give 0 if "
+                                     f"nothing touches the gel in {name}, or remove the note if it shows a press")
             out[name] = lb
     if header is None:
         raise ModelFileError(f"{path}:1: expected the columns image,center_x,center_y,radius_px[,note], got an "
@@ -837,14 +855,49 @@ def train_model(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Labe
 
     pipe = DepthPipeline(model)
     ratios = []
-    for name, img in images:
-        lb = labels.get(name)
-        if name in train_names and lb is not None and lb.usable and _inside(lb, img.shape, 1.2):
-            measured, expected, _ = cap_height_error(pipe(img).depth, lb, px_per_m, ball_radius_m)
-            if measured > 0:
-                ratios.append(expected / measured)
-    if fit_gain and ratios:
-        model.depth_gain = float(np.clip(np.median(ratios), 0.5, 2.0))
+    if fit_gain:
+        # the training presses well inside the image; those of them that read no depth; those of them in which the
+        # change mask sees nothing at all (their colour change below the change threshold)
+        gauged, no_depth, unseen = [], [], []
+        for name, img in images:
+            lb = labels.get(name)
+            if name in train_names and lb is not None and lb.usable and _inside(lb, img.shape, GAIN_MARGIN):
+                gauged.append(name)
+                res = pipe(img)
+                measured, expected, _ = cap_height_error(res.depth, lb, px_per_m, ball_radius_m)
+                if measured > 0:
+                    ratios.append(expected / measured)
+                else:
+                    no_depth.append(name)
+                    if not res.changed:
+                        unseen.append(name)
+        if gauged and not ratios and unseen:
+            # before: the gain fit was skipped without a word and the model written (depth gain 1.0, every press
+            # read 0 mm, validation 100% off, exit code 0)
+            raise ValueError(_no_depth_message(images, labels, background, stride, train_names, gauged, unseen,
+                                               model.change_threshold))
+        if ratios:
+            model.depth_gain = float(np.clip(np.median(ratios), 0.5, 2.0))
+        if log and not gauged:
+            log(f"depth gain not fitted, kept at 1.0: no training press has its circle of {GAIN_MARGIN:g} contact "
+                f"radii inside the image (the cap height needs the ring around the contact); record presses away "
+                f"from the border")
+        elif log and not ratios:
+            # the change mask sees the presses, the network gives them no slope: not the data (which are refused
+            # above) but the training
+            log(f"depth gain not fitted, kept at 1.0: none of the {len(gauged)} training presses it is fitted on "
+                f"reads any depth after {epochs} epoch(s), although the change mask sees them: the network has not "
+                f"learnt the slopes; this model reads no depth (train longer: --epochs, 40 by default)")
+        elif log and len(ratios) < MIN_GAIN_PRESSES:
+            log(f"depth gain {model.depth_gain:.3f} fitted on {len(ratios)} press(es) only (of {len(gauged)} training "
+                f"presses with their circle of {GAIN_MARGIN:g} contact radii inside the image; {MIN_GAIN_PRESSES} or "
+                f"more make a firmer fit)")
+        if log and no_depth and ratios:
+            log(f"{len(no_depth)} training press(es) read no depth with the trained model, left out of the depth gain "
+                f"fit: {', '.join(no_depth[:5])}{' ...' if len(no_depth) > 5 else ''}"
+                + (f"; the change mask sees nothing in {', '.join(unseen[:5])}{' ...' if len(unseen) > 5 else ''} "
+                   f"(change threshold {model.change_threshold:.1f} levels): check their labels and the background"
+                   if unseen else " (check their labels)"))
     train_s = time.perf_counter() - t_start
     model.training = {"presses": train_names, "samples": int(n), "epochs": epochs, "lr": lr, "batch": batch,
                       "dropout": dropout, "seed": seed, "loss": "mse", "optimizer": "adam", "final_loss": loss_v,
@@ -922,6 +975,39 @@ def check_training_params(*, epochs: Any, lr: Any, batch: Any, dropout: Any, see
             raise ValueError(f"training parameter {name} = {v!r}: expected {what}")
 
 
+#: the depth gain is fitted on the training presses whose circle of this many contact radii lies inside the image
+GAIN_MARGIN = 1.2
+#: fewer presses than this in the depth gain's fit are said in the log (one press's cap height sets the gain alone)
+MIN_GAIN_PRESSES = 3
+
+
+def _no_depth_message(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
+                      stride: int, train_names: Sequence[str], gauged: Sequence[str], unseen: Sequence[str],
+                      threshold: float) -> str:
+    """Why a calibration whose training presses all read no depth, some of them not even seen by the change mask, is
+    refused, naming the likely causes: the frames whose colour change set the change threshold (a press labelled
+    "no contact" or labelled far from its circle), the background, the labels."""
+    def names(ns: Sequence[str]) -> str:
+        return ", ".join(ns[:5]) + (" ..." if len(ns) > 5 else "")
+
+    msg = (f"no training press measured any depth: all {len(gauged)} that the depth gain is fitted on "
+           f"({names(gauged)}) read a cap height of 0 with the trained model, and in {len(unseen)} of them "
+           f"({names(unseen)}) the change mask sees nothing: the model's change threshold, {threshold:.1f} levels "
+           f"(the shared QVGA DIGIT's: about 16), is above their colour change; no model written. The threshold is "
+           f"taken from the frames' colour change away from the labelled contacts, so likely causes are: a frame "
+           f"labelled 'no contact' that shows a press")
+    flat = [n for n in train_names if n in labels and labels[n].no_contact]
+    if flat:
+        msg += f" (labelled so: {', '.join(flat[:5])}{' ...' if len(flat) > 5 else ''})"
+    msg += ("; a background that is not this sensor's no-contact frame (another sensor's, or one with a press in "
+            "it); labels whose centre or radius miss the press (a radius far too small, another image's row)")
+    top = _threshold_frames(images, labels, background, stride, train_names)
+    if len(top) >= 2 and top[0][1] > 2.0 * top[len(top) // 2][1]:
+        msg += (f". The largest change away from the labelled contacts is in {top[0][0]} ({top[0][1]:.0f} levels; "
+                f"median over the frames {top[len(top) // 2][1]:.0f}): check its label first")
+    return msg
+
+
 def _inside(label: Label, shape: tuple[int, ...], k: float) -> bool:
     """True when the circle of k contact radii around the press lies inside the image."""
     h, w = shape[:2]
@@ -933,9 +1019,19 @@ def change_threshold(images: Sequence[tuple[str, np.ndarray]], labels: dict[str,
                      stride: int, names: Sequence[str]) -> float:
     """The estimator's contact threshold for this sensor: 1.25 x the 99.9th percentile of its change statistic
     (|diff| summed over channels on the work grid, 3 x 3 box-blurred) away from the presses (beyond 2.5 radii)."""
+    vals = [v for _, v in _far_change(images, labels, background, stride, names)]
+    if not vals:
+        return 16.0
+    return float(max(6.0, 1.25 * np.percentile(np.concatenate(vals), 99.9)))
+
+
+def _far_change(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
+                stride: int, names: Sequence[str]) -> list[tuple[str, np.ndarray]]:
+    """(name, the change statistic on the cells beyond 2.5 contact radii; all cells of a no-contact frame) of each
+    frame of ``names`` that :func:`change_threshold` takes its statistic from."""
     import cv2
 
-    vals = []
+    out = []
     for name, img in images:
         lb = labels.get(name)
         if name not in names or lb is None or not (lb.usable or lb.no_contact):
@@ -947,12 +1043,18 @@ def change_threshold(images: Sequence[tuple[str, np.ndarray]], labels: dict[str,
             rr, cc = np.mgrid[0:gr, 0:gc]
             far = ((cc * stride + (stride - 1) / 2 - lb.cx) ** 2 + (rr * stride + (stride - 1) / 2 - lb.cy) ** 2
                    > (2.5 * lb.r) ** 2)
-            vals.append(a[far])
+            out.append((name, a[far]))
         else:
-            vals.append(a.ravel())
-    if not vals:
-        return 16.0
-    return float(max(6.0, 1.25 * np.percentile(np.concatenate(vals), 99.9)))
+            out.append((name, a.ravel()))
+    return out
+
+
+def _threshold_frames(images: Sequence[tuple[str, np.ndarray]], labels: dict[str, Label], background: np.ndarray,
+                      stride: int, names: Sequence[str]) -> list[tuple[str, float]]:
+    """(name, 99.9th percentile of its :func:`_far_change`), the largest first: which frames raise the threshold."""
+    per = [(n, float(np.percentile(v, 99.9))) for n, v in _far_change(images, labels, background, stride, names)
+           if v.size]
+    return sorted(per, key=lambda nv: -nv[1])
 
 
 # --- metrics ---------------------------------------------------------------------------------------------------
