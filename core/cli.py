@@ -329,6 +329,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from .recording import Recorder
 
         recorder = Recorder(args.record, spec, image_format=args.record_images or "png")
+        recorder.graph_now = rt.now   # graph time 0's Unix time from the clock, not from a step's end
         rt.add_tap(recorder.tap)
     progress = None if args.quiet else _Progress()
     record_error = None

@@ -725,6 +725,16 @@ class Recorder:
         self._lag_warned = False
         self.clock = getattr(spec, "clock", "wall")
         self._ports = self._port_table(spec)
+        topics: dict[str, tuple[str, str]] = {}
+        for key in self._ports:   # node ids 'a-b' and 'a_b' (both valid) gave one topic, maybe of two types
+            other = topics.setdefault(_topic(*key), key)
+            if other != key:
+                raise RecordingError(f"cannot record {self.path}: the ports {'.'.join(other)} and {'.'.join(key)} "
+                                     f"would share the topic {_topic(*key)} (a ROS topic takes '-' as '_'), which "
+                                     f"ROS tools read as one; rename one of the nodes")
+        #: the graph clock (the runtime's now(), set by `teletouch run`): on a wall clock the recording's Unix time
+        #: of graph time 0 is taken from it; None: from the first recorded step's time
+        self.graph_now: Callable[[], float] | None = None
         try:
             self._fh = open(self.path, "wb")
         except OSError as exc:
@@ -904,9 +914,12 @@ class Recorder:
     def _set_epoch(self, t: float) -> None:
         with self._epoch_lock:
             if self._epoch_ns is None:
-                # wall clock: graph time t is "now", so epoch = Unix time of graph time 0. sim clock: graph time is
-                # not real time; graph time 0 is placed at the first recorded step's Unix time.
-                epoch = time.time_ns() - (int(round(t * 1e9)) if self.clock == "wall" else 0)
+                # wall clock: epoch = Unix time of graph time 0, from the graph clock's reading now (the tap comes
+                # after the step, so taking "now" for its time t put every stamp late by the first step's length:
+                # 40 ms against ros2-publish's stamps); without it, from t. sim clock: graph time is not real time;
+                # graph time 0 is placed at the first recorded step's Unix time.
+                now = self.graph_now() if self.graph_now is not None else t
+                epoch = time.time_ns() - (int(round(now * 1e9)) if self.clock == "wall" else 0)
                 self._q.put(("__epoch__", epoch, None, 0))
                 self._epoch_ns = epoch
 
@@ -1082,6 +1095,9 @@ class Recording:
     messages: int = 0  # messages read
     first_ns: int | None = None  # publish time of the file's first message: graph time 0 of another tool's file
     dropped: int | None = None  # samples the recorder dropped (teletouch.drops); None: the file does not say
+    #: channels whose messages no reader here decodes (another tool's types: /rosout's rcl_interfaces/msg/Log, ...):
+    #: "topic (schema)", left out by the readers of signals instead of failing the whole file
+    undecoded: list[str] = field(default_factory=list)
 
     def graph_time(self, ns: int) -> float:
         return (ns - (self.epoch_ns or 0)) * 1e-9
@@ -1110,6 +1126,15 @@ class Recording:
 
 
 def _codec_for(ch: ChannelInfo, path: str) -> _Codec:
+    codec = _codec_or_none(ch)
+    if codec is None:
+        raise RecordingError(f"{path}: channel {ch.topic}: no decoder for schema '{ch.schema_name}' "
+                             f"({ch.message_encoding})")
+    return codec
+
+
+def _codec_or_none(ch: ChannelInfo) -> _Codec | None:
+    """The decoder of a channel's messages; None for a type no reader here knows (another tool's)."""
     kind = ch.metadata.get("codec")
     if kind in _CODECS:
         return _CODECS[kind]()
@@ -1118,8 +1143,7 @@ def _codec_for(ch: ChannelInfo, path: str) -> _Codec:
     for c in _CODECS.values():
         if c.ros_type and c.ros_type.replace("/msg/", "/") == ch.schema_name.replace("/msg/", "/"):
             return c()
-    raise RecordingError(f"{path}: channel {ch.topic}: no decoder for schema '{ch.schema_name}' "
-                         f"({ch.message_encoding})")
+    return None
 
 
 def _decode(path: str, codec: _Codec, ch: ChannelInfo, msg: Any, epoch_ns: int) -> Any:
@@ -1253,7 +1277,9 @@ def _iter_raw(path: str, rec: Recording) -> Iterator[tuple[ChannelInfo, Any]]:
 def open_recording(path: str | os.PathLike, decode: bool = True, keys: Any = None,
                    ) -> tuple[Recording, list[tuple[str, float, float, Any]]]:
     """Read a recording: its :class:`Recording` description and a list of (key, stamp_s, log_s, value) in file
-    order (graph time, s). ``keys``: only these "node.port" keys; ``decode=False`` gives the raw bytes."""
+    order (graph time, s). ``keys``: only these "node.port" keys; ``decode=False`` gives the raw bytes. Decoded, a
+    channel of a message type no reader here knows (another tool's) is left out and named in
+    ``Recording.undecoded``."""
     return _read(str(path), None if keys is None else (lambda ch: ch.key in keys), decode)
 
 
@@ -1273,9 +1299,13 @@ def _read(path: str, want: Callable[[ChannelInfo], bool] | None, decode: bool = 
             if not take:
                 continue
         if decode:
-            c = codecs.get(ch.id)
+            if ch.id not in codecs:
+                codecs[ch.id] = _codec_or_none(ch)
+                if codecs[ch.id] is None:   # another tool's type (a `ros2 bag record -a` has /rosout): left out,
+                    rec.undecoded.append(f"{ch.topic} ({ch.schema_name})")   # not the whole file refused
+            c = codecs[ch.id]
             if c is None:
-                c = codecs[ch.id] = _codec_for(ch, path)
+                continue
             value = _decode(path, c, ch, msg, _epoch(rec))
         else:
             value = msg.data
@@ -1297,7 +1327,11 @@ def _is_image(ch: ChannelInfo) -> bool:
 
 
 def _is_colour(ch: ChannelInfo) -> bool:
-    """A BGR uint8 image channel (by the port's declared dtype/shape, else by the CompressedImage format)."""
+    """A BGR uint8 image channel (by the port's declared dtype/shape, else by the CompressedImage format); another
+    tool's raw sensor_msgs/Image channel (no teletouch metadata: its encoding is in its messages) counts as one, its
+    frames checked as they are decoded (it was "the recording has no images" for a bag of bgr8 Images)."""
+    if "codec" not in ch.metadata and ch.schema_name.replace("/msg/", "/") == "sensor_msgs/Image":
+        return True
     if ch.metadata.get("codec") not in ("compressed", "json-image") and not ch.schema_name.endswith(
             "CompressedImage"):
         return False
@@ -1480,14 +1514,17 @@ def plot_recording(path: str | os.PathLike, outdir: str | os.PathLike | None = N
     not_drawn = f"; not drawn: {', '.join(skipped)}" if skipped else ""
     if not groups:
         there = (f"; numeric signals in the recording: {', '.join(drawable)}" if select and drawable else "")
+        unread = f"; not read (no decoder for their message types): {', '.join(rec.undecoded)}" if rec.undecoded else ""
         raise RecordingError(f"{path}: no numeric signals to plot" + (f" matching '{select}'" if select else "")
-                             + not_drawn + there + (f": {rec.note()}" if rec.truncated else ""))
+                             + not_drawn + there + unread + (f": {rec.note()}" if rec.truncated else ""))
     if rec.truncated:
         log(f"warning: {path}: {rec.note()}; plotting those")
     if rec.dropped:
         log(f"warning: {path}: {rec.drop_note()}")
     if skipped:
         log(f"note: {path}: not drawn (only 1-D signals and vectors are): {', '.join(skipped)}")
+    if rec.undecoded:
+        log(f"note: {path}: not read (no decoder for their message types): {', '.join(rec.undecoded)}")
     if outdir.exists() and not outdir.is_dir():
         raise RecordingError(f"output folder {outdir} is a file, not a folder")
     try:

@@ -110,9 +110,16 @@ def test_a_message_that_cannot_be_decoded_is_an_error_naming_the_file_and_channe
     elif case == "not-json":
         _foreign(path, "json", None, b"\x00\x01not json")
         why = 'message 1 (at 0.000 s) cannot be decoded (expected JSON {"value": ...}, as teletouch writes): JSONDecode'
-    else:
+    else:   # a type no reader knows: the channel is left out and named, not the whole file refused (a `ros2 bag
+        # record -a` has /rosout; ros2-publish's own JointState has no decoder here)
         _foreign(path, "protobuf", ("foo.Bar", "protobuf"), b"\x08\x01")
-        why = "no decoder for schema 'foo.Bar' (protobuf)"
+        rec, items = open_recording(path)
+        assert items == [] and rec.undecoded == ["/other (foo.Bar)"]
+        assert read_signals(path) == {}
+        code, err = _plot(capsys, path, "-o", tmp_path / "out")
+        assert code == 1 and err.startswith(f"teletouch plot: {path}: no numeric signals to plot; not read (no "
+                                            f"decoder for their message types): /other (foo.Bar)"), err
+        return
     for read in (open_recording, read_signals):
         with pytest.raises(RecordingError) as info:
             read(path)
