@@ -148,3 +148,29 @@ def test_a_short_loss_is_no_fault():
 def test_fault_after_lost_shorter_than_the_fade_is_refused():
     with pytest.raises(ValidationError, match="fault_after_lost .* must be at least fade_time"):
         PositionForce.Params(fault_after_lost=0.1, fade_time=0.2)
+
+
+def test_a_force_estimate_that_never_comes_is_a_fault_after_first_force_timeout():
+    """A sensor that never started (a ROS 2 domain or topic that does not match on the split setup): the controller
+    stayed "waiting" for the first estimate for the whole run, the follower teleoperated without feedback (9.3 N on
+    the object, 0 N rendered), and the run ended ok, exit 0. Only a loss after a first estimate was a fault."""
+    with Harness(PositionForce, dict(BASE, first_force_timeout=0.5)) as h:
+        with pytest.raises(ComponentFault, match=r"no force estimate received in 0\.50\d s since the leader's first "
+                                                 r"opening \(t=0\.100 s\), longer than first_force_timeout 0\.5 s") \
+                as info:
+            for k in range(2000):
+                t = k * DT
+                h.step(t, leader_opening=closing(t) if t >= 0.1 else None)   # the leader from 0.1 s on
+        assert info.value.input_port == "force"
+        assert 0.6 < k * DT < 0.61
+    # an estimate before the timeout: no fault (a loss after it is fault_after_lost's); null: waits for ever
+    with Harness(PositionForce, dict(BASE, first_force_timeout=0.5, fault_after_lost=None)) as h:
+        for k in range(2000):
+            t = k * DT
+            h.step(t, leader_opening=closing(t), force=Sample(1.0, t) if k == 400 else None)
+    with Harness(PositionForce, dict(BASE, first_force_timeout=None)) as h:
+        for k in range(2000):
+            h.step(k * DT, leader_opening=closing(k * DT))
+        assert h.comp.state == "waiting"
+    with pytest.raises(ValidationError, match="first_force_timeout"):
+        PositionForce.Params(first_force_timeout=120)

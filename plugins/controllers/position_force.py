@@ -815,6 +815,12 @@ class PositionForce(_Bilateral):
         stale_after: Seconds = Field(0.1, gt=0, le=1.0, description="a force estimate older than this fades to zero "
                                      "(at most 1 s: a dead sensor's last force stayed on the hand that long; 100 "
                                      "meant as ms was 100 s)", json_schema_extra={"unit": "s"})
+        first_force_timeout: Seconds | None = Field(5.0, gt=0, le=60.0, description="no force estimate at all "
+                                                    "this long after the leader's first usable opening is a fault "
+                                                    "(a sensor that never started, a ROS 2 domain or topic that "
+                                                    "does not match: the follower went on without feedback for the "
+                                                    "whole run, which ended ok; null: wait for ever)",
+                                                    json_schema_extra={"unit": "s"})
         force_prediction: bool = Field(True, description="in contact, bridge the estimate's latency with a local "
                                        "contact model: add k_f * K * (x_cmd(capture) - x_cmd(now)), K the "
                                        "stiffness learnt from successive estimates (never past zero)")
@@ -877,6 +883,8 @@ class PositionForce(_Bilateral):
         self.bad_force = 0
         self.resuming = False                   # the follower command was held: it slews back (resume_speed)
         self.force_state = "waiting"            # the estimate's state, kept while step() shows stale-leader
+        self.force_seen = False                 # a force sample came (any: a stale or bad one is a loss, not this)
+        self.first_wait_since: float | None = None   # the leader's first usable step while no estimate has come
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
         p = self.params
@@ -885,6 +893,8 @@ class PositionForce(_Bilateral):
         if self.state == "stale-leader":
             self.state = self.force_state
         s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
+        if s is not None:
+            self.force_seen = True
         if s is not None and self._first_look("force", s):     # once per sample (a NaN stamp too)
             f_s = finite_or(s.value, math.nan)
             if math.isfinite(f_s):
@@ -914,6 +924,7 @@ class PositionForce(_Bilateral):
                 self._fade(t)
         if s is None:
             self.state = "waiting" if self.state == "waiting" else self.state
+            self._first_force_wait(t)
         elif not self._usable("force", s, t, p.stale_after) and self.state != "bad-force":
             if not self.fading:                       # why, for the fault of a loss that lasts
                 self.force_problem = self._not_fresh("force", s, t, p.stale_after, "stale_after", False)
@@ -993,6 +1004,21 @@ class PositionForce(_Bilateral):
 
     def _sensed(self) -> float:
         return self.force_held if self.force_state == "ok" else math.nan   # (stale, bad: fading, not sensed)
+
+    def _first_force_wait(self, t: float) -> None:
+        """No force sample yet: once the leader gives openings (the follower follows them), a wait longer than
+        ``first_force_timeout`` is a ComponentFault about the force input (the runtime names the node feeding it)."""
+        limit = self.params.first_force_timeout
+        if self.force_seen or limit is None or self.command is None:
+            return
+        if self.first_wait_since is None:
+            self.first_wait_since = t
+        elif t - self.first_wait_since > limit:
+            raise ComponentFault(f"no force estimate received in {t - self.first_wait_since:.3f} s since the leader's "
+                                 f"first opening (t={self.first_wait_since:.3f} s), longer than first_force_timeout "
+                                 f"{limit:g} s: the follower would be teleoperated without force feedback; check the "
+                                 f"sensor, its estimators and the force wire (a ROS 2 bridge: its domain and topic)",
+                                 input_port="force")
 
     def _fade(self, t: float) -> None:
         if not self.fading:
