@@ -262,10 +262,11 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 1
     cmd = [sys.executable, "-m", "teletouch", "calibrate", "force", "--graph", str(graph), "-o", args.output,
-           "--plot", args.plot, "--samples", str(Path(tmp.name) / "samples.csv"),
-           "--sensor-model-id", "sim-digit-qvga"]
-    if args.depth_model:
-        cmd += ["--set", f"depth.model={Path(args.depth_model).resolve()}"]
+           "--plot", args.plot, "--samples", str(Path(tmp.name) / "samples.csv")]
+    if args.depth_model:   # the file records the model the depth came from, as the command takes it from the graph
+        cmd += ["--set", f"depth.model={Path(args.depth_model).resolve()}"]   # (it was always sim-digit-qvga)
+    else:
+        cmd += ["--sensor-model-id", "sim-digit-qvga"]
     if args.quick:
         cmd += ["--set", "routine.step=0.25mm"]
     if not args.single_point:

@@ -312,3 +312,20 @@ def test_force_quick_fits_position_terms_of_degree_2(force_script, force_check, 
     assert rc == 0
     ((cmd, _),) = state["calls"]
     assert cmd[cmd.index("--position-degree") + 1] == "2" and "routine.cycles=9" in cmd
+
+
+def test_force_with_another_depth_model_records_that_model(force_script, force_check, tmp_path):
+    """--depth-model FILE ran the press with that model but passed --sensor-model-id sim-digit-qvga all the same:
+    the file was tied to the model it was not made with (validate refused the right model, took the wrong one)."""
+    ref, state = force_check
+    model = tmp_path / "other.model"
+    model.write_bytes((REPO / "plugins" / "estimators" / "data" / "sim-digit-qvga.model").read_bytes())
+    rc, _ = _run(force_script, "--quick", "--depth-model", str(model), "-o", str(tmp_path / "q.force.json"),
+                 "--plot", str(tmp_path / "q.png"))
+    assert rc == 0
+    ((cmd, _env),) = state["calls"]
+    assert "--sensor-model-id" not in cmd and f"depth.model={model.resolve()}" in cmd   # the graph's model recorded
+    state["calls"].clear()
+    rc, _ = _run(force_script, "--quick", "-o", str(tmp_path / "p.force.json"), "--plot", str(tmp_path / "p.png"))
+    ((cmd, _env),) = state["calls"]
+    assert cmd[cmd.index("--sensor-model-id") + 1] == "sim-digit-qvga"
