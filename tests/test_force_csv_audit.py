@@ -115,3 +115,22 @@ def test_the_command_refuses_an_ambiguous_header_and_writes_nothing(tmp_path, ca
     assert main(["calibrate", "force", "--csv", str(p), "-o", str(out), "--quiet"]) == 1
     assert f"{p}:1: 2 depth columns, 'depth_mm' and 'depth_m'" in capsys.readouterr().err
     assert not out.exists() and not (tmp_path / "cal.png").exists()
+
+
+@pytest.mark.parametrize("extra, says", [
+    # before: the calibration was written, then matplotlib raised "Format 'txt' is not supported" (a traceback)
+    (["--plot", "{tmp}/p1.plot.txt"], "--plot: '{tmp}/p1.plot.txt': expected an image file (.png, .svg, .pdf, .jpg, "
+                                      ".jpeg), not .txt"),
+    # before: the PNG overwrote the calibration JSON ("wrote fig.png and fig.png", exit 0)
+    (["-o", "{tmp}/fig.png", "--plot", "{tmp}/fig.png"], "--plot: '{tmp}/fig.png' is also -o's file"),
+])
+def test_outputs_that_would_fail_or_overwrite_each_other_are_refused_before_the_fit(tmp_path, capsys, extra, says):
+    p = tmp_path / "pairs.csv"
+    _write(p, "depth_m,force_n", lambda d, f: f"{d:.6f},{f:.4f}")
+    argv = ["calibrate", "force", "--csv", str(p), "--quiet", "--degree", "2"]
+    if "-o" not in extra:
+        argv += ["-o", str(tmp_path / "cal.force.json")]
+    argv += [a.format(tmp=tmp_path) for a in extra]
+    assert main(argv) == 2
+    assert says.format(tmp=tmp_path) in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.json")) and not list(tmp_path.glob("*.png"))

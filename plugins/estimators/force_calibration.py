@@ -1010,6 +1010,16 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         problem = output_problem(given)
         if problem:
             return usage(f"{opt}: cannot write {str(path)!r}: {problem}")
+    # two outputs on one path overwrote each other (the PNG over the calibration, exit 0); a plot in a format
+    # matplotlib cannot write failed after the fit (a traceback) or after the whole press run
+    seen: dict[Path, str] = {}
+    for opt, path, _ in outputs:
+        first = seen.setdefault(path.expanduser().resolve(), opt)
+        if first != opt:
+            return usage(f"{opt}: {str(path)!r} is also {first}'s file: give each output a path of its own")
+    if plot.suffix.lower() not in PLOT_SUFFIXES:
+        return usage(f"--plot: {str(plot)!r}: expected an image file ({', '.join(PLOT_SUFFIXES)}), not "
+                     f"{plot.suffix or 'a name without a suffix'}")
     if args.csv:
         try:
             data = read_pairs_csv(args.csv)
@@ -1086,6 +1096,10 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
               f"{' and no fault reached its samples' if faulted else ''}: its calibration is written", file=sys.stderr)
         return ended.exit_code
     return 0
+
+
+#: the file types the calibration's plot is written in (matplotlib's raster and vector formats a person opens)
+PLOT_SUFFIXES = (".png", ".svg", ".pdf", ".jpg", ".jpeg")
 
 
 #: how :func:`_spoiled_samples`'s reason ends (so `--csv` tells a stale-sample file from an unfinished run's)
