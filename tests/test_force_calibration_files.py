@@ -126,3 +126,21 @@ def test_start_up_still_refuses_a_file_that_changed_after_validation(tmp_path, p
     p.write_bytes(b"\x00\x88binary")
     with pytest.raises(ModelFileError, match="not a force calibration"):
         PolyForce(params).configure()
+
+
+@pytest.mark.parametrize("edit", [lambda c: [c[0] - 1.5] + c[1:], lambda c: [c[0] + 1.7] + c[1:],
+                                  lambda c: [c[0]] + [x * 1.9 for x in c[1:]], lambda c: [x * 0.55 for x in c]],
+                         ids=["c0-1.5N", "c0+1.7N", "c1-c3x1.9", "all-x0.55"])
+def test_coefficients_that_do_not_fit_the_files_own_samples_are_refused(tmp_path, edit):
+    """The load compared only the curve's two ends with force_range_n: a constant term moved by 1.5 N (0 N, status
+    ok, up to 0.5 mm into the contact), or every coefficient scaled (half the force), loaded, the file still saying
+    R^2 0.99996."""
+    d = [2e-4 * i for i in range(1, 18)]
+    cal = ForceCalibration.fit(d, [3000 * x + 2e6 * x * x - 4e8 * x ** 3 for x in d], degree=3)
+    doc = cal.to_dict()
+    assert ForceCalibration.from_dict(doc, "ok.force.json").r2 > 0.9999   # the file as written loads
+    doc["model"]["coefficients"] = edit(list(doc["model"]["coefficients"]))
+    with pytest.raises(ModelFileError, match=r"e.force.json: field 'model.coefficients': the coefficients do not "
+                                             r"fit the file's own 17 samples: R\^2 -?\d\.\d{4} with them, the file "
+                                             r"says 1\.0000"):
+        ForceCalibration.from_dict(doc, "e.force.json")

@@ -375,6 +375,41 @@ def _position_slope_problem(pmodel: PositionModel, lo: float) -> str | None:
     return None
 
 
+#: how far below the file's own R^2 the curve may fit the samples the file holds (rounding, not an edit)
+SAMPLES_R2_SLACK = 0.01
+
+
+def _samples_problem(cal: "ForceCalibration") -> str | None:
+    """Why the curve does not fit the samples its own file holds (None where it does, or where the file holds too
+    few, or no R^2 to compare with): R^2 of the used samples with the loaded coefficients against the file's
+    ``quality.r2``. The limits check compares only the curve's ends with the force range: a constant term moved by
+    1.5 N (0 N, status ok, well into the contact) or every coefficient scaled (half the force) loaded, reporting the
+    R^2 of the fit that was edited."""
+    used = [s for s in cal.samples if s.get("used", True)]
+    if len(used) < 3 or not math.isfinite(cal.r2):
+        return None
+    d = np.array([s["depth_m"] for s in used], dtype=float)
+    f = np.array([s["force_n"] for s in used], dtype=float)
+    if cal.position is None:
+        pred = _polyval(list(cal.coefficients), d)
+    else:
+        if not all(isinstance(s.get("x_m"), (int, float)) and isinstance(s.get("y_m"), (int, float)) for s in used):
+            return None
+        local = [cal.position.local(*cal.position.scaled(float(s["x_m"]), float(s["y_m"]))[:2]) for s in used]
+        pred = np.array([_polyval(c, np.array([di]))[0] for c, di in zip(local, d)])
+    ss_tot = float(np.sum((f - f.mean()) ** 2))
+    if not ss_tot > 0:
+        return None
+    r2 = 1.0 - float(np.sum((f - pred) ** 2)) / ss_tot
+    if r2 >= cal.r2 - SAMPLES_R2_SLACK:
+        return None
+    worst = int(np.argmax(np.abs(f - pred)))
+    return (f"the coefficients do not fit the file's own {len(used)} samples: R^2 {r2:.4f} with them, the file says "
+            f"{cal.r2:.4f} (worst: {f[worst]:.3f} N recorded at {d[worst] * 1e3:.3f} mm, the curve gives "
+            f"{pred[worst]:.3f} N); a hand-edited coefficient, or samples of another fit: refit the samples "
+            f"(teletouch calibrate force --csv)")
+
+
 def _limits_problem(cal: "ForceCalibration", monotonic: bool = True) -> tuple[str, str, Any, str] | None:
     """The first plausibility limit a calibration breaks, or None: (the file's field, what it should hold, what it
     holds, what that means for the data fitted). One check for both ends: :meth:`ForceCalibration.load` refuses such
@@ -840,6 +875,9 @@ class ForceCalibration:
         limits = _limits_problem(cal)   # the limits a fit is held to too
         if limits is not None:
             raise bad(*limits[:3])
+        mismatch = _samples_problem(cal)
+        if mismatch is not None:
+            raise ModelFileError(f"{where}: field 'model.coefficients': {mismatch}")
         return cal
 
     # ---------------------------------------------------------------------------------------------------- report
