@@ -376,6 +376,23 @@ def test_activate_starts_over_with_the_configured_background_and_no_remembered_f
         assert h.comp.reused == 0        # computed again after activate, not answered from before
 
 
+@pytest.mark.parametrize("params", [{"adapt_background": 0.02}, {"reuse_unchanged": False}],
+                         ids=["adapt_background", "no-reuse"])
+def test_a_frozen_camera_on_untouched_gel_faults_whatever_the_reuse(sim, params):
+    """The repeats were counted only against a frame kept for reuse: with adapt_background on untouched gel (the
+    setting a real camera's drift asks for) or reuse_unchanged off, a camera frozen on an untouched frame went on as
+    "no contact", freshly stamped, and never faulted (repeated_frames stayed 0)."""
+    from teletouch import Sample
+
+    frame, _ = sim.render(0.0, (0.0, 0.0), 0.0)
+    with Harness(DepthEstimator, {"fault_after_repeats": 5, "warm": False, **params}) as h:
+        for k in range(5):
+            h.step(k / 60, image=Sample(frame.copy(), k / 60))
+        assert h.comp.status()["repeated_frames"] == 4   # before: 0
+        with pytest.raises(ComponentFault, match="5 bit-identical frames in a row.*frozen"):
+            h.step(5 / 60, image=Sample(frame.copy(), 5 / 60))
+
+
 def test_a_frozen_camera_is_counted_and_can_fault(sim):
     """Bit-identical frames with new stamps (a frozen camera; a real camera's noise never repeats) are answered from
     the last result, stamped with the new time, counted in status; fault_after_repeats faults the node. The same

@@ -216,6 +216,10 @@ class DepthEstimator(Component):
         self._prev: tuple[np.ndarray, Any, float] | None = None  # (last frame, its result, its stamp): reuse
         self._bad_run = 0        # implausible frames in a row
         self._repeat_run = 0     # bit-identical frames with new stamps in a row
+        # (the last frame, its stamp): the repeats are counted against it whether or not its result is kept for reuse
+        # (with adapt_background on untouched gel, or reuse_unchanged off, they were never counted: a frozen camera
+        # went on as "no contact", freshly stamped)
+        self._seen: tuple[np.ndarray, float] | None = None
         self._mismatch: list[float] = []   # background_mismatch() of the first MATCH_FRAMES plausible frames
         # the last input sample handled and its outputs: the port's sample read again is no new frame
         self._handled: tuple[Sample, dict[str, Any]] | None = None
@@ -252,18 +256,22 @@ class DepthEstimator(Component):
             raise ComponentFault(str(exc), self.id) from None
         t0 = time.perf_counter()
         p = self.params
+        seen = self._seen
+        same = seen is not None and _same_frame(seen[0], frame)
+        if same and s.stamp != seen[1]:
+            self._repeat_run += 1
+            self._seen = (seen[0], s.stamp)
+            if p.fault_after_repeats and self._repeat_run >= p.fault_after_repeats:
+                raise ComponentFault(f"{self._repeat_run} bit-identical frames in a row with new stamps: the "
+                                     f"camera is frozen (fault_after_repeats {p.fault_after_repeats})", self.id)
+        elif not same:
+            self._repeat_run = 0
+            self._seen = (frame.copy(), s.stamp)
         prev = self._prev
-        if prev is not None and _same_frame(prev[0], frame):
+        if same and prev is not None:   # (the result kept is the last frame's: the same frame)
             res = prev[1]
             self.reused += 1
-            if s.stamp != prev[2]:
-                self._repeat_run += 1
-                self._prev = (prev[0], res, s.stamp)
-                if p.fault_after_repeats and self._repeat_run >= p.fault_after_repeats:
-                    raise ComponentFault(f"{self._repeat_run} bit-identical frames in a row with new stamps: the "
-                                         f"camera is frozen (fault_after_repeats {p.fault_after_repeats})", self.id)
         else:
-            self._repeat_run = 0
             try:
                 res = self.pipe(frame)
             except ValueError as exc:   # a depth that is not finite: no output is better than a wrong one
@@ -280,7 +288,7 @@ class DepthEstimator(Component):
                 self._adapt(frame)
                 self._prev = None   # the background moved: the same frame would now read differently
             elif p.reuse_unchanged:
-                self._prev = (frame.copy(), res, s.stamp)
+                self._prev = (self._seen[0], res, s.stamp)   # (one copy of the frame for both)
         self._bad_run = 0
         self._step_s = time.perf_counter() - t0
         self._last = {"max_depth_m": float(res.max_depth), "contact_area_m2": float(res.contact_area),
