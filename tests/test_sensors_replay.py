@@ -351,3 +351,19 @@ def test_a_recording_without_the_mcap_suffix_is_replayed_not_opened_as_a_video(t
     result, rt, got = _run(_graph(renamed, node_rate=100), duration=1.0)
     assert "finished: 3 frames" in result.ending, result.ending   # before: "cannot open the video"
     assert len(got) == 3 and all(np.array_equal(s.value, f) for (_, s), f in zip(got, frames))
+
+
+def test_wall_clock_frames_go_out_on_their_step_after_a_late_first_step(shared_data):
+    """Frame k is due k / rate after the first step: under the wall clock that first step ran a little late (3 ms),
+    and every later step that ran less late missed its frame by the difference, publishing it a period after its
+    stamp (58 of 60 frames at 30 Hz), or skipping one."""
+    h = Harness(Replay, {"path": str(shared_data / "digit-presses-qvga"), "rate": 30, "loop": True}, rate=30)
+    h.ctx.clock_kind = "wall"
+    with h:
+        out = h.step(0.0031)
+        assert h.samples["image"].stamp == 0.0
+        for k in range(1, 30):
+            t = k / 30 + 0.0005   # each later step 0.5 ms late
+            out = h.step(t)
+            assert out and h.samples["image"].stamp == pytest.approx(k / 30), k   # before: nothing, then late
+        assert h.comp.status()["skipped"] == 0

@@ -444,6 +444,11 @@ class Replay(Component):
             return None
         if self._t0 is None:
             self._t0 = t
+            rate = getattr(self.ctx, "rate", None)
+            if self.ctx.clock_kind == "wall" and rate:
+                # the tick the first step was due at, not its (late) run: a later step that ran less late missed its
+                # frame by the difference, and 58 of 60 frames went out a period after their stamps
+                self._t0 = min(t, math.floor(t * rate + 1e-6) / rate)
         rel = t - self._t0
         newest = None
         while True:
