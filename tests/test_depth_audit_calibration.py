@@ -155,3 +155,23 @@ def test_a_background_frame_labelled_as_a_press_is_refused(presses, tmp_path, ca
     assert rc == 2 and not out.exists(), err
     assert (f"error: {folder / 'labels.csv'}:2: 0000.png is labelled as a press (radius 23 px), but it is given as "
             f"--background, which must be a frame without contact") in err
+
+
+def test_labels_only_keeps_and_reviews_the_given_labels(presses, tmp_path, capsys):
+    """--labels-only read and checked --labels, then labelled every press automatically: the given file, named as
+    --write-labels too ("it is rewritten with this folder's presses only"), lost its hand circles, and the review
+    overlays showed the automatic ones. The given rows are kept now; presses without one are labelled."""
+    folder, rows = presses
+    given = _write(folder, rows[:1] + [r + "," for r in rows[1:-1]], "hand.csv")   # the last press has no row
+    out = tmp_path / "out.csv"
+    rc = main(["calibrate", "depth", "--images", str(folder), "--ball-diameter", "6mm", "--px-per-mm", "17.15",
+               "--labels", str(given), "--labels-only", "--write-labels", str(out), "--review", str(tmp_path / "rv")])
+    assert rc == 0
+    written = C.read_labels(out)
+    hand = C.read_labels(given)
+    for name, lb in hand.items():
+        assert (written[name].cx, written[name].cy, written[name].r) == (lb.cx, lb.cy, lb.r), name
+    last = rows[-1].split(",")[0]
+    assert last in written and last not in hand   # labelled automatically
+    assert "9 label(s) as given in" in capsys.readouterr().err
+    assert len(list((tmp_path / "rv").glob("*.review.png"))) == 10

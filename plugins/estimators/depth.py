@@ -646,7 +646,15 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         print(f"teletouch calibrate depth: error: {exc}", file=sys.stderr)
         return 2
     if args.labels_only:
-        labs = [auto_label(n, im, bg, radius * px_per_m) for n, im in images]
+        # the --labels rows as given (rewritten and reviewed: the overlays show the given circles), the folder's other
+        # presses labelled automatically (before, --labels was read and checked, then thrown away: its file, given as
+        # --write-labels too, was overwritten with automatic circles)
+        labs = [labels[n] if labels is not None and n in labels else auto_label(n, im, bg, radius * px_per_m)
+                for n, im in images]
+        if labels is not None:
+            given = sum(1 for n, _ in images if n in labels)
+            log(f"{given} label(s) as given in {args.labels}"
+                + (f", {len(images) - given} labelled automatically" if given < len(images) else ""))
         try:
             out = write_labels(labels_out, labs)
             _write_review(args.review, images, bg, labs, review_overlay)
