@@ -134,3 +134,40 @@ def test_outputs_that_would_fail_or_overwrite_each_other_are_refused_before_the_
     assert main(argv) == 2
     assert says.format(tmp=tmp_path) in capsys.readouterr().err
     assert not list(tmp_path.glob("*.json")) and not list(tmp_path.glob("*.png"))
+
+
+def test_a_refit_of_a_press_runs_samples_keeps_the_depth_model(tmp_path, capsys):
+    """The samples CSV did not say which depth model its depths came from: a refit with --csv (docs: "fits again to
+    the same curve") was tied to no model, and `teletouch estimate` refused it with that model. The CSV carries it
+    as a comment line now, and the refit takes it unless --sensor-model-id says otherwise."""
+    import json
+    from pathlib import Path
+
+    graph = Path(__file__).resolve().parents[1] / "examples" / "calibrate-force-sim.yaml"
+    out = tmp_path / "sim.force.json"
+    rc = main(["calibrate", "force", "--graph", str(graph), "--quiet", "--degree", "2", "-o", str(out),
+               "--set", "routine.cycles=1", "--set", "routine.max_displacement=0.6mm"])
+    assert rc == 0, capsys.readouterr().err
+    made_for = json.loads(out.read_text())["sensor_model_id"]
+    samples = tmp_path / "sim.samples.csv"
+    assert f"# sensor_model_id: {made_for}\n" in samples.read_text() and made_for
+    assert read_pairs_csv(samples)["sensor_model_id"] == made_for
+    refit = tmp_path / "refit.force.json"
+    assert main(["calibrate", "force", "--csv", str(samples), "--degree", "2", "-o", str(refit), "--quiet"]) == 0
+    assert json.loads(refit.read_text())["sensor_model_id"] == made_for   # before: ""
+    other = tmp_path / "other.force.json"
+    assert main(["calibrate", "force", "--csv", str(samples), "--degree", "2", "-o", str(other), "--quiet",
+                 "--sensor-model-id", "mine.model"]) == 0
+    assert json.loads(other.read_text())["sensor_model_id"] == "mine.model"
+
+
+def test_the_samples_csv_round_trips_its_depth_model():
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        p = write_pairs_csv(Path(d) / "s.csv", [{"depth_m": x, "force_n": _force(x)} for x in DEPTHS_M],
+                            partial="the run did not finish", sensor_model_id="sensor.model")
+        data = read_pairs_csv(p)
+        assert data["sensor_model_id"] == "sensor.model" and data["partial"] == "the run did not finish"
+        assert len(data["depth_m"]) == len(DEPTHS_M)

@@ -1041,7 +1041,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
                    for i, (d, f) in enumerate(zip(data["depth_m"], data["force_n"]))]
         cal = fit_samples(samples, args.degree, min_depth=min_depth, use=args.use,
                           position_degree=args.position_degree,
-                          zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or "",
+                          zero_intercept=args.zero_intercept,
+                          sensor_model_id=args.sensor_model_id or data.get("sensor_model_id") or "",
                           depth_source="csv", source=f"csv:{Path(args.csv).name}", min_r2=min_r2, where=args.csv)
         if partial:
             cal.extra["partial"] = partial   # recorded in the calibration file
@@ -1049,9 +1050,11 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
         result, routine, spec = run_press_calibration(args.graph, sets=args.sets, clock=args.clock,
                                                       duration=duration, progress=not args.quiet)
         spoiled = _spoiled_samples(result, routine, spec) if routine.state == "done" else None
+        model_id, depth_src = _sensor_model_id(spec)
         if routine.samples:
             partial = routine.partial_reason() or spoiled
-            write_pairs_csv(samples_path, routine.samples, partial=partial)
+            write_pairs_csv(samples_path, routine.samples, partial=partial,
+                            sensor_model_id=args.sensor_model_id or model_id)
             print(f"wrote {len(routine.samples)} samples to {samples_path}"
                   + (f" (marked partial: {'a fault may have spoiled them' if spoiled else 'the run did not finish'})"
                      if partial else ""), file=sys.stderr)
@@ -1070,7 +1073,6 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             return result.exit_code or 3
         if result.exit_code:   # interrupted (held as the run stopped), degraded, fault: the calibration is complete,
             ended = result     # still written, and the command exits as `teletouch run` does for that run
-        model_id, depth_src = _sensor_model_id(spec)
         try:
             cal = fit_samples(routine.samples, args.degree, min_depth=min_depth, use=args.use,
                               position_degree=args.position_degree,

@@ -1039,6 +1039,7 @@ MAX_DEPTH_M = 0.01        # 10 mm of indentation
 MAX_FORCE_N = 200.0       # N
 MAX_CENTROID_M = 0.1      # 100 mm from the image centre
 PARTIAL_MARK = "# partial:"   # first line of a samples CSV from a press run that did not finish
+MODEL_MARK = "# sensor_model_id:"   # the depth model a samples CSV's depths came from
 CSV_COLUMNS = ["depth_m", "force_n", "phase", "cycle", "displacement_m", "gt_max_depth_m", "gt_force_n", "x_m", "y_m"]
 #: the other columns a pairs CSV may have: read (phase, cycle, the centroid), or written by the press routine for a look
 #: and ignored when read (the displacement, the simulation's ground truth), or a free-text note; any other is refused
@@ -1076,6 +1077,8 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     comment = [t.lstrip().startswith("#") for t in text]
     partial = next((t.strip().split(":", 1)[1].strip() or "no reason given" for t, c in zip(text, comment)
                     if c and t.lstrip().startswith(PARTIAL_MARK)), None)
+    model_id = next((t.strip().split(":", 1)[1].strip() for t, c in zip(text, comment)
+                     if c and t.lstrip().startswith(MODEL_MARK)), "")
     first = [0]   # the line the row being parsed starts on
 
     def source() -> Iterable[str]:
@@ -1162,7 +1165,7 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
     return {"depth_m": np.array(depth), "force_n": np.array(force),
             "phase": phase if pcol is not None else None, "cycle": cycle if ccol is not None else None,
             "x_m": xs if xcol is not None else None, "y_m": ys if ycol is not None else None, "line": where,
-            "force_column": names[fcol], "partial": partial}
+            "force_column": names[fcol], "partial": partial, "sensor_model_id": model_id}
 
 
 def _pairs_header(path: Path, hline: int, header: list[str], names: list[str]) -> tuple[int, int]:
@@ -1215,15 +1218,20 @@ def _implausible(name: str, v: float, is_depth: bool, is_force: bool) -> str | N
     return None
 
 
-def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]], partial: str | None = None) -> Path:
+def write_pairs_csv(path: str | os.PathLike, rows: Iterable[dict[str, Any]], partial: str | None = None,
+                    sensor_model_id: str = "") -> Path:
     """Write samples (dicts with keys from CSV_COLUMNS; missing ones left empty) as a CSV read_pairs_csv reads.
     ``partial``: why the samples are incomplete (a press run that did not finish): written as a first comment line
-    ``# partial: <why>`` that read_pairs_csv reports and ``teletouch calibrate force --csv`` refuses."""
+    ``# partial: <why>`` that read_pairs_csv reports and ``teletouch calibrate force --csv`` refuses.
+    ``sensor_model_id``: the depth model the depths came from, as a comment line ``# sensor_model_id: <id>``, which
+    a refit with ``--csv`` takes as its default (the refit's file was tied to no model, and `estimate` refused it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="", encoding="utf-8") as fh:
         if partial is not None:
             fh.write(f"{PARTIAL_MARK} {' '.join(str(partial).split()) or 'no reason given'}\n")
+        if sensor_model_id and "\n" not in sensor_model_id and "\r" not in sensor_model_id:
+            fh.write(f"{MODEL_MARK} {sensor_model_id}\n")
         w = csv.writer(fh)
         w.writerow(CSV_COLUMNS)
         for r in rows:
