@@ -7,8 +7,9 @@ wall-clock graph and measures, per message:
 - transport latency: arrival in the subscription callback (Unix time) - header.stamp;
 - graph latency: the step of the consumer graph that outputs the sample - its stamp on the local graph clock (adds
   the subscriber's polling period, 1 kHz here);
-- achieved rate and losses (received / published); QoS depth 5 (the default): a slow reader drops old samples
-  rather than queueing latency.
+- achieved rate and losses (``loss_fraction``: of the samples the steady span should have held; ``published`` and
+  ``received`` are the raw counts, with the discovery time and the publisher's last second in, so their ratio is no
+  loss figure); QoS depth 5 (the default): a slow reader drops old samples rather than queueing latency.
 
 The four cases run side by side: each in ``rounds`` rounds (4, ``--quick`` 2) of its share of the duration, every
 round a publisher process and a subscriber graph of its own as above (the first 2 s of each, discovery, left out),
