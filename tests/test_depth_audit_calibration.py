@@ -175,3 +175,17 @@ def test_labels_only_keeps_and_reviews_the_given_labels(presses, tmp_path, capsy
     assert last in written and last not in hand   # labelled automatically
     assert "9 label(s) as given in" in capsys.readouterr().err
     assert len(list((tmp_path / "rv").glob("*.review.png"))) == 10
+
+
+def test_a_review_overlay_shows_the_whole_note():
+    """The overlay drew the note's first 60 characters at a size that ran off the 480 px image: a flagged press's
+    second reason ("edge off a circle (") was cut mid-word. The note is wrapped to the overlay's width now."""
+    import numpy as np
+
+    img = np.full((320, 240, 3), 90, np.uint8)
+    note = ("uncertain: not round (circularity 0.74); edge off a circle (fit residual 9% of the radius); centre unsure "
+            "(the edge circle's centre is 4 px from the changed pixels' centroid)")
+    out = C.review_overlay(img, img, C.Label("x.png", 120.0, 160.0, 30.0, note))
+    text_rows = np.where((out == 255).all(axis=2).any(axis=1))[0]
+    assert text_rows.max() > 18   # a second line of text (the first ends at row ~15)
+    assert not (out[:, -3:] == 255).all(axis=2).any()   # nothing drawn to the right edge (cut off)

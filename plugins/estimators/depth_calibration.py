@@ -647,7 +647,19 @@ def review_overlay(image: np.ndarray, background: np.ndarray, label: Label) -> n
         col = (0, 0, 255) if label.uncertain else (0, 255, 0)
         for off in (0, image.shape[1]):
             cv2.circle(out, (int(round(label.cx)) + off, int(round(label.cy))), int(round(label.r)), col, 1)
-    cv2.putText(out, label.note[:60] or "ok", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1)
+    # the whole note, wrapped to the overlay's width (its first 60 characters ran off the image mid-reason)
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+    lines, line = [], ""
+    for word in (label.note or "ok").split():
+        trial = f"{line} {word}".strip()
+        if line and cv2.getTextSize(trial, font, scale, 1)[0][0] > out.shape[1] - 8:
+            lines.append(line)
+            line = word
+        else:
+            line = trial
+    lines.append(line)
+    for i, text in enumerate(lines):
+        cv2.putText(out, text, (4, 14 + 13 * i), font, scale, (255, 255, 255), 1)
     return out
 
 
