@@ -1351,8 +1351,8 @@ def _use_problem(p: Any, path: str, deepest: float | None, made_for_id: Any) -> 
                 f"({deepest * 1e3:.3f} mm, {path}): calibrated depths would be invalid input")
     made_for_id = made_for_id if isinstance(made_for_id, str) else ""
     if p.depth_model is not None and _model_name(p.depth_model) != _model_name(made_for_id):
-        made_for = made_for_id or "an unnamed depth model"
-        return (f"depth_model: the calibration {path} was made for {made_for!r}, not for {p.depth_model!r}: "
+        made_for = repr(made_for_id) if made_for_id else "an unnamed depth model"   # (not quoted as if a name)
+        return (f"depth_model: the calibration {path} was made for {made_for}, not for {p.depth_model!r}: "
                 f"calibrate the force with this depth model (`teletouch calibrate force --set depth.model=...`) or "
                 f"give --sensor-model-id when fitting a CSV")
     return None
