@@ -389,8 +389,10 @@ def test_each_set_point_waits_for_the_drive_to_acknowledge_the_one_before(drive,
     set-point goes out with bit 4 high while the acknowledge is low, bit 4 goes low once the acknowledge is high."""
     with harness(channel) as h:
         frames = _Frames(h.comp)
-        drive_until(h, 0.04, handshake_done(drive, h, h.comp.map.counts(0.04)))
-        assert drive.latched == h.comp.map.counts(0.04) and round(drive.pos) == drive.latched
+        goal = h.comp.map.counts(0.04)
+        done = handshake_done(drive, h, goal)
+        drive_until(h, 0.04, lambda o: done(o) and abs(drive.pos - goal) < 1.0)   # (the axis moves in its own time)
+        assert drive.latched == goal
         sent = frames.sent
         assert len(sent) >= 6
         for (target, high, ack), (target2, high2, _) in zip(sent, sent[1:]):
@@ -434,7 +436,8 @@ def test_back_to_back_pulses_are_no_edge_to_the_emulated_drive(drive, channel):
                 c._send_setpoint(goal + i, new=False)
                 c._send_setpoint(goal + i, new=True)
                 taken += wait_for(lambda: drive.latched == goal + i, 0.01)
-            assert taken <= 10   # (taken only where the two frames straddle the end of a cycle)
+            assert taken <= 15   # (taken only where the two frames straddle the end of a cycle: ~4 of 20 here; 20 with
+            #  a drive that takes every frame at once)
             goal += 100
             c._send_setpoint(goal, new=False)
             time.sleep(0.004)
