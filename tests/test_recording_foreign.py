@@ -130,4 +130,5 @@ def test_a_wall_clock_recordings_epoch_is_graph_time_zero_not_the_first_steps_en
     from teletouch.recording import open_recording
 
     recording, _ = open_recording(tmp_path / "r.mcap")
-    assert abs(recording.epoch_ns - seen[0]) < 10_000_000, (recording.epoch_ns - seen[0]) / 1e6   # before: +60 ms
+    # (a loaded machine may preempt between a clock read and the next: 30 ms; before: +60 ms, the first step)
+    assert abs(recording.epoch_ns - seen[0]) < 30_000_000, (recording.epoch_ns - seen[0]) / 1e6
