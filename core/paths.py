@@ -31,11 +31,16 @@ def input_file(spec: str | os.PathLike, noun: str, suffix: str, command: str,
     q = packaged(s)
     if q is not None:
         return q
-    # a relative path is the current folder's (a graph's params: not the graph file's folder, as include: is)
-    where = "" if p.is_absolute() else (f" (looked at {Path.cwd() / p}: a relative path is taken from the current "
-                                         f"folder, not the graph file's)")
-    raise ModelFileError(f"{s}: no such {noun} file{where}, and no packaged {noun} of that name (packaged: "
+    raise ModelFileError(f"{s}: no such {noun} file{looked_at(p)}, and no packaged {noun} of that name (packaged: "
                          f"{', '.join(shipped) or 'none'}); make one with {command}")
+
+
+def looked_at(p: Path) -> str:
+    """Where a relative path that names nothing was looked for, for an error (" (looked at ...)"; "" for an absolute
+    one): a graph's parameters are taken from the current folder, not the graph file's, as `include:` is."""
+    if p.is_absolute():
+        return ""
+    return f" (looked at {Path.cwd() / p}: a relative path is taken from the current folder, not the graph file's)"
 
 
 def output_problem(path: str | os.PathLike, folder: bool = False, make_folders: bool = True) -> str | None:

@@ -34,6 +34,7 @@ from pydantic import Field, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.errors import ModelFileError
+from teletouch.paths import looked_at
 from teletouch.units import Hertz
 
 __all__ = ["Replay", "IMAGE_SUFFIXES", "list_images"]
@@ -316,10 +317,8 @@ class Replay(Component):
                 raise ValueError("path: empty; expected a folder of images, a video file or a .mcap recording")
             where = Path(self.path).expanduser()
             if not where.exists():   # when the graph is validated (`validate` said OK, the run failed at start-up)
-                rel = "" if where.is_absolute() else (f" (looked at {Path.cwd() / where}: a relative path is taken "
-                                                      f"from the current folder, not the graph file's)")
-                raise ValueError(f"path {self.path!r} does not exist{rel}; expected a folder of images, a video "
-                                 f"file or a .mcap recording")
+                raise ValueError(f"path {self.path!r} does not exist{looked_at(where)}; expected a folder of images, "
+                                 f"a video file or a .mcap recording")
             if where.is_file() and where.suffix.lower() in IMAGE_SUFFIXES:
                 raise ValueError(f"path {self.path!r} is a single image; give the folder that holds the frames")
             if self.port is not None and not self.path.lower().endswith(".mcap"):

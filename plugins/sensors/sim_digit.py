@@ -28,6 +28,7 @@ from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, Kind, Params, Port, hookimpl
 from teletouch.errors import ModelFileError
+from teletouch.paths import looked_at
 from teletouch.units import Meters, Pascals, Radians, Seconds, parse_quantity
 
 from . import gel as _gel
@@ -303,7 +304,6 @@ class DigitSimulator:
         return np.clip(acc, 0, 255).astype(np.uint8), self._surface
 
 
-
 def load_height_map(path: str | None) -> np.ndarray:
     """An indenter height map (``indenter: map``): a 2-D float array in a .npy file (m above the lowest point).
     ValueError naming the file and what was expected: none given, missing, a folder, not .npy data, pickled
@@ -313,8 +313,7 @@ def load_height_map(path: str | None) -> np.ndarray:
     p = Path(path).expanduser()
     what = "expected a .npy file of a 2-D float array of heights in m (numpy.save)"
     if not p.exists():
-        rel = "" if p.is_absolute() else f" (looked at {Path.cwd() / p}: a relative path is from the current folder)"
-        raise ValueError(f"indenter_map {path!r} does not exist{rel}; {what}")
+        raise ValueError(f"indenter_map {path!r} does not exist{looked_at(p)}; {what}")
     if p.is_dir():
         raise ValueError(f"indenter_map {path!r} is a folder; {what}")
     try:
@@ -331,6 +330,7 @@ def load_height_map(path: str | None) -> np.ndarray:
     except ValueError as e:
         raise ValueError(f"indenter_map {path!r}: {e}; {what}") from None
     return surface
+
 
 class SimDigit(Component):
     """Simulated DIGIT: realistic images from the optical model of a real DIGIT, with ground truth."""
