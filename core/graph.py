@@ -47,12 +47,19 @@ from typing import Any, Iterable
 
 from pydantic import ValidationError
 
-from .component import MAX_RATE, MIN_RATE, Component, Device, _field_unit, rate_problem, shapes_differ  # noqa: F401
+from .component import MAX_RATE  # noqa: F401  (re-exported: graph.MAX_RATE, as before the rates' check moved)
+from .component import Component, Device, _field_unit, rate_problem, shapes_differ
 from .errors import GraphError, GraphValidationError, Location
 from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
+NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
+             "description")
+FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog", "safe_timeout")
+FAULT_ACTIONS = ("stop", "degrade")
+CLOCKS = ("sim", "wall")
+ID_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
 
 
 def _is_extension(key: Any) -> bool:
@@ -60,12 +67,6 @@ def _is_extension(key: Any) -> bool:
     (``x-limits: &limits {...}``, then ``params: {<<: *limits}``), as Compose files do; an anchor had nowhere to live
     but inside a node."""
     return isinstance(key, str) and key.startswith("x-")
-NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
-             "description")
-FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog", "safe_timeout")
-FAULT_ACTIONS = ("stop", "degrade")
-CLOCKS = ("sim", "wall")
-ID_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_-]*$")
 
 
 @dataclass

@@ -178,8 +178,6 @@ class Registry:
                     where.append(setting)
         self.blocked = set(self.block_settings)
         self._extra = _split(env.get(ENV_PLUGINS)) + list(extra_modules or ())
-        #: a module named in TELETOUCH_PLUGINS that an installed entry point loaded already -> that plugin's name
-        self.also_listed: dict[str, str] = {}
 
     # loading ---------------------------------------------------------------------------------------------------
     def load(self) -> "Registry":
@@ -269,7 +267,6 @@ class Registry:
             # without installing", then `pip install -e .`): nothing to add, not a failure (pluggy's "already
             # registered under a different name" and the whole plugin list were printed as one)
             del self.plugins[name]
-            self.also_listed[name] = loaded_as
             return rec
         if loaded_as is not None:
             rec.error = f"this module is loaded already, as plugin '{loaded_as}'"
