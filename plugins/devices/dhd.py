@@ -354,18 +354,17 @@ class Dhd:
     def set_max_force(self, newtons: float) -> bool:
         """The SDK's own force limit (a second layer under the driver's guard); False where this SDK has no
         dhdSetMaxForce (SDK 3.7.0's dhdc.h has none)."""
-        f = getattr(self.lib, "dhdSetMaxForce", None)
-        if f is None:
-            return False
-        self._check(f(float(newtons), self.id), "dhdSetMaxForce")
-        return True
+        return self._set_limit("dhdSetMaxForce", newtons)
 
     def set_max_gripper_force(self, newtons: float) -> bool:
         """As :meth:`set_max_force`, for the gripper (dhdSetMaxGripperForce)."""
-        f = getattr(self.lib, "dhdSetMaxGripperForce", None)
+        return self._set_limit("dhdSetMaxGripperForce", newtons)
+
+    def _set_limit(self, name: str, newtons: float) -> bool:
+        f = getattr(self.lib, name, None)
         if f is None:
             return False
-        self._check(f(float(newtons), self.id), "dhdSetMaxGripperForce")
+        self._check(f(float(newtons), self.id), name)
         return True
 
     def has_watchdog(self) -> bool:
