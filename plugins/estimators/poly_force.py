@@ -375,6 +375,16 @@ def _position_slope_problem(pmodel: PositionModel, lo: float) -> str | None:
     return None
 
 
+def _curve_at(coef: Sequence[float], pmodel: "PositionModel | None", d: np.ndarray, pos: Any) -> np.ndarray:
+    """The fitted curve as fitted (not clamped, not extrapolated) at depths ``d``; with position terms at each
+    sample's centroid ``pos`` ((x, y) m per depth). What the fit's residuals and R^2 are computed from, when it is
+    made and when a file's samples are checked against it."""
+    if pmodel is None:
+        return _polyval(list(coef), d)
+    local = [pmodel.local(*pmodel.scaled(float(x), float(y))[:2]) for x, y in pos]
+    return np.array([_polyval(c, np.array([di]))[0] for c, di in zip(local, d)])
+
+
 #: how far below the file's own R^2 the curve may fit the samples the file holds (rounding, not an edit)
 SAMPLES_R2_SLACK = 0.01
 
@@ -390,13 +400,12 @@ def _samples_problem(cal: "ForceCalibration") -> str | None:
         return None
     d = np.array([s["depth_m"] for s in used], dtype=float)
     f = np.array([s["force_n"] for s in used], dtype=float)
-    if cal.position is None:
-        pred = _polyval(list(cal.coefficients), d)
-    else:
+    pos = None
+    if cal.position is not None:
         if not all(isinstance(s.get("x_m"), (int, float)) and isinstance(s.get("y_m"), (int, float)) for s in used):
             return None
-        local = [cal.position.local(*cal.position.scaled(float(s["x_m"]), float(s["y_m"]))[:2]) for s in used]
-        pred = np.array([_polyval(c, np.array([di]))[0] for c, di in zip(local, d)])
+        pos = [(s["x_m"], s["y_m"]) for s in used]
+    pred = _curve_at(list(cal.coefficients), cal.position, d, pos)
     ss_tot = float(np.sum((f - f.mean()) ** 2))
     if not ss_tot > 0:
         return None
@@ -587,11 +596,7 @@ class ForceCalibration:
         if problem is not None:
             raise CalibrationError(f"the degree-{degree} fit is not monotonic inside the calibrated range: "
                                    f"{problem}; refusing it (use a lower degree, more samples or check the data)")
-        if pmodel is None:
-            pred_all = _polyval(coef, d)
-        else:
-            local = [pmodel.local(*pmodel.scaled(float(x), float(y))[:2]) for x, y in pos]
-            pred_all = np.array([_polyval(c, np.array([di]))[0] for c, di in zip(local, d)])
+        pred_all = _curve_at(coef, pmodel, d, pos)
         res = fsel - pred_all[sel]
         ss_res = float(np.sum(res ** 2))
         ss_tot = float(np.sum((fsel - fsel.mean()) ** 2))
@@ -1075,10 +1080,13 @@ def read_pairs_csv(path: str | os.PathLike) -> dict[str, Any]:
             raise CalibrationError(f"{path}: not UTF-8 text (byte {exc.object[exc.start]:#04x}: {exc.reason}): "
                                    f"expected a CSV file of depth, force pairs (save it as UTF-8 CSV)") from None
     comment = [t.lstrip().startswith("#") for t in text]
-    partial = next((t.strip().split(":", 1)[1].strip() or "no reason given" for t, c in zip(text, comment)
-                    if c and t.lstrip().startswith(PARTIAL_MARK)), None)
-    model_id = next((t.strip().split(":", 1)[1].strip() for t, c in zip(text, comment)
-                     if c and t.lstrip().startswith(MODEL_MARK)), "")
+    def marked(mark: str) -> str | None:   # the text after the first comment line that starts with ``mark``
+        return next((t.strip().split(":", 1)[1].strip() for t, c in zip(text, comment)
+                     if c and t.lstrip().startswith(mark)), None)
+
+    partial = marked(PARTIAL_MARK)
+    partial = (partial or "no reason given") if partial is not None else None
+    model_id = marked(MODEL_MARK) or ""
     first = [0]   # the line the row being parsed starts on
 
     def source() -> Iterable[str]:
