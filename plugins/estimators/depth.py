@@ -213,7 +213,7 @@ class DepthEstimator(Component):
         self._bg = self._ref_bg.copy()
         if getattr(self.pipe, "set_background", None) is not None:
             self.pipe.set_background(self._bg)
-        self._prev: tuple[np.ndarray, Any, float] | None = None  # (last frame, its result, its stamp): reuse
+        self._reuse: Any = None   # the result of the last frame (self._seen's) kept for reuse: None when not kept
         self._bad_run = 0        # implausible frames in a row
         self._repeat_run = 0     # bit-identical frames with new stamps in a row
         # (the last frame, its stamp): the repeats are counted against it whether or not its result is kept for reuse
@@ -267,28 +267,27 @@ class DepthEstimator(Component):
         elif not same:
             self._repeat_run = 0
             self._seen = (frame.copy(), s.stamp)
-        prev = self._prev
-        if same and prev is not None:   # (the result kept is the last frame's: the same frame)
-            res = prev[1]
+        if same and self._reuse is not None:
+            res = self._reuse
             self.reused += 1
         else:
             try:
                 res = self.pipe(frame)
             except ValueError as exc:   # a depth that is not finite: no output is better than a wrong one
-                self._prev = None
+                self._reuse = None
                 raise ComponentFault(f"the depth of this frame could not be computed: {exc}", self.id) from None
             problem = self._frame_problem(res) or colour_problem(frame)
             if problem:
-                self._prev = None
+                self._reuse = None
                 return self._bad(problem, s.stamp, t0)
             self._rehearse = frame
             if p.max_background_mismatch and len(self._mismatch) < MATCH_FRAMES:
                 self._check_match(frame)
             if p.adapt_background > 0 and not res.changed and res.contact_area == 0.0:
                 self._adapt(frame)
-                self._prev = None   # the background moved: the same frame would now read differently
+                self._reuse = None   # the background moved: the same frame would now read differently
             elif p.reuse_unchanged:
-                self._prev = (self._seen[0], res, s.stamp)   # (one copy of the frame for both)
+                self._reuse = res   # (its frame is self._seen's)
         self._bad_run = 0
         self._step_s = time.perf_counter() - t0
         self._last = {"max_depth_m": float(res.max_depth), "contact_area_m2": float(res.contact_area),
