@@ -883,7 +883,6 @@ class PositionForce(_Bilateral):
         self.bad_force = 0
         self.resuming = False                   # the follower command was held: it slews back (resume_speed)
         self.force_state = "waiting"            # the estimate's state, kept while step() shows stale-leader
-        self.force_seen = False                 # a force sample came (any: a stale or bad one is a loss, not this)
         self.first_wait_since: float | None = None   # the leader's first usable step while no estimate has come
 
     def feedback(self, t: float, inputs: Any, follower_ok: bool) -> float:
@@ -893,8 +892,6 @@ class PositionForce(_Bilateral):
         if self.state == "stale-leader":
             self.state = self.force_state
         s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
-        if s is not None:
-            self.force_seen = True
         if s is not None and self._first_look("force", s):     # once per sample (a NaN stamp too)
             f_s = finite_or(s.value, math.nan)
             if math.isfinite(f_s):
@@ -1006,10 +1003,11 @@ class PositionForce(_Bilateral):
         return self.force_held if self.force_state == "ok" else math.nan   # (stale, bad: fading, not sensed)
 
     def _first_force_wait(self, t: float) -> None:
-        """No force sample yet: once the leader gives openings (the follower follows them), a wait longer than
-        ``first_force_timeout`` is a ComponentFault about the force input (the runtime names the node feeding it)."""
+        """No force sample yet (state "waiting": any sample, a stale or bad one too, ends it): once the leader gives
+        openings (the follower follows them), a wait longer than ``first_force_timeout`` is a ComponentFault about the
+        force input (the runtime names the node feeding it)."""
         limit = self.params.first_force_timeout
-        if self.force_seen or limit is None or self.command is None:
+        if self.state != "waiting" or limit is None or self.command is None:
             return
         if self.first_wait_since is None:
             self.first_wait_since = t
