@@ -56,6 +56,7 @@ from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
 TOP_KEYS = ("name", "description", "include", "clock", "duration", "realtime_priority", "faults", "nodes")
 NODE_KEYS = ("id", "plugin", "rate", "params", "inputs", "on_fault", "isolate", "priority", "remove",
              "description")
+MAX_AGE_LIMIT = 60.0   # s: the longest a wire's sample may be used after its stamp
 FAULT_KEYS = ("on_fault", "max_overruns", "startup_grace", "watchdog", "safe_timeout")
 FAULT_ACTIONS = ("stop", "degrade")
 CLOCKS = ("sim", "wall")
@@ -488,6 +489,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 if k == "startup_grace" and q > 60:   # 1e9 let a source that never came stay unseen for good
                     raise ValueError(f"expected at most 60 s (the time the sources get to start before a missing "
                                      f"input is a fault), got {v!r}")
+                if k == "watchdog" and q > 60:   # `100` meant as ms was 100 s of a hung device left unmade safe
+                    raise ValueError(f"expected at most 60 s (how long a device may go without a step before it "
+                                     f"is made safe; 0 turns it off; units are allowed: 100ms), got {v!r}")
                 setattr(faults, k, q)
             except ValueError as exc:
                 err(f"faults.{k}: {exc}", w)
@@ -664,8 +668,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 if max_age_raw is not None:
                     try:
                         max_age = parse_quantity(max_age_raw, "s")
-                        if not max_age > 0:
-                            raise ValueError("must be positive")
+                        if not 0 < max_age <= MAX_AGE_LIMIT:   # `100` meant as ms kept a 100 s old sample in use
+                            raise ValueError(f"expected a time > 0 s and at most {MAX_AGE_LIMIT:g} s (units are "
+                                             f"allowed: 100ms), got {max_age_raw!r}")
                     except ValueError as exc:
                         err(f"node '{nid}': input '{port}': max_age: {exc}", iw)
             if not isinstance(src, str) or src.count(".") != 1:
