@@ -178,6 +178,7 @@ class FollowerBase(Device):
     default_rate = 200.0
     #: while the reads fail, hold the last set-point sent rather than the stale reading (see _measured)
     hold_setpoint_while_stale = True
+    _read_failed = False   # the last step's read gave no state (set by configure, activate and each step's read)
     inputs = dict(FOLLOWER_INPUTS)
     outputs = dict(FOLLOWER_OUTPUTS)
     Params = FollowerParams
@@ -199,7 +200,7 @@ class FollowerBase(Device):
     def configure(self) -> None:
         self._safe = False
         self._setpoint = math.nan
-        self._read_failed = False   # the last step's read gave no state (see _measured)
+        self._read_failed = False
         self._last_t: float | None = None
         self._last_reading: Reading | None = None
         self._last_good = time.monotonic()
@@ -257,7 +258,7 @@ class FollowerBase(Device):
         of that stale reading moved them back, by up to read_timeout x max_speed (``hold_setpoint_while_stale``
         False: the last reading all the same; pal-gripper has its own rule, see its safe_target)."""
         r = self._last_reading
-        if self.hold_setpoint_while_stale and getattr(self, "_read_failed", False) and math.isfinite(self._setpoint):
+        if self.hold_setpoint_while_stale and self._read_failed and math.isfinite(self._setpoint):
             return self._setpoint
         return r.opening if r is not None and math.isfinite(r.opening) else self._setpoint
 
