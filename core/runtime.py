@@ -162,7 +162,7 @@ class _Node:
     __slots__ = ("id", "spec", "comp", "step", "rate", "period", "inputs", "out", "stale", "policy", "faulted",
                  "steps", "overruns", "consec_overruns", "busy", "max_step", "is_device", "order", "starts",
                  "nstarts", "last_dt", "state", "hung", "safe_thread", "in_step", "checks", "acts", "safe_mark",
-                 "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt", "warm_skips", "results")
+                 "resafe", "first_t", "last_t", "warm", "warming", "warm_began", "warm_dt", "warm_skips", "results")
 
     def __init__(self, spec: Any, comp: Component, order: int, policy: str, in_slots: dict[str, _Slot],
                  out: dict[str, _Slot]):
@@ -196,6 +196,9 @@ class _Node:
         self.checks = {p: value_checker(port) for p, port in spec.cls.outputs.items()}
         self.acts = 0          # step() calls begun
         self.safe_mark: int | None = None   # `acts` when its latest safe_state() that returned began (no step then)
+        # a safe_state() call began while its step was in flight (that step may command it after the call): the
+        # step's end makes it safe again, faulted or not (at a stop too: the shutdown may have passed it by then)
+        self.resafe = False
         self.first_t = 0.0     # graph time of its first step and of its latest (counted in `steps`)
         self.last_t = 0.0
         # wall clock: its Component.warm(), called WARM_LEAD before each step, or None (component.has_warm_up with
@@ -279,6 +282,9 @@ class Runtime:
     #: a few milliseconds: the depth pipeline's step after a 16 ms pause took 1.6-1.8 ms of CPU time, after a
     #: rehearsal of it 1 ms before 0.9-1.0 ms, 4 ms before 1.1-1.2 ms (docs/depth.md, `warm`)
     WARM_LEAD = 1e-3
+    #: at a stop, how long a rate group's thread inside a step may take to end before its devices are made safe by
+    #: the main thread (s; at most faults.watchdog): see _safe_blocked
+    STOP_GRACE = 0.1
 
     def __init__(self, spec: GraphSpec, registry: Any = None, *, clock: str | None = None,
                  log: Callable[[str], None] | None = None):
@@ -287,6 +293,7 @@ class Runtime:
         self._log = log or (lambda msg: print(msg, file=sys.stderr))
         self.taps: list[Tap] = []
         self.faults: list[Fault] = []
+        self._unsafe: list[Fault] = []   # faults that leave a device perhaps not in its safe state (see _finish)
         self._now = 0.0
         self._stop_evt = _StopEvent()   # (not a threading.Event: see _StopEvent)
         self._late: list[int] | None = None   # once run() has reached its shutdown: the signals held there
@@ -395,11 +402,13 @@ class Runtime:
         self._stop_evt.set()
 
     # ------------------------------------------------------------------------------------------------- faults
-    def _fault(self, node: _Node, kind: str, message: str, t: float) -> None:
+    def _fault(self, node: _Node, kind: str, message: str, t: float, safe: bool = True) -> list[_Node]:
         """Record a fault of ``node`` and act on it (its policy). One fault per node: the first cause wins. A node
         faulted already (the watchdog faulted it while its step ran; that step then raised) gets no second fault
         (the run's result would list two for one failure, the later one stamped at the step's start, before the
-        first): the later error is only logged."""
+        first): the later error is only logged. The devices it faults (the node itself, those wired from it under
+        degrade) are made safe side by side (:meth:`_safe_many`) and returned; with ``safe`` False they are only
+        returned, for a caller that makes them safe with others."""
         action = node.policy
         with self._lock:
             first = not node.faulted
@@ -413,9 +422,8 @@ class Runtime:
                 node.faulted = True
         if not first:   # (a device among them is made safe again by its rate group once that step returned)
             self.log(f"[{node.id}] {kind} after its fault (not recorded: the first one stands): {message}")
-            return
-        if node.is_device:
-            self._safe(node)
+            return []
+        todo = [node] if node.is_device else []
         if action == "stop":
             self._stop_evt.set()
         else:
@@ -427,58 +435,100 @@ class Runtime:
                 if other.is_device and not other.faulted:
                     ports = [p for p, w in other.spec.inputs.items() if w.node == node.id]
                     if ports:
-                        self._fault(other, "upstream", f"input '{ports[0]}' comes from node '{node.id}', which "
-                                                       f"was disabled by a fault", t)
+                        todo += self._fault(other, "upstream", f"input '{ports[0]}' comes from node '{node.id}', "
+                                                               f"which was disabled by a fault", t, safe=False)
+        if safe:
+            self._safe_many(todo)
+        return todo
 
     def _safe(self, node: _Node) -> None:
-        """``safe_state()``. Under the wall clock it is bounded: it runs in a helper thread and is waited for at most
-        ``faults.safe_timeout``. A driver whose step hangs inside a hardware call usually holds the lock its
-        safe_state() needs; unbounded, that one call would block the caller (the watchdog's main thread, a rate
-        group's exit, the shutdown) and with it every other device's safe state and the end of the run. Such a node
-        is left behind (``hung``: no further lifecycle calls) and reported.
+        """``safe_state()`` of one device: :meth:`_safe_many`."""
+        self._safe_many([node])
+
+    def _safe_many(self, nodes: list[_Node], again: bool = True) -> None:
+        """``safe_state()`` of each device (not again for one still safe from an earlier call, see
+        :meth:`_still_safe`, nor for one left behind). Under the wall clock the calls are bounded and made side by
+        side: each runs in a helper thread, all are started before any is waited for, and they are waited for
+        until one deadline, ``faults.safe_timeout`` from now (one device whose call hangs does not hold up the
+        others': made one after the other, N hung devices kept the next one's force on a hand N x safe_timeout). A
+        driver whose step hangs inside a hardware call usually holds the lock its safe_state() needs; unbounded, that
+        one call would block the caller (the watchdog's main thread, a rate group's exit, the shutdown) and with it
+        every other device's safe state and the end of the run. Such a node is left behind (``hung``: no further
+        lifecycle calls) and reported.
 
         Calls for one device never overlap: a caller that finds a call still running (started by another thread,
-        or one whose wait a Ctrl-C cut short) waits for that call instead of starting a second one.
+        or one whose wait a Ctrl-C cut short) waits for that call instead of starting a second one; when it has
+        returned and the device is not safe by it (it began while a step was in flight, which may have commanded
+        the device after it, or it raised), the caller makes a call of its own (``again``). A call begun while the
+        device's step was in flight marks it (``resafe``): that step's end makes it safe again.
 
-        Under the simulated clock the call is made inline, in the one thread that also steps the device: there is
-        no hardware that could hang (hardware plugins need the wall clock), and a simulated device that hung would
-        block that thread in its step just the same."""
-        if node.hung or self._still_safe(node):
+        Under the simulated clock the calls are made inline, in the one thread that also steps the devices: there
+        is no hardware that could hang (hardware plugins need the wall clock), and a simulated device that hung
+        would block that thread in its step just the same. A KeyboardInterrupt raised by one of them comes out
+        once the others were made."""
+        nodes = [n for n in nodes if not n.hung and not self._still_safe(n)]
+        if not nodes:
             return
         if self.clock == "sim":
-            mark = None if node.in_step else node.acts
-            try:
-                node.comp.safe_state()
-            except BaseException as exc:
-                self._safe_raised(node, exc)
-                if isinstance(exc, KeyboardInterrupt):
-                    raise
-            else:
-                node.safe_mark = mark
+            interrupt: BaseException | None = None
+            for node in nodes:
+                mark = None if node.in_step else node.acts
+                try:
+                    node.comp.safe_state()
+                except BaseException as exc:
+                    self._safe_raised(node, exc)
+                    if isinstance(exc, KeyboardInterrupt) and interrupt is None:
+                        interrupt = exc
+                else:
+                    node.safe_mark = mark
+            if interrupt is not None:
+                raise interrupt
             return
         timeout = self.spec.faults.safe_timeout
+        calls = [(node, *self._safe_begin(node)) for node in nodes]
+        deadline = time.monotonic() + timeout
+        retry = []
+        for node, th, own in calls:
+            if th is None:   # a call that has just ended (while this caller waited for the lock) made it safe
+                continue
+            th.join(max(0.0, deadline - time.monotonic()))
+            if th.is_alive():
+                self._safe_hung(node, timeout)
+            elif again and not own and not node.in_step and not self._still_safe(node):
+                retry.append(node)
+        if retry:
+            self._safe_many(retry, again=False)
+
+    def _safe_begin(self, node: _Node) -> tuple[threading.Thread | None, bool]:
+        """The thread of ``node``'s safe_state() call and whether this caller started it: the call still running if
+        there is one, else a new one (None: none needed, a call that has just ended made it safe)."""
         with self._safe_lock:
             th = node.safe_thread
-            if th is None or not th.is_alive():
-                if self._still_safe(node):   # a call that has just ended (while this caller waited for the lock)
-                    return
-                mark = node.acts   # read before in_step: a step begun after this read changes `acts`
-                if node.in_step:   # a step in flight (it hangs: the watchdog) may command the device after the call
-                    mark = None
-                th = threading.Thread(target=self._safe_call, args=(node, mark), name=f"teletouch-safe-{node.id}",
-                                      daemon=True)
-                node.safe_thread = th
-                th.start()
-        th.join(timeout)
-        if th.is_alive():
-            with self._lock:
-                if node.hung:   # another caller has reported it
-                    return
-                node.hung = True
-                msg = (f"safe_state() did not return within {timeout:g} s (faults.safe_timeout; a call into its "
-                       f"hardware hangs?): left behind, the other devices were made safe")
-                self.faults.append(Fault(node.id, "hung", msg, self._now, "logged"))
-            self.log(f"[{node.id}] {msg}")
+            if th is not None and th.is_alive():
+                return th, False
+            if self._still_safe(node):
+                return None, False
+            mark = node.acts   # read before in_step: a step begun after this read changes `acts`
+            if node.in_step:   # a step in flight (it hangs: the watchdog) may command the device after the call
+                mark = None
+                node.resafe = True
+            th = threading.Thread(target=self._safe_call, args=(node, mark), name=f"teletouch-safe-{node.id}",
+                                  daemon=True)
+            node.safe_thread = th
+            th.start()
+            return th, True
+
+    def _safe_hung(self, node: _Node, timeout: float) -> None:
+        with self._lock:
+            if node.hung:   # another caller has reported it
+                return
+            node.hung = True
+            msg = (f"safe_state() did not return within {timeout:g} s (faults.safe_timeout; a call into its "
+                   f"hardware hangs?): left behind, the other devices were made safe")
+            fault = Fault(node.id, "hung", msg, self._now, "logged")
+            self.faults.append(fault)
+            self._unsafe.append(fault)
+        self.log(f"[{node.id}] {msg}")
 
     def _safe_call(self, node: _Node, mark: int | None) -> None:
         try:
@@ -498,8 +548,9 @@ class Runtime:
 
     def _safe_raised(self, node: _Node, exc: BaseException) -> None:
         with self._lock:
-            self.faults.append(Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now,
-                                     "logged"))
+            fault = Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now, "logged")
+            self.faults.append(fault)
+            self._unsafe.append(fault)
 
     @staticmethod
     def _step_error(node: _Node, exc: BaseException) -> str:
@@ -641,12 +692,10 @@ class Runtime:
         further calls: one whose safe_state() hung, and one whose step() still runs in its rate group's thread
         (wall clock: it hangs; deactivate() or close() would pull its resources from under it)."""
         running = self._still_stepping()
-        for node in self.nodes:
-            if node.is_device and node.state not in ("unconfigured", "finalized"):   # finalized: closed already
-                try:
-                    self._safe(node)
-                except KeyboardInterrupt:   # raised by the driver itself (signals are held here): reported by _safe
-                    pass
+        try:   # (finalized: closed already)
+            self._safe_many([n for n in self.nodes if n.is_device and n.state not in ("unconfigured", "finalized")])
+        except KeyboardInterrupt:   # raised by a driver itself (signals are held here): reported by _safe_many
+            pass
         for node in reversed(self.nodes):
             if node.state == "finalized":   # failed to configure: made safe and closed then
                 continue
@@ -656,8 +705,13 @@ class Runtime:
                 node.state = "finalized"
                 continue
             if node in running:
-                self.faults.append(Fault(node.id, "shutdown", "deactivate() and close() skipped: its step() was "
-                                         "still running when the run ended (it hangs?)", self._now, "logged"))
+                fault = Fault(node.id, "shutdown", "deactivate() and close() skipped: its step() was still running "
+                                                   "when the run ended (it hangs?)" + (
+                                                       "; made safe again if that step returns" if node.is_device
+                                                       else ""), self._now, "logged")
+                self.faults.append(fault)
+                if node.is_device:   # its step may command it after its safe state (resafe: again once it returns)
+                    self._unsafe.append(fault)
                 node.state = "finalized"
                 continue
             if node.state == "active":
@@ -810,8 +864,7 @@ class Runtime:
                 status = ("degraded", EXIT_FAULT, status[2] + disabled)
         # a device whose safe_state() raised or hung may not be safe: never a run that ended ok (exit 0 let a script's
         # `&&` go on with a leader that may still push on a hand), and said where the message says they are safe
-        unsafe = [f for f in self.faults if f.kind == "hung" or (f.kind == "shutdown"
-                                                                  and f.message.startswith("safe_state() raised"))]
+        unsafe = list(self._unsafe)   # (a device whose step still ran at the end may command it after its safe state)
         if unsafe and status[0] in ("ok", "stopped", "degraded"):
             status = ("fault", EXIT_FAULT, status[2])
         if status[0] in ("fault", "interrupted"):
@@ -944,10 +997,12 @@ class Runtime:
         fast = max(groups) if groups else 1.0
         old_switch = sys.getswitchinterval()
         self._threads = []
+        group_of: list[tuple[threading.Thread, list[_Node]]] = []
         for rate, members in sorted(groups.items(), reverse=True):
             th = threading.Thread(target=self._wall_loop, args=(members, rate), name=f"teletouch-{rate:g}Hz",
                                   daemon=True)
             self._threads.append(th)
+            group_of.append((th, members))
         # the watchdog: a device whose thread has not started a step for `faults.watchdog` (at least 3 of its
         # periods) is driven to its safe state from here and faults (a step that hangs, a stalled thread); when that
         # thread waits for the step of another node at its rate, that node is at fault (see _stalled)
@@ -983,6 +1038,7 @@ class Runtime:
             # (a run of 0.3 s was said to have "ran 0.804 s")
             ended = time.perf_counter() - self._t0
             try:
+                self._safe_blocked(group_of, min(wd, self.STOP_GRACE) if wd > 0 else self.STOP_GRACE)
                 self._join()
             finally:   # also when a second Ctrl-C cuts the join short (the run's shutdown joins them again)
                 sys.setswitchinterval(old_switch)
@@ -990,18 +1046,36 @@ class Runtime:
             if duration is not None and self._stop_reason is None and duration <= self._now < duration + 0.05:
                 self._now = duration  # ended by its duration (the main thread polls every 20 ms)
 
+    def _safe_blocked(self, group_of: list[tuple[threading.Thread, list[_Node]]], grace: float) -> None:
+        """At the run's stop, before the rate groups' threads are joined (the watchdog has ended): a thread that has
+        not ended within ``grace`` while it is inside a step (a device's own, or another node's at its rate: an
+        estimator that hangs, an isolated node waiting for its process) has its devices made safe from here, at
+        once, instead of after the joins (1 s a thread; a leader kept its 2 N on a hand for 2 s after a Ctrl-C).
+        A device whose own step is in flight is made safe again when that step returns (``resafe``)."""
+        end = time.monotonic() + grace
+        for th, _ in group_of:
+            if th is not threading.current_thread():
+                try:
+                    th.join(max(0.0, end - time.monotonic()))
+                except RuntimeError:   # never started (a Ctrl-C while the threads were being started)
+                    pass
+        stuck = [n for th, members in group_of if th.is_alive() and any(m.in_step for m in members)
+                 for n in members if n.is_device and n.state == "active"]
+        self._safe_many(stuck)
+
     def _stalled(self, dev: _Node, idle: float, limit: float, members: list[_Node]) -> None:
         """The watchdog found device ``dev`` not stepped for ``idle`` s, more than its ``limit``: it is made safe and
-        faults (``stall``). When its rate group's thread is blocked in the step of another node (an isolated node
-        waiting for its process, an inline node that hangs), that node is the cause: it faults first (``timeout``,
-        naming its plugin: under ``stop`` its fault is the run's reason; a device whose own step hangs: ``stall``,
-        as when it is alone at its rate); then every device at its rate (none of
-        them is stepped while it runs) is made safe and faults, naming it; then the wait for an isolated node's step
-        is cut short (``ProcessProxy.abandon_step``), so that the group's thread is free at once instead of after
-        the step's own timeout (20 periods, at least 1 s)."""
+        faults (``stall``). When its rate group's thread is blocked in a step (its own, or another node's: an
+        isolated node waiting for its process, an inline node that hangs), that node is the cause: it faults first
+        (``timeout``, naming its plugin: under ``stop`` its fault is the run's reason; a device whose own step
+        hangs: ``stall``); then every other device at its rate (none of them is stepped while it runs) faults,
+        naming it; all of them are made safe side by side (a device whose hung step holds the lock its safe state
+        needs does not hold up the others' by safe_timeout); then the wait for an isolated node's step is cut short
+        (``ProcessProxy.abandon_step``), so that the group's thread is free at once instead of after the step's own
+        timeout (20 periods, at least 1 s)."""
         now = self._now
         blocker = next((m for m in members if m.in_step), None)
-        if blocker is None or blocker is dev:   # its own step hangs, or the thread is stalled outside any step
+        if blocker is None:   # the thread is stalled outside any step
             self._fault(dev, "stall", f"not stepped for {idle:.3f} s (watchdog {limit:g} s): made safe", now)
             return
         from .isolation import ProcessProxy
@@ -1012,20 +1086,23 @@ class Runtime:
         warming = blocker.warming   # (read once: the warm-up may end meanwhile)
         act = "warm()" if warming else "step"
         began = blocker.warm_began if warming else blocker.starts[(blocker.nstarts - 1) % self.JITTER_RING]
+        todo: list[_Node] = []   # every device faulted here, made safe side by side at the end
         if blamed and blocker.is_device:   # a device whose own step hangs: its stall, as when it is alone
-            self._fault(blocker, "stall", f"not stepped for {now - began:.3f} s (watchdog {limit:g} s): made safe",
-                        now)
+            todo += self._fault(blocker, "stall", f"not stepped for {now - began:.3f} s (watchdog {limit:g} s): "
+                                                  f"made safe", now, safe=False)
         elif blamed:
             devices = ", ".join(f"'{m.id}'" for m in members if m.is_device)
-            self._fault(blocker, "timeout", f"({what}) {act} did not return within {limit:g} s (faults.watchdog; it "
-                                            f"began at t={began:.3f} s): the devices at its rate ({devices}) are not "
-                                            f"stepped while it runs", now)
+            todo += self._fault(blocker, "timeout", f"({what}) {act} did not return within {limit:g} s "
+                                                    f"(faults.watchdog; it began at t={began:.3f} s): the devices at "
+                                                    f"its rate ({devices}) are not stepped while it runs", now,
+                                safe=False)
         for m in members:   # (one already disabled is skipped: a device wired from it, under degrade)
             if m.is_device and not m.faulted:
                 last = m.starts[(m.nstarts - 1) % self.JITTER_RING] if m.nstarts else 0.0
-                self._fault(m, "stall", f"not stepped for {now - last:.3f} s: its rate group waits for the {act} of "
-                                        f"node '{blocker.id}' ({what}), past the watchdog's {limit:g} s: made safe",
-                            now)
+                todo += self._fault(m, "stall", f"not stepped for {now - last:.3f} s: its rate group waits for the "
+                                                f"{act} of node '{blocker.id}' ({what}), past the watchdog's "
+                                                f"{limit:g} s: made safe", now, safe=False)
+        self._safe_many(todo)
         if blamed and isolated:   # after the devices are safe: the group's thread, freed, must not step them first
             blocker.comp.abandon_step(f"the watchdog faulted it after {limit:g} s (faults.watchdog): the devices at "
                                       f"its rate were not stepped meanwhile")
@@ -1092,8 +1169,8 @@ class Runtime:
                 node.nstarts += 1
                 if node.stale and not self._check_stale(node, t):
                     continue
+                node.in_step = True   # before `acts`: a safe call reads `acts`, then `in_step` (see _safe_begin)
                 node.acts += 1
-                node.in_step = True
                 try:
                     out = node.step(t, node.inputs)
                     if out and not node.faulted:   # faulted while it ran (the watchdog): its outputs are dropped
@@ -1114,8 +1191,9 @@ class Runtime:
                     node.max_step = dt
                 if dt > worst_dt:
                     worst, worst_dt = node, dt
-                if node.faulted and node.is_device:   # faulted while its step ran (the watchdog): that step may have
-                    self._safe(node)                  # commanded it after its safe_state(): made safe again now
+                if node.is_device and (node.faulted or node.resafe):   # faulted, or a safe call began, while its
+                    node.resafe = False   # step ran (the watchdog, a stop): that step may have commanded it after
+                    self._safe(node)      # its safe_state(): made safe again now
             k += 1
             now = perf()
             if now > t0 + k * period:
