@@ -15,6 +15,10 @@
   dropped, a frame captured during start-up, before graph time 0, or before activate() (one left from before a
   deactivate()) is not passed on (``before_start``), and a frame is published once: a step without a new frame
   publishes nothing, so the port's sample ages.
+- A video file plays from its first frame: the capture thread starts reading it at activate(), during start-up; at
+  the node's first step (which publishes nothing), when graph time runs, what start-up read is counted in
+  ``before_start``, the file is started again at frame 0 and its first frame is held until a step takes it, so it
+  is the first frame published; the pace runs from then on.
 - Errors say what to do and name the DIGIT (serial and node): no DIGIT, two DIGITs and no serial, wrong serial
   (lists what is connected), permission denied (the udev rule), unplugged or re-enumerated mid-run, a failed read,
   no frame for ``frame_timeout``, a frame of another size or format than expected (the node faults; the runtime
@@ -93,6 +97,8 @@ class FrameGrabber:
     for files, the time.monotonic() right after the read.
     The thread owns the capture from :meth:`start` on: :meth:`release` releases it at once if the thread has ended,
     else the thread does as its current read returns (releasing under a read crashes OpenCV).
+    ``start(hold_first=True)``: the first frame read is kept until :meth:`take` takes it (or :meth:`stop`) before the
+    next read, whatever the pace (a file's first frame is never dropped); the pace counts from that take.
     """
 
     MAX_FAILURES = 10
@@ -123,12 +129,16 @@ class FrameGrabber:
         self._running = False          # the thread is in its loop (under _cap_lock with the next two)
         self._release_on_exit = False
         self._released = False
+        self._hold_first = False
+        self._first_taken = threading.Event()   # set by take() and by stop(): the held first frame may go
 
-    def start(self) -> None:
+    def start(self, hold_first: bool = False) -> None:
         if self._thread is not None and self._thread.is_alive():
             raise HardwareError(f"{self.name}: the capture thread of the previous activation is still blocked in a "
                                 f"read; unplug and replug the DIGIT")
         self._stop.clear()
+        self._hold_first = hold_first
+        self._first_taken.clear()
         self.error = None      # what ended the previous activation's thread; this one reads afresh
         self.eof = False
         with self._cap_lock:
@@ -141,6 +151,7 @@ class FrameGrabber:
     def stop(self, timeout: float = 1.0) -> bool:
         """Ask the thread to end and wait up to ``timeout`` s; whether it ended (False: it is inside a read)."""
         self._stop.set()
+        self._first_taken.set()
         th = self._thread
         if th is not None:
             th.join(timeout)
@@ -177,7 +188,20 @@ class FrameGrabber:
             if latest is None or latest[2] == self._taken_seq:
                 return None
             self._taken_seq = latest[2]
-            return latest
+        if not self._first_taken.is_set():
+            self._first_taken.set()
+        return latest
+
+    def restart_counts(self) -> int:
+        """Forget the frames read so far (the thread has ended: :meth:`stop` returned True); the counts (``seq``,
+        ``dropped``, ``read_time``) start again. Returns how many frames had been read."""
+        with self._lock:
+            n = self.seq
+            self._latest = None
+            self._taken_seq = self.seq = self.dropped = 0
+            self.last_received = None
+            self.read_time = 0.0
+        return n
 
     def _run(self) -> None:
         try:
@@ -247,6 +271,10 @@ class FrameGrabber:
                     self.dropped += 1
                 self._latest = (frame, stamp, self.seq)
                 self.last_received = received
+            if self._hold_first:
+                self._hold_first = False
+                self._first_taken.wait()    # until a step took it (or stop()): no later frame overwrites it
+                next_t = time.monotonic()   # the pace counts from there
             if self.pace:
                 next_t = max(next_t + 1.0 / self.pace, time.monotonic() - 1.0 / self.pace)
                 delay = next_t - time.monotonic()
@@ -421,6 +449,8 @@ class Digit(Component):
                                     lost=self._lost, device_clock=v4l2)
         self.frames = 0
         self.before_start = 0   # frames captured before graph time 0, not passed on
+        # a file source plays from its first frame, started again at the node's first step (see _play_from_start)
+        self._from_start = self.is_file
         self._last_frame_mono = 0.0
         self._t_first: float | None = None
         self._activated = time.monotonic()
@@ -506,6 +536,10 @@ class Digit(Component):
 
     def step(self, t: float, inputs: Any) -> dict[str, Any] | None:
         g = self.grabber
+        if self._from_start:
+            self._from_start = False
+            self._play_from_start()
+            return None
         got = g.take()
         if got is None:
             if g.error:
@@ -544,6 +578,34 @@ class Digit(Component):
         if self._t_first is None:
             self._t_first = stamp
         return {"image": Sample(frame, t_cap)}
+
+    def _play_from_start(self) -> None:
+        """A file source's first step: the graph's clock runs. The frames the capture thread read during start-up
+        (it starts at activate(), before graph time 0; a long start-up may have read many, or the whole file) are
+        older than the run: they are counted in ``before_start`` and the file is played again from frame 0, its
+        first frame held until a step takes it, so it is the first frame published."""
+        import cv2
+
+        g = self.grabber
+        if not g.stop(timeout=1.0):
+            raise HardwareError(f"{self.who}: the capture thread has been inside one read of the file for more than "
+                                f"1 s: the file cannot be played from its first frame (a slow or stalled disk?)")
+        self.before_start += g.restart_counts()
+        try:
+            rewound = bool(g.cap.set(cv2.CAP_PROP_POS_FRAMES, 0)) and g.cap.get(cv2.CAP_PROP_POS_FRAMES) == 0
+        except Exception:
+            rewound = False
+        if not rewound:   # a container that does not seek: open the file again (the thread has ended)
+            cap = cv2.VideoCapture(self.path, cv2.CAP_ANY)
+            if not cap.isOpened():
+                cap.release()
+                raise HardwareError(self._lost() or f"{self.who}: cannot play the file from its first frame (it "
+                                                    f"does not seek to frame 0 and cannot be opened again)")
+            g.cap.release()
+            g.cap = self.cap = cap
+        # the first frame is due from now (the first-frame grace of frame_timeout counts from here)
+        self._activated = time.monotonic()
+        g.start(hold_first=True)
 
     def deactivate(self) -> None:
         g = getattr(self, "grabber", None)
