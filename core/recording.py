@@ -37,6 +37,9 @@ where ``epoch`` (metadata record ``teletouch.time``, key ``graph_epoch_ns``) is 
 readers give graph time back in seconds (another tool's recording: from its first message's publish time). Samples
 dropped on a wall clock (a writer behind) are counted in the metadata record ``teletouch.drops``
 (:attr:`Recording.dropped`).
+
+Read only (teletouch never writes one): another tool's sensor_msgs/msg/JointState, what ``ros2-publish`` sends for
+the gripper, gives per joint its position, velocity and effort as the message holds them (SI), at its header stamp.
 """
 
 from __future__ import annotations
@@ -610,8 +613,57 @@ class _JsonImage(_Json):
         return a > 127 if _recorded_bool(meta) else a
 
 
+@dataclass
+class _HeaderStamped:
+    """A decoded value with the message's own ``header.stamp`` (Unix-epoch ns; 0: the sender did not stamp it),
+    which the readers take as the sample's time instead of the MCAP publish time."""
+
+    value: Any
+    stamp_ns: int
+
+
+class _JointState(_Codec):
+    """Another tool's sensor_msgs/msg/JointState (``ros2-publish`` sends one per measurement of the gripper; a
+    ``ros2 bag record`` keeps them). Read only: the Recorder never writes one (:func:`_choose_codec`). Its value is
+    ``{joint name: {"position": x, "velocity": v, "effort": e}}`` with the fields the message carries (an empty
+    array: not in this message), as ROS gives them (SI: m or rad, m/s or rad/s, N or N*m), at its header stamp.
+    A message whose arrays do not match its names (the message definition: each the names' length, or empty), or
+    that names a joint twice, cannot be decoded (its values could not be told apart)."""
+
+    kind = "joint_state"
+    ros_type = "sensor_msgs/msg/JointState"
+    FIELDS = ("position", "velocity", "effort")
+
+    def accepts(self, v):
+        return False
+
+    def decode(self, data, meta):
+        from rclpy.serialization import deserialize_message
+
+        msg = deserialize_message(data, _msg_class(self.ros_type))
+        st = msg.header.stamp
+        return _HeaderStamped(self.unpack(msg, meta), int(st.sec) * 1_000_000_000 + int(st.nanosec))
+
+    def unpack(self, msg, meta):
+        names = [str(n) for n in msg.name]
+        if len(set(names)) != len(names):
+            twice = sorted({n for n in names if names.count(n) > 1})
+            raise ValueError(f"joint {twice[0]!r} is named twice in {names}")
+        out: dict[str, dict[str, float]] = {n: {} for n in names}
+        for f in self.FIELDS:
+            values = [float(x) for x in getattr(msg, f)]
+            if not values:
+                continue
+            if len(values) != len(names):
+                raise ValueError(f"{len(values)} {f} values for {len(names)} joint names {names} (each array must "
+                                 f"have one value per name, or none)")
+            for n, x in zip(names, values):
+                out[n][f] = x
+        return out
+
+
 _CODECS: dict[str, type[_Codec]] = {c.kind: c for c in (_Wrench, _Float64, _Bool, _Int64, _String, _Array,
-                                                          _Compressed, _Raw, _Json, _JsonImage)}
+                                                          _Compressed, _Raw, _Json, _JsonImage, _JointState)}
 
 
 #: a 2-D array (uint8, bool, float, uint16) is an image only if its rows and columns are each at least this many
@@ -1279,7 +1331,8 @@ def open_recording(path: str | os.PathLike, decode: bool = True, keys: Any = Non
     """Read a recording: its :class:`Recording` description and a list of (key, stamp_s, log_s, value) in file
     order (graph time, s). ``keys``: only these "node.port" keys; ``decode=False`` gives the raw bytes. Decoded, a
     channel of a message type no reader here knows (another tool's) is left out and named in
-    ``Recording.undecoded``."""
+    ``Recording.undecoded``; a sensor_msgs/JointState message is ``{joint: {"position": x, "velocity": v, "effort":
+    e}}`` (the fields it carries) with its header stamp as ``stamp_s`` (the publish time where the header's is 0)."""
     return _read(str(path), None if keys is None else (lambda ch: ch.key in keys), decode)
 
 
@@ -1307,6 +1360,10 @@ def _read(path: str, want: Callable[[ChannelInfo], bool] | None, decode: bool = 
             if c is None:
                 continue
             value = _decode(path, c, ch, msg, _epoch(rec))
+            if isinstance(value, _HeaderStamped):   # the measurement's time (a bag's publish time is its arrival)
+                stamp_ns = value.stamp_ns if value.stamp_ns > 0 else msg.publish_time
+                out.append((ch.key, stamp_ns, msg.log_time, value.value))
+                continue
         else:
             value = msg.data
         out.append((ch.key, msg.publish_time, msg.log_time, value))
@@ -1344,15 +1401,25 @@ def _is_colour(ch: ChannelInfo) -> bool:
 def read_signals(path: str | os.PathLike, images: bool = False,
                  ) -> dict[str, tuple[np.ndarray, Any]]:
     """{"node.port": (stamps_s, values)} for every channel. Numbers give a float array; equal-shape arrays a stacked
-    array (N, ...); strings and the rest a list. Images and depth maps only with ``images=True`` (a list)."""
+    array (N, ...); strings and the rest a list. Images and depth maps only with ``images=True`` (a list). Another
+    tool's sensor_msgs/JointState channel gives a float signal per joint and field, ``"<topic>.<joint>.position"``
+    (``velocity``, ``effort``), each of the messages that carry that field, at their header stamps."""
     return _signals(str(path), images)[1]
 
 
 def _signals(path: str, images: bool = False) -> tuple[Recording, dict[str, tuple[np.ndarray, Any]]]:
     """:func:`read_signals` and the :class:`Recording` it read them from, in one pass over the file."""
     rec, items = _read(path, None if images else (lambda ch: not _is_image(ch)))
+    joints = {ch.key for ch in rec.channels.values() if isinstance(_codec_or_none(ch), _JointState)}
     grouped: dict[str, tuple[list[float], list[Any]]] = {}
     for key, stamp, _log, value in items:
+        if key in joints:   # {joint: {field: value}}: a signal "key.joint.field" of the messages that carry it
+            for joint, fields in value.items():
+                for f, x in fields.items():
+                    ts, vs = grouped.setdefault(f"{key}.{joint}.{f}", ([], []))
+                    ts.append(stamp)
+                    vs.append(x)
+            continue
         ts, vs = grouped.setdefault(key, ([], []))
         ts.append(stamp)
         vs.append(value)

@@ -111,7 +111,7 @@ def test_a_message_that_cannot_be_decoded_is_an_error_naming_the_file_and_channe
         _foreign(path, "json", None, b"\x00\x01not json")
         why = 'message 1 (at 0.000 s) cannot be decoded (expected JSON {"value": ...}, as teletouch writes): JSONDecode'
     else:   # a type no reader knows: the channel is left out and named, not the whole file refused (a `ros2 bag
-        # record -a` has /rosout; ros2-publish's own JointState has no decoder here)
+        # record -a` has /rosout)
         _foreign(path, "protobuf", ("foo.Bar", "protobuf"), b"\x08\x01")
         rec, items = open_recording(path)
         assert items == [] and rec.undecoded == ["/other (foo.Bar)"]
