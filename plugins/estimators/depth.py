@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from teletouch.paths import output_problem
 from teletouch.reproducible import source_date_epoch
 from teletouch.units import Meters, parse_quantity, plausible_depth
 
+from .depth_pipeline import DEVICES, device_form_problem, device_problem
 from .normal_model import DEFAULT_FEATURES, DEFAULT_HIDDEN, FEATURE_SETS, max_stride
 
 __all__ = ["DepthEstimator"]
@@ -38,11 +38,6 @@ __all__ = ["DepthEstimator"]
 #: deepest plausible contact_depth (m): a DIGIT's gel is 4-5 mm thick (as poly-force's depth_limit); deeper, no
 #: pixel is ever in contact ("0.03", meant in mm, read every press as no contact)
 MAX_CONTACT_DEPTH = 5e-3
-
-#: the torch devices the pipeline runs on: the CPU (sparse path by default), a CUDA GPU (by index) or Apple's MPS
-DEVICES = "cpu, cuda, cuda:N (N: the GPU's index, from 0) or mps"
-_DEVICE_FORM = re.compile(r"cpu|cuda(:\d+)?|mps")
-
 
 class DepthEstimator(Component):
     """DIGIT image -> depth map (m), max depth, contact mask/area/centroid (normal MLP + DST Poisson)."""
@@ -430,41 +425,6 @@ def _same_frame(a: np.ndarray, b: np.ndarray) -> bool:
         return False
     fa, fb = a.reshape(-1), b.reshape(-1)
     return bool(np.array_equal(fa[::4099], fb[::4099]) and np.array_equal(fa, fb))
-
-
-def device_form_problem(device: Any) -> str:
-    """Why ``device`` is not one of the accepted forms (:data:`DEVICES`; '' if it is), without importing torch: asked
-    when the graph is validated. Before, any torch device type passed (``meta``: tensors without data, the run failed
-    at start-up; ``xpu``, ``hip``: never tried here) and a typo (``gpu``) was found only at start-up."""
-    if isinstance(device, str) and _DEVICE_FORM.fullmatch(device):
-        return ""
-    hint = ""
-    if isinstance(device, str) and device.strip().lower() in ("gpu", "nvidia"):
-        hint = "; an NVIDIA GPU is 'cuda'"
-    elif isinstance(device, str) and _DEVICE_FORM.fullmatch(device.strip().lower()):
-        hint = f"; did you mean {device.strip().lower()!r}?"
-    return f"expected {DEVICES}, got {device!r}{hint}"
-
-
-def device_problem(device: Any, name: str) -> str:
-    """Why the pipeline cannot run on ``device`` here ('' if it can), led by the parameter's ``name`` ('device',
-    '--device'): not an accepted form (:func:`device_form_problem`), or no such device on this machine."""
-    form = device_form_problem(device)
-    if form:
-        return f"{name}: {form}"
-    import torch
-
-    dev = torch.device(device)
-    cpu = "device: cpu" if name == "device" else f"{name} cpu"
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            return f"{name} {device!r}: torch sees no CUDA GPU here; use {cpu}"
-        n = torch.cuda.device_count()
-        if dev.index is not None and dev.index >= n:
-            return f"{name} {device!r}: torch sees {n} CUDA GPU(s) here (cuda:0 to cuda:{n - 1})"
-    if dev.type == "mps" and not torch.backends.mps.is_available():
-        return f"{name} {device!r}: MPS is not available; use {cpu}"
-    return ""
 
 
 def _check_device(device: str) -> str:

@@ -31,6 +31,7 @@ Steps:
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +42,47 @@ from teletouch.errors import ModelFileError
 from . import poisson
 from .normal_model import NormalModel, colour_maps_torch, colour_parts, context_cells, feature_count, uses_xy
 
-__all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset", "fill_enclosed", "fill_enclosed_torch"]
+__all__ = ["DepthResult", "DepthPipeline", "contact_summary", "channel_offset", "fill_enclosed", "fill_enclosed_torch",
+           "DEVICES", "device_form_problem", "device_problem"]
+
+#: the torch devices the pipeline runs on: the CPU (sparse path by default), a CUDA GPU (by index) or Apple's MPS
+DEVICES = "cpu, cuda, cuda:N (N: the GPU's index, from 0) or mps"
+_DEVICE_FORM = re.compile(r"cpu|cuda(:\d+)?|mps")
+
+
+def device_form_problem(device: Any) -> str:
+    """Why ``device`` is not one of the accepted forms (:data:`DEVICES`; '' if it is), without importing torch: asked
+    when the graph is validated. Before, any torch device type passed (``meta``: tensors without data, the run failed
+    at start-up; ``xpu``, ``hip``: never tried here) and a typo (``gpu``) was found only at start-up."""
+    if isinstance(device, str) and _DEVICE_FORM.fullmatch(device):
+        return ""
+    hint = ""
+    if isinstance(device, str) and device.strip().lower() in ("gpu", "nvidia"):
+        hint = "; an NVIDIA GPU is 'cuda'"
+    elif isinstance(device, str) and _DEVICE_FORM.fullmatch(device.strip().lower()):
+        hint = f"; did you mean {device.strip().lower()!r}?"
+    return f"expected {DEVICES}, got {device!r}{hint}"
+
+
+def device_problem(device: Any, name: str) -> str:
+    """Why the pipeline cannot run on ``device`` here ('' if it can), led by the parameter's ``name`` ('device',
+    '--device'): not an accepted form (:func:`device_form_problem`), or no such device on this machine."""
+    form = device_form_problem(device)
+    if form:
+        return f"{name}: {form}"
+    import torch
+
+    dev = torch.device(device)
+    cpu = "device: cpu" if name == "device" else f"{name} cpu"
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            return f"{name} {device!r}: torch sees no CUDA GPU here; use {cpu}"
+        n = torch.cuda.device_count()
+        if dev.index is not None and dev.index >= n:
+            return f"{name} {device!r}: torch sees {n} CUDA GPU(s) here (cuda:0 to cuda:{n - 1})"
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        return f"{name} {device!r}: MPS is not available; use {cpu}"
+    return ""
 
 
 @dataclass
@@ -215,7 +256,12 @@ def channel_offset(d: np.ndarray) -> np.ndarray:
 
 
 class DepthPipeline:
-    """A calibrated model + settings -> depth maps. ``pipeline(frame_bgr_uint8) -> DepthResult``."""
+    """A calibrated model + settings -> depth maps. ``pipeline(frame_bgr_uint8) -> DepthResult``.
+
+    ``device``: one of :data:`DEVICES` (a ``torch.device`` of those forms too) that is there on this machine; another
+    (``meta``, a typo, ``cuda:N`` beyond the GPUs torch sees, ``cuda`` or ``mps`` where there is none) is a ValueError
+    here, naming it (:func:`device_problem`, which the ``depth`` node and ``teletouch estimate`` ask too), not a torch
+    error in the first frame."""
 
     def __init__(self, model: NormalModel, device: str = "cpu", mode: str = "auto",
                  change_threshold: float | None = None, dilate: int = 2, net_rim: int = 1, nz_min: float = 0.3,
@@ -224,6 +270,11 @@ class DepthPipeline:
                  clamp_negative: bool = True, threads: int | None = None, baseline: str = "none"):
         import torch
 
+        if isinstance(device, torch.device):
+            device = str(device)
+        problem = device_problem(device, "device")
+        if problem:
+            raise ValueError(f"DepthPipeline: {problem}")
         if threads is not None and torch.device(device).type == "cpu":
             torch.set_num_threads(int(threads))   # process-wide; small tensors: 1 thread is fastest
 
