@@ -377,23 +377,6 @@ def bench_gpu(model, frames, device: str, torch):
     return out
 
 
-def device_problem(device: str, torch) -> str | None:
-    """Why ``device`` cannot run the dense path here (None if it can)."""
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, ValueError) as e:
-        return f"not a torch device ({e})"
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        return "CUDA is not available on this machine (torch.cuda.is_available() is False)"
-    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
-        return f"there are {torch.cuda.device_count()} CUDA devices"
-    try:
-        torch.zeros(1, device=dev)
-    except Exception as e:  # noqa: BLE001 - any failure to allocate there is the answer
-        return f"cannot allocate on it ({type(e).__name__}: {e})"
-    return None
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions and epochs")
@@ -406,10 +389,12 @@ def main() -> int:
     import scipy.fft as scipy_fft
     import torch
 
-    if args.device:   # refused now, not after the CPU measurements
-        problem = device_problem(args.device, torch)
+    from teletouch.plugins.estimators.depth_pipeline import device_problem
+
+    if args.device:   # refused now, not after the CPU measurements (the depth node's and estimate's own check)
+        problem = device_problem(args.device, "--device")
         if problem:
-            ap.error(f"--device {args.device}: {problem}")
+            ap.error(problem)
     torch.set_num_threads(1)
     log = lambda m: print(m, file=sys.stderr)  # noqa: E731
     reps = 5 if args.quick else 20

@@ -85,7 +85,7 @@ def test_a_quick_benchmark_ends_with_one_strict_json_object():
     (["force_accuracy.py", "--quick", "--presses", "0"], ["--presses", ">= 1"]),
     (["force_accuracy.py", "--quick", "--calibration", "no-such-calibration"], ["--calibration", "packaged"]),
     (["teleop_loop.py", "--quick", "--repeat", "0"], ["--repeat", ">= 1"]),
-    (["depth_speed.py", "--quick", "--device", "no-such-device"], ["--device", "not a torch device"]),
+    (["depth_speed.py", "--quick", "--device", "no-such-device"], ["--device: expected cpu, cuda", "no-such-device"]),
     (["stability_sweep.py", "--quick", "--out", "/no/such/folder/sweep.json"], ["--out", "does not exist"]),
     # a folder passed the check and the sweep ran, to die writing its result
     (["stability_sweep.py", "--quick", "--out", "benchmarks"], ["--out benchmarks", "is a folder"]),
