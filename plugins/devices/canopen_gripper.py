@@ -42,6 +42,37 @@ naming the cause. Heartbeats and TPDOs are timed and counted as they arrive, on 
 frame's timestamp is on whatever clock the python-can interface uses (epoch on socketcan; monotonic, a device counter or
 none on others). Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS file is optional
 (without one, the standard CiA 301/402 objects above are assumed).
+
+The drive watches the host (host heartbeat): the driver watches the drive's heartbeat, and without this the drive kept
+going, enabled and on its last set-point, when the host died, hung or lost its cable. With ``host_heartbeat_period`` > 0
+(default 0.1 s, whole ms) the host produces a heartbeat, COB-ID 0x700 + ``host_node_id`` (default 127, the top of the
+range, where masters often sit; not ``node_id``), one byte: NMT OPERATIONAL (5), through canopen's
+Network.send_periodic. In the pre-operational phase the producer starts, then the drive's consumer heartbeat time 0x1016
+sub 1 is written (host node id in bits 16-23, ``host_heartbeat_timeout`` in ms in bits 0-15: default three periods,
+0.3 s; at least two, so one late heartbeat stops nothing) and abort connection option code 0x6007
+(``abort_connection_option``), then one heartbeat goes out at once (a CiA 301 consumer starts watching at the first
+heartbeat after it is set; the periodic one may come a period later, on socketcan always). A drive without 0x1016 is
+refused naming ``host_heartbeat_period: 0`` (off: 0x1016 and 0x6007 are not touched), one without 0x6007 naming
+``abort_connection_option: null`` (not written: the drive's own reaction). When the heartbeat stops for the consumer
+time while the drive is NMT OPERATIONAL, the drive acts per 0x6007: 0 nothing, 1 FAULT (EMCY 0x8130), 2 disable voltage
+(power stage off: the fingers hold only by their gearbox or brake), 3 quick stop, the default: the drive stops on its
+quick-stop ramp and holds there (the project's safe state, "the follower holds position") in QUICK STOP ACTIVE where its
+quick stop option code 0x605A is 5-8; with 0x605A 1-2 (CiA 402's default is 2) it then goes to SWITCH ON DISABLED, power
+stage off: check 0x605A with the drive's tool. A drive that left OPERATION ENABLED is reported with that possible cause.
+The heartbeat runs as long as the driver holds the drive: through deactivate() (the drive holds the safe state's
+set-point, still watched, and activate() works again; stopped there, it quick-stopped or faulted one consumer time
+later), and stops in close(), after the safe state's set-point went out (the runtime and the Harness call safe_state()
+before close(), and close() takes the set-point lock, so a send on another thread finishes first): the drive then reacts
+one consumer time later, where it stands (with option 1, a FAULT after every run: the next start needs
+``reset_fault_at_start``; one reason 3 is the default). With ``safe_mode: open``, close() first reads the state until
+the drive reports the open set-point reached (statusword bits 12 and 10), at most the travel time at ``max_speed`` with
+a margin (OPEN_FINISH_MAX), so the quick stop does not stop the fingers part-way. What the heartbeat proves: the process
+and its CAN interface live, not that the control loop steps (a loop that hangs in a live process is the runtime
+watchdog's, which sends the safe state). On socketcan python-can's periodic task is the kernel's broadcast manager
+(BCM): it goes on while the process lives, also frozen, and ends when its BCM socket is closed (bus shutdown, or the
+process exits or is killed: the kernel closes its files and removes the socket's tasks); a child made by a bare fork()
+would hold the socket too (the runtime spawns its isolated nodes). Elsewhere it is a python-can thread, which ends at
+its first failed send: the next read starts it again (logged).
 """
 
 from __future__ import annotations
@@ -73,6 +104,15 @@ MODE_NAMES = {0: "no mode", 1: "profile position", 3: "profile velocity", 4: "pr
 MODE_POLL = 0.005  # s between two reads of the modes of operation display 0x6061 while the drive switches
 WALK_SYNC_PERIOD = 0.005  # s between the SYNCs that drive the TPDOs (the statusword) while the state machine is walked
 NMT_OPERATIONAL = 5  # the NMT state in a heartbeat (CiA 301)
+#: abort connection option code 0x6007 (CiA 402): what the drive does when it loses the host (its heartbeat)
+ABORT_OPTIONS = {0: "no action", 1: "fault", 2: "disable voltage", 3: "quick stop"}
+HOST_TIMEOUT_PERIODS = 3   # host_heartbeat_timeout None: this many host heartbeat periods
+HEARTBEAT_MS_MAX = 0xFFFF   # 0x1016's time (bits 0-15) and 0x1017 hold whole milliseconds, UNSIGNED16
+#: close() with safe_mode open waits (the host heartbeat still going) for the drive to report the fingers open, at
+#: most this long: the drive's quick stop on the lost host heartbeat would stop them part-way
+OPEN_FINISH_MAX = 5.0
+OPEN_FINISH_POLL = 0.01   # s between two state reads of that wait
+CLOSE_LOCK_WAIT = 1.0   # s close() waits for a set-point being sent on another thread before the heartbeat stops
 CW_ENABLE = 0x000F
 CW_NEW_SETPOINT = 0x0010
 CW_CHANGE_IMMEDIATELY = 0x0020
@@ -165,6 +205,24 @@ class CanopenGripper(FollowerBase):
                                       json_schema_extra={"unit": "s"})
         heartbeat_period: Seconds = Field(0.1, ge=0, description="drive heartbeat period (0: off); three missed "
                                           "heartbeats are a fault", json_schema_extra={"unit": "s"})
+        host_heartbeat_period: Seconds = Field(0.1, ge=0, description="period of the heartbeat the host (this "
+                                               "driver) produces for the drive's consumer heartbeat time 0x1016, "
+                                               "so that the drive notices a dead or unplugged host and acts per "
+                                               "abort_connection_option; whole milliseconds; 0: off (0x1016 and "
+                                               "0x6007 are left as they are, and the drive keeps going without a "
+                                               "host)", json_schema_extra={"unit": "s"})
+        host_heartbeat_timeout: Seconds | None = Field(None, gt=0, description="the drive's consumer heartbeat time "
+                                                       "(0x1016 sub 1): no host heartbeat for this long and it acts "
+                                                       "per abort_connection_option; whole milliseconds up to "
+                                                       "65.535 s, at least twice host_heartbeat_period; None: three "
+                                                       "periods", json_schema_extra={"unit": "s"})
+        host_node_id: int = Field(127, ge=1, le=127, description="node id the host's heartbeat carries (COB-ID "
+                                  "0x700 + id): one no node on the bus has, not node_id")
+        abort_connection_option: int | None = Field(3, description="abort connection option code 0x6007, what the "
+                                                    "drive does when the host's heartbeat stops: 0 no action, 1 "
+                                                    "fault, 2 disable voltage, 3 quick stop (stops and holds; what "
+                                                    "follows is the drive's quick stop option code 0x605A); None: "
+                                                    "not written, the drive's own")
         velocity_unit: str | None = Field(None, description="the drive's velocity unit (of profile velocity 0x6081 "
                                           "and velocity actual 0x606C) where it has no SI unit velocity 0x60A9: "
                                           "'rpm', 'rev/s' or 'counts/s' (0x6064 counts per second), with a factor "
@@ -189,10 +247,65 @@ class CanopenGripper(FollowerBase):
         def _heartbeat(cls, v: float) -> float:
             # 0x1017 holds whole milliseconds (UNSIGNED16): 0.0004 s was written as 0 (heartbeat off, then faulted as
             # a lost drive), 70 s failed with a bare "Value does not fit in specified type"
-            if v != 0 and not 0.001 <= v <= 65.535:
-                raise ValueError(f"heartbeat_period {v:g} s does not fit the drive's producer heartbeat time 0x1017 "
-                                 f"(whole ms, 1-65535): give 0 (off) or 0.001-65.535 s")
+            if v != 0:
+                _whole_ms("heartbeat_period", v, "the drive's producer heartbeat time 0x1017 (whole ms, 1-65535)",
+                          "0 (off) or 0.001-65.535 s", HEARTBEAT_MS_MAX)
             return v
+
+        @field_validator("host_heartbeat_period")
+        @classmethod
+        def _host_period(cls, v: float) -> float:
+            if v != 0:
+                _whole_ms("host_heartbeat_period", v, "the host's heartbeat period, in CANopen's whole milliseconds",
+                          "0 (off) or 0.001-32.767 s, e.g. 0.1", HEARTBEAT_MS_MAX // 2)
+            return v
+
+        @field_validator("host_heartbeat_timeout")
+        @classmethod
+        def _host_timeout(cls, v: float | None) -> float | None:
+            if v is not None:
+                _whole_ms("host_heartbeat_timeout", v, "the drive's consumer heartbeat time 0x1016 (whole ms, "
+                          "1-65535)", "None (three host heartbeat periods) or 0.002-65.535 s, e.g. 0.3",
+                          HEARTBEAT_MS_MAX)
+            return v
+
+        @field_validator("abort_connection_option")
+        @classmethod
+        def _abort_option(cls, v: int | None) -> int | None:
+            if v is not None and v not in ABORT_OPTIONS:
+                raise ValueError(f"abort_connection_option {v} is no CiA 402 abort connection option code 0x6007 "
+                                 f"the driver writes: give 0 (no action), 1 (fault), 2 (disable voltage), 3 (quick "
+                                 f"stop) or null (not written: for a manufacturer-specific reaction, a negative "
+                                 f"value, set it with the drive's tool)")
+            return v
+
+        @model_validator(mode="after")
+        def _host_heartbeat(self) -> "CanopenGripper.Params":
+            if self.host_heartbeat_period == 0:
+                return self
+            if self.host_node_id == self.node_id:
+                raise ValueError(f"host_node_id {self.host_node_id} is the drive's node_id: the host's heartbeat "
+                                 f"(COB-ID 0x{0x700 + self.host_node_id:03X}) would be taken for the drive's; give "
+                                 f"host_node_id a node id no node on the bus has (1-127)")
+            timeout = self.host_timeout
+            if timeout > HEARTBEAT_MS_MAX / 1000:
+                raise ValueError(f"host_heartbeat_timeout None is {HOST_TIMEOUT_PERIODS} x host_heartbeat_period "
+                                 f"= {timeout:g} s, beyond the drive's consumer heartbeat time 0x1016 (at most "
+                                 f"65.535 s): give host_heartbeat_timeout, or a shorter host_heartbeat_period")
+            if round(timeout * 1000) < 2 * round(self.host_heartbeat_period * 1000):
+                raise ValueError(f"host_heartbeat_timeout {timeout:g} s is less than twice host_heartbeat_period "
+                                 f"{self.host_heartbeat_period:g} s: the drive would stop at one late heartbeat "
+                                 f"(CiA 301 needs it above the period); give at least "
+                                 f"{2 * self.host_heartbeat_period:g} s, or leave it None "
+                                 f"({HOST_TIMEOUT_PERIODS} periods)")
+            return self
+
+        @property
+        def host_timeout(self) -> float:
+            """The consumer heartbeat time written to 0x1016 sub 1 (s)."""
+            if self.host_heartbeat_timeout is not None:
+                return self.host_heartbeat_timeout
+            return HOST_TIMEOUT_PERIODS * self.host_heartbeat_period
 
         @model_validator(mode="after")
         def _map(self) -> "CanopenGripper.Params":
@@ -255,6 +368,7 @@ class CanopenGripper(FollowerBase):
         node.sdo.RESPONSE_TIMEOUT = p.sdo_timeout
         node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry forever in canopen 2.4)
         self.emcys: list[Any] = []
+        self._host_hb: Any = None   # the host's heartbeat producer (canopen's PeriodicMessageTask), while it runs
         node.emcy.add_callback(self.emcys.append)
         self._hb_seen = time.monotonic()
         self._nmt_state: int | None = None  # the NMT state in the drive's last heartbeat
@@ -273,6 +387,8 @@ class CanopenGripper(FollowerBase):
         if p.heartbeat_period > 0:
             self._sdo("writing heartbeat 0x1017", lambda: setattr(node.sdo[0x1017], "raw",
                                                                    int(round(p.heartbeat_period * 1000))))
+        if p.host_heartbeat_period > 0:
+            self._watch_host()
         self._enter_mode(PROFILE_POSITION)
         self.profile_velocity = self._profile_velocity()
         self._check_profile_acceleration()
@@ -319,6 +435,89 @@ class CanopenGripper(FollowerBase):
                                 f"reset_fault_at_start: true to have the start-up reset it")
         self.ctx.log(f"{self._where()} {logged} {found}: resetting it (controlword bit 7, reset_fault_at_start)")
         return True
+
+    def _watch_host(self) -> None:
+        """Have the drive watch the host (pre-operational, with the other SDO writes): the host's heartbeat producer
+        (canopen's Network.send_periodic: python-can's periodic task, the kernel's broadcast manager on socketcan)
+        first, for a drive that watches from the moment its consumer is set; then the drive's consumer heartbeat time
+        0x1016 sub 1 (host node id, time in ms) and abort connection option code 0x6007; then one heartbeat at once:
+        a CiA 301 consumer starts watching at the first heartbeat after it was set, and the periodic one may come a
+        period later (socketcan's first frame comes after a period), after the start-up, so that a host that died
+        right after it went unwatched. A drive without either object is refused, naming the param that does
+        without."""
+        p = self.params
+        self._start_host_heartbeat()
+        timeout_ms = int(round(p.host_timeout * 1000))
+        self._write_object(0x1016, 1, (p.host_node_id << 16 | timeout_ms).to_bytes(4, "little"),
+                           f"writing consumer heartbeat time 0x1016 sub 1 = 0x{p.host_node_id << 16 | timeout_ms:08X} "
+                           f"(host node {p.host_node_id}, host_heartbeat_timeout {timeout_ms} ms)",
+                           "no consumer heartbeat time 0x1016 sub 1: it cannot watch the host's heartbeat, and would "
+                           "keep going (enabled, on its last set-point) if this computer died or hung. Set "
+                           "host_heartbeat_period: 0 to run it without that watch")
+        if p.abort_connection_option is not None:
+            option = p.abort_connection_option
+            self._write_object(0x6007, 0, option.to_bytes(2, "little", signed=True),
+                               f"writing abort connection option code 0x6007 = {option} "
+                               f"({ABORT_OPTIONS[option]}, abort_connection_option)",
+                               "no abort connection option code 0x6007: what it does when the host's heartbeat "
+                               "stops is its own (its manual; often a fault). Set abort_connection_option: null to "
+                               "leave that as it is, or host_heartbeat_period: 0 to turn the host heartbeat off")
+        try:
+            self.network.send_message(0x700 + p.host_node_id, bytes([NMT_OPERATIONAL]))
+        except Exception as exc:   # (can.CanError, OSError: a full transmit queue; the periodic one still comes)
+            self.ctx.log(f"the first host heartbeat to {self._where()} could not be sent ({exc}): the drive watches "
+                         f"the host from the periodic one, a period later")
+
+    def _start_host_heartbeat(self) -> None:
+        p = self.params
+        try:
+            self._host_hb = self.network.send_periodic(0x700 + p.host_node_id, bytes([NMT_OPERATIONAL]),
+                                                       p.host_heartbeat_period)
+        except Exception as exc:   # (a BCM socket refused, a bus that has no periodic sending)
+            raise HardwareError(f"cannot start the host heartbeat on {p.interface}:{p.channel} ({exc}); set "
+                                f"host_heartbeat_period: 0 to run without it") from exc
+
+    def _stop_host_heartbeat(self) -> None:
+        task, self._host_hb = getattr(self, "_host_hb", None), None
+        if task is not None:
+            try:
+                task.stop()
+            except Exception:
+                pass
+
+    def _check_host_heartbeat(self) -> None:
+        """python-can's thread-based periodic task (every interface but socketcan's kernel one) ends for good at its
+        first failed send (a full transmit queue, a bus-off): started again at once, before the drive's consumer
+        time runs out."""
+        task = self._host_hb
+        # (canopen's PeriodicMessageTask keeps python-can's task as _task; the kernel's BCM task has no 'stopped')
+        if task is None or not getattr(getattr(task, "_task", None), "stopped", False):
+            return
+        self.ctx.log(f"the host heartbeat to {self._where()} stopped (a failed send ends python-can's periodic "
+                     f"task): started again")
+        self._host_hb = None
+        try:
+            self._start_host_heartbeat()
+        except HardwareError as exc:
+            self.last_error = str(exc)   # tried again at the next read; the drive's reaction is reported then
+
+    def _write_object(self, index: int, sub: int, data: bytes, what: str, missing: str) -> None:
+        """An SDO download (an EDS file need not list the object); a drive without the object (abort 0x06020000 or
+        0x06090011) is refused saying it has ``missing``; any other abort names ``what`` (:meth:`_sdo`)."""
+        from canopen.sdo.exceptions import SdoAbortedError
+
+        def download() -> str:
+            try:
+                self.node.sdo.download(index, sub, data)
+            except SdoAbortedError as exc:
+                if getattr(exc, "code", None) not in NO_SUCH_OBJECT:
+                    raise
+                return str(exc)
+            return ""
+
+        why = self._sdo(what, download)
+        if why:
+            raise HardwareError(f"{self._where()} has {missing} (SDO abort: {why})")
 
     def _walk_to_enabled(self, fault_seen: bool) -> None:
         """The CiA 402 state machine to OPERATION ENABLED, one transition of canopen's table at a time, from the
@@ -653,6 +852,7 @@ class CanopenGripper(FollowerBase):
         p = self.params
         if p.heartbeat_period > 0:
             self._check_heartbeat()
+        self._check_host_heartbeat()
         # TPDOs carry no SYNC number: each SYNC's answer is counted. The answers to earlier SYNCs (a step that timed
         # out, the state walk's) arrive first, in order: waited for before this step's SYNC, so that none of them is
         # taken for its answer; not there within pdo_timeout, they are written off as lost and the step has no state
@@ -678,7 +878,7 @@ class CanopenGripper(FollowerBase):
                                 f"{self._emcy_text()}); clear the cause, then reset the drive")
         if sw & 0x6F != 0x27:
             raise HardwareError(f"{self._where()} left OPERATION ENABLED (statusword 0x{sw:04X}, "
-                                f"{self._emcy_text()})")
+                                f"{self._emcy_text()}){self._host_loss_hint()}")
         mode = self.tp1[0x6061].raw
         if mode != PROFILE_POSITION:
             raise HardwareError(f"{self._where()} left profile position mode (0x6061 = {mode})")
@@ -686,6 +886,15 @@ class CanopenGripper(FollowerBase):
         amps = self.tp2[0x6078].raw / 1000.0 * self.rated_ma / 1000.0
         vel = self.tp2[0x606C].raw * self._mps_per_unit   # the drive's velocity unit -> counts/s -> m/s
         return Reading(self.map.opening(counts), vel, abs(amps) * p.newtons_per_amp, 0.5 * (t0 + t1))
+
+    def _host_loss_hint(self) -> str:
+        """For a drive that left OPERATION ENABLED: that it may be its reaction to a missed host heartbeat."""
+        p = self.params
+        if p.host_heartbeat_period == 0 or p.abort_connection_option not in (None, 2, 3):
+            return ""
+        return (f"; a quick stop or disable voltage is also what it does when it misses the host's heartbeat for "
+                f"host_heartbeat_timeout {p.host_timeout:g} s (abort connection option code 0x6007): was this "
+                f"process or its CAN interface stalled?")
 
     def _check_heartbeat(self) -> None:
         """The drive's heartbeat: none for more than three periods is noted, for more than read_timeout a fault; one
@@ -747,6 +956,21 @@ class CanopenGripper(FollowerBase):
         net = getattr(self, "network", None)
         if net is None:
             return
+        # the host heartbeat stops last, after the safe state's set-point went out (the runtime and the Harness call
+        # safe_state() before close(); a send on another thread holds the lock): the drive's reaction to its end
+        # (abort_connection_option, after host_heartbeat_timeout) comes after the hold, never before it
+        if getattr(self, "_host_hb", None) is not None:
+            try:
+                self._finish_open()
+            except Exception:   # (close() must not raise; the heartbeat stops all the same)
+                pass
+            lock = getattr(self, "_io_lock", None)
+            got = lock is not None and lock.acquire(timeout=CLOSE_LOCK_WAIT)
+            try:
+                self._stop_host_heartbeat()
+            finally:
+                if got:
+                    lock.release()
         self.network = None
         try:
             net.sync.stop()
@@ -757,6 +981,31 @@ class CanopenGripper(FollowerBase):
         except Exception:
             pass
 
+    def _finish_open(self) -> None:
+        """safe_mode ``open``: the safe state sent max_opening, and the drive stops (quick stop) once the host
+        heartbeat ends: the state is read (SYNC) until the drive has the set-point (statusword bit 12) and reports the
+        target reached (bit 10), for the travel time at max_speed with a margin (at most OPEN_FINISH_MAX); a drive
+        not in OPERATION ENABLED, or without a state for read_timeout (gone), ends the wait. ``hold`` sends the
+        measured opening: nothing to wait for."""
+        p = self.params
+        counts = self.map.counts(p.max_opening)
+        if p.safe_mode != "open" or not getattr(self, "_safe", False) or counts not in (self._raised, self._target):
+            return
+        r = getattr(self, "_last_reading", None)
+        travel = p.max_opening - p.min_opening if r is None else abs(p.max_opening - r.opening)
+        start = good = time.monotonic()
+        deadline = start + min(1.5 * travel / p.max_speed + 0.25, OPEN_FINISH_MAX)
+        while (now := time.monotonic()) < deadline and now - good < p.read_timeout:
+            try:
+                r = self._hw_read()
+            except Exception:   # (left OPERATION ENABLED, a fault, a lost drive: nothing to wait for)
+                return
+            if r is not None:
+                if self.tp1[0x6041].raw & 0x1400 == 0x1400:
+                    return
+                good = time.monotonic()
+            time.sleep(OPEN_FINISH_POLL)
+
     def status(self) -> dict[str, Any]:
         d = super().status()
         d["emcy"] = len(getattr(self, "emcys", []))
@@ -766,6 +1015,13 @@ class CanopenGripper(FollowerBase):
 
 #: SDO abort codes that say the object is not there: object does not exist in the OD, sub-index does not exist
 NO_SUCH_OBJECT = (0x06020000, 0x06090011)
+
+
+def _whole_ms(name: str, seconds: float, what: str, expected: str, most: int) -> None:
+    """A ValueError naming ``name`` unless ``seconds`` is a whole number of milliseconds in 1..``most``."""
+    ms = seconds * 1000
+    if not 1 <= round(ms) <= most or abs(ms - round(ms)) > 1e-6:
+        raise ValueError(f"{name} {seconds:g} s does not fit {what}: give {expected}")
 
 #: the factor a ``velocity_unit`` may have (beyond: a typo; 1e400 overflowed at start-up, 1e-400 read every velocity 0)
 VELOCITY_FACTOR_RANGE = (Fraction(1, 10 ** 9), Fraction(10 ** 9))

@@ -28,6 +28,18 @@ the next SYNC, whatever the profile velocity; an object still stops it. ``cycle`
 by default, 0: every frame taken at once): as a real drive, it reads the controlword once a cycle, on a fixed grid of
 the monotonic clock, so of the controlwords that arrive within one cycle (by RPDO or SDO) only the last is seen, at
 that cycle's end: a "new set-point" pulse of bit 4 low then high sent back to back is no edge to it.
+
+Heartbeat consumer (CiA 301 0x1016, CiA 402 0x6007): consumer heartbeat time 0x1016 sub 1 (bits 16-23 the producer's
+node id, bits 0-15 the time in ms; 0 in either: off, the default, and the drive watches nothing) makes the drive listen
+for that node's heartbeat (0x700 + id); monitoring starts with the first heartbeat received after the write (as CiA 301
+has it), and when none came for longer than the time while the drive is NMT OPERATIONAL, it acts once per abort
+connection option code 0x6007 (default 1, CiA 402's): 1 FAULT with EMCY 0x8130 (heartbeat/life guard error, error
+register 0x11); 2 disable voltage (SWITCH ON DISABLED); 3 quick stop (from OPERATION ENABLED: QUICK STOP ACTIVE, holding
+the position it stood at, where the emulator's stop is instant; from READY TO SWITCH ON or SWITCHED ON: SWITCH ON
+DISABLED); 0 or a negative (manufacturer-specific) value: nothing. Monitoring then waits for the next heartbeat.
+``consumer_trips`` lists (monotonic time, option, state before) per reaction, ``consumer_heartbeats`` the monotonic
+arrival times of the watched heartbeats; ``consumer_object`` / ``abort_option_object`` False: the drive has no 0x1016
+/ 0x6007 (an SDO write is aborted 0x06020000); 0x6007 refuses values 4-32767 (abort 0x06090030, value range exceeded).
 """
 
 from __future__ import annotations
@@ -42,7 +54,7 @@ from typing import Callable
 
 import canopen
 from canopen import objectdictionary as od_mod
-from canopen.objectdictionary import ODRecord, ODVariable
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable
 
 U8, U16, U32 = od_mod.UNSIGNED8, od_mod.UNSIGNED16, od_mod.UNSIGNED32
 I8, I16, I32 = od_mod.INTEGER8, od_mod.INTEGER16, od_mod.INTEGER32
@@ -65,15 +77,25 @@ def _var(name, index, sub, dtype, access="rw", default=0):
 
 def drive_od(node_id: int, velocity_unit: int | None = VELOCITY_UNIT,
              resolution: tuple[int, int] | None = (1000, 1),
-             scaling: dict[int, tuple[int, int]] | None = None) -> canopen.ObjectDictionary:
+             scaling: dict[int, tuple[int, int]] | None = None, consumer: bool = True,
+             abort_option: bool = True) -> canopen.ObjectDictionary:
     """The drive's object dictionary (communication profile, 4 RPDOs/TPDOs, CiA 402 objects it implements), with SI
     unit velocity 0x60A9 = ``velocity_unit`` and position encoder resolution 0x608F = ``resolution`` (increments,
     motor revolutions) unless None (the drive has no such object); ``scaling``: the position scaling objects the
-    drive has ({0x6091: (motor revs, shaft revs)} gear ratio, {0x6092: (feed, shaft revs)} feed constant)."""
+    drive has ({0x6091: (motor revs, shaft revs)} gear ratio, {0x6092: (feed, shaft revs)} feed constant);
+    ``consumer`` / ``abort_option``: it has consumer heartbeat time 0x1016 (one entry, off) / abort connection option
+    code 0x6007 (1, fault: CiA 402's default)."""
     od = canopen.ObjectDictionary()
     od.node_id = node_id
     od.add_object(_var("Device type", 0x1000, 0, U32, "ro", DEVICE_TYPE_402))
     od.add_object(_var("Error register", 0x1001, 0, U8, "ro", 0))
+    if consumer:
+        arr = ODArray("Consumer heartbeat time", 0x1016)
+        arr.add_member(_var("Highest sub-index supported", 0x1016, 0, U8, "ro", 1))
+        arr.add_member(_var("Consumer heartbeat time", 0x1016, 1, U32, "rw", 0))
+        od.add_object(arr)
+    if abort_option:
+        od.add_object(_var("Abort connection option code", 0x6007, 0, I16, "rw", 1))
     od.add_object(_var("Producer heartbeat time", 0x1017, 0, U16, "rw", 0))
     ident = ODRecord("Identity object", 0x1018)
     ident.add_member(_var("Number of entries", 0x1018, 0, U8, "ro", 2))
@@ -146,11 +168,13 @@ class Cia402Drive:
                  velocity_unit: int = VELOCITY_UNIT, velocity_unit_object: bool = True,
                  counts_per_revolution: int = 1000, resolution_object: bool = True, emcy: bool = True,
                  fault_at: tuple[str, int] | None = None, aborts: dict[int, int] | None = None,
-                 cycle: float = 0.001, scaling: dict[int, tuple[int, int]] | None = None):
+                 cycle: float = 0.001, scaling: dict[int, tuple[int, int]] | None = None,
+                 consumer_object: bool = True, abort_option_object: bool = True):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id, velocity_unit if velocity_unit_object else None,
-                           (counts_per_revolution, 1) if resolution_object else None, scaling)
+                           (counts_per_revolution, 1) if resolution_object else None, scaling,
+                           consumer_object, abort_option_object)
         self.counts_per_unit = counts_per_unit(velocity_unit, counts_per_revolution)  # counts/s per velocity unit
         self.od[0x1000].default = device_type
         self.pos = float(position)
@@ -184,6 +208,14 @@ class Cia402Drive:
         self._last_due = 0.0
         self._sender: threading.Thread | None = None
         self._closed = False
+        # heartbeat consumer (0x1016 / 0x6007): (producer node id, time s) or None; the monotonic time of the last
+        # heartbeat received from it since 0x1016 was written (None: monitoring not started, or a reaction came)
+        self._consumer: tuple[int, float] | None = None
+        self._consumer_seen: float | None = None
+        self._consumer_cv = threading.Condition()
+        self._watcher: threading.Thread | None = None
+        self.consumer_heartbeats: list[float] = []
+        self.consumer_trips: list[tuple[float, int, str]] = []
         self.network = canopen.Network()
         self.node = canopen.LocalNode(node_id, self.od)
 
@@ -223,8 +255,12 @@ class Cia402Drive:
         with self._out_cv:
             self._closed = True
             self._out_cv.notify_all()
+        with self._consumer_cv:
+            self._consumer_cv.notify_all()
         if self._sender is not None:
             self._sender.join(2.0)
+        if self._watcher is not None:
+            self._watcher.join(2.0)
         self.network.disconnect()
 
     def __enter__(self) -> "Cia402Drive":
@@ -299,13 +335,94 @@ class Cia402Drive:
         return None
 
     def _on_write(self, index, subindex, od, data):
-        if 0x1400 <= index <= 0x1BFF:
+        if index == 0x6007:
+            (option,) = struct.unpack("<h", data)
+            if option > 3:   # 4-32767 are reserved (negative ones are the manufacturer's)
+                from canopen.sdo.exceptions import SdoAbortedError
+
+                raise SdoAbortedError(0x06090030)
+        elif index == 0x1016 and subindex == 1:
+            self._configure_consumer(struct.unpack("<I", data)[0])
+        elif 0x1400 <= index <= 0x1BFF:
             self._pdo_dirty = True
         elif index == 0x6060:
             (mode,) = struct.unpack("<b", data)
             self._switch_mode(mode)
         elif index == 0x6040 and not self._batch:
             self._receive_controlword(struct.unpack("<H", data)[0])
+
+    # --- heartbeat consumer (CiA 301 0x1016) and abort connection option (CiA 402 0x6007) --------------------------
+    def _configure_consumer(self, value: int) -> None:
+        """0x1016 sub 1 written: watch node ``value >> 16 & 0xFF``'s heartbeat for ``value & 0xFFFF`` ms (either 0:
+        off). Monitoring (re)starts with the first heartbeat received after the write."""
+        node, ms = value >> 16 & 0xFF, value & 0xFFFF
+        with self._consumer_cv:
+            if self._consumer is not None:
+                try:
+                    self.network.unsubscribe(0x700 + self._consumer[0], self._on_consumer_heartbeat)
+                except (KeyError, ValueError):
+                    pass
+            self._consumer = (node, ms / 1000.0) if node and ms else None
+            self._consumer_seen = None
+            if self._consumer is not None:
+                self.network.subscribe(0x700 + node, self._on_consumer_heartbeat)
+                if self._watcher is None:
+                    self._watcher = threading.Thread(target=self._watch_consumer, name="cia402-hb-consumer",
+                                                     daemon=True)
+                    self._watcher.start()
+            self._consumer_cv.notify_all()
+
+    def _on_consumer_heartbeat(self, can_id, data, timestamp) -> None:
+        with self._consumer_cv:
+            if self._consumer is None or can_id != 0x700 + self._consumer[0]:
+                return
+            self._consumer_seen = time.monotonic()
+            self.consumer_heartbeats.append(self._consumer_seen)
+            self._consumer_cv.notify_all()
+
+    def _watch_consumer(self) -> None:
+        """The drive's consumer: when the watched heartbeat is missing for longer than its time, the reaction of
+        0x6007, once (monitoring waits for the next heartbeat)."""
+        while True:
+            with self._consumer_cv:
+                while True:
+                    if self._closed:
+                        return
+                    consumer, seen = self._consumer, self._consumer_seen
+                    if consumer is None or seen is None:
+                        self._consumer_cv.wait()
+                        continue
+                    left = seen + consumer[1] - time.monotonic()
+                    if left > 0:
+                        self._consumer_cv.wait(left)
+                        continue
+                    self._consumer_seen = None   # the event comes once; the next heartbeat starts monitoring again
+                    break
+            if not self.silent and self.node.nmt.state == "OPERATIONAL":
+                self._abort_connection()
+
+    def _abort_connection(self) -> None:
+        """The heartbeat the drive consumes is lost: abort connection option code 0x6007 says what it does (CiA 402's
+        default, 1, where the drive has no 0x6007)."""
+        option = self.get(0x6007) if 0x6007 in self.od else 1
+        with self._lock:
+            before = self.state
+            self.consumer_trips.append((time.monotonic(), option, before))
+            if before == "OPERATION ENABLED":
+                self._physics()   # the motion up to now, then the reaction (the emulator's quick stop is instant)
+            if option == 1:
+                if before != "FAULT":
+                    self.inject_fault(0x8130, 0x11)   # heartbeat/life guard error; generic + communication error
+                return
+            if option == 2 and before in ("READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED",
+                                          "QUICK STOP ACTIVE"):
+                self.state = "SWITCH ON DISABLED"
+            elif option == 3 and before == "OPERATION ENABLED":
+                self.state = "QUICK STOP ACTIVE"
+                self.latched = int(round(self.pos))   # holds where it stopped
+            elif option == 3 and before in ("READY TO SWITCH ON", "SWITCHED ON"):
+                self.state = "SWITCH ON DISABLED"
+            self._status()
 
     def _switch_mode(self, mode: int) -> None:
         """Modes of operation 0x6060 written: the display 0x6061 follows after ``mode_delay`` s (None: never)."""
