@@ -233,6 +233,21 @@ def test_discovery_without_a_usb_device_folder_says_so(fake_hid, tmp_path):
     assert hl.discover(dev_root=str(tmp_path)) == []
 
 
+def test_a_run_without_a_usb_device_folder_says_so_not_the_cable(fake_hid, tmp_path, monkeypatch):
+    """The run's message blamed the cable ("among 0 HID device(s) ... check the USB cable/receiver") where
+    `teletouch devices` knew the cause: no /dev/bus/usb (a container without it), so hidapi sees nothing at all."""
+    fake_hid.devices.clear()
+    monkeypatch.setenv("TELETOUCH_DEV_ROOT", str(tmp_path))
+    with pytest.raises(HardwareError) as ei:
+        Harness(hl.HidLeader, {}).comp.configure()
+    msg = str(ei.value)
+    assert f"{tmp_path / 'bus' / 'usb'} does not exist" in msg and "docker run -v /dev/bus/usb" in msg, msg
+    assert "cable" not in msg
+    (tmp_path / "bus" / "usb").mkdir(parents=True)   # USB is there, the device is not: the cable, as before
+    with pytest.raises(HardwareError, match=r"among 0 HID device\(s\).*check the USB cable"):
+        Harness(hl.HidLeader, {}).comp.configure()
+
+
 def test_open_failure_on_a_libusb_path_names_the_usb_node_and_its_rule(fake_hid, tmp_path, monkeypatch):
     """Under the libusb backend the path is "1-4.2:1.0", not a file: a permission failure was never recognised and the
     hint gave the hidraw rule, which does not cover the USB device node that libusb opens."""

@@ -91,9 +91,11 @@ def test_digit_errors_no_device_and_wrong_serial(fake_sys, tmp_path):
     with pytest.raises(HardwareError, match="no DIGIT found"):
         with Harness(Digit, {"sysfs_root": str(empty), "dev_root": str(dev)}):
             pass
-    with pytest.raises(HardwareError, match=r"DIGIT D99999 not found; connected: D20001 \(.*video2.*\), D20002"):
+    with pytest.raises(HardwareError, match=r"DIGIT D99999 not found; connected: D20001 \(.*video2.*\), D20002") as e:
         with Harness(Digit, {"serial": "D99999", "sysfs_root": str(root), "dev_root": str(dev)}):
             pass
+    # what to do, as the path without a serial says it (the audit: "connected: none" and nothing else)
+    assert "USB 2.0 data cable" in str(e.value) and "`teletouch devices`" in str(e.value), e.value
     # the right serial reaches OpenCV, which cannot open our fake (regular-file) node: a clear error
     with pytest.raises(HardwareError, match="cannot open .*video12"):
         with Harness(Digit, {"serial": "D20002", "sysfs_root": str(root), "dev_root": str(dev)}):

@@ -483,6 +483,9 @@ class HidLeader(Device):
             found = [d for d in found if hid_path_text(d["path"]) == p.path]
         if not found:
             n_all = len(hid.enumerate(0, 0))
+            no_usb = "" if n_all else _no_usb_folder()
+            if no_usb:   # not the cable: nothing on USB can be seen from here (the audit: "check the USB cable")
+                raise HardwareError(f"no HID leader found: {no_usb}; `teletouch devices` says the same")
             want = (f"{p.vendor_id or 0:04x}:{p.product_id or 0:04x}" if p.vendor_id or p.product_id else
                     "a 3Dconnexion SpaceMouse (vendor 046d/256f) or a Sony gamepad (054c)")
             where = f" at {p.path}" if p.path else ""
@@ -706,6 +709,15 @@ def teletouch_components():
     return [HidLeader]
 
 
+def _no_usb_folder(dev_root: str | None = None) -> str:
+    """Why hidapi sees no USB device at all (Linux, no /dev/bus/usb: a container without the host's), or ''."""
+    usbfs = os.path.join(dev_root or os.environ.get("TELETOUCH_DEV_ROOT", "/dev"), "bus", "usb")
+    if not sys.platform.startswith("linux") or os.path.isdir(usbfs):
+        return ""
+    return (f"{usbfs} does not exist, so hidapi sees no USB device (in a container, pass the host's: docker run -v "
+            f"/dev/bus/usb:/dev/bus/usb, or --device for the one device)")
+
+
 def discover(hid: Any = None, sysfs_root: str | None = None, dev_root: str | None = None) -> list[dict[str, Any]]:
     """The rows of ``teletouch devices`` for HID leaders (never raises): one per known SpaceMouse/gamepad, with the
     ``hid-leader`` params that select it (``path`` and ``device``, the report format) and whether this user may open
@@ -719,13 +731,9 @@ def discover(hid: Any = None, sysfs_root: str | None = None, dev_root: str | Non
     except Exception as exc:  # HardwareError (hidapi missing), a broken hidapi, an enumeration that fails
         return [{"kind": "hid-leader", "id": "", "path": "",
                  "error": f"HID devices cannot be listed: {type(exc).__name__}: {exc}"}]
-    dev = dev_root or os.environ.get("TELETOUCH_DEV_ROOT", "/dev")
-    usbfs = os.path.join(dev, "bus", "usb")
-    if nothing and sys.platform.startswith("linux") and not os.path.isdir(usbfs):
-        return [{"kind": "hid-leader", "id": "", "path": "",
-                 "error": f"HID devices cannot be listed: {usbfs} does not exist, so hidapi sees no USB device (in a "
-                          f"container, pass the host's: docker run -v /dev/bus/usb:/dev/bus/usb, or --device for the "
-                          f"one device)"}]
+    no_usb = _no_usb_folder(dev_root) if nothing else ""
+    if no_usb:
+        return [{"kind": "hid-leader", "id": "", "path": "", "error": f"HID devices cannot be listed: {no_usb}"}]
     rows = []
     for d in found:
         path = hid_path_text(d["path"])

@@ -461,7 +461,10 @@ class Digit(Component):
         if p.serial is not None:
             match = [d for d in digits if d.serial == p.serial]
             if not match:
-                raise HardwareError(f"DIGIT {p.serial} not found; connected: {discovery.describe(digits)}")
+                scan = getattr(self, "_scan_problems", [])
+                raise HardwareError(f"DIGIT {p.serial} not found; connected: {discovery.describe(digits)}; plug it in "
+                                    f"with a USB 2.0 data cable, or set serial to one connected (`teletouch devices` "
+                                    f"lists what is seen, with the serial of each)" + "".join(f"; {s}" for s in scan))
             if len(match) > 1:
                 raise HardwareError(f"serial: {len(match)} DIGITs report serial {p.serial}: "
                                     f"{discovery.describe(match)}; connect only the one this node reads, or open it "
