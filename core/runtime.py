@@ -356,7 +356,7 @@ class Runtime:
                 if w.max_age is not None:
                     node.stale.append((port, in_slots[port], w.max_age, f"{w.node}.{w.source_port}"))
             self.nodes.append(node)
-        by_id = {node.id: node for node in self.nodes}
+        by_id = self._by_id = {node.id: node for node in self.nodes}
         self._feeders = {nid: tuple(by_id[f] for f in ids) for nid, ids in feeders(self.spec).items()}
 
     def _disabled_upstream(self, node_id: str) -> list[str]:
@@ -577,15 +577,31 @@ class Runtime:
             s = slot.sample
             if s is None:
                 self._fault(node, "stale", f"input '{port}' from {src}: nothing received after "
-                                           f"{t:.3f} s (limit {max_age:g} s)", t)
+                                           f"{t:.3f} s (limit {max_age:g} s){self._source_problem(src)}", t)
                 return False
             if not s.is_fresh(t, max_age):
                 age = t - s.stamp
                 what = f"{age:.3f} s old" if age > 0 else (f"stamped {-age:.3f} s ahead of the graph clock"
                                                            if age < 0 else f"stamped {s.stamp!r}")
-                self._fault(node, "stale", f"input '{port}' from {src} is {what} (limit {max_age:g} s)", t)
+                self._fault(node, "stale", f"input '{port}' from {src} is {what} (limit {max_age:g} s)"
+                                           f"{self._source_problem(src)}", t)
                 return False
         return True
+
+    def _source_problem(self, src: str) -> str:
+        """What the device feeding a stale input says is wrong now, for the stale fault ("; node 'gripper' reports:
+        ..."): the ``problem`` of its status() (a follower whose reads fail: for how long, and the last error), or ''.
+        A stale input is most often a device that stopped answering, which faults only at its own, longer timeout
+        (``read_timeout``): the consumer's fault came first and said nothing of why. Only a device is asked (inline:
+        an isolated node's status() is a round trip to its process, not made from a rate group's thread)."""
+        n = self._by_id.get(src.split(".", 1)[0])
+        if n is None or not n.is_device:
+            return ""
+        try:
+            problem = n.comp.status().get("problem")
+        except Exception:   # (a status() that fails says nothing here; the run goes on to the fault)
+            return ""
+        return f"; node '{n.id}' reports: {problem}" if isinstance(problem, str) and problem else ""
 
     def _write(self, node: _Node, out: Any, t: float, guard: Any = None) -> None:
         """Store a step's outputs. Each value is checked against its port (dtype and shape, see
