@@ -45,21 +45,33 @@ The writes are of absolute values, so repeating one whose answer was lost change
 status packet) is not retried. At run time a lost answer is not retried: the step goes on with the last reading, and
 no valid state for ``read_timeout`` is a fault.
 
+The port itself failing (the USB adapter pulled, or a glitch): pyserial raises from within dynamixel-sdk's calls
+(SerialException, termios.error from its tcflush), which left the SDK's busy flag set, so that every later request,
+the safe state's hold among them, was refused ("Port is in use!"). Every transaction turns what the port raises
+into a HardwareError naming the servo (ID, model), port and baud rate and the likely cause (unplugged: replug, then
+restart; `teletouch devices`), chained from pyserial's error, with the busy flag cleared. In a state read it is a
+failed read (held within ``read_timeout``, then a fault saying so); in a Goal_Position write a fault at once.
+
 The opening maps linearly to ticks (``ticks_open`` <-> ``opening_at_ticks_open``, ``ticks_closed`` <->
-``opening_at_ticks_closed``). Control tables are data: ``model`` picks a preset from :data:`CONTROL_TABLES`
-(X-series such as the OpenManipulator-X's XM430-W350; ROBOTIS RH-P12-RN with either firmware) and ``control_table``
-overrides it, so a servo with another table needs configuration, not code. At start-up the model number the servo
-answers the PING with must be the preset's (a firmware mismatch names the preset that fits).
+``opening_at_ticks_closed``); ticks left unset are the preset's (:data:`PRESET_TICKS`: X-series 1024/2048,
+RH-P12-RN 0/740). Control tables are data: ``model`` picks a preset from :data:`CONTROL_TABLES` (X-series such as the
+OpenManipulator-X's XM430-W350; ROBOTIS RH-P12-RN with either firmware) and ``control_table`` overrides it, so a
+servo with another table needs configuration, not code. At start-up the model number the servo answers the PING with
+must be the preset's (a firmware mismatch names the preset that fits), and where the table names Min/Max_Position_Limit
+the ticks must lie within them (the servo drops a goal beyond: the gripper would silently not follow).
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import functools
 import math
 import os
 import select
+import stat
+import termios
 import threading
 import time
 from typing import Any, Callable
@@ -93,6 +105,10 @@ class ControlTable(BaseModel):
                                           "0 = unlimited); None: the servo has no speed limit the driver can set")
     goal_current: Item = (102, 2)
     goal_position: Item = (116, 4)
+    min_position_limit: Item | None = Field(None, description="Min_Position_Limit, where the servo drops a "
+                                            "Goal_Position below it in current-based position mode: read at start-up, "
+                                            "ticks_open/ticks_closed outside the limits refused; None: not checked")
+    max_position_limit: Item | None = Field(None, description="Max_Position_Limit (as min_position_limit)")
     present_current: Item = (126, 2)
     present_velocity: Item = (128, 4)
     present_position: Item = (132, 4)
@@ -103,7 +119,9 @@ class ControlTable(BaseModel):
 
 #: Control tables of known models (ROBOTIS e-Manual; verify against your servo's firmware).
 CONTROL_TABLES: dict[str, dict[str, Any]] = {
-    # X-series (XM430-W350: OpenManipulator-X gripper, ID 15)
+    # X-series (XM430-W350: OpenManipulator-X gripper, ID 15). Its Min/Max_Position_Limit (52/48, EEPROM) bound
+    # Goal_Position in position control mode only: in current-based position mode (5, the driver's) the e-Manual gives
+    # Goal_Position -1,048,575 .. 1,048,575 (256 rev) and says the limits are not used, so they are not read here
     "xm430-w350": {"model_number": 1020},
     "x-series": {},
     # ROBOTIS RH-P12-RN gripper, "RH-P12-RN(A)" firmware (model number 35074; the table of DYNAMIXEL-P / PRO(A)):
@@ -114,17 +132,29 @@ CONTROL_TABLES: dict[str, dict[str, Any]] = {
                     "velocity_limit": (44, 4), "torque_enable": (512, 1), "hardware_error_status": (518, 1),
                     "goal_current": (550, 2), "profile_velocity": (560, 4), "goal_position": (564, 4),
                     "present_current": (574, 2), "present_velocity": (576, 4), "present_position": (580, 4),
+                    "max_position_limit": (48, 4), "min_position_limit": (52, 4),
                     "current_unit": 1e-3, "velocity_unit_rpm": 0.01},
     # the same gripper with its old "RH-P12-RN" firmware (model number 35073; a DYNAMIXEL-PRO-like table): e-Manual
     # platform/rh_p12_rn. Current in about 4.02 mA, velocity in 0.114 rev/min; its Goal_Velocity (600) is the
     # profile's top speed in current-based position mode (0 = none), so it takes the place of Profile_Velocity.
     # ROBOTIS recommends flashing the RH-P12-RN(A) firmware (DYNAMIXEL Wizard 2.0 / R+ Manager 2.0, Firmware
-    # Recovery) and using "rh-p12-rn-a". No Drive_Mode in this table.
+    # Recovery) and using "rh-p12-rn-a". No Drive_Mode in this table. Max/Min_Position_Limit at 36/40 (0..1150).
     "rh-p12-rn": {"model_number": 35073, "operating_mode": (11, 1), "drive_mode": None, "current_limit": (30, 2),
                   "velocity_limit": (32, 4), "torque_enable": (562, 1), "hardware_error_status": (892, 1),
                   "goal_position": (596, 4), "profile_velocity": (600, 4), "goal_current": (604, 2),
                   "present_position": (611, 4), "present_velocity": (615, 4), "present_current": (621, 2),
+                  "max_position_limit": (36, 4), "min_position_limit": (40, 4),
                   "current_unit": 4.02e-3, "velocity_unit_rpm": 0.114},
+}
+
+#: each preset's default (ticks_open, ticks_closed): the X-series values are the OpenManipulator-X gripper's; the
+#: RH-P12-RN runs from 0 (open) to 740 (closed) (with either firmware), and drops a Goal_Position beyond its 0..1150
+#: position limits, so the X-series' 1024/2048 never tracked on it
+PRESET_TICKS: dict[str, tuple[int, int]] = {
+    "xm430-w350": (1024, 2048),
+    "x-series": (1024, 2048),
+    "rh-p12-rn-a": (0, 740),
+    "rh-p12-rn": (0, 740),
 }
 
 #: What a model number answered to PING is (for messages), and the preset for it.
@@ -140,14 +170,26 @@ def model_text(number: int) -> str:
     return f"{number} ({name[0]}: model {name[1]!r})" if name else f"{number}"
 
 
+def preset_ticks(model: str) -> tuple[int, int]:
+    """(ticks_open, ticks_closed) a preset gives when the params leave them unset (X-series' for a model without)."""
+    return PRESET_TICKS.get(model, PRESET_TICKS["x-series"])
+
+
 def firmware_hint(found: int, model: str) -> str:
     """What to do when the servo answered ``found`` but ``model`` was configured."""
     name = MODEL_NAMES.get(found)
     if found == 35073 and model == "rh-p12-rn-a":
-        return ("set model: rh-p12-rn (the old firmware's table), or flash the RH-P12-RN(A) firmware as ROBOTIS "
-                "recommends (DYNAMIXEL Wizard 2.0 or R+ Manager 2.0, Firmware Recovery) and keep rh-p12-rn-a")
+        o, c = preset_ticks("rh-p12-rn")
+        return (f"set model: rh-p12-rn (the old firmware's table; the same ticks: ticks_open {o} (open) and "
+                f"ticks_closed {c} (closed) unless set), or flash the RH-P12-RN(A) firmware as ROBOTIS recommends "
+                f"(DYNAMIXEL Wizard 2.0 or R+ Manager 2.0, Firmware Recovery) and keep rh-p12-rn-a")
     if name:
-        return f"set model: {name[1]}, or check the ID"
+        o, c = preset_ticks(name[1])
+        same = preset_ticks(model) == (o, c)
+        ticks = (f"; its ticks: ticks_open {o} (open) and ticks_closed {c} (closed) unless set"
+                 + ("" if same else f", not {model}'s {'/'.join(map(str, preset_ticks(model)))}: check any ticks "
+                    f"set for {model}"))
+        return f"set model: {name[1]}{ticks}; or check the ID"
     return "check the ID and the 'model' parameter"
 
 
@@ -166,6 +208,16 @@ STARTUP_TRIES = 3
 #: how far past the SDK's packet timeout a wait for the port may end (s): the SDK's own check then sees the timeout
 #: at once instead of polling the last microseconds
 _TIMEOUT_MARGIN = 5e-5
+#: what a transaction raises when the port itself fails (the USB adapter pulled, or a glitch): pyserial's
+#: SerialException, an OSError ("read failed: [Errno 5] Input/output error", "device reports readiness to read but
+#: returned no data"), and termios.error, which is not one (tcflush, as the SDK clears the input before each request)
+PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, termios.error)
+
+
+def port_failed(exc: BaseException) -> bool:
+    """Whether ``exc`` is the driver's HardwareError for the serial port failing in a transaction (its ``port_failed``
+    set, chained from what the port raised), not the servo's own fault or answer."""
+    return isinstance(exc, HardwareError) and getattr(exc, "port_failed", False)
 
 
 @functools.lru_cache(maxsize=None)
@@ -211,8 +263,10 @@ class DynamixelGripper(FollowerBase):
         dxl_id: int = Field(15, ge=0, le=252, description="servo ID")
         model: str = Field("xm430-w350", description=f"control table preset: {', '.join(CONTROL_TABLES)}")
         control_table: dict[str, Any] | None = Field(None, description="items overriding the preset's table")
-        ticks_open: int = Field(1024, description="Goal_Position (ticks) at the open end")
-        ticks_closed: int = Field(2048, description="Goal_Position (ticks) with the fingers closed")
+        ticks_open: int | None = Field(None, description="Goal_Position (ticks) at the open end; None: the "
+                                       "preset's (X-series 1024, RH-P12-RN 0)")
+        ticks_closed: int | None = Field(None, description="Goal_Position (ticks) with the fingers closed; None: "
+                                         "the preset's (X-series 2048, RH-P12-RN 740)")
         opening_at_ticks_open: Meters = Field(0.075, ge=0, description="opening at ticks_open",
                                               json_schema_extra={"unit": "m"})
         opening_at_ticks_closed: Meters = Field(0.0, ge=0, description="opening at ticks_closed",
@@ -248,9 +302,12 @@ class DynamixelGripper(FollowerBase):
 
         @model_validator(mode="after")
         def _table(self) -> "DynamixelGripper.Params":
-            if self.ticks_open == self.ticks_closed:
-                raise ValueError("ticks_open and ticks_closed must differ")
-            OpeningMap(self.ticks_open, self.opening_at_ticks_open, self.ticks_closed,
+            ticks_open, ticks_closed = self.ticks()
+            if ticks_open == ticks_closed:
+                unset = [n for n in ("ticks_open", "ticks_closed") if getattr(self, n) is None]
+                src = f"; {' and '.join(unset)}: model {self.model}'s default" if unset else ""
+                raise ValueError(f"ticks_open and ticks_closed must differ (both {ticks_open}{src})")
+            OpeningMap(ticks_open, self.opening_at_ticks_open, ticks_closed,
                        self.opening_at_ticks_closed).check_limits(self, "opening_at_ticks_open",
                                                                   "opening_at_ticks_closed")
             table = self.table()  # validates control_table
@@ -268,11 +325,18 @@ class DynamixelGripper(FollowerBase):
             items.update(self.control_table or {})
             return ControlTable(**items)
 
+        def ticks(self) -> tuple[int, int]:
+            """(ticks_open, ticks_closed): as set, or the preset's (:data:`PRESET_TICKS`) where left unset."""
+            o, c = preset_ticks(self.model)
+            return (o if self.ticks_open is None else self.ticks_open,
+                    c if self.ticks_closed is None else self.ticks_closed)
+
     # mapping ---------------------------------------------------------------------------------------------------
     @property
     def map(self) -> OpeningMap:
         p = self.params
-        return OpeningMap(p.ticks_open, p.opening_at_ticks_open, p.ticks_closed, p.opening_at_ticks_closed)
+        ticks_open, ticks_closed = p.ticks()
+        return OpeningMap(ticks_open, p.opening_at_ticks_open, ticks_closed, p.opening_at_ticks_closed)
 
     def ticks_for(self, opening: float) -> int:
         return self.map.counts(opening)
@@ -285,22 +349,72 @@ class DynamixelGripper(FollowerBase):
         p = self.params
         return f"Dynamixel ID {p.dxl_id} on {p.port} at {p.baudrate} baud"
 
-    def _check(self, what: str, result: int, error: int) -> None:
+    def _servo(self) -> str:
+        """The servo with its model: the one its PING answered with, else the configured preset."""
+        p = self.params
+        found = getattr(self, "model_found", None)
+        if found is None:
+            model = f"model {p.model}"
+        else:
+            model = MODEL_NAMES[found][0] if found in MODEL_NAMES else f"model number {found}"
+        return f"Dynamixel ID {p.dxl_id} ({model}) on {p.port} at {p.baudrate} baud"
+
+    def _check(self, what: str, result: int, error: int, hint: str = "") -> None:
         if result != self._sdk.COMM_SUCCESS:
             raise HardwareError(f"{what}: no valid answer from {self._where()} ({self.ph.getTxRxResult(result)}, "
-                                f"{STARTUP_TRIES} tries); check power, cable, ID and baud rate")
+                                f"{STARTUP_TRIES} tries); check power, cable, ID and baud rate{hint}")
         if error & 0x80:
             raise HardwareError(f"{what}: {self._where()} reports a hardware error ({self._hw_error()}); "
                                 f"power-cycle or reboot the servo")
         if error:
             raise HardwareError(f"{what}: {self._where()} refused it ({self.ph.getRxPacketError(error)})")
 
+    def _ping_hint(self) -> str:
+        """After a PING without a valid answer: what was tried, and the set-ups servos usually come in."""
+        p = self.params
+        defaults = {"dxl_id": "ID 15", "baudrate": "57600 baud"}
+        unset = [n for n in defaults if n not in p.model_fields_set]
+        left = (f" ({' and '.join(unset)} not set in the graph: the default{'s' if len(unset) > 1 else ''}, "
+                f"{' at '.join(defaults[n] for n in unset)})") if unset else ""
+        return (f". Tried ID {p.dxl_id} at {p.baudrate} baud{left}. Common set-ups: a new X-series servo (and an "
+                f"RH-P12-RN as shipped) answers as ID 1 at 57600 baud (dxl_id: 1, baudrate: 57600); an "
+                f"OpenManipulator-X gripper as ID 15 at 1000000 baud (dxl_id: 15, baudrate: 1000000); the DYNAMIXEL "
+                f"Wizard's scan finds any. `teletouch devices` lists the serial adapters (is {p.port} the right "
+                f"port?)")
+
+    # the port itself failing (the adapter pulled): a HardwareError naming the servo, the busy flag cleared
+    def _port_failed(self, exc: BaseException, what: str) -> HardwareError:
+        kind = "termios.error" if isinstance(exc, termios.error) else type(exc).__name__
+        failure = HardwareError(f"{what}: the serial port failed talking to {self._servo()} ({kind}: {exc}): the "
+                                f"USB adapter (U2D2, OpenCR) may have been unplugged or lost power; replug it, then "
+                                f"restart (`teletouch devices` lists the serial adapters: a replugged adapter may get "
+                                f"another port name)")
+        failure.port_failed = True   # (see port_failed())
+        return failure
+
+    @contextlib.contextmanager
+    def _port_guard(self, what: str) -> Any:
+        """Turn what the port raises (:data:`PORT_ERRORS`) into a HardwareError (:func:`port_failed`; chained from
+        it), with dynamixel-sdk's busy flag cleared: the SDK sets ``is_using`` when a request goes out and clears it
+        only on the paths that return, so an exception left it set and every later request, the safe state's hold
+        among them, was refused ("Port is in use!"), after a transient error as much as after a pulled adapter."""
+        try:
+            yield
+        except PORT_ERRORS as exc:
+            port = getattr(self, "port", None)
+            if port is not None:
+                port.is_using = False
+            self._desync = True   # what went out, and whether an answer is still on its way, is unknown
+            raise self._port_failed(exc, what) from exc
+
     # requests and their answers: every answer is checked, a lost one makes the next request resynchronise first
-    def _transact(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
+    def _transact(self, n: int, send: Callable[..., int], *args: Any,
+                  what: str = "a request") -> tuple[list[int], int, int]:
         """Send a request (``send(*args)``, which sets the SDK's packet timeout) and take its answer: ``n`` data
         bytes. After a lost answer the bus is resynchronised by a PING first (see :meth:`_resync_bus`). Under the
-        I/O lock: a safe_state() from another thread waits for the answer instead of finding the port in use."""
-        with self._io_lock:
+        I/O lock: a safe_state() from another thread waits for the answer instead of finding the port in use. The
+        port failing raises a HardwareError (:func:`port_failed`; ``what``: the request, for its message)."""
+        with self._io_lock, self._port_guard(what):
             if self._desync:
                 result = self._resync_bus()
                 if result != self._sdk.COMM_SUCCESS:
@@ -361,32 +475,64 @@ class DynamixelGripper(FollowerBase):
         item = self.table.hardware_error_status
         if item is None:
             return "details not in this control table"
-        data, result, _ = self._transact(1, self.ph.readTx, self.port, self.params.dxl_id, item[0], 1)
+        try:
+            data, result, _ = self._transact(1, self.ph.readTx, self.port, self.params.dxl_id, item[0], 1,
+                                             what="reading Hardware_Error_Status")
+        except HardwareError as exc:
+            if not port_failed(exc):
+                raise
+            return "status unreadable: the serial port failed"
         return hw_error_text(data[0]) if result == self._sdk.COMM_SUCCESS and data else "status unreadable"
 
-    def _startup(self, n: int, send: Callable[..., int], *args: Any) -> tuple[list[int], int, int]:
+    def _startup(self, n: int, send: Callable[..., int], *args: Any, what: str) -> tuple[list[int], int, int]:
         """A start-up request (:meth:`_transact`), tried up to STARTUP_TRIES times while its answer is lost or
         corrupt: the port's input cleared before each new try, whose PING (the bus is out of step after a lost answer)
-        drops whatever late answer still comes. A refusal or an alert is the answer: not retried."""
+        drops whatever late answer still comes. A refusal or an alert is the answer: not retried; nor is the port
+        failing (:func:`port_failed`)."""
         for attempt in range(STARTUP_TRIES):
             if attempt:
                 self.startup_retries += 1
-                self.port.clearPort()
-            data, result, error = self._transact(n, send, *args)
+                with self._port_guard(what):
+                    self.port.clearPort()
+            data, result, error = self._transact(n, send, *args, what=what)
             if result == self._sdk.COMM_SUCCESS:
                 break
         return data, result, error
 
     def _write(self, item: Item, value: int, what: str) -> None:
         addr, size = item
-        _data, result, error = self._startup(0, self._send_write, addr, size, value)
+        _data, result, error = self._startup(0, self._send_write, addr, size, value, what=f"writing {what}")
         self._check(f"writing {what}", result, error)
 
     def _read(self, item: Item, what: str) -> int:
         addr, size = item
-        data, result, error = self._startup(size, self.ph.readTx, self.port, self.params.dxl_id, addr, size)
+        data, result, error = self._startup(size, self.ph.readTx, self.port, self.params.dxl_id, addr, size,
+                                            what=f"reading {what}")
         self._check(f"reading {what}", result, error)
         return _signed(int.from_bytes(bytes(data), "little"), size)
+
+    def _check_position_limits(self) -> None:
+        """Where the table names Min/Max_Position_Limit: ticks_open and ticks_closed within them. The servo drops a
+        Goal_Position outside (no status packet to a SYNC_WRITE), so the gripper would silently not follow: the
+        X-series' 1024/2048 on an RH-P12-RN (0 open .. 740 closed, limits 0..1150) ended a run "ok"."""
+        p, t = self.params, self.table
+        if t.min_position_limit is None or t.max_position_limit is None:
+            return
+        lo = self._read(t.min_position_limit, "Min_Position_Limit")
+        hi = self._read(t.max_position_limit, "Max_Position_Limit")
+        self.position_limits = (lo, hi)
+        ticks = dict(zip(("ticks_open", "ticks_closed"), p.ticks()))
+        bad = {n: v for n, v in ticks.items() if not lo <= v <= hi}
+        if bad:
+            given = ", ".join(f"{n} {v}" + ("" if getattr(p, n) is not None else f" (model {p.model}'s default)")
+                              for n, v in bad.items())
+            o, c = preset_ticks(p.model)
+            raise HardwareError(
+                f"{given} outside the position limits of {self._servo()}: Min_Position_Limit {lo} (address "
+                f"{t.min_position_limit[0]}) .. Max_Position_Limit {hi} (address {t.max_position_limit[0]}); the "
+                f"servo drops a Goal_Position beyond them and the gripper would not follow. Set ticks_open and "
+                f"ticks_closed within {lo}..{hi} (model {p.model}: ticks_open {o} (open), ticks_closed {c} "
+                f"(closed) by default), or widen the limits in the servo's EEPROM with the DYNAMIXEL Wizard")
 
     def _hw_open(self) -> None:
         import dynamixel_sdk as sdk
@@ -405,6 +551,9 @@ class DynamixelGripper(FollowerBase):
         self.comm_failures = 0
         self.last_comm_error = ""
         self.startup_retries = 0
+        self.model_found: int | None = None   # the model number the PING answered with
+        self.position_limits: tuple[int, int] | None = None   # (Min, Max_Position_Limit) where the table has them
+        self.port_failure: HardwareError | None = None   # the port failing in the last state read (None: it did not)
         self._started = False   # until the first valid state read: requests are retried (STARTUP_TRIES)
         self.port = port_handler_class()(p.port)
         self.port.max_wait = p.serial_poll
@@ -424,14 +573,16 @@ class DynamixelGripper(FollowerBase):
             raise HardwareError(f"{p.port} is in use: another process holds it (another teletouch, or a tool that "
                                 f"opens it with pyserial's exclusive=True); two programs writing one servo bus fight "
                                 f"over the gripper: stop the other one ({exc.strerror})") from exc
-        data, result, error = self._startup(3, self._send_ping)
-        self._check("ping", result, error)
+        data, result, error = self._startup(3, self._send_ping, what="ping")
+        self._check("ping", result, error, hint=self._ping_hint())
         model = data[0] | data[1] << 8
         t = self.table
         if t.model_number is not None and model != t.model_number:
             raise HardwareError(f"{self._where()} answered with model number {model_text(model)}, expected "
                                 f"{model_text(t.model_number)} for model {p.model!r}: the control tables differ; "
                                 f"{firmware_hint(model, p.model)}")
+        self.model_found = model
+        self._check_position_limits()   # before anything is written
         self._write(t.torque_enable, 0, "Torque_Enable=0")
         self._write(t.operating_mode, CURRENT_BASED_POSITION, "Operating_Mode=5 (current-based position)")
         limit = self._read(t.current_limit, "Current_Limit")
@@ -528,7 +679,8 @@ class DynamixelGripper(FollowerBase):
         spans = list(items) if length > 16 else [(start, length)]  # far apart: one read each
         mem: dict[int, int] = {}
         for addr, n in spans:
-            data, result, error = self._transact(n, self.ph.readTx, self.port, p.dxl_id, addr, n)
+            data, result, error = self._transact(n, self.ph.readTx, self.port, p.dxl_id, addr, n,
+                                                 what="polling Torque_Enable and Hardware_Error_Status")
             if result != sdk.COMM_SUCCESS:
                 continue  # lost: the other span may still have been read
             if error & 0x80:
@@ -556,6 +708,24 @@ class DynamixelGripper(FollowerBase):
                             f"the cause, then reboot or power-cycle the servo")
 
     def _hw_read(self) -> Reading | None:
+        """The state; None when this read failed (no valid answer, or the port failed: the base class holds, and
+        faults after ``read_timeout`` without a valid state). At start-up the port failing raises at once."""
+        if not self._started:
+            return self._read_state()
+        try:
+            reading = self._read_state()
+        except HardwareError as exc:
+            if not port_failed(exc):
+                raise
+            self.comm_failures += 1
+            self.last_comm_error = str(exc)
+            self.port_failure = exc   # the fault after read_timeout is chained from its cause
+            return None
+        if reading is not None:
+            self.port_failure = None
+        return reading
+
+    def _read_state(self) -> Reading | None:
         p, t, sdk = self.params, self.table, self._sdk
         now = time.monotonic()
         if now - self._last_check >= p.error_check_period:
@@ -564,15 +734,17 @@ class DynamixelGripper(FollowerBase):
         # the SYNC_READ goes out with the group; its answer is taken (and checked) here, with its error byte
         # (GroupSyncRead.txRxPacket() would drop it). The sample is stamped from that read alone: from when it went
         # out (after the PING that resynchronises the bus after a lost answer) to its answer
-        data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
+        what = "reading the state (SYNC_READ)"
+        data, result, error = self._transact(self._rd_len, self.gsr.txPacket, what=what)
         t1 = time.monotonic()
         if not self._started:   # the first state read is part of the start-up: retried, and its failure says so
             for _ in range(STARTUP_TRIES - 1):
                 if result == sdk.COMM_SUCCESS:
                     break
                 self.startup_retries += 1
-                self.port.clearPort()
-                data, result, error = self._transact(self._rd_len, self.gsr.txPacket)
+                with self._port_guard(what):
+                    self.port.clearPort()
+                data, result, error = self._transact(self._rd_len, self.gsr.txPacket, what=what)
                 t1 = time.monotonic()
             self._check("reading the state (SYNC_READ)", result, error & 0x80)
             self._started = True
@@ -603,6 +775,10 @@ class DynamixelGripper(FollowerBase):
         except HardwareError as exc:
             if "no valid state" not in str(exc):  # the servo's own faults (shutdown poll, alert) name it already
                 raise
+            lost = getattr(self, "port_failure", None)
+            if lost is not None:   # the last read failed in the port itself: chained from pyserial's error
+                raise HardwareError(f"{exc}; {self.comm_failures} failed reads, the last: {lost}") \
+                    from (lost.__cause__ or lost)
             raise HardwareError(f"{exc}: {self._where()}, {self.comm_failures} failed reads, last: "
                                 f"{self.last_comm_error}") from None
 
@@ -615,7 +791,7 @@ class DynamixelGripper(FollowerBase):
         ticks = self.ticks_for(opening)
         data = list(int(ticks & 0xFFFFFFFF).to_bytes(4, "little"))
         p = self.params
-        with self._io_lock:
+        with self._io_lock, self._port_guard("sending Goal_Position"):
             if not self.gsw.changeParam(p.dxl_id, data):
                 self.gsw.addParam(p.dxl_id, data)
             result = self.gsw.txPacket()
@@ -676,15 +852,49 @@ def permission_hint(path: str, vid: int = 0x0403, pid: int = 0x6014) -> str:
     return f"join the {group} group (sudo usermod -aG {group} $USER, then log out and in again), or use {rule}"
 
 
+def _errnos(exc: BaseException | None) -> list[int]:
+    """The errnos in ``exc`` and the exceptions it was raised from or during: pyserial's SerialException for a port
+    that does not take a serial port's settings has none of its own, the termios.error it was raised during has
+    ENOTTY ("Could not configure port: (25, 'Inappropriate ioctl for device')")."""
+    found, seen = [], set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        err = getattr(exc, "errno", None)
+        if err is None and isinstance(exc, termios.error) and exc.args and isinstance(exc.args[0], int):
+            err = exc.args[0]
+        if isinstance(err, int) and err:
+            found.append(err)
+        exc = exc.__cause__ or exc.__context__
+    return found
+
+
+def _node_kind(port: str) -> str:
+    """What ``port`` is when it is not a terminal: "a regular file", "a character device that is not a terminal"."""
+    try:
+        mode = os.stat(port).st_mode
+    except OSError:
+        return "not a terminal"
+    if stat.S_ISREG(mode):
+        return "a regular file"
+    if stat.S_ISCHR(mode):
+        return "a character device that is not a terminal"
+    return "not a terminal"
+
+
 def port_open_hint(port: str, exc: BaseException) -> str:
     """What to do when ``port`` cannot be opened, from the errno of pyserial's own open (O_RDWR | O_NOCTTY |
     O_NONBLOCK; the port is not opened again: that would pulse DTR once more) through the meanings shared with
     `teletouch devices` (discovery.check_node): missing, permission (the group or udev rule; EPERM: a container's
-    device rule), busy, gone; without an errno, the checks that need no open."""
+    device rule), busy, gone; not a serial port (ENOTTY from configuring it: /dev/null, a file); without an errno,
+    the checks that need no open."""
     err = getattr(exc, "errno", None)
     if err == errno.ENOENT or not os.path.lexists(port):
         return (f"{port} does not exist: plug in the USB adapter (U2D2, OpenCR) and check the port name; `teletouch "
                 f"devices` lists the serial adapters, with the port param of each")
+    if errno.ENOTTY in _errnos(exc):
+        return (f"{port} is not a serial port ({_node_kind(port)}: ENOTTY, it takes no baud rate): set port to the "
+                f"USB adapter's (U2D2, OpenCR), e.g. /dev/ttyUSB0 or /dev/ttyACM0; `teletouch devices` lists the "
+                f"serial adapters, with the port param of each")
     if isinstance(err, int) and err:
         acc = discovery.NodeAccess(port, err, detail="open()")
     else:

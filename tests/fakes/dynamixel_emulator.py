@@ -8,7 +8,9 @@ and it can be told to stop answering, to lose a given number of answers (``drop`
 answer late; ``refuse_reads`` (address -> error byte) refuses, and ``drop_reads`` (addresses) loses, the answers to
 READs that start at given addresses (one item of a poll refused or lost while the others are answered);
 ``refuse_writes`` (address -> error byte) refuses WRITEs that start at given addresses (not applied);
-``ping_delay`` answers a PING that many seconds late (a busy servo: a resync PING that takes a while).
+``ping_delay`` answers a PING that many seconds late (a busy servo: a resync PING that takes a while);
+``unplug()`` pulls the USB adapter: the pty's master side closes, and the driver's port fails as a pulled adapter's
+does (pyserial's SerialException on read, EIO from tcflush), as the lab audit did it.
 
 Models (``MODELS``): an XM430-W350 (X-series table) and the ROBOTIS RH-P12-RN gripper with either firmware: the
 RH-P12-RN(A) firmware (model number 35074, DYNAMIXEL-P-like table) and the old RH-P12-RN firmware (35073,
@@ -16,6 +18,9 @@ DYNAMIXEL-PRO-like table, whose Goal_Velocity is the profile's top speed), with 
 e-Manual. The XM430-W350 has Drive_Mode (10, EEPROM; ``drive_mode`` sets it): bit 2 (Profile Configuration) makes the
 profile time-based, Profile_Velocity then being the time of each move in ms (firmware V42 on); its other bits
 (direction, torque on by goal update) are stored, not modelled. The RH-P12-RN tables have no time-based profile.
+Min/Max_Position_Limit bound Goal_Position as on the servos (``Table.limited_modes``): the XM430's in position control
+mode only (in current-based position mode it takes any goal within +-256 rev), the RH-P12-RN's (0..1150) in
+current-based position mode too: a goal beyond them is refused, a SYNC_WRITE's silently.
 
 Late answers: ``late_answers`` puts a short (1-byte) late status packet before SYNC_READ answers;
 ``delay_answers`` holds back whole SYNC_READ answers (taken when the request arrives, so they carry the servo's
@@ -146,6 +151,9 @@ class Table:
     velocity_limit: tuple[int, int] | None = None  # where set: Profile_Velocity above it is refused (limit error)
     velocity_limit_default: int = 0
     drive_mode: tuple[int, int] | None = None  # where set: bit 2 (TIME_BASED_PROFILE) makes Profile_Velocity a time
+    #: the operating modes whose Goal_Position the position limits bound (X-series: position control only; in
+    #: current-based position mode the goal may be anywhere in +-256 rev, e-Manual)
+    limited_modes: tuple[int, ...] = (3, 5)
 
 
 #: Drive_Mode bit 2, Profile Configuration: 0 velocity-based, 1 time-based (Profile_Velocity in ms per move)
@@ -153,7 +161,7 @@ TIME_BASED_PROFILE = 0x04
 
 XM430_W350 = Table(1020, 48, 64, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (64, 1), (70, 1), (102, 2), (116, 4),
                    (126, 2), (128, 4), (132, 4), 1193, 4095, 0, 0.229, profile_velocity=(112, 4),
-                   drive_mode=(10, 1))
+                   drive_mode=(10, 1), limited_modes=(3,))
 # ROBOTIS RH-P12-RN(A) firmware (e-Manual platform/rh_p12_rna): RAM from 512; Current_Limit 1984 mA, Velocity_Limit
 # 2970 x 0.01 rev/min, position limits 0 .. 1150
 RH_P12_RN_A = Table(35074, 1, 512, (9, 1), (11, 1), (38, 2), (48, 4), (52, 4), (512, 1), (518, 1), (550, 2),
@@ -328,11 +336,22 @@ class DynamixelEmulator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+        if self._closed:   # closed already: the fds' numbers may belong to someone else by now
+            return
+        self._closed = True
         for fd in (self.master, self.slave):
             try:
                 os.close(fd)
             except OSError:
                 pass
+
+    _closed = False
+
+    def unplug(self) -> None:
+        """The USB adapter pulled mid-run: the servo goes away with the pty's master side, so the driver's open port
+        reads "device reports readiness to read but returned no data" / EIO, and its tcflush fails with EIO. The
+        fds are closed once (``stop()`` after this closes nothing)."""
+        self.stop()
 
     def __enter__(self) -> "DynamixelEmulator":
         return self.start()
@@ -503,7 +522,8 @@ class DynamixelEmulator:
             self.mem[addr:addr + len(data)] = backup
             return ERR_DATA_LIMIT
         g = self.get(t.goal_position)
-        if self.get(t.operating_mode) in (3, 5) and not (self.get(t.min_position) <= g <= self.get(t.max_position)):
+        if self.get(t.operating_mode) in t.limited_modes \
+                and not (self.get(t.min_position) <= g <= self.get(t.max_position)):
             self.mem[addr:addr + len(data)] = backup
             return ERR_DATA_LIMIT
         if t.profile_velocity is not None and t.velocity_limit is not None \
