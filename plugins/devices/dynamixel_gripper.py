@@ -779,8 +779,10 @@ class DynamixelGripper(FollowerBase):
             if lost is not None:   # the last read failed in the port itself: chained from pyserial's error
                 raise HardwareError(f"{exc}; {self.comm_failures} failed reads, the last: {lost}") \
                     from (lost.__cause__ or lost)
-            raise HardwareError(f"{exc}: {self._where()}, {self.comm_failures} failed reads, last: "
-                                f"{self.last_comm_error}") from None
+            raise HardwareError(f"{exc}: {self._read_problem()}") from None
+
+    def _read_problem(self) -> str:
+        return f"{self._where()}, {self.comm_failures} failed reads, last: {self.last_comm_error}"
 
     def _command_guard(self) -> Any:
         # the step's goal and its send are one unit against a safe_state() from elsewhere (the state read takes the

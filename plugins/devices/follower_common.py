@@ -409,7 +409,18 @@ class FollowerBase(Device):
 
     def status(self) -> dict[str, Any]:
         r = getattr(self, "_last_reading", None)
-        return {"opening_m": None if r is None else r.opening, "setpoint_m": getattr(self, "_setpoint", None),
-                "effort_n": None if r is None else r.effort, "safe": getattr(self, "_safe", False),
-                "holding": getattr(self, "_holding", None), "stale_commands": getattr(self, "_stale_commands", 0),
-                "bad_commands": getattr(self, "_bad_commands", 0)}
+        d = {"opening_m": None if r is None else r.opening, "setpoint_m": getattr(self, "_setpoint", None),
+             "effort_n": None if r is None else r.effort, "safe": getattr(self, "_safe", False),
+             "holding": getattr(self, "_holding", None), "stale_commands": getattr(self, "_stale_commands", 0),
+             "bad_commands": getattr(self, "_bad_commands", 0)}
+        if self._read_failed:   # quoted by the fault of a node whose input from this one goes stale first
+            age = time.monotonic() - getattr(self, "_last_good", time.monotonic())
+            why = self._read_problem()
+            d["problem"] = (f"no valid state for {age:.3f} s (read_timeout {self.params.read_timeout:g} s)"
+                            + (f": {why}" if why else ""))
+        return d
+
+    def _read_problem(self) -> str:
+        """What the driver knows of why its reads fail (where it talks, how many failed, the last error), for the
+        ``problem`` of :meth:`status` and the fault after ``read_timeout``; '' when it knows nothing more."""
+        return ""
