@@ -295,8 +295,10 @@ def test_no_node_on_bus(channel):
 
 
 def test_bad_interface():
-    configure_fails(Harness(CanopenGripper, {"interface": "no-such-interface", "channel": "x"}),
-                    "cannot open CAN interface no-such-interface:x")
+    with pytest.raises(ValidationError, match=r"interface 'no-such-interface' is not an interface python-can"):
+        Harness(CanopenGripper, {"interface": "no-such-interface", "channel": "x"})
+    configure_fails(Harness(CanopenGripper, {"interface": "serial", "channel": "/nonexistent/ttyCAN"}),
+                    "cannot open CAN interface serial:/nonexistent/ttyCAN")
 
 
 def test_not_a_402_device(channel):

@@ -14,8 +14,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.dynamixel_emulator import DynamixelEmulator  # noqa: E402
-from fakes.followers import dynamixel_fixture, dynamixel_harness  # noqa: E402
-from fakes.realtime import drive  # noqa: E402
+from fakes.followers import (  # noqa: E402
+    canopen_harness, channel_fixture, drive_fixture, dynamixel_fixture, dynamixel_harness)
+from fakes.realtime import drive as drive_steps  # noqa: E402
 
 from teletouch.runtime import Runtime  # noqa: E402
 from teletouch.testing import load_text, make_registry  # noqa: E402
@@ -27,15 +28,15 @@ emu = dynamixel_fixture(15, position=1024)
 
 def test_status_says_what_is_wrong_while_the_reads_fail(emu):
     with dynamixel_harness(emu, read_timeout=2.0) as h:
-        drive(h, 0.05, 0.1)
+        drive_steps(h, 0.05, 0.1)
         assert "problem" not in h.comp.status()
         emu.silent = True
-        drive(h, 0.05, 0.1)
+        drive_steps(h, 0.05, 0.1)
         problem = h.comp.status()["problem"]
         assert problem.startswith("no valid state for ") and "(read_timeout 2 s)" in problem, problem
         assert f"Dynamixel ID 15 on {emu.port} at 1000000 baud" in problem and "failed reads, last:" in problem
         emu.silent = False
-        drive(h, 0.05, 0.2)
+        drive_steps(h, 0.05, 0.2)
         assert "problem" not in h.comp.status()
 
 
@@ -74,3 +75,18 @@ nodes:
     assert (f.node, f.kind) == ("controller", "stale"), res.faults
     assert "; node 'gripper' reports: no valid state for " in f.message, f.message
     assert f"Dynamixel ID 15 on {e.port} at 1000000 baud" in f.message and "failed reads" in f.message, f.message
+
+
+channel = channel_fixture()
+drive = drive_fixture(position=0)
+
+
+def test_a_canopen_drive_gone_quiet_says_its_last_problem(channel, drive):
+    with canopen_harness(channel, read_timeout=2.0, pdo_timeout=0.02) as h:
+        drive_steps(h, 0.05, 0.1)
+        assert "problem" not in h.comp.status()
+        drive.go_silent()
+        drive_steps(h, 0.05, 0.2)
+        problem = h.comp.status()["problem"]
+        assert problem.startswith("no valid state for ") and "(read_timeout 2 s)" in problem, problem
+        assert f"CANopen node 5 on virtual:{channel}, last problem: " in problem and "TPDO" in problem, problem

@@ -23,25 +23,29 @@ revolutions). Other units (a linear m/s, whose relation to the fingers the drive
 
 A new set-point goes out by CiA 402's handshake (RPDO1 with controlword bit 4 "new set-point" high, bit 5 "change set
 immediately"; once the statusword's bit 12 acknowledges it, bit 4 low; once bit 12 is low again, the next: a new
-set-point every other step at most, as a drive reads its controlword once per control cycle and bit 4 low then high
-back to back is no edge to it); no acknowledge within ``read_timeout`` is a HardwareError. A set-point counts as sent
-only once its frame went out (a failed transmit is retried by the next write), and the safe state always sends its hold
-set-point at once (bit 4 low, SETPOINT_PULSE_GAP, high); a lock makes a step's
-command and send one unit, so a safe_state() from another thread waits for it and its hold goes out last. No
-set-point goes out while the last statusword is not OPERATION ENABLED: RPDO1's controlword would enable a drive in
-quick stop or switched on again (the drive's own stop holds it). Max current 0x6073 is rounded down, so the current
-cap never exceeds ``max_effort``. Each step then transmits SYNC and waits (``pdo_timeout``) for the TPDOs it
-triggers. TPDOs carry no SYNC number, so the answers are counted: a frame answers this step's SYNC only after the
-answers to every earlier SYNC (a step that timed out, the state walk's) arrived, which are waited for (up to
-``pdo_timeout``) before the SYNC goes out, and written off as lost, the step without a state, when they do not come;
-frames beyond the SYNCs sent (another SYNC producer) are forgotten. Answers written off are remembered: one that comes
-after all arrives before the next SYNC's, so that read waits (within its ``pdo_timeout``) for them too; not there, they
-are lost, and the frame received after its SYNC is its answer. A drive in FAULT (statusword; reported with its
-EMCY), a lost heartbeat, a heartbeat saying the drive left NMT OPERATIONAL, or missing TPDOs end in a HardwareError
-naming the cause. Heartbeats and TPDOs are timed and counted as they arrive, on the local monotonic clock: a received
-frame's timestamp is on whatever clock the python-can interface uses (epoch on socketcan; monotonic, a device counter or
-none on others). Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS file is optional
-(without one, the standard CiA 301/402 objects above are assumed).
+set-point every other step at most, as a drive reads its controlword once per control cycle and bit 4 low then high back
+to back is no edge to it); no acknowledge within ``read_timeout`` is a HardwareError. A set-point counts as sent only
+once its frame went out (a failed transmit is retried by the next write), and the safe state always sends its hold
+set-point at once (bit 4 low, SETPOINT_PULSE_GAP, high); a lock makes a step's command and send one unit, so a
+safe_state() from another thread waits for it and its hold goes out last. No set-point goes out while the last
+statusword is not OPERATION ENABLED: RPDO1's controlword would enable a drive in quick stop or switched on again (the
+drive's own stop holds it). Max current 0x6073 is rounded down, so the current cap never exceeds ``max_effort``. Each
+step then transmits SYNC and waits (``pdo_timeout``) for the TPDOs it triggers. TPDOs carry no SYNC number, so the
+answers are counted: a frame answers this step's SYNC only after the answers to every earlier SYNC (a step that timed
+out, the state walk's) arrived, which are waited for (up to ``pdo_timeout``) before the SYNC goes out, and written off
+as lost, the step without a state, when they do not come; frames beyond the SYNCs sent (another SYNC producer) are
+forgotten. Answers written off are remembered: one that comes after all arrives before the next SYNC's, so that read
+waits (within its ``pdo_timeout``) for them too; not there, they are lost, and the frame received after its SYNC is its
+answer. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat, a heartbeat saying the drive left NMT
+OPERATIONAL, or missing TPDOs end in a HardwareError naming the cause; so does a python-can error that ends a step (its
+SYNC or RPDO1 not sent, python-can's receive thread stopped: "Failed to transmit: No such device" from an unplugged
+adapter), a start-up request or a safe state's send (logged), naming the drive, interface:channel, what failed and what
+to check (:func:`bus_failure_hint`). Heartbeats and TPDOs are timed and counted as they arrive, on the local monotonic
+clock: a received frame's timestamp is on whatever clock the python-can interface uses (epoch on socketcan; monotonic, a
+device counter or none on others). Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS
+file is optional (without one, the standard CiA 301/402 objects above are assumed). ``interface`` must be one python-can
+knows (checked with the params); one that does not open gets that interface's advice (:func:`open_failure_hint`) and
+what python-can logged on the way (a vendor library it could not load), which is then not printed.
 
 The drive watches the host (host heartbeat): the driver watches the drive's heartbeat, and without this the drive kept
 going, enabled and on its last set-point, when the host died, hung or lost its cable. With ``host_heartbeat_period`` > 0
@@ -77,6 +81,8 @@ its first failed send: the next read starts it again (logged).
 
 from __future__ import annotations
 
+import errno
+import logging
 import math
 import threading
 import time
@@ -235,6 +241,14 @@ class CanopenGripper(FollowerBase):
         reset_fault_at_start: bool = Field(False, description="reset a drive found in FAULT at start-up (fault "
                                            "reset, controlword bit 7) instead of refusing to start")
 
+        @field_validator("interface")
+        @classmethod
+        def _interface_known(cls, v: str) -> str:
+            # python-can's own list (its interfaces and those of installed plugins): a typo ('socketcann') passed
+            # validation and failed at start-up with SocketCAN advice
+            check_interface(v)
+            return v
+
         @field_validator("velocity_unit")
         @classmethod
         def _velocity_unit_known(cls, v: str | None) -> str | None:
@@ -334,6 +348,16 @@ class CanopenGripper(FollowerBase):
         except SdoCommunicationError as exc:
             raise HardwareError(f"{what}: no SDO answer from {self._where()} ({exc}); check power, wiring, "
                                 f"termination, bit rate and node id") from exc
+        except self._bus_errors as exc:   # the request itself did not go out
+            raise self._bus_lost(what, exc) from exc
+
+    def _bus_lost(self, what: str, exc: BaseException) -> HardwareError:
+        """A python-can error that ended ``what`` on the bus (can.CanError, OSError: "Failed to transmit: No such
+        device" from an adapter that was unplugged), as a HardwareError naming the drive, its interface and channel,
+        what failed, python-can's words and what to check (:func:`bus_failure_hint`); raised ``from`` it."""
+        p = self.params
+        hint = bus_failure_hint(exc, p.interface, p.channel, p.bitrate)
+        return HardwareError(f"{self._where()}: {what} failed: {hint}")
 
     def _hw_open(self) -> None:
         import can
@@ -346,6 +370,9 @@ class CanopenGripper(FollowerBase):
         self._waiting_since = 0.0   # (monotonic) since when the handshake waits for the drive's acknowledge
         self._resend = False   # the next write sends its set-point even when the drive has it (the safe state's)
         self._sent_at = -math.inf   # (monotonic) when the last RPDO1 went out
+        #: what python-can raises when a frame cannot go out or come in (an unplugged adapter: CanOperationError
+        #: "Failed to transmit: No such device"; OSError from a serial one)
+        self._bus_errors = (can.CanError, OSError)
         if p.interface == "socketcan":
             info = can_interface_info(p.channel)
             if info is not None and info["up"] is False:   # it would open, and every frame fail with "Network is down"
@@ -353,11 +380,16 @@ class CanopenGripper(FollowerBase):
                 raise HardwareError(f"CAN interface {p.channel} is down: bring it up with {cmd}"
                                     + ("" if info["virtual"] else " (the drive's bit rate: the bitrate param)"))
         self.network = canopen.Network()
+        logged = LogLines("can")   # python-can's words on the way (a vendor library it could not load)
         try:
-            self.network.connect(interface=p.interface, channel=p.channel, bitrate=p.bitrate)
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise HardwareError(f"cannot open CAN interface {p.interface}:{p.channel} ({exc}); "
+            with logged:
+                self.network.connect(interface=p.interface, channel=p.channel, bitrate=p.bitrate)
+        except Exception as exc:   # (a backend without its vendor library raises anything: kvaser a NameError)
+            said = f"{type(exc).__name__}: {exc}" + (f"; python-can logged: {'; '.join(logged.lines)}"
+                                                     if logged.lines else "")
+            raise HardwareError(f"cannot open CAN interface {p.interface}:{p.channel} ({said}); "
                                 f"{open_failure_hint(exc, p.interface, p.channel, p.bitrate)}") from exc
+        self.network.notifier.add_listener(ReceiveErrorWait())
         try:
             od = p.eds if p.eds else standard_od(p.node_id)
             node = canopen.BaseNode402(p.node_id, od)
@@ -367,6 +399,14 @@ class CanopenGripper(FollowerBase):
         self.node = node
         node.sdo.RESPONSE_TIMEOUT = p.sdo_timeout
         node.sdo.MAX_RETRIES = 1  # one attempt (0 would retry forever in canopen 2.4)
+        try:
+            self._start_drive()
+        except self._bus_errors as exc:   # (an SDO request's is named by _sdo: an NMT command, a PDO, a SYNC)
+            raise self._bus_lost("the start-up", exc) from exc
+
+    def _start_drive(self) -> None:
+        """The start-up after the bus is open (see the module's docstring)."""
+        p, node = self.params, self.node
         self.emcys: list[Any] = []
         self._host_hb: Any = None   # the host's heartbeat producer (canopen's PeriodicMessageTask), while it runs
         node.emcy.add_callback(self.emcys.append)
@@ -850,6 +890,11 @@ class CanopenGripper(FollowerBase):
 
     def _hw_read(self) -> Reading | None:
         p = self.params
+        # an error in python-can's receive thread (an unplugged adapter; kept by its Notifier, see ReceiveErrorWait):
+        # first, before the heartbeats and TPDOs it no longer receives are taken for a lost drive
+        failed = getattr(self.network.notifier, "exception", None)
+        if failed is not None:
+            raise self._bus_lost("receiving", failed) from failed
         if p.heartbeat_period > 0:
             self._check_heartbeat()
         self._check_host_heartbeat()
@@ -865,7 +910,10 @@ class CanopenGripper(FollowerBase):
                                f"{p.pdo_timeout * 1e3:.0f} ms: written off as lost")
             return None
         t0 = time.monotonic()
-        self._sync()
+        try:
+            self._sync()
+        except self._bus_errors as exc:
+            raise self._bus_lost("sending SYNC", exc) from exc
         ok = self._answered(t0 + p.pdo_timeout, since=t0)
         t1 = max(self._arrived_at.values())   # the reading is whole (not the end of a wait for written-off answers)
         if not ok:
@@ -924,9 +972,11 @@ class CanopenGripper(FollowerBase):
             return super().read_state(t)
         except HardwareError as exc:
             if "no valid state" in str(exc):
-                raise HardwareError(f"{exc}: {self._where()}, last problem: {getattr(self, 'last_error', '?')}")\
-                    from None
+                raise HardwareError(f"{exc}: {self._read_problem()}") from None
             raise
+
+    def _read_problem(self) -> str:
+        return f"{self._where()}, last problem: {getattr(self, 'last_error', '?')}"
 
     def activate(self) -> None:
         super().activate()
@@ -944,10 +994,13 @@ class CanopenGripper(FollowerBase):
                 raise HardwareError(f"{self._where()} is not in OPERATION ENABLED (statusword 0x{sw:04X}): no "
                                     f"set-point sent, it would enable the drive again (quick stop, disabled or fault)")
             counts = self.map.counts(opening)
-            if self._safe and (self._resend or counts not in (self._raised, self._target)):
-                self._send_at_once(counts)   # the safe state's hold (or open) goes out now
-            else:
-                self._handshake(sw, counts)
+            try:
+                if self._safe and (self._resend or counts not in (self._raised, self._target)):
+                    self._send_at_once(counts)   # the safe state's hold (or open) goes out now
+                else:
+                    self._handshake(sw, counts)
+            except self._bus_errors as exc:   # (not taken as sent: the next write sends it again)
+                raise self._bus_lost(f"sending set-point {counts} (RPDO1)", exc) from exc
 
     def _forget_sent(self) -> None:
         self._resend = True  # always (re)send the hold set-point, whatever was sent before
@@ -976,6 +1029,8 @@ class CanopenGripper(FollowerBase):
             net.sync.stop()
         except Exception:
             pass
+        if getattr(net.notifier, "exception", None) is not None:   # (a read reported it; canopen's disconnect()
+            net.notifier.exception = None                           # would log it at ERROR, and raise it)
         try:
             net.disconnect()
         except Exception:
@@ -1103,17 +1158,143 @@ def up_command(name: str, virtual: bool, bitrate: int = 1000000) -> str:
     return f"sudo ip link set {name} up type can bitrate {bitrate}"
 
 
+#: what python-can's interface for an adapter needs installed besides python-can, and a channel as it names one
+ADAPTER_NEEDS = {
+    "pcan": ("PEAK-System's PCAN-Basic library (libpcanbasic) and the adapter's driver", "PCAN_USBBUS1"),
+    "kvaser": ("Kvaser's CANlib (on Linux: Kvaser's linuxcan driver package)", "0"),
+    "vector": ("Vector's XL Driver Library (vxlapi)", "0"),
+    "ixxat": ("IXXAT's VCI driver", "0"),
+    "neovi": ("the python-ics package", None),
+    "gs_usb": ("the gs_usb package", None),
+    "canalystii": ("the canalystii package", None),
+    "slcan": ("pyserial", "/dev/ttyACM0, its serial port"),
+    "serial": ("pyserial", "/dev/ttyUSB0, its serial port"),
+}
+
+
+def check_interface(name: str) -> None:
+    """A ValueError unless ``name`` is an interface the installed python-can knows (its own and those of installed
+    python-can plugins, ``can.interfaces.VALID_INTERFACES``), naming the closest ones."""
+    import difflib
+
+    import can
+    from can.interfaces import VALID_INTERFACES
+
+    if name in VALID_INTERFACES:
+        return
+    key = str(name).strip().lower()
+    near = [key] if key in VALID_INTERFACES else difflib.get_close_matches(key, sorted(VALID_INTERFACES), 2, 0.6)
+    hint = f" (did you mean {' or '.join(repr(n) for n in near)}?)" if near else ""
+    others = ", ".join(sorted(VALID_INTERFACES - {"socketcan", "virtual"}))
+    raise ValueError(f"interface {name!r} is not an interface python-can {can.__version__} knows{hint}: give "
+                     f"socketcan (a Linux CAN network interface, the channel as `teletouch devices` lists it: can0), "
+                     f"virtual (python-can's bus within this process, no adapter) or an adapter's own: {others}")
+
+
 def open_failure_hint(exc: BaseException, interface: str, channel: str, bitrate: int) -> str:
-    """What to do when python-can cannot open ``interface:channel``, from the error it raised."""
-    errno = getattr(exc, "errno", None) or getattr(exc.__cause__, "errno", None)
-    if errno == 97 or "Address family not supported" in str(exc):
-        return SOCKETCAN_MISSING
-    if errno == 19 or "No such device" in str(exc):
-        return (f"there is no network interface {channel}: plug in the CAN adapter (for a test without one: sudo "
-                f"modprobe vcan && sudo ip link add dev {channel} type vcan); `teletouch devices` lists the CAN "
+    """What to do when python-can cannot open ``interface:channel``, from the interface and the error it raised:
+    socketcan's from the kernel's errno (no SocketCAN, no such interface, else the command that brings it up); virtual
+    needs nothing set up; an adapter's interface needs its vendor library or driver (:data:`ADAPTER_NEEDS`)."""
+    if interface == "socketcan":
+        code = getattr(exc, "errno", None) or getattr(exc.__cause__, "errno", None)
+        if code == errno.EAFNOSUPPORT or "Address family not supported" in str(exc):
+            return SOCKETCAN_MISSING
+        if code == errno.ENODEV or "No such device" in str(exc):
+            return (f"there is no network interface {channel}: plug in the CAN adapter (for a test without one: "
+                    f"sudo modprobe vcan && sudo ip link add dev {channel} type vcan); `teletouch devices` lists "
+                    f"the CAN interfaces")
+        cmd = up_command(channel, channel.startswith("vcan"), bitrate)
+        return (f"check the adapter and that the interface is up ({cmd}); `teletouch devices` lists the CAN "
                 f"interfaces")
-    cmd = up_command(channel, channel.startswith("vcan"), bitrate)
-    return f"check the adapter and that the interface is up ({cmd}); `teletouch devices` lists the CAN interfaces"
+    if interface == "virtual":
+        return ("python-can's virtual interface needs nothing installed or set up (no adapter, driver or bit rate; "
+                "the channel is any name the nodes of this process share): the error above is python-can's own")
+    needs, example = ADAPTER_NEEDS.get(interface, (f"the adapter maker's library or driver that python-can's "
+                                                   f"{interface} interface loads (python-can's documentation of "
+                                                   f"the interface names it)", None))
+    channel_hint = f", with channel as that interface names the adapter (e.g. {example})" if example else ""
+    return (f"python-can's {interface} interface needs {needs} installed and the adapter plugged in{channel_hint}; "
+            f"python-can's words above say which is missing (`teletouch devices` lists SocketCAN interfaces only)")
+
+
+def _errno_of(exc: BaseException, interface: str) -> int | None:
+    """The OS error number behind a python-can error: an OSError's, its cause's, or (python-can's socketcan passes
+    it on so) a CanError's ``error_code`` on socketcan (and the virtual bus, where tests emulate socketcan's)."""
+    for e in (exc, exc.__cause__):
+        code = getattr(e, "errno", None)
+        if isinstance(code, int):
+            return code
+    code = getattr(exc, "error_code", None)
+    return code if isinstance(code, int) and interface in ("socketcan", "virtual") else None
+
+
+def bus_failure_hint(exc: BaseException, interface: str, channel: str, bitrate: int) -> str:
+    """Why a frame could not go out or come in on an open bus (a CAN adapter unplugged mid-run: python-can's
+    "Failed to transmit: No such device"), python-can's words, and what to check: ``ip link show`` on socketcan;
+    replug; `teletouch devices`."""
+    code, text = _errno_of(exc, interface), str(exc)
+    if code in (errno.ENODEV, errno.ENXIO) or "No such device" in text:
+        why = "the CAN adapter is gone (unplugged, or its USB connection reset)"
+    elif code == errno.ENETDOWN or "Network is down" in text or "appears to be down" in text:
+        why = ("the CAN interface went down (set down, or its controller went bus-off and was not restarted), or "
+               "the adapter was unplugged")
+    elif code == errno.ENOBUFS or "buffer" in text.lower():
+        why = ("the transmit queue is full: no node acknowledges the frames (the drive unpowered or disconnected, a "
+               "loose cable, no termination, a wrong bit rate), the controller is bus-off, or the adapter was "
+               "unplugged")
+    else:
+        why = "the CAN adapter may have been unplugged or the interface went down"
+    if interface == "socketcan":
+        check = (f"check `ip link show {channel}` (\"does not exist\": replug the adapter; state DOWN: "
+                 f"{up_command(channel, channel.startswith('vcan'), bitrate)}) and `teletouch devices`")
+    else:
+        check = ("replug the adapter and check that its driver sees it (`teletouch devices` lists SocketCAN "
+                 "interfaces only)")
+    return f"{why} ({type(exc).__name__}: {exc}); {check}"
+
+
+class LogLines(logging.Handler):
+    """In a ``with`` block, the messages of logger ``name``'s WARNING and ERROR records (and its children's), for an
+    error message: python-can logs why a backend cannot work ("Kvaser canlib is unavailable.") when it imports it,
+    and raises something else ("channel must be an integer", a NameError). While attached, logging's last-resort
+    handler (which prints such records to stderr where nothing configured logging) leaves them alone: they are said
+    in the error, or concern no one when nothing failed ("uptime library not available" at every pcan start).
+    Handlers a program configured still get them."""
+
+    def __init__(self, name: str):
+        super().__init__(logging.WARNING)
+        self.logger = logging.getLogger(name)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.lines.append(record.getMessage())
+        except Exception:   # (a record whose message cannot be formatted: nothing to say)
+            pass
+
+    def __enter__(self) -> "LogLines":
+        self.logger.addHandler(self)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.logger.removeHandler(self)
+
+
+RECEIVE_RETRY = 0.1   # s python-can's receive thread waits after an error before it receives again
+
+
+class ReceiveErrorWait:
+    """A listener of the Notifier of canopen's Network (python-can's receive thread): an error in receiving (an
+    unplugged adapter: "Error receiving: No such device") ended that thread, its traceback on stderr ("Exception in
+    thread ..."), before the driver's report. Handled here, it waits ``RECEIVE_RETRY`` and receives again (until
+    close(): a few tries a second, not a spin on a dead socket); the Notifier keeps the error (``exception``), which
+    the driver's next read reports (as canopen's next send raises it)."""
+
+    def __call__(self, msg: Any) -> None:
+        return None
+
+    def on_error(self, exc: Exception) -> None:
+        time.sleep(RECEIVE_RETRY)
 
 
 def _read(path: str) -> str:
