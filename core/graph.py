@@ -622,6 +622,12 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                             named = word.group(0) if word and word.group(0) in fields else None
                             err(f"node '{nid}': params of {plugin}: {part}",
                                 pwhere.get(named, pwhere_default) if named else pwhere_default)
+                # a check before the fields' (the units of every quantity, Params._parse_units) ends pydantic's
+                # validation, so the unknown params it would have named are found here ('bitrate: 500k' hid 'dxl')
+                if not any(e["type"] == "extra_forbidden" for e in exc.errors()):
+                    known = set(fields) | {f.alias for f in cls.Params.model_fields.values() if f.alias}
+                    expanded += [{"type": "extra_forbidden", "loc": (k,), "msg": "", "input": v}
+                                 for k, v in spec.params.items() if k not in known]
                 for e in expanded:
                     loc = [str(x) for x in e["loc"]]
                     fname = ".".join(loc) or "?"
