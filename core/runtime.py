@@ -285,6 +285,9 @@ class Runtime:
     #: at a stop, how long a rate group's thread inside a step may take to end before its devices are made safe by
     #: the main thread (s; at most faults.watchdog): see _safe_blocked
     STOP_GRACE = 0.1
+    #: under the wall clock, how long the shutdown waits for a node's deactivate(), results() or close() (s): one
+    #: that has not returned by then is left behind (see _bounded)
+    LIFECYCLE_TIMEOUT = 10.0
 
     def __init__(self, spec: GraphSpec, registry: Any = None, *, clock: str | None = None,
                  log: Callable[[str], None] | None = None):
@@ -731,8 +734,7 @@ class Runtime:
                 node.state = "finalized"
                 continue
             if node.state == "active":
-                self._lifecycle_call(node, "deactivate")
-                node.state = "inactive"
+                node.state = "inactive" if self._lifecycle_call(node, "deactivate") else "finalized"
         for node in self.nodes:
             if node.state != "finalized" and node.steps:
                 node.results = self._results_of(node)
@@ -746,19 +748,55 @@ class Runtime:
         """``node``'s Component.results(), its values as numbers or text (JSON can hold them; anything else as its
         repr); an error there is a logged shutdown fault and no results (the run's result stays). An isolated node's
         proxy asks its child process (none from a child that died or hangs)."""
+        got: list[Any] = []
+        if not self._bounded(node, "results", lambda: got.append(node.comp.results())) or not got:
+            return {}   # (left behind, or it raised: a fault says which)
         try:
-            return plain_results(node.comp.results() or {})
+            return plain_results(got[0] or {})
         except BaseException as exc:
             self.faults.append(Fault(node.id, "shutdown", f"results() raised {exception_line(exc)}", self._now,
                                      "logged"))
             return {}
 
-    def _lifecycle_call(self, node: _Node, name: str) -> None:
-        try:
-            getattr(node.comp, name)()
-        except BaseException as exc:
-            self.faults.append(Fault(node.id, "shutdown", f"{name}() raised {exception_line(exc)}", self._now,
+    def _lifecycle_call(self, node: _Node, name: str) -> bool:
+        """``deactivate()`` or ``close()`` of ``node`` (:meth:`_bounded`); whether it returned in time."""
+        return self._bounded(node, name, getattr(node.comp, name))
+
+    def _bounded(self, node: _Node, name: str, call: Callable[[], Any]) -> bool:
+        """A shutdown call of ``node`` (``deactivate``, ``results``, ``close``): an error there is a logged shutdown
+        fault and the others are still made. Under the wall clock it is bounded as safe_state() is: it runs in a
+        helper thread and is waited for at most ``LIFECYCLE_TIMEOUT``; one that has not returned by then (a driver's
+        close() that hangs on a port that vanished) is left behind, reported, and the node gets no further calls (a
+        hung deactivate() held the run, and every close() after it, for good: signals are held during the
+        shutdown, so only a kill ended it; the devices were safe already). Returns whether it returned in time."""
+        if self.clock == "sim":
+            try:
+                call()
+            except BaseException as exc:
+                self.faults.append(Fault(node.id, "shutdown", f"{name}() raised {exception_line(exc)}", self._now,
+                                         "logged"))
+            return True
+        raised: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                call()
+            except BaseException as exc:   # (also SystemExit, or a KeyboardInterrupt raised by the plugin)
+                raised.append(exc)
+
+        th = threading.Thread(target=run, name=f"teletouch-{name}-{node.id}", daemon=True)
+        th.start()
+        th.join(self.LIFECYCLE_TIMEOUT)
+        if th.is_alive():
+            later = {"deactivate": "; its results() and close() are skipped", "results": "",
+                     "close": ""}.get(name, "")
+            self.faults.append(Fault(node.id, "shutdown", f"{name}() did not return within "
+                                     f"{self.LIFECYCLE_TIMEOUT:g} s: left behind{later}", self._now, "logged"))
+            return False
+        if raised:
+            self.faults.append(Fault(node.id, "shutdown", f"{name}() raised {exception_line(raised[0])}", self._now,
                                      "logged"))
+        return True
 
     def _still_stepping(self) -> set[_Node]:
         """Nodes whose step() still runs in a rate group's thread that did not end when joined (wall clock). An
