@@ -82,7 +82,9 @@ def test_sdk_found_through_forcedim_sdk_env(sdk_dir, standin, monkeypatch):
     assert lib.sdk_version() == "3.17.0"
     assert lib.device_count() == 1
     found = teletouch_discover_devices()
-    assert found and found[0]["kind"] == "omega7" and found[0]["details"]["params"] == {"index": 0}
+    # the serial number selects the device (index is the enumeration order, which two devices may swap at a boot)
+    assert found and found[0]["kind"] == "omega7" and found[0]["details"]["params"] == {"serial": 12345}
+    assert found[0]["details"]["serial"] == 12345
     standin.set_present(0)
     assert teletouch_discover_devices() == []   # the SDK answers: no device plugged in
 

@@ -17,7 +17,8 @@ Errors say whether the *SDK* (library) or the *device* is missing, and how to fi
 
 The device firmware's watchdog (``dhdSetWatchdog``/``dhdGetWatchdog``, SDK 3.3.2 and newer) is bound when the library
 has it (:meth:`Dhd.has_watchdog`): a duration in units of 125 us (:data:`WATCHDOG_UNIT`, 1..255; 0 = off) after which
-the device disables forces by itself if no new force command arrived.
+the device disables forces by itself if no new force command arrived. ``dhdGetSerialNumber`` is bound when the
+library has it too (:meth:`Dhd.serial_at`: the serial number ``teletouch devices`` suggests instead of the index).
 """
 
 from __future__ import annotations
@@ -212,6 +213,7 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "dhdOpenSerial": (_c.c_int, [_c.c_int]),
     "dhdClose": (_c.c_int, [_ID]),
     "dhdGetSystemType": (_c.c_int, [_ID]),
+    "dhdGetSerialNumber": (_c.c_int, [_c.POINTER(_c.c_ushort), _ID]),
     "dhdEnableForce": (_c.c_int, [_c.c_ubyte, _ID]),
     "dhdSetBrakes": (_c.c_int, [_c.c_int, _ID]),
     "dhdSetGravityCompensation": (_c.c_int, [_c.c_int, _ID]),
@@ -231,7 +233,7 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "dhdGetWatchdog": (_c.c_int, [_c.POINTER(_c.c_ubyte), _ID]),  # added in release 3.3.2 (an expert SDK call)
 }
 _OPTIONAL = {"dhdGetSDKVersion", "dhdErrorGetLast", "dhdGetDeviceCount", "dhdGetGripperAngleRad", "dhdSetWatchdog",
-             "dhdGetWatchdog", "dhdGetStatus", "dhdEnableExpertMode", "dhdDisableExpertMode",
+             "dhdGetWatchdog", "dhdGetStatus", "dhdEnableExpertMode", "dhdDisableExpertMode", "dhdGetSerialNumber",
              # not in SDK 3.7.0's dhdc.h (later ones have them): without them the driver's own force guard is the
              # only limit (see Dhd.set_max_force)
              "dhdSetMaxForce", "dhdSetMaxGripperForce"}
@@ -338,6 +340,40 @@ class Dhd:
 
     def close(self) -> None:
         self._check(self.lib.dhdClose(self.id), "dhdClose")
+
+    def has_serial_number(self) -> bool:
+        """Whether this libdhd has dhdGetSerialNumber."""
+        return getattr(self.lib, "dhdGetSerialNumber", None) is not None
+
+    def serial_number(self) -> int | None:
+        """The open device's serial number (dhdGetSerialNumber: what ``open(serial=...)`` takes), or None when this
+        SDK has no dhdGetSerialNumber. Raises DhdError on -1."""
+        f = getattr(self.lib, "dhdGetSerialNumber", None)
+        if f is None:
+            return None
+        sn = _c.c_ushort()
+        self._check(f(_c.byref(sn), self.id), "dhdGetSerialNumber")
+        return int(sn.value)
+
+    def serial_at(self, index: int) -> int | None:
+        """The serial number of the device at ``index`` (the SDK's enumeration order), for listing the devices: the
+        device is opened (dhdOpenID), read and closed again, nothing else set on it. None when this SDK has no
+        dhdGetSerialNumber (the device is then not opened). Raises DhdError when the device cannot be opened (e.g.
+        another program holds it) or read."""
+        if not self.has_serial_number():
+            return None
+        rc = self.lib.dhdOpenID(int(index))
+        if rc < 0:
+            code, text = self.last_error()
+            raise DhdError(f"dhdOpenID({index}) failed: {text} (error {code})", code)
+        was, self.id = self.id, rc
+        try:
+            return self.serial_number()
+        finally:
+            try:
+                self.lib.dhdClose(rc)
+            finally:
+                self.id = was
 
     def system_type(self) -> int:
         return self._check(self.lib.dhdGetSystemType(self.id), "dhdGetSystemType")

@@ -10,12 +10,14 @@ import math
 import threading
 import time
 from fractions import Fraction
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Device, Kind, Params, Port, hookimpl
+from teletouch.paths import looked_at
 from teletouch.units import Newtons, Seconds
 
 #: Device limits of the Omega.7 (CHAI3D's device table; hardware notes).
@@ -207,6 +209,22 @@ class Omega7(Device):
                               "a libdhd call hangs; 0 (off) or 125 us to 31.875 ms, rounded down to units of 125 us; "
                               "at least 2 periods of the node's rate",
             json_schema_extra={"unit": "s"})
+
+        @field_validator("sdk_path")
+        @classmethod
+        def _sdk_path_exists(cls, v: str | None) -> str | None:
+            # when the graph is validated (`validate` said OK, the run failed at start-up); what the path holds is
+            # for the SDK's loader (dhd.load) to say at configure, with the library it tried
+            if not v:
+                return v   # not given: $FORCEDIM_SDK, then the system library path
+            where = Path(v).expanduser()
+            expected = ("expected the Force Dimension SDK's folder (e.g. /opt/sdk-3.17.0) or its libdhd library file, "
+                        "or no sdk_path at all to use $FORCEDIM_SDK, then the system library path")
+            if not where.exists():
+                raise ValueError(f"sdk_path {v!r} does not exist{looked_at(where)}; {expected}")
+            if not (where.is_dir() or where.is_file()):
+                raise ValueError(f"sdk_path {v!r} is neither a folder nor a file; {expected}")
+            return v
 
         @field_validator("firmware_watchdog")
         @classmethod
@@ -554,7 +572,12 @@ def discover(sdk_path: str | None = None) -> list[dict[str, Any]]:
     """The rows of ``teletouch devices`` for Force Dimension devices (never raises): one per device the SDK counts,
     with the ``omega7`` params that open it; or one ``error`` row saying why none can be listed: the SDK not found
     (and where it was looked for: a plugged-in omega.7 is invisible without it), or a device count the SDK cannot
-    give (no dhdGetDeviceCount, or -1 with the SDK's last error)."""
+    give (no dhdGetDeviceCount, or -1 with the SDK's last error).
+
+    A device's params are ``serial`` where the SDK gives its serial number (dhdGetSerialNumber; the device is opened
+    for it and closed again): ``index`` is the SDK's enumeration order, which can change between boots with two
+    devices plugged in. ``index`` where there is no serial number: an SDK without dhdGetSerialNumber, or a device
+    that cannot be opened (held by another program: said in the row's ``problem``)."""
     try:
         from . import dhd as dhdmod
 
@@ -574,9 +597,24 @@ def discover(sdk_path: str | None = None) -> list[dict[str, Any]]:
         code, text = lib.last_error()
         return [_error_row(f"dhdGetDeviceCount failed ({where}): {text} (error {code}); {dhdmod.DEVICE_HINT}",
                            lib.path)]
-    return [{"kind": "omega7", "id": f"dhd:{i}", "path": lib.path,
-             "details": {"sdk": lib.sdk_version(), "plugin": "omega7", "params": {"index": i}}}
-            for i in range(n)]
+    return [_device_row(lib, i) for i in range(n)]
+
+
+def _device_row(lib: Any, index: int) -> dict[str, Any]:
+    """The row of the device at ``index``: selected by its serial number where the SDK gives it, else by index."""
+    from .dhd import DEVICE_HINT
+
+    serial, problem = None, None
+    try:
+        serial = lib.serial_at(index)
+    except Exception as exc:
+        problem = (f"its serial number could not be read ({exc}): select it by index, the SDK's enumeration order, "
+                   f"which can change between boots with two devices; {DEVICE_HINT}")
+    details: dict[str, Any] = {"sdk": lib.sdk_version(), "serial": serial, "plugin": "omega7",
+                               "params": {"index": index} if serial is None else {"serial": serial}}
+    if problem:
+        details["problem"] = problem
+    return {"kind": "omega7", "id": f"dhd:{index}", "path": lib.path, "details": details}
 
 
 def _error_row(message: str, path: str = "") -> dict[str, Any]:

@@ -38,8 +38,13 @@ A controller that goes away while ``/joint_states`` keeps arriving (unloaded, cr
 checks that something still subscribes to the command topic, and ``controller_timeout`` without a subscriber is a
 HardwareError (how soon DDS reports a crashed process's subscription gone is its liveliness lease; a controller
 that is unloaded or shut down cleanly is gone at once). Start-up names an endpoint of another message type on
-either topic (DDS does not connect the two, silently). Two pal-gripper nodes of one process may not command the
-same controller (the controller follows whichever sent last), nor may two processes or another ROS node: start-up
+either topic (DDS does not connect the two, silently). When no controller subscribes to the command topic (a wrong
+``namespace`` or ``controller``), start-up names the JointTrajectory subscriptions the ROS graph has
+(``get_topic_names_and_types``; looking until ``GRAPH_WAIT`` after joining it while there is none, for DDS to discover
+the robot), each with the namespace/controller params that select it and the JointState topic the driver would then
+read (``joint_states_topic`` where nothing publishes on it); when no JointState message comes, the topics that have a
+JointState publisher. Two pal-gripper nodes of one process may not command the same controller (the controller
+follows whichever sent last), nor may two processes or another ROS node: start-up
 asks the ROS graph for the command topic's other JointTrajectory publishers (``get_publishers_info_by_topic``; this
 driver's own is left out, even where another teletouch has the same node name) and refuses to start while there is
 one, naming its node and namespace. DDS needs a moment to discover the other participants: ``discovery_wait`` keeps
@@ -92,6 +97,9 @@ TRAJECTORY_TYPE = "trajectory_msgs/msg/JointTrajectory"
 RANGE_TOLERANCE = 0.003  # m a finger may read beyond its joint range (calibration) before the reading is refused
 PUBLISHER_CHECK_PERIOD = 1.0  # s between two looks at the command topic's other publishers while running
 NAME_WAIT = 0.5  # s given to the ROS graph to learn the node name of a publisher DDS has announced
+GRAPH_WAIT = 1.0  # s after joining the graph that a failed start-up keeps looking for the controllers it can name
+MAX_LISTED = 8  # controllers / JointState topics named in a start-up error at most
+EMPTY = '""'  # the default namespace, as a graph writes it
 _UNNAMED = "(a participant the ROS graph has no node name for: a plain DDS writer, or one still being discovered)"
 
 # ROS 2 names (teletouch.plugins.ros_names), checked when the graph is validated rather than refused by rclpy at
@@ -113,6 +121,18 @@ _REASONS = {  # why a JointState message was not used (keys of status()['dropped
     "older": "stamped no later than the last message used (out of order, or sent again)",
     "ahead": "stamped ahead of the stream",
 }
+
+
+def _selects(topic: str) -> tuple[str, str] | None:
+    """The namespace and controller params whose command topic is ``topic`` (``<namespace>/<controller>/
+    joint_trajectory``, the controller the last name before it); None for a topic of another form."""
+    suffix = "/joint_trajectory"
+    if not topic.endswith(suffix):
+        return None
+    namespace, _, controller = topic[:-len(suffix)].rpartition("/")
+    if not _RELATIVE_RE.fullmatch(controller) or not _NAMESPACE_RE.fullmatch(namespace):
+        return None
+    return namespace, controller
 
 
 def _qos_hint(policy: str, side: str) -> str:
@@ -383,17 +403,17 @@ class PalGripper(FollowerBase):
             if time.monotonic() > deadline:
                 raise HardwareError(f"no controller subscribes to {self.command_topic} after "
                                     f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}"
-                                    f"{self._qos_text(self.command_topic)}; check the "
-                                    f"robot is up, the namespace and controller name, and the network/discovery "
-                                    f"settings")
+                                    f"{self._qos_text(self.command_topic)}; {self._controllers_seen()}")
             time.sleep(0.01)
         while self._state is None:
             if time.monotonic() > deadline:
                 with self._lock:
-                    what = "no message" if self._msgs == 0 else f"no usable message: {self._drop_text()}"
+                    silent = self._msgs == 0
+                    what = "no message" if silent else f"no usable message: {self._drop_text()}"
                 raise HardwareError(f"{self.state_topic}: {what} for {list(p.joint_names)} after "
                                     f"{p.connect_timeout} s (ROS_DOMAIN_ID {domain}){self._wrong_types()}"
-                                    f"{self._qos_text(self.state_topic)}; check the joint names, "
+                                    f"{self._qos_text(self.state_topic)}"
+                                    f"{self._state_topics_seen() if silent else ''}; check the joint names, "
                                     f"joint_states_topic and the joint_state_broadcaster")
             time.sleep(0.005)
         self._other_pubs: list[str] = []
@@ -420,6 +440,70 @@ class PalGripper(FollowerBase):
         except Exception:  # a diagnosis only
             return ""
         return "".join(f"; {f}" for f in found)
+
+    def _graph_topics(self, wanted: str, count: Any) -> list[str]:
+        """The topics of type ``wanted`` on the ROS graph that ``count`` (the node's count_subscribers or
+        count_publishers) finds an endpoint on: the robot's side, not only this driver's own."""
+        return sorted(t for t, types in self.ros_node.get_topic_names_and_types() if wanted in types and count(t) > 0)
+
+    def _controllers_seen(self) -> str:
+        """For the start-up error when nothing subscribes to the command topic: the JointTrajectory subscriptions on
+        the ROS graph (looked for until GRAPH_WAIT after joining it, while DDS still discovers the robot), each with
+        the namespace/controller params that select it and the JointState topic it would read; or that there is
+        none."""
+        node = self.ros_node
+        try:
+            while True:
+                commands = [t for t in self._graph_topics(TRAJECTORY_TYPE, node.count_subscribers)
+                            if t != self.command_topic]
+                if commands or time.monotonic() >= self._joined + GRAPH_WAIT:
+                    break
+                time.sleep(0.05)
+            states = self._graph_topics(JOINT_STATE_TYPE, node.count_publishers)
+        except Exception:  # a diagnosis only
+            return ("check the robot is up, the namespace and controller name, and the network/discovery "
+                    "settings")
+        if not commands:
+            return (f"no JointTrajectory subscription on the ROS graph {time.monotonic() - self._joined:.1f} s "
+                    f"after joining it, so no controller to suggest: check the robot is up, on this ROS_DOMAIN_ID "
+                    f"(or the domain_id param) and reachable (ROS_AUTOMATIC_DISCOVERY_RANGE / ROS_LOCALHOST_ONLY, "
+                    f"the network); where DDS discovery is slow, a longer connect_timeout")
+        commands.sort(key=lambda t: ("gripper" not in (_selects(t) or ("", ""))[1], t))   # a gripper's first
+        found = [self._candidate(t, states) for t in commands[:MAX_LISTED]]
+        more = f"; and {len(commands) - MAX_LISTED} more" if len(commands) > MAX_LISTED else ""
+        return (f"the JointTrajectory subscriptions on the ROS graph, with the namespace/controller params that "
+                f"select each: {'; '.join(found)}{more}; else check the robot is up and its controllers loaded")
+
+    def _candidate(self, topic: str, states: list[str]) -> str:
+        """One JointTrajectory subscription of the graph: the namespace/controller params that make it the command
+        topic, and the JointState topic the driver would then read (joint_states_topic where it should change)."""
+        names = _selects(topic)
+        if names is None:
+            return f"{topic} (not <namespace>/<controller>/joint_trajectory: this driver cannot command it)"
+        namespace, controller = names
+        select = f"namespace: {namespace or EMPTY}, controller: {controller}"
+        state = ros_names.expand_topic(self.params.joint_states_topic, namespace, None)
+        if state in states:
+            return f"{topic} ({select}; JointState on {state})"
+        near = [t for t in states if t.startswith(namespace + "/")] or states
+        if not near:
+            return f"{topic} ({select}; no JointState publisher seen on the graph)"
+        return (f"{topic} ({select}; nothing publishes JointState on {state}: set joint_states_topic to one of "
+                f"{', '.join(near[:MAX_LISTED])})")
+
+    def _state_topics_seen(self) -> str:
+        """For the start-up error when no JointState message came: the JointState topics that have a publisher on
+        the ROS graph (each a joint_states_topic value), or that there is none."""
+        try:
+            states = self._graph_topics(JOINT_STATE_TYPE, self.ros_node.count_publishers)
+        except Exception:  # a diagnosis only
+            return ""
+        states = [t for t in states if t != self.state_topic]
+        if not states:
+            return "; no other topic on the ROS graph has a JointState publisher"
+        more = f" and {len(states) - MAX_LISTED} more" if len(states) > MAX_LISTED else ""
+        return (f"; JointState is published on {', '.join(states[:MAX_LISTED])}{more} (set joint_states_topic to "
+                f"the one with the finger joints)")
 
     def _qos_text(self, topic: str) -> str:
         """The incompatible QoS found on ``topic`` (both sides' values): text for an error."""
