@@ -282,12 +282,12 @@ class Runtime:
     #: a few milliseconds: the depth pipeline's step after a 16 ms pause took 1.6-1.8 ms of CPU time, after a
     #: rehearsal of it 1 ms before 0.9-1.0 ms, 4 ms before 1.1-1.2 ms (docs/depth.md, `warm`)
     WARM_LEAD = 1e-3
-    #: at a stop, how long a rate group's thread inside a step may take to end before its devices are made safe by
-    #: the main thread (s; at most faults.watchdog): see _safe_blocked
-    STOP_GRACE = 0.1
     #: under the wall clock, how long the shutdown waits for a node's deactivate(), results() or close() (s): one
     #: that has not returned by then is left behind (see _bounded)
     LIFECYCLE_TIMEOUT = 10.0
+    #: how long a stale input's fault waits for the source device's status() to say its problem (s; wall clock):
+    #: see _source_problem
+    PROBLEM_WAIT = 0.01
 
     def __init__(self, spec: GraphSpec, registry: Any = None, *, clock: str | None = None,
                  log: Callable[[str], None] | None = None):
@@ -595,15 +595,27 @@ class Runtime:
         """What the device feeding a stale input says is wrong now, for the stale fault ("; node 'gripper' reports:
         ..."): the ``problem`` of its status() (a follower whose reads fail: for how long, and the last error), or ''.
         A stale input is most often a device that stopped answering, which faults only at its own, longer timeout
-        (``read_timeout``): the consumer's fault came first and said nothing of why. Only a device is asked (inline:
-        an isolated node's status() is a round trip to its process, not made from a rate group's thread)."""
+        (``read_timeout``): the consumer's fault came first and said nothing of why. Only a device is asked (an
+        isolated node's status() is a round trip to its process); under the wall clock in a helper thread, waited for
+        at most ``PROBLEM_WAIT``: a status() that blocks must not hold up the fault and the safe state."""
         n = self._by_id.get(src.split(".", 1)[0])
-        if n is None or not n.is_device:
+        if n is None or not n.is_device or n.hung:
             return ""
-        try:
-            problem = n.comp.status().get("problem")
-        except Exception:   # (a status() that fails says nothing here; the run goes on to the fault)
-            return ""
+        got: list[Any] = []
+
+        def ask() -> None:
+            try:
+                got.append(n.comp.status().get("problem"))
+            except BaseException:   # (a status() that fails, even by SystemExit, says nothing here)
+                pass
+
+        if self.clock == "sim":
+            ask()
+        else:   # asked from the consumer's rate-group thread: a status() that blocks (a lock its hung reader holds)
+            th = threading.Thread(target=ask, name=f"teletouch-status-{n.id}", daemon=True)   # must not hold it
+            th.start()
+            th.join(self.PROBLEM_WAIT)
+        problem = got[0] if got else None
         return f"; node '{n.id}' reports: {problem}" if isinstance(problem, str) and problem else ""
 
     def _write(self, node: _Node, out: Any, t: float, guard: Any = None) -> None:
@@ -749,8 +761,11 @@ class Runtime:
         repr); an error there is a logged shutdown fault and no results (the run's result stays). An isolated node's
         proxy asks its child process (none from a child that died or hangs)."""
         got: list[Any] = []
-        if not self._bounded(node, "results", lambda: got.append(node.comp.results())) or not got:
-            return {}   # (left behind, or it raised: a fault says which)
+        if not self._bounded(node, "results", lambda: got.append(node.comp.results())):
+            node.state = "finalized"   # left behind: no close() beside it
+            return {}
+        if not got:   # it raised (a fault says so)
+            return {}
         try:
             return plain_results(got[0] or {})
         except BaseException as exc:
@@ -768,8 +783,14 @@ class Runtime:
         helper thread and is waited for at most ``LIFECYCLE_TIMEOUT``; one that has not returned by then (a driver's
         close() that hangs on a port that vanished) is left behind, reported, and the node gets no further calls (a
         hung deactivate() held the run, and every close() after it, for good: signals are held during the
-        shutdown, so only a kill ended it; the devices were safe already). Returns whether it returned in time."""
-        if self.clock == "sim":
+        shutdown, so only a kill ended it; the devices were safe already). Returns whether it returned in time. An
+        isolated node's proxy is called inline: it bounds its calls itself, by its step's timeout (a deactivate()
+        waits for a step in flight) and its shutdown timeout, and its close() ends the child process whatever it
+        does. A signal that cuts the wait short (a Ctrl-C while a node that failed to configure is closed) leaves
+        the call running: the node gets no further calls."""
+        from .isolation import ProcessProxy
+
+        if self.clock == "sim" or isinstance(node.comp, ProcessProxy):
             try:
                 call()
             except BaseException as exc:
@@ -786,9 +807,13 @@ class Runtime:
 
         th = threading.Thread(target=run, name=f"teletouch-{name}-{node.id}", daemon=True)
         th.start()
-        th.join(self.LIFECYCLE_TIMEOUT)
+        try:
+            th.join(self.LIFECYCLE_TIMEOUT)
+        except BaseException:   # (KeyboardInterrupt: the call goes on; a second one beside it could free twice)
+            node.state = "finalized"
+            raise
         if th.is_alive():
-            later = {"deactivate": "; its results() and close() are skipped", "results": "",
+            later = {"deactivate": "; its results() and close() are skipped", "results": "; its close() is skipped",
                      "close": ""}.get(name, "")
             self.faults.append(Fault(node.id, "shutdown", f"{name}() did not return within "
                                      f"{self.LIFECYCLE_TIMEOUT:g} s: left behind{later}", self._now, "logged"))
@@ -1092,7 +1117,7 @@ class Runtime:
             # (a run of 0.3 s was said to have "ran 0.804 s")
             ended = time.perf_counter() - self._t0
             try:
-                self._safe_blocked(group_of, min(wd, self.STOP_GRACE) if wd > 0 else self.STOP_GRACE)
+                self._safe_blocked(group_of, wd)
                 self._join()
             finally:   # also when a second Ctrl-C cuts the join short (the run's shutdown joins them again)
                 sys.setswitchinterval(old_switch)
@@ -1100,22 +1125,34 @@ class Runtime:
             if duration is not None and self._stop_reason is None and duration <= self._now < duration + 0.05:
                 self._now = duration  # ended by its duration (the main thread polls every 20 ms)
 
-    def _safe_blocked(self, group_of: list[tuple[threading.Thread, list[_Node]]], grace: float) -> None:
-        """At the run's stop, before the rate groups' threads are joined (the watchdog has ended): a thread that has
-        not ended within ``grace`` while it is inside a step (a device's own, or another node's at its rate: an
-        estimator that hangs, an isolated node waiting for its process) has its devices made safe from here, at
-        once, instead of after the joins (1 s a thread; a leader kept its 2 N on a hand for 2 s after a Ctrl-C).
-        A device whose own step is in flight is made safe again when that step returns (``resafe``)."""
-        end = time.monotonic() + grace
-        for th, _ in group_of:
-            if th is not threading.current_thread():
-                try:
-                    th.join(max(0.0, end - time.monotonic()))
-                except RuntimeError:   # never started (a Ctrl-C while the threads were being started)
-                    pass
-        stuck = [n for th, members in group_of if th.is_alive() and any(m.in_step for m in members)
-                 for n in members if n.is_device and n.state == "active"]
-        self._safe_many(stuck)
+    def _safe_blocked(self, group_of: list[tuple[threading.Thread, list[_Node]]], wd: float) -> None:
+        """At the run's stop, before the rate groups' threads are joined (the watchdog has ended with the stop): a
+        thread still inside one step (a device's own, or another node's at its rate: an estimator that hangs, an
+        isolated node waiting for its process) past the watchdog's limit for its group (``faults.watchdog``, at
+        least 3 of its periods; 1 s with the watchdog off), counted from that step's start, has its devices made
+        safe from here, then, instead of after the joins (1 s a thread; a leader kept its 2 N on a hand for 2 s
+        after a Ctrl-C). A step within its limit is waited for: no safe_state() beside a healthy slow step (the
+        group makes its devices safe itself as it leaves). A device whose own step is in flight is made safe again
+        when that step returns (``resafe``)."""
+        ring = self.JITTER_RING
+        pending = [(th, members, max(wd if wd > 0 else 1.0, 3.0 * members[0].period))
+                   for th, members in group_of if th is not threading.current_thread()]
+        give_up = time.perf_counter() + max((lim + members[0].period for _, members, lim in pending), default=0.0)
+        while pending and time.perf_counter() < give_up:
+            now = time.perf_counter() - self._t0
+            left = []
+            for th, members, limit in pending:
+                if not th.is_alive():   # (ended, or never started: a Ctrl-C while the threads were being started)
+                    continue
+                m = next((m for m in members if m.in_step), None)
+                began = None if m is None else (m.warm_began if m.warming else m.starts[(m.nstarts - 1) % ring])
+                if began is not None and now - began > limit:
+                    self._safe_many([n for n in members if n.is_device and n.state == "active"])
+                else:   # within its limit, or between two steps (it sees the stop after its sleep, within a period)
+                    left.append((th, members, limit))
+            pending = left
+            if pending:
+                time.sleep(0.005)
 
     def _stalled(self, dev: _Node, idle: float, limit: float, members: list[_Node]) -> None:
         """The watchdog found device ``dev`` not stepped for ``idle`` s, more than its ``limit``: it is made safe and
