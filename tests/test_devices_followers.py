@@ -5,16 +5,19 @@ from __future__ import annotations
 
 import grp
 import os
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import canopen
-import pytest
 
-from teletouch import HardwareError
 from teletouch.plugins.devices import canopen_gripper, dynamixel_gripper
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper
 from teletouch.plugins.devices.dynamixel_gripper import DynamixelGripper
 from teletouch.testing import Harness
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fakes.realtime import configure_error  # noqa: E402
 
 
 def _net(root, name, flags, operstate, hardware):
@@ -61,13 +64,6 @@ def test_can_rows_say_when_the_kernel_has_no_socketcan(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ CAN start-up
-def _configure_error(h: Harness) -> str:
-    try:
-        with pytest.raises(HardwareError) as ei:
-            h.comp.configure()
-    finally:
-        h.comp.close()
-    return str(ei.value)
 
 
 def test_socketcan_missing_at_open_says_modprobe(monkeypatch):
@@ -77,7 +73,7 @@ def test_socketcan_missing_at_open_says_modprobe(monkeypatch):
         raise OSError(97, "Address family not supported by protocol")
 
     monkeypatch.setattr(canopen.Network, "connect", connect)
-    msg = _configure_error(Harness(CanopenGripper, {"interface": "socketcan", "channel": "can0"}))
+    msg = configure_error(Harness(CanopenGripper, {"interface": "socketcan", "channel": "can0"}))
     assert "[Errno 97]" in msg and "sudo modprobe can can_raw" in msg and "ip link set" not in msg
 
 
@@ -86,7 +82,7 @@ def test_a_missing_interface_at_open_says_so(monkeypatch):
         raise OSError(19, "No such device")
 
     monkeypatch.setattr(canopen.Network, "connect", connect)
-    msg = _configure_error(Harness(CanopenGripper, {"interface": "socketcan", "channel": "can7"}))
+    msg = configure_error(Harness(CanopenGripper, {"interface": "socketcan", "channel": "can7"}))
     assert "there is no network interface can7" in msg and "teletouch devices" in msg
 
 
@@ -97,7 +93,7 @@ def test_an_interface_that_is_down_is_named_before_anything_is_sent(tmp_path, mo
     monkeypatch.setenv("TELETOUCH_SYSFS_ROOT", str(tmp_path))
     connected = []
     monkeypatch.setattr(canopen.Network, "connect", lambda self, *a, **k: connected.append(k))
-    msg = _configure_error(Harness(CanopenGripper, {"interface": "socketcan", "channel": "can0", "bitrate": 500000}))
+    msg = configure_error(Harness(CanopenGripper, {"interface": "socketcan", "channel": "can0", "bitrate": 500000}))
     assert "CAN interface can0 is down" in msg and "sudo ip link set can0 up type can bitrate 500000" in msg
     assert connected == []
 
@@ -131,7 +127,7 @@ def test_a_port_that_does_not_exist_points_to_teletouch_devices(tmp_path):
     """'cannot open PORT ... check the USB adapter is plugged in and that you may use it (group dialout)': for a port
     that does not exist the group is no answer, and nothing said where the real port names are listed."""
     port = str(tmp_path / "ttyUSB9")
-    msg = _configure_error(Harness(DynamixelGripper, {"port": port}))
+    msg = configure_error(Harness(DynamixelGripper, {"port": port}))
     assert f"{port} does not exist" in msg and "`teletouch devices` lists the serial adapters" in msg
     assert "dialout" not in msg
 
@@ -147,5 +143,5 @@ def test_a_port_without_permission_says_which_group(tmp_path, monkeypatch):
     import dynamixel_sdk
 
     monkeypatch.setattr(dynamixel_sdk.PortHandler, "openPort", open_port)
-    msg = _configure_error(Harness(DynamixelGripper, {"port": str(port)}))
+    msg = configure_error(Harness(DynamixelGripper, {"port": str(port)}))
     assert f"permission denied on {port}: join the dialout group (sudo usermod -aG dialout $USER" in msg

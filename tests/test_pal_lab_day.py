@@ -17,10 +17,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.pal_gripper_node import PalGripperNode  # noqa: E402
-from fakes.realtime import configure_fails  # noqa: E402
+from fakes.realtime import configure_error, configure_fails  # noqa: E402
 from fakes.ros2_peer import Peer, domain_fixture, own_domain  # noqa: E402
 
-from teletouch import HardwareError  # noqa: E402
 from teletouch.plugins.devices.pal_gripper import PalGripper  # noqa: E402
 from teletouch.testing import Harness  # noqa: E402
 
@@ -40,13 +39,7 @@ def harness(**params):
 
 
 def start_error(**params) -> str:
-    h = harness(**params)
-    try:
-        with pytest.raises(HardwareError) as ei:
-            h.comp.configure()
-    finally:
-        h.comp.close()
-    return str(ei.value)
+    return configure_error(harness(**params))
 
 
 @pytest.fixture
