@@ -209,14 +209,45 @@ def test_deactivate_keeps_the_heartbeat(drive, channel):
         assert drive.latched == 50000
 
 
-def test_close_sends_the_hold_before_the_heartbeat_ends(drive, channel, buslog):
-    """close() stops the heartbeat after the safe state's hold set-point went out; the drive then quick-stops
-    (0x6007 = 3, the default) one consumer time later, where it holds: no fault, no EMCY."""
+def test_an_orderly_close_turns_the_drives_watch_off_and_it_keeps_holding(drive, channel, buslog):
+    """close() turns the drive's consumer heartbeat time off (0x1016 sub 1 = 0) before the heartbeat stops, after the
+    safe state's hold went out: the drive keeps holding, powered, in OPERATION ENABLED (its quick stop after every
+    run ended, under CiA 402's default 0x605A 2, in SWITCH ON DISABLED: a gripper holding an object let go)."""
     with harness(channel) as h:
         drive_until(h, 0.05, lambda o: drive.latched == 37500 and h.comp.handshake_idle()
                     and o["opening"] == pytest.approx(0.05, abs=1e-6))
         hold = round(drive.pos)
+    assert h.comp.host_watch_released
+    rpdos = buslog.of(0x205)
+    assert struct.unpack_from("<i", rpdos[-1][1])[0] == hold == 37500   # the last RPDO1 was the hold
+    assert drive.get(0x1016, 1) == 0
+    time.sleep(0.3 + LATE)   # one consumer time and more after the last heartbeat
+    assert not drive.consumer_trips
+    assert drive.state == "OPERATION ENABLED" and round(drive.pos) == hold
+
+
+def test_a_close_whose_release_fails_sends_the_hold_before_the_heartbeat_ends(drive, channel, buslog):
+    """A drive that does not take the release: close() stops the heartbeat after the safe state's hold set-point
+    went out (and says so in the log); the drive then quick-stops (0x6007 = 3, the default) one consumer time later,
+    where it holds: no fault, no EMCY."""
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    with harness(channel) as h:
+        lines: list[str] = []
+        h.ctx.log = lines.append
+        drive_until(h, 0.05, lambda o: drive.latched == 37500 and h.comp.handshake_idle()
+                    and o["opening"] == pytest.approx(0.05, abs=1e-6))
+        hold = round(drive.pos)
+        download = h.comp.node.sdo.download
+
+        def refuse(index, sub, data, *args, **kwargs):
+            if index == 0x1016:
+                raise SdoAbortedError(0x08000020)   # data cannot be transferred or stored
+            return download(index, sub, data, *args, **kwargs)
+
+        h.comp.node.sdo.download = refuse
     closed = time.monotonic()
+    assert any("could not be turned off at close" in m and "abort_connection_option 3" in m for m in lines), lines
     rpdos = buslog.of(0x205)
     beats = buslog.of(0x700 + HOST)
     assert rpdos and beats and beats[-1][0] <= closed
@@ -231,14 +262,13 @@ def test_close_sends_the_hold_before_the_heartbeat_ends(drive, channel, buslog):
 
 
 def test_close_with_safe_mode_open_waits_for_the_fingers(drive, channel):
-    """safe_mode ``open``: close() keeps the heartbeat until the drive reports the open set-point reached, so the
-    drive's quick stop on its end does not stop the fingers part-way (75000 counts at 50000 counts/s: 1.5 s, five
-    consumer times)."""
+    """safe_mode ``open``: close() waits, the drive still watched, until it reports the open set-point reached
+    (75000 counts at 50000 counts/s: 1.5 s, five consumer times), then turns the watch off: the drive holds there."""
     with harness(channel, safe_mode="open", max_speed=0.04) as h:
         drive_until(h, 0.02, lambda o: drive.latched == 75000 and h.comp.handshake_idle())
     assert drive.pos == pytest.approx(0, abs=1)
-    assert wait_for(lambda: drive.state == "QUICK STOP ACTIVE")
-    assert drive.pos == pytest.approx(0, abs=1)
+    time.sleep(0.3 + LATE)
+    assert not drive.consumer_trips and drive.state == "OPERATION ENABLED" and drive.pos == pytest.approx(0, abs=1)
 
 
 # --- drives without the objects ------------------------------------------------------------------------------------

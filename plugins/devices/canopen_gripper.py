@@ -66,11 +66,12 @@ stage off: check 0x605A with the drive's tool. A drive that left OPERATION ENABL
 The heartbeat runs as long as the driver holds the drive: through deactivate() (the drive holds the safe state's
 set-point, still watched, and activate() works again; stopped there, it quick-stopped or faulted one consumer time
 later), and stops in close(), after the safe state's set-point went out (the runtime and the Harness call safe_state()
-before close(), and close() takes the set-point lock, so a send on another thread finishes first): the drive then reacts
-one consumer time later, where it stands (with option 1, a FAULT after every run: the next start needs
-``reset_fault_at_start``; one reason 3 is the default). With ``safe_mode: open``, close() first reads the state until
-the drive reports the open set-point reached (statusword bits 12 and 10), at most the travel time at ``max_speed`` with
-a margin (OPEN_FINISH_MAX), so the quick stop does not stop the fingers part-way. What the heartbeat proves: the process
+before close(), and close() takes the set-point lock, so a send on another thread finishes first). An orderly close()
+first turns the drive's watch off (0x1016 sub 1 = 0): the drive goes on holding, powered (left on, it quick-stopped
+after every run, power stage off under 0x605A 2); a drive that does not take that write is logged and reacts one
+consumer time later, where it stands. With ``safe_mode: open``, close() first reads the state until the drive reports
+the open set-point reached (statusword bits 12 and 10), at most the travel time at ``max_speed`` with a margin
+(OPEN_FINISH_MAX), the drive still watched. What the heartbeat proves: the process
 and its CAN interface live, not that the control loop steps (a loop that hangs in a live process is the runtime
 watchdog's, which sends the safe state). On socketcan python-can's periodic task is the kernel's broadcast manager
 (BCM): it goes on while the process lives, also frozen, and ends when its BCM socket is closed (bus shutdown, or the
@@ -1009,14 +1010,19 @@ class CanopenGripper(FollowerBase):
         net = getattr(self, "network", None)
         if net is None:
             return
-        # the host heartbeat stops last, after the safe state's set-point went out (the runtime and the Harness call
-        # safe_state() before close(); a send on another thread holds the lock): the drive's reaction to its end
-        # (abort_connection_option, after host_heartbeat_timeout) comes after the hold, never before it
+        # an orderly end: the drive's watch of the host is turned off first (0x1016 sub 1 = 0), so that it keeps
+        # holding the safe state's set-point, powered, as it did before it watched the host (its reaction, a quick
+        # stop, ends in SWITCH ON DISABLED, power stage off, under CiA 402's default 0x605A: a gripper holding an
+        # object let go 0.3 s after every run); only a host that dies or hangs without close() trips it. Where that
+        # write fails, the heartbeat stops last, after the safe state's set-point went out (the runtime and the
+        # Harness call safe_state() before close(); a send on another thread holds the lock): the drive's reaction
+        # then comes after the hold (and, safe_mode open, after the fingers opened: waited for first), never before
         if getattr(self, "_host_hb", None) is not None:
-            try:
+            try:   # (safe_mode open: the fingers opened while the drive is still watched)
                 self._finish_open()
             except Exception:   # (close() must not raise; the heartbeat stops all the same)
                 pass
+            self._release_host_watch()
             lock = getattr(self, "_io_lock", None)
             got = lock is not None and lock.acquire(timeout=CLOSE_LOCK_WAIT)
             try:
@@ -1035,6 +1041,25 @@ class CanopenGripper(FollowerBase):
             net.disconnect()
         except Exception:
             pass
+
+    def _release_host_watch(self) -> bool:
+        """Turn the drive's consumer heartbeat time 0x1016 sub 1 off (0) at an orderly close, before the host's
+        heartbeat stops; whether it was taken. A drive that does not take it is said in the log: it will act per
+        abort_connection_option once the heartbeat has stopped for host_heartbeat_timeout."""
+        node = getattr(self, "node", None)
+        if node is None:
+            return False
+        try:
+            node.sdo.download(0x1016, 1, bytes(4))
+            self.host_watch_released = True
+            return True
+        except Exception as exc:   # (a drive gone, an SDO abort: the drive's reaction comes, after the hold)
+            p = self.params
+            self.ctx.log(f"{self._where()}: its watch of the host (0x1016 sub 1) could not be turned off at close "
+                         f"({exc}): with the heartbeat stopped, it acts per abort_connection_option "
+                         f"{p.abort_connection_option} ({ABORT_OPTIONS.get(p.abort_connection_option, 'its own')}) "
+                         f"in {p.host_timeout:g} s")
+            return False
 
     def _finish_open(self) -> None:
         """safe_mode ``open``: the safe state sent max_opening, and the drive stops (quick stop) once the host
