@@ -271,6 +271,23 @@ def test_close_with_safe_mode_open_waits_for_the_fingers(drive, channel):
     assert not drive.consumer_trips and drive.state == "OPERATION ENABLED" and drive.pos == pytest.approx(0, abs=1)
 
 
+def test_a_host_node_id_another_node_produces_is_refused(drive, channel):
+    """Two grippers on one bus with the default host_node_id: each drive took the other driver's heartbeat for its
+    host's, so a drive whose process died kept going (the review: drive 5 still enabled after five consumer times,
+    fed by drive 6's host). The second driver finds the id in use at start-up and is refused, naming host_node_id."""
+    other = Cia402Drive(6, channel, position=0).start()
+    try:
+        with harness(channel) as h5:
+            drive_until(h5, 0.05, lambda o: drive.latched == 37500)
+            h6 = canopen_harness(channel, node_id=6)
+            configure_fails(h6, r"another node sends heartbeats as node 127 \(COB-ID 0x77F\).*own host_node_id")
+            with canopen_harness(channel, node_id=6, host_node_id=126) as h6:   # its own id: taken
+                drive_until(h6, 0.05, lambda o: other.latched == 37500)
+                assert other.get(0x1016, 1) == 126 << 16 | 300
+    finally:
+        other.stop()
+
+
 # --- drives without the objects ------------------------------------------------------------------------------------
 def test_drive_without_0x1016(channel, buslog):
     with Cia402Drive(5, channel, consumer_object=False) as d:

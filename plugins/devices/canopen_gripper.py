@@ -50,35 +50,34 @@ what python-can logged on the way (a vendor library it could not load), which is
 The drive watches the host (host heartbeat): the driver watches the drive's heartbeat, and without this the drive kept
 going, enabled and on its last set-point, when the host died, hung or lost its cable. With ``host_heartbeat_period`` > 0
 (default 0.1 s, whole ms) the host produces a heartbeat, COB-ID 0x700 + ``host_node_id`` (default 127, the top of the
-range, where masters often sit; not ``node_id``), one byte: NMT OPERATIONAL (5), through canopen's
-Network.send_periodic. In the pre-operational phase the producer starts, then the drive's consumer heartbeat time 0x1016
-sub 1 is written (host node id in bits 16-23, ``host_heartbeat_timeout`` in ms in bits 0-15: default three periods,
-0.3 s; at least two, so one late heartbeat stops nothing) and abort connection option code 0x6007
-(``abort_connection_option``), then one heartbeat goes out at once (a CiA 301 consumer starts watching at the first
-heartbeat after it is set; the periodic one may come a period later, on socketcan always). A drive without 0x1016 is
-refused naming ``host_heartbeat_period: 0`` (off: 0x1016 and 0x6007 are not touched), one without 0x6007 naming
-``abort_connection_option: null`` (not written: the drive's own reaction). When the heartbeat stops for the consumer
-time while the drive is NMT OPERATIONAL, the drive acts per 0x6007: 0 nothing, 1 FAULT (EMCY 0x8130), 2 disable voltage
-(power stage off: the fingers hold only by their gearbox or brake), 3 quick stop, the default: the drive stops on its
-quick-stop ramp and holds there (the project's safe state, "the follower holds position") in QUICK STOP ACTIVE where its
-quick stop option code 0x605A is 5-8; with 0x605A 1-2 (CiA 402's default is 2) it then goes to SWITCH ON DISABLED, power
-stage off: check 0x605A with the drive's tool. A drive that left OPERATION ENABLED is reported with that possible cause.
-The heartbeat runs as long as the driver holds the drive: through deactivate() (the drive holds the safe state's
-set-point, still watched, and activate() works again; stopped there, it quick-stopped or faulted one consumer time
-later), and stops in close(), after the safe state's set-point went out (the runtime and the Harness call safe_state()
-before close(), and close() takes the set-point lock, so a send on another thread finishes first). An orderly close()
-first turns the drive's watch off (0x1016 sub 1 = 0): the drive goes on holding, powered (left on, it quick-stopped
-after every run, power stage off under 0x605A 2); a drive that does not take that write is logged and reacts one
-consumer time later, where it stands. With ``safe_mode: open``, close() first reads the state until the drive reports
-the open set-point reached (statusword bits 12 and 10), at most the travel time at ``max_speed`` with a margin
-(OPEN_FINISH_MAX), the drive still watched. What the heartbeat proves: the process
-and its CAN interface live, not that the control loop steps (a loop that hangs in a live process is the runtime
-watchdog's, which sends the safe state). On socketcan python-can's periodic task is the kernel's broadcast manager
-(BCM): it goes on while the process lives, also frozen, and ends when its BCM socket is closed (bus shutdown, or the
-process exits or is killed: the kernel closes its files and removes the socket's tasks); a child made by a bare fork()
-would hold the socket too (the runtime spawns its isolated nodes). Elsewhere it is a python-can thread, which ends at
-its first failed send: the next read starts it again (logged).
-"""
+range, where masters often sit; not ``node_id``, nor an id another node already sends heartbeats with, listened for at
+start-up: each gripper on a bus needs its own), one byte: NMT OPERATIONAL (5), through canopen's Network.send_periodic.
+In the pre-operational phase the producer starts, then the drive's consumer heartbeat time 0x1016 sub 1 is written (host
+node id in bits 16-23, ``host_heartbeat_timeout`` in ms in bits 0-15: default three periods, 0.3 s; at least two, so one
+late heartbeat stops nothing) and abort connection option code 0x6007 (``abort_connection_option``), then one heartbeat
+goes out at once (a CiA 301 consumer starts watching at the first heartbeat after it is set; the periodic one may come a
+period later, on socketcan always). A drive without 0x1016 is refused naming ``host_heartbeat_period: 0`` (off: 0x1016
+and 0x6007 are not touched), one without 0x6007 naming ``abort_connection_option: null`` (not written: the drive's own
+reaction). When the heartbeat stops for the consumer time while the drive is NMT OPERATIONAL, the drive acts per 0x6007:
+0 nothing, 1 FAULT (EMCY 0x8130), 2 disable voltage (power stage off: the fingers hold only by their gearbox or brake),
+3 quick stop, the default: the drive stops on its quick-stop ramp and holds there (the project's safe state, "the
+follower holds position") in QUICK STOP ACTIVE where its quick stop option code 0x605A is 5-8; with 0x605A 1-2 (CiA
+402's default is 2) it then goes to SWITCH ON DISABLED, power stage off: check 0x605A with the drive's tool. A drive
+that left OPERATION ENABLED is reported with that possible cause. The heartbeat runs as long as the driver holds the
+drive: through deactivate() (the drive holds the safe state's set-point, still watched, and activate() works again;
+stopped there, it quick-stopped or faulted one consumer time later), and stops in close(), after the safe state's
+set-point went out (the runtime and the Harness call safe_state() before close(), and close() takes the set-point lock,
+so a send on another thread finishes first). An orderly close() first turns the drive's watch off (0x1016 sub 1 = 0):
+the drive goes on holding, powered (left on, it quick-stopped after every run, power stage off under 0x605A 2); a drive
+that does not take that write is logged and reacts one consumer time later, where it stands. With ``safe_mode: open``,
+close() first reads the state until the drive reports the open set-point reached (statusword bits 12 and 10), at most
+the travel time at ``max_speed`` with a margin (OPEN_FINISH_MAX), the drive still watched. What the heartbeat proves:
+the process and its CAN interface live, not that the control loop steps (a loop that hangs in a live process is the
+runtime watchdog's, which sends the safe state). On socketcan python-can's periodic task is the kernel's broadcast
+manager (BCM): it goes on while the process lives, also frozen, and ends when its BCM socket is closed (bus shutdown, or
+the process exits or is killed: the kernel closes its files and removes the socket's tasks); a child made by a bare
+fork() would hold the socket too (the runtime spawns its isolated nodes). Elsewhere it is a python-can thread, which
+ends at its first failed send: the next read starts it again (logged). """
 
 from __future__ import annotations
 
@@ -114,6 +113,7 @@ NMT_OPERATIONAL = 5  # the NMT state in a heartbeat (CiA 301)
 #: abort connection option code 0x6007 (CiA 402): what the drive does when it loses the host (its heartbeat)
 ABORT_OPTIONS = {0: "no action", 1: "fault", 2: "disable voltage", 3: "quick stop"}
 HOST_TIMEOUT_PERIODS = 3   # host_heartbeat_timeout None: this many host heartbeat periods
+HOST_ID_LISTEN = 2.5   # host heartbeat periods listened on the host's node id at start-up: another producer refused
 HEARTBEAT_MS_MAX = 0xFFFF   # 0x1016's time (bits 0-15) and 0x1017 hold whole milliseconds, UNSIGNED16
 #: close() with safe_mode open waits (the host heartbeat still going) for the drive to report the fingers open, at
 #: most this long: the drive's quick stop on the lost host heartbeat would stop them part-way
@@ -485,8 +485,11 @@ class CanopenGripper(FollowerBase):
         a CiA 301 consumer starts watching at the first heartbeat after it was set, and the periodic one may come a
         period later (socketcan's first frame comes after a period), after the start-up, so that a host that died
         right after it went unwatched. A drive without either object is refused, naming the param that does
-        without."""
+        without. First the host's node id is listened on (HOST_ID_LISTEN periods): a drive takes any heartbeat with
+        that id for its host's, so another host producing it (a second gripper's driver, another teletouch on the
+        bus) would keep this drive watched "alive" after this process died; that is refused, naming host_node_id."""
         p = self.params
+        self._host_id_free()
         self._start_host_heartbeat()
         timeout_ms = int(round(p.host_timeout * 1000))
         self._write_object(0x1016, 1, (p.host_node_id << 16 | timeout_ms).to_bytes(4, "little"),
@@ -508,6 +511,26 @@ class CanopenGripper(FollowerBase):
         except Exception as exc:   # (can.CanError, OSError: a full transmit queue; the periodic one still comes)
             self.ctx.log(f"the first host heartbeat to {self._where()} could not be sent ({exc}): the drive watches "
                          f"the host from the periodic one, a period later")
+
+    def _host_id_free(self) -> None:
+        p = self.params
+        cob = 0x700 + p.host_node_id
+        seen: list[float] = []
+
+        def heard(can_id: int, data: bytes, timestamp: float) -> None:
+            seen.append(time.monotonic())
+
+        self.network.subscribe(cob, heard)
+        try:
+            time.sleep(HOST_ID_LISTEN * p.host_heartbeat_period)
+        finally:
+            self.network.unsubscribe(cob, heard)
+        if seen:
+            raise HardwareError(
+                f"another node sends heartbeats as node {p.host_node_id} (COB-ID 0x{cob:03X}) on "
+                f"{p.interface}:{p.channel} (another gripper's driver, or another program): {self._where()} would take "
+                f"them for this host's, and keep going if this process died. Give each canopen-gripper on a bus its "
+                f"own host_node_id (1-127, no node's id), or host_heartbeat_period: 0")
 
     def _start_host_heartbeat(self) -> None:
         p = self.params
