@@ -215,6 +215,10 @@ class _Node:
         not a device's, wanted with its parameters (component.has_warm_up)."""
         self.warm = self.comp.warm if has_warm_up(self.spec.cls, self.comp.params) else None
 
+    def last_start(self) -> float:
+        """Graph time its latest step began (wall clock: kept in the ``starts`` ring); 0.0 before its first."""
+        return self.starts[(self.nstarts - 1) % len(self.starts)] if self.nstarts else 0.0
+
     def achieved_rate(self) -> float | None:
         """Steps per second over the steps' own span: (steps - 1) intervals between the first and the latest step
         (steps / elapsed counted one too many: 101 Hz for a 100 Hz node over 1 s). None before two steps."""
@@ -612,9 +616,7 @@ class Runtime:
         if self.clock == "sim":
             ask()
         else:   # asked from the consumer's rate-group thread: a status() that blocks (a lock its hung reader holds)
-            th = threading.Thread(target=ask, name=f"teletouch-status-{n.id}", daemon=True)   # must not hold it
-            th.start()
-            th.join(self.PROBLEM_WAIT)
+            _returned_within(ask, f"teletouch-status-{n.id}", self.PROBLEM_WAIT)   # must not hold it
         problem = got[0] if got else None
         return f"; node '{n.id}' reports: {problem}" if isinstance(problem, str) and problem else ""
 
@@ -790,13 +792,6 @@ class Runtime:
         the call running: the node gets no further calls."""
         from .isolation import ProcessProxy
 
-        if self.clock == "sim" or isinstance(node.comp, ProcessProxy):
-            try:
-                call()
-            except BaseException as exc:
-                self.faults.append(Fault(node.id, "shutdown", f"{name}() raised {exception_line(exc)}", self._now,
-                                         "logged"))
-            return True
         raised: list[BaseException] = []
 
         def run() -> None:
@@ -805,14 +800,16 @@ class Runtime:
             except BaseException as exc:   # (also SystemExit, or a KeyboardInterrupt raised by the plugin)
                 raised.append(exc)
 
-        th = threading.Thread(target=run, name=f"teletouch-{name}-{node.id}", daemon=True)
-        th.start()
-        try:
-            th.join(self.LIFECYCLE_TIMEOUT)
-        except BaseException:   # (KeyboardInterrupt: the call goes on; a second one beside it could free twice)
-            node.state = "finalized"
-            raise
-        if th.is_alive():
+        if self.clock == "sim" or isinstance(node.comp, ProcessProxy):
+            returned = True
+            run()
+        else:
+            try:
+                returned = _returned_within(run, f"teletouch-{name}-{node.id}", self.LIFECYCLE_TIMEOUT)
+            except BaseException:   # (KeyboardInterrupt: the call goes on; a second one beside it could free twice)
+                node.state = "finalized"
+                raise
+        if not returned:
             later = {"deactivate": "; its results() and close() are skipped", "results": "; its close() is skipped",
                      "close": ""}.get(name, "")
             self.faults.append(Fault(node.id, "shutdown", f"{name}() did not return within "
@@ -1101,7 +1098,7 @@ class Runtime:
                     self._stop_evt.set()
                     break
                 for n, limit, members in watched:
-                    last = n.starts[(n.nstarts - 1) % self.JITTER_RING] if n.nstarts else 0.0
+                    last = n.last_start()
                     if not n.faulted and self._now - last > limit:
                         self._stalled(n, self._now - last, limit, members)
                 if progress is not None and time.perf_counter() >= next_progress:
@@ -1134,7 +1131,6 @@ class Runtime:
         after a Ctrl-C). A step within its limit is waited for: no safe_state() beside a healthy slow step (the
         group makes its devices safe itself as it leaves). A device whose own step is in flight is made safe again
         when that step returns (``resafe``)."""
-        ring = self.JITTER_RING
         pending = [(th, members, max(wd if wd > 0 else 1.0, 3.0 * members[0].period))
                    for th, members in group_of if th is not threading.current_thread()]
         give_up = time.perf_counter() + max((lim + members[0].period for _, members, lim in pending), default=0.0)
@@ -1145,7 +1141,7 @@ class Runtime:
                 if not th.is_alive():   # (ended, or never started: a Ctrl-C while the threads were being started)
                     continue
                 m = next((m for m in members if m.in_step), None)
-                began = None if m is None else (m.warm_began if m.warming else m.starts[(m.nstarts - 1) % ring])
+                began = None if m is None else (m.warm_began if m.warming else m.last_start())
                 if began is not None and now - began > limit:
                     self._safe_many([n for n in members if n.is_device and n.state == "active"])
                 else:   # within its limit, or between two steps (it sees the stop after its sleep, within a period)
@@ -1176,7 +1172,7 @@ class Runtime:
         blamed = not blocker.faulted
         warming = blocker.warming   # (read once: the warm-up may end meanwhile)
         act = "warm()" if warming else "step"
-        began = blocker.warm_began if warming else blocker.starts[(blocker.nstarts - 1) % self.JITTER_RING]
+        began = blocker.warm_began if warming else blocker.last_start()
         todo: list[_Node] = []   # every device faulted here, made safe side by side at the end
         if blamed and blocker.is_device:   # a device whose own step hangs: its stall, as when it is alone
             todo += self._fault(blocker, "stall", f"not stepped for {now - began:.3f} s (watchdog {limit:g} s): "
@@ -1189,7 +1185,7 @@ class Runtime:
                                 safe=False)
         for m in members:   # (one already disabled is skipped: a device wired from it, under degrade)
             if m.is_device and not m.faulted:
-                last = m.starts[(m.nstarts - 1) % self.JITTER_RING] if m.nstarts else 0.0
+                last = m.last_start()
                 todo += self._fault(m, "stall", f"not stepped for {now - last:.3f} s: its rate group waits for the "
                                                 f"{act} of node '{blocker.id}' ({what}), past the watchdog's "
                                                 f"{limit:g} s: made safe", now, safe=False)
@@ -1361,6 +1357,15 @@ class Runtime:
                     th.join(timeout=1.0)
                 except RuntimeError:   # never started: a Ctrl-C while the threads were being started (its
                     pass               # KeyboardInterrupt, not this, is what ends the run)
+
+
+def _returned_within(call: Callable[[], None], name: str, timeout: float) -> bool:
+    """Run ``call`` (which catches its own errors) in a daemon thread ``name``, waited for at most ``timeout`` s:
+    whether it returned; one that did not is left running."""
+    th = threading.Thread(target=call, name=name, daemon=True)
+    th.start()
+    th.join(timeout)
+    return not th.is_alive()
 
 
 def _signal_text(signum: int | None) -> str:
