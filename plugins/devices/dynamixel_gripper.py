@@ -45,12 +45,24 @@ The writes are of absolute values, so repeating one whose answer was lost change
 status packet) is not retried. At run time a lost answer is not retried: the step goes on with the last reading, and
 no valid state for ``read_timeout`` is a fault.
 
+Goal_Position goes out in a SYNC_WRITE, which the servo never answers (no status packet, so no lost or corrupt answer
+and no error byte: a goal lost on the bus is replaced by the next step's, and the servo's hardware errors show in the
+state read's alert bit and the shutdown poll, a fault at once, never retried). What can fail is the port (pyserial
+raising: a USB glitch) or the SDK's send (a short write, the port busy). A failed goal write is not retried within
+the step: the next step's goal, one period later, is the retry, with the newer set-point (an immediate retry would
+lengthen a step whose bus is in trouble, and delay the state read after it). The set-point goes back to the last goal
+that went out, which the servo still has: the speed limit counts from it, and a hold while the reads are stale holds
+it. Goal writes failing for longer than ``read_timeout`` are a fault naming the servo, port and baud rate, how long
+and how many writes failed, and the last error (``write_failures`` in the status counts them). The safe state's hold
+is tried up to :data:`HOLD_TRIES` times at once, ``serial_poll`` apart (no step may follow to send it).
+
 The port itself failing (the USB adapter pulled, or a glitch): pyserial raises from within dynamixel-sdk's calls
 (SerialException, termios.error from its tcflush), which left the SDK's busy flag set, so that every later request,
 the safe state's hold among them, was refused ("Port is in use!"). Every transaction turns what the port raises
 into a HardwareError naming the servo (ID, model), port and baud rate and the likely cause (unplugged: replug, then
 restart; `teletouch devices`), chained from pyserial's error, with the busy flag cleared. In a state read it is a
-failed read (held within ``read_timeout``, then a fault saying so); in a Goal_Position write a fault at once.
+failed read (held within ``read_timeout``, then a fault saying so); in a Goal_Position write a failed write (the
+same: held within ``read_timeout``, see above).
 
 The opening maps linearly to ticks (``ticks_open`` <-> ``opening_at_ticks_open``, ``ticks_closed`` <->
 ``opening_at_ticks_closed``); ticks left unset are the preset's (:data:`PRESET_TICKS`: X-series 1024/2048,
@@ -205,6 +217,8 @@ _PKT_ID, _PKT_LEN, _PKT_INST, _PKT_ERR, _PKT_DATA = 4, 5, 7, 8, 9
 _INST_PING = 0x01
 #: tries of each start-up request whose answer is lost or corrupt (not of a refused one)
 STARTUP_TRIES = 3
+#: tries of the safe state's hold (Goal_Position) when the port fails, ``serial_poll`` apart
+HOLD_TRIES = 3
 #: how far past the SDK's packet timeout a wait for the port may end (s): the SDK's own check then sees the timeout
 #: at once instead of polling the last microseconds
 _TIMEOUT_MARGIN = 5e-5
@@ -492,7 +506,7 @@ class DynamixelGripper(FollowerBase):
         for attempt in range(STARTUP_TRIES):
             if attempt:
                 self.startup_retries += 1
-                with self._port_guard(what):
+                with self._io_lock, self._port_guard(what):
                     self.port.clearPort()
             data, result, error = self._transact(n, send, *args, what=what)
             if result == self._sdk.COMM_SUCCESS:
@@ -551,6 +565,10 @@ class DynamixelGripper(FollowerBase):
         self.comm_failures = 0
         self.last_comm_error = ""
         self.startup_retries = 0
+        self.write_failures = 0   # Goal_Position writes that failed (each try of the safe state's hold counted)
+        self.last_write_error = ""
+        self.sent_opening = math.nan   # the opening of the last Goal_Position that went out
+        self._forget_write_failures()
         self.model_found: int | None = None   # the model number the PING answered with
         self.position_limits: tuple[int, int] | None = None   # (Min, Max_Position_Limit) where the table has them
         self.port_failure: HardwareError | None = None   # the port failing in the last state read (None: it did not)
@@ -742,7 +760,7 @@ class DynamixelGripper(FollowerBase):
                 if result == sdk.COMM_SUCCESS:
                     break
                 self.startup_retries += 1
-                with self._port_guard(what):
+                with self._io_lock, self._port_guard(what):
                     self.port.clearPort()
                 data, result, error = self._transact(self._rd_len, self.gsr.txPacket, what=what)
                 t1 = time.monotonic()
@@ -789,16 +807,78 @@ class DynamixelGripper(FollowerBase):
         # lock per transaction, so the hold waits at most for one answer)
         return self._io_lock
 
+    def activate(self) -> None:
+        self._forget_write_failures()
+        self.sent_opening = math.nan   # what the servo was sent before may not be where the fingers are now
+        super().activate()
+
+    def _forget_write_failures(self) -> None:
+        self._write_failing_since: float | None = None   # monotonic time of the first of the failed writes in a row
+        self._write_fail_run = 0
+
+    def _send_hold(self) -> None:
+        self._hold_write = True   # the hold's write is tried again at once (no later step may send it)
+        try:
+            super()._send_hold()
+        finally:
+            self._hold_write = False
+
     def _hw_write(self, opening: float) -> None:
+        """Goal_Position in a SYNC_WRITE, which the servo does not answer: what can fail is the port (pyserial
+        raising: a USB glitch, or the adapter pulled) or the SDK's send (a short write, the port busy). A failed write
+        is not retried within the step (its goal goes out with the next step's, one period later, the newer
+        set-point: an immediate retry would lengthen a step whose bus is in trouble, and the state read after it);
+        writes failing for longer than ``read_timeout`` are a fault. The safe state's hold is tried up to
+        :data:`HOLD_TRIES` times at once (no step may follow it). After a failed write the set-point goes back to the
+        last goal sent: the servo still has that one, the speed limit counts from it, and a hold while the reads are
+        stale holds it (not a set-point that never reached the servo)."""
+        p = self.params
+        tries = HOLD_TRIES if getattr(self, "_hold_write", False) else 1
+        with self._io_lock:   # (held already by a step's command guard and the safe state: an RLock)
+            for attempt in range(tries):
+                if attempt:
+                    time.sleep(p.serial_poll)   # a glitch of the port may last a little
+                failure = self._send_goal(opening)
+                if failure is None:
+                    self.sent_opening = opening
+                    self._forget_write_failures()
+                    return
+                self.write_failures += 1
+                self._write_fail_run += 1
+                self.last_write_error = str(failure)
+                if self._write_failing_since is None:
+                    self._write_failing_since = time.monotonic()
+            failing = time.monotonic() - self._write_failing_since
+            if math.isfinite(getattr(self, "sent_opening", math.nan)):
+                self._setpoint = self.sent_opening   # what the servo has (see above)
+            cause = failure.__cause__   # the port's own error; None for the SDK's send failing
+            if tries > 1:
+                raise HardwareError(f"{failure} ({tries} tries)") from cause
+            if failing > p.read_timeout:
+                raise HardwareError(
+                    f"sending Goal_Position to {self._servo()} failed for {failing:.3f} s ({self._write_fail_run} "
+                    f"failed writes in a row; read_timeout {p.read_timeout:g} s): the servo keeps its last goal and "
+                    f"the gripper no longer follows; the last: {failure}") from cause
+
+    def _send_goal(self, opening: float) -> HardwareError | None:
+        """One SYNC_WRITE of Goal_Position: None when it went out, else what failed (not raised). The bus is
+        resynchronised before the next request (what went out, if anything, is unknown)."""
         ticks = self.ticks_for(opening)
         data = list(int(ticks & 0xFFFFFFFF).to_bytes(4, "little"))
         p = self.params
-        with self._io_lock, self._port_guard("sending Goal_Position"):
-            if not self.gsw.changeParam(p.dxl_id, data):
-                self.gsw.addParam(p.dxl_id, data)
-            result = self.gsw.txPacket()
+        try:
+            with self._io_lock, self._port_guard("sending Goal_Position"):
+                if not self.gsw.changeParam(p.dxl_id, data):
+                    self.gsw.addParam(p.dxl_id, data)
+                result = self.gsw.txPacket()
+        except HardwareError as exc:
+            if not port_failed(exc):
+                raise
+            return exc
         if result != self._sdk.COMM_SUCCESS:
-            raise HardwareError(f"sending Goal_Position to {self._where()}: {self.ph.getTxRxResult(result)}")
+            self._desync = True
+            return HardwareError(f"sending Goal_Position to {self._where()}: {self.ph.getTxRxResult(result)}")
+        return None
 
     def _hw_close(self) -> None:
         if getattr(self, "_port_open", False):
@@ -812,7 +892,8 @@ class DynamixelGripper(FollowerBase):
     def status(self) -> dict[str, Any]:
         d = super().status()
         d.update(comm_failures=getattr(self, "comm_failures", 0), stale_answers=getattr(self, "stale_answers", 0),
-                 resyncs=getattr(self, "resyncs", 0), startup_retries=getattr(self, "startup_retries", 0))
+                 resyncs=getattr(self, "resyncs", 0), startup_retries=getattr(self, "startup_retries", 0),
+                 write_failures=getattr(self, "write_failures", 0))
         return d
 
 
