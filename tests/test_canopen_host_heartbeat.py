@@ -4,6 +4,7 @@ heartbeat as a CiA 402 drive does."""
 
 from __future__ import annotations
 
+import re
 import struct
 import sys
 import time
@@ -66,6 +67,23 @@ def buslog(channel):
 def hang(h) -> None:
     """The host hangs or dies: its heartbeat stops (the periodic task, not the driver's close()) and nothing steps."""
     h.comp._host_hb.stop()
+
+
+class FailingSends:
+    """The host's python-can ``bus`` raises python-can's error for a full transmit queue at the next ``n`` sends of
+    the host heartbeat (None: at every one); ``failed`` lists when (monotonic)."""
+
+    def __init__(self, bus: can.BusABC, n: int | None = 1):
+        self.real, self.left, self.failed = bus.send, n, []
+        bus.send = self.send
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == 0x700 + HOST and (self.left is None or self.left > 0):
+            if self.left is not None:
+                self.left -= 1
+            self.failed.append(time.monotonic())
+            raise can.CanOperationError("Transmit buffer full")
+        return self.real(msg, timeout)
 
 
 # --- the heartbeat and the objects ---------------------------------------------------------------------------------
@@ -164,31 +182,109 @@ def test_the_drive_watches_the_host_from_the_start(drive, channel):
         assert 2.0 - 0.01 <= drive.consumer_trips[0][0] - drive.consumer_heartbeats[-1] <= 2.0 + LATE
 
 
-@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")   # python-can's task raises
-def test_the_heartbeat_comes_back_after_a_failed_send(drive, channel, buslog):
-    """python-can's thread-based periodic task ends at its first failed send (a full transmit queue): the next read
-    starts it again, long before the drive's consumer time runs out."""
+def test_the_heartbeat_goes_on_through_a_failed_send(drive, channel, buslog):
+    """python-can's thread-based periodic task ended at its first failed send (a full transmit queue) and a read
+    started it again; now it goes on sending by itself (the same task), and the failure is logged once."""
     with harness(channel, host_heartbeat_period=0.05) as h:
         logs = []
         h.ctx._log = logs.append
-        bus, real = h.comp.network.bus, h.comp.network.bus.send
-        failed = []
-
-        def send(msg, timeout=None):
-            if msg.arbitration_id == 0x700 + HOST and not failed:
-                failed.append(time.monotonic())
-                raise can.CanOperationError("Transmit buffer full")
-            return real(msg, timeout)
-
-        bus.send = send
+        task = h.comp._host_hb
+        failing = FailingSends(h.comp.network.bus)
         t_end = time.monotonic() + 1.0
         while time.monotonic() < t_end:
             h.step(time.monotonic(), opening_command=0.07)
             time.sleep(0.005)
-        assert failed
-        assert any("host heartbeat" in m and "started again" in m for m in logs)
-        assert [t for t, _ in buslog.of(0x700 + HOST) if t > failed[0] + 0.2]   # it goes on
+        assert failing.failed and h.comp._host_hb is task
+        said = [m for m in logs if "host heartbeat" in m]
+        assert len(said) == 1 and re.search(r"sending the host heartbeat to CANopen node 5 on virtual:\S+ failed "
+                                            r"\(CanOperationError: Transmit buffer full\): it goes on", said[0]), said
+        assert [t for t, _ in buslog.of(0x700 + HOST) if t > failing.failed[0] + 0.2]   # it goes on
         assert not drive.consumer_trips and drive.state == "OPERATION ENABLED"
+
+
+def test_a_failed_send_while_inactive_does_not_trip_the_drive(drive, channel, buslog):
+    """Deactivated, nothing reads (the reads restarted the task that a failed send ended): a failed send then stopped
+    the heartbeat for good, the drive quick-stopped one consumer time later, and activate() found it out of OPERATION
+    ENABLED. The heartbeat now goes on through the failed send: the drive holds, watched, and activates again."""
+    with harness(channel, host_heartbeat_period=0.05, host_heartbeat_timeout=0.15) as h:
+        drive_until(h, 0.06, lambda o: drive.latched == 25000 and h.comp.handshake_idle())
+        h.comp.safe_state()
+        h.comp.deactivate()
+        failing = FailingSends(h.comp.network.bus)
+        assert wait_for(lambda: failing.failed)
+        time.sleep(0.6)   # four consumer times
+        assert [t for t, _ in buslog.of(0x700 + HOST) if t > failing.failed[0]]
+        assert not drive.consumer_trips and drive.state == "OPERATION ENABLED"
+        h.comp.activate()
+        drive_until(h, 0.04, lambda o: drive.latched == 50000)
+        assert drive.latched == 50000
+
+
+def test_a_heartbeat_that_cannot_be_sent_is_reported(drive, channel, buslog):
+    """A heartbeat whose sends all fail (an adapter that takes no frames) is not hidden by the retries: once none has
+    gone out for longer than the drive's consumer time, the step's read is a HardwareError naming the drive, the
+    interface, python-can's error and what to check (before, each read started python-can's task again, which ended
+    at its next send, and nothing was said). With 0x6007 = 0 the drive does not react: the heartbeat is the one
+    sign."""
+    with harness(channel, host_heartbeat_period=0.05, host_heartbeat_timeout=0.15, abort_connection_option=0) as h:
+        drive_until(h, 0.06, lambda o: drive.latched == 25000)
+        failing = FailingSends(h.comp.network.bus, n=None)
+        with pytest.raises(HardwareError, match=r"CANopen node 5 on virtual:\S+: sending the host heartbeat \(COB-ID "
+                                                r"0x77F; none went out for 0\.\d+ s, longer than "
+                                                r"host_heartbeat_timeout 0.15 s: the drive acts per "
+                                                r"abort_connection_option 0, no action\) failed: .*"
+                                                r"\(CanOperationError: Transmit buffer full\); replug"):
+            drive_until(h, 0.06, lambda o: False, timeout=WAIT)
+        raised = time.monotonic()
+        last = [t for t, _ in buslog.of(0x700 + HOST) if t < failing.failed[0]][-1]
+        assert 0.15 - 0.01 <= raised - last <= 0.15 + LATE   # when the drive would act, not before
+        assert drive.state == "OPERATION ENABLED"
+
+
+def test_a_heartbeat_that_cannot_be_sent_while_inactive_is_named_at_activate(drive, channel):
+    """The same while the node is inactive: the drive quick-stops (0x6007 = 3), and activate() names the heartbeat
+    that could not be sent, the cause, rather than only the drive that left OPERATION ENABLED."""
+    with harness(channel, host_heartbeat_period=0.05, host_heartbeat_timeout=0.15) as h:
+        drive_until(h, 0.06, lambda o: drive.latched == 25000 and h.comp.handshake_idle())
+        h.comp.safe_state()
+        h.comp.deactivate()
+        FailingSends(h.comp.network.bus, n=None)
+        assert wait_for(lambda: drive.consumer_trips)
+        with pytest.raises(HardwareError, match=r"CANopen node 5 on virtual:\S+: sending the host heartbeat .*none "
+                                                r"went out .*longer than host_heartbeat_timeout 0.15 s: the drive "
+                                                r"acts per abort_connection_option 3, quick stop"):
+            h.comp.activate()
+
+
+def test_a_drive_sent_to_pre_operational_by_a_lost_heartbeat_names_it(channel, buslog):
+    """Under CiA 301's default error behaviour 0x1029 (0), a consumer heartbeat timeout also takes the drive to NMT
+    PRE-OPERATIONAL (its heartbeat says so): the error names the missed host heartbeat next to the other causes."""
+    with Cia402Drive(5, channel, position=0, error_behaviour=0) as d:
+        with harness(channel, host_heartbeat_period=0.05, host_heartbeat_timeout=0.2) as h:
+            drive_until(h, 0.06, lambda o: d.latched == 25000)
+            hang(h)
+            assert wait_for(lambda: d.consumer_trips and d.node.nmt.state == "PRE-OPERATIONAL")
+            tripped = d.consumer_trips[0][0]
+            assert wait_for(lambda: [f for t, f in buslog.of(0x705) if t > tripped and f == b"\x7f"])
+            with pytest.raises(HardwareError, match=r"CANopen node 5 on virtual:\S+ left NMT OPERATIONAL \(heartbeat: "
+                                                    r"PRE-OPERATIONAL\): it sends and takes no PDOs; likely it missed "
+                                                    r"the host's heartbeat .*0x1029.*host_heartbeat_timeout 0.2 s "
+                                                    r"\(sent every host_heartbeat_period 0.05 s\), with this process "
+                                                    r"stalled or its CAN interface busy or lost; or the drive was "
+                                                    r"reset \(power, watchdog\), or another master changed its NMT "
+                                                    r"state$"):
+                h.step(time.monotonic(), opening_command=0.06)
+
+
+def test_without_the_host_heartbeat_pre_operational_names_the_other_causes(channel):
+    with Cia402Drive(5, channel, position=0) as d:
+        with harness(channel, host_heartbeat_period=0, heartbeat_period=0.02) as h:
+            drive_until(h, 0.06, lambda o: d.latched == 25000)
+            d.node.nmt.state = "PRE-OPERATIONAL"
+            with pytest.raises(HardwareError, match=r"left NMT OPERATIONAL \(heartbeat: PRE-OPERATIONAL\): it sends "
+                                                    r"and takes no PDOs; the drive was reset \(power, watchdog\) or "
+                                                    r"another master changed its NMT state$"):
+                drive_until(h, 0.06, lambda o: False, timeout=WAIT)
 
 
 # --- orderly stops -------------------------------------------------------------------------------------------------
@@ -286,6 +382,64 @@ def test_a_host_node_id_another_node_produces_is_refused(drive, channel):
                 assert other.get(0x1016, 1) == 126 << 16 | 300
     finally:
         other.stop()
+
+
+# --- 0x1016's entries ------------------------------------------------------------------------------------------------
+OTHER = 3 << 16 | 500   # another master's entry: node 3, 500 ms
+
+
+def test_another_masters_entry_is_kept(channel):
+    """0x1016 sub 1 watches another master: the driver takes the free sub 2 (it replaced sub 1), the drive watches
+    the host there, and close() clears sub 2 only."""
+    with Cia402Drive(5, channel, position=0, consumers=(OTHER, 0)) as d:
+        with harness(channel) as h:
+            assert (d.get(0x1016, 1), d.get(0x1016, 2)) == (OTHER, HOST << 16 | 300)
+        assert (d.get(0x1016, 1), d.get(0x1016, 2)) == (OTHER, 0)
+        with harness(channel, host_heartbeat_timeout=0.2) as h:
+            hang(h)
+            assert wait_for(lambda: d.state == "QUICK STOP ACTIVE")   # watched through sub 2
+            assert d.get(0x1016, 1) == OTHER
+
+
+def test_an_entry_holding_the_host_id_is_used(channel):
+    """An entry for the host's node id already there (a run whose close could not clear it, set with the drive's
+    tool): the driver writes that one (sub 1 for the same node, with a time, the drive refused: SDO abort
+    0x06040043), and close() clears it."""
+    with Cia402Drive(5, channel, position=0, consumers=(0, HOST << 16 | 1000, 0)) as d:
+        with harness(channel):
+            assert [d.get(0x1016, sub) for sub in (1, 2, 3)] == [0, HOST << 16 | 300, 0]
+        assert [d.get(0x1016, sub) for sub in (1, 2, 3)] == [0, 0, 0]
+
+
+def test_no_free_entry_is_refused_naming_the_entries(channel, buslog):
+    with Cia402Drive(5, channel, position=0, consumers=(OTHER, 4 << 16)) as d:
+        configure_fails(harness(channel), r"CANopen node 5 on virtual:\S+ has no free entry in its consumer heartbeat "
+                                          r"time 0x1016 for the host's heartbeat \(node 127\); its 2 entries: sub 1 "
+                                          r"watches node 3 \(500 ms\); sub 2 = 0x00040000 \(node 4, time 0: off\)\. "
+                                          r".*free one .*host_node_id .*host_heartbeat_period: 0")
+        assert (d.get(0x1016, 1), d.get(0x1016, 2)) == (OTHER, 4 << 16)
+        assert not buslog.of(0x700 + HOST)   # no heartbeat started
+
+
+def test_the_emulated_drive_refuses_a_second_entry_for_a_node(channel):
+    """CiA 301: two entries of 0x1016 for one node id, both with a time, are refused (SDO abort 0x06040043)."""
+    import canopen
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    with Cia402Drive(5, channel, consumers=(OTHER, 0, 0)) as d:
+        net = canopen.Network()
+        net.connect(interface="virtual", channel=channel)
+        try:
+            sdo = net.add_node(5, canopen.ObjectDictionary()).sdo
+            with pytest.raises(SdoAbortedError) as ei:
+                sdo.download(0x1016, 2, struct.pack("<I", 3 << 16 | 300))
+            assert ei.value.code == 0x06040043 and d.get(0x1016, 2) == 0
+            sdo.download(0x1016, 2, struct.pack("<I", 3 << 16))   # no time: off, taken
+            sdo.download(0x1016, 3, struct.pack("<I", 4 << 16 | 300))
+            assert [d.get(0x1016, sub) for sub in (1, 2, 3)] == [OTHER, 3 << 16, 4 << 16 | 300]
+            assert sdo.upload(0x1016, 0) == b"\x03"
+        finally:
+            net.disconnect()
 
 
 # --- drives without the objects ------------------------------------------------------------------------------------

@@ -51,33 +51,39 @@ The drive watches the host (host heartbeat): the driver watches the drive's hear
 going, enabled and on its last set-point, when the host died, hung or lost its cable. With ``host_heartbeat_period`` > 0
 (default 0.1 s, whole ms) the host produces a heartbeat, COB-ID 0x700 + ``host_node_id`` (default 127, the top of the
 range, where masters often sit; not ``node_id``, nor an id another node already sends heartbeats with, listened for at
-start-up: each gripper on a bus needs its own), one byte: NMT OPERATIONAL (5), through canopen's Network.send_periodic.
-In the pre-operational phase the producer starts, then the drive's consumer heartbeat time 0x1016 sub 1 is written (host
-node id in bits 16-23, ``host_heartbeat_timeout`` in ms in bits 0-15: default three periods, 0.3 s; at least two, so one
-late heartbeat stops nothing) and abort connection option code 0x6007 (``abort_connection_option``), then one heartbeat
-goes out at once (a CiA 301 consumer starts watching at the first heartbeat after it is set; the periodic one may come a
-period later, on socketcan always). A drive without 0x1016 is refused naming ``host_heartbeat_period: 0`` (off: 0x1016
-and 0x6007 are not touched), one without 0x6007 naming ``abort_connection_option: null`` (not written: the drive's own
-reaction). When the heartbeat stops for the consumer time while the drive is NMT OPERATIONAL, the drive acts per 0x6007:
-0 nothing, 1 FAULT (EMCY 0x8130), 2 disable voltage (power stage off: the fingers hold only by their gearbox or brake),
-3 quick stop, the default: the drive stops on its quick-stop ramp and holds there (the project's safe state, "the
-follower holds position") in QUICK STOP ACTIVE where its quick stop option code 0x605A is 5-8; with 0x605A 1-2 (CiA
-402's default is 2) it then goes to SWITCH ON DISABLED, power stage off: check 0x605A with the drive's tool. A drive
-that left OPERATION ENABLED is reported with that possible cause. The heartbeat runs as long as the driver holds the
-drive: through deactivate() (the drive holds the safe state's set-point, still watched, and activate() works again;
-stopped there, it quick-stopped or faulted one consumer time later), and stops in close(), after the safe state's
-set-point went out (the runtime and the Harness call safe_state() before close(), and close() takes the set-point lock,
-so a send on another thread finishes first). An orderly close() first turns the drive's watch off (0x1016 sub 1 = 0):
-the drive goes on holding, powered (left on, it quick-stopped after every run, power stage off under 0x605A 2); a drive
-that does not take that write is logged and reacts one consumer time later, where it stands. With ``safe_mode: open``,
-close() first reads the state until the drive reports the open set-point reached (statusword bits 12 and 10), at most
-the travel time at ``max_speed`` with a margin (OPEN_FINISH_MAX), the drive still watched. What the heartbeat proves:
-the process and its CAN interface live, not that the control loop steps (a loop that hangs in a live process is the
-runtime watchdog's, which sends the safe state). On socketcan python-can's periodic task is the kernel's broadcast
-manager (BCM): it goes on while the process lives, also frozen, and ends when its BCM socket is closed (bus shutdown, or
-the process exits or is killed: the kernel closes its files and removes the socket's tasks); a child made by a bare
-fork() would hold the socket too (the runtime spawns its isolated nodes). Elsewhere it is a python-can thread, which
-ends at its first failed send: the next read starts it again (logged). """
+start-up: each gripper on a bus needs its own), one byte: NMT OPERATIONAL (5), through python-can's bus.send_periodic
+(:class:`HostHeartbeat`). In the pre-operational phase the drive's consumer heartbeat time 0x1016 is read (sub 0, the
+number of entries, then each entry) for the entry to use: one that already holds the host's node id, else a free one
+(0); an entry of another producer (another master's) is never replaced, and none free is refused naming what each holds.
+Then the producer starts, that entry is written (host node id in bits 16-23, ``host_heartbeat_timeout`` in ms in bits
+0-15: default three periods, 0.3 s; at least two, so one late heartbeat stops nothing) and abort connection option code
+0x6007 (``abort_connection_option``), then one heartbeat goes out at once (a CiA 301 consumer starts watching at the
+first heartbeat after it is set; the periodic one may come a period later, on socketcan always). A drive without 0x1016
+is refused naming ``host_heartbeat_period: 0`` (off: 0x1016 and 0x6007 are not touched), one without 0x6007 naming
+``abort_connection_option: null`` (not written: the drive's own reaction). When the heartbeat stops for the consumer
+time while the drive is NMT OPERATIONAL, the drive acts per 0x6007: 0 nothing, 1 FAULT (EMCY 0x8130), 2 disable voltage
+(power stage off: the fingers hold only by their gearbox or brake), 3 quick stop, the default: the drive stops on its
+quick-stop ramp and holds there (the project's safe state, "the follower holds position") in QUICK STOP ACTIVE where its
+quick stop option code 0x605A is 5-8; with 0x605A 1-2 (CiA 402's default is 2) it then goes to SWITCH ON DISABLED, power
+stage off: check 0x605A with the drive's tool; under its error behaviour 0x1029 (CiA 301's default) it also goes to NMT
+PRE-OPERATIONAL. A drive that left OPERATION ENABLED, or NMT OPERATIONAL for PRE-OPERATIONAL or STOPPED, is reported
+with that possible cause. The heartbeat runs as long as the driver holds the drive: through deactivate() (the drive
+holds the safe state's set-point, still watched, and activate() works again; stopped there, it quick-stopped or faulted
+one consumer time later), and stops in close(), after the safe state's set-point went out (the runtime and the Harness
+call safe_state() before close(), and close() takes the set-point lock, so a send on another thread finishes first). An
+orderly close() first turns the drive's watch off (the 0x1016 entry it wrote = 0): the drive goes on holding, powered
+(left on, it quick-stopped after every run, power stage off under 0x605A 2); a drive that does not take that write is
+logged and reacts one consumer time later, where it stands. With ``safe_mode: open``, close() first reads the state
+until the drive reports the open set-point reached (statusword bits 12 and 10), at most the travel time at ``max_speed``
+with a margin (OPEN_FINISH_MAX), the drive still watched. What the heartbeat proves: the process and its CAN interface
+live, not that the control loop steps (a loop that hangs in a live process is the runtime watchdog's, which sends the
+safe state). On socketcan python-can's periodic task is the kernel's broadcast manager (BCM): it goes on while the
+process lives, also frozen, and ends when its BCM socket is closed (bus shutdown, or the process exits or is killed: the
+kernel closes its files and removes the socket's tasks); a child made by a bare fork() would hold the socket too (the
+runtime spawns its isolated nodes). Elsewhere it is a python-can thread, which ended at its first failed send; it is
+given an ``on_error`` that has it go on sending through failed sends (a full transmit queue, a brief adapter error),
+each run of them logged by the next read; where none has gone out for longer than the consumer time, the read is a
+HardwareError naming the drive, the interface and python-can's error."""
 
 from __future__ import annotations
 
@@ -219,8 +225,8 @@ class CanopenGripper(FollowerBase):
                                                "0x6007 are left as they are, and the drive keeps going without a "
                                                "host)", json_schema_extra={"unit": "s"})
         host_heartbeat_timeout: Seconds | None = Field(None, gt=0, description="the drive's consumer heartbeat time "
-                                                       "(0x1016 sub 1): no host heartbeat for this long and it acts "
-                                                       "per abort_connection_option; whole milliseconds up to "
+                                                       "(its 0x1016 entry): no host heartbeat for this long and it "
+                                                       "acts per abort_connection_option; whole milliseconds up to "
                                                        "65.535 s, at least twice host_heartbeat_period; None: three "
                                                        "periods", json_schema_extra={"unit": "s"})
         host_node_id: int = Field(127, ge=1, le=127, description="node id the host's heartbeat carries (COB-ID "
@@ -317,7 +323,7 @@ class CanopenGripper(FollowerBase):
 
         @property
         def host_timeout(self) -> float:
-            """The consumer heartbeat time written to 0x1016 sub 1 (s)."""
+            """The consumer heartbeat time written to the drive's 0x1016 entry for the host (s)."""
             if self.host_heartbeat_timeout is not None:
                 return self.host_heartbeat_timeout
             return HOST_TIMEOUT_PERIODS * self.host_heartbeat_period
@@ -479,25 +485,26 @@ class CanopenGripper(FollowerBase):
 
     def _watch_host(self) -> None:
         """Have the drive watch the host (pre-operational, with the other SDO writes): the host's heartbeat producer
-        (canopen's Network.send_periodic: python-can's periodic task, the kernel's broadcast manager on socketcan)
-        first, for a drive that watches from the moment its consumer is set; then the drive's consumer heartbeat time
-        0x1016 sub 1 (host node id, time in ms) and abort connection option code 0x6007; then one heartbeat at once:
-        a CiA 301 consumer starts watching at the first heartbeat after it was set, and the periodic one may come a
-        period later (socketcan's first frame comes after a period), after the start-up, so that a host that died
-        right after it went unwatched. A drive without either object is refused, naming the param that does
-        without. First the host's node id is listened on (HOST_ID_LISTEN periods): a drive takes any heartbeat with
-        that id for its host's, so another host producing it (a second gripper's driver, another teletouch on the
-        bus) would keep this drive watched "alive" after this process died; that is refused, naming host_node_id."""
+        (:class:`HostHeartbeat`: python-can's periodic task, the kernel's broadcast manager on socketcan) first, for a
+        drive that watches from the moment its consumer is set; then the drive's consumer heartbeat time 0x1016 (the
+        entry :meth:`_consumer_entry` chose: host node id, time in ms) and abort connection option code 0x6007; then
+        one heartbeat at once: a CiA 301 consumer starts watching at the first heartbeat after it was set, and the
+        periodic one may come a period later (socketcan's first frame comes after a period), after the start-up, so
+        that a host that died right after it went unwatched. A drive without either object is refused, naming the
+        param that does without. First the host's node id is listened on (HOST_ID_LISTEN periods): a drive takes any
+        heartbeat with that id for its host's, so another host producing it (a second gripper's driver, another
+        teletouch on the bus) would keep this drive watched "alive" after this process died; that is refused, naming
+        host_node_id."""
         p = self.params
         self._host_id_free()
+        sub = self._consumer_entry()
         self._start_host_heartbeat()
+        self._host_sub = sub   # the entry close() turns off again
         timeout_ms = int(round(p.host_timeout * 1000))
-        self._write_object(0x1016, 1, (p.host_node_id << 16 | timeout_ms).to_bytes(4, "little"),
-                           f"writing consumer heartbeat time 0x1016 sub 1 = 0x{p.host_node_id << 16 | timeout_ms:08X} "
-                           f"(host node {p.host_node_id}, host_heartbeat_timeout {timeout_ms} ms)",
-                           "no consumer heartbeat time 0x1016 sub 1: it cannot watch the host's heartbeat, and would "
-                           "keep going (enabled, on its last set-point) if this computer died or hung. Set "
-                           "host_heartbeat_period: 0 to run it without that watch")
+        self._write_object(0x1016, sub, (p.host_node_id << 16 | timeout_ms).to_bytes(4, "little"),
+                           f"writing consumer heartbeat time 0x1016 sub {sub} = "
+                           f"0x{p.host_node_id << 16 | timeout_ms:08X} (host node {p.host_node_id}, "
+                           f"host_heartbeat_timeout {timeout_ms} ms)", consumer_missing(sub))
         if p.abort_connection_option is not None:
             option = p.abort_connection_option
             self._write_object(0x6007, 0, option.to_bytes(2, "little", signed=True),
@@ -511,6 +518,37 @@ class CanopenGripper(FollowerBase):
         except Exception as exc:   # (can.CanError, OSError: a full transmit queue; the periodic one still comes)
             self.ctx.log(f"the first host heartbeat to {self._where()} could not be sent ({exc}): the drive watches "
                          f"the host from the periodic one, a period later")
+
+    def _consumer_entry(self) -> int:
+        """The sub-index of consumer heartbeat time 0x1016 that watches the host: 0x1016 sub 0 (the number of
+        entries) is read, then each entry (bits 16-23 a producer's node id, bits 0-15 its time in ms). The entry that
+        already holds ``host_node_id`` (one with a time first: CiA 301 refuses a second entry for the same node with a
+        time, SDO abort 0x06040043), else the first free one (0); an entry of another producer (another master's) is
+        never replaced: none free is refused, naming what each entry holds and what to do. A drive without 0x1016 (or
+        without entries) is refused naming ``host_heartbeat_period: 0``."""
+        p = self.params
+        count, why = self._read_u32(0x1016, 0, "reading consumer heartbeat time 0x1016 sub 0 (number of entries)")
+        if count is None or count == 0:
+            why = f"SDO abort: {why}" if count is None else "0x1016 sub 0, its number of entries, is 0"
+            raise HardwareError(f"{self._where()} has {consumer_missing(1)} ({why})")
+        entries: dict[int, int] = {}
+        for sub in range(1, min(count, 0x7F) + 1):
+            value, _ = self._read_u32(0x1016, sub, f"reading consumer heartbeat time 0x1016 sub {sub}")
+            if value is not None:   # (a sub-index the drive does not have: skipped)
+                entries[sub] = value
+        host = [sub for sub, value in entries.items() if value >> 16 & 0xFF == p.host_node_id]
+        if host:
+            return next((sub for sub in host if entries[sub] & 0xFFFF), host[0])
+        free = [sub for sub, value in entries.items() if value == 0]
+        if free:
+            return free[0]
+        held = "; ".join(f"sub {sub} {consumer_text(value)}" for sub, value in entries.items()) or "none readable"
+        raise HardwareError(
+            f"{self._where()} has no free entry in its consumer heartbeat time 0x1016 for the host's heartbeat (node "
+            f"{p.host_node_id}); its {count} entries: {held}. An entry with a node id is another producer the drive "
+            f"watches (another master, set with the drive's tool), which the driver does not replace: free one (set "
+            f"it to 0 with the drive's tool, or from the master that set it), or, where one is this host's, give "
+            f"host_node_id its node id; host_heartbeat_period: 0 runs the drive without watching this host")
 
     def _host_id_free(self) -> None:
         p = self.params
@@ -535,11 +573,11 @@ class CanopenGripper(FollowerBase):
     def _start_host_heartbeat(self) -> None:
         p = self.params
         try:
-            self._host_hb = self.network.send_periodic(0x700 + p.host_node_id, bytes([NMT_OPERATIONAL]),
-                                                       p.host_heartbeat_period)
+            self._host_hb = HostHeartbeat(self.network.bus, 0x700 + p.host_node_id, p.host_heartbeat_period)
         except Exception as exc:   # (a BCM socket refused, a bus that has no periodic sending)
             raise HardwareError(f"cannot start the host heartbeat on {p.interface}:{p.channel} ({exc}); set "
                                 f"host_heartbeat_period: 0 to run without it") from exc
+        self._hb_runs_seen = 0   # runs of failed heartbeat sends already logged
 
     def _stop_host_heartbeat(self) -> None:
         task, self._host_hb = getattr(self, "_host_hb", None), None
@@ -550,20 +588,28 @@ class CanopenGripper(FollowerBase):
                 pass
 
     def _check_host_heartbeat(self) -> None:
-        """python-can's thread-based periodic task (every interface but socketcan's kernel one) ends for good at its
-        first failed send (a full transmit queue, a bus-off): started again at once, before the drive's consumer
-        time runs out."""
-        task = self._host_hb
-        # (canopen's PeriodicMessageTask keeps python-can's task as _task; the kernel's BCM task has no 'stopped')
-        if task is None or not getattr(getattr(task, "_task", None), "stopped", False):
+        """Failed sends of the host heartbeat (:class:`HostHeartbeat`, which goes on sending through them): each run
+        of them is logged once; where none has gone out for longer than the drive's consumer time
+        ``host_heartbeat_timeout`` (the drive has missed the host, and acts per abort_connection_option), a
+        HardwareError naming the drive, the interface, python-can's error and what to check (:meth:`_bus_lost`)."""
+        hb = self._host_hb
+        if hb is None:
             return
-        self.ctx.log(f"the host heartbeat to {self._where()} stopped (a failed send ends python-can's periodic "
-                     f"task): started again")
-        self._host_hb = None
-        try:
-            self._start_host_heartbeat()
-        except HardwareError as exc:
-            self.last_error = str(exc)   # tried again at the next read; the drive's reaction is reported then
+        silent, runs, error = hb.failures()
+        if error is None:
+            return
+        p = self.params
+        if silent > p.host_timeout:
+            option = p.abort_connection_option
+            raise self._bus_lost(f"sending the host heartbeat (COB-ID 0x{0x700 + p.host_node_id:03X}; none went out "
+                                 f"for {silent:.3f} s, longer than host_heartbeat_timeout {p.host_timeout:g} s: the "
+                                 f"drive acts per abort_connection_option {option}, "
+                                 f"{ABORT_OPTIONS.get(option, 'its own')})", error) from error
+        if runs > self._hb_runs_seen:
+            self._hb_runs_seen = runs
+            self.ctx.log(f"sending the host heartbeat to {self._where()} failed ({type(error).__name__}: {error}): "
+                         f"it goes on sending; the drive acts if none goes out for host_heartbeat_timeout "
+                         f"{p.host_timeout:g} s")
 
     def _write_object(self, index: int, sub: int, data: bytes, what: str, missing: str) -> None:
         """An SDO download (an EDS file need not list the object); a drive without the object (abort 0x06020000 or
@@ -919,9 +965,11 @@ class CanopenGripper(FollowerBase):
         failed = getattr(self.network.notifier, "exception", None)
         if failed is not None:
             raise self._bus_lost("receiving", failed) from failed
+        # the host heartbeat first: where it could not be sent for the drive's consumer time, that is the cause of
+        # what the drive did then (quick stop, NMT PRE-OPERATIONAL)
+        self._check_host_heartbeat()
         if p.heartbeat_period > 0:
             self._check_heartbeat()
-        self._check_host_heartbeat()
         # TPDOs carry no SYNC number: each SYNC's answer is counted. The answers to earlier SYNCs (a step that timed
         # out, the state walk's) arrive first, in order: waited for before this step's SYNC, so that none of them is
         # taken for its answer; not there within pdo_timeout, they are written off as lost and the step has no state
@@ -981,9 +1029,16 @@ class CanopenGripper(FollowerBase):
         if state is not None and state != NMT_OPERATIONAL:
             from canopen.nmt import NMT_STATES   # (the state's name, on this error path only: the check runs each step)
 
+            causes = "the drive was reset (power, watchdog) or another master changed its NMT state"
+            if p.host_heartbeat_period > 0 and state in NMT_HOST_LOSS_STATES:
+                causes = (f"likely it missed the host's heartbeat (a drive leaves OPERATIONAL when its consumer "
+                          f"heartbeat time 0x1016 runs out, per its error behaviour 0x1029: PRE-OPERATIONAL by CiA "
+                          f"301's default): none reached it for host_heartbeat_timeout {p.host_timeout:g} s (sent "
+                          f"every host_heartbeat_period {p.host_heartbeat_period:g} s), with this process stalled or "
+                          f"its CAN interface busy or lost; or the drive was reset (power, watchdog), or another "
+                          f"master changed its NMT state")
             raise HardwareError(f"{self._where()} left NMT OPERATIONAL (heartbeat: {NMT_STATES.get(state, state)}): "
-                                f"it sends and takes no PDOs; the drive was reset (power, watchdog) or another master "
-                                f"changed its NMT state")
+                                f"it sends and takes no PDOs; {causes}")
 
     def _fault_code(self) -> str:
         try:
@@ -1033,7 +1088,7 @@ class CanopenGripper(FollowerBase):
         net = getattr(self, "network", None)
         if net is None:
             return
-        # an orderly end: the drive's watch of the host is turned off first (0x1016 sub 1 = 0), so that it keeps
+        # an orderly end: the drive's watch of the host is turned off first (its 0x1016 entry = 0), so that it keeps
         # holding the safe state's set-point, powered, as it did before it watched the host (its reaction, a quick
         # stop, ends in SWITCH ON DISABLED, power stage off, under CiA 402's default 0x605A: a gripper holding an
         # object let go 0.3 s after every run); only a host that dies or hangs without close() trips it. Where that
@@ -1066,19 +1121,20 @@ class CanopenGripper(FollowerBase):
             pass
 
     def _release_host_watch(self) -> bool:
-        """Turn the drive's consumer heartbeat time 0x1016 sub 1 off (0) at an orderly close, before the host's
-        heartbeat stops; whether it was taken. A drive that does not take it is said in the log: it will act per
-        abort_connection_option once the heartbeat has stopped for host_heartbeat_timeout."""
-        node = getattr(self, "node", None)
-        if node is None:
+        """Turn the drive's consumer heartbeat time 0x1016 entry that watched the host (``_host_sub``) off (0) at an
+        orderly close, before the host's heartbeat stops; whether it was taken. A drive that does not take it is said
+        in the log: it will act per abort_connection_option once the heartbeat has stopped for
+        host_heartbeat_timeout."""
+        node, sub = getattr(self, "node", None), getattr(self, "_host_sub", None)
+        if node is None or sub is None:
             return False
         try:
-            node.sdo.download(0x1016, 1, bytes(4))
+            node.sdo.download(0x1016, sub, bytes(4))
             self.host_watch_released = True
             return True
         except Exception as exc:   # (a drive gone, an SDO abort: the drive's reaction comes, after the hold)
             p = self.params
-            self.ctx.log(f"{self._where()}: its watch of the host (0x1016 sub 1) could not be turned off at close "
+            self.ctx.log(f"{self._where()}: its watch of the host (0x1016 sub {sub}) could not be turned off at close "
                          f"({exc}): with the heartbeat stopped, it acts per abort_connection_option "
                          f"{p.abort_connection_option} ({ABORT_OPTIONS.get(p.abort_connection_option, 'its own')}) "
                          f"in {p.host_timeout:g} s")
@@ -1118,6 +1174,25 @@ class CanopenGripper(FollowerBase):
 
 #: SDO abort codes that say the object is not there: object does not exist in the OD, sub-index does not exist
 NO_SUCH_OBJECT = (0x06020000, 0x06090011)
+#: NMT states (in a heartbeat) a drive goes to when its consumer heartbeat time runs out, per its error behaviour
+#: 0x1029 sub 1 (communication error): PRE-OPERATIONAL (127, CiA 301's default) or STOPPED (4)
+NMT_HOST_LOSS_STATES = (127, 4)
+
+
+def consumer_missing(sub: int) -> str:
+    """What a drive without consumer heartbeat time 0x1016 (sub ``sub``) lacks, for the start-up's error."""
+    return (f"no consumer heartbeat time 0x1016 sub {sub}: it cannot watch the host's heartbeat, and would keep going "
+            f"(enabled, on its last set-point) if this computer died or hung. Set host_heartbeat_period: 0 to run it "
+            f"without that watch")
+
+
+def consumer_text(value: int) -> str:
+    """An entry of consumer heartbeat time 0x1016 in words ("watches node 3 (500 ms)"); one without a node id or a
+    time is off."""
+    node, ms = value >> 16 & 0xFF, value & 0xFFFF
+    if node and ms:
+        return f"watches node {node} ({ms} ms)"
+    return f"= 0x{value:08X} (" + (f"node {node}, time 0: off" if node else "no node id: off") + ")"
 
 
 def _whole_ms(name: str, seconds: float, what: str, expected: str, most: int) -> None:
@@ -1343,6 +1418,78 @@ class ReceiveErrorWait:
 
     def on_error(self, exc: Exception) -> None:
         time.sleep(RECEIVE_RETRY)
+
+
+class HostHeartbeat:
+    """The host's heartbeat producer: one frame (COB-ID ``cob_id``, NMT OPERATIONAL) every ``period`` through
+    python-can's own periodic sending (``bus.send_periodic``): the kernel's broadcast manager on socketcan, an
+    adapter's scheduler where python-can uses one, else python-can's thread, a ThreadBasedCyclicSendTask. That thread
+    ends for good at its first failed send (a full transmit queue, a brief adapter error) unless it has an ``on_error``
+    that says go on, which ``bus.send_periodic`` does not give it: the task is made unstarted, given one (and a
+    ``modifier_callback``, which python-can calls before each send, to tell a send that went out from one that
+    failed), then started. Failed sends are counted (python-can logs each); :meth:`failures` says for how long no
+    heartbeat has gone out. ``stop()`` ends it (its ``on_error`` then says stop)."""
+
+    def __init__(self, bus: Any, cob_id: int, period: float):
+        import can
+        from can.broadcastmanager import ThreadBasedCyclicSendTask
+
+        self._lock = threading.Lock()
+        self._stopped = False
+        self._attempt: float | None = None   # (monotonic) when the latest send began
+        self._attempt_failed = False   # ... and whether it failed
+        self._failing = False   # whether the latest send that ended failed
+        self.sent_at = time.monotonic()   # when the latest send known to have gone out began (at first: now)
+        self.runs = 0   # runs of failed sends (one or more in a row)
+        self.count = 0   # failed sends
+        self.error: BaseException | None = None   # the last one's
+        msg = can.Message(arbitration_id=cob_id, data=bytes([NMT_OPERATIONAL]), is_extended_id=False)
+        self.task = bus.send_periodic(msg, period, autostart=False)
+        #: python-can's thread (not the kernel's or an adapter's own sending, which no failed send ends)
+        self.threaded = isinstance(self.task, ThreadBasedCyclicSendTask)
+        if self.threaded:
+            self.task.on_error = self._failed
+            self.task.modifier_callback = self._sending
+        try:
+            self.task.start()
+        except BaseException:
+            self.stop()
+            raise
+
+    def _sending(self, msg: Any) -> None:
+        """Before each send (python-can's thread): the send before went out unless it failed."""
+        with self._lock:
+            if self._attempt is not None and not self._attempt_failed:
+                self.sent_at, self._failing = self._attempt, False
+            self._attempt, self._attempt_failed = time.monotonic(), False
+
+    def _failed(self, exc: Exception) -> bool:
+        """A send failed (python-can's thread, after logging it): counted; whether to go on (until stop())."""
+        with self._lock:
+            if not self._failing:
+                self.runs += 1
+            self._attempt_failed = self._failing = True
+            self.count += 1
+            self.error = exc
+            return not self._stopped
+
+    def failures(self) -> tuple[float, int, BaseException | None]:
+        """(for how long no heartbeat has gone out where the latest send that ended failed, else 0; the runs of
+        failed sends so far; the last failed send's error or None). A send under way counts as going out: the
+        silence is then the one up to its start."""
+        with self._lock:
+            if not self._failing:
+                silent = 0.0
+            elif self._attempt_failed or self._attempt is None:
+                silent = time.monotonic() - self.sent_at
+            else:
+                silent = self._attempt - self.sent_at
+            return silent, self.runs, self.error
+
+    def stop(self) -> None:
+        with self._lock:
+            self._stopped = True
+        self.task.stop()
 
 
 def _read(path: str) -> str:

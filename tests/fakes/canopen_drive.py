@@ -29,17 +29,22 @@ by default, 0: every frame taken at once): as a real drive, it reads the control
 the monotonic clock, so of the controlwords that arrive within one cycle (by RPDO or SDO) only the last is seen, at
 that cycle's end: a "new set-point" pulse of bit 4 low then high sent back to back is no edge to it.
 
-Heartbeat consumer (CiA 301 0x1016, CiA 402 0x6007): consumer heartbeat time 0x1016 sub 1 (bits 16-23 the producer's
-node id, bits 0-15 the time in ms; 0 in either: off, the default, and the drive watches nothing) makes the drive listen
-for that node's heartbeat (0x700 + id); monitoring starts with the first heartbeat received after the write (as CiA 301
-has it), and when none came for longer than the time while the drive is NMT OPERATIONAL, it acts once per abort
-connection option code 0x6007 (default 1, CiA 402's): 1 FAULT with EMCY 0x8130 (heartbeat/life guard error, error
-register 0x11); 2 disable voltage (SWITCH ON DISABLED); 3 quick stop (from OPERATION ENABLED: QUICK STOP ACTIVE, holding
-the position it stood at, where the emulator's stop is instant; from READY TO SWITCH ON or SWITCHED ON: SWITCH ON
-DISABLED); 0 or a negative (manufacturer-specific) value: nothing. Monitoring then waits for the next heartbeat.
-``consumer_trips`` lists (monotonic time, option, state before) per reaction, ``consumer_heartbeats`` the monotonic
-arrival times of the watched heartbeats; ``consumer_object`` / ``abort_option_object`` False: the drive has no 0x1016
-/ 0x6007 (an SDO write is aborted 0x06020000); 0x6007 refuses values 4-32767 (abort 0x06090030, value range exceeded).
+Heartbeat consumer (CiA 301 0x1016, CiA 402 0x6007): consumer heartbeat time 0x1016 has ``len(consumers)`` entries (sub
+1 on; sub 0, read-only, their number), holding ``consumers`` at start (default one entry, 0); each entry (bits 16-23 a
+producer's node id, bits 0-15 the time in ms; 0 in either: off, and it watches nothing) makes the drive listen for that
+node's heartbeat (0x700 + id). As CiA 301 has it, a write that would give a node id a second entry with a time (both
+non-zero) is refused, SDO abort 0x06040043 (general parameter incompatibility), the entry left as it was. Monitoring of
+an entry starts with the first heartbeat received after its write (or the start), and when none came for longer than its
+time while the drive is NMT OPERATIONAL, it acts once per abort connection option code 0x6007 (default 1, CiA 402's): 1
+FAULT with EMCY 0x8130 (heartbeat/life guard error, error register 0x11); 2 disable voltage (SWITCH ON DISABLED); 3
+quick stop (from OPERATION ENABLED: QUICK STOP ACTIVE, holding the position it stood at, where the emulator's stop is
+instant; from READY TO SWITCH ON or SWITCHED ON: SWITCH ON DISABLED); 0 or a negative (manufacturer-specific) value:
+nothing. Then per error behaviour 0x1029 sub 1 (communication error, ``error_behaviour``): 0 NMT PRE-OPERATIONAL (CiA
+301's default: its heartbeat says so, and it sends and takes no PDOs), 1 no change of NMT state (the emulator's
+default), 2 NMT STOPPED. Monitoring then waits for the next heartbeat. ``consumer_trips`` lists (monotonic time, option,
+state before) per reaction, ``consumer_heartbeats`` the monotonic arrival times of the watched heartbeats;
+``consumer_object`` / ``abort_option_object`` False: the drive has no 0x1016 / 0x6007 (an SDO write is aborted
+0x06020000); 0x6007 refuses values 4-32767 (abort 0x06090030, value range exceeded).
 """
 
 from __future__ import annotations
@@ -50,7 +55,7 @@ import struct
 import threading
 import time
 from fractions import Fraction
-from typing import Callable
+from typing import Callable, Sequence
 
 import canopen
 from canopen import objectdictionary as od_mod
@@ -78,22 +83,29 @@ def _var(name, index, sub, dtype, access="rw", default=0):
 def drive_od(node_id: int, velocity_unit: int | None = VELOCITY_UNIT,
              resolution: tuple[int, int] | None = (1000, 1),
              scaling: dict[int, tuple[int, int]] | None = None, consumer: bool = True,
-             abort_option: bool = True) -> canopen.ObjectDictionary:
+             abort_option: bool = True, consumers: Sequence[int] = (0,),
+             error_behaviour: int = 1) -> canopen.ObjectDictionary:
     """The drive's object dictionary (communication profile, 4 RPDOs/TPDOs, CiA 402 objects it implements), with SI
     unit velocity 0x60A9 = ``velocity_unit`` and position encoder resolution 0x608F = ``resolution`` (increments,
     motor revolutions) unless None (the drive has no such object); ``scaling``: the position scaling objects the
     drive has ({0x6091: (motor revs, shaft revs)} gear ratio, {0x6092: (feed, shaft revs)} feed constant);
-    ``consumer`` / ``abort_option``: it has consumer heartbeat time 0x1016 (one entry, off) / abort connection option
-    code 0x6007 (1, fault: CiA 402's default)."""
+    ``consumer`` / ``abort_option``: it has consumer heartbeat time 0x1016 (entries sub 1 up holding ``consumers``)
+    / abort connection option code 0x6007 (1, fault: CiA 402's default); error behaviour 0x1029 sub 1 (communication
+    error) is ``error_behaviour``."""
     od = canopen.ObjectDictionary()
     od.node_id = node_id
     od.add_object(_var("Device type", 0x1000, 0, U32, "ro", DEVICE_TYPE_402))
     od.add_object(_var("Error register", 0x1001, 0, U8, "ro", 0))
     if consumer:
         arr = ODArray("Consumer heartbeat time", 0x1016)
-        arr.add_member(_var("Highest sub-index supported", 0x1016, 0, U8, "ro", 1))
-        arr.add_member(_var("Consumer heartbeat time", 0x1016, 1, U32, "rw", 0))
+        arr.add_member(_var("Highest sub-index supported", 0x1016, 0, U8, "ro", len(consumers)))
+        for sub, value in enumerate(consumers, 1):
+            arr.add_member(_var(f"Consumer heartbeat time {sub}", 0x1016, sub, U32, "rw", value))
         od.add_object(arr)
+    arr = ODArray("Error behaviour", 0x1029)
+    arr.add_member(_var("Highest sub-index supported", 0x1029, 0, U8, "ro", 1))
+    arr.add_member(_var("Communication error", 0x1029, 1, U8, "rw", error_behaviour))
+    od.add_object(arr)
     if abort_option:
         od.add_object(_var("Abort connection option code", 0x6007, 0, I16, "rw", 1))
     od.add_object(_var("Producer heartbeat time", 0x1017, 0, U16, "rw", 0))
@@ -169,12 +181,13 @@ class Cia402Drive:
                  counts_per_revolution: int = 1000, resolution_object: bool = True, emcy: bool = True,
                  fault_at: tuple[str, int] | None = None, aborts: dict[int, int] | None = None,
                  cycle: float = 0.001, scaling: dict[int, tuple[int, int]] | None = None,
-                 consumer_object: bool = True, abort_option_object: bool = True):
+                 consumer_object: bool = True, abort_option_object: bool = True, consumers: Sequence[int] = (0,),
+                 error_behaviour: int = 1):
         self.node_id = node_id
         self.channel = channel
         self.od = drive_od(node_id, velocity_unit if velocity_unit_object else None,
                            (counts_per_revolution, 1) if resolution_object else None, scaling,
-                           consumer_object, abort_option_object)
+                           consumer_object, abort_option_object, consumers, error_behaviour)
         self.counts_per_unit = counts_per_unit(velocity_unit, counts_per_revolution)  # counts/s per velocity unit
         self.od[0x1000].default = device_type
         self.pos = float(position)
@@ -208,10 +221,12 @@ class Cia402Drive:
         self._last_due = 0.0
         self._sender: threading.Thread | None = None
         self._closed = False
-        # heartbeat consumer (0x1016 / 0x6007): (producer node id, time s) or None; the monotonic time of the last
-        # heartbeat received from it since 0x1016 was written (None: monitoring not started, or a reaction came)
-        self._consumer: tuple[int, float] | None = None
-        self._consumer_seen: float | None = None
+        # heartbeat consumer (0x1016 / 0x6007): per entry on (sub-index), (producer node id, time s); the monotonic
+        # time of the last heartbeat received from it since the entry was written (None: monitoring not started, or
+        # a reaction came)
+        self._consumers: dict[int, tuple[int, float]] = {}
+        self._consumer_seen: dict[int, float | None] = {}
+        self._consumer_subscribed: set[int] = set()   # node ids whose heartbeat COB-ID is subscribed
         self._consumer_cv = threading.Condition()
         self._watcher: threading.Thread | None = None
         self.consumer_heartbeats: list[float] = []
@@ -241,6 +256,9 @@ class Cia402Drive:
         n.add_read_callback(self._on_read)
         self.network.subscribe(0x80, self._on_sync)
         self.network.subscribe(0, self._on_nmt)  # after the NmtSlave's own handler
+        if 0x1016 in self.od:   # entries set before (another master's, with the drive's tool)
+            for sub in range(1, self.get(0x1016) + 1):
+                self._configure_consumer(sub, self.get(0x1016, sub))
         # boot-up message, then PRE-OPERATIONAL (as a drive does after power-on)
         self.network.send_message(0x700 + self.node_id, [0])
         n.nmt.state = "PRE-OPERATIONAL"
@@ -306,7 +324,9 @@ class Cia402Drive:
 
     # --- helpers ---------------------------------------------------------------------------------------------
     def get(self, index: int, sub: int = 0) -> int:
-        obj = self.od[index] if sub == 0 else self.od[index][sub]
+        obj = self.od[index]
+        if not isinstance(obj, ODVariable):   # (a record's or an array's sub 0 too)
+            obj = obj[sub]
         return obj.decode_raw(self.node.get_data(index, sub))
 
     def _put(self, index: int, value: int) -> None:
@@ -341,8 +361,8 @@ class Cia402Drive:
                 from canopen.sdo.exceptions import SdoAbortedError
 
                 raise SdoAbortedError(0x06090030)
-        elif index == 0x1016 and subindex == 1:
-            self._configure_consumer(struct.unpack("<I", data)[0])
+        elif index == 0x1016 and subindex >= 1:
+            self._configure_consumer(subindex, struct.unpack("<I", data)[0])
         elif 0x1400 <= index <= 0x1BFF:
             self._pdo_dirty = True
         elif index == 0x6060:
@@ -352,20 +372,24 @@ class Cia402Drive:
             self._receive_controlword(struct.unpack("<H", data)[0])
 
     # --- heartbeat consumer (CiA 301 0x1016) and abort connection option (CiA 402 0x6007) --------------------------
-    def _configure_consumer(self, value: int) -> None:
-        """0x1016 sub 1 written: watch node ``value >> 16 & 0xFF``'s heartbeat for ``value & 0xFFFF`` ms (either 0:
-        off). Monitoring (re)starts with the first heartbeat received after the write."""
+    def _configure_consumer(self, sub: int, value: int) -> None:
+        """0x1016 sub ``sub`` written: watch node ``value >> 16 & 0xFF``'s heartbeat for ``value & 0xFFFF`` ms (either
+        0: off). Refused (SDO abort 0x06040043) where another entry watches that node with a time. Monitoring of the
+        entry (re)starts with the first heartbeat received after the write."""
         node, ms = value >> 16 & 0xFF, value & 0xFFFF
         with self._consumer_cv:
-            if self._consumer is not None:
-                try:
-                    self.network.unsubscribe(0x700 + self._consumer[0], self._on_consumer_heartbeat)
-                except (KeyError, ValueError):
-                    pass
-            self._consumer = (node, ms / 1000.0) if node and ms else None
-            self._consumer_seen = None
-            if self._consumer is not None:
-                self.network.subscribe(0x700 + node, self._on_consumer_heartbeat)
+            if node and ms and any(n == node for s, (n, _) in self._consumers.items() if s != sub):
+                from canopen.sdo.exceptions import SdoAbortedError
+
+                raise SdoAbortedError(0x06040043)   # general parameter incompatibility (CiA 301)
+            self._consumers.pop(sub, None)
+            self._consumer_seen.pop(sub, None)
+            if node and ms:
+                self._consumers[sub] = (node, ms / 1000.0)
+                self._consumer_seen[sub] = None
+                if node not in self._consumer_subscribed:
+                    self.network.subscribe(0x700 + node, self._on_consumer_heartbeat)
+                    self._consumer_subscribed.add(node)
                 if self._watcher is None:
                     self._watcher = threading.Thread(target=self._watch_consumer, name="cia402-hb-consumer",
                                                      daemon=True)
@@ -374,36 +398,41 @@ class Cia402Drive:
 
     def _on_consumer_heartbeat(self, can_id, data, timestamp) -> None:
         with self._consumer_cv:
-            if self._consumer is None or can_id != 0x700 + self._consumer[0]:
+            subs = [sub for sub, (node, _) in self._consumers.items() if can_id == 0x700 + node]
+            if not subs:
                 return
-            self._consumer_seen = time.monotonic()
-            self.consumer_heartbeats.append(self._consumer_seen)
+            now = time.monotonic()
+            for sub in subs:
+                self._consumer_seen[sub] = now
+            self.consumer_heartbeats.append(now)
             self._consumer_cv.notify_all()
 
     def _watch_consumer(self) -> None:
-        """The drive's consumer: when the watched heartbeat is missing for longer than its time, the reaction of
-        0x6007, once (monitoring waits for the next heartbeat)."""
+        """The drive's consumer: when an entry's heartbeat is missing for longer than its time, the reaction of
+        0x6007 (and 0x1029), once (monitoring of the entry waits for the next heartbeat)."""
         while True:
             with self._consumer_cv:
                 while True:
                     if self._closed:
                         return
-                    consumer, seen = self._consumer, self._consumer_seen
-                    if consumer is None or seen is None:
+                    due = [(seen + self._consumers[sub][1], sub) for sub, seen in self._consumer_seen.items()
+                           if seen is not None]
+                    if not due:
                         self._consumer_cv.wait()
                         continue
-                    left = seen + consumer[1] - time.monotonic()
+                    at, sub = min(due)
+                    left = at - time.monotonic()
                     if left > 0:
                         self._consumer_cv.wait(left)
                         continue
-                    self._consumer_seen = None   # the event comes once; the next heartbeat starts monitoring again
+                    self._consumer_seen[sub] = None   # the event comes once; the next heartbeat starts monitoring
                     break
             if not self.silent and self.node.nmt.state == "OPERATIONAL":
                 self._abort_connection()
 
     def _abort_connection(self) -> None:
         """The heartbeat the drive consumes is lost: abort connection option code 0x6007 says what it does (CiA 402's
-        default, 1, where the drive has no 0x6007)."""
+        default, 1, where the drive has no 0x6007), then error behaviour 0x1029 sub 1 its NMT state."""
         option = self.get(0x6007) if 0x6007 in self.od else 1
         with self._lock:
             before = self.state
@@ -413,16 +442,19 @@ class Cia402Drive:
             if option == 1:
                 if before != "FAULT":
                     self.inject_fault(0x8130, 0x11)   # heartbeat/life guard error; generic + communication error
-                return
-            if option == 2 and before in ("READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED",
-                                          "QUICK STOP ACTIVE"):
+            elif option == 2 and before in ("READY TO SWITCH ON", "SWITCHED ON", "OPERATION ENABLED",
+                                            "QUICK STOP ACTIVE"):
                 self.state = "SWITCH ON DISABLED"
             elif option == 3 and before == "OPERATION ENABLED":
                 self.state = "QUICK STOP ACTIVE"
                 self.latched = int(round(self.pos))   # holds where it stopped
             elif option == 3 and before in ("READY TO SWITCH ON", "SWITCHED ON"):
                 self.state = "SWITCH ON DISABLED"
-            self._status()
+            if option != 1:
+                self._status()
+        nmt = {0: "PRE-OPERATIONAL", 2: "STOPPED"}.get(self.get(0x1029, 1))
+        if nmt is not None:   # (the heartbeat it produces says so from its next frame)
+            self.node.nmt.state = nmt
 
     def _switch_mode(self, mode: int) -> None:
         """Modes of operation 0x6060 written: the display 0x6061 follows after ``mode_delay`` s (None: never)."""
