@@ -28,7 +28,7 @@ import threading
 from typing import Any, Iterator, Sequence
 
 from . import __version__, runtime
-from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line
+from .errors import ComponentFault, GraphValidationError, TeletouchError, exception_line, traceback_text
 from .registry import ENV_PLUGINS, Registry, default_registry
 from .runtime import (
     EXIT_INTERRUPTED, EXIT_INVALID, EXIT_OK, EXIT_STARTUP, EXIT_USAGE, Runtime, _say_held, run_stopping,
@@ -314,14 +314,19 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"{args.graph}: the simulated clock needs a duration: add 'duration:' to the graph or pass "
               f"--duration S", file=sys.stderr)
         return EXIT_INVALID
+    tracebacks = _tracebacks_wanted(args)
     try:
         rt = Runtime(spec)
     except ComponentFault as exc:   # a plugin's constructor (the runtime names the node): nothing is live yet
+        if tracebacks:
+            print(f"teletouch: traceback:\n{traceback_text(exc).rstrip()}", file=sys.stderr)
         print(f"teletouch: startup-failed: {exc}", file=sys.stderr)
         return EXIT_STARTUP
     except TeletouchError:
         raise
     except Exception as exc:
+        if tracebacks:
+            print(f"teletouch: traceback:\n{traceback_text(exc).rstrip()}", file=sys.stderr)
         print(f"teletouch: startup-failed: a component could not be created: {exception_line(exc)}", file=sys.stderr)
         return EXIT_STARTUP
     recorder = None
@@ -357,6 +362,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(result.summary(header=False), file=sys.stderr)
         for line in _results_lines(result):
             print(line, file=sys.stderr)
+    if tracebacks:   # the faults' own, in full, above the last line
+        for fault in result.faults:
+            if fault.traceback:
+                print(f"teletouch: traceback of {fault.line()}\n{fault.traceback.rstrip()}", file=sys.stderr)
     if args.json:   # exit_code: what the shell sees
         # strict JSON: a plugin's NaN (in its status or results) becomes null
         print(json.dumps(_json_safe(dict(result.as_dict(), exit_code=code,
@@ -364,6 +373,16 @@ def cmd_run(args: argparse.Namespace) -> int:
                          default=str, allow_nan=False))
     print(f"teletouch: {result.ending}", file=sys.stderr)   # (said once)
     return code
+
+
+#: set (to anything but "" or "0"): `teletouch run` prints the full traceback of each fault an exception made, as
+#: --traceback does
+ENV_TRACEBACK = "TELETOUCH_TRACEBACK"
+
+
+def _tracebacks_wanted(args: argparse.Namespace) -> bool:
+    """Whether `teletouch run` prints the faults' tracebacks: --traceback, or TELETOUCH_TRACEBACK set."""
+    return bool(getattr(args, "traceback", False)) or os.environ.get(ENV_TRACEBACK, "") not in ("", "0")
 
 
 def _results_lines(result: Any) -> list[str]:
@@ -495,6 +514,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record-images", choices=("png", "jpeg"), default=None,
                    help="with --record: image compression in the recording: png (lossless, ~17 ms/frame; the "
                         "default) or jpeg (~1 ms/frame)")
+    p.add_argument("--traceback", action="store_true",
+                   help=f"print the full traceback of each fault an exception made (a plugin's step that raised), "
+                        f"on stderr before the last line; or set {ENV_TRACEBACK}=1")
     p.set_defaults(func=cmd_run)
 
     calp = sub.add_parser("calibrate", help="calibrate a sensor model (see `teletouch calibrate -h`)")

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import math
+import os
+import re
+import sys
+import sysconfig
 import traceback
 from typing import Any
 
@@ -85,11 +90,99 @@ class ModelFileError(TeletouchError):
 
 def exception_place(exc: BaseException) -> str:
     """Where a person should look for ``exc``: its own ``where`` (see :class:`ComponentFault`), else ``file.py:line``
-    of the innermost frame that raised; "" when it has neither (never raised)."""
+    of the innermost frame of the code it came through that is not a library's (:func:`_library_root`: Python's
+    standard library, or an installed distribution that provides no teletouch plugin), and where that is not the
+    innermost frame, also the library's line that raised (``m_lib.py:11, raised in json/decoder.py:353``: a plugin's
+    bad argument to ``json.loads`` is the plugin's line to fix, not the decoder's); an entry point whose module or
+    attribute cannot be loaded (no frame of a plugin's own was reached) is named as the entry point, not by the
+    importer's frozen frame. "" when it has neither (never raised)."""
     if getattr(exc, "where", None):
         return str(exc.where)
-    tb = traceback.extract_tb(exc.__traceback__)
-    return f"{tb[-1].filename.rsplit('/', 1)[-1]}:{tb[-1].lineno}" if tb else ""
+    frames = []
+    tb = exc.__traceback__
+    while tb is not None:
+        frames.append((tb.tb_frame, tb.tb_lineno))
+        tb = tb.tb_next
+    if not frames:
+        return ""
+    roots = [_library_root(f.f_code.co_filename) for f, _ in frames]
+    own = max((i for i, r in enumerate(roots) if r is None), default=None)
+    entry = _entry_point_loading(frames)
+    if entry is not None and (own is None or own < entry[0]):
+        return entry[1]
+    inner_frame, inner_line = frames[-1]
+    inner = inner_frame.f_code.co_filename
+    if own is None:
+        return f"{inner.rsplit('/', 1)[-1]}:{inner_line}"
+    frame, line = frames[own]
+    place = f"{frame.f_code.co_filename.rsplit('/', 1)[-1]}:{line}"
+    root = roots[-1]
+    if own == len(frames) - 1 or not root:   # (the importer's frozen frames, root "", say nothing)
+        return place
+    return f"{place}, raised in {os.path.relpath(os.path.normpath(inner), root).replace(os.sep, '/')}:{inner_line}"
+
+
+#: a folder of installed distributions, in a frame's file name
+_SITE_DIR = re.compile(r"^(.*?[/\\](?:site|dist)-packages)(?=[/\\])")
+
+
+@functools.lru_cache(maxsize=1)
+def _stdlib_dirs() -> tuple[str, ...]:
+    """Python's standard library folders (of this environment and of the Python it was made from)."""
+    out = []
+    for scheme_vars in ({}, {"base": sys.base_prefix, "platbase": sys.base_exec_prefix,
+                             "installed_base": sys.base_prefix, "installed_platbase": sys.base_exec_prefix}):
+        paths = sysconfig.get_paths(vars=scheme_vars)
+        for key in ("stdlib", "platstdlib"):
+            d = os.path.normpath(paths.get(key, "") or "")
+            if d and d != "." and d not in out:
+                out.append(d)
+    return tuple(out)
+
+
+def _library_root(filename: str) -> str | None:
+    """The folder a library's file ``filename`` lies in (its path from there names it for a person:
+    ``json/decoder.py``), or "" for the importer's frozen modules; None for a file that is no library's: a plugin's
+    (installed with a teletouch entry point, or on Python's path), teletouch's own, a test's. A library is Python's
+    standard library, or a package in a site-packages (dist-packages) folder that no teletouch entry point names."""
+    if filename.startswith("<frozen "):
+        return ""
+    if filename.startswith("<"):
+        return None
+    site_dir = _SITE_DIR.match(filename)
+    if site_dir:
+        top = re.split(r"[/\\.]", filename[len(site_dir.group(1)):].lstrip("/\\"), maxsplit=1)[0]
+        return None if top in _plugin_packages(tuple(sys.path)) else os.path.normpath(site_dir.group(1))
+    path = os.path.normpath(filename)
+    return next((d for d in _stdlib_dirs() if path.startswith(d + os.sep)), None)
+
+
+@functools.lru_cache(maxsize=4)
+def _plugin_packages(path: tuple[str, ...]) -> frozenset[str]:
+    """The top-level packages that the teletouch entry points installed on Python's ``path`` name (teletouch's own
+    among them)."""
+    from importlib import metadata
+
+    try:
+        eps = metadata.entry_points(group="teletouch")
+        return frozenset(ep.value.split(":")[0].split(".")[0].strip() for ep in eps)
+    except Exception:   # a broken distribution's metadata: no package counts as a plugin's
+        return frozenset()
+
+
+def _entry_point_loading(frames: list[tuple[Any, int]]) -> tuple[int, str] | None:
+    """The innermost frame that loads an entry point (``importlib.metadata.EntryPoint.load``) among ``frames``, as
+    its index and the entry point's place for a person; None where none does."""
+    from importlib import metadata
+
+    for i in range(len(frames) - 1, -1, -1):
+        frame = frames[i][0]
+        ep = frame.f_locals.get("self") if frame.f_code.co_name == "load" else None
+        if isinstance(ep, metadata.EntryPoint):
+            dist = getattr(ep, "dist", None)
+            of = f" of {dist.name}" if dist is not None else ""
+            return i, f"entry point '{ep.name} = {ep.value}' in [project.entry-points.{ep.group}]{of}"
+    return None
 
 
 def exception_line(exc: BaseException, more: str = "") -> str:
@@ -97,6 +190,15 @@ def exception_line(exc: BaseException, more: str = "") -> str:
     before the place."""
     place = exception_place(exc)
     return f"{type(exc).__name__}: {exc}{more}" + (f" ({place})" if place else "")
+
+
+def traceback_text(exc: BaseException) -> str:
+    """The full traceback of ``exc`` as Python prints it (its causes and contexts included), for a person who needs
+    more than :func:`exception_line`'s one place (``teletouch run --traceback``)."""
+    try:
+        return "".join(traceback.format_exception(exc))
+    except Exception:   # (an exception whose str() raises)
+        return f"{type(exc).__name__} (its traceback cannot be shown)\n"
 
 
 def value_text(value: Any) -> str:

@@ -31,7 +31,7 @@ from .component import (
     Component, Context, Device, Inputs, Sample, _Slot, has_warm_up, plain_results, step_location, step_samples,
     value_checker,
 )
-from .errors import ComponentFault, exception_line
+from .errors import ComponentFault, exception_line, traceback_text
 from .graph import GraphSpec
 
 EXIT_OK = 0
@@ -64,9 +64,18 @@ class Fault:
     message: str
     time: float
     action: str  # stop | degrade | logged
+    #: the full traceback of the exception the fault is about (:func:`errors.traceback_text`; ``teletouch run
+    #: --traceback`` prints it); "" for a fault that no exception raised (an overrun, a stale input, a stall). Not
+    #: part of :meth:`RunResult.as_dict`.
+    traceback: str = field(default="", repr=False, compare=False)
 
     def line(self) -> str:
         return f"node '{self.node}' {self.kind} at t={self.time:.3f} s: {self.message}"
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fault as ``teletouch run --json`` gives it (its traceback left out)."""
+        return {"node": self.node, "kind": self.kind, "message": self.message, "time": self.time,
+                "action": self.action}
 
 
 @dataclass
@@ -128,7 +137,7 @@ class RunResult:
                 "sim_time_s": self.sim_time, "wall_time_s": self.wall_time, "clock": self.clock,
                 "realtime_factor": self.realtime_factor, "startup_time_s": self.startup_time,
                 "run_realtime_factor": self.run_realtime_factor, "nodes": [n.as_dict() for n in self.nodes],
-                "faults": [f.__dict__ for f in self.faults]}
+                "faults": [f.as_dict() for f in self.faults]}
 
     @property
     def ending(self) -> str:
@@ -409,18 +418,21 @@ class Runtime:
         self._stop_evt.set()
 
     # ------------------------------------------------------------------------------------------------- faults
-    def _fault(self, node: _Node, kind: str, message: str, t: float, safe: bool = True) -> list[_Node]:
+    def _fault(self, node: _Node, kind: str, message: str, t: float, safe: bool = True,
+               exc: BaseException | None = None) -> list[_Node]:
         """Record a fault of ``node`` and act on it (its policy). One fault per node: the first cause wins. A node
         faulted already (the watchdog faulted it while its step ran; that step then raised) gets no second fault
         (the run's result would list two for one failure, the later one stamped at the step's start, before the
         first): the later error is only logged. The devices it faults (the node itself, those wired from it under
         degrade) are made safe side by side (:meth:`_safe_many`) and returned; with ``safe`` False they are only
-        returned, for a caller that makes them safe with others."""
+        returned, for a caller that makes them safe with others. ``exc``: the exception the fault is about (its
+        traceback is kept in the fault)."""
         action = node.policy
+        fault = Fault(node.id, kind, message, t, action)
         with self._lock:
             first = not node.faulted
             if first:
-                self.faults.append(Fault(node.id, kind, message, t, action))
+                self.faults.append(fault)
                 if action == "stop" and self._stop_reason is None:
                     self._stop_reason = ("fault", EXIT_FAULT, f"node '{node.id}' {kind}: {message}")
                 # under the lock: a step in flight (the watchdog faults a node whose step still runs) checks it
@@ -446,6 +458,8 @@ class Runtime:
                                                                f"which was disabled by a fault", t, safe=False)
         if safe:
             self._safe_many(todo)
+        if exc is not None:   # after the safe states: formatting it reads the source files
+            fault.traceback = traceback_text(exc)
         return todo
 
     def _safe(self, node: _Node) -> None:
@@ -555,7 +569,8 @@ class Runtime:
 
     def _safe_raised(self, node: _Node, exc: BaseException) -> None:
         with self._lock:
-            fault = Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now, "logged")
+            fault = Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now, "logged",
+                          traceback_text(exc))
             self.faults.append(fault)
             self._unsafe.append(fault)
 
@@ -661,7 +676,7 @@ class Runtime:
                 node.decide_warm()   # (a plugin's wants_warm_up that raises: a failure to configure, as isolated)
             except (Exception, SystemExit) as exc:   # a plugin's sys.exit() is its failure, not the process's
                 failed.append((node, exc))
-                self._startup_fault(node, f"failed to configure: {exception_line(exc)}")
+                self._startup_fault(node, f"failed to configure: {exception_line(exc)}", exc)
                 self._configure_failed(node)
         if failed:
             return self._startup_error(failed, "failed to configure")
@@ -670,14 +685,15 @@ class Runtime:
                 node.comp.activate()
                 node.state = "active"
             except (Exception, SystemExit) as exc:
-                self._startup_fault(node, f"failed to activate: {exception_line(exc)}")
+                self._startup_fault(node, f"failed to activate: {exception_line(exc)}", exc)
                 return self._startup_error([(node, exc)], "failed to activate")
         return None
 
-    def _startup_fault(self, node: _Node, what: str) -> None:
+    def _startup_fault(self, node: _Node, what: str, exc: BaseException | None = None) -> None:
+        tb = traceback_text(exc) if exc is not None else ""
         with self._lock:
             self.faults.append(Fault(node.id, "startup", f"node '{node.id}' ({node.spec.plugin}) {what}", 0.0,
-                                     "stop"))
+                                     "stop", tb))
 
     @staticmethod
     def _startup_error(failed: list[tuple[_Node, BaseException]], what: str) -> StartupError:
@@ -713,7 +729,7 @@ class Runtime:
                 try:
                     node.comp.set_origin(self._t0, self._t0_mono)
                 except (Exception, SystemExit) as exc:
-                    self._startup_fault(node, f"failed to start: {exception_line(exc)}")
+                    self._startup_fault(node, f"failed to start: {exception_line(exc)}", exc)
                     return self._startup_error([(node, exc)], "failed to start")
         return None
 
@@ -772,7 +788,7 @@ class Runtime:
             return plain_results(got[0] or {})
         except BaseException as exc:
             self.faults.append(Fault(node.id, "shutdown", f"results() raised {exception_line(exc)}", self._now,
-                                     "logged"))
+                                     "logged", traceback_text(exc)))
             return {}
 
     def _lifecycle_call(self, node: _Node, name: str) -> bool:
@@ -817,7 +833,7 @@ class Runtime:
             return False
         if raised:
             self.faults.append(Fault(node.id, "shutdown", f"{name}() raised {exception_line(raised[0])}", self._now,
-                                     "logged"))
+                                     "logged", traceback_text(raised[0])))
         return True
 
     def _still_stepping(self) -> set[_Node]:
@@ -984,8 +1000,9 @@ class Runtime:
         """A progress callback (the caller's live view) raised: the run stops with that as its fault, and its
         result (with every device safe) is still returned."""
         msg = f"the progress callback raised {exception_line(exc)}"
+        tb = traceback_text(exc)
         with self._lock:
-            self.faults.append(Fault("", "progress", msg, t, "stop"))
+            self.faults.append(Fault("", "progress", msg, t, "stop", tb))
             if self._stop_reason is None:
                 self._stop_reason = ("fault", EXIT_FAULT, msg)
         self._stop_evt.set()
@@ -1038,7 +1055,7 @@ class Runtime:
                 except KeyboardInterrupt:   # Ctrl-C (the main thread steps): ends the run as interrupted
                     raise
                 except BaseException as exc:   # also SystemExit from a plugin: a fault of its node
-                    self._fault(node, "exception", self._step_error(node, exc), t)
+                    self._fault(node, "exception", self._step_error(node, exc), t, exc=exc)
                 dt = perf() - t1
                 node.busy += dt
                 if dt > node.max_step:
@@ -1265,7 +1282,8 @@ class Runtime:
                 except BaseException as exc:   # also SystemExit or KeyboardInterrupt raised by a plugin in this
                     node.in_step = False       # thread (a signal reaches the main one)
                     if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it
-                        self._fault(node, "exception", self._step_error(node, exc), t)   # has reported its fault
+                        self._fault(node, "exception", self._step_error(node, exc), t,   # has reported its fault
+                                    exc=exc)
                 node.in_step = False
                 if not node.steps:
                     node.first_t = t
@@ -1332,7 +1350,7 @@ class Runtime:
                 node.in_step = False
                 if not (node.faulted and getattr(exc, "abandoned", False)):   # the watchdog cut it short: it has
                     self._fault(node, "exception", f"warm(): {self._step_error(node, exc)}",   # said so
-                                node.warm_began)
+                                node.warm_began, exc=exc)
             node.in_step = False
             node.warming = False
             node.warm_dt = perf() - t1
@@ -1342,8 +1360,9 @@ class Runtime:
         would be stepped again. That is a fault that stops the run, never a silent end of the thread."""
         ids = ", ".join(f"'{n.id}'" for n in members)
         msg = f"the thread of {ids} ended with {exception_line(exc)}"
+        tb = traceback_text(exc)
         with self._lock:
-            self.faults.append(Fault(members[0].id, "exception", msg, self._now, "stop"))
+            self.faults.append(Fault(members[0].id, "exception", msg, self._now, "stop", tb))
             if self._stop_reason is None:
                 self._stop_reason = ("fault", EXIT_FAULT, f"node {msg}" if len(members) == 1 else msg)
         for n in members:
