@@ -48,7 +48,7 @@ from typing import Any, Iterable
 from pydantic import ValidationError
 
 from .component import MAX_RATE  # noqa: F401  (re-exported: graph.MAX_RATE, as before the rates' check moved)
-from .component import Component, Device, _field_unit, rate_problem, shapes_differ
+from .component import _BOOLEAN_NUMBER, Component, Device, _field_unit, rate_problem, shapes_differ
 from .errors import GraphError, GraphValidationError, Location
 from .units import parse_quantity
 from .yamlio import LDict, LList, load_yaml_file, load_yaml_text
@@ -77,6 +77,9 @@ class WireSpec:
     source_port: str
     max_age: float | None
     where: Location
+    #: kept from an included graph's node whose plugin an override replaced (not written again since): a wire the
+    #: new plugin may not have, which the override can unwire (``inputs: {port: null}``)
+    kept: bool = False
 
 
 @dataclass
@@ -175,6 +178,10 @@ def _merge(base: Any, over: Any) -> Any:
     return over
 
 
+def _place(where: Location) -> tuple[str | None, int | None]:
+    return where.file, where.line
+
+
 def _node_id(node: Any) -> str | None:
     """A node's id where it can name a node (a string); a list or a mapping there is reported by validation."""
     nid = node.get("id") if isinstance(node, dict) else None
@@ -214,6 +221,12 @@ def _merge_nodes(base: list, over: list) -> LList:
                 # a new plugin does not inherit the old one's params: its own, if given, are all it has (merged
                 # into the old ones, a swap with params of its own failed on the old plugin's "unknown param")
                 merged["params"] = node["params"] if "params" in node else LDict(where=where)
+                # its wires stay: those of the included node that this one does not write again are marked, so that
+                # a port the new plugin lacks is said to come from there (and how to unwire it), and only those
+                base_in, over_in = out[i].get("inputs"), node.get("inputs")
+                if isinstance(merged, LDict) and isinstance(base_in, LDict):
+                    merged.kept_wires = {str(p): _place(base_in.loc(p)) for p in base_in
+                                         if not (isinstance(over_in, dict) and p in over_in)}
             over_in, ins = node.get("inputs"), merged.get("inputs")
             if isinstance(over_in, dict) and isinstance(ins, dict):
                 base_in = out[i].get("inputs")
@@ -558,10 +571,14 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
             else:
                 cls = info.cls
         rate = ld.get("rate")
-        if rate is None:
+        if rate is None:   # not given, or `rate: null` (an override's: drop the included rate): the plugin's default
             rate = cls.default_rate if cls is not None else None
             if rate is None and cls is not None:
-                err(f"node '{nid}': missing 'rate' (Hz); {plugin} has no default rate", ld.where)
+                if "rate" in ld:   # the null's line (an override's), not the node's (maybe an included file's)
+                    err(f"node '{nid}': missing 'rate' (Hz); {plugin} has no default rate ('rate: null' asks for "
+                        f"the plugin's default rate)", ld.loc("rate"))
+                else:
+                    err(f"node '{nid}': missing 'rate' (Hz); {plugin} has no default rate", ld.where)
         else:
             try:
                 rate = parse_quantity(rate, "Hz")
@@ -628,6 +645,9 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                     known = set(fields) | {f.alias for f in cls.Params.model_fields.values() if f.alias}
                     expanded += [{"type": "extra_forbidden", "loc": (k,), "msg": "", "input": v}
                                  for k, v in spec.params.items() if k not in known]
+                # ... and so are the other params' own problems ('latency: -1' beside 'amplitude: 2mm'): validated
+                # again without the quantities that check refused
+                expanded += _beside_bad_units(cls, spec.params)
                 for e in expanded:
                     loc = [str(x) for x in e["loc"]]
                     fname = ".".join(loc) or "?"
@@ -642,6 +662,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                         msg = e["msg"]
                         if msg.startswith("Value error, "):
                             msg = msg[len("Value error, "):]
+                        msg = _unitless_quantity(cls, loc, e["type"], e.get("input")) or msg
                         msg += _bound_unit(cls, loc, e["type"])
                         blamed = (_blame_sets(cls, spec.params, loc[0], nested[loc[0]])
                                   if loc and loc[0] in nested else [])
@@ -686,7 +707,8 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 miswired.add((nid, str(port)))
                 continue
             snode, sport = src.split(".")
-            spec.inputs[str(port)] = WireSpec(str(port), snode, sport, max_age, iw)
+            kept = getattr(ld, "kept_wires", {}).get(str(port)) == _place(iw)
+            spec.inputs[str(port)] = WireSpec(str(port), snode, sport, max_age, iw, kept)
         nodes.append(spec)
 
     # wiring checks need every node
@@ -704,7 +726,7 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 if inherited and str(pw.file).startswith("--set"):
                     hint = (f"; the wire comes from {w.where.file} and {pw.file} changed the plugin: write a graph "
                             f"that includes it, with the node's plugin and 'inputs: {{{port}: null}}' to unwire it")
-                elif inherited:
+                elif inherited and w.kept:   # (not a wire the override file wrote itself: a typo there)
                     hint = (f"; the wire comes from {w.where.file}: unwire it in the override with "
                             f"'inputs: {{{port}: null}}'")
                 err(f"node '{n.id}': {n.plugin} has no input '{port}'{_suggest(port, n.cls.inputs)}; "
@@ -724,6 +746,8 @@ def build_spec(doc: LDict, file: str, *, registry: Any = None, clock: str | None
                 continue
             why = n.cls.inputs[port].accepts(src.cls.outputs[w.source_port])
             if why:
+                if why.startswith("unit mismatch"):
+                    why += _dimensionless_note(src, w.source_port, n, port)
                 err(f"node '{n.id}': input '{port}' <- {w.node}.{w.source_port}: {why}", w.where)
             else:
                 matched.append((n, port, w, src))
@@ -949,6 +973,80 @@ def _flow(value: Any) -> str:
         return yaml.safe_dump(value, default_flow_style=True, sort_keys=False, width=2**16).strip()
     except yaml.YAMLError:
         return repr(value)
+
+
+def _beside_bad_units(cls: type, params: dict[str, Any]) -> list[dict[str, Any]]:
+    """The errors of the parameters beside those whose unit the check before the fields' refused
+    (``Params._parse_units``: pydantic validates no field after it), as pydantic gives them, each led by its field:
+    the parameters validated again without those. Not the unknown parameters (named already), and not what the
+    refused ones' absence makes (a required one "missing"; a check of the whole model that their defaults fail)."""
+    bad = set()
+    for fname, f in cls.Params.model_fields.items():
+        key, unit = f.alias or fname, _field_unit(f)
+        if unit and isinstance(params.get(key), str):
+            try:
+                parse_quantity(params[key], unit)
+            except ValueError:
+                bad.add(key)
+    if not bad:
+        return []
+    try:
+        cls.Params.model_validate({k: v for k, v in params.items() if k not in bad})
+    except ValidationError as exc:
+        errors = exc.errors()
+    except Exception:   # a plugin's own check that fails on the values left: the first errors stand
+        return []
+    else:
+        return []
+    fields = list(cls.Params.model_fields)
+    out = []
+    for e in errors:
+        if e["loc"]:
+            if str(e["loc"][0]) not in bad and e["type"] != "extra_forbidden":
+                out.append(e)
+        elif e["type"] == "value_error":   # a check of the whole (booleans given for numbers), one line a field
+            for part in str(e.get("ctx", {}).get("error", e["msg"])).split("\n"):
+                head = part.split(":", 1)[0]
+                if head in fields and head not in bad and part.endswith(_BOOLEAN_NUMBER):
+                    out.append(dict(e, loc=(head,), msg=part.split(": ", 1)[1], input=params.get(head)))
+    return out
+
+
+def _dimensionless_note(src: NodeSpec, out_port: str, dst: NodeSpec, in_port: str) -> str:
+    """What a '1' in a unit mismatch means: the port that shows it declares no unit (``Port(..., unit="")``, the
+    default), so its values are dimensionless; the mismatch reads '1' -> 'N' otherwise, with nothing saying so."""
+    assert src.cls is not None and dst.cls is not None
+    notes = []
+    for port, side, n in ((src.cls.outputs[out_port], f"output '{out_port}'", src),
+                          (dst.cls.inputs[in_port], f"input '{in_port}'", dst)):
+        if port.unit == "":
+            notes.append(f"{n.plugin}'s {side} declares no unit")
+        elif port.unit == "1":
+            notes.append(f"{n.plugin}'s {side} is declared dimensionless")
+    return f" ('1' is dimensionless: {' and '.join(notes)})" if notes else ""
+
+
+def _unitless_quantity(cls: type, loc: list[str], kind: str, value: Any) -> str | None:
+    """The message for a string with a unit (``amplitude: 2N``) given to a top-level number parameter whose schema
+    names no unit, in place of pydantic's "unable to parse string as a number": such a parameter takes a plain
+    number (in the unit its plugin documents); None where that is not the case."""
+    if kind not in ("float_parsing", "int_parsing") or not isinstance(value, str) or len(loc) != 1:
+        return None
+    f = cls.Params.model_fields.get(loc[0])
+    if f is None or _field_unit(f) is not None:
+        return None
+    try:
+        float(value)
+        return None   # (a plain number that did not parse as an int: pydantic's message says it)
+    except ValueError:
+        pass
+    try:
+        parse_quantity(value)
+    except ValueError:
+        return None   # not a quantity with a unit that teletouch knows either: pydantic's message stands
+    described = f" (its description: {f.description!r})" if f.description else ""
+    return (f"this param takes no unit ({cls.name} declares none for it): expected a plain number, in the unit the "
+            f"plugin documents for it{described}")
 
 
 def _bound_unit(cls: type, loc: list[str], kind: str) -> str:
