@@ -44,6 +44,8 @@ ENV_BLOCK = "TELETOUCH_BLOCK"
 ENV_BLOCK_OLD = "TELETOUCH_BLOCK_PLUGINS"   # the earlier name of ENV_BLOCK, still read
 ENV_PLUGINS = "TELETOUCH_PLUGINS"
 PLUGIN_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+#: the distribution of teletouch itself: its entry points are the built-in plugins
+BUILTIN_DISTRIBUTION = "teletouch"
 #: the keys every ``teletouch_discover_devices`` entry has (see :mod:`teletouch.hookspecs`)
 DEVICE_KEYS = ("kind", "id", "path")
 
@@ -65,8 +67,13 @@ class PluginRecord:
     def origin(self) -> str:
         """``distribution version`` as a person reads it, for messages to put in parentheses: a stand-in name that
         has its own (``(TELETOUCH_PLUGINS)``, ``(registered)``) loses them there."""
-        text = f"{self.distribution} {self.version}".strip()
-        return text[1:-1] if text.startswith("(") and text.endswith(")") else text
+        return _origin(self.distribution, self.version)
+
+
+def _origin(distribution: str, version: str) -> str:
+    """:attr:`PluginRecord.origin` of a plugin from ``distribution`` at ``version``."""
+    text = f"{distribution} {version}".strip()
+    return text[1:-1] if text.startswith("(") and text.endswith(")") else text
 
 
 @dataclass(frozen=True)
@@ -83,6 +90,11 @@ class ComponentInfo:
     @property
     def kind(self) -> str:
         return self.cls.kind.value
+
+    @property
+    def origin(self) -> str:
+        """As :attr:`PluginRecord.origin`: ``distribution version``, for messages to put in parentheses."""
+        return _origin(self.distribution, self.version)
 
 
 def _truthy(value: str | None) -> bool:
@@ -162,6 +174,8 @@ class Registry:
         self.conflicts: dict[str, list[ComponentInfo]] = {}
         #: every entry-point name and distribution name seen while loading (blocked or not): for typo checks
         self.known_names: set[str] = set()
+        #: the plugins given to :meth:`register` (tests, notebooks: not loaded, so a block does not apply to them)
+        self.registered: set[str] = set()
         env = os.environ
         self.autoload = (not _truthy(env.get(ENV_DISABLE))) if autoload is None else autoload
         #: why installed plugins are not loaded (for messages): the environment variable, or the caller's choice
@@ -257,7 +271,31 @@ class Registry:
             rec = PluginRecord(name=name, distribution=distribution, version=version,
                                module=getattr(plugin, "__name__", repr(plugin)))
             self.plugins[name] = rec
+            self.registered.add(name)
         return self._register(plugin, rec, strict=_record is None)
+
+    def register_builtins(self, skip: Iterable[str] = ()) -> list[PluginRecord]:
+        """Register teletouch's own plugins (the entry points of its distribution, but those named in ``skip``) as
+        :meth:`register` does, whatever is blocked or installed beside them: what a test that needs them holds
+        (``make_registry(..., builtins=True)``). One that fails to import is recorded with its error."""
+        eps: dict[str, Any] = {}
+        for ep in metadata.entry_points(group=GROUP):
+            if ep.dist is not None and ep.dist.name == BUILTIN_DISTRIBUTION and ep.name not in skip:
+                eps.setdefault(ep.name, ep)
+        out = []
+        for name, ep in sorted(eps.items()):
+            version = ep.dist.version if ep.dist is not None else ""
+            try:
+                with _quiet_stdout():
+                    module = ep.load()
+            except (Exception, SystemExit) as exc:
+                rec = PluginRecord(name=name, distribution=BUILTIN_DISTRIBUTION, version=version, module=ep.value,
+                                   error=_error_line(exc))
+                self.plugins[name] = rec
+                out.append(rec)
+                continue
+            out.append(self.register(module, name=name, distribution=BUILTIN_DISTRIBUTION, version=version))
+        return out
 
     def _register(self, plugin: Any, rec: PluginRecord, *, strict: bool) -> PluginRecord:
         name = rec.name
@@ -335,11 +373,26 @@ class Registry:
         return found
 
     def _conflict_message(self, cname: str, providers: list[ComponentInfo]) -> str:
-        origins = " and ".join(f"plugin '{p.plugin}' ({p.distribution} {p.version})".replace(" )", ")")
-                               for p in providers)
-        blocks = " or ".join(f"{ENV_BLOCK}={p.plugin}" for p in providers)
-        return (f"component '{cname}' is provided by both {origins}; the name is refused until only one "
-                f"provides it: uninstall one or block one ({blocks}, or `teletouch --block NAME`)")
+        """Why ``cname`` is refused, and how to resolve it as each provider came: an installed one is uninstalled
+        or blocked, one named in TELETOUCH_PLUGINS dropped from it or blocked, one given to :meth:`register`
+        (``make_registry``, where no block applies) not given."""
+        origins = " and ".join(f"plugin '{p.plugin}' ({p.origin})" for p in providers)
+        loaded = [p for p in providers if p.plugin not in self.registered]
+        given = [p for p in providers if p.plugin in self.registered and p.distribution != BUILTIN_DISTRIBUTION]
+        ways = []
+        if loaded:
+            verbs = (["uninstall one"] if any(p.distribution != f"({ENV_PLUGINS})" for p in loaded) else []) + (
+                [f"drop one from {ENV_PLUGINS}"] if any(p.distribution == f"({ENV_PLUGINS})" for p in loaded) else [])
+            blocks = " or ".join(f"{ENV_BLOCK}={p.plugin}" for p in loaded)
+            ways.append(f"{', '.join(verbs)} or block one ({blocks}, or `teletouch --block NAME`)")
+        if given:
+            ways.append((f"give only one of {' and '.join(repr(p.plugin) for p in given)} to" if len(given) > 1 else
+                         f"leave '{given[0].plugin}' out of") +
+                        f" make_registry() or Registry.register() ({ENV_BLOCK} does not apply there)")
+        if any(p.distribution == BUILTIN_DISTRIBUTION for p in providers):
+            ways.append("rename the other component: a built-in one's name is taken wherever teletouch is installed")
+        return (f"component '{cname}' is provided by both {origins}; the name is refused until only one provides it: "
+                f"{'; or '.join(ways)}")
 
     # queries ---------------------------------------------------------------------------------------------------
     def get(self, name: str) -> ComponentInfo:
@@ -494,9 +547,94 @@ def _check_hooks(pm: pluggy.PluginManager, plugin: Any) -> list[str]:
     return impl
 
 
+#: the unit symbols an interface may declare: the SI base units, the derived units with special names, and two counts
+#: the unit table uses (px in px/m, bit in bit/s); a unit is a product, quotient or integer power of these, or '1'
+SI_SYMBOLS: tuple[str, ...] = ("m", "kg", "s", "A", "K", "mol", "cd", "rad", "sr", "Hz", "N", "Pa", "J", "W", "C", "V",
+                               "F", "Ohm", "S", "Wb", "T", "H", "lm", "lx", "Bq", "Gy", "Sv", "kat", "px", "bit")
+_SI_SET = frozenset(SI_SYMBOLS)
+#: the SI unit meant by a symbol (or a name) that is not one, where it is obvious
+_SI_FOR: dict[str, str] = {
+    "deg": "rad", "degree": "rad", "degrees": "rad", "\u00b0": "rad", "rev": "rad", "rpm": "rad/s", "rps": "rad/s",
+    "min": "s", "h": "s", "sec": "s", "second": "s", "seconds": "s", "newton": "N", "newtons": "N", "meter": "m",
+    "meters": "m", "metre": "m", "metres": "m", "g": "kg", "gram": "kg", "grams": "kg", "hertz": "Hz",
+    "pascal": "Pa", "joule": "J", "watt": "W", "radian": "rad", "radians": "rad", "ohm": "Ohm", "\u03a9": "Ohm",
+    "amp": "A", "ampere": "A", "volt": "V", "kelvin": "K", "degC": "K", "\u00b0C": "K", "bar": "Pa", "psi": "Pa",
+    "in": "m", "inch": "m", "ft": "m", "lb": "kg", "lbf": "N", "kgf": "N", "Nm": "N*m", "Ns": "N*s", "l": "m^3",
+    "L": "m^3", "mmHg": "Pa", "rev/s": "rad/s",
+}
+_SI_PREFIXES = ("da", "Y", "Z", "E", "P", "T", "G", "M", "k", "h", "d", "c", "m", "u", "\u00b5", "\u03bc", "n", "p",
+                "f", "a")
+_UNIT_TOKEN = re.compile(r"\s+|[^\W\d_]+|\u00b0C?|\d+|.", re.UNICODE)
+
+
+def _si_for(sym: str) -> str | None:
+    """The SI unit meant by ``sym``, a symbol that is not an SI one, where it is obvious (deg: rad, ms: s, mN: N)."""
+    if sym in _SI_FOR:
+        return _SI_FOR[sym]
+    close = [s for s in _SI_SET if s.lower() == sym.lower()] or [
+        v for k, v in _SI_FOR.items() if k.lower() == sym.lower()]
+    if len(close) == 1:   # 'hz', 'Newton'
+        return close[0]
+    for prefix in _SI_PREFIXES:   # a prefixed SI unit (mm, ms, kHz, mN, MPa) or gram (mg)
+        rest = sym[len(prefix):]
+        if sym.startswith(prefix) and rest and rest != "kg" and (rest in _SI_SET or rest == "g"):
+            return "kg" if rest == "g" else rest
+    return None
+
+
+def _parse_unit(unit: str) -> tuple[list[str], list[tuple[int, str]]]:
+    """``unit`` as tokens, and the symbols in it that are not SI units (token index, symbol); ValueError where it is
+    not a product, quotient or power of symbols (``N*s/m``, ``m^2``, ``1/s``, ``m/(N*s)``)."""
+    tokens = _UNIT_TOKEN.findall(unit)
+    unknown: list[tuple[int, str]] = []
+    pos = 0
+
+    def peek() -> str:
+        return tokens[pos] if pos < len(tokens) else ""
+
+    def expr() -> None:
+        nonlocal pos
+        factor()
+        while peek() in ("*", "/"):
+            pos += 1
+            factor()
+
+    def factor() -> None:
+        nonlocal pos
+        tok = peek()
+        if tok == "(":
+            pos += 1
+            expr()
+            if peek() != ")":
+                raise ValueError("a '(' is not closed")
+            pos += 1
+        elif tok == "1":
+            pos += 1
+        elif tok and (tok[0].isalpha() or tok[0] == "\u00b0"):
+            if tok not in _SI_SET:
+                unknown.append((pos, tok))
+            pos += 1
+        else:
+            raise ValueError(f"unexpected {tok!r}" if tok else "it ends too early")
+        if peek() == "^":
+            pos += 1
+            if peek() == "-":
+                pos += 1
+            if not peek().isdigit() or int(peek()) == 0:
+                raise ValueError("'^' takes a whole power other than 0 ('^2', '^-1')")
+            pos += 1
+
+    expr()
+    if pos < len(tokens):
+        raise ValueError(f"unexpected {tokens[pos]!r}")
+    return tokens, unknown
+
+
 def _si_problem(unit: Any) -> str | None:
-    """Why ``unit`` may not be declared at an interface, or None. Known non-SI symbols (mm, deg, ms, kHz, g) are
-    refused; symbols the unit table does not know (e.g. 'px') are left to the plugin."""
+    """Why ``unit`` may not be declared at an interface, or None. A unit is ``''`` or ``'1'`` (a plain number), or a
+    product, quotient or integer power of SI unit symbols (:data:`SI_SYMBOLS`: ``N*s/m``, ``m^2``, ``1/s``): a
+    symbol that is not one (mm, deg/s, rpm, a misspelt 'newton') is refused, naming the SI unit where it is
+    obvious."""
     from .units import _UNITS
 
     if not isinstance(unit, str):
@@ -504,7 +642,27 @@ def _si_problem(unit: Any) -> str | None:
     si = _UNITS.get(unit)
     if si is not None and si[0] != unit:
         return f"'{unit}' is not SI: declare '{si[0]}' (every interface is SI; millimetres only in text)"
-    return None
+    if unit in ("", "1"):
+        return None
+    try:
+        tokens, unknown = _parse_unit(unit)
+    except ValueError as exc:
+        return (f"'{unit}' is not a unit ({exc}): write SI symbols joined by '*' and '/', with powers as '^2' "
+                f"('N*s/m', 'm^2', '1/s'), or '' for a plain number")
+    if not unknown:
+        return None
+    alts = {sym: _si_for(sym) for _, sym in unknown}
+    what = ", ".join(repr(s) for s in alts) + (" is not an SI unit symbol" if len(alts) == 1 else
+                                                " are not SI unit symbols")
+    if all(alts.values()):
+        for i, sym in unknown:   # the same expression in SI units
+            alt = alts[sym]
+            alone = len(tokens) == 1 or not any(op in alt for op in "*/^")
+            tokens[i] = alt if alone else f"({alt})"
+        meant = ", ".join(repr(a) for a in alts.values())
+        return f"'{unit}' is not SI: {what} (SI: {meant}): declare '{''.join(tokens)}'"
+    return (f"'{unit}' is not SI: {what}; declare SI symbols ({', '.join(SI_SYMBOLS)}) joined by '*' and '/', or '' "
+            f"for a plain number (a count, a ratio)")
 
 
 def check_component(cls: Any) -> None:

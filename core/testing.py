@@ -4,6 +4,7 @@
     with Harness(MyFilter, {"cutoff": "2Hz"}) as h:        # one component, driven by hand
         out = h.step(0.0, x=1.0)                             # outputs checked against their ports, as at run time
     reg = make_registry("my_plugin.module")                  # mocks are always included; a broken plugin raises
+    reg = make_registry(my_plugin, builtins=True)            # with teletouch's own components (sim-gripper, ...)
     result, rt = run_yaml(GRAPH_TEXT, registry=reg, duration=1.0)
     safe_states(rt)["gripper"]                               # graph times of each safe_state() call of a device
 """
@@ -17,29 +18,41 @@ import weakref
 from typing import Any, Callable, Iterable
 
 from .component import Component, Context, Device, Inputs, Sample, _Slot, rate_problem, step_samples, value_checker
-from .errors import PluginError
+from .errors import DuplicateComponentError, PluginError
 from .graph import GraphSpec, load_graph_text
-from .registry import Registry, check_component
+from .registry import BUILTIN_DISTRIBUTION, ComponentInfo, Registry, check_component
 from .runtime import RunResult, Runtime, graph_time
 from .units import parse_quantity
 
 __all__ = ["Harness", "make_registry", "load_text", "run_yaml", "safe_states"]
 
 
-def make_registry(*plugins: Any, mocks: bool = True) -> Registry:
-    """A registry without entry-point autoload, holding the mock plugin and the given modules/objects.
+def make_registry(*plugins: Any, mocks: bool = True, builtins: bool = False) -> Registry:
+    """A registry without entry-point autoload, holding the mock plugin and the given modules/objects; with
+    ``builtins=True`` also teletouch's own plugins (``sim-gripper``, ``depth``, ...; the mocks with them), as an
+    installed teletouch has them, whatever ``TELETOUCH_BLOCK`` says.
 
     A plugin that breaks the rules (a ``teletouch_*`` function without ``@hookimpl``, a device without
     ``safe_state()``, a unit in mm, ...) raises :class:`PluginError` with the reason `teletouch plugins` would show,
     instead of leaving its components out (a test would then only see "unknown plugin"); so does a module that
-    implements no teletouch hook at all."""
+    implements no teletouch hook at all. A component named like a built-in one (its own class, not the built-in's)
+    raises :class:`DuplicateComponentError`, also without ``builtins``: installed beside teletouch, the plugin would
+    have that name refused."""
     reg = Registry(autoload=False, blocked=(), extra_modules=())
-    if mocks:
+    given: set[int] = set()   # the modules registered here: a test may name one of them again
+    if mocks or builtins:
         from . import mock
 
-        reg.register(mock, name="mock", distribution="teletouch")
+        reg.register(mock, name="mock", distribution=BUILTIN_DISTRIBUTION)
+        given.add(id(mock))
+    if builtins:
+        for rec in reg.register_builtins(skip=["mock"]):
+            if not rec.error:
+                given.add(id(reg.pm.get_plugin(rec.name)))
     for p in plugins:
         mod = importlib.import_module(p) if isinstance(p, str) else p
+        if id(mod) in given:
+            continue
         name = getattr(mod, "__name__", None)
         rec = reg.register(mod, name=name)
         if rec.error:
@@ -48,7 +61,42 @@ def make_registry(*plugins: Any, mocks: bool = True) -> Registry:
             raise PluginError(f"plugin '{rec.name}' implements no teletouch hook: it needs a function "
                               f"teletouch_components() decorated with @teletouch.hookimpl that returns a list of "
                               f"Component classes")
+        if not builtins:
+            _refuse_builtin_names(reg, rec.name)
     return reg
+
+
+#: teletouch's own components by name (see :func:`_builtin_components`)
+_BUILTINS: dict[str, ComponentInfo] | None = None
+
+
+def _builtin_components() -> dict[str, ComponentInfo]:
+    """teletouch's own components by name, as the entry points of its distribution give them (imported once per
+    process)."""
+    global _BUILTINS
+    if _BUILTINS is None:
+        reg = Registry(autoload=False, blocked=(), extra_modules=())
+        reg.register_builtins()
+        _BUILTINS = dict(reg.components)
+    return _BUILTINS
+
+
+def _same_class(a: type, b: type) -> bool:
+    """Whether ``a`` and ``b`` are one class (also when its module was imported twice, or reloaded)."""
+    return a is b or (a.__module__, a.__qualname__) == (b.__module__, b.__qualname__)
+
+
+def _refuse_builtin_names(reg: Registry, plugin: str) -> None:
+    """DuplicateComponentError for the first component of ``plugin`` in ``reg`` that is named like a built-in one
+    (and is not that one): installed, teletouch would refuse the name, where this registry, without the built-ins,
+    would have let it pass."""
+    for cname in reg.plugins[plugin].components:
+        builtin = _builtin_components().get(cname)
+        if builtin is not None and not _same_class(builtin.cls, reg.components[cname].cls):
+            raise DuplicateComponentError(
+                f"plugin '{plugin}': component '{cname}' has the name of a built-in component (plugin "
+                f"'{builtin.plugin}' of {builtin.origin}): once your plugin is installed, teletouch refuses the name "
+                f"and a graph can use neither; rename yours")
 
 
 def load_text(text: str, registry: Registry, **kw: Any) -> GraphSpec:
@@ -126,7 +174,9 @@ class Harness:
       class and attribute: a device without ``safe_state()``, a unit in mm, ...).
     - ``h.step(t, **inputs)`` sets the inputs and steps at graph time ``t``; a value is stamped ``t``, a
       :class:`Sample` keeps its own stamp (``Sample(v, t - 0.5)`` is half a second old: a stale input), ``None``
-      empties the input (nothing received). It returns the outputs as values; ``h.samples`` has them as Samples.
+      empties the input (nothing received). It returns the outputs as values; ``h.samples`` has them as Samples,
+      and ``h.history`` has ``(t, {port: Sample})`` of every step so far (``h.run``'s too: the stamps over a run;
+      ``h.history.clear()`` forgets them).
       The outputs are checked against their ports as the runtime checks them (dtype and shape, output names,
       stamps): what would fault the node in a graph raises :class:`ComponentFault` with the runtime's message.
     - ``h.run(until, **inputs)`` steps on a simulated clock at the node's rate (``rate=`` or the class's
@@ -158,6 +208,8 @@ class Harness:
         self.inputs = Inputs(self.slots)
         self.checks = {name: value_checker(port) for name, port in cls.outputs.items()}
         self.samples: dict[str, Sample] = {}
+        #: ``(t, {port: Sample})`` of every step made through the harness, in order (``{}``: the step returned None)
+        self.history: list[tuple[float, dict[str, Sample]]] = []
         self.stopped: str | None = None
         self.safe_calls = 0
         self._steps = 0
@@ -234,12 +286,14 @@ class Harness:
         self._steps += 1
         out = self.comp.step(self.t, self.inputs)
         self.samples = self._check(out)
+        self.history.append((self.t, self.samples))
         return {k: s.value for k, s in self.samples.items()}
 
     def run(self, until: float, **values: Any) -> list[tuple[float, dict[str, Any]]]:
         """Step at the node's rate on a simulated clock, from the next tick after the harness time (from 0.0 if it
-        has not stepped yet) up to and including ``until`` (s); returns ``[(t, outputs), ...]``. Each input value is
-        set before every step (stamped with that step's time); a function is called with ``t`` for its value."""
+        has not stepped yet) up to and including ``until`` (s); returns ``[(t, outputs), ...]`` (the values; with their
+        stamps in ``h.history[-len(result):]``). Each input value is set before every step (stamped with that step's
+        time); a function is called with ``t`` for its value."""
         rate = self.rate
         if not rate or not math.isfinite(rate) or rate <= 0:
             raise ValueError(f"{self.cls.__qualname__} has no default_rate: give Harness(..., rate=HZ)")
