@@ -167,6 +167,10 @@ def _block_text(origin: dict[str, str]) -> str:
     return f"{setting} {name}" if setting.startswith("--") else f"{setting}={name}"
 
 
+#: a graph on the simulated clock without a duration (it would never end)
+SIM_NEEDS_DURATION = "the simulated clock needs a duration: add 'duration:' to the graph or pass --duration S"
+
+
 def cmd_validate(args: argparse.Namespace) -> int:
     from .graph import load_graph
 
@@ -174,6 +178,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
     _print_warnings(spec)
     rates = ", ".join(f"{n.id}@{n.rate:g}Hz" for n in spec.order())
     count = len(spec.warnings)
+    if spec.clock == "sim" and spec.duration is None:   # valid, but `teletouch run` refuses it without --duration
+        print(f"{args.graph}: warning: the graph has no duration, which `teletouch run` needs on the simulated clock: "
+              f"add 'duration:' to the graph or pass --duration S to run", file=sys.stderr)
+        count += 1
     note = f"; {count} warning{'s' if count > 1 else ''}" if count else ""
     nodes = len(spec.nodes)
     print(f"{args.graph}: OK ({nodes} node{'s' if nodes != 1 else ''}: {rates}; clock {spec.clock}{note})")
@@ -268,22 +276,28 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
+def _fixed(v: float, decimals: int) -> str:
+    """``v`` with ``decimals`` decimals, but as 4 significant digits from 1e6 up: a plugin's absurd value (a 1e300 N
+    force passed on from ROS 2) would otherwise print as 300 digits."""
+    return f"{v:.{decimals}f}" if abs(v) < 1e6 else f"{v:.4g}"
+
+
 def _time_text(v: float) -> str:
-    return f"{v * 1e3:.1f}ms" if abs(v) < 1.0 else f"{v:.2f}s"
+    return f"{v * 1e3:.1f}ms" if abs(v) < 1.0 else f"{_fixed(v, 2)}s"
 
 
 #: the unit suffixes of status() keys (docs/writing-a-plugin.md), longest first, and how the live view shows a value
 #: (SI) under each for a person: lengths in mm, energies in mJ, times below 1 s in ms
 STATUS_UNITS: tuple[tuple[str, Any], ...] = (
-    ("_n_s_per_m", lambda v: f"{v:.2f}N*s/m"),
-    ("_n_per_m", lambda v: f"{v:.0f}N/m"),
+    ("_n_s_per_m", lambda v: f"{_fixed(v, 2)}N*s/m"),
+    ("_n_per_m", lambda v: f"{_fixed(v, 0)}N/m"),
     ("_m_per_s", lambda v: f"{v:.4g}m/s"),
-    ("_m2", lambda v: f"{v * 1e6:.2f}mm^2"),
-    ("_hz", lambda v: f"{v:.1f}Hz"),
-    ("_rad", lambda v: f"{v:.3f}rad"),
-    ("_m", lambda v: f"{v * 1e3:.2f}mm"),
-    ("_n", lambda v: f"{v:.2f}N"),
-    ("_j", lambda v: f"{v * 1e3:.3f}mJ"),
+    ("_m2", lambda v: f"{_fixed(v * 1e6, 2)}mm^2"),
+    ("_hz", lambda v: f"{_fixed(v, 1)}Hz"),
+    ("_rad", lambda v: f"{_fixed(v, 3)}rad"),
+    ("_m", lambda v: f"{_fixed(v * 1e3, 2)}mm"),
+    ("_n", lambda v: f"{_fixed(v, 2)}N"),
+    ("_j", lambda v: f"{_fixed(v * 1e3, 3)}mJ"),
     ("_s", _time_text),
 )
 
@@ -311,8 +325,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     spec = load_graph(args.graph, sets=args.sets, clock=args.clock, duration=args.duration)
     _print_warnings(spec)
     if spec.clock == "sim" and spec.duration is None:
-        print(f"{args.graph}: the simulated clock needs a duration: add 'duration:' to the graph or pass "
-              f"--duration S", file=sys.stderr)
+        print(f"{args.graph}: {SIM_NEEDS_DURATION}", file=sys.stderr)
         return EXIT_INVALID
     tracebacks = _tracebacks_wanted(args)
     try:

@@ -1015,7 +1015,8 @@ class PositionForce(_Bilateral):
             raise ComponentFault(f"no force estimate received in {t - self.first_wait_since:.3f} s since the leader's "
                                  f"first opening (t={self.first_wait_since:.3f} s), longer than first_force_timeout "
                                  f"{limit:g} s: the follower would be teleoperated without force feedback; check the "
-                                 f"sensor, its estimators and the force wire (a ROS 2 bridge: its domain and topic)",
+                                 f"sensor, its estimators and the force wire (a ROS 2 bridge: its domain, topic and "
+                                 f"QoS)",
                                  input_port="force")
 
     def _fade(self, t: float) -> None:
