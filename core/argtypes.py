@@ -9,7 +9,7 @@ from typing import Any, Callable
 
 from .units import UNDERSCORE
 
-__all__ = ["number", "int_at_least"]
+__all__ = ["number", "int_at_least", "bare_metres_hint"]
 
 
 def number(kind: type, what: str, lo: float | None = None, lo_open: bool = False,
@@ -35,3 +35,15 @@ def number(kind: type, what: str, lo: float | None = None, lo_open: bool = False
 def int_at_least(low: int) -> Callable[[str], int]:
     """An integer >= ``low``."""
     return number(int, f"an integer >= {low}", lo=low)
+
+
+def bare_metres_hint(text: object) -> str:
+    """For a length option whose value is refused: '; a bare number is metres: did you mean 5mm?' when ``text`` (as
+    typed) is a bare number, the likely millimetres read as metres (``--caliper-gap 5`` is 5 m); else ''."""
+    t = str(text).strip()
+    try:
+        if "_" in t or not math.isfinite(float(t)):
+            return ""
+    except ValueError:
+        return ""
+    return f"; a bare number is metres: did you mean {t}mm?"

@@ -327,7 +327,7 @@ def test_cli_arguments_and_outputs_checked_before_the_work(tmp_path, capsys, mon
         args += ["-o", str(tmp_path / "cal.force.json")]
     assert main(["calibrate", "force", f"--{mode}", str(src), "--quiet", *args]) == 2
     err = capsys.readouterr().err
-    assert f"teletouch: error: {message.format(tmp=tmp_path)}" in err and "Traceback" not in err
+    assert f"teletouch calibrate force: error: {message.format(tmp=tmp_path)}" in err and "Traceback" not in err
 
 
 def test_cli_graph_only_options_refused_with_csv(tmp_path, capsys):
@@ -339,7 +339,7 @@ def test_cli_graph_only_options_refused_with_csv(tmp_path, capsys):
     for extra, names in ((["--duration", "5s"], "--duration"), (["--set", "a.b=1", "--clock", "sim"], "--set, --clock"),
                          (["--samples", str(tmp_path / "s.csv")], "--samples")):
         assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out), *extra]) == 2
-        assert f"teletouch: error: {names}: only with --graph" in capsys.readouterr().err
+        assert f"teletouch calibrate force: error: {names}: only with --graph" in capsys.readouterr().err
     assert not out.exists()
 
 

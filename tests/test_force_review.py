@@ -213,7 +213,7 @@ def test_cli_degrees_are_checked_before_the_press_run(tmp_path, capsys, monkeypa
     out = tmp_path / "cal.force.json"
     assert main(["calibrate", "force", f"--{mode}", str(src), "--quiet", "-o", str(out), *extra]) == 2
     err = capsys.readouterr().err
-    assert f"teletouch: error: {message}" in err and "Traceback" not in err and not out.exists()
+    assert f"teletouch calibrate force: error: {message}" in err and "Traceback" not in err and not out.exists()
 
 
 def test_cli_fit_refusals_of_a_csv_name_the_file(tmp_path, capsys):
@@ -226,7 +226,8 @@ def test_cli_fit_refusals_of_a_csv_name_the_file(tmp_path, capsys):
     out = tmp_path / "few.force.json"
     assert main(["calibrate", "force", "--csv", str(csv), "-o", str(out)]) != 0
     err = capsys.readouterr().err
-    assert f"teletouch: error: {csv}: 4 distinct depth levels (4 samples, all) for a degree-3 fit" in err
+    assert (f"teletouch calibrate force: error: {csv}: 4 distinct depth levels (4 samples, all) for a degree-3 "
+            f"fit") in err
     assert not out.exists()
 
 
@@ -264,5 +265,5 @@ def test_cli_an_output_ending_in_a_separator_is_refused_before_the_fit(tmp_path,
     args = ["-o", f"{folder}/"] if opt == "-o" else ["-o", str(tmp_path / "cal.force.json"), "--plot", f"{folder}/"]
     assert main(["calibrate", "force", "--csv", str(csv), "--quiet", *args]) == 2
     err = capsys.readouterr().err
-    assert f"teletouch: error: {opt}: cannot write" in err and "names a folder" in err
+    assert f"teletouch calibrate force: error: {opt}: cannot write" in err and "names a folder" in err
     assert not folder.exists()

@@ -25,8 +25,8 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from teletouch import Component, ComponentFault, Kind, ModelFileError, Params, Port, Sample, hookimpl
-from teletouch.argtypes import int_at_least, number
-from teletouch.paths import output_problem
+from teletouch.argtypes import bare_metres_hint, int_at_least, number
+from teletouch.paths import looked_at, output_problem
 from teletouch.reproducible import source_date_epoch
 from teletouch.units import Meters, parse_quantity, plausible_depth
 
@@ -488,27 +488,48 @@ _levels_or_zero = number(float, "a number of levels in [0, 255] (0: no check)", 
 _positive_levels = number(float, "a number of levels in (0, 255]", lo=0, lo_open=True, hi=255)
 
 
+def _length(option: str, text: str) -> float:
+    """The length option ``option``'s ``text`` in m (a bare number is metres), a ValueError naming the option."""
+    try:
+        return parse_quantity(text, "m")
+    except ValueError as exc:
+        raise ValueError(f"{option}: {exc}") from None
+
+
 def _ball_radius(args: argparse.Namespace) -> float:
     """The ball radius (m) from --ball-diameter or --ball-radius (both only when they agree)."""
     if args.ball_diameter is None and args.ball_radius is None:
         raise ValueError("give the ball size: --ball-diameter 6mm (or --ball-radius 3mm)")
-    from_d = parse_quantity(args.ball_diameter, "m") / 2.0 if args.ball_diameter is not None else None
-    from_r = parse_quantity(args.ball_radius, "m") if args.ball_radius is not None else None
+    from_d = _length("--ball-diameter", args.ball_diameter) / 2.0 if args.ball_diameter is not None else None
+    from_r = _length("--ball-radius", args.ball_radius) if args.ball_radius is not None else None
     if from_d is not None and from_r is not None and not math.isclose(from_d, from_r, rel_tol=1e-6):
         raise ValueError(f"--ball-diameter {args.ball_diameter} and --ball-radius {args.ball_radius} disagree (a "
                          f"radius of {from_d * 1e3:g} mm against {from_r * 1e3:g} mm); give one of them")
     radius = from_r if from_r is not None else from_d
     assert radius is not None
     if not 0 < radius < 0.05:
-        given = args.ball_radius if from_r is not None else args.ball_diameter
-        hint = ""
-        try:
-            float(str(given).strip())
-            hint = f"; a bare number is metres: did you mean {str(given).strip()}mm?"
-        except ValueError:
-            pass
-        raise ValueError(f"ball radius {radius * 1e3:g} mm is implausible (expected e.g. --ball-diameter 6mm){hint}")
+        # what was typed, as read: "ball radius 3000 mm" alone did not say it came from --ball-diameter 6
+        opt, given, read = (("--ball-radius", args.ball_radius, radius) if from_r is not None
+                            else ("--ball-diameter", args.ball_diameter, 2.0 * radius))
+        raise ValueError(f"{opt} {given} (read as {read:g} m): ball radius {radius * 1e3:g} mm is implausible "
+                         f"(expected e.g. {opt} {'3mm' if from_r is not None else '6mm'}){bare_metres_hint(given)}")
     return radius
+
+
+#: the largest caliper gap taken (m): both tips must press into the gel, a DIGIT's about 15-20 x 20-25 mm (as the
+#: ball radius's limit); a bare 5 (meant 5 mm) was read as 5 m and gave a scale of 0.012 px/mm
+MAX_CALIPER_GAP = 0.05
+
+
+def _caliper_gap(text: str) -> float:
+    """--caliper-gap in m: a distance between the tips that fits on a gel, else a ValueError naming the option, its
+    value as read and (a bare number) the millimetres it likely meant."""
+    gap = _length("--caliper-gap", text)
+    if not 0 < gap < MAX_CALIPER_GAP:
+        raise ValueError(f"--caliper-gap {text} (read as {gap:g} m): expected the distance between the caliper's "
+                         f"tips on the gel, above 0 and below {MAX_CALIPER_GAP * 1e3:g} mm (e.g. --caliper-gap 5mm)"
+                         f"{bare_metres_hint(text)}")
+    return gap
 
 
 def _check_scale(px_per_m: float, radius: float, shape: tuple[int, ...], source: str) -> None:
@@ -568,10 +589,10 @@ def cmd_calibrate_depth(args: argparse.Namespace) -> int:
         elif args.caliper is not None:
             if args.caliper_gap is None:
                 raise ValueError("--caliper needs --caliper-gap (the distance between the tips, e.g. 5mm)")
+            gap = _caliper_gap(args.caliper_gap)   # before the image is read: a bare 5 is 5 m, said as such
             bgc = background if background is not None else median_background([im for _, im in images])
-            px_per_m = px_per_mm_from_caliper(_read_image(args.caliper), bgc,
-                                              parse_quantity(args.caliper_gap, "m")) * 1e3
-            scale_from = f"the caliper image {args.caliper}"
+            px_per_m = px_per_mm_from_caliper(_read_image(args.caliper), bgc, gap) * 1e3
+            scale_from = f"the caliper image {args.caliper} with --caliper-gap {args.caliper_gap} ({gap * 1e3:g} mm)"
             log(f"scale from the caliper image: {px_per_m / 1e3:.3f} px/mm")
         else:
             raise ValueError("give the scale: --px-per-mm 17.15, or --caliper IMAGE --caliper-gap 5mm")
@@ -737,7 +758,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         try:
             model = load_model(args.model)
         except ModelFileError as exc:   # an input error as the others: the command's prefix and exit code
-            raise ValueError(f"--model {exc}") from None
+            raise ValueError(f"--model {_no_graph_note(exc, args.model)}") from None
         bg = None
         if args.background:
             bg, what = _background_for_model(args.background, model)
@@ -809,6 +830,15 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return rc
 
 
+def _no_graph_note(exc: Exception, spec: str) -> str:
+    """The message of a file named on the command line that was not found, without the note for a graph's parameters
+    (a relative path is taken from the current folder, not the graph file's): `estimate` reads no graph. Where it was
+    looked for stays."""
+    p = Path(str(spec)).expanduser()
+    note = looked_at(p)   # " (looked at CWD/p: a relative path ... not the graph file's)", as the message has it
+    return str(exc).replace(note, f" (looked at {Path.cwd() / p})") if note else str(exc)
+
+
 def _estimate_input(path: str, pipe: Any) -> tuple[np.ndarray | None, str]:
     """(the frame, '') or (None, why `estimate` cannot read it, without the path): no such file, a folder, not an
     image, another size than the model's."""
@@ -831,7 +861,7 @@ def _force_calibration(path: str, model: str) -> Any:
     try:
         cal = ForceCalibration.load(path)
     except ModelFileError as exc:   # an input error as the others: the command's prefix and exit code
-        raise ValueError(f"--force-calibration {exc}") from None
+        raise ValueError(f"--force-calibration {_no_graph_note(exc, path)}") from None
     if _model_name(model) != _model_name(cal.sensor_model_id):
         made_for = repr(cal.sensor_model_id) if cal.sensor_model_id else "an unnamed depth model"
         raise ValueError(f"--force-calibration {path}: the calibration {cal.path} was made for {made_for}, not for "
@@ -865,10 +895,11 @@ def teletouch_add_commands(subparsers, calibrate):
                              "Writes one model file for `teletouch estimate` and the `depth` component.")
     p.add_argument("--images", required=True, help="folder of press images (PNG/JPEG), one resolution")
     p.add_argument("--ball-diameter", default=None, help="ball diameter, e.g. 6mm (a bare number is metres)")
-    p.add_argument("--ball-radius", default=None, help="or the ball radius, e.g. 3mm")
+    p.add_argument("--ball-radius", default=None, help="or the ball radius, e.g. 3mm (a bare number is metres)")
     p.add_argument("--px-per-mm", default=None, help="image scale: 17.15 (px per mm) or 17.15px/mm")
     p.add_argument("--caliper", default=None, help="or: an image of two caliper tips pressed into the gel")
-    p.add_argument("--caliper-gap", default=None, help="the distance between those tips, e.g. 5mm")
+    p.add_argument("--caliper-gap", default=None, help="the distance between those tips, e.g. 5mm (a bare number is "
+                   "metres)")
     p.add_argument("--labels", default=None, help="contact circles CSV (image,center_x,center_y,radius_px[,note]); "
                    "default: found automatically")
     p.add_argument("--background", nargs="+", action="extend", default=None, metavar="FRAME|DIR",

@@ -42,6 +42,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import ComponentFault, Component, Device, Kind, Params, Port, hookimpl
+from teletouch.argtypes import bare_metres_hint
 from teletouch.paths import output_problem
 from teletouch.runtime import feeders
 from teletouch.reproducible import source_date_epoch
@@ -51,8 +52,8 @@ from teletouch.units import (
 )
 
 from .poly_force import (
-    DEFAULT_MIN_R2, MAX_DEGREE, MAX_POSITION_DEGREE, PHASES, CalibrationError, ForceCalibration, PairsFileError,
-    read_pairs_csv, write_pairs_csv,
+    DEFAULT_MIN_R2, MAX_DEGREE, MAX_DEPTH_M, MAX_POSITION_DEGREE, PHASES, CalibrationError, ForceCalibration,
+    PairsFileError, read_pairs_csv, write_pairs_csv,
 )
 
 __all__ = ["PressRoutine", "SimPressRig", "fit_samples", "run_press_calibration"]
@@ -799,16 +800,26 @@ NEGATIVE_FORCE_TOLERANCE_N = 0.05
 def fit_samples(samples: list[dict[str, Any]], degree: int = 3, *, min_depth: float = 3e-5, use: str = "all",
                 zero_intercept: bool = False, sensor_model_id: str = "", depth_source: str = "",
                 source: str = "", position_degree: int = 0, min_r2: float | None = DEFAULT_MIN_R2,
-                where: str = "") -> ForceCalibration:
+                where: str = "", min_depth_option: str | None = None) -> ForceCalibration:
     """Fit a calibration from recorded samples, leaving out those without contact (depth < min_depth). With
     ``position_degree`` > 0 every kept sample needs its contact centroid (x_m, y_m). A sample in contact with a force
     below -:data:`NEGATIVE_FORCE_TOLERANCE_N` (a missing tare) and a fit with R^2 below ``min_r2`` are refused.
-    ``where``: the samples' file, named with each sample's ``line`` in the errors."""
+    ``where``: the samples' file, named with each sample's ``line`` in the errors. ``min_depth_option``: the
+    ``--min-depth`` text as typed (the command line), named where no sample is that deep."""
     # a NaN depth is kept (and refused by the fit, naming the sample), not counted as a sample without contact
     keep = [s for s in samples if not s["depth_m"] < min_depth]
     if not keep:
-        raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm: did the probe "
-                               f"touch the gel?")
+        notes = []
+        hint = ""
+        if min_depth_option is not None:   # what was typed, as read: a bare 0.005 (meant mm) is 5 mm
+            notes.append(f"--min-depth {min_depth_option}, read as {min_depth:g} m")
+            hint = bare_metres_hint(min_depth_option).removeprefix("; ") if min_depth > 0 else ""
+        deepest = max((s["depth_m"] for s in samples if math.isfinite(s["depth_m"])), default=None)
+        if deepest is not None:
+            notes.append(f"the deepest is {deepest * 1e3:.3f} mm")
+        raise CalibrationError(f"no sample with a max depth of at least {min_depth * 1e3:.3f} mm"
+                               f"{' (' + '; '.join(notes) + ')' if notes else ''}: "
+                               f"{hint or 'did the probe touch the gel?'}")
     problem = _sample_problem(samples, min_depth, position_degree, where) or _negative_force_problem(
         samples, keep, min_depth, where)
     if problem:
@@ -954,11 +965,36 @@ def run_press_calibration(graph: str, *, sets: list[str] | None = None, clock: s
     return result, rt.component(ids[0]), spec
 
 
+#: how the command's errors and warnings start, as `teletouch calibrate depth: error:` (before, `teletouch: error:`)
+PREFIX = "teletouch calibrate force"
+
+
 def _cmd_calibrate_force(args: argparse.Namespace) -> int:
+    """`teletouch calibrate force`: its refusals (a fit refused, a graph without a press routine, an output that could
+    not be written) under the command's own prefix; a graph's validation report as `teletouch run` gives it."""
+    from teletouch.errors import GraphValidationError, TeletouchError
+    from teletouch.runtime import EXIT_INVALID
+
+    try:
+        return _calibrate_force(args)
+    except GraphValidationError:
+        raise
+    except TeletouchError as exc:
+        print(f"{PREFIX}: error: {exc}", file=sys.stderr)
+        return EXIT_INVALID
+    except BrokenPipeError:
+        raise
+    except OSError as exc:   # a calibration or plot that could not be written after all (a full disk)
+        names = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+        print(f"{PREFIX}: error: {exc.strerror or exc}{': ' + names if names else ''}", file=sys.stderr)
+        return EXIT_INVALID
+
+
+def _calibrate_force(args: argparse.Namespace) -> int:
     from teletouch.units import parse_quantity
 
     def usage(msg: str) -> int:
-        print(f"teletouch: error: {msg}", file=sys.stderr)
+        print(f"{PREFIX}: error: {msg}", file=sys.stderr)
         return 2
 
     try:
@@ -967,6 +1003,10 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             raise ValueError(f"expected a depth of at least 0, got {args.min_depth!r}")
     except ValueError as exc:
         return usage(f"--min-depth: {exc}")
+    if min_depth >= MAX_DEPTH_M:   # no gel is pressed that deep: every sample would be no contact, after the press run
+        return usage(f"--min-depth {args.min_depth} (read as {min_depth:g} m): samples shallower than "
+                     f"{min_depth * 1e3:g} mm would all be left out as no contact (no gel is pressed "
+                     f"{MAX_DEPTH_M * 1e3:g} mm deep or more; the default is 0.03mm){bare_metres_hint(args.min_depth)}")
     min_r2 = args.min_r2
     if not 0.0 <= min_r2 < 1.0:   # argparse gave a float (NaN fails this too)
         return usage(f"--min-r2: expected an R^2 from 0 (no limit) to below 1, got {min_r2!r}")
@@ -1030,7 +1070,7 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
             raise CalibrationError(f"{args.csv}: partial samples ({partial}): {_partial_harm(partial)}; rerun the "
                                    f"calibration, or pass --allow-partial to fit them anyway")
         if partial:
-            print(f"teletouch: warning: {args.csv}: fitting partial samples ({partial}) as --allow-partial asks",
+            print(f"{PREFIX}: warning: {args.csv}: fitting partial samples ({partial}) as --allow-partial asks",
                   file=sys.stderr)
         samples = [{"depth_m": float(d), "force_n": float(f), "line": data["line"][i],
                     "column": data["force_column"],
@@ -1043,7 +1083,8 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
                           position_degree=args.position_degree,
                           zero_intercept=args.zero_intercept,
                           sensor_model_id=args.sensor_model_id or data.get("sensor_model_id") or "",
-                          depth_source="csv", source=f"csv:{Path(args.csv).name}", min_r2=min_r2, where=args.csv)
+                          depth_source="csv", source=f"csv:{Path(args.csv).name}", min_r2=min_r2, where=args.csv,
+                          min_depth_option=args.min_depth)
         if partial:
             cal.extra["partial"] = partial   # recorded in the calibration file
     else:
@@ -1078,13 +1119,13 @@ def _cmd_calibrate_force(args: argparse.Namespace) -> int:
                               position_degree=args.position_degree,
                               zero_intercept=args.zero_intercept, sensor_model_id=args.sensor_model_id or model_id,
                               depth_source=depth_src, source=f"press-routine:{Path(args.graph).name}",
-                              min_r2=min_r2)
+                              min_r2=min_r2, min_depth_option=args.min_depth)
         except CalibrationError as exc:
             if ended is None:
                 raise
             # the fit refused the samples of a run a signal (or a fault) ended: the run's exit code, as below, not the
             # fit's (a Ctrl-C said 130 only when the fit succeeded); the samples file is written for --csv
-            print(f"teletouch: error: {exc}", file=sys.stderr)
+            print(f"{PREFIX}: error: {exc}", file=sys.stderr)
             print(f"teletouch: {ended.ending}; the press routine had finished but its samples gave no calibration: "
                   f"none written", file=sys.stderr)
             return ended.exit_code
@@ -1138,7 +1179,7 @@ def _mark_own_samples(routine: PressRoutine, spoiled: str) -> None:
     try:
         write_pairs_csv(own, routine.samples, partial=spoiled)
     except OSError as exc:
-        print(f"teletouch: warning: {own}: could not mark the routine's samples_csv partial ({exc}): its samples may "
+        print(f"{PREFIX}: warning: {own}: could not mark the routine's samples_csv partial ({exc}): its samples may "
               f"hold stale values", file=sys.stderr)
         return
     print(f"marked the routine's samples_csv {own} partial too (a fault may have spoiled its samples)", file=sys.stderr)
@@ -1192,7 +1233,9 @@ def teletouch_add_commands(calibrate: Any) -> None:
     p.add_argument("--allow-partial", action="store_true", help="with --csv: fit samples marked partial (a press "
                    "run that did not finish, or whose samples a fault may have spoiled) instead of refusing them; the "
                    "file records it (extra.partial)")
-    p.add_argument("--min-depth", default="0.03mm", help="samples shallower than this are no contact (left out)")
+    p.add_argument("--min-depth", default="0.03mm", metavar="DEPTH",
+                   help="samples with a max depth below this are no contact (left out); a depth with its unit, e.g. "
+                        "0.03mm (a bare number is metres; default %(default)s)")
     p.add_argument("--min-r2", type=float, default=DEFAULT_MIN_R2, metavar="R2",
                    help=f"refuse (and write nothing for) a fit whose R^2 is below this (default {DEFAULT_MIN_R2:g}; "
                         f"0: no limit)")
