@@ -1238,9 +1238,50 @@ def _unreadable(path: str, fh: Any, size: int, exc: BaseException, cut: bool) ->
     if head[8] != 0x01:
         return (f"{path} is a corrupt MCAP file: byte 8 should start the Header record (opcode 0x01), "
                 f"found 0x{head[8]:02x}")
-    if cut:
-        return f"{path} is an empty MCAP file: it ends ({size} bytes) inside its first record, the Header"
-    return f"{path} is a corrupt MCAP file: its first record (byte 8) cannot be read ({_why(exc)})"
+    cut_short = f"{path} is an empty MCAP file: it ends ({size} bytes) inside its first record, the Header"
+    fh.seek(9)
+    raw_length = fh.read(8)
+    if len(raw_length) < 8:   # the file ends inside the Header's length field
+        return cut_short
+    length = int.from_bytes(raw_length, "little")
+    end = 17 + length   # the Header record: opcode (byte 8), length (bytes 9-16), content
+    corrupt = f"{path} is a corrupt MCAP file ({size} bytes): its first record, the Header"
+    if length > _MAX_HEADER_LENGTH:
+        return (f"{corrupt} gives its length (bytes 9-16) as {length} bytes; expected a few tens (a Header holds two "
+                f"short texts, the profile and the library): the length field is damaged")
+    if end > size:
+        return cut_short if cut else f"{corrupt} (byte 8), cannot be read ({_why(exc)})"
+    fh.seek(17)
+    found = _header_damage(fh.read(length), 17)
+    return f"{corrupt} (bytes 8-{end - 1}), cannot be read: {found or _why(exc)}"
+
+
+#: the largest Header record (content, bytes) taken as whole-but-cut rather than as a damaged length field: a Header
+#: holds two short texts (teletouch writes profile 'ros2' and library 'teletouch': 21 bytes)
+_MAX_HEADER_LENGTH = 4096
+
+
+def _header_damage(content: bytes, at: int) -> str | None:
+    """What is wrong in the content of an MCAP Header record (it starts at byte ``at`` of the file): its two texts,
+    the profile and the library, each a 4-byte length and that many bytes of UTF-8. None where both read."""
+    pos = 0
+    for name in ("profile", "library"):
+        if pos + 4 > len(content):
+            return (f"the {name} text's length (bytes {at + pos}-{at + pos + 3}) lies past the record's end (its "
+                    f"{len(content)} bytes); expected the profile and the library texts")
+        n = int.from_bytes(content[pos:pos + 4], "little")
+        if pos + 4 + n > len(content):
+            return (f"the {name} text's length (bytes {at + pos}-{at + pos + 3}) reads {n} bytes, more than the "
+                    f"record's {len(content)} bytes of content hold (a damaged length; expected the profile and the "
+                    f"library texts, e.g. 'ros2' and 'teletouch')")
+        text = content[pos + 4:pos + 4 + n]
+        try:
+            text.decode("utf-8")
+        except UnicodeDecodeError:
+            return (f"the {name} text (bytes {at + pos + 4}-{at + pos + 3 + n}) is not UTF-8 text: {text!r} (damaged "
+                    f"bytes; expected e.g. 'ros2' or 'teletouch')")
+        pos += 4 + n
+    return None
 
 
 def _graph_epoch(path: str, text: str) -> int:

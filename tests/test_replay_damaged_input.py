@@ -217,9 +217,9 @@ def test_a_recording_whose_first_image_is_damaged_plays_the_rest_and_one_with_no
 
     path = tmp_path / "none.mcap"
     _recording_with_a_damaged_image(path, bad=0, n=1)
-    from teletouch.errors import ModelFileError
+    from teletouch.recording import RecordingError
 
-    with pytest.raises(ModelFileError, match=r"none.mcap: not one image can be decoded \(1 damaged, e\.g\. channel "
+    with pytest.raises(RecordingError, match=r"none.mcap: not one image can be decoded \(1 damaged, e\.g\. channel "
                                              r"/cam/image: message 1 \(at 0\.100 s\) cannot be decoded"):
         with Harness(Replay, {"path": str(path)}):
             pass

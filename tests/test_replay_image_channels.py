@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 
 from teletouch.component import Port
-from teletouch.errors import ModelFileError
 from teletouch.plugins.sensors.replay import Replay
-from teletouch.recording import Recorder
+from teletouch.recording import Recorder, RecordingError
 from teletouch.testing import Harness
 
 pytestmark = pytest.mark.timeout(120)
@@ -38,7 +37,7 @@ def _recording(path: Path) -> Path:
                                               ("mask", "digit.mask", "bool")])
 def test_replay_refuses_a_depth_or_mask_channel_at_configure(tmp_path, port, key, holds):
     path = _recording(tmp_path / "run.mcap")
-    with pytest.raises(ModelFileError) as err:
+    with pytest.raises(RecordingError) as err:
         with Harness(Replay, {"path": str(path), "port": port}):
             pass
     text = str(err.value)

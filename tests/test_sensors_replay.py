@@ -11,6 +11,7 @@ import pytest
 from teletouch import ComponentFault, Sample
 from teletouch.errors import GraphValidationError, ModelFileError
 from teletouch.plugins.sensors.replay import Replay, list_images
+from teletouch.recording import RecordingError
 from teletouch.testing import Harness, make_registry, run_yaml
 
 REG = None
@@ -137,7 +138,7 @@ def test_replay_teletouch_recording(tmp_path, shared_data):
     stamps = [s.stamp for _, s in got]
     assert len(got) >= 10 and rt.component("cam").skipped == 0 and rt.component("cam").passes >= 1
     assert np.diff(stamps) == pytest.approx([0.05] * (len(stamps) - 1), abs=1e-6)
-    with pytest.raises(ModelFileError, match="no image channel 'nope'"):
+    with pytest.raises(RecordingError, match="no image channel 'nope'"):
         with Harness(Replay, {"path": str(path), "port": "nope"}):
             pass
 
@@ -193,13 +194,13 @@ def test_replay_unreadable_or_truncated_recording(tmp_path):
 
     empty = tmp_path / "empty.mcap"
     empty.write_bytes(b"")
-    with pytest.raises(ModelFileError, match=r"empty.mcap is empty \(0 bytes\), not an MCAP recording$") as info:
+    with pytest.raises(RecordingError, match=r"empty.mcap is empty \(0 bytes\), not an MCAP recording$") as info:
         with Harness(Replay, {"path": str(empty)}):
             pass
     assert str(info.value).count(str(empty)) == 1  # named once
     text = tmp_path / "text.mcap"
     text.write_text("hello")
-    with pytest.raises(ModelFileError, match="text.mcap is not an MCAP file"):
+    with pytest.raises(RecordingError, match="text.mcap is not an MCAP file"):
         with Harness(Replay, {"path": str(text)}):
             pass
 
@@ -224,8 +225,8 @@ def test_replay_unreadable_or_truncated_recording(tmp_path):
     assert "3 messages read before it" in logs[0]
     # cut before its first frame (inside the first chunk): an error that says why there are no images
     cut.write_bytes(path.read_bytes()[:chunks[0] + 30])
-    with pytest.raises(ModelFileError, match=r"crashed.mcap: the recording has no images; the recording is "
-                                             r"truncated at byte \d+ .*; 0 messages read before it"):
+    with pytest.raises(RecordingError, match=r"crashed.mcap: the recording has no images; the recording is "
+                                            r"truncated at byte \d+ .*; 0 messages read before it"):
         with Harness(Replay, {"path": str(cut)}):
             pass
 

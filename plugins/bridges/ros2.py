@@ -16,31 +16,37 @@ digit -> depth -> poly-force -> ros2-publish, machine B runs ros2-subscribe -> p
 | value (float, any unit)       | std_msgs/msg/Float64 (no stamp)      | value_topic                           |
 
 Clocks. Every stamped message carries the sample's own stamp (a camera's capture time, not the publish time) in
-``header.stamp``, as ROS time = Unix time (the system clock, what ROS uses without ``use_sim_time``): ``ros = graph +
-(time.time() - graph_now())``, measured at each conversion on a wall-clock graph (the Unix time read between two
-graph-clock reads, read again when the pair is more than 0.1 ms apart: a preemption between two reads would shift the
-stamps by its length), and fixed when the node activates on a simulated clock. The subscriber keeps a message's stamp as
-Unix time and maps it to its own graph clock when a step outputs it (so a message that arrived while the graph was
-starting keeps its age), so a sample keeps its age across the bridge, and a consumer's ``max_age`` sees the force go
-stale when the publisher dies. Across machines this needs synchronised system clocks (chrony/PTP); where they are not,
-``stamps: arrival`` stamps each message with its arrival time (transport latency is then hidden). A stamp more than
-``max_clock_skew`` in the future is clamped to the arrival time and counted (``status()['skewed']``); one more than 1 s
-old on arrival is kept and reported (``late``, ``lag_s``); a zero stamp (the sender does not stamp) or an invalid one is
-refused. A value with the stamp of the last one taken for its port is a repeat, not a new measurement
-(``duplicates`` when a message has nothing else): it is not output again, so a sender re-sending its last message
-cannot keep a force fresh (per port: a JointState's fields of one measurement may come in two messages); the
-publisher sends each measurement once (by stamp, also under ``isolate: process``). A value whose stamp is older than
-that of the last one taken for its port (a second publisher on the topic, messages out of order) is dropped, counted
-(``out_of_order``) and logged once, with either ``stamps`` mode (a stamp clamped as in the future is not compared
-with); a port's output stamps never go back (a clamped one is put just after the port's last one where it is not).
+``header.stamp``, as ROS time = Unix time (the system clock, what ROS uses without ``use_sim_time``):
+``ros = graph + (time.time() - graph_now())``, measured at each conversion on a wall-clock graph (the Unix time read
+between two graph-clock reads, read again when the pair is more than 0.1 ms apart: a preemption between two reads would
+shift the stamps by its length), and fixed when the node activates on a simulated clock (the stamps are then synthetic:
+that Unix time plus graph time, running at the simulation's pace). Each graph stamp is converted once (remembered for
+the last ``STAMP_MEMORY``), so the messages of one measurement (a frame's image, depth and force) carry identical header
+stamps. The subscriber keeps a message's stamp as Unix time and maps it to its own graph clock when a step outputs it
+(so a message that arrived while the graph was starting keeps its age), so a sample keeps its age across the bridge, and
+a consumer's ``max_age`` sees the force go stale when the publisher dies. Across machines this needs synchronised system
+clocks (chrony/PTP); where they are not, ``stamps: arrival`` stamps each message with its arrival time (transport
+latency is then hidden). A stamp more than ``max_clock_skew`` in the future is clamped to the arrival time and counted
+(``status()['skewed']``); one more than 1 s old on arrival is kept and reported (``late``; ``lag_s`` is arrival minus
+the stamp as sent, clamped or not); a zero stamp (the sender does not stamp) or an invalid one is refused. A value with
+the stamp of the last one taken for its port is a repeat, not a new measurement (``duplicates`` when a message has
+nothing else): it is not output again, so a sender re-sending its last message cannot keep a force fresh (per port: a
+JointState's fields of one measurement may come in two messages); the publisher sends each measurement once (by stamp,
+also under ``isolate: process``). A value whose stamp is older than that of the last one taken for its port (a second
+publisher on the topic, messages out of order) is dropped, counted (``out_of_order``) and logged once, with either
+``stamps`` mode (a stamp clamped as in the future is not compared with); a port's output stamps never go back (a clamped
+one is put just after the port's last one where it is not). With ``stamps: arrival``, ``restart_after`` takes a stamp
+older than the last one by more than that as the sender starting again (``ros2 bag play --loop``), counted
+(``restarts``).
 
-Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it
-(a non-finite JointState field is left out, the others go on); the subscriber also refuses a JointState whose
-finite opening is above ``max_opening`` and a depth above ``max_depth``
-(millimetres in a metre field), and malformed images. Refused messages are counted (``bad``) and each kind of
-problem is logged once. A WrenchStamped or Image whose ``header.frame_id`` is not ``frame_id`` (default ``digit``,
-the publisher's; null: any) is refused before its stamp is looked at, counted (``wrong_frame``) and logged once per
-topic: another sender's wrench (a wrist force/torque sensor) is no fingertip force. A JointState's frame is not read.
+Values. A non-finite value never crosses the bridge: the publisher does not send it, the subscriber refuses it (a
+non-finite JointState field is left out, the others go on); the subscriber also refuses a JointState whose finite
+opening is above ``max_opening`` and a depth above ``max_depth`` (millimetres in a metre field), a force above
+``max_force`` (200 N) or below ``min_force`` (-0.05 N; one between it and 0 is output as 0: a grip force is >= 0), and
+malformed images. Refused messages are counted (``bad``) and each kind of problem is logged once. A WrenchStamped or
+Image whose ``header.frame_id`` is not ``frame_id`` (default ``digit``, the publisher's; null: any) is refused before
+its stamp is looked at, counted (``wrong_frame``) and logged once per topic: another sender's wrench (a wrist
+force/torque sensor) is no fingertip force. A JointState's frame is not read.
 
 Each node has its own rclpy Context (its own DDS participant; ``domain_id`` param, default ``ROS_DOMAIN_ID``, both
 checked to be 0..232), never the global default context nor rclpy's signal handlers, and spins its executor in a
@@ -62,9 +68,12 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
-from teletouch.units import MAX_PLAUSIBLE_DEPTH_LIMIT, Meters, Seconds, plausible_depth, plausible_opening
+from teletouch.units import (
+    MAX_PLAUSIBLE_DEPTH_LIMIT, Meters, Newtons, Seconds, plausible_depth, plausible_opening, plausible_quantity,
+)
 
 from .. import ros_names, ros_qos
+from ..estimators.poly_force import MAX_FORCE_N
 
 TOPICS = ("force", "image", "depth", "joint_states", "value")
 TOPIC_FIELDS = tuple(f"{k}_topic" for k in TOPICS)
@@ -74,7 +83,13 @@ PORT_TOPIC = {"force": "force", "image": "image", "depth": "depth", "opening": "
 TopicKey = Literal["force", "image", "depth", "joint_states", "value"]
 _AXES = {"x": 0, "y": 1, "z": 2}
 GRAPH_CHECK_PERIOD = 1.0     # s between checks of the other endpoints' message types on our topics
+#: the publisher remembers the ROS stamp it gave this many recent graph stamps: the messages of one measurement (a
+#: camera frame's image, depth and force, published in different steps) carry the same header.stamp
+STAMP_MEMORY = 1024
 LATE_AFTER = 1.0             # s: a stamp this much older than its arrival is reported (clocks, replays)
+#: the largest ``max_force`` the subscriber takes: a larger bound is millinewtons typed in the newton field (a typo
+#: there would switch the guard off)
+MAX_PLAUSIBLE_FORCE_LIMIT = 1000.0   # N
 
 # ROS 2 names (teletouch.plugins.ros_names), checked when a graph is validated rather than when rclpy refuses them
 # at start-up
@@ -470,6 +485,7 @@ class Ros2Publish(Component):
                  "joint_states": p.joint_states_topic, "value": p.value_topic}
         self._pubs: dict[str, Any] = {}
         self._last: dict[str, Sample] = {}
+        self._stamps: dict[float, int] = {}   # graph stamp -> the header.stamp (Unix ns) its messages carry
         self.published = 0
         self.bad = 0
         self._log_once = _LogOnce(self.ctx)
@@ -484,7 +500,22 @@ class Ros2Publish(Component):
 
     def activate(self) -> None:
         self._clock = _Clock(self.ctx)
+        self._stamps = {}
         self._wait_for_subscribers()
+
+    def _stamp_ns(self, graph_t: float) -> int:
+        """The header.stamp (Unix ns) of the messages of a sample stamped ``graph_t``: converted once and remembered
+        for the last :data:`STAMP_MEMORY` graph stamps, so that the messages of one measurement (a camera frame's
+        image, depth and force, on three topics and often in three steps) carry identical stamps, as a ROS user's
+        exact-time synchroniser needs. Converted at each message, they differed by up to a few hundred ns: on a
+        wall clock the Unix to graph offset is measured anew at each conversion, and float seconds near 1.7e9 s
+        resolve 238 ns."""
+        ns = self._stamps.get(graph_t)
+        if ns is None:
+            ns = self._stamps[graph_t] = max(0, int(round(self._clock.to_ros(graph_t) * 1e9)))
+            if len(self._stamps) > STAMP_MEMORY:
+                del self._stamps[next(iter(self._stamps))]   # the oldest conversion (dicts keep their order)
+        return ns
 
     def _waited(self) -> dict[str, int]:
         """{topic key: subscribers to wait for} (wait_for_subscribers; no key: no wait)."""
@@ -554,13 +585,13 @@ class Ros2Publish(Component):
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64
 
-        from teletouch.recording import image_msg, ros_time
+        from teletouch.recording import image_msg, ros_time_ns
 
         p = self.params
         s = self._new(inputs, "force")
         if s is not None and self._finite("force", v := float(s.value)):
             m = WrenchStamped()
-            m.header.stamp = ros_time(self._clock.to_ros(s.stamp))
+            m.header.stamp = ros_time_ns(self._stamp_ns(s.stamp))
             m.header.frame_id = p.frame_id
             setattr(m.wrench.force, p.force_axis, v)
             self._pub("force").publish(m)
@@ -575,7 +606,7 @@ class Ros2Publish(Component):
                     if not np.isfinite(a).all():
                         self._finite("depth", float(a[~np.isfinite(a)].flat[0]))
                         continue
-                self._pub(name).publish(image_msg(a, self._clock.to_ros(s.stamp), p.frame_id))
+                self._pub(name).publish(image_msg(a, 0.0, p.frame_id, stamp_ns=self._stamp_ns(s.stamp)))
                 self.published += 1
         # one JointState per measurement time: a field goes out only with its own stamp, so the last velocity of a
         # source that stopped is not re-sent under the opening's newer stamps (it would look fresh on the far side)
@@ -587,7 +618,7 @@ class Ros2Publish(Component):
         for stamp in sorted(groups):
             fields = groups[stamp]
             m = JointState()
-            m.header.stamp = ros_time(self._clock.to_ros(stamp))
+            m.header.stamp = ros_time_ns(self._stamp_ns(stamp))
             m.header.frame_id = p.frame_id
             m.name = [p.joint_name]
             if "opening" in fields:
@@ -649,6 +680,31 @@ class Ros2Subscribe(Component):
                                     "refused: millimetres in the metre field", json_schema_extra={"unit": "m"})
         max_depth: Meters = Field(0.05, gt=0, description="a depth map with a value larger than this is refused: "
                                   "millimetres in the metre field", json_schema_extra={"unit": "m"})
+        max_force: Newtons = Field(MAX_FORCE_N, gt=0, description="a force larger than this is refused: implausible "
+                                   "for a fingertip (millinewtons in the newton field, a broken sender)",
+                                   json_schema_extra={"unit": "N"})
+        min_force: Newtons = Field(-0.05, le=0, description="a force below this is refused (a grip force is >= 0 N: "
+                                   "a sender with the opposite sign); one between it and 0 (noise around a sensor's "
+                                   "zero) is output as 0", json_schema_extra={"unit": "N"})
+        restart_after: Seconds | None = Field(
+            None, gt=0, description="stamps: arrival only: a header.stamp older than the last one taken by more than "
+            "this is the sender's stamps starting again (ros2 bag play --loop beginning its next pass), not an old "
+            "message: taken, counted (restarts) and logged once; None: dropped as out of order",
+            json_schema_extra={"unit": "s"})
+
+        @field_validator("max_force")
+        @classmethod
+        def _plausible_force(cls, v: float, info: Any) -> float:
+            return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_FORCE_LIMIT, "N",
+                                      "beyond any fingertip force sensor's range")
+
+        @model_validator(mode="after")
+        def _restart_with_arrival(self) -> "Ros2Subscribe.Params":
+            if self.restart_after is not None and self.stamps != "arrival":
+                raise ValueError("restart_after: only with stamps: arrival (with stamps: message a restarted "
+                                 "sender's older stamps would take the port back in time; a replayed bag's "
+                                 "recorded stamps are stale anyway)")
+            return self
 
         @field_validator("max_opening")
         @classmethod
@@ -694,6 +750,7 @@ class Ros2Subscribe(Component):
         self.unstamped = 0
         self.duplicates = 0
         self.out_of_order = 0
+        self.restarts = 0
         self.late = 0
         self.off_axis = 0
         self.wrong_frame = 0
@@ -797,6 +854,16 @@ class Ros2Subscribe(Component):
         wrong stamp would silence the port until the sender's clock reached it); a sender whose clock steps back
         is not heard until its stamps pass the last one taken."""
         older = {port: last for port in values if (last := self._last_order.get(port, raw)) > raw}
+        after = self.params.restart_after
+        if after is not None and (restarted := [port for port, last in older.items() if last - raw > after * 1e9]):
+            self.restarts += 1
+            self._log_once(("restart", key), f"{key} topic: header.stamp {(older[restarted[0]] - raw) * 1e-9:.3f} s "
+                                             f"older than the last one taken for '{restarted[0]}', more than "
+                                             f"restart_after ({after:g} s): taken as the sender starting again (a "
+                                             f"looped bag's next pass); further ones are counted (restarts)")
+            for port in restarted:
+                del older[port]
+                self._last_order.pop(port, None)
         if not older:
             return values
         self.out_of_order += 1
@@ -836,9 +903,16 @@ class Ros2Subscribe(Component):
     def _on_force(self, msg: Any) -> None:
         if not self._frame_ok("force", msg.header):
             return
-        axis = self.params.force_axis
+        p = self.params
+        axis = p.force_axis
         f = msg.wrench.force
         v = self._finite("force", float(getattr(f, axis)))
+        if v > p.max_force:
+            raise _Bad("force larger than max_force", f" ({v:g} N > {p.max_force:g} N): implausible for a fingertip "
+                                                      f"(millinewtons sent as newtons? WrenchStamped is in N)")
+        if v < p.min_force:
+            raise _Bad("force below min_force", f" ({v:g} N < {p.min_force:g} N): a grip force is >= 0 N (does the "
+                                                f"sender's force_axis point the other way?)")
         if v == 0.0:
             other = {a: float(getattr(f, a)) for a in _AXES if a != axis and float(getattr(f, a)) != 0.0}
             if other:
@@ -846,7 +920,7 @@ class Ros2Subscribe(Component):
                 a, fa = next(iter(other.items()))
                 self._log_once(("axis", a), f"force topic: force.{axis} (force_axis) is 0 while force.{a} is "
                                             f"{fa:g} N: does the sender put the force on another axis?")
-        self._take("force", msg.header, {"force": v})
+        self._take("force", msg.header, {"force": v if v > 0.0 else 0.0})   # (-0.0 too: a grip force is >= 0)
 
     def _image(self, msg: Any, what: str) -> np.ndarray:
         from teletouch.recording import image_from_msg
@@ -948,12 +1022,13 @@ class Ros2Subscribe(Component):
                     "skewed": getattr(self, "skewed", 0), "late": getattr(self, "late", 0),
                     "off_axis": getattr(self, "off_axis", 0), "wrong_frame": getattr(self, "wrong_frame", 0),
                     "duplicates": getattr(self, "duplicates", 0),
-                    "out_of_order": getattr(self, "out_of_order", 0), **_ros_status(self)}
+                    "out_of_order": getattr(self, "out_of_order", 0), "restarts": getattr(self, "restarts", 0),
+                    **_ros_status(self)}
         lag = getattr(self, "lag", None)
         return {"received": getattr(self, "received", 0),
                 "since_last_s": (time.monotonic() - rx) if rx is not None else math.inf,
                 "lag_s": lag if lag is not None else math.nan,
-                "problems": sum(v for k, v in problems.items() if k != "duplicates"),
+                "problems": sum(v for k, v in problems.items() if k not in ("duplicates", "restarts")),
                 **problems}
 
     def close(self) -> None:

@@ -229,7 +229,7 @@ class _Recording(_Source):
 
     def __init__(self, path: Path, port: str | None, log: Callable[[str], None] | None = None):
         try:
-            from teletouch.recording import iter_images
+            from teletouch.recording import RecordingError, iter_images
         except ImportError as e:  # pragma: no cover - the core ships it
             raise ModelFileError(f"{path}: replaying recordings needs teletouch.recording.iter_images ({e})") from None
         self.iter_images = iter_images
@@ -243,14 +243,14 @@ class _Recording(_Source):
         try:
             next(iter(iter_images(path, port=port, log=warnings.append, on_damaged=lambda s, e: damaged.append(e))))
         except StopIteration:
-            raise ModelFileError(f"{path}: " + (
+            raise RecordingError(f"{path}: " + (
                 f"not one image can be decoded ({len(damaged)} damaged, e.g. "
                 f"{str(damaged[0]).removeprefix(f'{path}: ')})" if damaged else "the recording has no images")
                 + (f" on channel '{port}'" if port else "")
                 + "".join(f"; {w.removeprefix(f'warning: {path}: ')}" for w in warnings)
             ) from None
-        except Exception as e:
-            raise ModelFileError(str(e) if str(path) in str(e) else f"{path}: {e}") from None
+        except Exception as e:   # a recording, not a model file: its own error type (the exit code is the same)
+            raise RecordingError(str(e) if str(path) in str(e) else f"{path}: {e}") from None
         if log is not None:
             for w in warnings:
                 log(f"replay: {w}")
