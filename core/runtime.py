@@ -968,6 +968,11 @@ class Runtime:
                 status = (status[0], status[1], status[2] + "; devices driven to their safe state" + but)
             elif but:
                 status = (status[0], status[1], status[2] + but)
+        elif status[0] == "startup-failed" and unsafe:   # (its exit code stays 4: the start-up is what failed)
+            f = unsafe[0]
+            more = len({u.node for u in unsafe} - {f.node})
+            status = (status[0], status[1], status[2] + f"; and node '{f.node}' may not be in its safe state "
+                      f"({f.kind}: {f.message})" + (f", nor {more} other device(s)" if more else ""))
         return RunResult(status=status[0], exit_code=status[1], message=status[2], sim_time=self._now,
                          wall_time=wall, clock=self.clock, nodes=self.stats(), faults=list(self.faults),
                          startup_time=startup, error=error, late_signal=late_signal,
