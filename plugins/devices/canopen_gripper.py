@@ -38,14 +38,20 @@ forgotten. Answers written off are remembered: one that comes after all arrives 
 waits (within its ``pdo_timeout``) for them too; not there, they are lost, and the frame received after its SYNC is its
 answer. A drive in FAULT (statusword; reported with its EMCY), a lost heartbeat, a heartbeat saying the drive left NMT
 OPERATIONAL, or missing TPDOs end in a HardwareError naming the cause; so does a python-can error that ends a step (its
-SYNC or RPDO1 not sent, python-can's receive thread stopped: "Failed to transmit: No such device" from an unplugged
-adapter), a start-up request or a safe state's send (logged), naming the drive, interface:channel, what failed and what
-to check (:func:`bus_failure_hint`). Heartbeats and TPDOs are timed and counted as they arrive, on the local monotonic
-clock: a received frame's timestamp is on whatever clock the python-can interface uses (epoch on socketcan; monotonic, a
-device counter or none on others). Scaling (counts <-> opening, per-mille current <-> newtons) is configuration; an EDS
-file is optional (without one, the standard CiA 301/402 objects above are assumed). ``interface`` must be one python-can
-knows (checked with the params); one that does not open gets that interface's advice (:func:`open_failure_hint`) and
-what python-can logged on the way (a vendor library it could not load), which is then not printed.
+SYNC or RPDO1 not sent: "Failed to transmit: No such device" from an unplugged adapter), a start-up request or a safe
+state's send (logged), naming the drive, interface:channel, what failed and what to check (:func:`bus_failure_hint`).
+An error in receiving (python-can's recv() raising in its receive thread, which goes on: :class:`ReceiveErrors`) that
+frames follow is got over, logged by the next read and counted (status() ``receive_errors``); one that no frame follows
+for ``read_timeout`` (or while the drive's heartbeat is missing that long, or a state is) ends the run the same way,
+naming python-can's error, as does an SDO request at start-up left without an answer by such a failure; python-can's
+receive thread ended all the same (a fault of the program, not of the bus: not started again, see
+:meth:`CanopenGripper._receiver_ended`) is a HardwareError at the next read. Heartbeats and TPDOs are timed and counted
+as they arrive, on the local monotonic clock: a received frame's timestamp is on whatever clock the python-can interface
+uses (epoch on socketcan; monotonic, a device counter or none on others). Scaling (counts <-> opening, per-mille current
+<-> newtons) is configuration; an EDS file is optional (without one, the standard CiA 301/402 objects above are
+assumed). ``interface`` must be one python-can knows (checked with the params); one that does not open gets that
+interface's advice (:func:`open_failure_hint`) and what python-can logged on the way (a vendor library it could not
+load), which is then not printed.
 
 The drive watches the host (host heartbeat): the driver watches the drive's heartbeat, and without this the drive kept
 going, enabled and on its last set-point, when the host died, hung or lost its cable. With ``host_heartbeat_period`` > 0
@@ -353,6 +359,9 @@ class CanopenGripper(FollowerBase):
         except SdoAbortedError as exc:
             raise HardwareError(f"{what}: {self._where()} refused it (SDO abort: {exc})") from exc
         except SdoCommunicationError as exc:
+            lost = self._receive_failure(f"no SDO answer to {what}")
+            if lost is not None:
+                raise lost from lost.__cause__
             raise HardwareError(f"{what}: no SDO answer from {self._where()} ({exc}); check power, wiring, "
                                 f"termination, bit rate and node id") from exc
         except self._bus_errors as exc:   # the request itself did not go out
@@ -387,6 +396,10 @@ class CanopenGripper(FollowerBase):
                 raise HardwareError(f"CAN interface {p.channel} is down: bring it up with {cmd}"
                                     + ("" if info["virtual"] else " (the drive's bit rate: the bitrate param)"))
         self.network = canopen.Network()
+        # (in the Network's listeners before connect() starts python-can's receive thread: an error at its first
+        # recv() ended it, with no listener to handle it yet)
+        self._rx = ReceiveErrors()
+        self.network.listeners.append(self._rx)
         logged = LogLines("can")   # python-can's words on the way (a vendor library it could not load)
         try:
             with logged:
@@ -396,7 +409,7 @@ class CanopenGripper(FollowerBase):
                                                      if logged.lines else "")
             raise HardwareError(f"cannot open CAN interface {p.interface}:{p.channel} ({said}); "
                                 f"{open_failure_hint(exc, p.interface, p.channel, p.bitrate)}") from exc
-        self.network.notifier.add_listener(ReceiveErrorWait())
+        self._rx.attach(self.network.notifier)
         try:
             od = p.eds if p.eds else standard_od(p.node_id)
             node = canopen.BaseNode402(p.node_id, od)
@@ -460,6 +473,9 @@ class CanopenGripper(FollowerBase):
         try:
             self._walk_to_enabled(found_in_fault)
         except (RuntimeError, ValueError) as exc:
+            lost = self._receive_failure("the state walk to OPERATION ENABLED")
+            if lost is not None:
+                raise lost from lost.__cause__
             raise HardwareError(f"{self._where()} did not reach OPERATION ENABLED ({exc}; statusword "
                                 f"0x{node.statusword:04X}, {self._emcy_text()})") from exc
         finally:
@@ -467,6 +483,7 @@ class CanopenGripper(FollowerBase):
             syncs.join()
         self._hb_seen = time.monotonic()
         self._nmt_state = None  # heartbeats from here on (the ones before said PRE-OPERATIONAL)
+        self._check_receiving()   # (errors in receiving the start-up got over: logged)
 
     def _fault(self, sw: int, what: str, logged: str) -> bool:
         """Whether statusword ``sw`` is FAULT (or its reaction): then refused, a HardwareError "<the drive> <what>"
@@ -960,11 +977,15 @@ class CanopenGripper(FollowerBase):
 
     def _hw_read(self) -> Reading | None:
         p = self.params
-        # an error in python-can's receive thread (an unplugged adapter; kept by its Notifier, see ReceiveErrorWait):
-        # first, before the heartbeats and TPDOs it no longer receives are taken for a lost drive
-        failed = getattr(self.network.notifier, "exception", None)
-        if failed is not None:
-            raise self._bus_lost("receiving", failed) from failed
+        # errors in receiving (python-can's receive thread, see ReceiveErrors) first, before the heartbeats and TPDOs
+        # not received are taken for a lost drive: one that frames followed is logged; one that goes on for the
+        # driver's bounds (read_timeout since its first error, or the drive's heartbeat watch) ends the run
+        failing = self._check_receiving()
+        if failing is not None:
+            first, _, exc = failing
+            now = time.monotonic()
+            if now - first > p.read_timeout or (p.heartbeat_period > 0 and now - self._hb_seen > p.read_timeout):
+                raise self._bus_lost("receiving", exc) from exc
         # the host heartbeat first: where it could not be sent for the drive's consumer time, that is the cause of
         # what the drive did then (quick stop, NMT PRE-OPERATIONAL)
         self._check_host_heartbeat()
@@ -1006,6 +1027,56 @@ class CanopenGripper(FollowerBase):
         amps = self.tp2[0x6078].raw / 1000.0 * self.rated_ma / 1000.0
         vel = self.tp2[0x606C].raw * self._mps_per_unit   # the drive's velocity unit -> counts/s -> m/s
         return Reading(self.map.opening(counts), vel, abs(amps) * p.newtons_per_amp, 0.5 * (t0 + t1))
+
+    def _check_receiving(self) -> tuple[float, int, BaseException] | None:
+        """Errors in receiving (:class:`ReceiveErrors`): each run of them that frames ended is logged (the frames flow
+        again: going on); python-can's receive thread ended is a HardwareError (:meth:`_receiver_ended`); the failure
+        frames have not ended yet (its first error's time, failed receives, the last error), or None."""
+        rx = self._rx
+        for first, back, n, exc in rx.take():
+            times = "" if n == 1 else f", {n} times in a row"
+            self.ctx.log(f"receiving on {self._where()} failed ({type(exc).__name__}: {exc}{times}); frames arrived "
+                         f"again {back - first:.3f} s after the first error: going on ({rx.count} failed receives "
+                         f"so far)")
+        ended = self._receiver_ended()
+        if ended is not None:
+            raise ended from ended.__cause__
+        return rx.failing()
+
+    def _receiver_ended(self) -> HardwareError | None:
+        """python-can's receive thread ended while the bus is open (:meth:`ReceiveErrors.stopped`): nothing is
+        received any more, for good. A HardwareError (from the last error in receiving where there was one) that has
+        the driver started again, not a new thread: with ReceiveErrors handling every error, python-can ends the
+        thread only where another listener's on_error raises or something other than an Exception is raised in it
+        (the program's fault, which a new thread would meet again), and a new thread is a new Notifier in place of
+        canopen's (``Notifier.add_bus`` refuses a bus a running Notifier holds); None while it runs."""
+        rx = getattr(self, "_rx", None)
+        if rx is None or not rx.stopped():
+            return None
+        p, failing = self.params, rx.failing()
+        said = "" if failing is None else f" after {type(failing[2]).__name__}: {failing[2]}"
+        err = HardwareError(f"{self._where()}: python-can's receive thread for {p.interface}:{p.channel} has "
+                            f"ended{said}; nothing is received any more (no state, heartbeat or SDO answer): close "
+                            f"the driver and start it again")
+        err.__cause__ = None if failing is None else failing[2]
+        return err
+
+    def _receive_failure(self, what: str) -> HardwareError | None:
+        """For a wait that ended without an answer (``what``): python-can's receive thread ended, or the error in
+        receiving that no frame has followed, as :meth:`_bus_lost` names it (chained from it: ``__cause__``); None
+        when neither."""
+        ended = self._receiver_ended()
+        if ended is not None:
+            return ended
+        rx = getattr(self, "_rx", None)
+        failing = None if rx is None else rx.failing()
+        if failing is None:
+            return None
+        first, n, exc = failing
+        err = self._bus_lost(f"receiving ({what}; {n} failed receives in {time.monotonic() - first:.3f} s, no "
+                             f"frame since)", exc)
+        err.__cause__ = exc
+        return err
 
     def _host_loss_hint(self) -> str:
         """For a drive that left OPERATION ENABLED: that it may be its reaction to a missed host heartbeat."""
@@ -1051,11 +1122,18 @@ class CanopenGripper(FollowerBase):
             return super().read_state(t)
         except HardwareError as exc:
             if "no valid state" in str(exc):
+                lost = self._receive_failure("no valid state")   # (python-can's error says why)
+                if lost is not None:
+                    raise lost from lost.__cause__
                 raise HardwareError(f"{exc}: {self._read_problem()}") from None
             raise
 
     def _read_problem(self) -> str:
-        return f"{self._where()}, last problem: {getattr(self, 'last_error', '?')}"
+        rx = getattr(self, "_rx", None)
+        failing = None if rx is None else rx.failing()
+        receiving = "" if failing is None else (f"; receiving has failed for {time.monotonic() - failing[0]:.3f} s "
+                                                f"({type(failing[2]).__name__}: {failing[2]})")
+        return f"{self._where()}, last problem: {getattr(self, 'last_error', '?')}{receiving}"
 
     def activate(self) -> None:
         super().activate()
@@ -1168,6 +1246,8 @@ class CanopenGripper(FollowerBase):
     def status(self) -> dict[str, Any]:
         d = super().status()
         d["emcy"] = len(getattr(self, "emcys", []))
+        rx = getattr(self, "_rx", None)
+        d["receive_errors"] = 0 if rx is None else rx.count   # failed receives (python-can's recv() raised)
         return d
 
 
@@ -1403,21 +1483,83 @@ class LogLines(logging.Handler):
         self.logger.removeHandler(self)
 
 
-RECEIVE_RETRY = 0.1   # s python-can's receive thread waits after an error before it receives again
+RECEIVE_RETRY = 0.1   # s python-can's receive thread waits after a second error in a row before it receives again
 
 
-class ReceiveErrorWait:
-    """A listener of the Notifier of canopen's Network (python-can's receive thread): an error in receiving (an
-    unplugged adapter: "Error receiving: No such device") ended that thread, its traceback on stderr ("Exception in
-    thread ..."), before the driver's report. Handled here, it waits ``RECEIVE_RETRY`` and receives again (until
-    close(): a few tries a second, not a spin on a dead socket); the Notifier keeps the error (``exception``), which
-    the driver's next read reports (as canopen's next send raises it)."""
+class ReceiveErrors:
+    """A listener of the Notifier of canopen's Network (python-can's receive thread) that judges errors in receiving
+    (python-can's ``recv()`` raising: a brief adapter error, an unplugged adapter's "Error receiving: No such device").
+    Its ``on_error`` handles them, so python-can's thread goes on receiving (one that no listener handles ends the
+    thread, its traceback on stderr). The error is taken from the Notifier (``exception``), where canopen's
+    ``Network.check()`` would raise it from every later send (an SDO request, the SYNC, RPDO1) as if receiving had
+    stopped, and kept here: failed receives in a row without a frame between them are a run, which the next frame (not
+    an error frame) received ends: the bus works again. After the first error of a run the thread receives again at
+    once, after each further one it waits ``RECEIVE_RETRY`` (until close(): a few tries a second, not a spin on a dead
+    socket). The driver's reads take the runs that ended (:meth:`take`) to log them, and end the run on a receive
+    failure that goes on (:meth:`failing`) within its bounds; ``count`` is the number of failed receives. ``thread``
+    is python-can's receive thread (seen at its first frame or error), for :meth:`stopped`. It is one of the
+    Network's ``listeners`` before ``connect()``, which starts the thread, and is given the Notifier after
+    (:meth:`attach`)."""
+
+    def __init__(self) -> None:
+        self._notifier: Any = None
+        self._last: BaseException | None = None   # the last error handled
+        self._lock = threading.Lock()
+        self.thread: threading.Thread | None = None
+        self.count = 0
+        #: the run no frame has ended yet: (monotonic time of its first error, its failed receives, the last error)
+        self._failing: tuple[float, int, BaseException] | None = None
+        #: runs that frames ended, not yet taken: (first error, first frame after the run, failed receives, last error)
+        self._ended: list[tuple[float, float, int, BaseException]] = []
 
     def __call__(self, msg: Any) -> None:
-        return None
+        if self.thread is None:
+            self.thread = threading.current_thread()
+        if self._failing is not None and not msg.is_error_frame:
+            with self._lock:
+                if self._failing is not None:
+                    first, n, exc = self._failing
+                    self._ended.append((first, time.monotonic(), n, exc))
+                    self._failing = None
+
+    def attach(self, notifier: Any) -> None:
+        """The Notifier connect() made (its thread started before it was known: an error it met is taken now)."""
+        with self._lock:
+            self._notifier, last = notifier, self._last
+        if last is not None and notifier.exception is last:
+            notifier.exception = None
 
     def on_error(self, exc: Exception) -> None:
-        time.sleep(RECEIVE_RETRY)
+        self.thread = threading.current_thread()
+        with self._lock:
+            self.count += 1
+            self._last = exc
+            again = self._failing is not None
+            self._failing = (self._failing[0] if again else time.monotonic(),
+                             self._failing[1] + 1 if again else 1, exc)
+            notifier = self._notifier
+        if notifier is not None and notifier.exception is exc:   # (set by python-can just before it called this)
+            notifier.exception = None
+        if again:
+            time.sleep(RECEIVE_RETRY)
+
+    def failing(self) -> tuple[float, int, BaseException] | None:
+        """The receive failure no frame has ended yet: (monotonic time of its first error, failed receives, the last
+        error), or None."""
+        return self._failing
+
+    def take(self) -> list[tuple[float, float, int, BaseException]]:
+        """The runs of failed receives that frames ended since the last call: (first error, first frame after it,
+        failed receives, last error) each."""
+        with self._lock:
+            ended, self._ended = self._ended, []
+        return ended
+
+    def stopped(self) -> bool:
+        """Whether python-can's receive thread has ended while the Notifier runs (another listener's ``on_error``
+        raised, or something other than an Exception did): nothing is received any more."""
+        t, notifier = self.thread, self._notifier
+        return t is not None and not t.is_alive() and notifier is not None and not notifier.stopped
 
 
 class HostHeartbeat:

@@ -45,11 +45,15 @@ default), 2 NMT STOPPED. Monitoring then waits for the next heartbeat. ``consume
 state before) per reaction, ``consumer_heartbeats`` the monotonic arrival times of the watched heartbeats;
 ``consumer_object`` / ``abort_option_object`` False: the drive has no 0x1016 / 0x6007 (an SDO write is aborted
 0x06020000); 0x6007 refuses values 4-32767 (abort 0x06090030, value range exceeded).
+
+:class:`FailingReceives` wraps the ``recv()`` of the driver's python-can bus (the host's side of the virtual bus, not
+the drive's) so that it raises python-can's error in receiving, as an adapter's does, once or until told to stop.
 """
 
 from __future__ import annotations
 
 import collections
+import errno
 import math
 import struct
 import threading
@@ -57,6 +61,7 @@ import time
 from fractions import Fraction
 from typing import Callable, Sequence
 
+import can
 import canopen
 from canopen import objectdictionary as od_mod
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable
@@ -649,3 +654,45 @@ class Cia402Drive:
                 if not self.silent:
                     for cob_id, data in frames:
                         self.network.send_message(cob_id, data)
+
+
+#: what python-can's socketcan raises from recv() on an interface that went down (errno 100, ENETDOWN)
+RECV_DOWN = "Error receiving: Network is down"
+
+
+class FailingReceives:
+    """A thin wrapper of ``bus.recv()`` (the driver's python-can bus, ``h.comp.network.bus``, which python-can's
+    Notifier calls in its receive thread): ``fail(n)`` has the next ``n`` calls raise (None: every call until
+    ``fail(0)``) python-can's error in receiving, CanOperationError ``text`` with error code ``code`` (default: an
+    interface that went down, as python-can's socketcan raises it), a new one each time; a call that fails while
+    failing goes on returns after up to 10 ms, as a dead socket's would. Other calls are the bus's own: the frames
+    flow again. ``failed`` lists when each failed (monotonic); ``uninstall()`` puts the bus's own ``recv`` back."""
+
+    def __init__(self, bus: can.BusABC, text: str = RECV_DOWN, code: int = errno.ENETDOWN):
+        self.bus, self.text, self.code = bus, text, code
+        self.failed: list[float] = []
+        self._left: int | None = 0
+        self._lock = threading.Lock()
+        self._recv = bus.recv
+        bus.recv = self.recv
+
+    def fail(self, n: int | None = 1) -> None:
+        with self._lock:
+            self._left = n
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        with self._lock:
+            fails = self._left is None or self._left > 0
+            if fails:
+                if self._left is not None:
+                    self._left -= 1
+                self.failed.append(time.monotonic())
+            persistent = self._left is None
+        if fails:
+            if persistent:
+                time.sleep(min(timeout if timeout is not None else 0.01, 0.01))
+            raise can.CanOperationError(self.text, self.code)
+        return self._recv(timeout)
+
+    def uninstall(self) -> None:
+        self.bus.recv = self._recv
