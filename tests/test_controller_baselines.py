@@ -169,7 +169,7 @@ def test_a_future_stamp_does_not_lock_out_the_samples_after_it(cls):
 
 
 def test_position_position_ignores_an_older_follower_sample():
-    with Harness(PositionPosition, {"kp": 400.0, "kd": 0.0, "passivity": False, "max_force_rate": 1e6}) as h:
+    with Harness(PositionPosition, {"kp": 400.0, "kd": 0.0, "passivity": False, "max_force_rate": 1e5}) as h:
         for k in range(50):
             out = h.step(k * 1e-3, leader_opening=0.010, follower_opening=0.015)
         assert out["gripper_force"] == pytest.approx(2.0)

@@ -12,7 +12,7 @@ from teletouch import ComponentFault, Sample
 from teletouch.plugins.controllers.position_force import NoFeedback, PositionForce, PositionPosition
 from teletouch.testing import Harness
 
-P = {"deadband": 0.0, "passivity": False, "force_prediction": False, "smoothing_time": 0.0, "max_force_rate": 1e6}
+P = {"deadband": 0.0, "passivity": False, "force_prediction": False, "smoothing_time": 0.0, "max_force_rate": 1e5}
 
 
 def _steady(h, n: int = 100, f: float = 1.0) -> None:

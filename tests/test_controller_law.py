@@ -104,12 +104,12 @@ def test_camera_rate_estimate_is_smoothed_never_a_jump():
 
 
 def test_position_position_baseline_pd_on_error():
-    with Harness(PositionPosition, {"kp": 500.0, "kd": 0.0, "passivity": False, "max_force_rate": 1e6}) as h:
+    with Harness(PositionPosition, {"kp": 500.0, "kd": 0.0, "passivity": False, "max_force_rate": 1e5}) as h:
         for k in range(50):
             out = h.step(k * 1e-3, leader_opening=0.010, follower_opening=0.012)
     assert out["opening_command"] == pytest.approx(0.010)
     assert out["gripper_force"] == pytest.approx(500.0 * 0.002)   # follower blocked wider: pushes the hand open
-    with Harness(PositionPosition, {"kp": 500.0, "kd": 0.0, "passivity": False, "max_force_rate": 1e6}) as h:
+    with Harness(PositionPosition, {"kp": 500.0, "kd": 0.0, "passivity": False, "max_force_rate": 1e5}) as h:
         out = h.step(0.0, leader_opening=0.010)                     # no follower reading: no force
         out = h.step(0.001, leader_opening=0.010)
     assert out["gripper_force"] == 0.0
@@ -132,7 +132,7 @@ def test_params_are_validated():
 
 
 def test_constant_leader_damping_option():
-    p = {"leader_damping": 5.0, "passivity": False, "deadband": 0.0, "max_force_rate": 1e6}
+    p = {"leader_damping": 5.0, "passivity": False, "deadband": 0.0, "max_force_rate": 1e5}
     with Harness(PositionForce, p) as h:
         for k in range(20):
             out = h.step(k * 1e-3, leader_opening=0.02 + 0.01 * k * 1e-3, leader_velocity=0.01)

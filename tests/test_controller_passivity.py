@@ -93,7 +93,7 @@ def test_active_environment_is_kept_stable_by_the_passivity_controller():
 def test_passive_environment_gets_no_damping():
     # an instantaneous spring, no smoothing: passive, so the controller stays transparent (pure TDPA: the leak of
     # stored energy, a deliberate trade of transparency for robustness, is off here)
-    p2p, comp = _loop(True, ke=300.0, spring_only=True, smoothing_time=0.0, max_force_rate=1e6,
+    p2p, comp = _loop(True, ke=300.0, spring_only=True, smoothing_time=0.0, max_force_rate=1e5,
                       energy_leak_time=None)
     assert p2p < 0.05
     assert comp.pas.dissipated < 1e-4
@@ -127,7 +127,7 @@ def test_observer_runs_without_the_controller():
 def _opening_with_deficit(params, force, n=60, v=0.02):
     """Leader opening at ``v`` with a standing energy deficit, the estimate at ``force``; returns the forces."""
     out = []
-    with Harness(PositionForce, {"deadband": 0.0, "smoothing_time": 0.0, "max_force_rate": 1e6, **params}) as h:
+    with Harness(PositionForce, {"deadband": 0.0, "smoothing_time": 0.0, "max_force_rate": 1e5, **params}) as h:
         h.step(0.0, leader_opening=0.015, leader_velocity=v, force=Sample(force, 0.0))
         h.comp.pas.energy = -0.05                       # e.g. left over by the release of a contact
         for k in range(1, n):
@@ -160,7 +160,7 @@ def _spring_contact(prediction: bool, k_env=2000.0, w=0.015, v=-0.005, n=400):
     frame = 17
     rows = []
     with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "force_prediction": prediction,
-                                 "max_force_rate": 1e6}) as h:
+                                 "max_force_rate": 1e5}) as h:
         pending = None
         for k in range(n):
             t = k * 1e-3
@@ -187,7 +187,7 @@ def test_prediction_learns_the_contact_and_removes_the_latency():
 
 def test_prediction_never_pulls_when_the_fingers_leave_the_contact():
     # closing into the spring, then opening fast out of it: the predicted force goes to zero, never below
-    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e6}) as h:
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e5}) as h:
         pending, fs = None, []
         for k in range(600):
             t = k * 1e-3
@@ -209,7 +209,7 @@ def test_two_port_observer_sees_an_ideal_coupling_as_lossless():
     # force scale) gives 2*F*dx to the environment: the two-port observer stays at ~0, the leader port alone grows
     def run(observer):
         with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "force_prediction": False,
-                                     "smoothing_time": 0.0, "max_force_rate": 1e6, "force_scale": 2.0,
+                                     "smoothing_time": 0.0, "max_force_rate": 1e5, "force_scale": 2.0,
                                      "energy_leak_time": None, "passivity_observer": observer}) as h:
             for k in range(300):
                 t = k * 1e-3
@@ -262,7 +262,7 @@ def test_force_cut_can_spread_the_payment_of_a_deficit():
 
 
 def test_a_misjudged_contact_stiffness_cannot_push_the_hand_far():
-    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e6,
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e5,
                                  "prediction_max_change": 0.5}) as h:
         pending = None
         for k in range(200):                       # learn on a closing contact
@@ -414,7 +414,7 @@ def test_the_prediction_never_steps_the_force_when_it_stops(case):
     # the predicted term was dropped in one step when the prediction stopped: on release (opening at 50 mm/s out of
     # the contact) the force jumped up by ~1 N after the contact was gone, when the estimate of zero arrived;
     # closing when the estimates stopped (stale), it dropped by the predicted 0.25 N in one step
-    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e6}) as h:
+    with Harness(PositionForce, {"deadband": 0.0, "passivity": False, "max_force_rate": 1e5}) as h:
         pending, fs = None, []
         for k in range(600):
             t = k * 1e-3
@@ -455,7 +455,7 @@ def test_no_damping_is_kept_raised_in_free_space_for_the_next_contact():
     # controller applies nothing in free space, yet its damping went up to 40 N*s/m there (shown on the damping
     # output) and met the new contact at once, 2 N at 50 mm/s in one step; it now rises over damping_smoothing
     v = -0.05
-    with Harness(PositionForce, {"deadband": 0.0, "force_prediction": False, "max_force_rate": 1e6}) as h:
+    with Harness(PositionForce, {"deadband": 0.0, "force_prediction": False, "max_force_rate": 1e5}) as h:
         h.step(0.0, leader_opening=0.05, leader_velocity=v, force=Sample(0.0, 0.0))
         h.comp.pas.energy = -0.01
         outs = []

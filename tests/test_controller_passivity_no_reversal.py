@@ -11,7 +11,7 @@ from teletouch.plugins.controllers.position_force import PositionForce
 from teletouch.testing import Harness
 
 # exact figures: no ramps of the estimate or the force, the leader port only, no prediction
-P = {"deadband": 0.0, "force_prediction": False, "smoothing_time": 0.0, "max_force_rate": 1e6,
+P = {"deadband": 0.0, "force_prediction": False, "smoothing_time": 0.0, "max_force_rate": 1e5,
      "passivity_observer": "leader-port", "energy_leak_time": None, "reduction_time": 0.0}
 F, V, DT = 2.0, 0.1, 1e-3      # the contact force (N), the leader opening (m/s) against it, the step (s)
 

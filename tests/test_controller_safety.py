@@ -93,8 +93,8 @@ def test_nan_or_stale_leader_holds_follower_and_fades_force():
 def test_outputs_always_finite_and_within_limits_under_garbage(cls):
     rng = random.Random(1)
     bad = [math.nan, math.inf, -math.inf, 1e300, -1e300, "x", None]
-    with Harness(cls, {"max_force": 5.0, "max_force_rate": 1e9, "smoothing_time": 0.0}
-                 if cls is PositionForce else {"max_force": 5.0, "max_force_rate": 1e9}) as h:
+    with Harness(cls, {"max_force": 5.0, "max_force_rate": 1e5, "smoothing_time": 0.0}
+                 if cls is PositionForce else {"max_force": 5.0, "max_force_rate": 1e5}) as h:
         for k in range(3000):
             def pick(scale):
                 return rng.choice(bad) if rng.random() < 0.2 else rng.uniform(-scale, scale)

@@ -17,7 +17,7 @@ is invalid input, like NaN: counted, never differentiated into a velocity. A bad
 every step while it stays the latest. No velocity is differentiated across a gap of more than ``leader_stale_after``
 between two openings (a loss): the estimate restarts at zero.
 
-The control law of ``position-force`` (each step, at >= 1 kHz):
+The control law of ``position-force`` (each step, at 1 kHz as the leader; see 4 for a lower rate):
 
 1. follower:  ``x_fd = clip(scale * x_l + offset, opening_min, opening_max)``; a missing, stale or non-finite leader
    opening holds the last command (the follower keeps its position); a jump of the leader is passed on (every
@@ -44,12 +44,17 @@ The control law of ``position-force`` (each step, at >= 1 kHz):
    zero);
 4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
    ``fade_time``, within that limit), clipped to ``+-max_force``; a non-finite desired force is taken as 0 (reached
-   within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller;
+   within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller.
+   The leader holds each command, so one step's change reaches the hand at once: below 1 kHz one step changes the
+   force by at most ``max_force_rate`` x 1 ms (``LEADER_PERIOD``), so the force follows more slowly (logged at
+   configure), never in steps of ``max_force_rate`` x the period;
 5. a loss that lasts is a fault: a leader opening (once received) or, for position-force, a force estimate lost
    continuously for longer than ``fault_after_lost`` (0.5 s; at least ``fade_time``, so the force has faded out)
    makes step() raise ComponentFault naming what was lost and for how long (and the input: the runtime adds which
    node and port feed it); the runtime then drives the devices to their safe states (zero leader force, the follower
-   holds).
+   holds). Invalid (not finite) estimates are counted (``invalid_forces`` in status() and results(); the first is
+   logged); since each good estimate ends a loss, a good one that comes when at least ``max_invalid_force_share`` of
+   the last ``INVALID_FORCE_WINDOW`` estimates were invalid is a ComponentFault too.
 
 ``position-position`` replaces step 2 by a PD on the position error,
 ``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
@@ -62,6 +67,7 @@ The pure functions here are tested without the runtime; the components are thin 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -70,9 +76,9 @@ from pydantic import Field, field_validator, model_validator
 from teletouch import Component, ComponentFault, Kind, Params, Port, Sample, hookimpl
 from teletouch.errors import value_text
 from teletouch.units import (
-    MAX_PLAUSIBLE_OPENING, MAX_PLAUSIBLE_SPEED, Meters, NewtonSecondsPerMeter, Newtons, NewtonsPerMeter, Seconds,
-    millimetres_in_metres, plausible_depth, plausible_hand_force, plausible_opening, plausible_quantity,
-    plausible_speed,
+    MAX_PLAUSIBLE_HAND_FORCE, MAX_PLAUSIBLE_OPENING, MAX_PLAUSIBLE_SPEED, Meters, NewtonSecondsPerMeter, Newtons,
+    NewtonsPerMeter, Seconds, millimetres_in_metres, plausible_depth, plausible_hand_force, plausible_opening,
+    plausible_quantity, plausible_speed,
 )
 
 from .passivity import (
@@ -94,6 +100,24 @@ MAX_LEADER_VELOCITY_LIMIT = 100.0  # m/s
 #: no tactile sensor reads grip forces so large that a deadband this wide leaves any to render (the packaged
 #: calibration: 8.6 N at most): a wider deadband is mN typed in the N field (20 meant 20 mN)
 MAX_PLAUSIBLE_DEADBAND = 10.0      # N
+#: the period of a 1 kHz haptic leader (the Omega.7's loop): a leader holds each force command until the next one, so
+#: what one controller step changes reaches the hand at once, within one leader period; below 1 kHz one step changes
+#: the force by at most max_force_rate x this (see _Bilateral._reset)
+LEADER_PERIOD = 1e-3               # s
+#: no rate limit of the leader force is set higher than this (the default: 200 N/s): a haptic device's whole +-50 N
+#: swing (MAX_PLAUSIBLE_HAND_FORCE; the Omega.7's gripper: +-8 N) in one 1 ms leader period, beyond which the limit
+#: limits nothing (as the press routine's max_force_rate); a higher one is mN/s typed in the N/s field
+MAX_PLAUSIBLE_FORCE_RATE = 2 * MAX_PLAUSIBLE_HAND_FORCE / LEADER_PERIOD   # N/s: 100 kN/s
+#: the longest fade_time: a lost source's force stays on the hand while it fades (as stale_after's 1 s)
+MAX_FADE_TIME = 1.0                # s
+#: the longest smoothing_time: a few frames of the slowest estimator (the default: one frame at 60 Hz); every change of
+#: the estimate, a release too, reaches the hand this late
+MAX_SMOOTHING_TIME = 0.25          # s
+#: the longest fault_after_lost: a loss longer than this is a fault, not a hiccup (a sensor's reconnect); the follower
+#: holds and the operator feels nothing meanwhile
+MAX_FAULT_AFTER_LOST = 10.0        # s
+#: how many of the latest force estimates position-force's max_invalid_force_share looks at (1 s at 60 Hz)
+INVALID_FORCE_WINDOW = 60
 
 
 # ------------------------------------------------------------------------------------------------ pure functions
@@ -126,9 +150,9 @@ def shape_force(f_sensed: float, gain: float, sign: int, width: float, limit: fl
     return sign * min(gain * deadband(f_sensed, width), limit)
 
 
-def rate_limit(previous: float, target: float, max_rate: float, dt: float) -> float:
-    """Move from ``previous`` towards ``target`` by at most ``max_rate * dt``."""
-    step = max_rate * dt
+def rate_limit(previous: float, target: float, max_rate: float, dt: float, max_step: float = math.inf) -> float:
+    """Move from ``previous`` towards ``target`` by at most ``max_rate * dt``, and at most ``max_step``."""
+    step = min(max_rate * dt, max_step)
     d = target - previous
     if d > step:
         return previous + step
@@ -303,23 +327,29 @@ class _CommonParams(Params):
     max_force: Newtons = Field(OMEGA7_MAX_GRIPPER_FORCE, gt=0,
                                description="limit of the leader force (Omega.7 gripper: 8 N)",
                                json_schema_extra={"unit": "N"})
-    max_force_rate: float = Field(200.0, gt=0, description="rate limit of the leader force",
-                                  json_schema_extra={"unit": "N/s"})
+    max_force_rate: float = Field(200.0, gt=0, description="rate limit of the leader force (at most 100000 N/s, a "
+                                  "haptic device's whole +-50 N in 1 ms: a higher one limits nothing, mN/s typed in "
+                                  "the N/s field); below 1 kHz one step changes the force by at most this x 1 ms "
+                                  "(a leader period)", json_schema_extra={"unit": "N/s"})
     leader_stale_after: Seconds = Field(0.05, gt=0, le=1.0, description="a leader opening older than this holds the "
                                         "follower and fades the force (at most 1 s: the force of a dead leader "
                                         "stayed on the hand that long; 100 meant as ms was 100 s)",
                                         json_schema_extra={"unit": "s"})
-    fade_time: Seconds = Field(0.2, gt=0, description="time to fade the force to zero when its source is lost",
-                               json_schema_extra={"unit": "s"})
+    fade_time: Seconds = Field(0.2, gt=0, le=MAX_FADE_TIME, description="time to fade the force to zero when its "
+                               "source is lost (at most 1 s, as stale_after: the lost source's force stays on the "
+                               "hand while it fades; 200 meant as ms was 200 s)", json_schema_extra={"unit": "s"})
     max_clock_skew: Seconds = Field(0.05, ge=0, description="an input stamped further ahead of the graph clock "
                                     "(never more than its stale_after) is a clock fault, not a fresh sample: not "
                                     "used, counted; as the ROS 2 subscriber's and poly-force's max_clock_skew",
                                     json_schema_extra={"unit": "s"})
-    fault_after_lost: Seconds | None = Field(0.5, gt=0, description="a leader opening (stale or not finite) or, "
-                                             "for position-force, a force estimate (stale or not finite) lost "
-                                             "for longer than this is a fault: step() raises and the runtime "
-                                             "drives the devices to their safe states (null: never; at least "
-                                             "fade_time, so the force has faded out by then)",
+    fault_after_lost: Seconds | None = Field(0.5, gt=0, le=MAX_FAULT_AFTER_LOST,
+                                             description="a leader opening (stale or not finite) or, for "
+                                             "position-force, a force estimate (stale or not finite) lost for "
+                                             "longer than this is a fault: step() raises and the runtime drives the "
+                                             "devices to their safe states (null: never, the force still fades out "
+                                             "over fade_time; at least fade_time, so the force has faded out by "
+                                             "then; at most 10 s: the follower holds and the operator feels nothing "
+                                             "meanwhile, 500 meant as ms was 500 s)",
                                              json_schema_extra={"unit": "s"})
     passivity: bool = Field(True, description="time-domain passivity controller on the leader port (the observer "
                             "always runs and feeds the energy output)")
@@ -395,6 +425,13 @@ class _CommonParams(Params):
     def _hand_force(cls, v: float, info: Any) -> float:
         return plausible_hand_force(info.field_name, v)   # a force on a person's hand: 8000 meant 8000 mN
 
+    @field_validator("max_force_rate")
+    @classmethod
+    def _force_rate(cls, v: float, info: Any) -> float:
+        return plausible_quantity(info.field_name, v, MAX_PLAUSIBLE_FORCE_RATE, "N/s",   # 200000 meant mN/s
+                                  "faster than a force on a hand needs to change",
+                                  f": a haptic device's whole +-{MAX_PLAUSIBLE_HAND_FORCE:g} N in 1 ms")
+
     @field_validator("reduction_min_velocity", "max_leader_velocity")
     @classmethod
     def _speeds(cls, v: float, info: Any) -> float:
@@ -449,6 +486,9 @@ class _Bilateral(Component):
 
     kind = Kind.CONTROLLER
     default_rate = 1000.0
+    #: a lost force estimate fades the force on the hand (stale_after, fade_time, fault_after_lost) and the follower
+    #: holds a stale leader: under degrade the runtime leaves the devices it commands to it
+    guards_upstream = True
     inputs = dict(_IN)
     outputs = dict(_OUT)
     Params = _CommonParams
@@ -456,6 +496,19 @@ class _Bilateral(Component):
     # -- lifecycle
     def configure(self) -> None:
         self._reset()
+        rate = self._rate()
+        if 1.0 / rate > LEADER_PERIOD * (1.0 + 1e-9):
+            p = self.params
+            step = p.max_force_rate * LEADER_PERIOD
+            self.ctx.log(f"{self.name} at {rate:g} Hz, below 1 kHz: the leader holds each force command "
+                         f"{1e3 / rate:g} ms, so one step changes the force by at most max_force_rate x 1 ms "
+                         f"({step:g} N, not {p.max_force_rate / rate:g} N): the force follows at most "
+                         f"{step * rate:g} N/s, and fading max_force out takes up to "
+                         f"{max(p.fade_time, p.max_force / (step * rate)):g} s; run it at 1 kHz")
+
+    def _rate(self) -> float:
+        """The node's step rate (Hz)."""
+        return float(self.ctx.rate or self.default_rate or 1000.0)
 
     def activate(self) -> None:
         self._reset()
@@ -486,8 +539,12 @@ class _Bilateral(Component):
         self.cmd_hist = FollowerPort()           # follower commands by time (force prediction)
         self._record_commands = bool(getattr(p, "force_prediction", False))
         self._two_port = p.passivity_observer == "two-port"
-        rate = self.ctx.rate or self.default_rate or 1000.0
-        self._max_dt = 2.0 / float(rate)        # longest step the force rate limit counts (see step)
+        rate = self._rate()
+        self._max_dt = 2.0 / rate               # longest step the force rate limit counts (see step)
+        # the largest change of the force in one step: the leader holds each command, so the hand gets a step's change
+        # at once, within one leader period (max_force_rate x 50 ms at 20 Hz would step 0 -> 7.98 N within 1 ms);
+        # below 1 kHz at most max_force_rate x one 1 kHz leader period; from 1 kHz up, the two periods _max_dt counts
+        self._max_step = math.inf if 1.0 / rate <= LEADER_PERIOD * (1.0 + 1e-9) else p.max_force_rate * LEADER_PERIOD
         self._taken: dict[str, Sample] = {}     # the newest fresh sample taken per input (see _ordered)
         self._ahead: dict[str, Sample] = {}     # the last sample refused as stamped ahead, per input (see _usable)
         self._looked: dict[str, Sample] = {}    # the sample looked at last per input (see _first_look)
@@ -741,8 +798,9 @@ class _Bilateral(Component):
                 self.leader_fade_rate = max(abs(self.out_force) / p.fade_time, 1e-6)
             max_rate = min(self.leader_fade_rate, p.max_force_rate)     # a short fade_time never beats the limit
         # the rate limit's step is at most two nominal periods long: after a stalled or late step the force still
-        # moves by no more than max_force_rate x 2 periods (not by the rate x the whole gap)
-        f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt))
+        # moves by no more than max_force_rate x 2 periods (not by the rate x the whole gap); below 1 kHz one step
+        # moves it by at most max_force_rate x 1 ms (_max_step: the leader holds the command, the hand gets a step)
+        f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt), self._max_step)
         f = saturate(f, p.max_force)
         if not math.isfinite(f):
             f = 0.0
@@ -809,8 +867,10 @@ class PositionForce(_Bilateral):
                                        "is refused")
         deadband: Newtons = Field(0.02, ge=0, description="sensed forces below this are not rendered "
                                   "(continuous: the width is subtracted)", json_schema_extra={"unit": "N"})
-        smoothing_time: Seconds = Field(1.0 / 60.0, ge=0, description="each new estimate is reached by a linear "
-                                        "ramp of this length (latency: this to the full value, half on average)",
+        smoothing_time: Seconds = Field(1.0 / 60.0, ge=0, le=MAX_SMOOTHING_TIME, description="each new estimate "
+                                        "is reached by a linear ramp of this length (latency: this to the full "
+                                        "value, half on average; at most 0.25 s, a few frames of a slow estimator: "
+                                        "a release reaches the hand this late, 17 meant as ms was 17 s)",
                                         json_schema_extra={"unit": "s"})
         stale_after: Seconds = Field(0.1, gt=0, le=1.0, description="a force estimate older than this fades to zero "
                                      "(at most 1 s: a dead sensor's last force stayed on the hand that long; 100 "
@@ -821,6 +881,14 @@ class PositionForce(_Bilateral):
                                                     "does not match: the follower went on without feedback for the "
                                                     "whole run, which ended ok; null: wait for ever)",
                                                     json_schema_extra={"unit": "s"})
+        max_invalid_force_share: float | None = Field(0.5, gt=0, le=1, description="when a good estimate comes "
+                                                      "and at least this share of the last "
+                                                      f"{INVALID_FORCE_WINDOW} received (1 s at 60 Hz) were invalid "
+                                                      "(not finite), it is a fault: an estimator failing on every "
+                                                      "other frame makes no loss that lasts (each good estimate "
+                                                      "ends it) while the force dips at every bad one (a lasting "
+                                                      "loss is fault_after_lost's; null: never; counted in "
+                                                      "invalid_forces either way)")
         force_prediction: bool = Field(True, description="in contact, bridge the estimate's latency with a local "
                                        "contact model: add k_f * K * (x_cmd(capture) - x_cmd(now)), K the "
                                        "stiffness learnt from successive estimates (never past zero)")
@@ -880,7 +948,9 @@ class PositionForce(_Bilateral):
         self.pred_from = 0.0                    # the term when the prediction last started or stopped
         self.pred_t0 = 0.0                      # ... and when
         self.latencies: list[float] = []        # controller time of first use - force stamp, per new fresh estimate
-        self.bad_force = 0
+        self.bad_force = 0                      # invalid (not finite) estimates: invalid_forces in status, results
+        self.bad_since: float | None = None     # when the first one came (logged once)
+        self.recent_bad: deque[bool] = deque(maxlen=INVALID_FORCE_WINDOW)   # the latest estimates: each invalid?
         self.resuming = False                   # the follower command was held: it slews back (resume_speed)
         self.force_state = "waiting"            # the estimate's state, kept while step() shows stale-leader
         self.first_wait_since: float | None = None   # the leader's first usable step while no estimate has come
@@ -891,47 +961,80 @@ class PositionForce(_Bilateral):
         # stayed stale-leader, and the prediction off, until the next estimate came)
         if self.state == "stale-leader":
             self.state = self.force_state
-        s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
-        if s is not None and self._first_look("force", s):     # once per sample (a NaN stamp too)
-            f_s = finite_or(s.value, math.nan)
-            if math.isfinite(f_s):
-                self.force_held = f_s
-                if self._usable("force", s, t, p.stale_after):   # (False for a NaN stamp: no latency to count)
-                    if len(self.latencies) < 100_000:
-                        self.latencies.append(t - s.stamp)
-                    f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
-                    self.hold.set(t, f_l, p.smoothing_time)
-                    self.fading = False
-                    self.state = "ok"
-                    if p.force_prediction:
-                        self._learn(t, s.stamp, f_s)
-                    if p.passivity_observer == "two-port":
-                        e_f = self.fport.sample(s.stamp, f_l, p.scale)
-                        self.pas.energy += e_f
-                        self.pas.follower_energy += e_f
+        lost = self.ctx.disabled_upstream()
+        if lost:   # a node feeding it was disabled by a fault: a filter in between may keep the stamps fresh
+            if not self.fading:
+                self.force_problem = (f"node{'s' if len(lost) > 1 else ''} {', '.join(repr(n) for n in lost)} "
+                                      f"feeding it disabled by a fault")
+            self.state = "upstream-lost"
+            self._fade(t)
+        else:
+            s = self._ordered("force", inputs["force"], t, p.stale_after)     # an older estimate never replaces a newer
+            if s is not None and self._first_look("force", s):     # once per sample (a NaN stamp too)
+                f_s = finite_or(s.value, math.nan)
+                self._count_invalid(t, s, not math.isfinite(f_s))
+                if math.isfinite(f_s):
+                    self.force_held = f_s
+                    if self._usable("force", s, t, p.stale_after):   # (False for a NaN stamp: no latency to count)
+                        if len(self.latencies) < 100_000:
+                            self.latencies.append(t - s.stamp)
+                        f_l = shape_force(f_s, p.force_scale, p.force_sign, p.deadband, p.max_force)
+                        self.hold.set(t, f_l, p.smoothing_time)
+                        self.fading = False
+                        self.state = "ok"
+                        if p.force_prediction:
+                            self._learn(t, s.stamp, f_s)
+                        if p.passivity_observer == "two-port":
+                            e_f = self.fport.sample(s.stamp, f_l, p.scale)
+                            self.pas.energy += e_f
+                            self.pas.follower_energy += e_f
+                    else:
+                        self.fport.forget()
+                        self._not_fresh("force", s, t, p.stale_after, "stale_after", True)   # (a future stamp counted)
                 else:
                     self.fport.forget()
-                    self._not_fresh("force", s, t, p.stale_after, "stale_after", True)   # (a future stamp counted)
-            else:
-                self.fport.forget()
-                self.bad_force += 1
-                self.invalid_inputs += 1
-                self.force_held = 0.0
-                self.state = "bad-force"
+                    self.force_held = 0.0
+                    self.state = "bad-force"
+                    self._fade(t)
+            if s is None:
+                self.state = "waiting" if self.state == "waiting" else self.state
+                self._first_force_wait(t)
+            elif not self._usable("force", s, t, p.stale_after) and self.state != "bad-force":
+                if not self.fading:                       # why, for the fault of a loss that lasts
+                    self.force_problem = self._not_fresh("force", s, t, p.stale_after, "stale_after", False)
+                self.state = "stale-force"
                 self._fade(t)
-        if s is None:
-            self.state = "waiting" if self.state == "waiting" else self.state
-            self._first_force_wait(t)
-        elif not self._usable("force", s, t, p.stale_after) and self.state != "bad-force":
-            if not self.fading:                       # why, for the fault of a loss that lasts
-                self.force_problem = self._not_fresh("force", s, t, p.stale_after, "stale_after", False)
-            self.state = "stale-force"
-            self._fade(t)
         self.force_state = self.state
         f = self._predicted(t, self.hold.value(t))
         # a stale or bad estimate fades: it never raises the force (when a lost leader came back during the fade,
         # the force rose again towards the stale estimate)
         return no_rise(f, self.out_force) if self.fading else f
+
+    def _count_invalid(self, t: float, s: Sample, bad: bool) -> None:
+        """Book a new estimate ``s`` as invalid (``bad``: not finite) or not. The first invalid one is logged. A good
+        one ends a loss (fault_after_lost never sees an estimator that fails on every other frame): when the last
+        INVALID_FORCE_WINDOW estimates have a share of at least ``max_invalid_force_share`` invalid ones, it is a
+        ComponentFault instead (a loss that lasts is fault_after_lost's, as it was without good estimates)."""
+        self.recent_bad.append(bad)
+        if bad:
+            self.bad_force += 1
+            self.invalid_inputs += 1
+            if self.bad_since is None:
+                self.bad_since = t
+                self.ctx.log(f"force estimate {value_text(s.value)} N (not finite) at t={t:.3f} s: the force fades "
+                             f"out (fade_time), as for a lost estimate; invalid estimates are counted "
+                             f"(invalid_forces in the status and the results), not logged again")
+            return
+        share = self.params.max_invalid_force_share
+        if share is None or len(self.recent_bad) < INVALID_FORCE_WINDOW:
+            return
+        n = sum(self.recent_bad)
+        if n >= share * INVALID_FORCE_WINDOW:
+            raise ComponentFault(f"{n} of the last {INVALID_FORCE_WINDOW} force estimates were not finite "
+                                 f"({self.bad_force} since t={self.bad_since:.3f} s), at least "
+                                 f"max_invalid_force_share {share:g}: the estimator is failing (the force on the "
+                                 f"hand dipped at every one); check the sensor and its estimators",
+                                 input_port="force")
 
     def _predicted(self, t: float, f: float) -> float:
         """``f`` plus the contact prediction, within ``[0, max_force]``. When the prediction starts or stops (a
@@ -950,8 +1053,11 @@ class PositionForce(_Bilateral):
             self.pred_active = active
             self.pred_from, self.pred_t0 = self.pred_term, t
         term = target
-        if p.smoothing_time > 0.0 and t - self.pred_t0 < p.smoothing_time:
-            w = max(0.0, (t - self.pred_t0) / p.smoothing_time)
+        # blended over smoothing_time; while the estimate fades, within fade_time (as the estimate's force): the term
+        # must not outlast the fade
+        ts = min(p.smoothing_time, p.fade_time) if self.fading else p.smoothing_time
+        if ts > 0.0 and t - self.pred_t0 < ts:
+            w = max(0.0, (t - self.pred_t0) / ts)
             term = self.pred_from + (target - self.pred_from) * w
         if term == 0.0:
             self.pred_term = 0.0
@@ -997,7 +1103,12 @@ class PositionForce(_Bilateral):
     def status(self) -> dict[str, Any]:
         d = super().status()
         d["contact_stiffness_n_per_m"] = getattr(self, "k_hat", 0.0)     # learnt by the prediction
+        d["invalid_forces"] = getattr(self, "bad_force", 0)              # estimates not finite
         return d
+
+    def results(self) -> dict[str, Any]:
+        """As :meth:`_Bilateral.results`, and ``invalid_forces``: how many estimates were not finite."""
+        return {**super().results(), "invalid_forces": self.bad_force}
 
     def _sensed(self) -> float:
         return self.force_held if self.force_state == "ok" else math.nan   # (stale, bad: fading, not sensed)
