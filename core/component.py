@@ -531,6 +531,12 @@ class Component:
     default_rate: ClassVar[float | None] = None
     #: True for drivers of real hardware: refused under the simulated clock.
     requires_wall_clock: ClassVar[bool] = False
+    #: True for a component that brings the devices it commands to a safe end itself when a node feeding it is lost
+    #: (its input goes stale or ``ctx.disabled_upstream()`` names it: position-force fades the force on the hand and
+    #: holds the follower, the press routine aborts). False, the default (a filter, a gain: each passes its last value
+    #: on with fresh stamps): under ``degrade`` a device it feeds, directly or through others like it, is made safe
+    #: and disabled when a node upstream of it is disabled by a fault.
+    guards_upstream: ClassVar[bool] = False
 
     def __init__(self, params: Params | Mapping[str, Any] | None = None, *, node_id: str | None = None,
                  ctx: Context | None = None):

@@ -375,6 +375,26 @@ class Runtime:
         by_id = self._by_id = {node.id: node for node in self.nodes}
         self._feeders = {nid: tuple(by_id[f] for f in ids) for nid, ids in feeders(self.spec).items()}
 
+    def _commanded_from(self, node: _Node) -> list[tuple[_Node, str, str]]:
+        """The devices whose inputs carry ``node``'s outputs: wired from it, or from a node it feeds that does not
+        guard its devices itself (``Component.guards_upstream``: a filter or a gain passes a dead node's last value on
+        with fresh stamps), through any number of those; each once, as (device, its input port, the node that input is
+        wired from), in graph order."""
+        found: dict[str, tuple[_Node, str, str]] = {}
+        seen, todo = {node.id}, [node.id]
+        while todo:
+            src = todo.pop(0)
+            for other in self.nodes:
+                port = next((p for p, w in other.spec.inputs.items() if w.node == src), None)
+                if port is None or other.id in seen:
+                    continue
+                if other.is_device:
+                    found.setdefault(other.id, (other, port, src))
+                elif not getattr(other.spec.cls, "guards_upstream", False):
+                    seen.add(other.id)
+                    todo.append(other.id)
+        return sorted(found.values(), key=lambda f: f[0].order)
+
     def _disabled_upstream(self, node_id: str) -> list[str]:
         """Context.disabled_upstream of node ``node_id``: its feeders (precomputed in :meth:`_build`) that a fault
         has disabled, in data-flow order."""
@@ -448,14 +468,14 @@ class Runtime:
         else:
             self.log(f"[{node.id}] {kind}: {message} -> node disabled (degrade)")
             # a device commanded by the disabled node would keep its last command: it goes to its safe state and
-            # is disabled too (nodes further down, e.g. a controller behind a dead estimator, handle their own
-            # stale inputs, and may ask Context.disabled_upstream: a filter in between keeps its stamps fresh)
-            for other in self.nodes:
-                if other.is_device and not other.faulted:
-                    ports = [p for p, w in other.spec.inputs.items() if w.node == node.id]
-                    if ports:
-                        todo += self._fault(other, "upstream", f"input '{ports[0]}' comes from node '{node.id}', "
-                                                               f"which was disabled by a fault", t, safe=False)
+            # is disabled too; so does one commanded through nodes that pass their last value on (a filter, a gain:
+            # fresh stamps on a dead node's value), up to a node that guards its devices itself (guards_upstream:
+            # the controller fades the force of a dead estimator and holds the follower)
+            for other, port, via in self._commanded_from(node):
+                if not other.faulted:
+                    through = f", fed by node '{node.id}'" if via != node.id else ""
+                    todo += self._fault(other, "upstream", f"input '{port}' comes from node '{via}'{through}, which "
+                                                           f"was disabled by a fault", t, safe=False)
         if safe:
             self._safe_many(todo)
         if exc is not None:   # after the safe states: formatting it reads the source files

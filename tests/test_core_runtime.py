@@ -97,15 +97,23 @@ def test_exception_stops_graph_and_devices_go_safe(reg):
 
 
 def test_degrade_keeps_running(reg):
-    text = CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, fail_at: 0.3}, on_fault: degrade")
-    res, rt = run_yaml(text, reg, duration=1.0)
-    # ran to the end, and says that it did so with a node disabled (a non-zero exit for scripts)
+    text = CHAIN.replace("amplitude: 1.0}", "amplitude: 1.0, fail_at: 0.3}, on_fault: degrade") + """\
+  - {id: other, plugin: mock-device, rate: 1000}
+"""
+    res, rt = run_yaml(text.replace("inputs: {command: gain.y}", "inputs: {command: gain.y}, on_fault: degrade"),
+                       reg, duration=1.0)
+    # ran to the end, and says that it did so with nodes disabled (a non-zero exit for scripts)
     assert res.status == "degraded" and res.exit_code == EXIT_FAULT
     assert "nodes disabled by faults: 'src' (exception at t=0.300 s)" in res.message
     stats = {n.id: n for n in res.nodes}
-    assert stats["src"].faulted and not stats["dev"].faulted   # dev is fed through gain, which goes on
-    assert stats["dev"].steps == 1001
+    # dev is fed through gain, which would pass src's last value on with fresh stamps: made safe and disabled too
+    assert stats["src"].faulted and stats["dev"].faulted and not stats["other"].faulted
+    assert stats["other"].steps == 1001 and stats["dev"].steps < 400
     assert res.faults[0].action == "degrade"
+    dev = next(f for f in res.faults if f.node == "dev")
+    assert dev.kind == "upstream" and dev.message == ("input 'command' comes from node 'gain', fed by node 'src', "
+                                                      "which was disabled by a fault")
+    assert rt.component("dev").safe
 
 
 def test_degrade_disables_the_devices_the_faulted_node_commands(reg):

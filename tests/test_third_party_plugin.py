@@ -93,7 +93,7 @@ def test_runs_in_a_graph(venv):
     code = (
         "from teletouch.graph import load_graph\nfrom teletouch.runtime import Runtime\n"
         f"rt = Runtime(load_graph({str(EXAMPLE / 'graph.yaml')!r}), log=lambda m: None)\n"
-        "ys = []\nrt.add_tap(lambda n, t, o: n == 'filter' and ys.append((t, o['y'])))\nrt.run()\n"
+        "ys = []\nrt.add_tap(lambda n, t, o: n == 'filter' and ys.append((t, o['y'].value)))\nrt.run()\n"
         "import math\ny = dict(ys)\n"
         "assert abs(y[0.5] - 2.0 * (1 - math.exp(-0.3 * 2 * math.pi * 2))) < 0.02, y[0.5]\nprint('ok')\n")
     r = subprocess.run([str(venv), "-c", code], capture_output=True, text=True, env=env, timeout=120)

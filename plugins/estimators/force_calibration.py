@@ -84,6 +84,7 @@ class PressRoutine(Component):
     name = "press-routine"
     kind = Kind.CONTROLLER
     default_rate = 1000.0
+    guards_upstream = True   # a node feeding it disabled: the routine aborts at once, zero force (a fault)
     inputs = {
         "position": Port("float64", (3,), "m", "leader end-effector position", required=True),
         "max_depth": Port("float64", (), "m", "max depth from the depth estimator", required=True),

@@ -4,7 +4,7 @@ import math
 
 from pydantic import Field
 
-from teletouch import Component, Kind, Params, Port, hookimpl
+from teletouch import Component, Kind, Params, Port, Sample, hookimpl
 
 
 class LowPass(Component):
@@ -33,7 +33,7 @@ class LowPass(Component):
             tau = 1.0 / (2.0 * math.pi * self.params.cutoff)
             self.y += (x - self.y) * (1.0 - math.exp(-(t - self.last_t) / tau))
         self.last_t = t
-        return {"y": self.y}
+        return {"y": Sample(self.y, inputs["x"].stamp)}   # as old as the newest measurement in it
 
 
 @hookimpl

@@ -19,7 +19,7 @@ def test_one_time_constant_after_a_step_gives_63_percent():
 
 def test_in_a_graph():
     ys = {}
-    tap = lambda node, t, out: node == "filter" and ys.update({t: out["y"]})   # noqa: E731
+    tap = lambda node, t, out: node == "filter" and ys.update({t: out["y"].value})   # noqa: E731
     result, rt = run_yaml(GRAPH_TEXT, make_registry(plugin), duration=1.0, taps=[tap])
     assert result.exit_code == 0
     assert ys[0.1] == 0.0                                              # before the 2 N step at 0.2 s
