@@ -45,16 +45,18 @@ The control law of ``position-force`` (each step, at 1 kHz as the leader; see 4 
 4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
    ``fade_time``, within that limit), clipped to ``+-max_force``; a non-finite desired force is taken as 0 (reached
    within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller.
-   The leader holds each command, so one step's change reaches the hand at once: below 1 kHz one step changes the
+   The leader holds each command, so one step's change reaches the hand at once: below 1 kHz one step raises the
    force by at most ``max_force_rate`` x 1 ms (``LEADER_PERIOD``), so the force follows more slowly (logged at
-   configure), never in steps of ``max_force_rate`` x the period;
+   configure), never in steps of ``max_force_rate`` x the period; it eases towards 0 (a fade, a release) at the rate
+   limit alone, so a fade still ends within ``fade_time``;
 5. a loss that lasts is a fault: a leader opening (once received) or, for position-force, a force estimate lost
    continuously for longer than ``fault_after_lost`` (0.5 s; at least ``fade_time``, so the force has faded out)
    makes step() raise ComponentFault naming what was lost and for how long (and the input: the runtime adds which
    node and port feed it); the runtime then drives the devices to their safe states (zero leader force, the follower
    holds). Invalid (not finite) estimates are counted (``invalid_forces`` in status() and results(); the first is
    logged); since each good estimate ends a loss, a good one that comes when at least ``max_invalid_force_share`` of
-   the last ``INVALID_FORCE_WINDOW`` estimates were invalid is a ComponentFault too.
+   the last ``INVALID_FORCE_WINDOW`` estimates were invalid, in at least ``MIN_INVALID_FORCE_DIPS`` separate runs (a
+   single burst is a loss, fault_after_lost's), is a ComponentFault too.
 
 ``position-position`` replaces step 2 by a PD on the position error,
 ``f = kp * (x_f' - x_l) + kd * (v_f' - v_l)`` (``x_f'`` the follower opening mapped back to the leader's scale), the
@@ -118,6 +120,8 @@ MAX_SMOOTHING_TIME = 0.25          # s
 MAX_FAULT_AFTER_LOST = 10.0        # s
 #: how many of the latest force estimates position-force's max_invalid_force_share looks at (1 s at 60 Hz)
 INVALID_FORCE_WINDOW = 60
+#: the separate runs of invalid estimates in that window the share fault needs: a single burst is a loss that ended
+MIN_INVALID_FORCE_DIPS = 5
 
 
 # ------------------------------------------------------------------------------------------------ pure functions
@@ -486,8 +490,9 @@ class _Bilateral(Component):
 
     kind = Kind.CONTROLLER
     default_rate = 1000.0
-    #: a lost force estimate fades the force on the hand (stale_after, fade_time, fault_after_lost) and the follower
-    #: holds a stale leader: under degrade the runtime leaves the devices it commands to it
+    #: a lost force estimate, or a node feeding it disabled by a fault, fades the force on the hand (position-force;
+    #: no-feedback renders none) and the follower holds a stale leader: under degrade the runtime leaves the devices
+    #: it commands to it (position-position sets it False)
     guards_upstream = True
     inputs = dict(_IN)
     outputs = dict(_OUT)
@@ -501,10 +506,9 @@ class _Bilateral(Component):
             p = self.params
             step = p.max_force_rate * LEADER_PERIOD
             self.ctx.log(f"{self.name} at {rate:g} Hz, below 1 kHz: the leader holds each force command "
-                         f"{1e3 / rate:g} ms, so one step changes the force by at most max_force_rate x 1 ms "
-                         f"({step:g} N, not {p.max_force_rate / rate:g} N): the force follows at most "
-                         f"{step * rate:g} N/s, and fading max_force out takes up to "
-                         f"{max(p.fade_time, p.max_force / (step * rate)):g} s; run it at 1 kHz")
+                         f"{1e3 / rate:g} ms, so one step raises the force by at most max_force_rate x 1 ms "
+                         f"({step:g} N, not {p.max_force_rate / rate:g} N): the force rises at most "
+                         f"{step * rate:g} N/s (it fades out within fade_time as at 1 kHz); run it at 1 kHz")
 
     def _rate(self) -> float:
         """The node's step rate (Hz)."""
@@ -800,7 +804,10 @@ class _Bilateral(Component):
         # the rate limit's step is at most two nominal periods long: after a stalled or late step the force still
         # moves by no more than max_force_rate x 2 periods (not by the rate x the whole gap); below 1 kHz one step
         # moves it by at most max_force_rate x 1 ms (_max_step: the leader holds the command, the hand gets a step)
-        f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt), self._max_step)
+        # (the per-step cap below 1 kHz bounds a rise of |force| only: a fade or a release eases towards 0 at the
+        # rate limit, within fade_time, as at 1 kHz)
+        easing = f_des * self.out_force >= 0 and abs(f_des) <= abs(self.out_force)   # towards 0, not across it
+        f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt), math.inf if easing else self._max_step)
         f = saturate(f, p.max_force)
         if not math.isfinite(f):
             f = 0.0
@@ -884,7 +891,9 @@ class PositionForce(_Bilateral):
         max_invalid_force_share: float | None = Field(0.5, gt=0, le=1, description="when a good estimate comes "
                                                       "and at least this share of the last "
                                                       f"{INVALID_FORCE_WINDOW} received (1 s at 60 Hz) were invalid "
-                                                      "(not finite), it is a fault: an estimator failing on every "
+                                                      f"(not finite), in at least {MIN_INVALID_FORCE_DIPS} separate "
+                                                      "runs (one burst is a loss), it is a fault: an estimator failing "
+                                                      "on every "
                                                       "other frame makes no loss that lasts (each good estimate "
                                                       "ends it) while the force dips at every bad one (a lasting "
                                                       "loss is fault_after_lost's; null: never; counted in "
@@ -1029,9 +1038,13 @@ class PositionForce(_Bilateral):
         if share is None or len(self.recent_bad) < INVALID_FORCE_WINDOW:
             return
         n = sum(self.recent_bad)
-        if n >= share * INVALID_FORCE_WINDOW:
-            raise ComponentFault(f"{n} of the last {INVALID_FORCE_WINDOW} force estimates were not finite "
-                                 f"({self.bad_force} since t={self.bad_since:.3f} s), at least "
+        if n < share * INVALID_FORCE_WINDOW:
+            return
+        recent = list(self.recent_bad)
+        dips = sum(1 for i, b in enumerate(recent) if b and (i == 0 or not recent[i - 1]))
+        if dips >= MIN_INVALID_FORCE_DIPS:   # (one burst, however long, is a loss: fault_after_lost's)
+            raise ComponentFault(f"{n} of the last {INVALID_FORCE_WINDOW} force estimates were not finite, in {dips} "
+                                 f"separate runs ({self.bad_force} since t={self.bad_since:.3f} s), at least "
                                  f"max_invalid_force_share {share:g}: the estimator is failing (the force on the "
                                  f"hand dipped at every one); check the sensor and its estimators",
                                  input_port="force")
@@ -1160,6 +1173,9 @@ class PositionPosition(_Bilateral):
     """Position-position baseline: a PD on the leader-follower position error is rendered to the operator."""
 
     name = "position-position"
+    #: its force comes from the follower's opening, which a filter between may keep fresh after a fault upstream of
+    #: it: under degrade the runtime makes its devices safe then
+    guards_upstream = False
     inputs = dict(_IN, follower_opening=Port("float64", (), "m", "follower opening", required=True),
                   force=Port("float64", (), "N", "sensed force (not used by this law)", required=False))
 
