@@ -494,11 +494,12 @@ class Context:
         """The ids of the nodes that feed this node through the graph's wiring, directly or through other nodes, and
         that a fault has disabled so far (action stop or degrade), in data-flow order; [] while none is, and outside
         a graph. A node disabled by a fault publishes nothing more, but a node in between (a filter) may go on
-        publishing its last value with fresh stamps: the inputs' own freshness cannot tell. The runtime disables
-        only the devices wired straight to such a node; a node that must not go on with stale data (the press
-        routine) asks here. Cheap enough to call every step. A fault in another rate group (the wall clock) shows
-        from the moment the runtime records it; an isolated node (``isolate: process``) gets the list sent with each
-        step, as it was when the step was sent."""
+        publishing its last value with fresh stamps: the inputs' own freshness cannot tell. Under degrade the runtime
+        disables the devices such a node commands, directly or through nodes that do not guard them
+        (:attr:`Component.guards_upstream`); a node that guards its devices, or must not go on with stale data (the
+        press routine, position-force), asks here. Cheap enough to call every step. A fault in another rate group
+        (the wall clock) shows from the moment the runtime records it; an isolated node (``isolate: process``) gets
+        the list sent with each step, as it was when the step was sent."""
         if self._disabled_upstream is None:
             return []
         return list(self._disabled_upstream())

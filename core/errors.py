@@ -98,6 +98,35 @@ def exception_place(exc: BaseException) -> str:
     importer's frozen frame. "" when it has neither (never raised)."""
     if getattr(exc, "where", None):
         return str(exc.where)
+    try:
+        return _place(exc)
+    except Exception:   # (never on the fault path: the innermost frame, as a bare traceback would say)
+        last = traceback.extract_tb(exc.__traceback__)[-1:]
+        return f"{last[0].filename.rsplit('/', 1)[-1]}:{last[0].lineno}" if last else ""
+
+
+#: the top-level packages of plugins registered by module (TELETOUCH_PLUGINS, ``Registry.register``): their code is
+#: a plugin's own also where it lies in site-packages without a teletouch entry point
+_REGISTERED_PACKAGES: set[str] = set()
+
+
+def note_plugin_module(module: str) -> None:
+    """Count ``module``'s top-level package as a plugin's own code in :func:`exception_place` (the registry calls it
+    for each plugin it registers)."""
+    top = str(module).split(".", 1)[0].strip()
+    if top:
+        _REGISTERED_PACKAGES.add(top)
+
+
+def warm_places() -> None:
+    """Read what :func:`exception_place` needs (the standard library's folders, the installed entry points) now,
+    before a run, not on the first fault's path (a few ms of metadata reads)."""
+    _stdlib_dirs()
+    _plugin_packages(tuple(sys.path))
+
+
+def _place(exc: BaseException) -> str:
+    """:func:`exception_place` for an exception without its own ``where``."""
     frames = []
     tb = exc.__traceback__
     while tb is not None:
@@ -152,7 +181,8 @@ def _library_root(filename: str) -> str | None:
     site_dir = _SITE_DIR.match(filename)
     if site_dir:
         top = re.split(r"[/\\.]", filename[len(site_dir.group(1)):].lstrip("/\\"), maxsplit=1)[0]
-        return None if top in _plugin_packages(tuple(sys.path)) else os.path.normpath(site_dir.group(1))
+        own = top in _REGISTERED_PACKAGES or top in _plugin_packages(tuple(sys.path))
+        return None if own else os.path.normpath(site_dir.group(1))
     path = os.path.normpath(filename)
     return next((d for d in _stdlib_dirs() if path.startswith(d + os.sep)), None)
 

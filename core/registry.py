@@ -36,7 +36,7 @@ from pydantic import BaseModel
 
 from . import hookspecs
 from .component import MAX_RATE, MIN_RATE, NAME_RE, Component, Device, Kind, Params, Port, rate_problem
-from .errors import DuplicateComponentError, PluginError, UnknownComponentError, exception_line
+from .errors import DuplicateComponentError, PluginError, UnknownComponentError, exception_line, note_plugin_module
 
 GROUP = "teletouch"
 ENV_DISABLE = "TELETOUCH_DISABLE_PLUGIN_AUTOLOAD"
@@ -299,6 +299,7 @@ class Registry:
 
     def _register(self, plugin: Any, rec: PluginRecord, *, strict: bool) -> PluginRecord:
         name = rec.name
+        note_plugin_module(getattr(plugin, "__module__", None) or rec.module)   # its lines are a plugin's in faults
         loaded_as = self.pm.get_name(plugin) if self.pm.is_registered(plugin) else None
         if loaded_as is not None and rec.distribution == "(TELETOUCH_PLUGINS)":
             # a module named in TELETOUCH_PLUGINS that its installed entry point has loaded already (the doc's "try it

@@ -31,7 +31,7 @@ from .component import (
     Component, Context, Device, Inputs, Sample, _Slot, has_warm_up, plain_results, step_location, step_samples,
     value_checker,
 )
-from .errors import ComponentFault, exception_line, traceback_text
+from .errors import ComponentFault, exception_line, traceback_text, warm_places
 from .graph import GraphSpec
 
 EXIT_OK = 0
@@ -329,6 +329,7 @@ class Runtime:
             if line not in spec.warnings:
                 self.log(f"warning: {line}")
         self._build()
+        warm_places()   # what a fault's place needs, read now: not on the first fault's way to the safe states
 
     def log(self, msg: str) -> None:
         """Log a line. A logger that fails (stderr closed: a pipe whose reader has gone) must not take the fault
@@ -588,9 +589,9 @@ class Runtime:
         return node.safe_mark is not None and node.safe_mark == node.acts and not node.in_step
 
     def _safe_raised(self, node: _Node, exc: BaseException) -> None:
+        fault = Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now, "logged",
+                      traceback_text(exc))   # (formatted outside the lock: it reads the source files)
         with self._lock:
-            fault = Fault(node.id, "shutdown", f"safe_state() raised {exception_line(exc)}", self._now, "logged",
-                          traceback_text(exc))
             self.faults.append(fault)
             self._unsafe.append(fault)
 

@@ -143,3 +143,33 @@ def test_an_entry_points_module_that_raises_names_its_own_line(tmp_path, monkeyp
     with pytest.raises(json.JSONDecodeError) as caught:
         ep.load()
     assert re.search(r" \(broken\.py:3, raised in json/decoder\.py:\d+\)$", exception_line(caught.value))
+
+
+def test_a_plugin_module_registered_from_site_packages_is_the_plugins_own_code(tmp_path, monkeypatch):
+    """A plugin installed without a teletouch entry point (named in TELETOUCH_PLUGINS, or given to register()) lies in
+    site-packages like a library: its line is named, not the runtime's that called it."""
+    site = tmp_path / "lib" / "site-packages"
+    (site / "acme_places").mkdir(parents=True)
+    (site / "acme_places" / "__init__.py").write_text(textwrap.dedent("""\
+        import json
+        from teletouch import Component, Kind, Port, hookimpl
+
+        class Sensor(Component):
+            name = "acme-places"
+            kind = Kind.SENSOR
+            outputs = {"force": Port("float64", (), "N", "f")}
+
+            def step(self, t, inputs):
+                return {"force": json.loads("{bad json")["f"]}
+
+        @hookimpl
+        def teletouch_components():
+            return [Sensor]
+        """))
+    monkeypatch.syspath_prepend(str(site))
+    import acme_places
+
+    res, _ = run_yaml("clock: sim\nnodes:\n  - {id: force, plugin: acme-places, rate: 10}\n",
+                      make_registry(acme_places), duration=0.5)
+    assert res.status == "fault"
+    assert re.search(r"\(__init__\.py:10, raised in json/decoder\.py:\d+\)$", res.faults[0].message), res.faults[0]

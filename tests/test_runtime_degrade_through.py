@@ -80,8 +80,9 @@ def test_the_built_in_controllers_guard_their_devices():
     from teletouch.plugins.estimators.force_calibration import PressRoutine
     from teletouch.mock import MockGain
 
-    assert all(c.guards_upstream for c in (PositionForce, PositionPosition, NoFeedback, PressRoutine))
-    assert not MockGain.guards_upstream
+    assert all(c.guards_upstream for c in (PositionForce, NoFeedback, PressRoutine))
+    # position-position renders a force from the follower's opening and does not ask ctx.disabled_upstream()
+    assert not PositionPosition.guards_upstream and not MockGain.guards_upstream
 
 
 def test_position_force_fades_the_force_when_a_node_feeding_it_is_disabled():
