@@ -242,3 +242,18 @@ def test_an_ended_receive_thread_is_named_at_once(drive, channel):
         assert isinstance(exc, HardwareError)
         assert re.match(r"CANopen node 5 on virtual:\S+: python-can's receive thread for virtual:\S+ has ended after "
                         rf"CanOperationError: {RECV_DOWN}.*close the driver and start it again", str(exc)), str(exc)
+
+
+def test_a_send_in_the_gap_before_the_listener_takes_the_error_does_not_raise_it(drive, channel):
+    """python-can sets the Notifier's exception just before the driver's listener takes it; canopen checks that
+    exception after every send, so a step's SYNC or SDO request in that gap raised the receive error as its own
+    ("sending SYNC failed"). Held in the gap here: the steps and an SDO exchange go on."""
+    with harness(channel) as h:
+        at(h, 25000, drive)
+        h.comp.network.notifier.exception = can.CanOperationError("Error receiving: Network is down", 100)
+        try:
+            step_for(h, h.comp.map.opening(25000), 0.2)
+            at(h, 40000, drive)
+            assert h.comp.node.sdo[0x6041].raw & 0x6F == 0x27
+        finally:
+            h.comp.network.notifier.exception = None

@@ -395,10 +395,10 @@ class CanopenGripper(FollowerBase):
                 cmd = up_command(p.channel, info["virtual"], p.bitrate)
                 raise HardwareError(f"CAN interface {p.channel} is down: bring it up with {cmd}"
                                     + ("" if info["virtual"] else " (the drive's bit rate: the bitrate param)"))
-        self.network = canopen.Network()
         # (in the Network's listeners before connect() starts python-can's receive thread: an error at its first
         # recv() ended it, with no listener to handle it yet)
         self._rx = ReceiveErrors()
+        self.network = receiving_network(self._rx)
         self.network.listeners.append(self._rx)
         logged = LogLines("can")   # python-can's words on the way (a vendor library it could not load)
         try:
@@ -1560,6 +1560,23 @@ class ReceiveErrors:
         raised, or something other than an Exception did): nothing is received any more."""
         t, notifier = self.thread, self._notifier
         return t is not None and not t.is_alive() and notifier is not None and not notifier.stopped
+
+
+def receiving_network(receive_errors: ReceiveErrors) -> Any:
+    """A canopen Network whose ``check()`` (called after every send: an SDO request, the SYNC, RPDO1) leaves errors in
+    receiving to the driver's :class:`ReceiveErrors` while python-can's receive thread lives: python-can sets the
+    Notifier's ``exception`` just before that listener's ``on_error`` takes it, and a send in between raised the
+    receive error as its own ("sending SYNC failed"; the safe state's hold not sent). A thread that has ended is
+    canopen's check as before. (A subclass made here: canopen is imported only where a drive is opened.)"""
+    import canopen
+
+    class ReceivingNetwork(canopen.Network):
+        def check(self) -> None:
+            if receive_errors.thread is not None and not receive_errors.stopped():
+                return   # (the driver's reads judge a receive failure that lasts: ReceiveErrors.failing)
+            super().check()
+
+    return ReceivingNetwork()
 
 
 class HostHeartbeat:
