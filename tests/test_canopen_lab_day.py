@@ -27,7 +27,7 @@ from pydantic import ValidationError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.followers import canopen_harness as harness, channel_fixture, drive_fixture  # noqa: E402
-from fakes.realtime import WAIT, drive_until, wait_for  # noqa: E402
+from fakes.realtime import WAIT, drive_until, thread_exceptions, wait_for  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
@@ -138,18 +138,6 @@ def test_the_safe_state_on_a_lost_adapter_logs_the_drive_and_the_bus(drive, chan
         h.comp.safe_state()
         hold = h.comp.map.counts(h.comp._hold_at)
         assert wait_for(lambda: drive.latched == hold)
-
-
-@contextlib.contextmanager
-def thread_exceptions():
-    """The exceptions that end a thread in the block (what Python prints as "Exception in thread ...")."""
-    ended: list[str] = []
-    saved = threading.excepthook
-    threading.excepthook = lambda args: ended.append(f"{args.thread.name}: {args.exc_value!r}")
-    try:
-        yield ended
-    finally:
-        threading.excepthook = saved
 
 
 def test_an_error_in_receiving_is_named_without_a_thread_traceback(drive, channel):

@@ -10,10 +10,8 @@ python-can's CanOperationError as socketcan's does for an interface that went do
 
 from __future__ import annotations
 
-import contextlib
 import re
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -24,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.canopen_drive import RECV_DOWN, FailingReceives  # noqa: E402
 from fakes.followers import canopen_harness as harness, channel_fixture, drive_fixture  # noqa: E402
-from fakes.realtime import WAIT, drive as step_for, drive_until, wait_for  # noqa: E402
+from fakes.realtime import WAIT, drive as step_for, drive_until, thread_exceptions, wait_for  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from teletouch.plugins.devices import canopen_gripper  # noqa: E402
@@ -63,18 +61,6 @@ def step_until_raises(h, cmd: float, timeout: float = WAIT) -> BaseException:
             return exc
         time.sleep(0.005)
     pytest.fail(f"no step raised within {timeout} s")
-
-
-@contextlib.contextmanager
-def thread_exceptions():
-    """The exceptions that end a thread in the block (what Python prints as "Exception in thread ...")."""
-    ended: list[str] = []
-    saved = threading.excepthook
-    threading.excepthook = lambda args: ended.append(f"{args.thread.name}: {args.exc_value!r}")
-    try:
-        yield ended
-    finally:
-        threading.excepthook = saved
 
 
 # ------------------------------------------------------------------------------------------- errors that frames end

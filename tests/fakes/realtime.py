@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
+import threading
 import time
 
 import pytest
@@ -65,3 +67,15 @@ def drive_until(h, cmd, cond, timeout=WAIT, period=0.005, trace=None):
         if cond(out) or time.monotonic() >= t_end:
             return out
         time.sleep(period)
+
+
+@contextlib.contextmanager
+def thread_exceptions():
+    """The exceptions that end a thread in the block (what Python prints as "Exception in thread ...")."""
+    ended: list[str] = []
+    saved = threading.excepthook
+    threading.excepthook = lambda args: ended.append(f"{args.thread.name}: {args.exc_value!r}")
+    try:
+        yield ended
+    finally:
+        threading.excepthook = saved
