@@ -45,10 +45,10 @@ The control law of ``position-force`` (each step, at 1 kHz as the leader; see 4 
 4. safety: the total leader force is rate-limited (``max_force_rate``; a lost leader fades it out over
    ``fade_time``, within that limit), clipped to ``+-max_force``; a non-finite desired force is taken as 0 (reached
    within the rate limit, not in one step): nothing but a finite force within limits ever leaves the controller.
-   The leader holds each command, so one step's change reaches the hand at once: below 1 kHz one step raises the
+   The leader holds each command, so one step's change reaches the hand at once: below 1 kHz one step changes the
    force by at most ``max_force_rate`` x 1 ms (``LEADER_PERIOD``), so the force follows more slowly (logged at
-   configure), never in steps of ``max_force_rate`` x the period; it eases towards 0 (a fade, a release) at the rate
-   limit alone, so a fade still ends within ``fade_time``;
+   configure), never in steps of ``max_force_rate`` x the period; a fade (the leader or the estimate lost) eases
+   towards 0 at the rate limit alone, so it still ends within ``fade_time``;
 5. a loss that lasts is a fault: a leader opening (once received) or, for position-force, a force estimate lost
    continuously for longer than ``fault_after_lost`` (0.5 s; at least ``fade_time``, so the force has faded out)
    makes step() raise ComponentFault naming what was lost and for how long (and the input: the runtime adds which
@@ -506,9 +506,9 @@ class _Bilateral(Component):
             p = self.params
             step = p.max_force_rate * LEADER_PERIOD
             self.ctx.log(f"{self.name} at {rate:g} Hz, below 1 kHz: the leader holds each force command "
-                         f"{1e3 / rate:g} ms, so one step raises the force by at most max_force_rate x 1 ms "
-                         f"({step:g} N, not {p.max_force_rate / rate:g} N): the force rises at most "
-                         f"{step * rate:g} N/s (it fades out within fade_time as at 1 kHz); run it at 1 kHz")
+                         f"{1e3 / rate:g} ms, so one step changes the force by at most max_force_rate x 1 ms "
+                         f"({step:g} N, not {p.max_force_rate / rate:g} N): the force follows at most "
+                         f"{step * rate:g} N/s (a fade still ends within fade_time); run it at 1 kHz")
 
     def _rate(self) -> float:
         """The node's step rate (Hz)."""
@@ -804,9 +804,11 @@ class _Bilateral(Component):
         # the rate limit's step is at most two nominal periods long: after a stalled or late step the force still
         # moves by no more than max_force_rate x 2 periods (not by the rate x the whole gap); below 1 kHz one step
         # moves it by at most max_force_rate x 1 ms (_max_step: the leader holds the command, the hand gets a step)
-        # (the per-step cap below 1 kHz bounds a rise of |force| only: a fade or a release eases towards 0 at the
-        # rate limit, within fade_time, as at 1 kHz)
-        easing = f_des * self.out_force >= 0 and abs(f_des) <= abs(self.out_force)   # towards 0, not across it
+        # (a fade, the leader or the estimate lost, is not held to that cap: it eases towards 0 at the rate limit,
+        # within fade_time, as at 1 kHz; in normal operation the cap holds both ways, an uneven limit in the loop
+        # with the hand made a limit cycle that kept the force far below the sensed one)
+        fading = not self.leader_ok or self.force_lost()
+        easing = fading and f_des * self.out_force >= 0 and abs(f_des) <= abs(self.out_force)   # to 0, not across
         f = rate_limit(self.out_force, f_des, max_rate, min(dt, self._max_dt), math.inf if easing else self._max_step)
         f = saturate(f, p.max_force)
         if not math.isfinite(f):
