@@ -27,7 +27,7 @@ from pydantic import ValidationError
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.followers import canopen_harness as harness, channel_fixture, drive_fixture  # noqa: E402
-from fakes.realtime import WAIT, drive_until, thread_exceptions, wait_for  # noqa: E402
+from fakes.realtime import drive_until, step_until_raises, thread_exceptions, wait_for  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from teletouch.plugins.devices.canopen_gripper import CanopenGripper  # noqa: E402
@@ -66,16 +66,6 @@ class Unplug:
         return self._recv(timeout)
 
 
-def step_until_raises(h, cmd: float, timeout: float = WAIT) -> BaseException:
-    """Step ``h`` in real time with ``cmd`` until a step raises (its error); fails after ``timeout`` s without one."""
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        try:
-            h.step(time.monotonic(), opening_command=cmd)
-        except Exception as exc:
-            return exc
-        time.sleep(0.005)
-    pytest.fail(f"no step raised within {timeout} s")
 
 
 def lost_adapter(exc: BaseException, channel: str, what: str) -> None:

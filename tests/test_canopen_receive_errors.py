@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from fakes.canopen_drive import RECV_DOWN, FailingReceives  # noqa: E402
 from fakes.followers import canopen_harness as harness, channel_fixture, drive_fixture  # noqa: E402
-from fakes.realtime import WAIT, drive as step_for, drive_until, thread_exceptions, wait_for  # noqa: E402
+from fakes.realtime import drive as step_for, drive_until, step_until_raises, thread_exceptions, wait_for  # noqa: E402
 
 from teletouch import HardwareError  # noqa: E402
 from teletouch.plugins.devices import canopen_gripper  # noqa: E402
@@ -52,15 +52,6 @@ def at(h, counts: int, drive) -> None:
     assert drive.latched == counts
 
 
-def step_until_raises(h, cmd: float, timeout: float = WAIT) -> BaseException:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        try:
-            h.step(time.monotonic(), opening_command=cmd)
-        except Exception as exc:
-            return exc
-        time.sleep(0.005)
-    pytest.fail(f"no step raised within {timeout} s")
 
 
 # ------------------------------------------------------------------------------------------- errors that frames end

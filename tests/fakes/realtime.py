@@ -79,3 +79,15 @@ def thread_exceptions():
         yield ended
     finally:
         threading.excepthook = saved
+
+
+def step_until_raises(h, cmd: float, timeout: float = WAIT) -> BaseException:
+    """Step ``h`` in real time with ``cmd`` until a step raises (its error); fails after ``timeout`` s without one."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        try:
+            h.step(time.monotonic(), opening_command=cmd)
+        except Exception as exc:
+            return exc
+        time.sleep(0.005)
+    pytest.fail(f"no step raised within {timeout} s")
